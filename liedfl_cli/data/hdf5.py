@@ -1,0 +1,365 @@
+"""The `Dataset` container and its HDF5 file format (see docs/data_format.md).
+
+A dataset holds T trajectories of N+1 poses of a product group SE(3)^m x SO(3)^n, sampled every h:
+R (T, N+1, B, 3, 3) with the m SE(3) bodies first, p (T, N+1, m, 3).  Models may only see R, p, t and
+h; `extras` (ground-truth velocities, torques, ...) are for evaluation only.
+"""
+from __future__ import annotations
+
+import json
+import os
+import warnings
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, Optional
+
+import h5py
+import numpy as np
+import torch
+
+from .. import __version__
+from ..lie import so3
+from ..lie.product import Pose, ProductGroup
+from ..lie.tolerances import tol
+from .errors import DatasetError
+
+FORMAT_VERSION = 1
+BODY_KINDS = ("se3", "so3")
+
+
+@dataclass(eq=False)
+class Dataset:
+    """Trajectories of a product group plus metadata (all arrays numpy, float64)."""
+
+    R: np.ndarray                      # (T, N+1, B, 3, 3)
+    p: np.ndarray                      # (T, N+1, m, 3)
+    h: float
+    scene: str
+    body_names: list[str]
+    body_kinds: list[str]              # "se3" bodies first, then "so3"
+    params: dict[str, Any] = field(default_factory=dict)
+    seed: int = -1
+    split: dict[str, np.ndarray] = field(default_factory=dict)
+    extras: dict[str, np.ndarray] = field(default_factory=dict)
+    t: Optional[np.ndarray] = None     # (N+1,); defaults to h * arange(N+1)
+
+    def __post_init__(self):
+        self.R = np.asarray(self.R, dtype=np.float64)
+        self.p = np.asarray(self.p, dtype=np.float64)
+        self.h = float(self.h)
+        self.seed = int(self.seed)
+        self.body_names = [str(b) for b in self.body_names]
+        self.body_kinds = [str(b) for b in self.body_kinds]
+        if self.t is None and self.R.ndim >= 2:
+            self.t = self.h * np.arange(self.R.shape[1], dtype=np.float64)
+        if not self.split and self.R.ndim >= 1:
+            self.split = {"train": np.arange(self.R.shape[0]), "test": np.zeros(0, dtype=np.int64)}
+        self.split = {k: np.asarray(v, dtype=np.int64).reshape(-1) for k, v in self.split.items()}
+
+    # ------------------------------------------------------------------ layout
+    @property
+    def group(self) -> ProductGroup:
+        return ProductGroup(self.n_se3, self.n_so3)
+
+    @property
+    def n_se3(self) -> int:
+        return sum(k == "se3" for k in self.body_kinds)
+
+    @property
+    def n_so3(self) -> int:
+        return sum(k == "so3" for k in self.body_kinds)
+
+    @property
+    def n_bodies(self) -> int:
+        return len(self.body_kinds)
+
+    @property
+    def n_trajectories(self) -> int:
+        """T."""
+        return int(self.R.shape[0])
+
+    @property
+    def n_steps(self) -> int:
+        """N: number of time steps (each trajectory holds N+1 poses)."""
+        return int(self.R.shape[1]) - 1
+
+    @property
+    def train_idx(self) -> np.ndarray:
+        return self.split["train"]
+
+    @property
+    def test_idx(self) -> np.ndarray:
+        return self.split["test"]
+
+    def pose(self, traj_idx=None, dtype: torch.dtype = torch.float64, device=None) -> Pose:
+        """Torch `Pose` of the selected trajectories: R (..., N+1, B, 3, 3), p (..., N+1, m, 3).
+
+        traj_idx: None (all), an int, a slice or an integer array / list; "train" / "test" select a split.
+        """
+        if isinstance(traj_idx, str):
+            traj_idx = self.split[traj_idx]
+        R, p = (self.R, self.p) if traj_idx is None else (self.R[traj_idx], self.p[traj_idx])
+        return Pose(torch.as_tensor(np.ascontiguousarray(R), dtype=dtype, device=device),
+                    torch.as_tensor(np.ascontiguousarray(p), dtype=dtype, device=device))
+
+    def validate(self, source: str = "<in-memory dataset>") -> "Dataset":
+        """Run the load-time checks on this dataset (projects slightly-off rotations in place)."""
+        self.R = _validate(self, source)
+        return self
+
+    def __repr__(self) -> str:
+        return (f"Dataset(scene={self.scene!r}, group={self.group.name}, T={self.n_trajectories}, "
+                f"N={self.n_steps}, h={self.h}, train={len(self.train_idx)}, test={len(self.test_idx)}, "
+                f"extras={sorted(self.extras)})")
+
+
+# ---------------------------------------------------------------------- writing
+def save_dataset(ds: Dataset, path) -> Path:
+    """Write `ds` to `path` atomically (write `<path>.tmp`, then os.replace). Returns the path."""
+    path = Path(path)
+    _validate(ds, str(path), project=False)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".h5.tmp")
+    try:
+        with h5py.File(tmp, "w") as f:
+            a = f.attrs
+            a["format_version"] = FORMAT_VERSION
+            a["scene"] = ds.scene
+            a["h"] = float(ds.h)
+            a["body_names"] = json.dumps(list(ds.body_names))
+            a["body_kinds"] = json.dumps(list(ds.body_kinds))
+            a["n_se3"] = ds.n_se3
+            a["n_so3"] = ds.n_so3
+            a["params"] = json.dumps(ds.params, sort_keys=True)
+            a["seed"] = int(ds.seed)
+            a["liedfl_version"] = __version__
+            a["created"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
+            f.create_dataset("R", data=ds.R)
+            f.create_dataset("p", data=ds.p)
+            f.create_dataset("t", data=np.asarray(ds.t, dtype=np.float64))
+            g = f.create_group("split")
+            for k in ("train", "test"):
+                g.create_dataset(k, data=np.asarray(ds.split[k], dtype=np.int64))
+            e = f.create_group("extras")
+            for k, v in ds.extras.items():
+                e.create_dataset(k, data=np.asarray(v))
+        os.replace(tmp, path)
+    except BaseException:
+        if tmp.exists():
+            tmp.unlink()
+        raise
+    return path
+
+
+# ---------------------------------------------------------------------- reading
+def _attr(f, name: str, src: str, required: bool = True, default=None):
+    if name not in f.attrs:
+        if required:
+            raise DatasetError(f"{src}: attribute '{name}' is missing")
+        return default
+    v = f.attrs[name]
+    if isinstance(v, bytes):
+        v = v.decode()
+    if isinstance(v, np.generic):
+        v = v.item()
+    return v
+
+
+def _json_attr(f, name: str, src: str, required: bool = True, default=None):
+    v = _attr(f, name, src, required, None)
+    if v is None:
+        return default
+    if isinstance(v, np.ndarray):  # tolerate a plain array of strings instead of JSON
+        return [x.decode() if isinstance(x, bytes) else str(x) for x in v.reshape(-1)]
+    if not isinstance(v, str):
+        raise DatasetError(f"{src}: attribute '{name}' must be a JSON string, got {type(v).__name__}")
+    try:
+        return json.loads(v)
+    except json.JSONDecodeError as exc:
+        raise DatasetError(f"{src}: attribute '{name}' is not valid JSON ({exc.msg} at char {exc.pos})") from None
+
+
+def _array(f, name: str, src: str):
+    obj = f.get(name)
+    if obj is None:
+        return None
+    if not isinstance(obj, h5py.Dataset):
+        raise DatasetError(f"{src}: '{name}' must be an HDF5 dataset, found a group")
+    return obj[()]
+
+
+def load_dataset(path) -> Dataset:
+    """Read and validate an HDF5 dataset file; every problem raises `DatasetError`.
+
+    Rotations off SO(3) by more than the warn tolerance (1e-9 float64 / 1e-5 float32) but less than
+    the reject tolerance (1e-3) are projected by SVD with a single warning.
+    """
+    path = Path(path)
+    src = str(path)
+    if not path.exists():
+        raise DatasetError(f"{src}: file does not exist")
+    if not path.is_file() or not h5py.is_hdf5(path):
+        raise DatasetError(f"{src}: not an HDF5 file")
+    try:
+        with h5py.File(path, "r") as f:
+            version = _attr(f, "format_version", src)
+            if not isinstance(version, int) or not 1 <= version <= FORMAT_VERSION:
+                raise DatasetError(f"{src}: attribute 'format_version' is {version!r}; this liedfl reads 1..{FORMAT_VERSION}")
+            h = _attr(f, "h", src)
+            kinds = _json_attr(f, "body_kinds", src)
+            names = _json_attr(f, "body_names", src, required=False)
+            if not isinstance(kinds, list):
+                raise DatasetError(f"{src}: attribute 'body_kinds' must be a JSON list of 'se3'/'so3'")
+            if names is None:
+                names = [f"body{i}" for i in range(len(kinds))]
+            for key, expected in (("n_se3", kinds.count("se3")), ("n_so3", kinds.count("so3"))):
+                given = _attr(f, key, src, required=False)
+                if given is not None and given != expected:
+                    raise DatasetError(f"{src}: attribute '{key}' is {given} but 'body_kinds' lists {expected} such bodies")
+            scene = _attr(f, "scene", src, required=False, default=path.stem)
+            params = _json_attr(f, "params", src, required=False, default={})
+            seed = _attr(f, "seed", src, required=False, default=-1)
+            R = _array(f, "R", src)
+            if R is None:
+                raise DatasetError(f"{src}: dataset 'R' is missing")
+            p = _array(f, "p", src)
+            t = _array(f, "t", src)
+            split = None
+            if "split" in f:
+                split = {}
+                for k in ("train", "test"):
+                    a = _array(f, f"split/{k}", src)
+                    if a is None:
+                        raise DatasetError(f"{src}: dataset 'split/{k}' is missing")
+                    split[k] = a
+            extras = {}
+            if "extras" in f:
+                for k in f["extras"]:
+                    extras[k] = _array(f, f"extras/{k}", src)
+    except DatasetError:
+        raise
+    except (OSError, KeyError, ValueError, TypeError) as exc:
+        raise DatasetError(f"{src}: cannot read file ({type(exc).__name__}: {exc})") from None
+
+    if not isinstance(h, (int, float)) or not np.isfinite(h) or h <= 0:
+        raise DatasetError(f"{src}: attribute 'h' must be a positive finite number, got {h!r}")
+    R = _float_array(R, "R", src)
+    m = kinds.count("se3") if all(k in BODY_KINDS for k in kinds) else 0
+    if p is None:
+        if m > 0:
+            raise DatasetError(f"{src}: dataset 'p' is missing (required with {m} SE(3) bodies)")
+        p = np.zeros(R.shape[:2] + (0, 3)) if R.ndim == 5 else np.zeros((0, 0, 0, 3))
+    p = _float_array(p, "p", src)
+    for k in ("train", "test") if split is not None else ():
+        if not np.issubdtype(np.asarray(split[k]).dtype, np.integer):
+            raise DatasetError(f"{src}: dataset 'split/{k}' must hold integers, got dtype {np.asarray(split[k]).dtype}")
+    input_dtype = torch.float32 if R.dtype == np.float32 else torch.float64
+    ds = Dataset(R=R, p=p, h=float(h), scene=str(scene), body_names=list(names), body_kinds=list(kinds),
+                 params=params, seed=int(seed), split=split or {},
+                 extras=extras, t=None if t is None else _float_array(t, "t", src))
+    if split is None and ds.R.ndim >= 1:
+        ds.split = {"train": np.arange(ds.R.shape[0]), "test": np.zeros(0, dtype=np.int64)}
+    ds.R = _validate(ds, src, input_dtype=input_dtype)
+    return ds
+
+
+def _float_array(a, name: str, src: str) -> np.ndarray:
+    a = np.asarray(a)
+    if not np.issubdtype(a.dtype, np.floating):
+        raise DatasetError(f"{src}: dataset '{name}' must hold floating-point numbers, got dtype {a.dtype}")
+    return a
+
+
+# ---------------------------------------------------------------------- validation
+def _first(mask: np.ndarray) -> tuple:
+    return tuple(int(i) for i in np.argwhere(mask)[0])
+
+
+def _validate(ds: Dataset, src: str, project: bool = True, input_dtype: torch.dtype = torch.float64) -> np.ndarray:
+    """Check `ds`; return R (projected where slightly off SO(3) if `project`). Raises DatasetError."""
+    kinds, names = ds.body_kinds, ds.body_names
+    bad = [i for i, k in enumerate(kinds) if k not in BODY_KINDS]
+    if bad:
+        raise DatasetError(f"{src}: attribute 'body_kinds' has unknown kind {kinds[bad[0]]!r} at index {bad[0]} (use 'se3' or 'so3')")
+    if not kinds:
+        raise DatasetError(f"{src}: attribute 'body_kinds' is empty; a dataset needs at least one body")
+    order = [i for i in range(1, len(kinds)) if kinds[i] == "se3" and kinds[i - 1] == "so3"]
+    if order:
+        raise DatasetError(f"{src}: attribute 'body_kinds' lists 'se3' after 'so3' at index {order[0]}; SE(3) bodies come first")
+    if len(names) != len(kinds):
+        raise DatasetError(f"{src}: attribute 'body_names' has {len(names)} entries but 'body_kinds' has {len(kinds)}")
+    if not np.isfinite(ds.h) or ds.h <= 0:
+        raise DatasetError(f"{src}: attribute 'h' must be a positive finite number, got {ds.h!r}")
+    B, m = len(kinds), kinds.count("se3")
+
+    R, p = ds.R, ds.p
+    if R.ndim != 5 or R.shape[2:] != (B, 3, 3):
+        raise DatasetError(f"{src}: dataset 'R' has shape {R.shape}, expected (T, N+1, {B}, 3, 3) for body_kinds {kinds}")
+    T, N1 = R.shape[:2]
+    if T < 1 or N1 < 2:
+        raise DatasetError(f"{src}: dataset 'R' has shape {R.shape}; need at least 1 trajectory of at least 2 poses")
+    if p.shape != (T, N1, m, 3):
+        raise DatasetError(f"{src}: dataset 'p' has shape {p.shape}, expected {(T, N1, m, 3)} (T, N+1, n_se3, 3)")
+    for name, a in (("R", R), ("p", p)):
+        fin = np.isfinite(a)
+        if not fin.all():
+            raise DatasetError(f"{src}: dataset '{name}' has non-finite value at index {_first(~fin)}")
+    if ds.t is not None:
+        t = np.asarray(ds.t)
+        if t.shape != (N1,):
+            raise DatasetError(f"{src}: dataset 't' has shape {t.shape}, expected ({N1},) to match 'R'")
+        if not np.isfinite(t).all():
+            raise DatasetError(f"{src}: dataset 't' has non-finite value at index {_first(~np.isfinite(t))}")
+        off = np.abs(np.diff(t) - ds.h) > 1e-6 * ds.h
+        if off.any():
+            k = _first(off)[0]
+            raise DatasetError(f"{src}: dataset 't' is not evenly spaced by h={ds.h}: t[{k + 1}] - t[{k}] = {t[k + 1] - t[k]!r}")
+
+    if set(ds.split) != {"train", "test"}:
+        raise DatasetError(f"{src}: 'split' must have exactly 'train' and 'test', got {sorted(ds.split)}")
+    for k in ("train", "test"):
+        idx = np.asarray(ds.split[k])
+        if idx.ndim != 1:
+            raise DatasetError(f"{src}: dataset 'split/{k}' has shape {idx.shape}, expected 1-D")
+        out = (idx < 0) | (idx >= T)
+        if out.any():
+            j = _first(out)[0]
+            raise DatasetError(f"{src}: dataset 'split/{k}' has index {int(idx[j])} out of range [0, {T}) at position {j}")
+        uniq, counts = np.unique(idx, return_counts=True)
+        if (counts > 1).any():
+            raise DatasetError(f"{src}: dataset 'split/{k}' lists trajectory {int(uniq[counts > 1][0])} twice")
+    both = np.isin(ds.split["test"], ds.split["train"])
+    if both.any():
+        j = _first(both)[0]
+        raise DatasetError(f"{src}: dataset 'split/test' shares trajectory {int(ds.split['test'][j])} with 'split/train' "
+                           f"(at position {j}); splits must be disjoint")
+    for k, v in ds.extras.items():
+        v = np.asarray(v)
+        if v.ndim < 1 or v.shape[0] != T:
+            raise DatasetError(f"{src}: dataset 'extras/{k}' has shape {v.shape}; its first axis must be T={T}")
+
+    # rotations: ||R^T R - I||_F and det R
+    warn_tol, reject_tol = tol(input_dtype, "project_warn"), tol(input_dtype, "reject")
+    E = np.swapaxes(R, -1, -2) @ R - np.eye(3)
+    err = np.sqrt((E * E).sum((-1, -2)))
+    det_err = np.abs(np.linalg.det(R) - 1.0)
+    worst = np.maximum(err, det_err)
+    gross = worst > reject_tol
+    if gross.any():
+        i = _first(gross)
+        raise DatasetError(
+            f"{src}: dataset 'R' is not a rotation at index {i} (trajectory, sample, body): "
+            f"||R^T R - I||_F = {err[i]:.3g}, det R = {np.linalg.det(R[i]):.6g} (reject tolerance {reject_tol:g})")
+    off = worst > warn_tol
+    if project and off.any():
+        R = R.copy()
+        R[off] = so3.project(torch.from_numpy(np.ascontiguousarray(R[off]))).numpy()
+        warnings.warn(
+            f"{src}: projected {int(off.sum())} of {off.size} rotations in 'R' onto SO(3) by SVD "
+            f"(max ||R^T R - I||_F = {err.max():.3g}, max |det R - 1| = {det_err.max():.3g}, "
+            f"warn tolerance {warn_tol:g})", stacklevel=3)
+    return R
+
+
+__all__ = ["FORMAT_VERSION", "Dataset", "save_dataset", "load_dataset"]

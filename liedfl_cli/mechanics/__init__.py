@@ -1,0 +1,1 @@
+"""Building blocks of discrete mechanics: parameterisations, kinetic terms, potentials, forces."""

@@ -1,0 +1,41 @@
+"""Build the model a config asks for: LieDFLNN (baseline=none) or a baseline (later issues)."""
+from __future__ import annotations
+
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+
+from ..data.errors import ConfigError
+from .liedflnn import LieDFLNN
+
+
+def resolve_potential(cfg_model, dataset) -> str:
+    """`auto` -> no potential network when the scene is known to have none (g = 0, one body)."""
+    pot = cfg_model.get("potential", "auto")
+    if pot != "auto":
+        return pot
+    physics = (dataset.params or {}).get("physics") or {}
+    if dataset.group.n_bodies == 1 and "g" in physics and float(physics["g"]) == 0.0:
+        return "none"
+    return "mlp"
+
+
+def build_model(cfg: DictConfig, dataset):
+    """Instantiate `cfg.model` for the dataset's group and step (LieDFLNN when baseline is none)."""
+    baseline = cfg.baseline.name
+    if baseline != "none":
+        raise ConfigError(f"baseline={baseline!r} is not available yet (choose baseline=none)")
+    forces = OmegaConf.to_container(cfg.force, resolve=True) if cfg.get("force") else {}
+    # _partial_ so that runtime objects (the group layout) are passed as they are, not merged
+    # into the config.
+    factory = instantiate(cfg.model, _partial_=True, _convert_="all")
+    model = factory(
+        G=dataset.group,
+        h=dataset.h,
+        potential=resolve_potential(cfg.model, dataset),
+        forces=forces,
+        epsilon=float(cfg.train.epsilon),
+        seed=int(cfg.seed),
+    )
+    if not isinstance(model, LieDFLNN):
+        raise ConfigError(f"model._target_ must build a LieDFLNN, got {type(model).__name__}")
+    return model

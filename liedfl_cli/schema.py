@@ -1,0 +1,101 @@
+"""Dataclass schemas of the config sections owned by liedfl: a misspelled or mistyped key in
+any yaml file (experiment, budget, ...) fails with a one-line ConfigError naming the key."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Optional
+
+from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
+
+from .data.errors import ConfigError
+
+
+@dataclass
+class OptimizerSchema:
+    name: str = "soap"
+    lr: float = 3e-3
+    weight_decay: float = 0.0
+
+
+@dataclass
+class TrainSchema:
+    epochs: int = 1000
+    batch_size: int = 1024
+    optimizer: OptimizerSchema = field(default_factory=OptimizerSchema)
+    w_del: float = 0.5
+    w_reg: float = 0.5
+    reg_points: int = 10
+    reg_form: str = "relu"
+    epsilon: float = 10.0
+
+
+@dataclass
+class RolloutSchema:
+    enabled: bool = True
+    steps: Optional[int] = None
+    max_trajectories: Optional[int] = None
+    reference: bool = True
+
+
+@dataclass
+class SolverSchema:
+    tol: float = 1e-5
+    max_iter: int = 10
+    max_halvings: int = 6
+
+
+@dataclass
+class ModelSchema:
+    _target_: str = "liedfl_cli.models.liedflnn.LieDFLNN"
+    potential: str = "auto"
+    residual: str = "fast"
+    mlp_width: int = 64
+    mlp_depth: int = 3
+    init_jitter: float = 0.1
+
+
+@dataclass
+class GroupSchema:
+    n_se3: int = 0
+    n_so3: int = 1
+
+
+SECTIONS: dict[str, Any] = {
+    "train": TrainSchema,
+    "rollout": RolloutSchema,
+    "solver": SolverSchema,
+    "group": GroupSchema,
+}
+CHOICES = {
+    ("train", "reg_form"): ("relu", "gaussian"),
+    ("train", "optimizer", "name"): ("soap", "adam"),
+    ("model", "potential"): ("auto", "mlp", "none"),
+    ("model", "residual"): ("fast", "generic"),
+}
+
+
+def validate(cfg: DictConfig) -> None:
+    """Raise ConfigError for unknown keys, wrong types or invalid choices in known sections."""
+    for name, schema in SECTIONS.items():
+        if name not in cfg:
+            continue
+        try:
+            OmegaConf.merge(OmegaConf.structured(schema), OmegaConf.to_container(cfg[name], resolve=True))
+        except OmegaConfBaseException as e:
+            msg = str(e).splitlines()[0]
+            key = getattr(e, "full_key", None) or ""
+            raise ConfigError(f"config section '{name}': {msg}" + (f" (key {name}.{key})" if key else "")) from None
+    if "model" in cfg and cfg.model.get("_target_", "").endswith("LieDFLNN"):
+        try:
+            OmegaConf.merge(OmegaConf.structured(ModelSchema), OmegaConf.to_container(cfg.model, resolve=True))
+        except OmegaConfBaseException as e:
+            raise ConfigError(f"config section 'model': {str(e).splitlines()[0]}") from None
+    for path, allowed in CHOICES.items():
+        node = cfg
+        for p in path:
+            node = node.get(p) if isinstance(node, DictConfig) else None
+            if node is None:
+                break
+        if node is not None and node not in allowed:
+            raise ConfigError(f"{'.'.join(path)}={node!r}: choose one of {', '.join(allowed)}")

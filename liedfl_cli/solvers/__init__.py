@@ -1,0 +1,1 @@
+"""Solvers: batched damped Newton for implicit DEL steps, rollout loops."""

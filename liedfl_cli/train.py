@@ -1,0 +1,145 @@
+"""Training: fit a discrete model to pose triplets of the train split.
+
+loss = w_DEL * mean ||r_k||^2 + w_reg * mean penalty(log|det H|) over `reg_points` random pairs.
+Triplets are batched tensors (no Python loop over samples).
+"""
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from .checkpoint import save_checkpoint
+from .data.errors import ConfigError
+from .io_utils import write_csv, write_json
+from .lie import Pose
+from .models.liedflnn import regularity_penalty
+from .ui import console, progress_bar
+
+
+def triplets(traj: Pose, steps: int) -> tuple[Pose, Pose, Pose]:
+    """All (g_{k-1}, g_k, g_{k+1}) with k+1 <= steps from trajectories (T, N+1, ...) -> each (T*(steps-1), ...)."""
+    steps = min(steps, traj.R.shape[1] - 1)
+    if steps < 2:
+        raise ConfigError(f"dataset.train_steps={steps}: need at least 2 steps to form a triplet")
+
+    def cut(a: int, b: int) -> Pose:
+        R, p = traj.R[:, a:b], traj.p[:, a:b]
+        return Pose(R.flatten(0, 1), p.flatten(0, 1))
+
+    return cut(0, steps - 1), cut(1, steps), cut(2, steps + 1)
+
+
+def make_optimizer(params, cfg_opt) -> torch.optim.Optimizer:
+    name = cfg_opt.name
+    if name == "soap":
+        from pytorch_optimizer import SOAP
+
+        return SOAP(params, lr=cfg_opt.lr, weight_decay=cfg_opt.weight_decay)
+    if name == "adam":
+        return torch.optim.Adam(params, lr=cfg_opt.lr, weight_decay=cfg_opt.weight_decay)
+    raise ConfigError(f"train.optimizer.name must be 'soap' or 'adam', got {name!r}")
+
+
+def loss_terms(model, batch: tuple[Pose, Pose, Pose], reg_pairs: tuple[Pose, Pose] | None, cfg_train):
+    """(total, del, reg) losses for one batch."""
+    r = model.residual(*batch)
+    del_loss = (r * r).mean()
+    reg_loss = torch.zeros((), dtype=r.dtype)
+    if reg_pairs is not None and cfg_train.w_reg > 0:
+        logdet = model.regularity_logdet(*reg_pairs)
+        reg_loss = regularity_penalty(logdet, float(cfg_train.epsilon), cfg_train.reg_form).mean()
+    return cfg_train.w_del * del_loss + cfg_train.w_reg * reg_loss, del_loss, reg_loss
+
+
+def fit(model, data: Pose, cfg_train: DictConfig, steps: int, seed: int = 0, show_progress: bool = True) -> dict:
+    """Train `model` on the triplets of the first `steps` steps of `data` (T, N+1, ...).
+    Returns history and timings."""
+    prev, cur, nxt = triplets(data, int(steps))
+    n = prev.R.shape[0]
+    bs = min(int(cfg_train.batch_size), n)
+    n_batches = math.ceil(n / bs)
+    gen = torch.Generator().manual_seed(seed)
+    params = [p for p in model.parameters() if p.requires_grad]
+    if not params:
+        raise ConfigError("the model has no trainable parameters")
+    opt = make_optimizer(params, cfg_train.optimizer)
+    epochs = int(cfg_train.epochs)
+    history = []
+    t0 = time.perf_counter()
+    with progress_bar(show_progress) as bar:
+        task = bar.add_task("train", total=epochs, loss=float("nan"))
+        for epoch in range(1, epochs + 1):
+            perm = torch.randperm(n, generator=gen)
+            tot = dl = rl = 0.0
+            for b in range(n_batches):
+                idx = perm[b * bs:(b + 1) * bs]
+                batch = (prev.index(idx), cur.index(idx), nxt.index(idx))
+                reg_idx = torch.randint(0, n, (int(cfg_train.reg_points),), generator=gen)
+                reg_pairs = (cur.index(reg_idx), nxt.index(reg_idx)) if cfg_train.reg_points > 0 else None
+                opt.zero_grad(set_to_none=True)
+                loss, d, r = loss_terms(model, batch, reg_pairs, cfg_train)
+                if not torch.isfinite(loss):
+                    raise FloatingPointError(f"training loss became {loss.item()} at epoch {epoch}, batch {b}")
+                loss.backward()
+                opt.step()
+                tot += loss.item() / n_batches
+                dl += d.item() / n_batches
+                rl += r.item() / n_batches
+            history.append({"epoch": epoch, "loss": tot, "del_loss": dl, "reg_loss": rl,
+                            "seconds": time.perf_counter() - t0})
+            bar.update(task, advance=1, loss=tot)
+    wall = time.perf_counter() - t0
+    return {"history": history, "train_seconds": wall, "seconds_per_epoch": wall / max(epochs, 1),
+            "n_triplets": n, "batches_per_epoch": n_batches}
+
+
+def count_parameters(model) -> int:
+    return sum(p.numel() for p in model.parameters() if p.requires_grad)
+
+
+def run_train(cfg: DictConfig) -> dict:
+    """`liedfl train`: data -> model -> fit -> checkpoint -> rollout -> eval. Returns a summary."""
+    from .data.scenes import get_dataset
+    from .evaluate import run_eval_from_objects
+    from .models.build import build_model
+    from .rollout import rollout_and_save
+
+    out = Path(cfg.paths.output_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(int(cfg.seed))
+    dataset, data_path = get_dataset(cfg.dataset, cfg.paths.data_dir)
+    model = build_model(cfg, dataset)
+    n_params = count_parameters(model)
+    comps = model.components()
+    console.print(f"[bold]model[/] {type(model).__name__} on {dataset.group.name}, h={dataset.h}: "
+                  f"components {', '.join(comps)}; {n_params} trainable parameters")
+    write_json(out / "components.json", {"model": type(model).__name__, "components": comps, "parameters": n_params})
+
+    train_data = dataset.pose(dataset.train_idx)
+    result = fit(model, train_data, cfg.train, int(cfg.dataset.train_steps), seed=int(cfg.seed),
+                 show_progress=cfg.ui.progress)
+    write_csv(out / "train_metrics.csv", result["history"])
+    timings = {"train_seconds": result["train_seconds"], "seconds_per_epoch": result["seconds_per_epoch"],
+               "epochs": int(cfg.train.epochs), "n_triplets": result["n_triplets"], "parameters": n_params}
+    from .models.truth import parameter_recovery
+
+    recovery = parameter_recovery(model, dataset)
+    if recovery is not None:
+        write_json(out / "recovery.json", recovery)
+    config = OmegaConf.to_container(cfg, resolve=True)
+    save_checkpoint(out / "checkpoints" / "last.pt", model, config,
+                    {"dataset_path": str(data_path), "timings": timings, "components": comps})
+    console.print(f"trained {cfg.train.epochs} epochs in {result['train_seconds']:.1f} s "
+                  f"(final loss {result['history'][-1]['loss']:.3e}); checkpoint {out / 'checkpoints' / 'last.pt'}")
+    summary = {"run_dir": str(out), "dataset_path": str(data_path), "timings": timings,
+               "final_loss": result["history"][-1]["loss"]}
+    if cfg.rollout.enabled:
+        ro = rollout_and_save(cfg, model, dataset, out / "rollout.h5", steps=cfg.rollout.steps)
+        summary["rollout"] = ro
+        summary["eval"] = run_eval_from_objects(cfg, dataset, out, timings)
+    write_json(out / "summary.json", summary)
+    return summary
