@@ -12,7 +12,7 @@ from omegaconf import DictConfig, OmegaConf
 from .data.errors import ConfigError, DatasetError
 from .io_utils import atomic_path
 from .lie import Pose
-from .solvers.rollout import Rollout, rollout_discrete
+from .solvers.rollout import Rollout
 from .ui import console, progress_bar
 
 
@@ -20,9 +20,7 @@ def _roll(model, truth: Pose, steps: int, cfg_solver, label: str, show: bool) ->
     g0, g1 = truth.index((slice(None), 0)), truth.index((slice(None), 1))
     with progress_bar(show) as bar:
         task = bar.add_task(f"rollout {label}", total=max(steps - 1, 0), loss=float("nan"))
-        ro = rollout_discrete(model, g0, g1, steps, tol=float(cfg_solver.tol), max_iter=int(cfg_solver.max_iter),
-                              max_halvings=int(cfg_solver.max_halvings),
-                              progress=lambda k: bar.update(task, completed=k))
+        ro = model.rollout(g0, g1, steps, cfg_solver, progress=lambda k: bar.update(task, completed=k))
     if ro.n_failed:
         console.print(f"[bold yellow]warning:[/] {label}: Newton did not converge on {ro.n_failed} step(s); "
                       f"first at step {ro.first_failure()} (flagged in rollout.h5, counted in the eval table)")

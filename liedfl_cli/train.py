@@ -16,7 +16,6 @@ from .checkpoint import save_checkpoint
 from .data.errors import ConfigError
 from .io_utils import write_csv, write_json
 from .lie import Pose
-from .models.liedflnn import regularity_penalty
 from .ui import console, progress_bar
 
 
@@ -44,22 +43,29 @@ def make_optimizer(params, cfg_opt) -> torch.optim.Optimizer:
     raise ConfigError(f"train.optimizer.name must be 'soap' or 'adam', got {name!r}")
 
 
-def loss_terms(model, batch: tuple[Pose, Pose, Pose], reg_pairs: tuple[Pose, Pose] | None, cfg_train):
-    """(total, del, reg) losses for one batch."""
-    r = model.residual(*batch)
-    del_loss = (r * r).mean()
-    reg_loss = torch.zeros((), dtype=r.dtype)
-    if reg_pairs is not None and cfg_train.w_reg > 0:
-        logdet = model.regularity_logdet(*reg_pairs)
-        reg_loss = regularity_penalty(logdet, float(cfg_train.epsilon), cfg_train.reg_form).mean()
-    return cfg_train.w_del * del_loss + cfg_train.w_reg * reg_loss, del_loss, reg_loss
+def _trajectory_batches(data: Pose, steps: int) -> Pose:
+    """The first `steps` steps of every trajectory: (T, steps+1, ...)."""
+    if steps < 1:
+        raise ConfigError(f"dataset.train_steps={steps}: need at least 1 step")
+    return data.index((slice(None), slice(0, steps + 1)))
 
 
 def fit(model, data: Pose, cfg_train: DictConfig, steps: int, seed: int = 0, show_progress: bool = True) -> dict:
-    """Train `model` on the triplets of the first `steps` steps of `data` (T, N+1, ...).
-    Returns history and timings."""
-    prev, cur, nxt = triplets(data, int(steps))
-    n = prev.R.shape[0]
+    """Train `model` on the first `steps` steps of `data` (T, N+1, ...).
+
+    model.window == "triplet": shuffled mini-batches of pose triplets (plus `reg_points` random
+    pairs for the regularity term); "trajectory": mini-batches of whole trajectories, for
+    baselines trained by unrolling. Returns history and timings.
+    """
+    window = getattr(model, "window", "triplet")
+    if window == "triplet":
+        prev, cur, nxt = triplets(data, int(steps))
+        n = prev.R.shape[0]
+    elif window == "trajectory":
+        trajs = _trajectory_batches(data, int(steps))
+        n = trajs.R.shape[0]
+    else:
+        raise ConfigError(f"model window {window!r} is not 'triplet' or 'trajectory'")
     bs = min(int(cfg_train.batch_size), n)
     n_batches = math.ceil(n / bs)
     gen = torch.Generator().manual_seed(seed)
@@ -74,27 +80,30 @@ def fit(model, data: Pose, cfg_train: DictConfig, steps: int, seed: int = 0, sho
         task = bar.add_task("train", total=epochs, loss=float("nan"))
         for epoch in range(1, epochs + 1):
             perm = torch.randperm(n, generator=gen)
-            tot = dl = rl = 0.0
+            sums: dict[str, float] = {}
             for b in range(n_batches):
                 idx = perm[b * bs:(b + 1) * bs]
-                batch = (prev.index(idx), cur.index(idx), nxt.index(idx))
-                reg_idx = torch.randint(0, n, (int(cfg_train.reg_points),), generator=gen)
-                reg_pairs = (cur.index(reg_idx), nxt.index(reg_idx)) if cfg_train.reg_points > 0 else None
                 opt.zero_grad(set_to_none=True)
-                loss, d, r = loss_terms(model, batch, reg_pairs, cfg_train)
+                if window == "triplet":
+                    batch = (prev.index(idx), cur.index(idx), nxt.index(idx))
+                    reg_pairs = None
+                    if cfg_train.reg_points > 0:
+                        reg_idx = torch.randint(0, n, (int(cfg_train.reg_points),), generator=gen)
+                        reg_pairs = (cur.index(reg_idx), nxt.index(reg_idx))
+                    loss, parts = model.loss(batch, reg_pairs, cfg_train)
+                else:
+                    loss, parts = model.loss(trajs.index(idx), cfg_train)
                 if not torch.isfinite(loss):
                     raise FloatingPointError(f"training loss became {loss.item()} at epoch {epoch}, batch {b}")
                 loss.backward()
                 opt.step()
-                tot += loss.item() / n_batches
-                dl += d.item() / n_batches
-                rl += r.item() / n_batches
-            history.append({"epoch": epoch, "loss": tot, "del_loss": dl, "reg_loss": rl,
-                            "seconds": time.perf_counter() - t0})
-            bar.update(task, advance=1, loss=tot)
+                for k, v in {"loss": loss, **parts}.items():
+                    sums[k] = sums.get(k, 0.0) + float(v) / n_batches
+            history.append({"epoch": epoch, **sums, "seconds": time.perf_counter() - t0})
+            bar.update(task, advance=1, loss=sums["loss"])
     wall = time.perf_counter() - t0
     return {"history": history, "train_seconds": wall, "seconds_per_epoch": wall / max(epochs, 1),
-            "n_triplets": n, "batches_per_epoch": n_batches}
+            "n_samples": n, "batches_per_epoch": n_batches}
 
 
 def count_parameters(model) -> int:
@@ -124,7 +133,7 @@ def run_train(cfg: DictConfig) -> dict:
                  show_progress=cfg.ui.progress)
     write_csv(out / "train_metrics.csv", result["history"])
     timings = {"train_seconds": result["train_seconds"], "seconds_per_epoch": result["seconds_per_epoch"],
-               "epochs": int(cfg.train.epochs), "n_triplets": result["n_triplets"], "parameters": n_params}
+               "epochs": int(cfg.train.epochs), "n_samples": result["n_samples"], "parameters": n_params}
     from .models.truth import parameter_recovery
 
     recovery = parameter_recovery(model, dataset)

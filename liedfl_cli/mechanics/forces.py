@@ -24,8 +24,25 @@ class RayleighForce(nn.Module):
     def forward(self, g: Pose, xi: torch.Tensor) -> torch.Tensor:
         return -(xi @ self.D().T)
 
+    def jacobian_xi(self, g: Pose, xi: torch.Tensor) -> torch.Tensor:
+        """dF/d xi~ = -D, broadcast to (..., dim, dim)."""
+        return (-self.D()).expand(*xi.shape[:-1], xi.shape[-1], xi.shape[-1])
+
 
 FORCES = {"rayleigh": RayleighForce}
+
+
+def force_jacobian_xi(force: nn.Module, g: Pose, xi: torch.Tensor) -> torch.Tensor:
+    """dF(g, xi~)/d xi~ (..., dim, dim): the force's closed form if it has one, else autodiff
+    (one reverse pass per tangent direction; rows of the batch are independent)."""
+    if hasattr(force, "jacobian_xi"):
+        return force.jacobian_xi(g, xi)
+    with torch.enable_grad():
+        x = xi.detach().requires_grad_(True)
+        F = force(g, x)
+        rows = [torch.autograd.grad(F[..., i].sum(), x, retain_graph=True, create_graph=False)[0]
+                for i in range(F.shape[-1])]
+    return torch.stack(rows, -2)
 
 
 def build_forces(G: ProductGroup, forces, scale: float) -> list[nn.Module]:

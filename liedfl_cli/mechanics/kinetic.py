@@ -104,3 +104,23 @@ def mixed_hessian_blocks(G: ProductGroup, inc: Pose, Jd, mass, rho, h: float) ->
             Hi = torch.cat((top, bottom), -2)
         blocks.append(Hi)
     return blocks
+
+
+def velocity_estimate_jacobian(G: ProductGroup, inc: Pose, h: float) -> torch.Tensor:
+    """d xi~ / d delta for the right perturbation inc exp(delta), shape (..., dim, dim), block diagonal.
+
+    d w~/d delta_w = (tr(W) I - W^T) / (2h);  d v~/d delta_v = (I - h/2 hat(w~)) W / h;
+    d v~/d delta_w = hat(z)/2 d w~/d delta_w.
+    """
+    W, z = inc.R, inc.p
+    eye = torch.eye(3, dtype=W.dtype, device=W.device)
+    dw = (_trace(W)[..., None, None] * eye - W.transpose(-1, -2)) / (2 * h)  # (..., B, 3, 3)
+    lead = W.shape[:-3]
+    out = W.new_zeros(*lead, G.dim, G.dim)
+    for i, s in enumerate(G.body_slices()):
+        out[..., s.start:s.start + 3, s.start:s.start + 3] = dw[..., i, :, :]
+        if i < G.n_se3:
+            w_t = so3.vee(W[..., i, :, :]) / h
+            out[..., s.start + 3:s.stop, s.start + 3:s.stop] = (eye - 0.5 * h * so3.hat(w_t)) @ W[..., i, :, :] / h
+            out[..., s.start + 3:s.stop, s.start:s.start + 3] = 0.5 * so3.hat(z[..., i, :]) @ dw[..., i, :, :]
+    return out

@@ -19,7 +19,7 @@ from torch.func import grad, jacfwd, jacrev, vmap
 
 from ..lie import Pose, ProductGroup
 from ..mechanics import kinetic
-from ..mechanics.forces import build_forces
+from ..mechanics.forces import build_forces, force_jacobian_xi
 from ..mechanics.parameterizations import Inertia, PositiveVector
 from ..mechanics.potentials import GravityPotential, MLPPotential
 
@@ -28,6 +28,10 @@ RESIDUAL_MODES = ("fast", "generic")
 
 class LieDFLNN(nn.Module):
     """Learned forced discrete mechanics on a product group.
+
+    Model protocol shared with the baselines: `window` ("triplet": trained on pose triplets),
+    `loss(batch, reg_pairs, cfg_train) -> (loss, parts)`, `rollout(g0, g1, steps, solver,
+    progress) -> solvers.rollout.Rollout`, `components()`.
 
     Args:
         G: group layout. h: time step. potential: "none" | "mlp". forces: names in FORCES.
@@ -77,6 +81,19 @@ class LieDFLNN(nn.Module):
             return Jd, self.mass(), self.rho
         empty = Jd.new_zeros(0)
         return Jd, empty, Jd.new_zeros(0, 3)
+
+    window = "triplet"
+
+    def loss(self, batch, reg_pairs, cfg_train):
+        """w_DEL mean ||r||^2 + w_reg mean penalty(log|det H|) -> (loss, {"del_loss", "reg_loss"})."""
+        r = self.residual(*batch)
+        del_loss = (r * r).mean()
+        reg_loss = torch.zeros((), dtype=r.dtype)
+        if reg_pairs is not None and cfg_train.w_reg > 0:
+            logdet = self.regularity_logdet(*reg_pairs)
+            reg_loss = regularity_penalty(logdet, float(cfg_train.epsilon), cfg_train.reg_form).mean()
+        loss = cfg_train.w_del * del_loss + cfg_train.w_reg * reg_loss
+        return loss, {"del_loss": del_loss, "reg_loss": reg_loss}
 
     def components(self) -> list[str]:
         """Names of the active learned components (what this model pays for)."""
@@ -134,6 +151,39 @@ class LieDFLNN(nn.Module):
         Jd, m, rho = self._params()
         d1 = kinetic.kinetic_d1(self.G, self.G.increment(g, g_next), Jd, m, rho, self.h)
         return d1 + self.half_force(g, g_next)
+
+    def jacobian_var(self, g: Pose, inc: Pose) -> torch.Tensor:
+        """d residual_var(g, g inc exp(delta)) / d delta at 0, shape (..., dim, dim).
+
+        Fast path: the kinetic part is the mixed Hessian (closed form, block diagonal over
+        bodies) and each force contributes (h/2) dF/d xi~ . d xi~/d delta. Generic path: autodiff.
+        """
+        G = self.G
+        if self.residual_mode == "generic":
+            zero = inc.R.new_zeros(*inc.R.shape[:-3], G.dim)
+            f = lambda d: self.residual_var(g, G.compose(g, G.retract(inc, d)))  # noqa: E731
+            from ..solvers.newton import jacobian
+
+            return jacobian(f, zero)
+        Jd, m, rho = self._params()
+        blocks = kinetic.mixed_hessian_blocks(G, inc, Jd, m, rho, self.h)
+        J = inc.R.new_zeros(*inc.R.shape[:-3], G.dim, G.dim)
+        for s, b in zip(G.body_slices(), blocks):
+            J[..., s, s] = b
+        if len(self.forces):
+            xi = kinetic.velocity_estimate(G, inc, self.h)
+            dxi = kinetic.velocity_estimate_jacobian(G, inc, self.h)
+            dF = sum(force_jacobian_xi(f, g, xi) for f in self.forces)
+            J = J + 0.5 * self.h * (dF @ dxi)
+        return J
+
+    def rollout(self, g0: Pose, g1: Pose, steps: int, solver=None, progress=None):
+        """Predict g_2..g_steps from (g0, g1) by Newton on the DEL residual (see solvers.rollout)."""
+        from ..solvers.rollout import rollout_discrete
+
+        s = solver or {}
+        return rollout_discrete(self, g0, g1, steps, tol=float(s.get("tol", 1e-5)), max_iter=int(s.get("max_iter", 10)),
+                                max_halvings=int(s.get("max_halvings", 6)), progress=progress)
 
     def residual(self, g_prev: Pose, g: Pose, g_next: Pose) -> torch.Tensor:
         """Forced DEL residual at g, shape (..., dim); zero on exact solutions of the learned scheme."""

@@ -1,23 +1,29 @@
-"""Batched damped Newton for the increment xi in g solving residual(xi) = 0.
+"""Batched damped Newton for implicit steps: find x with f(x) = 0 row by row.
 
-Every trajectory of the batch iterates together; a trajectory stops updating once its
-step is below `tol` (max norm). The Jacobian is formed row by row with reverse-mode autodiff,
-exact for any learned model.
+`x` lives on a manifold (a Pose of increments, or a plain tensor); steps are taken with
+`retract(x, delta)` and the Jacobian is d f(retract(x, delta)) / d delta at 0. Every
+trajectory of the batch iterates together; a row stops once converged.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
+from typing import Any, Callable
 
 import torch
+
+from ..lie import Pose
 
 
 @dataclass
 class NewtonResult:
-    xi: torch.Tensor          # (T, dim) solution (last iterate where not converged)
-    converged: torch.Tensor   # (T,) bool
-    iterations: torch.Tensor  # (T,) int, Newton iterations used
-    residual_norm: torch.Tensor  # (T,) max-norm of the residual at xi
+    x: Any                      # solution (last iterate where not converged), same type as x0
+    converged: torch.Tensor     # (T,) bool
+    iterations: torch.Tensor    # (T,) int, Newton iterations used
+    residual_norm: torch.Tensor  # (T,) max-norm of the residual at x
+
+    @property
+    def xi(self):  # tensor problems call the unknown xi
+        return self.x
 
 
 def jacobian(f: Callable[[torch.Tensor], torch.Tensor], xi: torch.Tensor) -> torch.Tensor:
@@ -34,61 +40,72 @@ def jacobian(f: Callable[[torch.Tensor], torch.Tensor], xi: torch.Tensor) -> tor
     return torch.stack(rows, -2)
 
 
-def damped_newton(
-    f: Callable[[torch.Tensor], torch.Tensor],
-    xi0: torch.Tensor,
-    tol: float = 1e-5,
-    max_iter: int = 10,
-    max_halvings: int = 6,
-) -> NewtonResult:
-    """Solve f(xi) = 0 row by row from xi0 (T, n) with backtracking on ||f||_2."""
-    xi = xi0.clone()
-    T = xi.shape[0]
-    r = f(xi)
+def select(mask: torch.Tensor, a, b):
+    """Row-wise where(mask, a, b) for tensors or Poses (mask (T,))."""
+    if isinstance(a, Pose):
+        return Pose(select(mask, a.R, b.R), select(mask, a.p, b.p))
+    return torch.where(mask.reshape(-1, *([1] * (a.dim() - 1))), a, b)
+
+
+def newton_solve(f, jac, x0, retract, tol: float = 1e-5, max_iter: int = 10, max_halvings: int = 6) -> NewtonResult:
+    """Damped Newton with backtracking on ||f||_2 for a batch of T independent problems.
+
+    f(x) -> (T, n); jac(x) -> (T, n, n) = d f(retract(x, delta)) / d delta; retract(x, delta (T, n)).
+    A row converges when the full Newton step of a non-singular Jacobian has max norm <= tol
+    (the step is then applied, leaving an error ~ tol^2 by quadratic convergence). Rows with a
+    singular Jacobian take a least-squares step and cannot converge on that iteration; a
+    step that finds no decrease in ||f|| after `max_halvings` halvings is taken in full.
+    """
+    x = x0
+    r = f(x)
+    T = r.shape[0]
     rn = torch.linalg.vector_norm(r, dim=-1)
-    converged = torch.zeros(T, dtype=torch.bool, device=xi.device)
-    iters = torch.zeros(T, dtype=torch.long, device=xi.device)
+    converged = torch.zeros(T, dtype=torch.bool, device=r.device)
+    iters = torch.zeros(T, dtype=torch.long, device=r.device)
     for _ in range(max_iter):
         active = ~converged
         if not active.any():
             break
-        J = jacobian(f, xi)
-        try:
-            delta = -torch.linalg.solve(J, r[..., None])[..., 0]
-        except RuntimeError:  # singular for some row: least squares keeps the rest going
-            delta = -torch.linalg.lstsq(J, r[..., None]).solution[..., 0]
-        delta = torch.where(torch.isfinite(delta), delta, torch.zeros_like(delta))
-        alpha = torch.ones(T, dtype=xi.dtype, device=xi.device)
-        accepted = torch.zeros(T, dtype=torch.bool, device=xi.device)
-        new_xi, new_r, new_rn = xi, r, rn
+        J = jac(x)
+        sol, info = torch.linalg.solve_ex(J, r[..., None])
+        singular = info > 0
+        delta = -sol[..., 0]
+        if singular.any():
+            delta_ls = -torch.linalg.lstsq(J, r[..., None], driver="gelsd").solution[..., 0]
+            delta = torch.where(singular[:, None], delta_ls, delta)
+        bad = ~torch.isfinite(delta).all(-1)
+        singular = singular | bad
+        delta = torch.where(bad[:, None], torch.zeros_like(delta), delta)
+        full_step = delta.abs().amax(-1)
+        alpha = torch.ones(T, dtype=r.dtype, device=r.device)
+        accepted = ~active
+        new_x, new_r, new_rn = x, r, rn
         for _h in range(max_halvings + 1):
-            cand = xi + alpha[:, None] * delta
+            cand = retract(x, alpha[:, None] * delta)
             rc = f(cand)
             rcn = torch.linalg.vector_norm(rc, dim=-1)
             ok = (~accepted) & torch.isfinite(rcn) & (rcn <= rn * (1 - 1e-4 * alpha) + 1e-300)
-            take = ok[:, None]
-            new_xi = torch.where(take, cand, new_xi)
-            new_r = torch.where(take, rc, new_r)
+            new_x, new_r = select(ok, cand, new_x), select(ok, rc, new_r)
             new_rn = torch.where(ok, rcn, new_rn)
             accepted = accepted | ok
-            if accepted[active].all():
+            if accepted.all():
                 break
             alpha = torch.where(accepted, alpha, 0.5 * alpha)
-        # Rows that found no descent keep a full step anyway (Newton may need to climb out),
-        # unless that step is not finite.
-        fallback = active & ~accepted
+        fallback = ~accepted
         if fallback.any():
-            cand = xi + delta
+            cand = retract(x, delta)
             rc = f(cand)
             rcn = torch.linalg.vector_norm(rc, dim=-1)
             fin = fallback & torch.isfinite(rcn)
-            new_xi = torch.where(fin[:, None], cand, new_xi)
-            new_r = torch.where(fin[:, None], rc, new_r)
+            new_x, new_r = select(fin, cand, new_x), select(fin, rc, new_r)
             new_rn = torch.where(fin, rcn, new_rn)
-        step = (new_xi - xi).abs().amax(-1)
-        xi = torch.where(active[:, None], new_xi, xi)
-        r = torch.where(active[:, None], new_r, r)
+        x, r = select(active, new_x, x), select(active, new_r, r)
         rn = torch.where(active, new_rn, rn)
         iters = iters + active.long()
-        converged = converged | (active & (step <= tol) & torch.isfinite(rn))
-    return NewtonResult(xi, converged, iters, r.abs().amax(-1))
+        converged = converged | (active & ~singular & (full_step <= tol) & torch.isfinite(rn))
+    return NewtonResult(x, converged, iters, r.abs().amax(-1))
+
+
+def damped_newton(f, xi0: torch.Tensor, tol: float = 1e-5, max_iter: int = 10, max_halvings: int = 6) -> NewtonResult:
+    """`newton_solve` for a plain tensor unknown (T, n) with an autodiff Jacobian."""
+    return newton_solve(f, lambda x: jacobian(f, x), xi0, lambda x, d: x + d, tol, max_iter, max_halvings)
