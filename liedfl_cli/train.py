@@ -150,5 +150,10 @@ def run_train(cfg: DictConfig) -> dict:
         ro = rollout_and_save(cfg, model, dataset, out / "rollout.h5", steps=cfg.rollout.steps)
         summary["rollout"] = ro
         summary["eval"] = run_eval_from_objects(cfg, dataset, out, timings)
+        from .extras import run_extra_evals
+
+        extra = run_extra_evals(cfg, model, dataset, out)
+        if extra is not None:
+            summary["extra_eval"] = extra
     write_json(out / "summary.json", summary)
     return summary

@@ -305,3 +305,6 @@ def get_dataset(cfg, data_dir="outputs/data", console=None) -> tuple[Dataset, Pa
 __all__ = ["SCENES", "GENERATOR_VERSION", "register_scene", "generator_config", "config_hash", "dataset_path",
            "make_split", "haar_rotations", "uniform_ball", "generate", "get_dataset",
            "heavy_so3", "free_rigid_body", "heavy_se3"]
+
+# Scenes defined in other modules register themselves into SCENES when imported.
+from . import mocap, scenes_multibody  # noqa: E402,F401

@@ -21,9 +21,10 @@ def resolve_potential(cfg_model, dataset) -> str:
 
 def build_model(cfg: DictConfig, dataset):
     """Instantiate `cfg.model` for the dataset's group and step (LieDFLNN when baseline is none)."""
-    baseline = cfg.baseline.name
-    if baseline != "none":
-        raise ConfigError(f"baseline={baseline!r} is not available yet (choose baseline=none)")
+    if cfg.baseline.name != "none":
+        from .baselines import build_baseline
+
+        return build_baseline(cfg, dataset)
     forces = OmegaConf.to_container(cfg.force, resolve=True) if cfg.get("force") else {}
     # _partial_ so that runtime objects (the group layout) are passed as they are, not merged
     # into the config.
