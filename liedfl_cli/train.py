@@ -98,7 +98,7 @@ def fit(model, data: Pose, cfg_train: DictConfig, steps: int, seed: int = 0, sho
                 loss.backward()
                 opt.step()
                 for k, v in {"loss": loss, **parts}.items():
-                    sums[k] = sums.get(k, 0.0) + float(v) / n_batches
+                    sums[k] = sums.get(k, 0.0) + float(v.detach()) / n_batches
             history.append({"epoch": epoch, **sums, "seconds": time.perf_counter() - t0})
             bar.update(task, advance=1, loss=sums["loss"])
     wall = time.perf_counter() - t0

@@ -19,8 +19,21 @@ def resolve_potential(cfg_model, dataset) -> str:
     return "mlp"
 
 
+def check_group(cfg: DictConfig, dataset) -> None:
+    """The composed `group` must describe the dataset's bodies (dataset files select it)."""
+    grp = cfg.get("group")
+    if grp is None:
+        return
+    want = (int(grp.n_se3), int(grp.n_so3))
+    have = (dataset.group.n_se3, dataset.group.n_so3)
+    if want != have:
+        raise ConfigError(f"group (n_se3={want[0]}, n_so3={want[1]}) does not match dataset '{cfg.dataset.name}' "
+                          f"({dataset.group.name}); drop the group override or pick a matching group")
+
+
 def build_model(cfg: DictConfig, dataset):
     """Instantiate `cfg.model` for the dataset's group and step (LieDFLNN when baseline is none)."""
+    check_group(cfg, dataset)
     if cfg.baseline.name != "none":
         from .baselines import build_baseline
 
