@@ -43,8 +43,12 @@ def load_checkpoint(path) -> dict:
 def load_state(path, model, payload: dict) -> None:
     """Load the state dict, naming the first missing/unexpected/mis-shaped key."""
     sd = payload["state_dict"]
+    if not isinstance(sd, dict):
+        raise CheckpointError(f"{path}: field 'state_dict' is not a mapping (got {type(sd).__name__})")
     own = model.state_dict()
     for k, v in sd.items():
+        if not isinstance(v, torch.Tensor):
+            raise CheckpointError(f"{path}: field 'state_dict.{k}' is not a tensor (got {type(v).__name__})")
         if k not in own:
             raise CheckpointError(f"{path}: field 'state_dict' has unexpected key '{k}' for this model config")
         if own[k].shape != v.shape:

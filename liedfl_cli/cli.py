@@ -14,6 +14,7 @@ COMMANDS = {
     "data": "only generate (or import) a dataset",
     "rollout": "roll a trained run out: liedfl rollout run=<run dir> [steps=N]",
     "eval": "metrics table and plots of a run: liedfl eval run=<run dir>",
+    "report": "one table and figures over a sweep: liedfl report sweep=<multirun dir>",
 }
 USAGE = "usage: liedfl {" + ",".join(COMMANDS) + "} [key=value ...] [-m] [--cfg job] [--help]\n\n" + "\n".join(
     f"  {k:<8} {v}" for k, v in COMMANDS.items()
@@ -21,11 +22,16 @@ USAGE = "usage: liedfl {" + ",".join(COMMANDS) + "} [key=value ...] [-m] [--cfg 
 
 
 def _run(command: str, cfg):
-    from .data.errors import LiedflError
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    from .data.errors import ConfigError, LiedflError
     from .schema import validate
     from .ui import fail
 
     try:
+        if command in ("rollout", "eval") and OmegaConf.is_missing(cfg, "run"):
+            raise ConfigError("run=<run dir> is required (a directory written by `liedfl train`)")
         validate(cfg)
         if command == "train":
             from .train import run_train
@@ -43,12 +49,44 @@ def _run(command: str, cfg):
             from .evaluate import run_eval
 
             return run_eval(cfg)
+        if command == "report":
+            from .report import run_report
+
+            return run_report(cfg)
     except LiedflError as e:
         fail(str(e))
     except FloatingPointError as e:
         fail(f"numerical failure: {e}")
+    except OmegaConfBaseException as e:  # e.g. a broken interpolation in an override file
+        key = getattr(e, "full_key", None)
+        fail(f"config error: {str(e).splitlines()[0] if str(e) else type(e).__name__}" + (f" (key {key})" if key else ""))
     except KeyboardInterrupt:
         fail("interrupted", code=130)
+
+
+def _check_run_arg(args: list[str]) -> None:
+    """`run=<dir>` of rollout/eval, checked before Hydra starts: Hydra's run dir is `${run}`, so Hydra
+    would otherwise create a mistyped run directory (and crash with a traceback when `run` is missing).
+    Skipped for flags (-m, --cfg, --help, ...) and for values Hydra has to interpret (sweeps, ${...})."""
+    import re
+
+    if any(a.startswith("-") for a in args):
+        return
+    value = None
+    for a in args:
+        m = re.fullmatch(r"\+{0,2}run=(.*)", a, flags=re.S)
+        if m:
+            value = m.group(1).strip()
+    if value is not None and len(value) >= 2 and value[0] == value[-1] and value[0] in "'\"":
+        value = value[1:-1]
+    if value in (None, "", "???", "null"):
+        print("error: run=<run dir> is required (a directory written by `liedfl train`)", file=sys.stderr)
+        raise SystemExit(2)
+    if any(c in value for c in ",${}[]()") or value.startswith(("glob", "range", "choice")):
+        return
+    if not Path(value).is_dir():
+        print(f"error: run={value}: no such run directory", file=sys.stderr)
+        raise SystemExit(2)
 
 
 def main() -> None:
@@ -64,6 +102,8 @@ def main() -> None:
         print(f"error: config directory {CONF_DIR} not found; install liedfl with `pip install -e .` from a clone",
               file=sys.stderr)
         raise SystemExit(2)
+    if command in ("rollout", "eval"):
+        _check_run_arg(argv[1:])
     import hydra
 
     @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name=command)

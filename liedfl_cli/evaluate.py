@@ -21,10 +21,10 @@ from .ui import console
 SHORT = {"rel_rot_error_mean": "rel err", "rel_rot_error_final": "rel err end", "geodesic_error_mean": "geo err",
          "position_error_mean": "pos err", "max_orth_drift": "orth drift", "max_det_drift": "det drift",
          "newton_failures": "newton fail", "first_failure_step": "1st fail", "mean_newton_iterations": "iters",
-         "rollout_s_per_step": "s/step", "train_seconds": "train s", "seconds_per_epoch": "s/epoch",
+         "nonfinite_step": "nonfinite at", "rollout_s_per_step": "s/step", "train_seconds": "train s", "seconds_per_epoch": "s/epoch",
          "parameters": "params"}
 COLUMNS = ["model", "rel_rot_error_mean", "rel_rot_error_final", "geodesic_error_mean", "position_error_mean",
-           "max_orth_drift", "max_det_drift", "newton_failures", "first_failure_step", "mean_newton_iterations",
+           "max_orth_drift", "max_det_drift", "nonfinite_step", "newton_failures", "first_failure_step", "mean_newton_iterations",
            "rollout_s_per_step", "train_seconds", "seconds_per_epoch", "parameters"]
 
 
@@ -37,21 +37,31 @@ def read_rollout(path) -> tuple[dict, np.ndarray, dict]:
         f = h5py.File(path, "r")
     except OSError as e:
         raise DatasetError(f"{path}: not an HDF5 file ({e})") from None
-    with f:
-        if "traj_index" not in f or "model" not in f:
-            raise DatasetError(f"{path}: dataset 'traj_index' or group 'model' missing")
-        out = {}
-        for name in f:
-            if not isinstance(f[name], h5py.Group):
-                continue
-            g = f[name]
-            out[name] = {
-                "pose": Pose(torch.from_numpy(g["R"][...]), torch.from_numpy(g["p"][...])),
-                "converged": g["converged"][...],
-                "iterations": g["iterations"][...],
-                **{k: g.attrs[k] for k in g.attrs},
-            }
-        return out, f["traj_index"][...], dict(f.attrs)
+    try:
+        with f:
+            if "traj_index" not in f or "model" not in f:
+                raise DatasetError(f"{path}: dataset 'traj_index' or group 'model' missing")
+            if "steps" not in f.attrs:
+                raise DatasetError(f"{path}: attribute 'steps' is missing")
+            out = {}
+            for name in f:
+                if not isinstance(f[name], h5py.Group):
+                    continue
+                g = f[name]
+                missing = [k for k in ("R", "p", "converged", "iterations") if k not in g]
+                if missing:
+                    raise DatasetError(f"{path}: group '{name}' lacks dataset '{missing[0]}'")
+                out[name] = {
+                    "pose": Pose(torch.from_numpy(g["R"][...]), torch.from_numpy(g["p"][...])),
+                    "converged": g["converged"][...],
+                    "iterations": g["iterations"][...],
+                    **{k: g.attrs[k] for k in g.attrs},
+                }
+            return out, f["traj_index"][...], dict(f.attrs)
+    except DatasetError:
+        raise
+    except (OSError, KeyError, ValueError, TypeError) as e:
+        raise DatasetError(f"{path}: cannot read rollout file ({type(e).__name__}: {e})") from None
 
 
 def _rows(rollouts: dict, truth: Pose, timings: dict | None):
@@ -77,6 +87,11 @@ def _rows(rollouts: dict, truth: Pose, timings: dict | None):
 def run_eval_from_objects(cfg: DictConfig, dataset, run_dir, timings: dict | None = None) -> list[dict]:
     run_dir = Path(run_dir)
     rollouts, idx, attrs = read_rollout(run_dir / "rollout.h5")
+    bad = (idx < 0) | (idx >= dataset.n_trajectories)
+    if bad.any():
+        j = int(bad.nonzero()[0][0])
+        raise DatasetError(f"{run_dir / 'rollout.h5'}: dataset 'traj_index' has trajectory {int(idx[j])} at index {j}, "
+                           f"but the run's dataset has {dataset.n_trajectories}; re-run `liedfl rollout run={run_dir}`")
     truth = dataset.pose(idx)
     rows, curves = _rows(rollouts, truth, timings)
     recovery_path = run_dir / "recovery.json"
@@ -110,8 +125,9 @@ def run_eval_from_objects(cfg: DictConfig, dataset, run_dir, timings: dict | Non
         hist = run_dir / "train_metrics.csv"
         if hist.is_file():
             with open(hist) as f:
-                history = [{k: float(v) for k, v in r.items()} for r in csv.DictReader(f)]
-            if history:
+                history = [{k: float(v) for k, v in r.items() if k and v not in (None, "")}
+                           for r in csv.DictReader(f)]
+            if history and all("epoch" in r for r in history):
                 plots.loss_curve(history, pdir / "loss.png")
     return rows
 

@@ -28,7 +28,8 @@ def error_vs_step(curves: dict[str, dict], h: float, path: Path) -> None:
         for name, c in curves.items():
             if key in c:
                 y = c[key]
-                ax.semilogy(np.arange(len(y)) * h, np.maximum(y, 1e-17), label=name, color=COLORS.get(name))
+                # steps 0 and 1 are the given initial pair (zero error): start at the first prediction
+                ax.semilogy(np.arange(2, len(y)) * h, np.maximum(y[2:], 1e-17), label=name, color=COLORS.get(name))
         ax.set_xlabel("time")
         ax.set_title(key.replace("_", " "))
         ax.grid(alpha=0.3)
@@ -94,7 +95,11 @@ def predicted_vs_true(truth, preds: dict, h: float, path: Path, traj: int = 0, b
 def loss_curve(history: list[dict], path: Path) -> None:
     fig, ax = plt.subplots(figsize=(5, 3.4))
     ep = [h["epoch"] for h in history]
-    for key in ("loss", "del_loss", "reg_loss"):
+    # baselines log other loss parts than LieDFLNN's del_loss / reg_loss: plot the ones present
+    keys = [k for k in ("loss", "del_loss", "reg_loss") if all(k in h for h in history)]
+    keys += sorted({k for h in history for k in h if k.endswith("_loss") and k not in keys
+                    and all(k in hh for hh in history)})
+    for key in keys:
         ax.semilogy(ep, np.maximum([h[key] for h in history], 1e-300), label=key)
     ax.set_xlabel("epoch")
     ax.legend()

@@ -41,7 +41,13 @@ def rollout_and_save(cfg: DictConfig, model, dataset, path, steps=None) -> dict:
     first pair; write `path`. Returns timing/solver summaries."""
     from .models.truth import true_model
 
-    steps = int(steps or cfg.dataset.rollout_steps)
+    given = steps or cfg.dataset.rollout_steps
+    try:
+        steps = int(given)
+    except (TypeError, ValueError):
+        raise ConfigError(f"rollout steps={given!r}: must be an integer") from None
+    if steps != given and not (isinstance(given, str) and given.strip().lstrip("+").isdigit()):
+        raise ConfigError(f"rollout steps={given!r}: must be an integer")
     if steps < 2:
         raise ConfigError(f"rollout steps={steps}: need at least 2")
     idx, truth = test_trajectories(dataset, cfg.rollout.max_trajectories)

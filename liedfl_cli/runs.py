@@ -9,6 +9,25 @@ from .checkpoint import load_checkpoint, load_state
 from .data.errors import CheckpointError, ConfigError
 
 
+def _recorded_dataset(run_dir: Path, recorded) -> Path | None:
+    """The dataset file recorded in the checkpoint, if it still exists. A relative path is relative
+    to the directory `liedfl train` ran in (Hydra's runtime.cwd in <run>/.hydra/hydra.yaml), which
+    need not be the current one."""
+    if not recorded:
+        return None
+    path = Path(str(recorded))
+    candidates = [path]
+    if not path.is_absolute():
+        hydra_yaml = run_dir / ".hydra" / "hydra.yaml"
+        try:
+            cwd = OmegaConf.select(OmegaConf.load(hydra_yaml), "hydra.runtime.cwd", default=None)
+        except Exception:  # noqa: BLE001 - no or unreadable hydra.yaml: only the plain path
+            cwd = None
+        if cwd:
+            candidates.append(Path(str(cwd)) / path)
+    return next((c for c in candidates if c.is_file()), None)
+
+
 def load_run(run_dir, data_dir=None):
     """-> (config, model with trained weights, dataset, run_dir)."""
     from .data.hdf5 import load_dataset
@@ -22,9 +41,14 @@ def load_run(run_dir, data_dir=None):
         raise ConfigError(f"run={run_dir}: no such run directory")
     ckpt = run_dir / "checkpoints" / "last.pt"
     payload = load_checkpoint(ckpt)
-    cfg = OmegaConf.create(payload["config"])
-    ds_path = Path(payload.get("dataset_path", ""))
-    if ds_path.is_file():
+    if not isinstance(payload["config"], dict):
+        raise CheckpointError(f"{ckpt}: field 'config' is not a mapping (got {type(payload['config']).__name__})")
+    try:
+        cfg = OmegaConf.create(payload["config"])
+    except Exception as e:  # noqa: BLE001
+        raise CheckpointError(f"{ckpt}: field 'config' is not a valid config ({type(e).__name__}: {e})") from None
+    ds_path = _recorded_dataset(run_dir, payload.get("dataset_path"))
+    if ds_path is not None:
         dataset = load_dataset(ds_path)
     else:  # regenerate from the recorded config (deterministic given its seed)
         dataset, _ = get_dataset(cfg.dataset, data_dir or cfg.paths.data_dir)

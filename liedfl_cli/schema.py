@@ -16,6 +16,7 @@ class OptimizerSchema:
     name: str = "soap"
     lr: float = 3e-3
     weight_decay: float = 0.0
+    schedule: str = "constant"
 
 
 @dataclass
@@ -70,6 +71,7 @@ SECTIONS: dict[str, Any] = {
 CHOICES = {
     ("train", "reg_form"): ("relu", "gaussian"),
     ("train", "optimizer", "name"): ("soap", "adam"),
+    ("train", "optimizer", "schedule"): ("constant", "cosine"),
     ("model", "potential"): ("auto", "mlp", "none"),
     ("model", "residual"): ("fast", "generic"),
 }

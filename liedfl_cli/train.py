@@ -43,6 +43,16 @@ def make_optimizer(params, cfg_opt) -> torch.optim.Optimizer:
     raise ConfigError(f"train.optimizer.name must be 'soap' or 'adam', got {name!r}")
 
 
+def make_schedule(opt, name: str, epochs: int):
+    """Per-epoch learning-rate schedule: constant (paper) or cosine decay to 1% of lr."""
+    if name == "constant":
+        return None
+    if name == "cosine":
+        return torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(epochs, 1),
+                                                          eta_min=0.01 * opt.param_groups[0]["lr"])
+    raise ConfigError(f"train.optimizer.schedule must be 'constant' or 'cosine', got {name!r}")
+
+
 def _trajectory_batches(data: Pose, steps: int) -> Pose:
     """The first `steps` steps of every trajectory: (T, steps+1, ...)."""
     if steps < 1:
@@ -74,6 +84,7 @@ def fit(model, data: Pose, cfg_train: DictConfig, steps: int, seed: int = 0, sho
         raise ConfigError("the model has no trainable parameters")
     opt = make_optimizer(params, cfg_train.optimizer)
     epochs = int(cfg_train.epochs)
+    sched = make_schedule(opt, cfg_train.optimizer.get("schedule", "constant"), epochs)
     history = []
     t0 = time.perf_counter()
     with progress_bar(show_progress) as bar:
@@ -99,8 +110,13 @@ def fit(model, data: Pose, cfg_train: DictConfig, steps: int, seed: int = 0, sho
                 opt.step()
                 for k, v in {"loss": loss, **parts}.items():
                     sums[k] = sums.get(k, 0.0) + float(v.detach()) / n_batches
+            if sched is not None:
+                sched.step()
             history.append({"epoch": epoch, **sums, "seconds": time.perf_counter() - t0})
             bar.update(task, advance=1, loss=sums["loss"])
+            if not show_progress and (epoch % max(1, epochs // 10) == 0 or epoch == epochs):
+                console.print(f"epoch {epoch}/{epochs}  " + "  ".join(f"{k} {v:.3e}" for k, v in sums.items()) +
+                              f"  ({time.perf_counter() - t0:.1f} s)", highlight=False)
     wall = time.perf_counter() - t0
     return {"history": history, "train_seconds": wall, "seconds_per_epoch": wall / max(epochs, 1),
             "n_samples": n, "batches_per_epoch": n_batches}

@@ -7,8 +7,9 @@ import sys
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-console = Console()
-err_console = Console(stderr=True)
+# Logs and CI are not terminals: give tables room instead of rich's 80-column default.
+console = Console(width=None if sys.stdout.isatty() else 160)
+err_console = Console(stderr=True, width=None if sys.stderr.isatty() else 160)
 
 
 class _NullBar:
@@ -33,6 +34,12 @@ def progress_bar(enabled: bool = True):
 
 
 def fail(message: str, code: int = 2):
-    """Print a one-line error and exit non-zero."""
-    err_console.print(f"[bold red]error:[/] {message}", highlight=False, soft_wrap=True)
+    """Print a one-line error and exit non-zero.
+
+    The message is printed literally (square brackets in paths or lists are not rich markup) and
+    on one line (line breaks of wrapped exception texts are joined)."""
+    from rich.markup import escape
+
+    one_line = " ".join(part.strip() for part in str(message).splitlines() if part.strip())
+    err_console.print(f"[bold red]error:[/] {escape(one_line)}", highlight=False, soft_wrap=True)
     raise SystemExit(code)

@@ -330,10 +330,11 @@ def _validate(ds: Dataset, src: str, project: bool = True, input_dtype: torch.dt
         if (counts > 1).any():
             raise DatasetError(f"{src}: dataset 'split/{k}' lists trajectory {int(uniq[counts > 1][0])} twice")
     both = np.isin(ds.split["test"], ds.split["train"])
-    if both.any():
+    overlap_ok = isinstance(ds.params, dict) and ds.params.get("split_overlap") is True  # reproduction data
+    if both.any() and not overlap_ok:
         j = _first(both)[0]
         raise DatasetError(f"{src}: dataset 'split/test' shares trajectory {int(ds.split['test'][j])} with 'split/train' "
-                           f"(at position {j}); splits must be disjoint")
+                           f"(at position {j}); splits must be disjoint (unless params['split_overlap'] is true)")
     for k, v in ds.extras.items():
         v = np.asarray(v)
         if v.ndim < 1 or v.shape[0] != T:

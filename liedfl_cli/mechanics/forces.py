@@ -8,7 +8,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from ..lie import Pose, ProductGroup
+from ..lie import Pose, ProductGroup, so3
+from .mlp import MLP
 from .parameterizations import SPSDMatrix
 
 
@@ -29,7 +30,164 @@ class RayleighForce(nn.Module):
         return (-self.D()).expand(*xi.shape[:-1], xi.shape[-1], xi.shape[-1])
 
 
-FORCES = {"rayleigh": RayleighForce}
+    def describe(self) -> str:
+        return f"rayleigh (D {self.D.dim}x{self.D.dim} SPSD)"
+
+
+def _mlp_desc(net: MLP) -> str:
+    return f"MLP {net[0].out_features}x{(len(net) - 1) // 2}"
+
+
+class RayleighNonlinearForce(nn.Module):
+    """F = -D(g) xi~ with D(g) = L(g) L(g)^T (SPSD for every g and every parameter value).
+
+    L(g) is lower triangular, L = c (I + N(flatten(g))) with N a GELU MLP whose last layer
+    starts small, so D starts near c^2 I = init_diag * scale * I like `RayleighForce`.
+    """
+
+    name = "rayleigh_nonlinear"
+
+    def __init__(self, G: ProductGroup, scale: float = 1.0, init_diag: float = 0.01, width: int = 64, depth: int = 3):
+        super().__init__()
+        self.G, n = G, G.dim
+        rows, cols = torch.tril_indices(n, n)
+        self.register_buffer("_rows", rows, persistent=False)
+        self.register_buffer("_cols", cols, persistent=False)
+        self.register_buffer("_eye_entries", (rows == cols).to(torch.float64), persistent=False)
+        self.register_buffer("c", torch.tensor(float(init_diag * scale) ** 0.5, dtype=torch.float64))
+        self.net = MLP(9 * G.n_bodies + 3 * G.n_se3, len(rows), width, depth)
+
+    def L(self, g: Pose) -> torch.Tensor:
+        """(..., dim, dim) lower-triangular factor."""
+        entries = self.c * (self._eye_entries + self.net(self.G.flatten(g)))
+        n = self.G.dim
+        L = entries.new_zeros(*entries.shape[:-1], n, n)
+        L[..., self._rows, self._cols] = entries
+        return L
+
+    def D(self, g: Pose) -> torch.Tensor:
+        """(..., dim, dim) SPSD damping matrix at g."""
+        L = self.L(g)
+        return L @ L.transpose(-1, -2)
+
+    def forward(self, g: Pose, xi: torch.Tensor) -> torch.Tensor:
+        return -(self.D(g) @ xi[..., None])[..., 0]
+
+    def jacobian_xi(self, g: Pose, xi: torch.Tensor) -> torch.Tensor:
+        """dF/d xi~ = -D(g)."""
+        return -self.D(g)
+
+    def describe(self) -> str:
+        return f"rayleigh_nonlinear (D(g) = L L^T, L {_mlp_desc(self.net)})"
+
+
+class NNForce(nn.Module):
+    """Unconstrained force F(g, xi~) = scale * MLP(flatten(g), xi~) in g* (no dissipative guarantee)."""
+
+    name = "nn"
+
+    def __init__(self, G: ProductGroup, scale: float = 1.0, width: int = 64, depth: int = 3):
+        super().__init__()
+        self.G = G
+        self.register_buffer("scale", torch.tensor(float(scale), dtype=torch.float64))
+        self.net = MLP(9 * G.n_bodies + 3 * G.n_se3 + G.dim, G.dim, width, depth)
+
+    def forward(self, g: Pose, xi: torch.Tensor) -> torch.Tensor:
+        x = torch.cat((self.G.flatten(g), xi), -1)
+        return self.scale * self.net(x)
+
+    def describe(self) -> str:
+        return f"nn (F(g, xi~) {_mlp_desc(self.net)})"
+
+
+class ControlForce(nn.Module):
+    """Learned control torque tau = C u(R, w~) on the rotational components of every body.
+
+    C (3B x n_inputs) has unit-norm columns (normalised from a free parameter: the factorisation
+    C u is only identifiable up to u -> S^-1 u, C -> C S, the normalisation removes the scale),
+    u is a GELU MLP of the flattened rotations and rotational velocity estimates of all bodies.
+    Translational components of SE(3) bodies get no control force.
+    """
+
+    name = "control"
+
+    def __init__(self, G: ProductGroup, scale: float = 1.0, n_inputs: int = 3, width: int = 64, depth: int = 3):
+        super().__init__()
+        self.G = G
+        k = 3 * G.n_bodies
+        if int(n_inputs) < 1:
+            raise ValueError(f"force.control.n_inputs must be >= 1, got {n_inputs}")
+        init = torch.eye(k, int(n_inputs), dtype=torch.float64)
+        if int(n_inputs) > k:  # more inputs than torque components: spread the extra columns
+            init = init + torch.ones(k, int(n_inputs), dtype=torch.float64) / k
+        self.C_raw = nn.Parameter(init)
+        self.register_buffer("scale", torch.tensor(float(scale), dtype=torch.float64))
+        self.u = MLP(9 * G.n_bodies + k, int(n_inputs), width, depth)
+
+    def C(self) -> torch.Tensor:
+        """(3B, n_inputs) input matrix with unit-norm columns."""
+        return self.C_raw / torch.linalg.vector_norm(self.C_raw, dim=0, keepdim=True).clamp_min(1e-12)
+
+    def torque(self, g: Pose, xi: torch.Tensor) -> torch.Tensor:
+        """(..., B, 3) control torque per body at (g, xi~)."""
+        w, _ = self.G.split(xi)
+        lead = w.shape[:-2]
+        x = torch.cat((g.R.reshape(*lead, -1), w.reshape(*lead, -1)), -1)
+        tau = self.scale * (self.u(x) @ self.C().T)
+        return tau.reshape(*lead, self.G.n_bodies, 3)
+
+    def forward(self, g: Pose, xi: torch.Tensor) -> torch.Tensor:
+        tau = self.torque(g, xi)
+        return self.G.join(tau, tau.new_zeros(*tau.shape[:-2], self.G.n_se3, 3))
+
+    def describe(self) -> str:
+        return f"control (tau = C u, C {self.C_raw.shape[0]}x{self.C_raw.shape[1]} unit columns, u {_mlp_desc(self.u)})"
+
+
+class PDControl(nn.Module):
+    """Known PD attitude control (the true force of the pd_control scene; not learnable, not in FORCES).
+
+    tau = -K_R e_R - K_w w~ (+ m g rho x (R^T e3) when `feedforward`, cancelling the gravity torque),
+    e_R = vee(R_f^T R - R^T R_f) / 2, on every body's rotation (SO(3) bodies on a pivot).
+    """
+
+    name = "pd_control"
+
+    def __init__(self, G: ProductGroup, K_R: float, K_w: float, R_f, feedforward: bool = False,
+                 m: float = 0.0, rho=(0.0, 0.0, 0.0), g: float = 0.0, scale: float = 1.0):
+        super().__init__()
+        self.G, self.K_R, self.K_w, self.feedforward = G, float(K_R), float(K_w), bool(feedforward)
+        self.register_buffer("R_f", torch.as_tensor(R_f, dtype=torch.float64).reshape(3, 3))
+        self.register_buffer("mg_rho", float(m) * float(g) * torch.as_tensor(rho, dtype=torch.float64).reshape(3))
+
+    def torque(self, g: Pose, xi: torch.Tensor) -> torch.Tensor:
+        w, _ = self.G.split(xi)
+        R = g.R
+        Rf = self.R_f.expand_as(R)
+        # so3.vee(A) is the vee of the skew part (A - A^T)/2, so this is vee(R_f^T R - R^T R_f)/2
+        e_R = so3.vee(Rf.transpose(-1, -2) @ R)
+        tau = -self.K_R * e_R - self.K_w * w
+        if self.feedforward:
+            tau = tau + torch.cross(self.mg_rho.expand_as(w), R[..., 2, :], dim=-1)
+        return tau
+
+    def forward(self, g: Pose, xi: torch.Tensor) -> torch.Tensor:
+        tau = self.torque(g, xi)
+        return self.G.join(tau, tau.new_zeros(*tau.shape[:-2], self.G.n_se3, 3))
+
+    def jacobian_xi(self, g: Pose, xi: torch.Tensor) -> torch.Tensor:
+        eye = -self.K_w * torch.eye(self.G.dim, dtype=xi.dtype, device=xi.device)
+        for s in self.G.body_slices()[: self.G.n_se3]:  # translational parts carry no torque
+            eye[s.start + 3:s.stop, s.start + 3:s.stop] = 0.0
+        return eye.expand(*xi.shape[:-1], self.G.dim, self.G.dim)
+
+    def describe(self) -> str:
+        return "pd_control (true PD torque" + (" + gravity feed-forward" if self.feedforward else "") + ")"
+
+
+FORCES = {"rayleigh": RayleighForce, "rayleigh_nonlinear": RayleighNonlinearForce, "nn": NNForce,
+          "control": ControlForce}
+"""Learnable forces by config option name (conf/force/<name>.yaml)."""
 
 
 def force_jacobian_xi(force: nn.Module, g: Pose, xi: torch.Tensor) -> torch.Tensor:

@@ -7,7 +7,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from ..lie import Pose, ProductGroup
+from ..lie import Pose, ProductGroup, so3
 from .mlp import MLP
 
 
@@ -21,6 +21,9 @@ class MLPPotential(nn.Module):
 
     def forward(self, g: Pose) -> torch.Tensor:
         return self.net(self.G.flatten(g))[..., 0]
+
+    def describe(self) -> str:
+        return f"MLP {self.net[0].out_features}x{(len(self.net) - 1) // 2}"
 
 
 class GravityPotential(nn.Module):
@@ -42,3 +45,123 @@ class GravityPotential(nn.Module):
         if m:
             com_height = torch.cat((com_height[..., :m] + g.p[..., 2], com_height[..., m:]), -1)
         return self.gravity * (self.masses * com_height).sum(-1)
+
+    def describe(self) -> str:
+        return "gravity"
+
+
+# ----------------------------------------------------------------------------- interactions
+INTERACTIONS = ("spring", "relative_rotation", "relative_rotation_trace", "newton", "dipole")
+"""Interaction potentials between two bodies (the paper's appendix list), `InteractionPotential.kind`."""
+
+
+def _vec3(x, name: str) -> torch.Tensor:
+    t = torch.as_tensor(x, dtype=torch.float64)
+    if t.shape != (3,):
+        raise ValueError(f"interaction.{name} must be 3 numbers, got {x!r}")
+    return t
+
+
+class InteractionPotential(nn.Module):
+    """V_int(g) between bodies `a` and `b` of a product group (known potential of a scene).
+
+    Body origins: o_i = p_i for SE(3) bodies and o_i = 0 for SO(3) bodies (a pivot at the world
+    origin). Points fixed in body i: attachment X_i = o_i + R_i r_i, centre of mass
+    c_i = o_i + R_i rho_i, magnetic moment R_i n_i. With d = X_b - X_a:
+
+      spring                   mu/2 |X_a - X_b|^2
+      relative_rotation        mu/2 |log(R_a^T R_b)|^2
+      relative_rotation_trace  mu (3 - tr(R_a^T R_b))
+      newton                   -mu m_a m_b / |c_b - c_a|     (mu: gravitational constant)
+      dipole                   mu / |d|^3 ((R_a n_a).(R_b n_b) - 3 (R_a n_a . d)(R_b n_b . d) / |d|^2)
+                               (mu = mu_0 / (4 pi))
+
+    All parameters are fixed buffers (no trainable parameters).
+    """
+
+    def __init__(self, G: ProductGroup, kind: str, mu: float, r1=(0.0, 0.0, 0.0), r2=(0.0, 0.0, 0.0),
+                 moment1=(0.0, 0.0, 1.0), moment2=(0.0, 0.0, 1.0), masses=(1.0, 1.0),
+                 rhos=((0.0, 0.0, 0.0), (0.0, 0.0, 0.0)), bodies=(0, 1)):
+        super().__init__()
+        if kind not in INTERACTIONS:
+            raise ValueError(f"interaction.kind must be one of {INTERACTIONS}, got {kind!r}")
+        a, b = (int(i) for i in bodies)
+        if not (0 <= a < G.n_bodies and 0 <= b < G.n_bodies and a != b):
+            raise ValueError(f"interaction bodies {bodies} do not name two bodies of {G.name}")
+        self.G, self.kind, self.mu, self.a, self.b = G, kind, float(mu), a, b
+        self.register_buffer("r", torch.stack((_vec3(r1, "r1"), _vec3(r2, "r2"))))
+        self.register_buffer("n", torch.stack((_vec3(moment1, "moment1"), _vec3(moment2, "moment2"))))
+        self.register_buffer("m", torch.as_tensor(masses, dtype=torch.float64).reshape(2))
+        self.register_buffer("rho", torch.as_tensor(rhos, dtype=torch.float64).reshape(2, 3))
+
+    def _origin(self, g: Pose, i: int) -> torch.Tensor:
+        if i < self.G.n_se3:
+            return g.p[..., i, :]
+        return g.R.new_zeros(*g.R.shape[:-3], 3)
+
+    def _point(self, g: Pose, i: int, local: torch.Tensor) -> torch.Tensor:
+        return self._origin(g, i) + (g.R[..., i, :, :] @ local[:, None])[..., 0]
+
+    def forward(self, g: Pose) -> torch.Tensor:
+        a, b, mu = self.a, self.b, self.mu
+        Ra, Rb = g.R[..., a, :, :], g.R[..., b, :, :]
+        if self.kind == "spring":
+            d = self._point(g, a, self.r[0]) - self._point(g, b, self.r[1])
+            return 0.5 * mu * (d * d).sum(-1)
+        if self.kind == "relative_rotation":
+            w = so3.log(Ra.transpose(-1, -2) @ Rb)
+            return 0.5 * mu * (w * w).sum(-1)
+        if self.kind == "relative_rotation_trace":
+            return mu * (3.0 - (Ra * Rb).sum((-1, -2)))  # tr(Ra^T Rb) = sum of entrywise products
+        if self.kind == "newton":
+            d = self._point(g, b, self.rho[1]) - self._point(g, a, self.rho[0])
+            return -mu * self.m[0] * self.m[1] / torch.linalg.vector_norm(d, dim=-1)
+        # dipole
+        d = self._point(g, b, self.r[1]) - self._point(g, a, self.r[0])
+        na, nb = (Ra @ self.n[0][:, None])[..., 0], (Rb @ self.n[1][:, None])[..., 0]
+        r2 = (d * d).sum(-1)
+        r3 = r2 * torch.sqrt(r2)
+        return mu / r3 * ((na * nb).sum(-1) - 3.0 * (na * d).sum(-1) * (nb * d).sum(-1) / r2)
+
+    def describe(self) -> str:
+        return f"interaction:{self.kind}"
+
+
+class SumPotential(nn.Module):
+    """V = sum of potentials (e.g. gravity + interaction), shape (...)."""
+
+    def __init__(self, terms):
+        super().__init__()
+        self.terms = nn.ModuleList(terms)
+
+    def forward(self, g: Pose) -> torch.Tensor:
+        out = self.terms[0](g)
+        for t in self.terms[1:]:
+            out = out + t(g)
+        return out
+
+    def describe(self) -> str:
+        return "+".join(_describe(t) for t in self.terms)
+
+
+def _describe(p: nn.Module) -> str:
+    if hasattr(p, "describe"):
+        return p.describe()
+    return type(p).__name__
+
+
+def left_gradient(V: nn.Module, G: ProductGroup, g: Pose, create_graph: bool = False) -> torch.Tensor:
+    """dV(g exp(eta))/d eta at 0 (the left-trivialised gradient), shape (..., dim), by autodiff
+    of V over the matrices: for each body the rotational part is 2 vee(R^T dV/dR) (vee of the
+    skew part, so3.vee), and for SE(3) bodies the translational part R^T dV/dp."""
+    with torch.enable_grad():
+        R = g.R.detach().requires_grad_(True) if not create_graph else g.R
+        p = g.p.detach().requires_grad_(True) if not create_graph else g.p
+        val = V(Pose(R, p)).sum()
+        dR, dp = torch.autograd.grad(val, (R, p), create_graph=create_graph, allow_unused=True)
+    dR = torch.zeros_like(g.R) if dR is None else dR
+    dp = torch.zeros_like(g.p) if dp is None else dp
+    w = 2.0 * so3.vee(g.R.transpose(-1, -2) @ dR)
+    m = G.n_se3
+    v = (g.R[..., :m, :, :].transpose(-1, -2) @ dp[..., None])[..., 0]
+    return G.join(w, v)

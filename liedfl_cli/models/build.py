@@ -13,6 +13,8 @@ def resolve_potential(cfg_model, dataset) -> str:
     pot = cfg_model.get("potential", "auto")
     if pot != "auto":
         return pot
+    if "potential" in (cfg_model.get("known") or ()):
+        return "none"  # the known (true) potential replaces the network
     physics = (dataset.params or {}).get("physics") or {}
     if dataset.group.n_bodies == 1 and "g" in physics and float(physics["g"]) == 0.0:
         return "none"
@@ -42,14 +44,21 @@ def build_model(cfg: DictConfig, dataset):
     # _partial_ so that runtime objects (the group layout) are passed as they are, not merged
     # into the config.
     factory = instantiate(cfg.model, _partial_=True, _convert_="all")
-    model = factory(
-        G=dataset.group,
-        h=dataset.h,
-        potential=resolve_potential(cfg.model, dataset),
-        forces=forces,
-        epsilon=float(cfg.train.epsilon),
-        seed=int(cfg.seed),
-    )
+    extra = {}
+    if cfg.model.get("known"):  # known (frozen) parts take the scene's true values
+        extra["physics"] = (dataset.params or {}).get("physics")
+    try:
+        model = factory(
+            G=dataset.group,
+            h=dataset.h,
+            potential=resolve_potential(cfg.model, dataset),
+            forces=forces,
+            epsilon=float(cfg.train.epsilon),
+            seed=int(cfg.seed),
+            **extra,
+        )
+    except ValueError as e:  # bad model/force options: one clear config error
+        raise ConfigError(str(e)) from None
     if not isinstance(model, LieDFLNN):
         raise ConfigError(f"model._target_ must build a LieDFLNN, got {type(model).__name__}")
     return model

@@ -7,7 +7,11 @@ split into a part fixed by (g_{k-1}, g_k) (`residual_const`) and a part dependin
 (`residual_var`) so a rollout's Newton solve only differentiates the latter.
 
 Components are built only when configured: no potential network for a free body, no mass
-or centre of mass for SO(3)-only groups, no force modules when `forces` is empty.
+or centre of mass for SO(3)-only groups, no force modules when `forces` is empty. Parts named
+in `known` ("inertia": J_d and, for SE(3) bodies, m and rho_COM; "potential": the scene's
+gravity + interaction potential; "damping": the Rayleigh D) are set to the scene's true values
+from `physics` (a dataset's `params["physics"]`) and frozen (requires_grad False: not trained,
+not counted as trainable parameters). `components()` lists every active part.
 """
 from __future__ import annotations
 
@@ -21,9 +25,10 @@ from ..lie import Pose, ProductGroup
 from ..mechanics import kinetic
 from ..mechanics.forces import build_forces, force_jacobian_xi
 from ..mechanics.parameterizations import Inertia, PositiveVector
-from ..mechanics.potentials import GravityPotential, MLPPotential
+from ..mechanics.potentials import MLPPotential
 
 RESIDUAL_MODES = ("fast", "generic")
+KNOWN_PARTS = ("inertia", "potential", "damping")
 
 
 class LieDFLNN(nn.Module):
@@ -51,28 +56,65 @@ class LieDFLNN(nn.Module):
         epsilon: float = 10.0,
         init_jitter: float = 0.1,
         seed: int = 0,
+        known=(),
+        physics: dict | None = None,
     ):
         super().__init__()
         if residual not in RESIDUAL_MODES:
             raise ValueError(f"model.residual must be one of {RESIDUAL_MODES}, got {residual!r}")
+        known = tuple(known or ())
+        bad = [k for k in known if k not in KNOWN_PARTS]
+        if bad:
+            raise ValueError(f"model.known: unknown part(s) {bad}; choose from {list(KNOWN_PARTS)}")
+        if known and not physics:
+            raise ValueError(f"model.known={list(known)} needs the scene's true parameters, but the dataset "
+                             "has no params['physics'] (real recordings have none)")
         self.G, self.h, self.residual_mode = G, float(h), residual
+        self.known = known
         gen = torch.Generator().manual_seed(seed)
         # Start with log|det H| at the regularity threshold so neither loss term dominates.
         body_scales = [h * math.exp(epsilon / (6 if i < G.n_se3 else 3)) for i in range(G.n_bodies)]
         scale = body_scales[0]
+        truth = None
+        if known:
+            from . import truth  # late import: truth builds LieDFLNNs itself
+
+            J_true, m_true, rho_true, D_true = truth.body_parameters(G, physics)
+            if "inertia" in known:  # forces are scaled like the true inertia
+                scale = float(J_true.diagonal(dim1=-2, dim2=-1).mean())
         self.inertia = Inertia(G.n_bodies, scale=body_scales, jitter=init_jitter, generator=gen)
         if G.n_se3:
             self.mass = PositiveVector(G.n_se3, init=scale)
             self.rho = nn.Parameter(init_jitter * torch.randn(G.n_se3, 3, generator=gen, dtype=torch.float64))
         else:
             self.mass, self.rho = None, None
-        if potential == "none":
+        if "inertia" in known:
+            self.inertia.set_J(J_true)
+            self.inertia.requires_grad_(False)
+            if G.n_se3:
+                self.mass.set_value(m_true[: G.n_se3])
+                self.mass.requires_grad_(False)
+                with torch.no_grad():
+                    self.rho.copy_(rho_true[: G.n_se3])
+                self.rho.requires_grad_(False)
+        if "potential" in known:
+            if potential == "mlp":
+                raise ValueError("model.potential=mlp together with model.known=[potential]: choose one "
+                                 "(the known potential replaces the network)")
+            self.potential = truth.true_potential(G, physics)  # None when the scene has no potential
+        elif potential == "none":
             self.potential = None
         elif potential == "mlp":
             self.potential = MLPPotential(G, mlp_width, mlp_depth)
         else:
             raise ValueError(f"model.potential must be 'none' or 'mlp', got {potential!r}")
         self.forces = nn.ModuleList(build_forces(G, forces, scale))
+        if "damping" in known:
+            ray = [f for f in self.forces if getattr(f, "name", None) == "rayleigh"]
+            if not ray:
+                raise ValueError("model.known=[damping] needs the rayleigh force (force=[rayleigh,...])")
+            ray[0].D.set_matrix(D_true)
+            ray[0].requires_grad_(False)
 
     # ------------------------------------------------------------------ parameters
     def _params(self):
@@ -96,13 +138,28 @@ class LieDFLNN(nn.Module):
         return loss, {"del_loss": del_loss, "reg_loss": reg_loss}
 
     def components(self) -> list[str]:
-        """Names of the active learned components (what this model pays for)."""
-        out = ["J_d"]
+        """Every active component, with its trainable parameter count or "known, frozen".
+
+        E.g. ["J_d (6)", "V:MLP 64x3 (8,961)", "F:control (C 3x3 unit columns, u MLP 64x3) (9,420)"]
+        or ["J_d (known, frozen)", "V:gravity+interaction:spring (known, frozen)", ...].
+        """
+
+        def tag(label: str, *modules) -> str:
+            params = [p for m in modules if m is not None for p in (m.parameters() if isinstance(m, nn.Module) else [m])]
+            n = sum(p.numel() for p in params if p.requires_grad)
+            if params and n == 0 or not params:
+                return f"{label} (known, frozen)"
+            return f"{label} ({n:,})"
+
+        out = [tag("J_d", self.inertia)]
         if self.G.n_se3:
-            out += ["m", "rho_COM"]
+            out += [tag("m", self.mass), tag("rho_COM", self.rho)]
         if self.potential is not None:
-            out.append(f"V:{type(self.potential).__name__}")
-        out += [f"F:{getattr(f, 'name', type(f).__name__)}" for f in self.forces]
+            desc = self.potential.describe() if hasattr(self.potential, "describe") else type(self.potential).__name__
+            out.append(tag(f"V:{desc}", self.potential))
+        for f in self.forces:
+            desc = f.describe() if hasattr(f, "describe") else getattr(f, "name", type(f).__name__)
+            out.append(tag(f"F:{desc}", f))
         return out
 
     # ------------------------------------------------------------------ pieces of L_d and F

@@ -1,0 +1,186 @@
+"""Exp 5 evaluation: the learned control torque along the observed trajectory vs the true one.
+
+Registered as EXTRA_EVALS["pd_control"] by `data.scenes_multibody` and run by `liedfl train` after
+the standard evaluation. For every trajectory of each split, at k = 0..N-1:
+
+  learned   tau_theta(R_k, w~_k): the rotational part of the sum of the model's forces, with
+            w~_k = vee(W_k - W_k^T)/(2h) from the data increment W_k = R_k^T R_{k+1} (what the
+            model sees: positions only);
+  true      tau(R_k, w_k) from `extras/tau_ext` (the simulator's non-conservative torque at the
+            true angular velocity; equal to the PD torque `extras/tau_control` when D = 0, the
+            Exp 5 setting);
+  law@w~    the true PD law evaluated at (R_k, w~_k) (the true-parameter scheme's force), which
+            separates identification error from the O(h) error of the velocity estimate.
+
+Relative error per step ||tau_theta - tau|| / ||tau||; summary mean and max over steps and the
+aggregate ||tau_theta - tau||_2 / ||tau||_2 over all steps. Files: control_eval.json,
+control_eval.md, plots/torque.png (torque components learned vs true, relative error, and the
+rollout's body axis R e3 on the sphere; from rollout.h5 when present).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .io_utils import atomic_path, markdown_table, write_json, write_text
+from .lie import Pose
+from .mechanics.kinetic import velocity_estimate
+from .ui import console
+
+
+@torch.no_grad()
+def force_torques(model, traj: Pose, h: float) -> np.ndarray:
+    """Rotational part of sum_F F(g_k, xi~_k) along trajectories (T, N+1, ...) -> (T, N, B, 3)."""
+    G = model.G
+    g = traj.index((slice(None), slice(0, -1)))
+    inc = G.increment(g, traj.index((slice(None), slice(1, None))))
+    xi = velocity_estimate(G, inc, h)
+    total = torch.zeros_like(xi)
+    for f in model.forces:
+        total = total + f(g, xi)
+    w, _ = G.split(total)
+    return w.numpy()
+
+
+def torque_errors(learned: np.ndarray, true: np.ndarray) -> dict:
+    """Relative errors over (T, N, B, 3) arrays: per-step curve (mean over trajectories) and scalars."""
+    T, N = learned.shape[:2]
+    d = (learned - true).reshape(T, N, -1)
+    t = true.reshape(T, N, -1)
+    per_step = np.linalg.norm(d, axis=-1) / np.maximum(np.linalg.norm(t, axis=-1), 1e-300)
+    return {
+        "curve": per_step.mean(0),
+        "rel_error_mean": float(per_step.mean()),
+        "rel_error_max": float(per_step.max()),
+        "rel_error_aggregate": float(np.linalg.norm(d) / max(np.linalg.norm(t), 1e-300)),
+    }
+
+
+def evaluate_control(cfg, model, dataset, run_dir) -> dict | None:
+    """Exp 5 torque recovery; returns the summary dict (None for models without forces)."""
+    from .models.truth import true_model
+
+    if not hasattr(model, "forces") or not len(model.forces):
+        console.print("[yellow]control eval skipped:[/] the model has no force components")
+        return None
+    run_dir = Path(run_dir)
+    h = dataset.h
+    ref = true_model(dataset)
+    rows, curves = [], {}
+    for split in ("train", "test"):
+        idx = np.asarray(dataset.split[split])
+        if idx.size == 0:
+            continue
+        traj = dataset.pose(idx)
+        learned = force_torques(model, traj, h)
+        N = learned.shape[1]
+        true = np.asarray(dataset.extras["tau_ext"])[idx][:, :N]
+        err = torque_errors(learned, true)
+        row = {"split": split, "trajectories": int(idx.size), "steps": int(N),
+               "rel_error_mean": err["rel_error_mean"], "rel_error_max": err["rel_error_max"],
+               "rel_error_aggregate": err["rel_error_aggregate"]}
+        if ref is not None and len(ref.forces):
+            law = force_torques(ref, traj, h)
+            e2 = torque_errors(learned, law)
+            row.update({"vs_law_at_w_tilde_mean": e2["rel_error_mean"], "vs_law_at_w_tilde_max": e2["rel_error_max"],
+                        "law_at_w_tilde_vs_true_mean": torque_errors(law, true)["rel_error_mean"]})
+        rows.append(row)
+        curves[split] = {"learned": learned[0], "true": true[0], "rel_error": err["curve"]}
+    if not rows:
+        return None
+    summary = {"rows": rows, "reference": "extras/tau_ext (true non-conservative torque at the true angular velocity)"}
+    write_json(run_dir / "control_eval.json", summary)
+    md = ("# Control recovery (learned torque along the observed trajectories)\n\n"
+          "Relative error ||tau_theta(R_k, w~_k) - tau(R_k, w_k)|| / ||tau(R_k, w_k)|| per step (mean, max), "
+          "and aggregated over all steps; `vs_law_at_w_tilde`: against the true PD law evaluated at the "
+          "same velocity estimate w~_k.\n\n")
+    md += markdown_table(rows, list(rows[0]))
+    write_text(run_dir / "control_eval.md", md)
+    for r in rows:
+        console.print(f"control recovery ({r['split']}): relative torque error mean {r['rel_error_mean']:.3e}, "
+                      f"max {r['rel_error_max']:.3e}, aggregate {r['rel_error_aggregate']:.3e}")
+    if cfg.eval.plots:
+        key = "test" if "test" in curves else "train"
+        plot_torque(curves[key], h, _rollout_R(run_dir, dataset), run_dir / "plots" / "torque.png", key)
+    return summary
+
+
+def _rollout_R(run_dir: Path, dataset) -> dict:
+    """{name: R (S+1, B, 3, 3)} of the first rolled-out trajectory (truth included), from rollout.h5."""
+    path = run_dir / "rollout.h5"
+    if not path.is_file():
+        return {}
+    import h5py
+
+    out = {}
+    with h5py.File(path, "r") as f:
+        i = int(f["traj_index"][0])
+        for name in f:
+            if isinstance(f[name], h5py.Group) and "R" in f[name]:
+                out[name] = f[name]["R"][0]
+    S = min(len(R) for R in out.values()) if out else 0
+    out["truth"] = dataset.R[i, :S]
+    out["_index"] = i
+    return out
+
+
+def plot_torque(curve: dict, h: float, rollouts: dict, path: Path, split: str) -> None:
+    """Torque components learned vs true, relative error, rollout on the sphere and its rotation error."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    learned, true = curve["learned"], curve["true"]   # (N, B, 3)
+    N = learned.shape[0]
+    t = np.arange(N) * h
+    fig = plt.figure(figsize=(15, 8))
+    for j in range(3):
+        ax = fig.add_subplot(2, 3, j + 1)
+        ax.plot(t, true[:, 0, j], "--", color="black", label="true")
+        ax.plot(t, learned[:, 0, j], color="tab:blue", label="learned")
+        ax.set_title(f"torque component {j + 1} ({split} trajectory)")
+        ax.set_xlabel("time")
+        ax.grid(alpha=0.3)
+        if j == 0:
+            ax.legend()
+    ax = fig.add_subplot(2, 3, 4)
+    ax.semilogy(t, np.maximum(curve["rel_error"], 1e-17), color="tab:blue")
+    ax.set_title("relative torque error ||tau_theta - tau|| / ||tau||")
+    ax.set_xlabel("time")
+    ax.grid(alpha=0.3)
+    rollouts = dict(rollouts)
+    index = rollouts.pop("_index", None)
+    if rollouts:
+        colors = {"truth": "black", "model": "tab:blue", "true_scheme": "tab:orange"}
+        ax3 = fig.add_subplot(2, 3, 5, projection="3d")
+        u, v = np.mgrid[0:2 * np.pi:30j, 0:np.pi:15j]
+        ax3.plot_wireframe(np.cos(u) * np.sin(v), np.sin(u) * np.sin(v), np.cos(v), color="0.85", linewidth=0.4)
+        for name, R in rollouts.items():
+            ax3.plot(*R[:, 0, :, 2].T, "-" if name == "truth" else "--", color=colors.get(name), linewidth=1.0,
+                     label=name)
+        ax3.set_box_aspect((1, 1, 1))
+        ax3.legend(loc="upper left", fontsize=8)
+        ax3.set_title(f"rollout: body axis R e3 (trajectory {index})")
+        ax = fig.add_subplot(2, 3, 6)
+        truth = rollouts["truth"]
+        for name, R in rollouts.items():
+            if name == "truth":
+                continue
+            S = min(len(R), len(truth))
+            err = np.linalg.norm(R[:S] - truth[:S], axis=(-2, -1)).mean(-1) / np.sqrt(3.0)
+            ax.semilogy(np.arange(S) * h, np.maximum(err, 1e-17), color=colors.get(name), label=name)
+        ax.set_title("rollout relative rotation error ||R^ - R||_F / ||R||_F")
+        ax.set_xlabel("time")
+        ax.grid(alpha=0.3)
+        ax.legend()
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+
+
+__all__ = ["force_torques", "torque_errors", "evaluate_control", "plot_torque"]

@@ -1,0 +1,178 @@
+"""Euclidean DFLNN (paper Exp 3): the rigid-body discrete Lagrangian written on the entries of
+(R, p) as free coordinates x in R^12 (R^9 for an SO(3) body), ignoring R^T R = I.
+
+With finite-difference velocities Rd = (R1 - R0)/h, pd = (p1 - p0)/h:
+    L_d(x0, x1) = h [ 1/2 tr(Rd J_d Rd^T) + 1/2 m |pd + Rd rho|^2 - V(x0) ],
+which equals LieDFLNN's kinetic discrete Lagrangian whenever R0, R1 are rotations, so the two
+models share the same variational structure and differ only in the configuration space. J_d is
+the matrix-representation inertia of a learned SPD J (`Inertia.Jd()`, SPD), m > 0, rho free, V an
+MLP on x (only when the scene has a potential). Damping: the Rayleigh function
+1/2 xi^T D xi of the body velocity estimate xi = (vee(R0^T Rd), R0^T pd) (LieDFLNN's w~ and,
+to first order, v~, read in ambient coordinates) gives the generalised force
+Q = -d/d(xdot) (1/2 xi^T D xi) = (-1/2 R0 hat(a), -R0 b), (a, b) = D xi. As in LieDFLNN it enters
+with weight h/2 at both ends of the step, F^-(x0, x1) = h/2 Q with R0 and F^+(x0, x1) = h/2 Q with
+R1 in place of R0 (then, on SO(3)/SE(3) data, the residual's components along the group
+directions equal LieDFLNN's residual for the same J_d, m, rho, D_ww -- a tested identity):
+    r_k = d/dx_k [L_d(x_{k-1}, x_k) + L_d(x_k, x_{k+1})] + F^+(x_{k-1}, x_k) + F^-(x_k, x_{k+1}) in R^12.
+Loss: w_DEL mean |r|^2 + w_reg mean penalty(log|det d^2 L_d / dx_k dx_{k+1}|) (the 12 x 12 mixed
+Hessian by autodiff; it is -(1/h) times the constant kinetic matrix). Rollout: damped Newton on
+x_{k+1} in R^12 from 2 x_k - x_{k-1}; the predicted R is not orthogonal and is returned as is.
+Single-body groups only (SO(3) or SE(3)).
+"""
+from __future__ import annotations
+
+import math
+import time
+
+import torch
+from torch import nn
+
+from ..lie import Pose, ProductGroup, so3
+from ..mechanics.mlp import MLP
+from ..mechanics.parameterizations import Inertia, PositiveVector, SPSDMatrix
+from ..solvers.newton import damped_newton
+from ..solvers.rollout import Rollout
+from .baseline_common import with_data_start
+from .liedflnn import regularity_penalty
+
+
+class EuclideanDFLNN(nn.Module):
+    window = "triplet"
+
+    def __init__(self, G: ProductGroup, h: float, potential: bool = False, damping: bool = True,
+                 mlp_width: int = 64, mlp_depth: int = 3, init_jitter: float = 0.1, epsilon: float = 10.0,
+                 seed: int = 0):
+        super().__init__()
+        if G.n_bodies != 1:
+            raise ValueError("EuclideanDFLNN models one body")
+        self.G, self.h = G, float(h)
+        self.se3 = G.n_se3 == 1
+        self.n = 12 if self.se3 else 9
+        gen = torch.Generator().manual_seed(int(seed))
+        # Mixed Hessian = -(1/h) K with K ~ s I_n when J_d = s I, m = s: n log(s/h) = epsilon.
+        s = self.h * math.exp(float(epsilon) / self.n)
+        self.inertia = Inertia(1, scale=2 * s, jitter=init_jitter, generator=gen)  # J = 2s I -> J_d = s I
+        if self.se3:
+            self.mass = PositiveVector(1, init=s)
+            self.rho = nn.Parameter(init_jitter * torch.randn(3, generator=gen, dtype=torch.float64))
+        else:
+            self.mass, self.rho = None, None
+        self.damping = SPSDMatrix(G.dim, init_diag=0.01 * s) if damping else None
+        self.potential = MLP(self.n, 1, mlp_width, mlp_depth) if potential else None
+
+    def components(self) -> list[str]:
+        out = ["J_d"] + (["m", "rho_COM"] if self.se3 else [])
+        if self.damping is not None:
+            out.append("D")
+        if self.potential is not None:
+            out.append("V:MLP(x)")
+        return out
+
+    # ------------------------------------------------------------------ coordinates
+    def to_x(self, g: Pose) -> torch.Tensor:
+        """Pose (..., 1, 3, 3), (..., m, 3) -> x (..., n): 9 entries of R row by row, then p."""
+        lead = g.R.shape[:-3]
+        return torch.cat((g.R.reshape(*lead, 9), g.p.reshape(*lead, -1)), -1)
+
+    def from_x(self, x: torch.Tensor) -> Pose:
+        lead = x.shape[:-1]
+        return Pose(x[..., :9].reshape(*lead, 1, 3, 3), x[..., 9:].reshape(*lead, self.G.n_se3, 3))
+
+    def _split(self, x):
+        return x[..., :9].reshape(*x.shape[:-1], 3, 3), x[..., 9:]
+
+    # ------------------------------------------------------------------ discrete mechanics in x
+    def lagrangian(self, x0: torch.Tensor, x1: torch.Tensor) -> torch.Tensor:
+        R0, p0 = self._split(x0)
+        R1, p1 = self._split(x1)
+        Rd = (R1 - R0) / self.h
+        Jd = self.inertia.Jd()[0]
+        K = 0.5 * (Rd @ Jd * Rd).sum((-1, -2))  # 1/2 tr(Rd J_d Rd^T)
+        if self.se3:
+            u = (p1 - p0) / self.h + (Rd @ self.rho[:, None])[..., 0]
+            K = K + 0.5 * self.mass()[0] * (u * u).sum(-1)
+        L = K
+        if self.potential is not None:
+            L = L - self.potential(x0)[..., 0]
+        return self.h * L
+
+    def forces(self, x0: torch.Tensor, x1: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Generalised Rayleigh force of the step (x0, x1) applied at x0 and at x1, each (..., n).
+
+        xi = (vee(R0^T Rd), R0^T pd) and (a, b) = D xi; the force at the endpoint with rotation
+        Rj is Q_R = -1/2 Rj hat(a), Q_p = -Rj b (Rj = R0 is -d/d(xdot) of 1/2 xi^T D xi; using R1
+        at the right endpoint makes the residual's tangential part equal LieDFLNN's on SO(3)/SE(3)).
+        """
+        if self.damping is None:
+            z = torch.zeros_like(x0)
+            return z, z
+        R0, p0 = self._split(x0)
+        R1, p1 = self._split(x1)
+        w = so3.vee(R0.transpose(-1, -2) @ ((R1 - R0) / self.h))
+        xi = w
+        if self.se3:
+            v = ((p1 - p0) / self.h)[..., None, :] @ R0  # (R0^T pd)^T
+            xi = torch.cat((w, v[..., 0, :]), -1)
+        c = xi @ self.damping().T
+        A = so3.hat(c[..., :3])
+        out = []
+        for Rj in (R0, R1):
+            Q = [(-0.5 * Rj @ A).reshape(*Rj.shape[:-2], 9)]
+            if self.se3:
+                Q.append(-(Rj @ c[..., 3:, None])[..., 0])
+            out.append(torch.cat(Q, -1))
+        return out[0], out[1]
+
+    def residual(self, x_prev: torch.Tensor, x: torch.Tensor, x_next: torch.Tensor) -> torch.Tensor:
+        create = torch.is_grad_enabled()
+        with torch.enable_grad():
+            xk = x.detach().requires_grad_(True)
+            L = self.lagrangian(x_prev, xk) + self.lagrangian(xk, x_next)
+            (dL,) = torch.autograd.grad(L.sum(), xk, create_graph=True)
+        r = dL + 0.5 * self.h * (self.forces(x_prev, x)[1] + self.forces(x, x_next)[0])
+        return r if create else r.detach()
+
+    def mixed_hessian(self, x0: torch.Tensor, x1: torch.Tensor) -> torch.Tensor:
+        """d^2 L_d / dx0 dx1, (..., n, n) by autodiff."""
+        with torch.enable_grad():
+            a, b = x0.detach().requires_grad_(True), x1.detach().requires_grad_(True)
+            (g,) = torch.autograd.grad(self.lagrangian(a, b).sum(), a, create_graph=True)
+            rows = [torch.autograd.grad(g[..., i].sum(), b, create_graph=True)[0] for i in range(self.n)]
+        return torch.stack(rows, -2)
+
+    # ------------------------------------------------------------------ training
+    def loss(self, batch, reg_pairs, cfg_train):
+        r = self.residual(*(self.to_x(g) for g in batch))
+        del_loss = (r * r).mean()
+        reg_loss = torch.zeros((), dtype=r.dtype)
+        if reg_pairs is not None and cfg_train.w_reg > 0:
+            H = self.mixed_hessian(self.to_x(reg_pairs[0]), self.to_x(reg_pairs[1]))
+            logdet = torch.linalg.slogdet(H).logabsdet
+            reg_loss = regularity_penalty(logdet, float(cfg_train.epsilon), cfg_train.reg_form).mean()
+        loss = cfg_train.w_del * del_loss + cfg_train.w_reg * reg_loss
+        return loss, {"del_loss": del_loss, "reg_loss": reg_loss}
+
+    # ------------------------------------------------------------------ rollout
+    @torch.no_grad()
+    def rollout(self, g0: Pose, g1: Pose, steps: int, solver=None, progress=None) -> Rollout:
+        s = solver or {}
+        tol, max_iter, halvings = float(s.get("tol", 1e-5)), int(s.get("max_iter", 10)), int(s.get("max_halvings", 6))
+        t0 = time.perf_counter()
+        x_prev, x = self.to_x(g0), self.to_x(g1)
+        xs = [x_prev, x]
+        conv, its, res = [], [], []
+        for k in range(1, steps):
+            sol = damped_newton(lambda y, a=x_prev, b=x: self.residual(a, b, y), 2 * x - x_prev,
+                                tol=tol, max_iter=max_iter, max_halvings=halvings)
+            x_prev, x = x, sol.x.detach()
+            xs.append(x)
+            conv.append(sol.converged)
+            its.append(sol.iterations)
+            res.append(sol.residual_norm.detach())
+            if progress is not None:
+                progress(k)
+        pose = with_data_start(self.from_x(torch.stack(xs, 1)), g0, g1)
+        T = g0.R.shape[0]
+        stack = lambda v, dt: torch.stack(v, 1) if v else torch.zeros(T, 0, dtype=dt)  # noqa: E731
+        return Rollout(pose, stack(conv, torch.bool), stack(its, torch.long), stack(res, torch.float64),
+                       time.perf_counter() - t0)

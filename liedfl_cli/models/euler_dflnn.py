@@ -1,0 +1,152 @@
+"""Euler-angle DFLNN (paper Exp 1): the discrete Lagrangian approach in ZYX Euler angles
+q = (phi, theta, psi) treated as Euclidean coordinates.
+
+    L_d(q0, q1) = h [ 1/2 qdot^T M(qm) qdot - V(qm) ],  qdot = (q1 - q0)/h,  qm = (q0 + q1)/2,
+    M(q) = E(q)^T J E(q)   (rigid-body kinetic energy in Euler-angle rates, learned SPD J),
+    Q(q0, q1) = -E(qm)^T D E(qm) qdot   (Rayleigh dissipation 1/2 w^T D w, w = E qdot, learned D),
+    r_k = d/dq_k [L_d(q_{k-1}, q_k) + L_d(q_k, q_{k+1})] + h/2 [Q(q_{k-1}, q_k) + Q(q_k, q_{k+1})],
+
+with E the Euler-rate matrix (`lie.euler.rate_matrix`, det E = cos theta: M is singular at gimbal
+lock, which is the weakness the experiment exposes) and V an MLP on q (only when the scene has a
+potential). Loss: w_DEL mean |r|^2 + w_reg mean penalty(log|det d^2 L_d/dq_k dq_{k+1}|), like
+LieDFLNN (the same `regularity_penalty`, threshold train.epsilon).
+
+Angles: each pose of a training triplet is converted with `euler.from_matrix` (principal
+values); the triplet is then unwrapped around its middle pose, which keeps its principal value.
+Rollouts do the same: before each step the pair (q_{k-1}, q_k) is shifted by the multiple of
+2 pi that brings q_k to its principal value (L_d's kinetic and damping terms are 2 pi periodic;
+only V sees the shift, and it then sees the same range as in training). q_{k+1} is found by
+damped Newton on r_k (solver tolerance / iterations), warm-started at 2 q_k - q_{k-1}, and
+converted back to SO(3) by `euler.to_matrix` for evaluation.
+"""
+from __future__ import annotations
+
+import math
+import time
+
+import torch
+from torch import nn
+
+from ..lie import Pose, ProductGroup, euler
+from ..mechanics.mlp import MLP
+from ..mechanics.parameterizations import Inertia, SPSDMatrix
+from ..solvers.newton import damped_newton
+from ..solvers.rollout import Rollout
+from .baseline_common import so3_pose, with_data_start
+from .liedflnn import regularity_penalty
+
+
+def _shift_to_principal(q_ref: torch.Tensor) -> torch.Tensor:
+    """Multiple of 2 pi to subtract so that q_ref becomes principal (theta needs none)."""
+    return q_ref - euler.wrap(q_ref)
+
+
+class EulerDFLNN(nn.Module):
+    window = "triplet"
+
+    def __init__(self, G: ProductGroup, h: float, potential: bool = False, damping: bool = True,
+                 mlp_width: int = 64, mlp_depth: int = 3, init_jitter: float = 0.1, epsilon: float = 10.0,
+                 seed: int = 0):
+        super().__init__()
+        self.G, self.h = G, float(h)
+        gen = torch.Generator().manual_seed(int(seed))
+        # Mixed Hessian ~ -(1/h) E^T J E: J = s I with 3 log(s/h) = epsilon starts at the threshold.
+        scale = self.h * math.exp(float(epsilon) / 3)
+        self.inertia = Inertia(1, scale=scale, jitter=init_jitter, generator=gen)
+        self.damping = SPSDMatrix(3, init_diag=0.01 * scale) if damping else None
+        self.potential = MLP(3, 1, mlp_width, mlp_depth) if potential else None
+
+    def components(self) -> list[str]:
+        out = ["J (in M(q) = E^T J E)"]
+        if self.damping is not None:
+            out.append("D")
+        if self.potential is not None:
+            out.append("V:MLP(q)")
+        return out
+
+    # ------------------------------------------------------------------ discrete mechanics in q
+    def lagrangian(self, q0: torch.Tensor, q1: torch.Tensor) -> torch.Tensor:
+        qd = (q1 - q0) / self.h
+        qm = 0.5 * (q0 + q1)
+        w = (euler.rate_matrix(qm) @ qd[..., None])[..., 0]
+        J = self.inertia.J()[0]
+        L = 0.5 * (w * (w @ J.T)).sum(-1)
+        if self.potential is not None:
+            L = L - self.potential(qm)[..., 0]
+        return self.h * L
+
+    def force(self, q0: torch.Tensor, q1: torch.Tensor) -> torch.Tensor:
+        """Generalised Rayleigh force Q = -E^T D E qdot at the midpoint, (..., 3)."""
+        if self.damping is None:
+            return torch.zeros_like(q0)
+        E = euler.rate_matrix(0.5 * (q0 + q1))
+        w = (E @ ((q1 - q0) / self.h)[..., None])
+        return -(E.transpose(-1, -2) @ (self.damping() @ w))[..., 0]
+
+    def residual(self, q_prev: torch.Tensor, q: torch.Tensor, q_next: torch.Tensor) -> torch.Tensor:
+        """Forced DEL residual r_k (..., 3); differentiable w.r.t. q_prev, q_next and the parameters."""
+        create = torch.is_grad_enabled()
+        with torch.enable_grad():
+            qk = q.detach().requires_grad_(True)
+            L = self.lagrangian(q_prev, qk) + self.lagrangian(qk, q_next)
+            (dL,) = torch.autograd.grad(L.sum(), qk, create_graph=True)
+        r = dL + 0.5 * self.h * (self.force(q_prev, q) + self.force(q, q_next))
+        return r if create else r.detach()
+
+    def mixed_hessian(self, q0: torch.Tensor, q1: torch.Tensor) -> torch.Tensor:
+        """d^2 L_d / dq0 dq1, (..., 3, 3) by autodiff."""
+        with torch.enable_grad():
+            a, b = q0.detach().requires_grad_(True), q1.detach().requires_grad_(True)
+            (g,) = torch.autograd.grad(self.lagrangian(a, b).sum(), a, create_graph=True)
+            rows = [torch.autograd.grad(g[..., i].sum(), b, create_graph=True)[0] for i in range(3)]
+        return torch.stack(rows, -2)
+
+    # ------------------------------------------------------------------ data conversion
+    @staticmethod
+    def angles(*poses: Pose) -> list[torch.Tensor]:
+        """Consecutive poses -> ZYX angles unwrapped along the sequence around the middle pose."""
+        q = torch.stack([euler.from_matrix(g.R[..., 0, :, :]) for g in poses], -2)
+        q = euler.unwrap(q, dim=-2)
+        mid = q[..., len(poses) // 2, :]
+        q = q - _shift_to_principal(mid)[..., None, :]
+        return list(q.unbind(-2))
+
+    # ------------------------------------------------------------------ training
+    def loss(self, batch, reg_pairs, cfg_train):
+        q_prev, q, q_next = self.angles(*batch)
+        r = self.residual(q_prev, q, q_next)
+        del_loss = (r * r).mean()
+        reg_loss = torch.zeros((), dtype=r.dtype)
+        if reg_pairs is not None and cfg_train.w_reg > 0:
+            a, b = self.angles(*reg_pairs)
+            logdet = torch.linalg.slogdet(self.mixed_hessian(a, b)).logabsdet
+            reg_loss = regularity_penalty(logdet, float(cfg_train.epsilon), cfg_train.reg_form).mean()
+        loss = cfg_train.w_del * del_loss + cfg_train.w_reg * reg_loss
+        return loss, {"del_loss": del_loss, "reg_loss": reg_loss}
+
+    # ------------------------------------------------------------------ rollout
+    @torch.no_grad()
+    def rollout(self, g0: Pose, g1: Pose, steps: int, solver=None, progress=None) -> Rollout:
+        s = solver or {}
+        tol, max_iter, halvings = float(s.get("tol", 1e-5)), int(s.get("max_iter", 10)), int(s.get("max_halvings", 6))
+        t0 = time.perf_counter()
+        q_prev, q = self.angles(g0, g1)
+        Rs = [g0.R[:, 0], g1.R[:, 0]]
+        conv, its, res = [], [], []
+        for k in range(1, steps):
+            shift = _shift_to_principal(q)
+            q_prev, q = q_prev - shift, q - shift
+            sol = damped_newton(lambda x, a=q_prev, b=q: self.residual(a, b, x), 2 * q - q_prev,
+                                tol=tol, max_iter=max_iter, max_halvings=halvings)
+            q_prev, q = q, sol.x.detach()
+            Rs.append(euler.to_matrix(q))
+            conv.append(sol.converged)
+            its.append(sol.iterations)
+            res.append(sol.residual_norm.detach())
+            if progress is not None:
+                progress(k)
+        pose = with_data_start(so3_pose(torch.stack(Rs, 1)), g0, g1)
+        T = g0.R.shape[0]
+        stack = lambda xs, dt: torch.stack(xs, 1) if xs else torch.zeros(T, 0, dtype=dt)  # noqa: E731
+        return Rollout(pose, stack(conv, torch.bool), stack(its, torch.long), stack(res, torch.float64),
+                       time.perf_counter() - t0)

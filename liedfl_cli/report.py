@@ -1,0 +1,174 @@
+"""`liedfl report sweep=<multirun dir>`: one table and the paper-style figures over a sweep.
+
+Reads every run directory below `sweep` (any folder holding `.hydra/config.yaml` and `eval.csv`),
+and writes `report.csv`, `report.md` and `plots/*.png` into the sweep directory:
+error vs training length, drift vs step, predicted trajectories on the sphere per model, and
+an error-against-speed scatter (one point per run).
+"""
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+import yaml
+from omegaconf import DictConfig
+
+from .data.errors import ConfigError
+from .io_utils import markdown_table, write_csv, write_text
+from .ui import console
+
+COLUMNS = ["run", "model", "dataset", "train_steps", "setting", "parameters", "train_seconds", "seconds_per_epoch",
+           "rollout_s_per_step", "rel_rot_error_mean", "rel_rot_error_final", "geodesic_error_mean",
+           "position_error_mean", "max_orth_drift", "max_det_drift", "newton_failures"]
+
+
+def model_name(cfg: dict) -> str:
+    name = cfg.get("baseline", {}).get("name", "none")
+    return "liedflnn" if name == "none" else name
+
+
+def find_runs(sweep: Path) -> list[Path]:
+    return sorted({p.parent.parent for p in sweep.rglob(".hydra/config.yaml") if (p.parent.parent / "eval.csv").is_file()},
+                  key=lambda p: str(p))
+
+
+def collect(sweep: Path) -> list[dict]:
+    rows = []
+    for run in find_runs(sweep):
+        cfg = yaml.safe_load((run / ".hydra" / "config.yaml").read_text())
+        overrides = []
+        ov = run / ".hydra" / "overrides.yaml"
+        if ov.is_file():
+            overrides = yaml.safe_load(ov.read_text()) or []
+        with open(run / "eval.csv") as f:
+            evals = {r["model"]: r for r in csv.DictReader(f)}
+        if "model" not in evals:
+            continue
+        e = evals["model"]
+        row = {"run": str(run.relative_to(sweep)), "model": model_name(cfg), "dataset": cfg["dataset"]["name"],
+               "train_steps": int(cfg["dataset"]["train_steps"]), "setting": " ".join(overrides)}
+        for k in COLUMNS[5:]:
+            v = e.get(k)
+            row[k] = float(v) if v not in (None, "") else None
+        summary = run / "summary.json"
+        if summary.is_file():
+            t = json.loads(summary.read_text()).get("timings", {})
+            row.update({k: t.get(k) for k in ("parameters", "train_seconds", "seconds_per_epoch")})
+        rows.append(row)
+    return rows
+
+
+def _curves(sweep: Path, row: dict) -> dict:
+    path = sweep / row["run"] / "eval_curves.json"
+    return json.loads(path.read_text()).get("model", {}) if path.is_file() else {}
+
+
+def make_plots(sweep: Path, rows: list[dict]) -> list[Path]:
+    import h5py
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .plots import _save
+
+    out = []
+    pdir = sweep / "plots"
+    models = sorted({r["model"] for r in rows})
+    colors = {m: plt.get_cmap("tab10")(i % 10) for i, m in enumerate(models)}
+
+    # error vs training length (mean over runs of the same model and length)
+    fig, ax = plt.subplots(figsize=(5, 3.6))
+    for m in models:
+        pts = {}
+        for r in rows:
+            if r["model"] == m and r["rel_rot_error_mean"] is not None:
+                pts.setdefault(r["train_steps"], []).append(r["rel_rot_error_mean"])
+        xs = sorted(pts)
+        ax.semilogy(xs, [np.mean(pts[x]) for x in xs], "o-", label=m, color=colors[m])
+    ax.set_xlabel("training trajectory length (steps)")
+    ax.set_ylabel("mean relative rotation error")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    _save(fig, pdir / "error_vs_training_length.png")
+    out.append(pdir / "error_vs_training_length.png")
+
+    # drift vs step, first run of each model
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.4))
+    for m in models:
+        r = next(r for r in rows if r["model"] == m)
+        c = _curves(sweep, r)
+        for ax, key in zip(axes, ("orth_drift", "det_drift")):
+            if key in c:
+                y = np.asarray(c[key])
+                ax.semilogy(np.arange(len(y)), np.maximum(y, 1e-18), label=m, color=colors[m])
+    axes[0].set_title("||R^T R - I||_F")
+    axes[1].set_title("|det R - 1|")
+    for ax in axes:
+        ax.set_xlabel("step")
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8)
+    _save(fig, pdir / "drift_vs_step.png")
+    out.append(pdir / "drift_vs_step.png")
+
+    # predicted trajectories on the sphere, one panel per model (first test trajectory)
+    fig = plt.figure(figsize=(3.2 * len(models), 3.4))
+    for i, m in enumerate(models):
+        r = next(r for r in rows if r["model"] == m)
+        ax = fig.add_subplot(1, len(models), i + 1, projection="3d")
+        ro = sweep / r["run"] / "rollout.h5"
+        if ro.is_file():
+            with h5py.File(ro, "r") as f:
+                R = f["model/R"][0, :, 0]
+                if "true_scheme" in f:
+                    ax.plot(*f["true_scheme/R"][0, :, 0, :, 2].T, color="0.6", lw=0.8, label="true scheme")
+            ax.plot(*R[:, :, 2].T, color=colors[m], lw=1.0, label=m)
+        ax.set_title(m, fontsize=9)
+        ax.set_box_aspect((1, 1, 1))
+    _save(fig, pdir / "sphere_per_model.png")
+    out.append(pdir / "sphere_per_model.png")
+
+    # error against speed
+    fig, axes = plt.subplots(1, 2, figsize=(9.5, 3.6))
+    for ax, key, label in zip(axes, ("train_seconds", "rollout_s_per_step"), ("training wall time (s)", "rollout time per step (s)")):
+        for m in models:
+            pts = [(r[key], r["rel_rot_error_mean"]) for r in rows if r["model"] == m and r.get(key) and r["rel_rot_error_mean"]]
+            if pts:
+                ax.loglog(*zip(*pts), "o", label=m, color=colors[m])
+        ax.set_xlabel(label)
+        ax.set_ylabel("mean relative rotation error")
+        ax.grid(alpha=0.3, which="both")
+    axes[0].legend(fontsize=8)
+    _save(fig, pdir / "error_vs_speed.png")
+    out.append(pdir / "error_vs_speed.png")
+    return out
+
+
+def run_report(cfg: DictConfig) -> dict:
+    sweep = Path(str(cfg.sweep))
+    if str(cfg.sweep) in ("", "???") or not sweep.is_dir():
+        raise ConfigError(f"sweep={cfg.sweep}: not a directory (give a multirun directory, e.g. outputs/multirun/<date>)")
+    rows = collect(sweep)
+    if not rows:
+        raise ConfigError(f"sweep={sweep}: no finished runs found (folders with .hydra/config.yaml and eval.csv)")
+    rows.sort(key=lambda r: (r["dataset"], r["model"], r["train_steps"], r["run"]))
+    write_csv(sweep / "report.csv", rows)
+    cols = [c for c in COLUMNS if any(r.get(c) not in (None, "") for r in rows)]
+    write_text(sweep / "report.md", f"# Report: {sweep}\n\n{len(rows)} runs.\n\n" + markdown_table(rows, cols))
+    plots = make_plots(sweep, rows) if cfg.plots else []
+    from rich.table import Table
+
+    from .io_utils import fmt
+
+    table = Table(title=f"{len(rows)} runs in {sweep}")
+    short = ["model", "dataset", "train_steps", "rel_rot_error_mean", "max_orth_drift", "newton_failures",
+             "train_seconds", "rollout_s_per_step"]
+    for c in short:
+        table.add_column(c.replace("_", " "))
+    for r in rows:
+        table.add_row(*[fmt(r.get(c)) for c in short])
+    console.print(table)
+    console.print(f"report written to {sweep / 'report.md'} and {sweep / 'report.csv'}; plots: {len(plots)}")
+    return {"rows": rows, "plots": [str(p) for p in plots]}

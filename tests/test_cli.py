@@ -1,0 +1,152 @@
+"""End to end through the installed `liedfl` command (subprocess, cwd = a temporary directory),
+plus `run_train` called in-process on a composed config. Everything runs on the smoke budget."""
+from __future__ import annotations
+
+import csv
+import math
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import h5py
+import pytest
+from hydra import compose, initialize_config_dir
+from hydra.core.global_hydra import GlobalHydra
+from omegaconf import OmegaConf
+
+from liedfl_cli.cli import CONF_DIR
+
+FAST = ["budget=smoke", "ui.progress=false"]
+PLOTS = ["error_vs_step", "drift_vs_step", "sphere", "predicted_vs_true"]
+
+
+def _liedfl_cmd() -> list[str]:
+    exe = shutil.which("liedfl", path=str(Path(sys.executable).parent)) or shutil.which("liedfl")
+    return [exe] if exe else [sys.executable, "-c", "from liedfl_cli.cli import main; main()"]
+
+
+def _env() -> dict:
+    env = {k: v for k, v in os.environ.items() if k not in ("LIEDFL_DATA_DIR", "HYDRA_FULL_ERROR")}
+    env.update(OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", MPLBACKEND="Agg", COLUMNS="200")
+    return env
+
+
+def liedfl(*args: str, cwd: Path, ok: bool = True) -> subprocess.CompletedProcess:
+    proc = subprocess.run([*_liedfl_cmd(), *args], cwd=cwd, env=_env(), capture_output=True, text=True,
+                          timeout=300)
+    if ok:
+        assert proc.returncode == 0, f"liedfl {' '.join(args)} -> {proc.returncode}\n{proc.stdout}\n{proc.stderr}"
+        assert "Traceback" not in proc.stderr, proc.stderr
+    return proc
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory) -> Path:
+    """`liedfl train budget=smoke ui.progress=false` in a fresh directory -> its run dir."""
+    cwd = tmp_path_factory.mktemp("train_cli")
+    liedfl("train", *FAST, cwd=cwd)
+    runs = sorted((cwd / "outputs" / "runs").iterdir())
+    assert len(runs) == 1, runs
+    return runs[0]
+
+
+def test_train_writes_the_run_directory(trained):
+    run = trained
+    for rel in [".hydra/config.yaml", "checkpoints/last.pt", "train_metrics.csv", "rollout.h5", "eval.csv",
+                "eval.md", "components.json", *(f"plots/{p}.png" for p in PLOTS)]:
+        f = run / rel
+        assert f.is_file() and f.stat().st_size > 0, f"missing or empty: {rel}"
+    cfg = OmegaConf.load(run / ".hydra" / "config.yaml")
+    assert cfg.train.epochs == 2 and cfg.ui.progress is False
+    with open(run / "train_metrics.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 2 and all(math.isfinite(float(r["loss"])) for r in rows)
+    with open(run / "eval.csv") as f:
+        models = [r["model"] for r in csv.DictReader(f)]
+    assert models[0] == "model"
+    # the dataset went to ./outputs/data (LIEDFL_DATA_DIR unset)
+    assert len(list((run.parents[2] / "outputs" / "data").glob("*.h5"))) == 1
+    assert not [p for p in run.rglob("*") if ".tmp" in p.name]
+
+
+def test_rollout_rewrites_rollout_h5(trained):
+    run = trained
+    with h5py.File(run / "rollout.h5") as f:
+        assert int(f.attrs["steps"]) != 15
+    liedfl("rollout", f"run={run}", "steps=15", "ui.progress=false", cwd=run.parents[2])
+    with h5py.File(run / "rollout.h5") as f:
+        assert int(f.attrs["steps"]) == 15
+        assert f["model/R"].shape[1] == 16
+    assert not [p for p in run.rglob("*") if ".tmp" in p.name]
+
+
+def test_eval_rewrites_eval_csv(trained, tmp_path):
+    run = trained
+    (run / "eval.csv").write_text("stale\n")
+    liedfl("eval", f"run={run}", "ui.progress=false", "eval.plots=false", cwd=tmp_path)  # from another cwd
+    with open(run / "eval.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert rows and rows[0]["model"] == "model" and math.isfinite(float(rows[0]["rel_rot_error_mean"]))
+    assert list(tmp_path.iterdir()) == []  # the recorded dataset was found; nothing regenerated here
+
+
+def test_data_writes_one_dataset(tmp_path):
+    from liedfl_cli.data.hdf5 import load_dataset
+
+    liedfl("data", "dataset=heavy_se3", *FAST, cwd=tmp_path)
+    files = [p for p in (tmp_path / "outputs").rglob("*") if p.is_file()]
+    assert len(files) == 1 and files[0].parent == tmp_path / "outputs" / "data", files
+    assert files[0].suffix == ".h5" and files[0].name.startswith("heavy_se3-")
+    ds = load_dataset(files[0])
+    assert ds.n_se3 == 1 and ds.n_trajectories == 6
+
+
+def test_multirun_makes_one_run_dir_per_job(tmp_path):
+    liedfl("train", "-m", *FAST, "eval.plots=false", "seed=0,1", cwd=tmp_path)
+    sweeps = list((tmp_path / "outputs" / "multirun").iterdir())
+    assert len(sweeps) == 1
+    jobs = sorted(p for p in sweeps[0].iterdir() if p.is_dir())
+    assert [p.name for p in jobs] == ["0", "1"]
+    seeds = []
+    for job in jobs:
+        assert (job / "checkpoints" / "last.pt").is_file() and (job / "eval.csv").is_file()
+        assert not (job / "plots").exists()
+        seeds.append(OmegaConf.load(job / ".hydra" / "config.yaml").seed)
+    assert seeds == [0, 1]
+    assert not (tmp_path / "outputs" / "runs").exists()
+
+
+def test_help_and_unknown_command(tmp_path):
+    proc = liedfl("--help", cwd=tmp_path)
+    assert "train" in proc.stdout and "rollout" in proc.stdout
+    proc = liedfl("nonsense", cwd=tmp_path, ok=False)
+    assert proc.returncode == 2
+    assert "nonsense" in proc.stderr and "Traceback" not in proc.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_run_train_in_process(tmp_path):
+    from liedfl_cli.runs import load_run
+    from liedfl_cli.schema import validate
+    from liedfl_cli.train import run_train
+
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose(config_name="train", overrides=[
+            *FAST, "eval.plots=false", f"paths.output_dir={tmp_path / 'run'}", f"paths.data_dir={tmp_path / 'data'}"])
+    validate(cfg)
+    summary = run_train(cfg)
+    run = tmp_path / "run"
+    assert summary["run_dir"] == str(run)
+    assert Path(summary["dataset_path"]).parent == tmp_path / "data"
+    assert math.isfinite(summary["final_loss"])
+    assert summary["timings"]["epochs"] == 2 and summary["timings"]["parameters"] > 0
+    assert summary["rollout"]["model"]["n_failed"] >= 0
+    assert [r["model"] for r in summary["eval"]][0] == "model"
+    for rel in ("checkpoints/last.pt", "rollout.h5", "eval.csv", "eval.md", "summary.json", "train_metrics.csv"):
+        assert (run / rel).is_file(), rel
+    assert not (run / "plots").exists()
+    run_cfg, model, dataset, run_dir = load_run(run)
+    assert run_cfg.train.epochs == 2 and dataset.n_trajectories == 6

@@ -1,0 +1,240 @@
+"""Bad inputs through the real CLI: one line on stderr naming the file / field / index, a non-zero
+exit, no Python traceback, and nothing half-written (no *.tmp* files, earlier outputs untouched)."""
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from hydra.core.global_hydra import GlobalHydra
+
+from liedfl_cli.cli import CONF_DIR
+
+FAST = ["budget=smoke", "ui.progress=false", "eval.plots=false"]
+
+
+def _liedfl_cmd() -> list[str]:
+    exe = shutil.which("liedfl", path=str(Path(sys.executable).parent)) or shutil.which("liedfl")
+    return [exe] if exe else [sys.executable, "-c", "from liedfl_cli.cli import main; main()"]
+
+
+def _env() -> dict:
+    env = {k: v for k, v in os.environ.items() if k not in ("LIEDFL_DATA_DIR", "HYDRA_FULL_ERROR")}
+    env.update(OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", MPLBACKEND="Agg", COLUMNS="200")
+    return env
+
+
+def liedfl(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([*_liedfl_cmd(), *args], cwd=cwd, env=_env(), capture_output=True, text=True,
+                          timeout=300)
+
+
+def one_line_error(proc: subprocess.CompletedProcess, *needles: str) -> str:
+    """Assert a clean failure: non-zero exit, exactly one stderr line `error: ...` holding every needle."""
+    assert proc.returncode != 0, f"expected a failure\n{proc.stdout}\n{proc.stderr}"
+    assert "Traceback" not in proc.stderr, proc.stderr
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, f"expected one line on stderr, got {len(lines)}:\n{proc.stderr}"
+    line = lines[0]
+    assert line.startswith("error: "), line
+    for n in needles:
+        assert n in line, f"{n!r} not in {line!r}"
+    return line
+
+
+def no_tmp_files(*dirs: Path) -> None:
+    left = [p for d in dirs if d.exists() for p in d.rglob("*") if ".tmp" in p.name]
+    assert not left, f"temporary files left behind: {left}"
+
+
+def snapshot(run: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(run)): p.read_bytes() for p in sorted(run.rglob("*")) if p.is_file()}
+
+
+# ----------------------------------------------------------------------------- fixtures
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory) -> Path:
+    """A finished smoke run, trained in-process (absolute data dir, so any cwd can reload it)."""
+    from liedfl_cli.train import run_train
+
+    root = tmp_path_factory.mktemp("errors_run")
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose(config_name="train", overrides=[
+            *FAST, f"paths.output_dir={root / 'run'}", f"paths.data_dir={root / 'data'}"])
+    run_train(cfg)
+    return root / "run"
+
+
+@pytest.fixture
+def run_copy(trained, tmp_path) -> Path:
+    dst = tmp_path / "run"
+    shutil.copytree(trained, dst)
+    return dst
+
+
+@pytest.fixture(scope="module")
+def pristine_dataset(tmp_path_factory) -> Path:
+    """`liedfl data budget=smoke` (the train config's default dataset) -> the cached .h5 file."""
+    cwd = tmp_path_factory.mktemp("errors_data")
+    proc = liedfl("data", "budget=smoke", "ui.progress=false", cwd=cwd)
+    assert proc.returncode == 0, proc.stderr
+    files = list((cwd / "outputs" / "data").glob("*.h5"))
+    assert len(files) == 1
+    return files[0]
+
+
+def _corrupt_and_train(pristine: Path, tmp_path: Path, edit) -> tuple[subprocess.CompletedProcess, Path, Path]:
+    """Put an edited copy of the cached dataset where `liedfl train budget=smoke` looks for it, train."""
+    data = tmp_path / "outputs" / "data" / pristine.name
+    data.parent.mkdir(parents=True)
+    shutil.copy(pristine, data)
+    with h5py.File(data, "r+") as f:
+        R = f["R"][...]
+        edit(R)
+        f["R"][...] = R
+    run = tmp_path / "run"
+    proc = liedfl("train", *FAST, f"hydra.run.dir={run}", cwd=tmp_path)
+    return proc, run, data
+
+
+# ----------------------------------------------------------------------------- run directories
+def test_rollout_of_a_missing_run_dir(tmp_path):
+    missing = tmp_path / "nonexistent"
+    line = one_line_error(liedfl("rollout", f"run={missing}", cwd=tmp_path), str(missing))
+    assert "no such run directory" in line
+    assert not missing.exists(), "a mistyped run= must not create the directory"
+    one_line_error(liedfl("eval", f"run={missing}", cwd=tmp_path), str(missing))
+    assert not missing.exists()
+
+
+def test_rollout_without_run(tmp_path):
+    one_line_error(liedfl("rollout", "ui.progress=false", cwd=tmp_path), "run=")
+    one_line_error(liedfl("eval", cwd=tmp_path), "run=")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_eval_of_a_dir_without_checkpoint(run_copy, tmp_path):
+    shutil.rmtree(run_copy / "checkpoints")
+    before = snapshot(run_copy)
+    one_line_error(liedfl("eval", f"run={run_copy}", cwd=tmp_path), str(Path("checkpoints") / "last.pt"),
+                   "not found")
+    assert snapshot(run_copy) == before
+    no_tmp_files(run_copy)
+
+
+# ----------------------------------------------------------------------------- checkpoints
+@pytest.mark.parametrize("command", ["rollout", "eval"])
+def test_corrupted_checkpoint(command, run_copy, tmp_path):
+    ckpt = run_copy / "checkpoints" / "last.pt"
+    ckpt.write_bytes(np.random.default_rng(0).bytes(4096))
+    before = snapshot(run_copy)
+    one_line_error(liedfl(command, f"run={run_copy}", "ui.progress=false", cwd=tmp_path), str(ckpt),
+                   "not a readable checkpoint")
+    assert snapshot(run_copy) == before
+    no_tmp_files(run_copy)
+
+
+def test_empty_checkpoint(run_copy, tmp_path):
+    ckpt = run_copy / "checkpoints" / "last.pt"
+    ckpt.write_bytes(b"")
+    one_line_error(liedfl("rollout", f"run={run_copy}", cwd=tmp_path), str(ckpt))
+
+
+def test_checkpoint_with_wrong_shape(run_copy, tmp_path):
+    ckpt = run_copy / "checkpoints" / "last.pt"
+    payload = torch.load(ckpt, map_location="cpu", weights_only=False)
+    key = next(iter(payload["state_dict"]))
+    payload["state_dict"][key] = torch.zeros(7, 5, dtype=torch.float64)
+    torch.save(payload, ckpt)
+    before = snapshot(run_copy)
+    for command in ("rollout", "eval"):
+        one_line_error(liedfl(command, f"run={run_copy}", "ui.progress=false", cwd=tmp_path), str(ckpt),
+                       f"state_dict.{key}", "(7, 5)")
+    assert snapshot(run_copy) == before
+    no_tmp_files(run_copy)
+
+
+def test_checkpoint_missing_a_field(run_copy, tmp_path):
+    ckpt = run_copy / "checkpoints" / "last.pt"
+    payload = torch.load(ckpt, map_location="cpu", weights_only=False)
+    del payload["config"]
+    torch.save(payload, ckpt)
+    one_line_error(liedfl("rollout", f"run={run_copy}", cwd=tmp_path), str(ckpt), "'config'")
+
+
+def test_rollout_steps_not_an_integer(run_copy, tmp_path):
+    before = snapshot(run_copy)
+    one_line_error(liedfl("rollout", f"run={run_copy}", "steps=abc", cwd=tmp_path), "steps", "abc")
+    assert snapshot(run_copy) == before
+
+
+def test_eval_of_a_corrupted_rollout(run_copy, tmp_path):
+    (run_copy / "rollout.h5").write_bytes(b"not hdf5 at all")
+    one_line_error(liedfl("eval", f"run={run_copy}", "eval.plots=false", cwd=tmp_path),
+                   str(run_copy / "rollout.h5"))
+
+
+# ----------------------------------------------------------------------------- datasets
+def test_dataset_with_nan_in_R(pristine_dataset, tmp_path):
+    def edit(R):
+        R[1, 3, 0, 0, 0] = np.nan
+
+    proc, run, data = _corrupt_and_train(pristine_dataset, tmp_path, edit)
+    one_line_error(proc, str(Path("outputs") / "data" / data.name), "'R'", "non-finite", "(1, 3, 0, 0, 0)")
+    assert not (run / "checkpoints").exists() and not (run / "eval.csv").exists()
+    no_tmp_files(run, data.parent)
+    assert data.is_file()  # the bad file is reported, not silently replaced
+
+
+def test_dataset_with_a_gross_non_rotation(pristine_dataset, tmp_path):
+    def edit(R):
+        R[0, 2, 0] *= 2.0
+
+    proc, run, data = _corrupt_and_train(pristine_dataset, tmp_path, edit)
+    one_line_error(proc, data.name, "'R'", "not a rotation", "(0, 2, 0)")
+    assert not (run / "checkpoints").exists()
+    no_tmp_files(run, data.parent)
+
+
+def test_slightly_off_rotations_are_projected_with_a_warning(pristine_dataset, tmp_path):
+    def edit(R):
+        R[0, 2, 0] *= 1.0 + 1e-6
+
+    proc, run, data = _corrupt_and_train(pristine_dataset, tmp_path, edit)
+    assert proc.returncode == 0, proc.stderr
+    assert "Traceback" not in proc.stderr and "error:" not in proc.stderr
+    assert "projected 1 of" in proc.stderr and data.name in proc.stderr
+    assert (run / "checkpoints" / "last.pt").is_file() and (run / "eval.csv").is_file()
+    no_tmp_files(run)
+
+
+# ----------------------------------------------------------------------------- config values
+@pytest.mark.parametrize("override,needles", [
+    ("train.optimizer.name=sgd", ["train.optimizer.name", "sgd"]),
+    ("model.residual=bogus", ["model.residual", "bogus"]),
+    ("+train.epoch=3", ["train.epoch"]),
+    ("train.epochs=many", ["train.epochs", "many"]),
+])
+def test_bad_config_value(override, needles, tmp_path):
+    run = tmp_path / "run"
+    proc = liedfl("train", *FAST, override, f"hydra.run.dir={run}", cwd=tmp_path)
+    one_line_error(proc, *needles)
+    assert proc.returncode == 2
+    assert not (run / "checkpoints").exists()
+    assert not (tmp_path / "outputs").exists(), "validation must fail before any data is generated"
+    no_tmp_files(tmp_path)
+
+
+def test_unknown_override_key_is_a_hydra_error(tmp_path):
+    proc = liedfl("train", *FAST, "train.epoch=3", cwd=tmp_path)
+    assert proc.returncode != 0
+    assert "epoch" in proc.stderr and "Traceback" not in proc.stderr
+    assert list(tmp_path.iterdir()) == []  # Hydra fails at composition: no run dir
