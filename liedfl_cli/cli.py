@@ -16,6 +16,12 @@ COMMANDS = {
     "eval": "metrics table and plots of a run: liedfl eval run=<run dir>",
     "report": "one table and figures over a sweep: liedfl report sweep=<multirun dir>",
 }
+# commands whose Hydra run dir is `${<key>}`, an existing directory named on the command line
+DIR_ARGS = {
+    "rollout": ("run", "run dir", "run directory", "a directory written by `liedfl train`"),
+    "eval": ("run", "run dir", "run directory", "a directory written by `liedfl train`"),
+    "report": ("sweep", "multirun dir", "multirun directory", "a directory written by `liedfl train -m`"),
+}
 USAGE = "usage: liedfl {" + ",".join(COMMANDS) + "} [key=value ...] [-m] [--cfg job] [--help]\n\n" + "\n".join(
     f"  {k:<8} {v}" for k, v in COMMANDS.items()
 )
@@ -30,8 +36,9 @@ def _run(command: str, cfg):
     from .ui import fail
 
     try:
-        if command in ("rollout", "eval") and OmegaConf.is_missing(cfg, "run"):
-            raise ConfigError("run=<run dir> is required (a directory written by `liedfl train`)")
+        if command in DIR_ARGS and OmegaConf.is_missing(cfg, DIR_ARGS[command][0]):
+            key, what, _, hint = DIR_ARGS[command]
+            raise ConfigError(f"{key}=<{what}> is required ({hint})")
         validate(cfg)
         if command == "train":
             from .train import run_train
@@ -64,28 +71,30 @@ def _run(command: str, cfg):
         fail("interrupted", code=130)
 
 
-def _check_run_arg(args: list[str]) -> None:
-    """`run=<dir>` of rollout/eval, checked before Hydra starts: Hydra's run dir is `${run}`, so Hydra
-    would otherwise create a mistyped run directory (and crash with a traceback when `run` is missing).
-    Skipped for flags (-m, --cfg, --help, ...) and for values Hydra has to interpret (sweeps, ${...})."""
+def _check_dir_arg(command: str, args: list[str]) -> None:
+    """`run=<dir>` (rollout, eval) / `sweep=<dir>` (report), checked before Hydra starts: Hydra's run
+    dir is `${run}` / `${sweep}`, so Hydra would otherwise create a mistyped directory (and crash
+    with a traceback when the value is missing). Skipped for flags (-m, --cfg, --help, ...) and
+    for values Hydra has to interpret (sweeps, ${...})."""
     import re
 
+    key, what, noun, hint = DIR_ARGS[command]
     if any(a.startswith("-") for a in args):
         return
     value = None
     for a in args:
-        m = re.fullmatch(r"\+{0,2}run=(.*)", a, flags=re.S)
+        m = re.fullmatch(r"\+{0,2}" + key + r"=(.*)", a, flags=re.S)
         if m:
             value = m.group(1).strip()
     if value is not None and len(value) >= 2 and value[0] == value[-1] and value[0] in "'\"":
         value = value[1:-1]
     if value in (None, "", "???", "null"):
-        print("error: run=<run dir> is required (a directory written by `liedfl train`)", file=sys.stderr)
+        print(f"error: {key}=<{what}> is required ({hint})", file=sys.stderr)
         raise SystemExit(2)
     if any(c in value for c in ",${}[]()") or value.startswith(("glob", "range", "choice")):
         return
     if not Path(value).is_dir():
-        print(f"error: run={value}: no such run directory", file=sys.stderr)
+        print(f"error: {key}={value}: no such {noun}", file=sys.stderr)
         raise SystemExit(2)
 
 
@@ -102,8 +111,8 @@ def main() -> None:
         print(f"error: config directory {CONF_DIR} not found; install liedfl with `pip install -e .` from a clone",
               file=sys.stderr)
         raise SystemExit(2)
-    if command in ("rollout", "eval"):
-        _check_run_arg(argv[1:])
+    if command in DIR_ARGS:
+        _check_dir_arg(command, argv[1:])
     import hydra
 
     @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name=command)

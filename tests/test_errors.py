@@ -15,7 +15,7 @@ import torch
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 
-from liedfl_cli.cli import CONF_DIR
+from liedfl_cli.cli import CONF_DIR, DIR_ARGS
 
 FAST = ["budget=smoke", "ui.progress=false", "eval.plots=false"]
 
@@ -111,14 +111,16 @@ def test_rollout_of_a_missing_run_dir(tmp_path):
     line = one_line_error(liedfl("rollout", f"run={missing}", cwd=tmp_path), str(missing))
     assert "no such run directory" in line
     assert not missing.exists(), "a mistyped run= must not create the directory"
-    one_line_error(liedfl("eval", f"run={missing}", cwd=tmp_path), str(missing))
-    assert not missing.exists()
 
 
-def test_rollout_without_run(tmp_path):
-    one_line_error(liedfl("rollout", "ui.progress=false", cwd=tmp_path), "run=")
-    one_line_error(liedfl("eval", cwd=tmp_path), "run=")
-    assert list(tmp_path.iterdir()) == []
+@pytest.mark.parametrize("command", sorted(DIR_ARGS))
+def test_directory_argument_missing_or_mistyped(command, tmp_path):
+    """Every command whose Hydra run dir is a directory argument (run=, sweep=) checks it first."""
+    key = DIR_ARGS[command][0]
+    missing = tmp_path / "nonexistent"
+    one_line_error(liedfl(command, f"{key}={missing}", cwd=tmp_path), f"{key}={missing}")
+    one_line_error(liedfl(command, "ui.progress=false", cwd=tmp_path), f"{key}=")
+    assert list(tmp_path.iterdir()) == [], "nothing may be created for a bad directory argument"
 
 
 def test_eval_of_a_dir_without_checkpoint(run_copy, tmp_path):
@@ -140,12 +142,6 @@ def test_corrupted_checkpoint(command, run_copy, tmp_path):
                    "not a readable checkpoint")
     assert snapshot(run_copy) == before
     no_tmp_files(run_copy)
-
-
-def test_empty_checkpoint(run_copy, tmp_path):
-    ckpt = run_copy / "checkpoints" / "last.pt"
-    ckpt.write_bytes(b"")
-    one_line_error(liedfl("rollout", f"run={run_copy}", cwd=tmp_path), str(ckpt))
 
 
 def test_checkpoint_with_wrong_shape(run_copy, tmp_path):

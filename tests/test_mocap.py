@@ -1,7 +1,6 @@
 """Motion-capture import (scene cmu_cartwheel), Savitzky–Golay smoothing on SO(3), mocap metrics."""
 from __future__ import annotations
 
-import copy
 from pathlib import Path
 
 import numpy as np
@@ -85,7 +84,7 @@ def test_smoothing_keeps_rotations_on_so3_through_full_turns():
     noisy = R @ so3.exp(torch.from_numpy(0.02 * rng.standard_normal((len(R), 3)))).numpy()
     dn = so3.geodesic_distance(torch.from_numpy(savgol_rotations(noisy, 51, 6)), torch.from_numpy(R)).numpy()
     d0 = so3.geodesic_distance(torch.from_numpy(noisy), torch.from_numpy(R)).numpy()
-    assert dn.mean() < 0.35 * d0.mean()
+    assert dn.mean() < 0.45 * d0.mean()     # white-noise gain of the 51/6 filter is about 0.37
 
 
 def test_smoothing_leaves_uniform_rotation_unchanged_and_is_equivariant():
@@ -240,6 +239,7 @@ def test_options_subsample_scale_crop_no_smoothing():
     ({"split": "random"}, "dataset.split"),
     ({"files": []}, "dataset.files"),
     ({"length_scale": 0}, "length_scale"),
+    ({"import_version": 0}, "import_version=0"),
 ])
 def test_config_errors(over, pattern):
     with pytest.raises(ConfigError, match=pattern):

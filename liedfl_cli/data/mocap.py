@@ -32,7 +32,7 @@ from __future__ import annotations
 import hashlib
 import math
 from pathlib import Path
-from typing import Any, Callable, Mapping, Optional, Sequence
+from typing import Any, Callable, Mapping, Optional
 
 import numpy as np
 import torch
@@ -71,9 +71,16 @@ BVH_TO_ASF = {
     "LThumb": "lthumb", "RThumb": "rthumb",
 }
 
-SCENE_KEYS = ("files", "skip_frames", "subsample", "root", "joints", "length_scale", "unit_m", "z_up",
+IMPORT_VERSION = 1
+"""Bump (here and in conf/dataset/cmu_cartwheel.yaml) when the import would change the data for the same
+config: the config, hence `import_version`, is part of the cache hash."""
+
+SCENE_KEYS = ("import_version", "files", "skip_frames", "subsample", "root", "joints", "length_scale", "unit_m", "z_up",
               "smoothing", "split")
 """Scene-specific keys of the cmu_cartwheel config (besides the common ones checked by scenes._check)."""
+
+REAL_DATA_SCENES = ("cmu_cartwheel",)
+"""Scenes imported from recordings: no physics/initial/solver fields, fixed number of trajectories."""
 
 ATTRIBUTION = ("The data used in this project was obtained from mocap.cs.cmu.edu. "
                "The database was created with funding from NSF EIA-0196217.")
@@ -191,6 +198,9 @@ def _scene_config(c: dict) -> dict:
     unknown = sorted(set(c) - allowed)
     if unknown:
         raise ConfigError(f"dataset config of scene {c['name']!r}: unknown key(s) {unknown} (allowed: {sorted(allowed)})")
+    if c.get("import_version") != IMPORT_VERSION:
+        raise ConfigError(f"dataset.import_version={c.get('import_version')!r}, but this liedfl imports version "
+                          f"{IMPORT_VERSION}; update the dataset config")
     s = {
         "files": c.get("files"), "skip_frames": c.get("skip_frames", 1), "subsample": c.get("subsample", 1),
         "root": c.get("root", "Hips"), "joints": c.get("joints", list(CMU_BODY_JOINTS)),
@@ -360,5 +370,5 @@ def cmu_cartwheel(cfg, progress: Optional[Callable[[float], None]] = None) -> Da
                    split=split, extras={"R_raw": R_raw, "p_raw": p_raw})
 
 
-__all__ = ["mocap_errors", "recording_discrepancy", "skeleton_points", "import_bvh", "cmu_cartwheel",
+__all__ = ["REAL_DATA_SCENES", "mocap_errors", "recording_discrepancy", "skeleton_points", "import_bvh", "cmu_cartwheel",
            "CMU_BODY_JOINTS", "BVH_TO_ASF", "ASF_UNIT_M", "ATTRIBUTION"]

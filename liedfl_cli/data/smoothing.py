@@ -5,11 +5,13 @@ mode="interp")`: a polynomial of degree `order` is least-squares fitted to the `
 centred on sample k and evaluated at k; within half a window of either end the fit to the first
 (last) `window` samples is evaluated at the sample's own position.
 
-Rotations are filtered in the tangent space at the sample itself (a "local-chart" Savitzky–Golay):
+Rotations are filtered in the tangent space at the centre of each sample's window (a "local-chart"
+Savitzky–Golay):
 
-    xi_{k,i} = log(R_k^T R_i)            for the samples i of k's window,
+    xi_{k,i} = log(R_c^T R_i)            for the samples i of k's window, c its centre (c = k except
+                                          within half a window of either end),
     eta_k    = sum_i c_{k,i} xi_{k,i}     (the same Savitzky–Golay weights as for positions),
-    R~_k     = R_k exp(eta_k).
+    R~_k     = R_c exp(eta_k).
 
 Why this construction:
 * every output is a rotation by construction (a product of two rotations; ||R^T R - I|| at rounding
@@ -99,15 +101,17 @@ def savgol_rotations(R: np.ndarray, window: int, order: int, max_angle: float = 
         raise ValueError(f"savgol_rotations expects rotations of shape (n, ..., 3, 3), got {R.shape}")
     n = R.shape[0]
     idx, c = savgol_weights(n, window, order)
-    rel = np.swapaxes(R, -1, -2)[:, None] @ R[idx]                          # (n, window, ..., 3, 3)
+    centre = idx[:, window // 2]                                             # = k except near the ends
+    Rc = R[centre]
+    rel = np.swapaxes(Rc, -1, -2)[:, None] @ R[idx]                          # (n, window, ..., 3, 3)
     xi, angle = _log_below_pi(rel)                                           # (n, window, ..., 3)
     if angle.max() > max_angle:
         pos = np.unravel_index(int(np.argmax(angle)), angle.shape)
-        raise ValueError(f"rotation track turns by {angle.max():.3f} rad between samples {pos[0]} and "
-                         f"{int(idx[pos[0], pos[1]])} (index {tuple(int(i) for i in pos[2:])} of the other "
-                         f"axes), more than {max_angle:.3f} rad within one window of {window}; use a shorter window")
+        raise ValueError(f"rotation track turns by {angle.max():.3f} rad between samples {int(centre[pos[0]])} "
+                         f"and {int(idx[pos[0], pos[1]])} (index {tuple(int(i) for i in pos[2:])} of the other "
+                         f"axes), more than {max_angle:.3f} rad within half a window of {window}; use a shorter window")
     eta = np.einsum("kw,kw...->k...", c, xi)
-    return R @ so3.exp(torch.from_numpy(eta)).numpy()
+    return Rc @ so3.exp(torch.from_numpy(eta)).numpy()
 
 
 def _log_below_pi(R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
