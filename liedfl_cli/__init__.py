@@ -1,3 +1,7 @@
 """liedfl: learning forced dynamics on Lie groups from positions only (LieDFLNN)."""
 
 __version__ = "0.1.0"
+
+from .resolvers import register as _register_resolvers  # noqa: E402
+
+_register_resolvers()

@@ -25,6 +25,7 @@ from liedfl_cli.models.euclidean_dflnn import EuclideanDFLNN
 from liedfl_cli.models.euler_dflnn import EulerDFLNN
 from liedfl_cli.models.glnn import GLNN
 from liedfl_cli.models.truth import physics_model
+from liedfl_cli.mechanics.potentials import GravityPotential
 from liedfl_cli.solvers.rollout import Rollout
 from liedfl_cli.train import fit, run_train
 
@@ -129,6 +130,26 @@ def test_glnn_dopri5_with_true_parameters_reproduces_the_simulator(free_body):
     with torch.no_grad():
         pred = _true_glnn("dopri5").integrate(R[:, 0], w0, R.shape[1] - 1)
     assert (pred - R).abs().max() < 1e-5
+
+
+def test_glnn_potential_torque_with_the_true_gravity_reproduces_the_heavy_body():
+    ds = _scene("heavy_so3", h=0.05, n_trajectories=3, steps=20, train_steps=20, rollout_steps=20,
+                physics={"J": [1.521, 1.362, 1.211], "m": 0.5, "rho": [0.0, 0.5, 1.0], "g": 9.81, "D": [0.1] * 3},
+                initial={"omega_scale": 1.0, "omega_radius": 2.0})
+    truth = ds.pose()
+    R, w0 = truth.R[:, :, 0], torch.as_tensor(ds.extras["omega"][:, 0, 0])
+    models = {}
+    for integrator in ("dopri5", "midpoint"):
+        m = _true_glnn(integrator, 0.05)
+        m.damping.set_matrix(0.1 * torch.eye(3, dtype=F64))
+        m.potential = GravityPotential(SO3, [0.5], [[0.0, 0.5, 1.0]], 9.81)
+        models[integrator] = m
+    with torch.no_grad():
+        pred = models["dopri5"].integrate(R[:, 0], w0, 20)
+    assert (pred - R).abs().max() < 1e-5
+    g = lambda k: truth.index((slice(None), k))  # noqa: E731
+    ro = models["midpoint"].rollout(g(0), g(1), 20, {"tol": 1e-10, "max_iter": 10})
+    assert ro.converged.all() and (ro.pose.R - truth.R).abs().max() < 0.1
 
 
 @pytest.mark.parametrize("integrator", ["heun", "midpoint"])

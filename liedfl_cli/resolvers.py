@@ -1,0 +1,21 @@
+"""OmegaConf resolvers used by the configs (registered when liedfl_cli is imported).
+
+${scaled:N}  ->  max(1, round(N * epoch_scale)) with `epoch_scale` from the config root
+               (1.0 = the paper's budget; conf/budget/reduced.yaml lowers it).
+${max:a,b,...} -> the largest argument (e.g. a generated length covering train_steps).
+"""
+from __future__ import annotations
+
+from omegaconf import OmegaConf
+
+
+def _scaled(n, *, _root_):
+    scale = float(_root_.get("epoch_scale", 1.0))
+    return max(1, int(round(float(n) * scale)))
+
+
+def register() -> None:
+    if not OmegaConf.has_resolver("scaled"):
+        OmegaConf.register_new_resolver("scaled", _scaled)
+    if not OmegaConf.has_resolver("max"):
+        OmegaConf.register_new_resolver("max", lambda *xs: max(xs))
