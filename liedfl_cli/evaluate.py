@@ -133,10 +133,16 @@ def run_eval_from_objects(cfg: DictConfig, dataset, run_dir, timings: dict | Non
 
 
 def run_eval(cfg: DictConfig) -> list[dict]:
-    """`liedfl eval run=<dir>`: recompute eval.csv / eval.md / plots of a run."""
+    """`liedfl eval run=<dir>`: recompute eval.csv / eval.md / plots of a run, and the scene's
+    extra evaluation (torque recovery, mocap table) when it has one."""
+    from omegaconf import OmegaConf
+
     from .checkpoint import load_checkpoint
+    from .extras import run_extra_evals
     from .runs import load_run
 
-    run_cfg, _model, dataset, run_dir = load_run(cfg.run, cfg.paths.data_dir)
+    run_cfg, model, dataset, run_dir = load_run(cfg.run, cfg.paths.data_dir)
     timings = load_checkpoint(Path(run_dir) / "checkpoints" / "last.pt").get("timings")
-    return run_eval_from_objects(cfg, dataset, run_dir, timings)
+    rows = run_eval_from_objects(cfg, dataset, run_dir, timings)
+    run_extra_evals(OmegaConf.merge(run_cfg, {"eval": cfg.eval, "ui": cfg.ui}), model, dataset, run_dir)
+    return rows

@@ -13,3 +13,6 @@ EXTRA_EVALS: dict[str, Callable] = {}
 def run_extra_evals(cfg, model, dataset, run_dir) -> dict | None:
     fn = EXTRA_EVALS.get(dataset.scene)
     return fn(cfg, model, dataset, run_dir) if fn is not None else None
+
+
+from . import mocap_eval  # noqa: E402,F401  (registers EXTRA_EVALS["cmu_cartwheel"])

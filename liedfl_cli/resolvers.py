@@ -2,6 +2,7 @@
 
 ${scaled:N}  ->  max(1, round(N * epoch_scale)) with `epoch_scale` from the config root
                (1.0 = the paper's budget; conf/budget/reduced.yaml lowers it).
+${len_or:x,d}  -> len(x), or d when x is null (e.g. the number of imported joints).
 ${max:a,b,...} -> the largest argument (e.g. a generated length covering train_steps).
 """
 from __future__ import annotations
@@ -17,5 +18,7 @@ def _scaled(n, *, _root_):
 def register() -> None:
     if not OmegaConf.has_resolver("scaled"):
         OmegaConf.register_new_resolver("scaled", _scaled)
+    if not OmegaConf.has_resolver("len_or"):
+        OmegaConf.register_new_resolver("len_or", lambda x, default: len(x) if x is not None else default)
     if not OmegaConf.has_resolver("max"):
         OmegaConf.register_new_resolver("max", lambda *xs: max(xs))

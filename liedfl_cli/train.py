@@ -60,7 +60,8 @@ def _trajectory_batches(data: Pose, steps: int) -> Pose:
     return data.index((slice(None), slice(0, steps + 1)))
 
 
-def fit(model, data: Pose, cfg_train: DictConfig, steps: int, seed: int = 0, show_progress: bool = True) -> dict:
+def fit(model, data: Pose, cfg_train: DictConfig, steps: int, seed: int = 0, show_progress: bool = True,
+        log_epochs: bool = True) -> dict:
     """Train `model` on the first `steps` steps of `data` (T, N+1, ...).
 
     model.window == "triplet": shuffled mini-batches of pose triplets (plus `reg_points` random
@@ -114,7 +115,7 @@ def fit(model, data: Pose, cfg_train: DictConfig, steps: int, seed: int = 0, sho
                 sched.step()
             history.append({"epoch": epoch, **sums, "seconds": time.perf_counter() - t0})
             bar.update(task, advance=1, loss=sums["loss"])
-            if not show_progress and (epoch % max(1, epochs // 10) == 0 or epoch == epochs):
+            if log_epochs and not show_progress and (epoch % max(1, epochs // 10) == 0 or epoch == epochs):
                 console.print(f"epoch {epoch}/{epochs}  " + "  ".join(f"{k} {v:.3e}" for k, v in sums.items()) +
                               f"  ({time.perf_counter() - t0:.1f} s)", highlight=False)
     wall = time.perf_counter() - t0
@@ -157,10 +158,10 @@ def run_train(cfg: DictConfig) -> dict:
         write_json(out / "recovery.json", recovery)
     config = OmegaConf.to_container(cfg, resolve=True)
     save_checkpoint(out / "checkpoints" / "last.pt", model, config,
-                    {"dataset_path": str(data_path), "timings": timings, "components": comps})
+                    {"dataset_path": str(Path(data_path).resolve()), "timings": timings, "components": comps})
     console.print(f"trained {cfg.train.epochs} epochs in {result['train_seconds']:.1f} s "
                   f"(final loss {result['history'][-1]['loss']:.3e}); checkpoint {out / 'checkpoints' / 'last.pt'}")
-    summary = {"run_dir": str(out), "dataset_path": str(data_path), "timings": timings,
+    summary = {"run_dir": str(out), "dataset_path": str(Path(data_path).resolve()), "timings": timings,
                "final_loss": result["history"][-1]["loss"]}
     if cfg.rollout.enabled:
         ro = rollout_and_save(cfg, model, dataset, out / "rollout.h5", steps=cfg.rollout.steps)

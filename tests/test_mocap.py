@@ -25,6 +25,7 @@ CONF = ROOT / "conf" / "dataset" / "cmu_cartwheel.yaml"
 
 def cfg(**over) -> dict:
     c = OmegaConf.to_container(OmegaConf.load(CONF))
+    c.pop("defaults", None)  # Hydra's defaults list (selects the group), consumed by composition
     c.update(over)
     return c
 

@@ -116,11 +116,14 @@ class Dataset:
 
 # ---------------------------------------------------------------------- writing
 def save_dataset(ds: Dataset, path) -> Path:
-    """Write `ds` to `path` atomically (write `<path>.tmp`, then os.replace). Returns the path."""
+    """Write `ds` to `path` atomically (write `<path>.tmp<pid>`, then os.replace). Returns the path.
+
+    The temporary name carries the process id, so parallel sweep jobs that generate the same
+    dataset never write into one temporary file; the last rename wins with identical content."""
     path = Path(path)
     _validate(ds, str(path), project=False)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".h5.tmp")
+    tmp = path.with_suffix(f".h5.tmp{os.getpid()}")
     try:
         with h5py.File(tmp, "w") as f:
             a = f.attrs

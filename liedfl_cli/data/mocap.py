@@ -22,6 +22,11 @@ The import, per file:
 7. crop every sequence to its first `steps + 1` frames (the format needs equal lengths; `steps` at
    most the shortest available length minus one); original lengths are kept in params["sources"].
 
+Trajectories: one per file; `n_trajectories` must equal len(files), unless `cap_trajectories: true`
+(set by conf/experiment/exp4_mocap.yaml), which makes it an upper bound: the first
+min(n_trajectories, len(files)) files are used (budgets written for simulated scenes, e.g.
+conf/budget/smoke.yaml, ask for more trajectories than there are recordings).
+
 Split: `split: reproduce` (paper) puts every sequence in both "train" and "test" and sets
 params["split_overlap"] = true, which tells the HDF5 validation that the overlap is intended;
 `split: holdout` makes the last `n_test` (or round(test_fraction * T)) sequences the test set.
@@ -76,7 +81,7 @@ IMPORT_VERSION = 1
 config: the config, hence `import_version`, is part of the cache hash."""
 
 SCENE_KEYS = ("import_version", "files", "skip_frames", "subsample", "root", "joints", "length_scale", "unit_m", "z_up",
-              "smoothing", "split")
+              "smoothing", "split", "cap_trajectories")
 """Scene-specific keys of the cmu_cartwheel config (besides the common ones checked by scenes._check)."""
 
 REAL_DATA_SCENES = ("cmu_cartwheel",)
@@ -194,7 +199,8 @@ def _sha256(path: Path) -> str:
 def _scene_config(c: dict) -> dict:
     """Check the mocap-specific keys; returns them with defaults filled in (ConfigError on problems)."""
     allowed = set(SCENE_KEYS) | {"name", "h", "n_trajectories", "steps", "train_steps", "rollout_steps",
-                                 "test_fraction", "n_test", "seed", "physics", "initial", "solver"}
+                                 "test_fraction", "n_test", "seed", "physics", "initial", "solver",
+                                 "defaults"}  # Hydra's defaults list, present when the yaml is loaded directly
     unknown = sorted(set(c) - allowed)
     if unknown:
         raise ConfigError(f"dataset config of scene {c['name']!r}: unknown key(s) {unknown} (allowed: {sorted(allowed)})")
@@ -206,13 +212,20 @@ def _scene_config(c: dict) -> dict:
         "root": c.get("root", "Hips"), "joints": c.get("joints", list(CMU_BODY_JOINTS)),
         "length_scale": c.get("length_scale", 1.0), "unit_m": c.get("unit_m", ASF_UNIT_M),
         "z_up": c.get("z_up", True), "smoothing": c.get("smoothing"), "split": c.get("split", "reproduce"),
+        "cap_trajectories": c.get("cap_trajectories", False),
     }
     files = s["files"]
     if not isinstance(files, (list, tuple)) or not files or not all(isinstance(f, str) for f in files):
         raise ConfigError(f"dataset.files must be a non-empty list of BVH paths, got {files!r}")
-    if int(c["n_trajectories"]) != len(files):
+    if not isinstance(s["cap_trajectories"], bool):
+        raise ConfigError(f"dataset.cap_trajectories must be true or false, got {s['cap_trajectories']!r}")
+    if s["cap_trajectories"]:
+        # n_trajectories is an upper bound (budgets written for simulated scenes ask for more
+        # trajectories than there are recordings): use the first min(n_trajectories, len(files)) files.
+        s["files"] = files = list(files)[: int(c["n_trajectories"])]
+    elif int(c["n_trajectories"]) != len(files):
         raise ConfigError(f"dataset.n_trajectories={c['n_trajectories']} must equal the number of dataset.files "
-                          f"({len(files)}): one trajectory per recording")
+                          f"({len(files)}): one trajectory per recording (or set dataset.cap_trajectories: true)")
 
     def integer(key, low):
         v = s[key]
@@ -344,6 +357,10 @@ def cmu_cartwheel(cfg, progress: Optional[Callable[[float], None]] = None) -> Da
         split = {"train": np.arange(T), "test": np.arange(T)}
     else:
         k = int(c["n_test"]) if c["n_test"] is not None else int(round(float(c["test_fraction"]) * T))
+        if not 0 < k < T:
+            raise ConfigError(f"dataset.split=holdout with {T} recording(s) and n_test={c['n_test']}, "
+                              f"test_fraction={c['test_fraction']}: {k} test recording(s) leave no train or no "
+                              f"test recording; need 0 < test count < {T}")
         split = {"train": np.arange(T - k), "test": np.arange(T - k, T)}
     unit_m = s["unit_m"] / s["length_scale"]
     params = {

@@ -1,0 +1,498 @@
+"""Exp 4 evaluation: the paper's mocap table (reproduction errors vs the ground-truth discrepancy).
+
+Registered as EXTRA_EVALS["cmu_cartwheel"] (the import at the end of extras.py) and run by
+`liedfl train` after the standard evaluation. From the run's rollout.h5 (group `model`, one rollout
+per test sequence started from its true first pair) and the dataset:
+
+  per sequence   mean over the rollout of: root rotation geodesic error |log(R^_0^T R_0)| (rad), the
+                 joint rotation geodesic error averaged over the 22 joints (rad), and the root position
+                 error |p^_0 - p_0|, in CMU ASF units (the file unit of the CMU BVH files, 1/0.45 inch
+                 = 0.0564 m; the paper's unit) and in metres (params.length_unit_m). The mean runs over
+                 the predicted samples k = 2..S; samples 0 and 1 are the given initial pair (zero error).
+  discrepancy    the same three numbers between the two ground-truth recordings, frame by frame over
+                 their common (cropped) length, root positions measured from each recording's start
+                 (`data.mocap.recording_discrepancy`, the paper's reference scale).
+  paper          the numbers of the paper's table next to ours, and a verdict line saying whether
+                 every one of our errors is below the corresponding discrepancy (ours and the paper's).
+  Newton         the rollout's non-converged implicit steps (rollout.h5 `model/converged`).
+  diagnostics    per sequence and metric, the time until the per-timestep error first exceeds the
+                 per-timestep discrepancy; and teacher-forced one-step errors (g_{k+1} from the true
+                 (g_{k-1}, g_k), one batched Newton solve) next to constant-velocity extrapolation,
+                 which separate the model's local error from the compounding of the rollout.
+
+Files: mocap_eval.csv, mocap_eval.md, mocap_eval.json and, with eval.plots, plots/mocap_errors.png
+(per-timestep errors, discrepancy in grey), plots/mocap_skeleton_seq<i>.png (skeletons at uniform
+intervals by forward kinematics from the BVH offsets in params.skeleton: truth green/red, prediction
+blue), plots/mocap_root_trajectory.png (root path and frames in 3-D) and
+plots/mocap_joint_axes_seq<i>.png (bone directions of selected joints on the unit sphere).
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .io_utils import markdown_table, write_csv, write_json, write_text
+from .ui import console
+
+PAPER = {
+    "sequences": [
+        {"root_rot": 0.193, "joint_rot": 0.186, "root_pos": 0.887},
+        {"root_rot": 0.188, "joint_rot": 0.233, "root_pos": 1.409},
+    ],
+    "discrepancy": {"root_rot": 0.373, "joint_rot": 0.416, "root_pos": 6.624},
+}
+"""The paper's Exp 4 table (root position in CMU ASF units, the unit of the BVH files)."""
+
+METRICS = ("root_rot", "joint_rot", "root_pos")
+LABELS = {"root_rot": "root rot. [rad]", "joint_rot": "mean joint rot. [rad]", "root_pos": "root pos. [ASF units]"}
+SEQ_COLORS = ("tab:green", "tab:red")
+PRED_COLOR = "tab:blue"
+AXIS_JOINTS = ("LeftUpLeg", "RightUpLeg", "LeftArm", "RightArm", "LeftLeg", "RightLeg")
+"""Joints whose bone direction (R_j times the unit offset of its child) is drawn on the sphere."""
+
+
+# --------------------------------------------------------------------------- reading
+def read_model_rollout(path: Path) -> dict:
+    """rollout.h5 -> {R, p (T, S+1, ...), converged (T, S-1), iterations, traj_index, attrs}."""
+    import h5py
+
+    from .data.errors import DatasetError
+
+    if not path.is_file():
+        raise DatasetError(f"{path}: rollout file not found (run `liedfl rollout run=<dir>` first)")
+    with h5py.File(path, "r") as f:
+        if "model" not in f or "traj_index" not in f:
+            raise DatasetError(f"{path}: group 'model' or dataset 'traj_index' missing")
+        g = f["model"]
+        return {"R": g["R"][...], "p": g["p"][...],
+                "converged": g["converged"][...].astype(bool) if "converged" in g else None,
+                "iterations": g["iterations"][...] if "iterations" in g else None,
+                "traj_index": f["traj_index"][...].astype(int), "attrs": dict(g.attrs), "file_attrs": dict(f.attrs)}
+
+
+def _asf_per_unit(dataset) -> float:
+    """CMU ASF units per stored length unit (1.0 for length_scale 1)."""
+    from .data.mocap import ASF_UNIT_M
+
+    return float(dataset.params.get("length_unit_m", ASF_UNIT_M)) / ASF_UNIT_M
+
+
+def _sequence_name(dataset, i: int) -> str:
+    src = (dataset.params.get("sources") or [])
+    return Path(src[i]["file"]).stem if i < len(src) else f"trajectory {i}"
+
+
+# --------------------------------------------------------------------------- numbers
+def sequence_errors(pred_R, pred_p, true_R, true_p) -> dict:
+    """Per-sequence errors over the predicted samples k >= 2: scalars and per-step curves (numpy)."""
+    from .data.mocap import mocap_errors
+    from .lie.product import Pose
+
+    e = mocap_errors(Pose(torch.as_tensor(pred_R), torch.as_tensor(pred_p)),
+                     Pose(torch.as_tensor(true_R), torch.as_tensor(true_p)))
+    out = {}
+    for k in METRICS:
+        curve = e[k + "_t"].numpy()                        # (T, S+1)
+        out[k + "_t"] = curve
+        out[k] = curve[:, 2:].mean(-1) if curve.shape[-1] > 2 else curve.mean(-1)
+    out["joint_rot_per_joint"] = e["joint_rot_per_joint"].numpy()
+    return out
+
+
+def discrepancy(dataset) -> dict | None:
+    """Ground-truth discrepancy between recordings 0 and 1 (scalars and curves), None with < 2."""
+    if dataset.n_trajectories < 2:
+        return None
+    from .data.mocap import mocap_errors, recording_discrepancy
+    from .lie.product import Pose
+
+    d = recording_discrepancy(dataset)
+    e = mocap_errors(dataset.pose([0]).index(0), dataset.pose([1]).index(0), relative_position=True)
+    d.update({k + "_t": e[k + "_t"].numpy() for k in METRICS})
+    return d
+
+
+def below_until(err: dict, disc: dict | None, h: float) -> list[dict]:
+    """Per rolled-out sequence and metric: the time (s) of the last predicted sample before the
+    per-timestep error first exceeds the per-timestep discrepancy (None: never exceeds it)."""
+    out = []
+    for n in range(err["root_rot"].shape[0]):
+        row = {}
+        for k in METRICS:
+            if disc is None:
+                row[k] = None
+                continue
+            e = err[k + "_t"][n]
+            S = min(len(e), len(disc[k + "_t"]))
+            over = np.nonzero(~(e[2:S] <= disc[k + "_t"][2:S]))[0]
+            row[k] = None if not len(over) else float((over[0] + 1) * h)
+        out.append(row)
+    return out
+
+
+@torch.no_grad()
+def one_step_errors(model, truth_R, truth_p, solver) -> dict | None:
+    """Teacher-forced one-step predictions: g_{k+1} from the true (g_{k-1}, g_k) for every k, batched.
+
+    Separates the model's local error from the compounding of the rollout. Returns per-sequence means
+    of the three errors for the model and for constant-velocity extrapolation g_k (g_{k-1}^-1 g_k)
+    (the zero-force free-flight guess), and the Newton convergence count. None for models without
+    a `rollout(g0, g1, steps, solver)` method.
+    """
+    from .data.mocap import mocap_errors
+    from .lie.product import Pose
+
+    if not hasattr(model, "rollout") or not hasattr(model, "G"):
+        return None
+    R, p = torch.as_tensor(truth_R), torch.as_tensor(truth_p)
+    T, K = R.shape[0], R.shape[1] - 2
+    if K < 1:
+        return None
+    flat = lambda a, b: Pose(R[:, a:R.shape[1] - 2 + a].flatten(0, 1), p[:, a:p.shape[1] - 2 + a].flatten(0, 1))  # noqa: E731
+    g0, g1, g2 = flat(0, 0), flat(1, 1), flat(2, 2)
+    was_training = model.training
+    model.eval()
+    try:
+        ro = model.rollout(g0, g1, 2, solver)
+    finally:
+        model.train(was_training)
+    pred = ro.pose.index((slice(None), 2))
+    cv = model.G.compose(g1, model.G.increment(g0, g1))
+    unflat = lambda g: Pose(g.R.reshape(T, K, *g.R.shape[1:]), g.p.reshape(T, K, *g.p.shape[1:]))  # noqa: E731
+    true = unflat(g2)
+    em, ec = mocap_errors(unflat(pred), true), mocap_errors(unflat(cv), true)
+    return {"model": {k: em[k].numpy() for k in METRICS}, "const_velocity": {k: ec[k].numpy() for k in METRICS},
+            "converged": int(ro.converged.sum()), "solves": int(ro.converged.numel())}
+
+
+def _finite(x) -> bool:
+    return x is not None and isinstance(x, (int, float)) and math.isfinite(x)
+
+
+def build_rows(err: dict, disc: dict | None, idx: np.ndarray, dataset, ro: dict, asf: float, unit_m: float,
+               steps: int) -> list[dict]:
+    rows = []
+    for n, i in enumerate(idx):
+        paper = PAPER["sequences"][i] if i < len(PAPER["sequences"]) else {}
+        conv = ro["converged"]
+        fails = int((~conv[n]).sum()) if conv is not None else None
+        row = {"row": f"Sequence {i + 1} ({_sequence_name(dataset, i)}) prediction", "steps": steps,
+               "root_rot": float(err["root_rot"][n]), "root_rot_paper": paper.get("root_rot"),
+               "joint_rot": float(err["joint_rot"][n]), "joint_rot_paper": paper.get("joint_rot"),
+               "root_pos_asf": float(err["root_pos"][n]) * asf, "root_pos_m": float(err["root_pos"][n]) * unit_m,
+               "root_pos_paper_asf": paper.get("root_pos"), "newton_failures": fails}
+        if disc is not None:
+            for k, key in (("root_rot", "root_rot"), ("joint_rot", "joint_rot"), ("root_pos", "root_pos_asf")):
+                ours = row[key]
+                row[f"{k}_below_discrepancy"] = bool(_finite(ours) and ours < disc[k] * (asf if k == "root_pos" else 1))
+        rows.append(row)
+    if disc is not None:
+        p = PAPER["discrepancy"]
+        rows.append({"row": f"Ground truth discrepancy ({_sequence_name(dataset, 0)} vs {_sequence_name(dataset, 1)})",
+                     "steps": int(dataset.n_steps),
+                     "root_rot": disc["root_rot"], "root_rot_paper": p["root_rot"],
+                     "joint_rot": disc["joint_rot"], "joint_rot_paper": p["joint_rot"],
+                     "root_pos_asf": disc["root_pos"] * asf, "root_pos_m": disc["root_pos"] * unit_m,
+                     "root_pos_paper_asf": p["root_pos"], "newton_failures": None})
+    return rows
+
+
+def verdict(rows: list[dict], disc: dict | None, asf: float) -> dict:
+    """Is every one of our errors below the discrepancy (ours, and the paper's numbers)?"""
+    seq = [r for r in rows if r["row"].startswith("Sequence")]
+    out = {}
+    paper = PAPER["discrepancy"]
+    for name, ref in (("measured", None if disc is None else {"root_rot": disc["root_rot"], "joint_rot": disc["joint_rot"],
+                                                               "root_pos_asf": disc["root_pos"] * asf}),
+                      ("paper", {"root_rot": paper["root_rot"], "joint_rot": paper["joint_rot"],
+                                 "root_pos_asf": paper["root_pos"]})):
+        if ref is None:
+            out[name] = None
+            continue
+        fails = [f"{r['row'].split(' (')[0]} {k}" for r in seq for k in ref
+                 if not (_finite(r[k]) and r[k] < ref[k])]
+        out[name] = {"all_below": not fails, "not_below": fails}
+    return out
+
+
+# --------------------------------------------------------------------------- entry point
+def evaluate_mocap(cfg, model, dataset, run_dir) -> dict:
+    """Exp 4 table, files and plots of a run (see the module docstring)."""
+    from rich.markup import escape
+    from rich.table import Table
+
+    from .io_utils import fmt
+
+    run_dir = Path(run_dir)
+    ro = read_model_rollout(run_dir / "rollout.h5")
+    idx = ro["traj_index"]
+    S = ro["R"].shape[1] - 1
+    truth = dataset.pose(idx)
+    tR, tp = truth.R.numpy()[:, : S + 1], truth.p.numpy()[:, : S + 1]
+    err = sequence_errors(ro["R"], ro["p"], tR, tp)
+    disc = discrepancy(dataset)
+    asf = _asf_per_unit(dataset)
+    unit_m = float(dataset.params.get("length_unit_m", float("nan")))
+    rows = build_rows(err, disc, idx, dataset, ro, asf, unit_m, S)
+    ver = verdict(rows, disc, asf)
+    conv = ro["converged"]
+    n_fail = int((~conv).sum()) if conv is not None else None
+    first_fail = None
+    if conv is not None and n_fail:
+        first_fail = int(np.nonzero((~conv).any(0))[0][0]) + 2    # converged[:, j] solves for sample j + 2
+    nonfinite = [int(i) for n, i in enumerate(idx) if not (np.isfinite(ro["R"][n]).all() and np.isfinite(ro["p"][n]).all())]
+    until = below_until(err, disc, dataset.h)
+    onestep = one_step_errors(model, tR, tp, cfg.get("solver") if hasattr(cfg, "get") else None)
+    per_joint = {name: float(v) for name, v in zip(dataset.body_names[dataset.n_se3:],
+                                                   np.nanmean(err["joint_rot_per_joint"], 0))}
+
+    def verdict_line(key: str, what: str) -> str:
+        v = ver.get(key)
+        if v is None:
+            return f"{what}: not available (needs two recordings)"
+        if v["all_below"]:
+            return f"{what}: YES, every one of our errors is below it"
+        return f"{what}: NO; not below for {', '.join(v['not_below'])}"
+
+    lines = [verdict_line("measured", "Below the ground-truth discrepancy measured on this data"),
+             verdict_line("paper", "Below the paper's discrepancy numbers (0.373 / 0.416 / 6.624)")]
+    newton_line = (f"Newton: {n_fail} non-converged implicit step(s) out of {conv.size} "
+                   f"({'first at sample ' + str(first_fail) if n_fail else 'none'}); "
+                   f"mean iterations {float(ro['iterations'].mean()):.2f}" if conv is not None else
+                   "Newton: no convergence flags in rollout.h5")
+    if nonfinite:
+        newton_line += f"; NON-FINITE rollout for trajectory(ies) {nonfinite}"
+    sps = ro["attrs"].get("seconds_per_step")
+    summary = {"rows": rows, "verdict": ver, "newton_failures": n_fail, "first_failure_sample": first_fail,
+               "nonfinite_trajectories": nonfinite, "rollout_steps": S,
+               "rollout_seconds_per_step": float(sps) if sps is not None else None,
+               "joint_rot_per_joint": per_joint,
+               "below_discrepancy_until_s": {_sequence_name(dataset, i): u for i, u in zip(idx, until)},
+               "one_step": None if onestep is None else {
+                   "converged": onestep["converged"], "solves": onestep["solves"],
+                   **{f"{who}_{k}": {_sequence_name(dataset, i): float(onestep[who][k][n] * (asf if k == "root_pos" else 1))
+                                     for n, i in enumerate(idx)}
+                      for who in ("model", "const_velocity") for k in METRICS}}, "discrepancy_common_frames": int(dataset.n_steps) + 1,
+               "length_unit_m": unit_m, "asf_units_per_stored_unit": asf, "paper": PAPER}
+    write_json(run_dir / "mocap_eval.json", summary)
+    write_csv(run_dir / "mocap_eval.csv", rows)
+    cols = ["row", "steps", "root_rot", "root_rot_paper", "joint_rot", "joint_rot_paper", "root_pos_asf",
+            "root_pos_m", "root_pos_paper_asf", "newton_failures"]
+    md = (f"# Exp 4: cartwheel reproduction errors ({dataset.scene}, h={dataset.h}, rollout of {S} steps from the "
+          f"true first pair)\n\n"
+          "Means over the rollout (predicted samples k = 2..S): root rotation geodesic error (rad), joint rotation "
+          "geodesic error averaged over the joints (rad), root position error |p^ - p| in CMU ASF units (the file "
+          "unit of the CMU BVH files and the paper's unit; 1 ASF unit = 1/0.45 inch = 0.0564 m) and in metres. "
+          f"Ground truth discrepancy: the same numbers between the two recordings over their common "
+          f"{int(dataset.n_steps) + 1} frames, root positions measured from each recording's start. "
+          "`*_paper`: the paper's table.\n\n")
+    md += markdown_table(rows, cols)
+    md += "\n" + "\n".join(f"- {x}" for x in lines + [newton_line])
+    if sps is not None:
+        md += f"\n- Rollout: {float(sps):.4g} s per step ({S} steps, {len(idx)} sequence(s) batched)"
+    if disc is not None:
+        md += "\n\n## Time until the per-timestep error first exceeds the per-timestep discrepancy (s; '–': never)\n\n"
+        md += markdown_table([{"sequence": _sequence_name(dataset, i), **u} for i, u in zip(idx, until)],
+                             ["sequence", *METRICS])
+    if onestep is not None:
+        md += ("\n## One-step (teacher-forced) errors: g_{k+1} from the true (g_{k-1}, g_k), mean over k\n\n"
+               "`const_velocity`: g_k (g_{k-1}^-1 g_k), the free-flight guess; a trained model should beat it "
+               f"clearly. Newton converged on {onestep['converged']} of {onestep['solves']} solves.\n\n")
+        orows = [{"sequence": _sequence_name(dataset, i), "predictor": who,
+                  **{LABELS[k]: float(onestep[who][k][n] * (asf if k == "root_pos" else 1)) for k in METRICS}}
+                 for n, i in enumerate(idx) for who in ("model", "const_velocity")]
+        md += markdown_table(orows, list(orows[0]))
+    md += "\n\n## Mean joint rotation error per joint (rad, mean over the rolled-out sequences)\n\n"
+    md += markdown_table([per_joint], list(per_joint))
+    write_text(run_dir / "mocap_eval.md", md)
+
+    table = Table(title=f"Exp 4 mocap reproduction ({S} steps); ours vs paper")
+    for c in ("", "root rot [rad]", "paper", "joint rot [rad]", "paper", "root pos [ASF]", "root pos [m]",
+              "paper [ASF]", "Newton fail"):
+        table.add_column(escape(c), overflow="fold")
+    for r in rows:
+        table.add_row(r["row"], fmt(r["root_rot"]), fmt(r["root_rot_paper"]), fmt(r["joint_rot"]),
+                      fmt(r["joint_rot_paper"]), fmt(r["root_pos_asf"]), fmt(r["root_pos_m"]),
+                      fmt(r["root_pos_paper_asf"]), fmt(r["newton_failures"]))
+    console.print(table)
+    extra = []
+    if onestep is not None:
+        m, c = onestep["model"], onestep["const_velocity"]
+        extra.append("one-step (teacher-forced) mean joint rot. error: model "
+                     + ", ".join(f"{float(v):.3e}" for v in m["joint_rot"]) + " vs constant velocity "
+                     + ", ".join(f"{float(v):.3e}" for v in c["joint_rot"]) + " rad (per sequence)")
+    for x in lines + [newton_line] + extra:
+        console.print(escape(x), highlight=False)
+
+    if cfg.eval.plots:
+        pdir = run_dir / "plots"
+        plot_errors(err, disc, idx, dataset, asf, pdir / "mocap_errors.png")
+        for n, i in enumerate(idx):
+            sk = _skeleton_for(dataset, i)
+            plot_skeletons(tR[n], tp[n], ro["R"][n], ro["p"][n], sk, dataset.h, i,
+                           pdir / f"mocap_skeleton_seq{i + 1}.png")
+            plot_joint_axes(tR[n], ro["R"][n], sk, dataset.body_names, i, pdir / f"mocap_joint_axes_seq{i + 1}.png")
+        plot_root_trajectory(tR, tp, ro["R"], ro["p"], idx, dataset, pdir / "mocap_root_trajectory.png")
+    return summary
+
+
+# --------------------------------------------------------------------------- plots
+def _skeleton_for(dataset, i: int) -> dict:
+    sk = dict(dataset.params["skeleton"])
+    per_file = sk.get("per_file_offsets") or {}
+    if str(i) in per_file:
+        sk["offsets"] = per_file[str(i)]
+    return sk
+
+
+def _plt():
+    from . import plots  # noqa: F401  (selects the Agg backend)
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_errors(err: dict, disc: dict | None, idx, dataset, asf: float, path: Path) -> None:
+    """Per-timestep errors of each sequence (3 panels) with the ground-truth discrepancy in grey."""
+    from .plots import _save
+
+    plt = _plt()
+    h = dataset.h
+    fig, axes = plt.subplots(1, 3, figsize=(14, 3.6))
+    for ax, k in zip(axes, METRICS):
+        scale = asf if k == "root_pos" else 1.0
+        if disc is not None:
+            y = disc[k + "_t"] * scale
+            ax.fill_between(np.arange(len(y)) * h, 0, y, color="0.85", label="ground-truth discrepancy")
+            ax.plot(np.arange(len(y)) * h, y, color="0.55", linewidth=0.8)
+        for n, i in enumerate(idx):
+            y = err[k + "_t"][n] * scale
+            ax.plot(np.arange(2, len(y)) * h, y[2:], color=SEQ_COLORS[i % 2] if i < 2 else None,
+                    label=f"sequence {i + 1} ({_sequence_name(dataset, i)})")
+        ax.set_title(LABELS[k])
+        ax.set_xlabel("time [s]")
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8)
+    fig.suptitle("Exp 4: per-timestep reproduction error (rollout from the true first pair)")
+    _save(fig, path)
+
+
+def _limits(ax, pts: np.ndarray) -> None:
+    pts = pts[np.isfinite(pts).all(-1)]
+    if not len(pts):
+        return
+    c = 0.5 * (pts.max(0) + pts.min(0))
+    r = 0.5 * float((pts.max(0) - pts.min(0)).max()) or 1.0
+    ax.set_xlim(c[0] - r, c[0] + r)
+    ax.set_ylim(c[1] - r, c[1] + r)
+    ax.set_zlim(c[2] - r, c[2] + r)
+    ax.set_box_aspect((1, 1, 1))
+
+
+def plot_skeletons(tR, tp, pR, pp, skeleton: dict, h: float, i: int, path: Path, n_frames: int = 8) -> None:
+    """Skeletons (forward kinematics) at uniform intervals: truth (green/red) vs prediction (blue)."""
+    from .data.mocap import skeleton_points
+    from .plots import _save
+
+    plt = _plt()
+    S = tR.shape[0] - 1
+    frames = np.unique(np.linspace(0, S, min(n_frames, S + 1)).round().astype(int))
+    P_true, edges = skeleton_points(tR[frames], tp[frames], skeleton)
+    P_pred, _ = skeleton_points(pR[frames], pp[frames], skeleton)
+    fig = plt.figure(figsize=(2.6 * len(frames), 3.4))
+    color = SEQ_COLORS[i % 2] if i < 2 else "black"
+    for c, k in enumerate(frames):
+        ax = fig.add_subplot(1, len(frames), c + 1, projection="3d")
+        for P, col, lw, lab in ((P_true[c], color, 1.8, "truth"), (P_pred[c], PRED_COLOR, 1.2, "prediction")):
+            for a, b in edges:
+                ax.plot(*np.stack([P[a], P[b]]).T, color=col, linewidth=lw, label=lab if (a, b) == edges[0] else None)
+        _limits(ax, np.concatenate([P_true[c], P_pred[c]]))
+        ax.view_init(elev=10, azim=-60)
+        ax.set_title(f"t = {k * h:.3f} s", fontsize=9)
+        ax.set_xticklabels([]), ax.set_yticklabels([]), ax.set_zticklabels([])
+        if c == 0:
+            ax.legend(fontsize=7, loc="upper left")
+    fig.suptitle(f"Sequence {i + 1}: skeleton at uniform intervals (truth vs prediction)")
+    _save(fig, path)
+
+
+def plot_root_trajectory(tR, tp, pR, pp, idx, dataset, path: Path, n_frames: int = 8) -> None:
+    """Root position path in 3-D with the root frame (axes) at uniform intervals, truth vs prediction."""
+    from .plots import _save
+
+    plt = _plt()
+    fig = plt.figure(figsize=(5.2 * len(idx), 5))
+    for n, i in enumerate(idx):
+        ax = fig.add_subplot(1, len(idx), n + 1, projection="3d")
+        color = SEQ_COLORS[i % 2] if i < 2 else "black"
+        pts = np.concatenate([tp[n, :, 0], pp[n, :, 0]])
+        fin = pts[np.isfinite(pts).all(-1)]
+        span = float((fin.max(0) - fin.min(0)).max()) if len(fin) else 1.0
+        ell = 0.08 * (span or 1.0)
+        S = tR.shape[1] - 1
+        frames = np.unique(np.linspace(0, S, min(n_frames, S + 1)).round().astype(int))
+        for R, p, col, style, lab in ((tR[n], tp[n], color, "-", "truth"), (pR[n], pp[n], PRED_COLOR, "--", "prediction")):
+            ax.plot(*p[:, 0].T, style, color=col, linewidth=1.5, label=lab)
+            for k in frames:
+                for a, ac in zip(range(3), ("r", "g", "b")):
+                    seg = np.stack([p[k, 0], p[k, 0] + ell * R[k, 0, :, a]])
+                    ax.plot(*seg.T, style, color=ac, linewidth=0.9, alpha=0.8)
+        _limits(ax, pts)
+        ax.set_title(f"Sequence {i + 1} ({_sequence_name(dataset, i)}): root in SE(3)")
+        ax.legend(fontsize=8, loc="upper left")
+    _save(fig, path)
+
+
+def _bone_axes(skeleton: dict, names: list[str]) -> list[tuple[int, str, np.ndarray]]:
+    """(body, name, unit offset of its first child in its frame) for the AXIS_JOINTS present."""
+    parents, offsets = skeleton["parents"], np.asarray(skeleton["offsets"], dtype=np.float64)
+    out = []
+    for name in AXIS_JOINTS:
+        if name not in names:
+            continue
+        j = names.index(name)
+        kids = [c for c, q in enumerate(parents) if q == j and np.linalg.norm(offsets[c]) > 0]
+        if kids:
+            out.append((j, name, offsets[kids[0]] / np.linalg.norm(offsets[kids[0]])))
+    return out
+
+
+def plot_joint_axes(tR, pR, skeleton: dict, names: list[str], i: int, path: Path) -> None:
+    """Bone direction R_j d_j (d_j: unit offset of the child in joint j's frame) on the unit sphere."""
+    from .plots import _save
+
+    plt = _plt()
+    axes_list = _bone_axes(skeleton, names)
+    if not axes_list:
+        return
+    fig = plt.figure(figsize=(3.4 * len(axes_list), 3.6))
+    u, v = np.mgrid[0:2 * np.pi:30j, 0:np.pi:15j]
+    color = SEQ_COLORS[i % 2] if i < 2 else "black"
+    for c, (j, name, d) in enumerate(axes_list):
+        ax = fig.add_subplot(1, len(axes_list), c + 1, projection="3d")
+        ax.plot_wireframe(np.cos(u) * np.sin(v), np.sin(u) * np.sin(v), np.cos(v), color="0.88", linewidth=0.3)
+        ax.plot(*(tR[:, j] @ d).T, color=color, linewidth=1.6, label="truth")
+        ax.plot(*(pR[:, j] @ d).T, "--", color=PRED_COLOR, linewidth=1.2, label="prediction")
+        ax.set_box_aspect((1, 1, 1))
+        ax.set_title(name, fontsize=9)
+        ax.set_xticklabels([]), ax.set_yticklabels([]), ax.set_zticklabels([])
+        if c == 0:
+            ax.legend(fontsize=7, loc="upper left")
+    fig.suptitle(f"Sequence {i + 1}: selected joint rotations (bone direction in the parent frame) on S^2")
+    _save(fig, path)
+
+
+def _register() -> None:
+    from .extras import EXTRA_EVALS
+
+    EXTRA_EVALS.setdefault("cmu_cartwheel", evaluate_mocap)
+
+
+_register()
+
+__all__ = ["PAPER", "evaluate_mocap", "sequence_errors", "discrepancy", "verdict", "read_model_rollout",
+           "below_until", "one_step_errors",
+           "plot_errors", "plot_skeletons", "plot_root_trajectory", "plot_joint_axes"]
