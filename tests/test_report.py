@@ -30,7 +30,8 @@ def test_report_over_small_sweep(tmp_path):
 def test_report_rejects_missing_sweep(tmp_path):
     r = _liedfl(["report", f"sweep={tmp_path / 'nope'}"], tmp_path)
     assert r.returncode == 2
-    assert "not a directory" in r.stderr and "Traceback" not in r.stderr
+    assert "no such multirun directory" in r.stderr and "Traceback" not in r.stderr
+    assert not (tmp_path / "nope").exists()
     empty = tmp_path / "empty"
     empty.mkdir()
     r = _liedfl(["report", f"sweep={empty}"], tmp_path)
