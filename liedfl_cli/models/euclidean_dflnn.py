@@ -33,7 +33,7 @@ from ..mechanics.parameterizations import Inertia, PositiveVector, SPSDMatrix
 from ..solvers.newton import damped_newton
 from ..solvers.rollout import Rollout
 from .baseline_common import with_data_start
-from .liedflnn import regularity_penalty
+from .liedflnn import del_regularity_loss
 
 
 class EuclideanDFLNN(nn.Module):
@@ -143,14 +143,11 @@ class EuclideanDFLNN(nn.Module):
     # ------------------------------------------------------------------ training
     def loss(self, batch, reg_pairs, cfg_train):
         r = self.residual(*(self.to_x(g) for g in batch))
-        del_loss = (r * r).mean()
-        reg_loss = torch.zeros((), dtype=r.dtype)
+        logdet = None
         if reg_pairs is not None and cfg_train.w_reg > 0:
             H = self.mixed_hessian(self.to_x(reg_pairs[0]), self.to_x(reg_pairs[1]))
             logdet = torch.linalg.slogdet(H).logabsdet
-            reg_loss = regularity_penalty(logdet, float(cfg_train.epsilon), cfg_train.reg_form).mean()
-        loss = cfg_train.w_del * del_loss + cfg_train.w_reg * reg_loss
-        return loss, {"del_loss": del_loss, "reg_loss": reg_loss}
+        return del_regularity_loss(r, logdet, cfg_train)
 
     # ------------------------------------------------------------------ rollout
     @torch.no_grad()

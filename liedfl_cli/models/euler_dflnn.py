@@ -33,7 +33,7 @@ from ..mechanics.parameterizations import Inertia, SPSDMatrix
 from ..solvers.newton import damped_newton
 from ..solvers.rollout import Rollout
 from .baseline_common import so3_pose, with_data_start
-from .liedflnn import regularity_penalty
+from .liedflnn import del_regularity_loss
 
 
 def _shift_to_principal(q_ref: torch.Tensor) -> torch.Tensor:
@@ -115,14 +115,11 @@ class EulerDFLNN(nn.Module):
     def loss(self, batch, reg_pairs, cfg_train):
         q_prev, q, q_next = self.angles(*batch)
         r = self.residual(q_prev, q, q_next)
-        del_loss = (r * r).mean()
-        reg_loss = torch.zeros((), dtype=r.dtype)
+        logdet = None
         if reg_pairs is not None and cfg_train.w_reg > 0:
             a, b = self.angles(*reg_pairs)
             logdet = torch.linalg.slogdet(self.mixed_hessian(a, b)).logabsdet
-            reg_loss = regularity_penalty(logdet, float(cfg_train.epsilon), cfg_train.reg_form).mean()
-        loss = cfg_train.w_del * del_loss + cfg_train.w_reg * reg_loss
-        return loss, {"del_loss": del_loss, "reg_loss": reg_loss}
+        return del_regularity_loss(r, logdet, cfg_train)
 
     # ------------------------------------------------------------------ rollout
     @torch.no_grad()

@@ -128,14 +128,9 @@ class LieDFLNN(nn.Module):
 
     def loss(self, batch, reg_pairs, cfg_train):
         """w_DEL mean ||r||^2 + w_reg mean penalty(log|det H|) -> (loss, {"del_loss", "reg_loss"})."""
-        r = self.residual(*batch)
-        del_loss = (r * r).mean()
-        reg_loss = torch.zeros((), dtype=r.dtype)
-        if reg_pairs is not None and cfg_train.w_reg > 0:
-            logdet = self.regularity_logdet(*reg_pairs)
-            reg_loss = regularity_penalty(logdet, float(cfg_train.epsilon), cfg_train.reg_form).mean()
-        loss = cfg_train.w_del * del_loss + cfg_train.w_reg * reg_loss
-        return loss, {"del_loss": del_loss, "reg_loss": reg_loss}
+        use_reg = reg_pairs is not None and cfg_train.w_reg > 0
+        logdet = self.regularity_logdet(*reg_pairs) if use_reg else None
+        return del_regularity_loss(self.residual(*batch), logdet, cfg_train)
 
     def components(self) -> list[str]:
         """Every active component, with its trainable parameter count or "known, frozen".
@@ -292,3 +287,14 @@ def regularity_penalty(logdet: torch.Tensor, epsilon: float, form: str = "relu")
         u = torch.exp(torch.clamp(logdet - epsilon, max=50.0))
         return torch.exp(-0.5 * (u - 1.0) ** 2) / math.sqrt(2 * math.pi)
     raise ValueError(f"train.reg_form must be 'relu' or 'gaussian', got {form!r}")
+
+
+def del_regularity_loss(r: torch.Tensor, logdet: torch.Tensor | None, cfg_train):
+    """w_DEL mean ||r||^2 + w_reg mean penalty(logdet) -> (loss, {"del_loss", "reg_loss"}).
+
+    Shared by every model trained on the DEL residual (LieDFLNN, Euler- and Euclidean DFLNN)."""
+    del_loss = (r * r).mean()
+    reg_loss = torch.zeros((), dtype=r.dtype)
+    if logdet is not None:
+        reg_loss = regularity_penalty(logdet, float(cfg_train.epsilon), cfg_train.reg_form).mean()
+    return cfg_train.w_del * del_loss + cfg_train.w_reg * reg_loss, {"del_loss": del_loss, "reg_loss": reg_loss}
