@@ -66,9 +66,14 @@ class RayleighNonlinearForce(nn.Module):
         return L
 
     def D(self, g: Pose) -> torch.Tensor:
-        """(..., dim, dim) SPSD damping matrix at g."""
+        """(..., dim, dim) SPSD damping matrix at g, exactly symmetric.
+
+        A batched matmul need not round L L^T symmetrically (seen on AVX-512 kernels), so the
+        product is averaged with its transpose: (a + b) / 2 is the same float either way round.
+        """
         L = self.L(g)
-        return L @ L.transpose(-1, -2)
+        M = L @ L.transpose(-1, -2)
+        return 0.5 * (M + M.transpose(-1, -2))
 
     def forward(self, g: Pose, xi: torch.Tensor) -> torch.Tensor:
         return -(self.D(g) @ xi[..., None])[..., 0]

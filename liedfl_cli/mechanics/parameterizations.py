@@ -82,7 +82,8 @@ class SPSDMatrix(nn.Module):
 
     def forward(self) -> torch.Tensor:
         L = self.L
-        return L @ L.T + torch.diag(self.lam**2)
+        M = L @ L.T  # symmetrised: matmul kernels need not round L L^T symmetrically
+        return 0.5 * (M + M.T) + torch.diag(self.lam**2)
 
     @torch.no_grad()
     def set_matrix(self, D: torch.Tensor) -> None:
