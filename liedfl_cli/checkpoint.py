@@ -1,4 +1,5 @@
 """Checkpoints: state dict + resolved config + versions, written atomically, loaded with checks."""
+
 from __future__ import annotations
 
 import platform
@@ -30,7 +31,7 @@ def load_checkpoint(path) -> dict:
         raise CheckpointError(f"{path}: checkpoint not found")
     try:
         payload = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as e:  # noqa: BLE001 - any unreadable file is one clear error
+    except Exception as e:
         raise CheckpointError(f"{path}: not a readable checkpoint ({type(e).__name__}: {e})") from None
     if not isinstance(payload, dict):
         raise CheckpointError(f"{path}: checkpoint is not a dict")
@@ -52,7 +53,9 @@ def load_state(path, model, payload: dict) -> None:
         if k not in own:
             raise CheckpointError(f"{path}: field 'state_dict' has unexpected key '{k}' for this model config")
         if own[k].shape != v.shape:
-            raise CheckpointError(f"{path}: field 'state_dict.{k}' has shape {tuple(v.shape)}, model expects {tuple(own[k].shape)}")
+            raise CheckpointError(
+                f"{path}: field 'state_dict.{k}' has shape {tuple(v.shape)}, model expects {tuple(own[k].shape)}"
+            )
         if not torch.isfinite(v).all():
             raise CheckpointError(f"{path}: field 'state_dict.{k}' has non-finite values")
     for k in own:

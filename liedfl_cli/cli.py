@@ -3,6 +3,7 @@
 Hydra has no subcommands; the first word picks the primary config (conf/<command>.yaml) and
 the plain function that does the work (`run_train`, ...), which tests call directly.
 """
+
 from __future__ import annotations
 
 import sys
@@ -22,8 +23,11 @@ DIR_ARGS = {
     "eval": ("run", "run dir", "run directory", "a directory written by `liedfl train`"),
     "report": ("sweep", "multirun dir", "multirun directory", "a directory written by `liedfl train -m`"),
 }
-USAGE = "usage: liedfl {" + ",".join(COMMANDS) + "} [key=value ...] [-m] [--cfg job] [--help]\n\n" + "\n".join(
-    f"  {k:<8} {v}" for k, v in COMMANDS.items()
+USAGE = (
+    "usage: liedfl {"
+    + ",".join(COMMANDS)
+    + "} [key=value ...] [-m] [--cfg job] [--help]\n\n"
+    + "\n".join(f"  {k:<8} {v}" for k, v in COMMANDS.items())
 )
 
 
@@ -66,7 +70,9 @@ def _run(command: str, cfg):
         fail(f"numerical failure: {e}")
     except OmegaConfBaseException as e:  # e.g. a broken interpolation in an override file
         key = getattr(e, "full_key", None)
-        fail(f"config error: {str(e).splitlines()[0] if str(e) else type(e).__name__}" + (f" (key {key})" if key else ""))
+        fail(
+            f"config error: {str(e).splitlines()[0] if str(e) else type(e).__name__}" + (f" (key {key})" if key else "")
+        )
     except KeyboardInterrupt:
         fail("interrupted", code=130)
 
@@ -108,8 +114,10 @@ def main() -> None:
         print(f"error: unknown command {command!r}\n\n{USAGE}", file=sys.stderr)
         raise SystemExit(2)
     if not (CONF_DIR / f"{command}.yaml").is_file():
-        print(f"error: config directory {CONF_DIR} not found; install liedfl with `pip install -e .` from a clone",
-              file=sys.stderr)
+        print(
+            f"error: config directory {CONF_DIR} not found; install liedfl with `pip install -e .` from a clone",
+            file=sys.stderr,
+        )
         raise SystemExit(2)
     if command in DIR_ARGS:
         _check_dir_arg(command, argv[1:])

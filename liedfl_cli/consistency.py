@@ -5,6 +5,7 @@ residual_order: max |residual| of the true-parameter scheme on exact trajectorie
 rollout_order: error at a fixed final time of the true-parameter rollout vs the exact solution
     shrinks like h^2 (the scheme is a second-order variational integrator).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -17,8 +18,13 @@ from .solvers.rollout import rollout_discrete
 
 PHYSICS = {
     "so3": {"J": [1.521, 1.362, 1.211], "m": 0.5, "rho": [0.0, 0.5, 1.0], "g": 9.81, "D": [0.1, 0.1, 0.1]},
-    "se3": {"J": [1.521, 1.362, 1.211], "m": 0.5, "rho": [0.0, 0.5, 1.0], "g": 9.81,
-            "D": [0.1, 0.1, 0.1, 0.05, 0.05, 0.05]},
+    "se3": {
+        "J": [1.521, 1.362, 1.211],
+        "m": 0.5,
+        "rho": [0.0, 0.5, 1.0],
+        "g": 9.81,
+        "D": [0.1, 0.1, 0.1, 0.05, 0.05, 0.05],
+    },
 }
 
 
@@ -50,8 +56,11 @@ def residual_order(kind: str, hs=(0.08, 0.04, 0.02, 0.01), final_time: float = 0
     for h in hs:
         traj = exact(kind, h, final_time)
         model = _model(kind, h)
-        r = model.residual(traj.index((slice(None), slice(0, -2))), traj.index((slice(None), slice(1, -1))),
-                           traj.index((slice(None), slice(2, None))))
+        r = model.residual(
+            traj.index((slice(None), slice(0, -2))),
+            traj.index((slice(None), slice(1, -1))),
+            traj.index((slice(None), slice(2, None))),
+        )
         res.append(float(r.abs().max()))
     slope = np.polyfit(np.log(hs), np.log(res), 1)[0]
     return {"h": list(hs), "max_residual": res, "order": float(slope)}
@@ -64,8 +73,9 @@ def rollout_order(kind: str, hs=(0.04, 0.02, 0.01, 0.005), final_time: float = 2
         traj = exact(kind, h, final_time)
         model = _model(kind, h)
         steps = traj.R.shape[1] - 1
-        ro = rollout_discrete(model, traj.index((slice(None), 0)), traj.index((slice(None), 1)), steps,
-                              tol=1e-13, max_iter=20)
+        ro = rollout_discrete(
+            model, traj.index((slice(None), 0)), traj.index((slice(None), 1)), steps, tol=1e-13, max_iter=20
+        )
         e = torch.linalg.matrix_norm(ro.pose.R[:, -1] - traj.R[:, -1]).max()
         if traj.p.shape[-2]:
             e = torch.maximum(e, torch.linalg.vector_norm(ro.pose.p[:, -1] - traj.p[:, -1], dim=-1).max())

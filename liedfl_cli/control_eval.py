@@ -17,6 +17,7 @@ aggregate ||tau_theta - tau||_2 / ||tau||_2 over all steps. Files: control_eval.
 control_eval.md, plots/torque.png (torque components learned vs true, relative error, and the
 rollout's body axis R e3 on the sphere; from rollout.h5 when present).
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -78,29 +79,43 @@ def evaluate_control(cfg, model, dataset, run_dir) -> dict | None:
         N = learned.shape[1]
         true = np.asarray(dataset.extras["tau_ext"])[idx][:, :N]
         err = torque_errors(learned, true)
-        row = {"split": split, "trajectories": int(idx.size), "steps": int(N),
-               "rel_error_mean": err["rel_error_mean"], "rel_error_max": err["rel_error_max"],
-               "rel_error_aggregate": err["rel_error_aggregate"]}
+        row = {
+            "split": split,
+            "trajectories": int(idx.size),
+            "steps": int(N),
+            "rel_error_mean": err["rel_error_mean"],
+            "rel_error_max": err["rel_error_max"],
+            "rel_error_aggregate": err["rel_error_aggregate"],
+        }
         if ref is not None and len(ref.forces):
             law = force_torques(ref, traj, h)
             e2 = torque_errors(learned, law)
-            row.update({"vs_law_at_w_tilde_mean": e2["rel_error_mean"], "vs_law_at_w_tilde_max": e2["rel_error_max"],
-                        "law_at_w_tilde_vs_true_mean": torque_errors(law, true)["rel_error_mean"]})
+            row.update(
+                {
+                    "vs_law_at_w_tilde_mean": e2["rel_error_mean"],
+                    "vs_law_at_w_tilde_max": e2["rel_error_max"],
+                    "law_at_w_tilde_vs_true_mean": torque_errors(law, true)["rel_error_mean"],
+                }
+            )
         rows.append(row)
         curves[split] = {"learned": learned[0], "true": true[0], "rel_error": err["curve"]}
     if not rows:
         return None
     summary = {"rows": rows, "reference": "extras/tau_ext (true non-conservative torque at the true angular velocity)"}
     write_json(run_dir / "control_eval.json", summary)
-    md = ("# Control recovery (learned torque along the observed trajectories)\n\n"
-          "Relative error ||tau_theta(R_k, w~_k) - tau(R_k, w_k)|| / ||tau(R_k, w_k)|| per step (mean, max), "
-          "and aggregated over all steps; `vs_law_at_w_tilde`: against the true PD law evaluated at the "
-          "same velocity estimate w~_k.\n\n")
+    md = (
+        "# Control recovery (learned torque along the observed trajectories)\n\n"
+        "Relative error ||tau_theta(R_k, w~_k) - tau(R_k, w_k)|| / ||tau(R_k, w_k)|| per step (mean, max), "
+        "and aggregated over all steps; `vs_law_at_w_tilde`: against the true PD law evaluated at the "
+        "same velocity estimate w~_k.\n\n"
+    )
     md += markdown_table(rows, list(rows[0]))
     write_text(run_dir / "control_eval.md", md)
     for r in rows:
-        console.print(f"control recovery ({r['split']}): relative torque error mean {r['rel_error_mean']:.3e}, "
-                      f"max {r['rel_error_max']:.3e}, aggregate {r['rel_error_aggregate']:.3e}")
+        console.print(
+            f"control recovery ({r['split']}): relative torque error mean {r['rel_error_mean']:.3e}, "
+            f"max {r['rel_error_max']:.3e}, aggregate {r['rel_error_aggregate']:.3e}"
+        )
     if cfg.eval.plots:
         key = "test" if "test" in curves else "train"
         plot_torque(curves[key], h, _rollout_R(run_dir, dataset), run_dir / "plots" / "torque.png", key)
@@ -133,7 +148,7 @@ def plot_torque(curve: dict, h: float, rollouts: dict, path: Path, split: str) -
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    learned, true = curve["learned"], curve["true"]   # (N, B, 3)
+    learned, true = curve["learned"], curve["true"]  # (N, B, 3)
     N = learned.shape[0]
     t = np.arange(N) * h
     fig = plt.figure(figsize=(15, 8))
@@ -156,11 +171,12 @@ def plot_torque(curve: dict, h: float, rollouts: dict, path: Path, split: str) -
     if rollouts:
         colors = {"truth": "black", "model": "tab:blue", "true_scheme": "tab:orange"}
         ax3 = fig.add_subplot(2, 3, 5, projection="3d")
-        u, v = np.mgrid[0:2 * np.pi:30j, 0:np.pi:15j]
+        u, v = np.mgrid[0 : 2 * np.pi : 30j, 0 : np.pi : 15j]
         ax3.plot_wireframe(np.cos(u) * np.sin(v), np.sin(u) * np.sin(v), np.cos(v), color="0.85", linewidth=0.4)
         for name, R in rollouts.items():
-            ax3.plot(*R[:, 0, :, 2].T, "-" if name == "truth" else "--", color=colors.get(name), linewidth=1.0,
-                     label=name)
+            ax3.plot(
+                *R[:, 0, :, 2].T, "-" if name == "truth" else "--", color=colors.get(name), linewidth=1.0, label=name
+            )
         ax3.set_box_aspect((1, 1, 1))
         ax3.legend(loc="upper left", fontsize=8)
         ax3.set_title(f"rollout: body axis R e3 (trajectory {index})")

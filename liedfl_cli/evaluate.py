@@ -1,4 +1,5 @@
 """`liedfl eval`: metrics table and plots of a run from its rollout.h5 and dataset."""
+
 from __future__ import annotations
 
 import csv
@@ -18,14 +19,39 @@ from .lie import Pose
 from .metrics import trajectory_metrics
 from .ui import console
 
-SHORT = {"rel_rot_error_mean": "rel err", "rel_rot_error_final": "rel err end", "geodesic_error_mean": "geo err",
-         "position_error_mean": "pos err", "max_orth_drift": "orth drift", "max_det_drift": "det drift",
-         "newton_failures": "newton fail", "first_failure_step": "1st fail", "mean_newton_iterations": "iters",
-         "nonfinite_step": "nonfinite at", "rollout_s_per_step": "s/step", "train_seconds": "train s", "seconds_per_epoch": "s/epoch",
-         "parameters": "params"}
-COLUMNS = ["model", "rel_rot_error_mean", "rel_rot_error_final", "geodesic_error_mean", "position_error_mean",
-           "max_orth_drift", "max_det_drift", "nonfinite_step", "newton_failures", "first_failure_step", "mean_newton_iterations",
-           "rollout_s_per_step", "train_seconds", "seconds_per_epoch", "parameters"]
+SHORT = {
+    "rel_rot_error_mean": "rel err",
+    "rel_rot_error_final": "rel err end",
+    "geodesic_error_mean": "geo err",
+    "position_error_mean": "pos err",
+    "max_orth_drift": "orth drift",
+    "max_det_drift": "det drift",
+    "newton_failures": "newton fail",
+    "first_failure_step": "1st fail",
+    "mean_newton_iterations": "iters",
+    "nonfinite_step": "nonfinite at",
+    "rollout_s_per_step": "s/step",
+    "train_seconds": "train s",
+    "seconds_per_epoch": "s/epoch",
+    "parameters": "params",
+}
+COLUMNS = [
+    "model",
+    "rel_rot_error_mean",
+    "rel_rot_error_final",
+    "geodesic_error_mean",
+    "position_error_mean",
+    "max_orth_drift",
+    "max_det_drift",
+    "nonfinite_step",
+    "newton_failures",
+    "first_failure_step",
+    "mean_newton_iterations",
+    "rollout_s_per_step",
+    "train_seconds",
+    "seconds_per_epoch",
+    "parameters",
+]
 
 
 def read_rollout(path) -> tuple[dict, np.ndarray, dict]:
@@ -90,14 +116,19 @@ def run_eval_from_objects(cfg: DictConfig, dataset, run_dir, timings: dict | Non
     bad = (idx < 0) | (idx >= dataset.n_trajectories)
     if bad.any():
         j = int(bad.nonzero()[0][0])
-        raise DatasetError(f"{run_dir / 'rollout.h5'}: dataset 'traj_index' has trajectory {int(idx[j])} at index {j}, "
-                           f"but the run's dataset has {dataset.n_trajectories}; re-run `liedfl rollout run={run_dir}`")
+        raise DatasetError(
+            f"{run_dir / 'rollout.h5'}: dataset 'traj_index' has trajectory {int(idx[j])} at index {j}, "
+            f"but the run's dataset has {dataset.n_trajectories}; re-run `liedfl rollout run={run_dir}`"
+        )
     truth = dataset.pose(idx)
     rows, curves = _rows(rollouts, truth, timings)
     recovery_path = run_dir / "recovery.json"
     write_csv(run_dir / "eval.csv", rows)
     cols = [c for c in COLUMNS if any(r.get(c) is not None for r in rows)]
-    md = f"# Evaluation: {dataset.scene} ({dataset.group.name}, h={dataset.h}), {len(idx)} test trajectories x {int(attrs['steps'])} steps\n\n"
+    md = (
+        f"# Evaluation: {dataset.scene} ({dataset.group.name}, h={dataset.h}), "
+        f"{len(idx)} test trajectories x {int(attrs['steps'])} steps\n\n"
+    )
     md += markdown_table(rows, cols)
     if recovery_path.is_file():
         rec = json.loads(recovery_path.read_text())
@@ -109,8 +140,11 @@ def run_eval_from_objects(cfg: DictConfig, dataset, run_dir, timings: dict | Non
         table.add_column(SHORT.get(c, c), overflow="fold")
     for r in rows:
         table.add_row(*[fmt(r.get(c)) for c in cols])
-    console.print("columns: rel err = mean ||R^-R||_F/||R||_F over steps; geo err = mean geodesic error (rad); "
-                  "drifts are maxima over the rollout; full names in eval.md", style="dim")
+    console.print(
+        "columns: rel err = mean ||R^-R||_F/||R||_F over steps; geo err = mean geodesic error (rad); "
+        "drifts are maxima over the rollout; full names in eval.md",
+        style="dim",
+    )
     console.print(table)
     if cfg.eval.plots:
         h = dataset.h
@@ -119,14 +153,16 @@ def run_eval_from_objects(cfg: DictConfig, dataset, run_dir, timings: dict | Non
         plots.drift_vs_step(curves, h, pdir / "drift_vs_step.png")
         preds = {k: v["pose"] for k, v in rollouts.items()}
         plots.sphere(truth.R.numpy(), {k: v.R.numpy() for k, v in preds.items()}, pdir / "sphere.png")
-        plots.predicted_vs_true(Pose(truth.R.numpy(), truth.p.numpy()),
-                                {k: Pose(v.R.numpy(), v.p.numpy()) for k, v in preds.items()}, h,
-                                pdir / "predicted_vs_true.png")
+        plots.predicted_vs_true(
+            Pose(truth.R.numpy(), truth.p.numpy()),
+            {k: Pose(v.R.numpy(), v.p.numpy()) for k, v in preds.items()},
+            h,
+            pdir / "predicted_vs_true.png",
+        )
         hist = run_dir / "train_metrics.csv"
         if hist.is_file():
             with open(hist) as f:
-                history = [{k: float(v) for k, v in r.items() if k and v not in (None, "")}
-                           for r in csv.DictReader(f)]
+                history = [{k: float(v) for k, v in r.items() if k and v not in (None, "")} for r in csv.DictReader(f)]
             if history and all("epoch" in r for r in history):
                 plots.loss_curve(history, pdir / "loss.png")
     return rows

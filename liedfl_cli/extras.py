@@ -3,9 +3,10 @@ scenes, the mocap table for recordings). Modules register a function by scene na
 
     EXTRA_EVALS["pd_control"] = fn(cfg, model, dataset, run_dir) -> dict | None
 """
+
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 EXTRA_EVALS: dict[str, Callable] = {}
 

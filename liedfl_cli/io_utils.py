@@ -1,4 +1,5 @@
 """Atomic file writing: every output is written to a temporary name and renamed into place."""
+
 from __future__ import annotations
 
 import contextlib
@@ -42,11 +43,10 @@ def write_csv(path, rows: list[dict]) -> None:
     keys: list[str] = []
     for r in rows:
         keys += [k for k in r if k not in keys]
-    with atomic_path(path) as tmp:
-        with open(tmp, "w", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=keys)
-            w.writeheader()
-            w.writerows(rows)
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=keys)
+        w.writeheader()
+        w.writerows(rows)
 
 
 def fmt(v) -> str:
@@ -60,7 +60,7 @@ def fmt(v) -> str:
 
 
 def markdown_table(rows: list[dict], columns: list[str] | None = None) -> str:
-    cols = columns or [k for r in rows for k in r if k][: None]
+    cols = columns or [k for r in rows for k in r if k][:None]
     cols = list(dict.fromkeys(cols))
     lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     for r in rows:

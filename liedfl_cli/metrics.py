@@ -6,6 +6,7 @@ per-sample values; `trajectory_metrics` averages over bodies and gives per-step 
 off the manifold: their drift is measured as it is, and the geodesic error uses the nearest
 rotation (SVD projection).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -49,7 +50,7 @@ def trajectory_metrics(pred: Pose, true: Pose) -> dict:
         nonfinite_at = bad[1]
     else:
         nonfinite_at = None
-    rel = relative_rotation_error(pred.R, true.R).mean(-1)          # (T, S+1)
+    rel = relative_rotation_error(pred.R, true.R).mean(-1)  # (T, S+1)
     geo = geodesic_error(torch.nan_to_num(pred.R), true.R).mean(-1)
     orth = orthogonality_drift(pred.R).amax(-1)
     det = det_drift(pred.R).amax(-1)

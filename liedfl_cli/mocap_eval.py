@@ -26,6 +26,7 @@ intervals by forward kinematics from the BVH offsets in params.skeleton: truth g
 blue), plots/mocap_root_trajectory.png (root path and frames in 3-D) and
 plots/mocap_joint_axes_seq<i>.png (bone directions of selected joints on the unit sphere).
 """
+
 from __future__ import annotations
 
 import math
@@ -67,10 +68,15 @@ def read_model_rollout(path: Path) -> dict:
         if "model" not in f or "traj_index" not in f:
             raise DatasetError(f"{path}: group 'model' or dataset 'traj_index' missing")
         g = f["model"]
-        return {"R": g["R"][...], "p": g["p"][...],
-                "converged": g["converged"][...].astype(bool) if "converged" in g else None,
-                "iterations": g["iterations"][...] if "iterations" in g else None,
-                "traj_index": f["traj_index"][...].astype(int), "attrs": dict(g.attrs), "file_attrs": dict(f.attrs)}
+        return {
+            "R": g["R"][...],
+            "p": g["p"][...],
+            "converged": g["converged"][...].astype(bool) if "converged" in g else None,
+            "iterations": g["iterations"][...] if "iterations" in g else None,
+            "traj_index": f["traj_index"][...].astype(int),
+            "attrs": dict(g.attrs),
+            "file_attrs": dict(f.attrs),
+        }
 
 
 def _asf_per_unit(dataset) -> float:
@@ -81,7 +87,7 @@ def _asf_per_unit(dataset) -> float:
 
 
 def _sequence_name(dataset, i: int) -> str:
-    src = (dataset.params.get("sources") or [])
+    src = dataset.params.get("sources") or []
     return Path(src[i]["file"]).stem if i < len(src) else f"trajectory {i}"
 
 
@@ -91,11 +97,12 @@ def sequence_errors(pred_R, pred_p, true_R, true_p) -> dict:
     from .data.mocap import mocap_errors
     from .lie.product import Pose
 
-    e = mocap_errors(Pose(torch.as_tensor(pred_R), torch.as_tensor(pred_p)),
-                     Pose(torch.as_tensor(true_R), torch.as_tensor(true_p)))
+    e = mocap_errors(
+        Pose(torch.as_tensor(pred_R), torch.as_tensor(pred_p)), Pose(torch.as_tensor(true_R), torch.as_tensor(true_p))
+    )
     out = {}
     for k in METRICS:
-        curve = e[k + "_t"].numpy()                        # (T, S+1)
+        curve = e[k + "_t"].numpy()  # (T, S+1)
         out[k + "_t"] = curve
         out[k] = curve[:, 2:].mean(-1) if curve.shape[-1] > 2 else curve.mean(-1)
     out["joint_rot_per_joint"] = e["joint_rot_per_joint"].numpy()
@@ -107,7 +114,6 @@ def discrepancy(dataset) -> dict | None:
     if dataset.n_trajectories < 2:
         return None
     from .data.mocap import mocap_errors, recording_discrepancy
-    from .lie.product import Pose
 
     d = recording_discrepancy(dataset)
     e = mocap_errors(dataset.pose([0]).index(0), dataset.pose([1]).index(0), relative_position=True)
@@ -151,7 +157,7 @@ def one_step_errors(model, truth_R, truth_p, solver) -> dict | None:
     T, K = R.shape[0], R.shape[1] - 2
     if K < 1:
         return None
-    flat = lambda a, b: Pose(R[:, a:R.shape[1] - 2 + a].flatten(0, 1), p[:, a:p.shape[1] - 2 + a].flatten(0, 1))  # noqa: E731
+    flat = lambda a, b: Pose(R[:, a : R.shape[1] - 2 + a].flatten(0, 1), p[:, a : p.shape[1] - 2 + a].flatten(0, 1))
     g0, g1, g2 = flat(0, 0), flat(1, 1), flat(2, 2)
     was_training = model.training
     model.eval()
@@ -161,29 +167,41 @@ def one_step_errors(model, truth_R, truth_p, solver) -> dict | None:
         model.train(was_training)
     pred = ro.pose.index((slice(None), 2))
     cv = model.G.compose(g1, model.G.increment(g0, g1))
-    unflat = lambda g: Pose(g.R.reshape(T, K, *g.R.shape[1:]), g.p.reshape(T, K, *g.p.shape[1:]))  # noqa: E731
+    unflat = lambda g: Pose(g.R.reshape(T, K, *g.R.shape[1:]), g.p.reshape(T, K, *g.p.shape[1:]))
     true = unflat(g2)
     em, ec = mocap_errors(unflat(pred), true), mocap_errors(unflat(cv), true)
-    return {"model": {k: em[k].numpy() for k in METRICS}, "const_velocity": {k: ec[k].numpy() for k in METRICS},
-            "converged": int(ro.converged.sum()), "solves": int(ro.converged.numel())}
+    return {
+        "model": {k: em[k].numpy() for k in METRICS},
+        "const_velocity": {k: ec[k].numpy() for k in METRICS},
+        "converged": int(ro.converged.sum()),
+        "solves": int(ro.converged.numel()),
+    }
 
 
 def _finite(x) -> bool:
     return x is not None and isinstance(x, (int, float)) and math.isfinite(x)
 
 
-def build_rows(err: dict, disc: dict | None, idx: np.ndarray, dataset, ro: dict, asf: float, unit_m: float,
-               steps: int) -> list[dict]:
+def build_rows(
+    err: dict, disc: dict | None, idx: np.ndarray, dataset, ro: dict, asf: float, unit_m: float, steps: int
+) -> list[dict]:
     rows = []
     for n, i in enumerate(idx):
         paper = PAPER["sequences"][i] if i < len(PAPER["sequences"]) else {}
         conv = ro["converged"]
         fails = int((~conv[n]).sum()) if conv is not None else None
-        row = {"row": f"Sequence {i + 1} ({_sequence_name(dataset, i)}) prediction", "steps": steps,
-               "root_rot": float(err["root_rot"][n]), "root_rot_paper": paper.get("root_rot"),
-               "joint_rot": float(err["joint_rot"][n]), "joint_rot_paper": paper.get("joint_rot"),
-               "root_pos_asf": float(err["root_pos"][n]) * asf, "root_pos_m": float(err["root_pos"][n]) * unit_m,
-               "root_pos_paper_asf": paper.get("root_pos"), "newton_failures": fails}
+        row = {
+            "row": f"Sequence {i + 1} ({_sequence_name(dataset, i)}) prediction",
+            "steps": steps,
+            "root_rot": float(err["root_rot"][n]),
+            "root_rot_paper": paper.get("root_rot"),
+            "joint_rot": float(err["joint_rot"][n]),
+            "joint_rot_paper": paper.get("joint_rot"),
+            "root_pos_asf": float(err["root_pos"][n]) * asf,
+            "root_pos_m": float(err["root_pos"][n]) * unit_m,
+            "root_pos_paper_asf": paper.get("root_pos"),
+            "newton_failures": fails,
+        }
         if disc is not None:
             for k, key in (("root_rot", "root_rot"), ("joint_rot", "joint_rot"), ("root_pos", "root_pos_asf")):
                 ours = row[key]
@@ -191,12 +209,20 @@ def build_rows(err: dict, disc: dict | None, idx: np.ndarray, dataset, ro: dict,
         rows.append(row)
     if disc is not None:
         p = PAPER["discrepancy"]
-        rows.append({"row": f"Ground truth discrepancy ({_sequence_name(dataset, 0)} vs {_sequence_name(dataset, 1)})",
-                     "steps": int(dataset.n_steps),
-                     "root_rot": disc["root_rot"], "root_rot_paper": p["root_rot"],
-                     "joint_rot": disc["joint_rot"], "joint_rot_paper": p["joint_rot"],
-                     "root_pos_asf": disc["root_pos"] * asf, "root_pos_m": disc["root_pos"] * unit_m,
-                     "root_pos_paper_asf": p["root_pos"], "newton_failures": None})
+        rows.append(
+            {
+                "row": f"Ground truth discrepancy ({_sequence_name(dataset, 0)} vs {_sequence_name(dataset, 1)})",
+                "steps": int(dataset.n_steps),
+                "root_rot": disc["root_rot"],
+                "root_rot_paper": p["root_rot"],
+                "joint_rot": disc["joint_rot"],
+                "joint_rot_paper": p["joint_rot"],
+                "root_pos_asf": disc["root_pos"] * asf,
+                "root_pos_m": disc["root_pos"] * unit_m,
+                "root_pos_paper_asf": p["root_pos"],
+                "newton_failures": None,
+            }
+        )
     return rows
 
 
@@ -205,15 +231,19 @@ def verdict(rows: list[dict], disc: dict | None, asf: float) -> dict:
     seq = [r for r in rows if r["row"].startswith("Sequence")]
     out = {}
     paper = PAPER["discrepancy"]
-    for name, ref in (("measured", None if disc is None else {"root_rot": disc["root_rot"], "joint_rot": disc["joint_rot"],
-                                                               "root_pos_asf": disc["root_pos"] * asf}),
-                      ("paper", {"root_rot": paper["root_rot"], "joint_rot": paper["joint_rot"],
-                                 "root_pos_asf": paper["root_pos"]})):
+    for name, ref in (
+        (
+            "measured",
+            None
+            if disc is None
+            else {"root_rot": disc["root_rot"], "joint_rot": disc["joint_rot"], "root_pos_asf": disc["root_pos"] * asf},
+        ),
+        ("paper", {"root_rot": paper["root_rot"], "joint_rot": paper["joint_rot"], "root_pos_asf": paper["root_pos"]}),
+    ):
         if ref is None:
             out[name] = None
             continue
-        fails = [f"{r['row'].split(' (')[0]} {k}" for r in seq for k in ref
-                 if not (_finite(r[k]) and r[k] < ref[k])]
+        fails = [f"{r['row'].split(' (')[0]} {k}" for r in seq for k in ref if not (_finite(r[k]) and r[k] < ref[k])]
         out[name] = {"all_below": not fails, "not_below": fails}
     return out
 
@@ -242,12 +272,16 @@ def evaluate_mocap(cfg, model, dataset, run_dir) -> dict:
     n_fail = int((~conv).sum()) if conv is not None else None
     first_fail = None
     if conv is not None and n_fail:
-        first_fail = int(np.nonzero((~conv).any(0))[0][0]) + 2    # converged[:, j] solves for sample j + 2
-    nonfinite = [int(i) for n, i in enumerate(idx) if not (np.isfinite(ro["R"][n]).all() and np.isfinite(ro["p"][n]).all())]
+        first_fail = int(np.nonzero((~conv).any(0))[0][0]) + 2  # converged[:, j] solves for sample j + 2
+    nonfinite = [
+        int(i) for n, i in enumerate(idx) if not (np.isfinite(ro["R"][n]).all() and np.isfinite(ro["p"][n]).all())
+    ]
     until = below_until(err, disc, dataset.h)
     onestep = one_step_errors(model, tR, tp, cfg.get("solver") if hasattr(cfg, "get") else None)
-    per_joint = {name: float(v) for name, v in zip(dataset.body_names[dataset.n_se3:],
-                                                   np.nanmean(err["joint_rot_per_joint"], 0))}
+    per_joint = {
+        name: float(v)
+        for name, v in zip(dataset.body_names[dataset.n_se3 :], np.nanmean(err["joint_rot_per_joint"], 0))
+    }
 
     def verdict_line(key: str, what: str) -> str:
         v = ver.get(key)
@@ -257,73 +291,138 @@ def evaluate_mocap(cfg, model, dataset, run_dir) -> dict:
             return f"{what}: YES, every one of our errors is below it"
         return f"{what}: NO; not below for {', '.join(v['not_below'])}"
 
-    lines = [verdict_line("measured", "Below the ground-truth discrepancy measured on this data"),
-             verdict_line("paper", "Below the paper's discrepancy numbers (0.373 / 0.416 / 6.624)")]
-    newton_line = (f"Newton: {n_fail} non-converged implicit step(s) out of {conv.size} "
-                   f"({'first at sample ' + str(first_fail) if n_fail else 'none'}); "
-                   f"mean iterations {float(ro['iterations'].mean()):.2f}" if conv is not None else
-                   "Newton: no convergence flags in rollout.h5")
+    lines = [
+        verdict_line("measured", "Below the ground-truth discrepancy measured on this data"),
+        verdict_line("paper", "Below the paper's discrepancy numbers (0.373 / 0.416 / 6.624)"),
+    ]
+    newton_line = (
+        f"Newton: {n_fail} non-converged implicit step(s) out of {conv.size} "
+        f"({'first at sample ' + str(first_fail) if n_fail else 'none'}); "
+        f"mean iterations {float(ro['iterations'].mean()):.2f}"
+        if conv is not None
+        else "Newton: no convergence flags in rollout.h5"
+    )
     if nonfinite:
         newton_line += f"; NON-FINITE rollout for trajectory(ies) {nonfinite}"
     sps = ro["attrs"].get("seconds_per_step")
-    summary = {"rows": rows, "verdict": ver, "newton_failures": n_fail, "first_failure_sample": first_fail,
-               "nonfinite_trajectories": nonfinite, "rollout_steps": S,
-               "rollout_seconds_per_step": float(sps) if sps is not None else None,
-               "joint_rot_per_joint": per_joint,
-               "below_discrepancy_until_s": {_sequence_name(dataset, i): u for i, u in zip(idx, until)},
-               "one_step": None if onestep is None else {
-                   "converged": onestep["converged"], "solves": onestep["solves"],
-                   **{f"{who}_{k}": {_sequence_name(dataset, i): float(onestep[who][k][n] * (asf if k == "root_pos" else 1))
-                                     for n, i in enumerate(idx)}
-                      for who in ("model", "const_velocity") for k in METRICS}}, "discrepancy_common_frames": int(dataset.n_steps) + 1,
-               "length_unit_m": unit_m, "asf_units_per_stored_unit": asf, "paper": PAPER}
+    summary = {
+        "rows": rows,
+        "verdict": ver,
+        "newton_failures": n_fail,
+        "first_failure_sample": first_fail,
+        "nonfinite_trajectories": nonfinite,
+        "rollout_steps": S,
+        "rollout_seconds_per_step": float(sps) if sps is not None else None,
+        "joint_rot_per_joint": per_joint,
+        "below_discrepancy_until_s": {_sequence_name(dataset, i): u for i, u in zip(idx, until)},
+        "one_step": None
+        if onestep is None
+        else {
+            "converged": onestep["converged"],
+            "solves": onestep["solves"],
+            **{
+                f"{who}_{k}": {
+                    _sequence_name(dataset, i): float(onestep[who][k][n] * (asf if k == "root_pos" else 1))
+                    for n, i in enumerate(idx)
+                }
+                for who in ("model", "const_velocity")
+                for k in METRICS
+            },
+        },
+        "discrepancy_common_frames": int(dataset.n_steps) + 1,
+        "length_unit_m": unit_m,
+        "asf_units_per_stored_unit": asf,
+        "paper": PAPER,
+    }
     write_json(run_dir / "mocap_eval.json", summary)
     write_csv(run_dir / "mocap_eval.csv", rows)
-    cols = ["row", "steps", "root_rot", "root_rot_paper", "joint_rot", "joint_rot_paper", "root_pos_asf",
-            "root_pos_m", "root_pos_paper_asf", "newton_failures"]
-    md = (f"# Exp 4: cartwheel reproduction errors ({dataset.scene}, h={dataset.h}, rollout of {S} steps from the "
-          f"true first pair)\n\n"
-          "Means over the rollout (predicted samples k = 2..S): root rotation geodesic error (rad), joint rotation "
-          "geodesic error averaged over the joints (rad), root position error |p^ - p| in CMU ASF units (the file "
-          "unit of the CMU BVH files and the paper's unit; 1 ASF unit = 1/0.45 inch = 0.0564 m) and in metres. "
-          f"Ground truth discrepancy: the same numbers between the two recordings over their common "
-          f"{int(dataset.n_steps) + 1} frames, root positions measured from each recording's start. "
-          "`*_paper`: the paper's table.\n\n")
+    cols = [
+        "row",
+        "steps",
+        "root_rot",
+        "root_rot_paper",
+        "joint_rot",
+        "joint_rot_paper",
+        "root_pos_asf",
+        "root_pos_m",
+        "root_pos_paper_asf",
+        "newton_failures",
+    ]
+    md = (
+        f"# Exp 4: cartwheel reproduction errors ({dataset.scene}, h={dataset.h}, rollout of {S} steps from the "
+        f"true first pair)\n\n"
+        "Means over the rollout (predicted samples k = 2..S): root rotation geodesic error (rad), joint rotation "
+        "geodesic error averaged over the joints (rad), root position error |p^ - p| in CMU ASF units (the file "
+        "unit of the CMU BVH files and the paper's unit; 1 ASF unit = 1/0.45 inch = 0.0564 m) and in metres. "
+        f"Ground truth discrepancy: the same numbers between the two recordings over their common "
+        f"{int(dataset.n_steps) + 1} frames, root positions measured from each recording's start. "
+        "`*_paper`: the paper's table.\n\n"
+    )
     md += markdown_table(rows, cols)
     md += "\n" + "\n".join(f"- {x}" for x in lines + [newton_line])
     if sps is not None:
         md += f"\n- Rollout: {float(sps):.4g} s per step ({S} steps, {len(idx)} sequence(s) batched)"
     if disc is not None:
         md += "\n\n## Time until the per-timestep error first exceeds the per-timestep discrepancy (s; '–': never)\n\n"
-        md += markdown_table([{"sequence": _sequence_name(dataset, i), **u} for i, u in zip(idx, until)],
-                             ["sequence", *METRICS])
+        md += markdown_table(
+            [{"sequence": _sequence_name(dataset, i), **u} for i, u in zip(idx, until)], ["sequence", *METRICS]
+        )
     if onestep is not None:
-        md += ("\n## One-step (teacher-forced) errors: g_{k+1} from the true (g_{k-1}, g_k), mean over k\n\n"
-               "`const_velocity`: g_k (g_{k-1}^-1 g_k), the free-flight guess; a trained model should beat it "
-               f"clearly. Newton converged on {onestep['converged']} of {onestep['solves']} solves.\n\n")
-        orows = [{"sequence": _sequence_name(dataset, i), "predictor": who,
-                  **{LABELS[k]: float(onestep[who][k][n] * (asf if k == "root_pos" else 1)) for k in METRICS}}
-                 for n, i in enumerate(idx) for who in ("model", "const_velocity")]
+        md += (
+            "\n## One-step (teacher-forced) errors: g_{k+1} from the true (g_{k-1}, g_k), mean over k\n\n"
+            "`const_velocity`: g_k (g_{k-1}^-1 g_k), the free-flight guess; a trained model should beat it "
+            f"clearly. Newton converged on {onestep['converged']} of {onestep['solves']} solves.\n\n"
+        )
+        orows = [
+            {
+                "sequence": _sequence_name(dataset, i),
+                "predictor": who,
+                **{LABELS[k]: float(onestep[who][k][n] * (asf if k == "root_pos" else 1)) for k in METRICS},
+            }
+            for n, i in enumerate(idx)
+            for who in ("model", "const_velocity")
+        ]
         md += markdown_table(orows, list(orows[0]))
     md += "\n\n## Mean joint rotation error per joint (rad, mean over the rolled-out sequences)\n\n"
     md += markdown_table([per_joint], list(per_joint))
     write_text(run_dir / "mocap_eval.md", md)
 
     table = Table(title=f"Exp 4 mocap reproduction ({S} steps); ours vs paper")
-    for c in ("", "root rot [rad]", "paper", "joint rot [rad]", "paper", "root pos [ASF]", "root pos [m]",
-              "paper [ASF]", "Newton fail"):
+    for c in (
+        "",
+        "root rot [rad]",
+        "paper",
+        "joint rot [rad]",
+        "paper",
+        "root pos [ASF]",
+        "root pos [m]",
+        "paper [ASF]",
+        "Newton fail",
+    ):
         table.add_column(escape(c), overflow="fold")
     for r in rows:
-        table.add_row(r["row"], fmt(r["root_rot"]), fmt(r["root_rot_paper"]), fmt(r["joint_rot"]),
-                      fmt(r["joint_rot_paper"]), fmt(r["root_pos_asf"]), fmt(r["root_pos_m"]),
-                      fmt(r["root_pos_paper_asf"]), fmt(r["newton_failures"]))
+        table.add_row(
+            r["row"],
+            fmt(r["root_rot"]),
+            fmt(r["root_rot_paper"]),
+            fmt(r["joint_rot"]),
+            fmt(r["joint_rot_paper"]),
+            fmt(r["root_pos_asf"]),
+            fmt(r["root_pos_m"]),
+            fmt(r["root_pos_paper_asf"]),
+            fmt(r["newton_failures"]),
+        )
     console.print(table)
     extra = []
     if onestep is not None:
         m, c = onestep["model"], onestep["const_velocity"]
-        extra.append("one-step (teacher-forced) mean joint rot. error: model "
-                     + ", ".join(f"{float(v):.3e}" for v in m["joint_rot"]) + " vs constant velocity "
-                     + ", ".join(f"{float(v):.3e}" for v in c["joint_rot"]) + " rad (per sequence)")
+        extra.append(
+            "one-step (teacher-forced) mean joint rot. error: model "
+            + ", ".join(f"{float(v):.3e}" for v in m["joint_rot"])
+            + " vs constant velocity "
+            + ", ".join(f"{float(v):.3e}" for v in c["joint_rot"])
+            + " rad (per sequence)"
+        )
     for x in lines + [newton_line] + extra:
         console.print(escape(x), highlight=False)
 
@@ -332,8 +431,9 @@ def evaluate_mocap(cfg, model, dataset, run_dir) -> dict:
         plot_errors(err, disc, idx, dataset, asf, pdir / "mocap_errors.png")
         for n, i in enumerate(idx):
             sk = _skeleton_for(dataset, i)
-            plot_skeletons(tR[n], tp[n], ro["R"][n], ro["p"][n], sk, dataset.h, i,
-                           pdir / f"mocap_skeleton_seq{i + 1}.png")
+            plot_skeletons(
+                tR[n], tp[n], ro["R"][n], ro["p"][n], sk, dataset.h, i, pdir / f"mocap_skeleton_seq{i + 1}.png"
+            )
             plot_joint_axes(tR[n], ro["R"][n], sk, dataset.body_names, i, pdir / f"mocap_joint_axes_seq{i + 1}.png")
         plot_root_trajectory(tR, tp, ro["R"], ro["p"], idx, dataset, pdir / "mocap_root_trajectory.png")
     return summary
@@ -349,8 +449,9 @@ def _skeleton_for(dataset, i: int) -> dict:
 
 
 def _plt():
-    from . import plots  # noqa: F401  (selects the Agg backend)
     import matplotlib.pyplot as plt
+
+    from . import plots  # noqa: F401  (selects the Agg backend)
 
     return plt
 
@@ -370,8 +471,12 @@ def plot_errors(err: dict, disc: dict | None, idx, dataset, asf: float, path: Pa
             ax.plot(np.arange(len(y)) * h, y, color="0.55", linewidth=0.8)
         for n, i in enumerate(idx):
             y = err[k + "_t"][n] * scale
-            ax.plot(np.arange(2, len(y)) * h, y[2:], color=SEQ_COLORS[i % 2] if i < 2 else None,
-                    label=f"sequence {i + 1} ({_sequence_name(dataset, i)})")
+            ax.plot(
+                np.arange(2, len(y)) * h,
+                y[2:],
+                color=SEQ_COLORS[i % 2] if i < 2 else None,
+                label=f"sequence {i + 1} ({_sequence_name(dataset, i)})",
+            )
         ax.set_title(LABELS[k])
         ax.set_xlabel("time [s]")
         ax.grid(alpha=0.3)
@@ -434,7 +539,10 @@ def plot_root_trajectory(tR, tp, pR, pp, idx, dataset, path: Path, n_frames: int
         ell = 0.08 * (span or 1.0)
         S = tR.shape[1] - 1
         frames = np.unique(np.linspace(0, S, min(n_frames, S + 1)).round().astype(int))
-        for R, p, col, style, lab in ((tR[n], tp[n], color, "-", "truth"), (pR[n], pp[n], PRED_COLOR, "--", "prediction")):
+        for R, p, col, style, lab in (
+            (tR[n], tp[n], color, "-", "truth"),
+            (pR[n], pp[n], PRED_COLOR, "--", "prediction"),
+        ):
             ax.plot(*p[:, 0].T, style, color=col, linewidth=1.5, label=lab)
             for k in frames:
                 for a, ac in zip(range(3), ("r", "g", "b")):
@@ -469,7 +577,7 @@ def plot_joint_axes(tR, pR, skeleton: dict, names: list[str], i: int, path: Path
     if not axes_list:
         return
     fig = plt.figure(figsize=(3.4 * len(axes_list), 3.6))
-    u, v = np.mgrid[0:2 * np.pi:30j, 0:np.pi:15j]
+    u, v = np.mgrid[0 : 2 * np.pi : 30j, 0 : np.pi : 15j]
     color = SEQ_COLORS[i % 2] if i < 2 else "black"
     for c, (j, name, d) in enumerate(axes_list):
         ax = fig.add_subplot(1, len(axes_list), c + 1, projection="3d")
@@ -493,6 +601,17 @@ def _register() -> None:
 
 _register()
 
-__all__ = ["PAPER", "evaluate_mocap", "sequence_errors", "discrepancy", "verdict", "read_model_rollout",
-           "below_until", "one_step_errors",
-           "plot_errors", "plot_skeletons", "plot_root_trajectory", "plot_joint_axes"]
+__all__ = [
+    "PAPER",
+    "evaluate_mocap",
+    "sequence_errors",
+    "discrepancy",
+    "verdict",
+    "read_model_rollout",
+    "below_until",
+    "one_step_errors",
+    "plot_errors",
+    "plot_skeletons",
+    "plot_root_trajectory",
+    "plot_joint_axes",
+]

@@ -1,4 +1,5 @@
 """Figures of a run (matplotlib, Agg backend): errors, drift, trajectories on the sphere."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -6,10 +7,10 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
 
-from .io_utils import atomic_path  # noqa: E402
+from .io_utils import atomic_path
 
 COLORS = {"truth": "black", "model": "tab:blue", "true_scheme": "tab:orange"}
 
@@ -50,12 +51,13 @@ def drift_vs_step(curves: dict[str, dict], h: float, path: Path) -> None:
     _save(fig, path)
 
 
-def sphere(truth_R: np.ndarray, preds: dict[str, np.ndarray], path: Path, axis: int = 2, n_traj: int = 3,
-           body: int = 0) -> None:
+def sphere(
+    truth_R: np.ndarray, preds: dict[str, np.ndarray], path: Path, axis: int = 2, n_traj: int = 3, body: int = 0
+) -> None:
     """Body axis R e_axis of the first trajectories on the unit sphere. R arrays (T, S+1, B, 3, 3)."""
     fig = plt.figure(figsize=(5, 5))
     ax = fig.add_subplot(projection="3d")
-    u, v = np.mgrid[0:2 * np.pi:30j, 0:np.pi:15j]
+    u, v = np.mgrid[0 : 2 * np.pi : 30j, 0 : np.pi : 15j]
     ax.plot_wireframe(np.cos(u) * np.sin(v), np.sin(u) * np.sin(v), np.cos(v), color="0.85", linewidth=0.4)
     for t in range(min(n_traj, truth_R.shape[0])):
         x = truth_R[t, :, body, :, axis]
@@ -97,8 +99,9 @@ def loss_curve(history: list[dict], path: Path) -> None:
     ep = [h["epoch"] for h in history]
     # baselines log other loss parts than LieDFLNN's del_loss / reg_loss: plot the ones present
     keys = [k for k in ("loss", "del_loss", "reg_loss") if all(k in h for h in history)]
-    keys += sorted({k for h in history for k in h if k.endswith("_loss") and k not in keys
-                    and all(k in hh for hh in history)})
+    keys += sorted(
+        {k for h in history for k in h if k.endswith("_loss") and k not in keys and all(k in hh for hh in history)}
+    )
     for key in keys:
         ax.semilogy(ep, np.maximum([h[key] for h in history], 1e-300), label=key)
     ax.set_xlabel("epoch")

@@ -5,6 +5,7 @@ and writes `report.csv`, `report.md` and `plots/*.png` into the sweep directory:
 error vs training length, drift vs step, predicted trajectories on the sphere per model, and
 an error-against-speed scatter (one point per run).
 """
+
 from __future__ import annotations
 
 import csv
@@ -19,9 +20,24 @@ from .data.errors import ConfigError
 from .io_utils import markdown_table, write_csv, write_text
 from .ui import console
 
-COLUMNS = ["run", "model", "dataset", "train_steps", "setting", "parameters", "train_seconds", "seconds_per_epoch",
-           "rollout_s_per_step", "rel_rot_error_mean", "rel_rot_error_final", "geodesic_error_mean",
-           "position_error_mean", "max_orth_drift", "max_det_drift", "newton_failures"]
+COLUMNS = [
+    "run",
+    "model",
+    "dataset",
+    "train_steps",
+    "setting",
+    "parameters",
+    "train_seconds",
+    "seconds_per_epoch",
+    "rollout_s_per_step",
+    "rel_rot_error_mean",
+    "rel_rot_error_final",
+    "geodesic_error_mean",
+    "position_error_mean",
+    "max_orth_drift",
+    "max_det_drift",
+    "newton_failures",
+]
 
 
 def model_name(cfg: dict) -> str:
@@ -30,8 +46,10 @@ def model_name(cfg: dict) -> str:
 
 
 def find_runs(sweep: Path) -> list[Path]:
-    return sorted({p.parent.parent for p in sweep.rglob(".hydra/config.yaml") if (p.parent.parent / "eval.csv").is_file()},
-                  key=lambda p: str(p))
+    return sorted(
+        {p.parent.parent for p in sweep.rglob(".hydra/config.yaml") if (p.parent.parent / "eval.csv").is_file()},
+        key=lambda p: str(p),
+    )
 
 
 def collect(sweep: Path) -> list[dict]:
@@ -47,8 +65,13 @@ def collect(sweep: Path) -> list[dict]:
         if "model" not in evals:
             continue
         e = evals["model"]
-        row = {"run": str(run.relative_to(sweep)), "model": model_name(cfg), "dataset": cfg["dataset"]["name"],
-               "train_steps": int(cfg["dataset"]["train_steps"]), "setting": " ".join(overrides)}
+        row = {
+            "run": str(run.relative_to(sweep)),
+            "model": model_name(cfg),
+            "dataset": cfg["dataset"]["name"],
+            "train_steps": int(cfg["dataset"]["train_steps"]),
+            "setting": " ".join(overrides),
+        }
         for k in COLUMNS[5:]:
             v = e.get(k)
             row[k] = float(v) if v not in (None, "") else None
@@ -132,9 +155,15 @@ def make_plots(sweep: Path, rows: list[dict]) -> list[Path]:
 
     # error against speed
     fig, axes = plt.subplots(1, 2, figsize=(9.5, 3.6))
-    for ax, key, label in zip(axes, ("train_seconds", "rollout_s_per_step"), ("training wall time (s)", "rollout time per step (s)")):
+    for ax, key, label in zip(
+        axes, ("train_seconds", "rollout_s_per_step"), ("training wall time (s)", "rollout time per step (s)")
+    ):
         for m in models:
-            pts = [(r[key], r["rel_rot_error_mean"]) for r in rows if r["model"] == m and r.get(key) and r["rel_rot_error_mean"]]
+            pts = [
+                (r[key], r["rel_rot_error_mean"])
+                for r in rows
+                if r["model"] == m and r.get(key) and r["rel_rot_error_mean"]
+            ]
             if pts:
                 ax.loglog(*zip(*pts), "o", label=m, color=colors[m])
         ax.set_xlabel(label)
@@ -149,7 +178,9 @@ def make_plots(sweep: Path, rows: list[dict]) -> list[Path]:
 def run_report(cfg: DictConfig) -> dict:
     sweep = Path(str(cfg.sweep))
     if str(cfg.sweep) in ("", "???") or not sweep.is_dir():
-        raise ConfigError(f"sweep={cfg.sweep}: not a directory (give a multirun directory, e.g. outputs/multirun/<date>)")
+        raise ConfigError(
+            f"sweep={cfg.sweep}: not a directory (give a multirun directory, e.g. outputs/multirun/<date>)"
+        )
     rows = collect(sweep)
     if not rows:
         raise ConfigError(f"sweep={sweep}: no finished runs found (folders with .hydra/config.yaml and eval.csv)")
@@ -163,8 +194,16 @@ def run_report(cfg: DictConfig) -> dict:
     from .io_utils import fmt
 
     table = Table(title=f"{len(rows)} runs in {sweep}")
-    short = ["model", "dataset", "train_steps", "rel_rot_error_mean", "max_orth_drift", "newton_failures",
-             "train_seconds", "rollout_s_per_step"]
+    short = [
+        "model",
+        "dataset",
+        "train_steps",
+        "rel_rot_error_mean",
+        "max_orth_drift",
+        "newton_failures",
+        "train_seconds",
+        "rollout_s_per_step",
+    ]
     for c in short:
         table.add_column(c.replace("_", " "))
     for r in rows:

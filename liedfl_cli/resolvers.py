@@ -5,6 +5,7 @@ ${scaled:N}  ->  max(1, round(N * epoch_scale)) with `epoch_scale` from the conf
 ${len_or:x,d}  -> len(x), or d when x is null (e.g. the number of imported joints).
 ${max:a,b,...} -> the largest argument (e.g. a generated length covering train_steps).
 """
+
 from __future__ import annotations
 
 from omegaconf import OmegaConf

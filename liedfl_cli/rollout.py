@@ -1,12 +1,12 @@
 """`liedfl rollout`: roll a trained model (and the true-parameter scheme) over the test split
 and write `rollout.h5` (format in docs/data_format.md, section "rollout.h5")."""
+
 from __future__ import annotations
 
 from pathlib import Path
 
 import h5py
 import numpy as np
-import torch
 from omegaconf import DictConfig, OmegaConf
 
 from .data.errors import ConfigError, DatasetError
@@ -22,8 +22,10 @@ def _roll(model, truth: Pose, steps: int, cfg_solver, label: str, show: bool) ->
         task = bar.add_task(f"rollout {label}", total=max(steps - 1, 0), loss=float("nan"))
         ro = model.rollout(g0, g1, steps, cfg_solver, progress=lambda k: bar.update(task, completed=k))
     if ro.n_failed:
-        console.print(f"[bold yellow]warning:[/] {label}: Newton did not converge on {ro.n_failed} step(s); "
-                      f"first at step {ro.first_failure()} (flagged in rollout.h5, counted in the eval table)")
+        console.print(
+            f"[bold yellow]warning:[/] {label}: Newton did not converge on {ro.n_failed} step(s); "
+            f"first at step {ro.first_failure()} (flagged in rollout.h5, counted in the eval table)"
+        )
     return ro
 
 
@@ -74,11 +76,22 @@ def rollout_and_save(cfg: DictConfig, model, dataset, path, steps=None) -> dict:
             g.create_dataset("iterations", data=ro.iterations.numpy())
             g.create_dataset("residual_norm", data=ro.residual_norm.numpy())
             per_step = ro.seconds / max(steps - 1, 1)
-            g.attrs.update({"seconds": ro.seconds, "seconds_per_step": per_step, "n_failed": ro.n_failed,
-                            "first_failure": ro.first_failure() or -1, "n_trajectories": len(idx)})
-            results[name] = {"seconds": ro.seconds, "seconds_per_step": per_step, "n_failed": ro.n_failed,
-                             "first_failure": ro.first_failure(),
-                             "mean_newton_iterations": float(ro.iterations.double().mean()) if ro.iterations.numel() else 0.0}
+            g.attrs.update(
+                {
+                    "seconds": ro.seconds,
+                    "seconds_per_step": per_step,
+                    "n_failed": ro.n_failed,
+                    "first_failure": ro.first_failure() or -1,
+                    "n_trajectories": len(idx),
+                }
+            )
+            results[name] = {
+                "seconds": ro.seconds,
+                "seconds_per_step": per_step,
+                "n_failed": ro.n_failed,
+                "first_failure": ro.first_failure(),
+                "mean_newton_iterations": float(ro.iterations.double().mean()) if ro.iterations.numel() else 0.0,
+            }
     console.print(f"rollout of {len(idx)} test trajectories x {steps} steps written to {path}")
     return results
 
@@ -88,7 +101,10 @@ def run_rollout(cfg: DictConfig) -> dict:
     from .runs import load_run
 
     run_cfg, model, dataset, run_dir = load_run(cfg.run, cfg.paths.data_dir)
-    merged = OmegaConf.merge(run_cfg, {"rollout": {k: v for k, v in cfg.rollout.items() if v is not None},
-                                       "ui": cfg.ui, "solver": cfg.solver})
-    return rollout_and_save(merged, model, dataset, Path(run_dir) / "rollout.h5",
-                            steps=cfg.steps or run_cfg.dataset.rollout_steps)
+    merged = OmegaConf.merge(
+        run_cfg,
+        {"rollout": {k: v for k, v in cfg.rollout.items() if v is not None}, "ui": cfg.ui, "solver": cfg.solver},
+    )
+    return rollout_and_save(
+        merged, model, dataset, Path(run_dir) / "rollout.h5", steps=cfg.steps or run_cfg.dataset.rollout_steps
+    )

@@ -1,4 +1,5 @@
 """Reload a finished run: its resolved config, model and dataset."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -21,7 +22,7 @@ def _recorded_dataset(run_dir: Path, recorded) -> Path | None:
         hydra_yaml = run_dir / ".hydra" / "hydra.yaml"
         try:
             cwd = OmegaConf.select(OmegaConf.load(hydra_yaml), "hydra.runtime.cwd", default=None)
-        except Exception:  # noqa: BLE001 - no or unreadable hydra.yaml: only the plain path
+        except Exception:
             cwd = None
         if cwd:
             candidates.append(Path(str(cwd)) / path)
@@ -45,7 +46,7 @@ def load_run(run_dir, data_dir=None):
         raise CheckpointError(f"{ckpt}: field 'config' is not a mapping (got {type(payload['config']).__name__})")
     try:
         cfg = OmegaConf.create(payload["config"])
-    except Exception as e:  # noqa: BLE001
+    except Exception as e:
         raise CheckpointError(f"{ckpt}: field 'config' is not a valid config ({type(e).__name__}: {e})") from None
     ds_path = _recorded_dataset(run_dir, payload.get("dataset_path"))
     if ds_path is not None:
@@ -54,7 +55,7 @@ def load_run(run_dir, data_dir=None):
         dataset, _ = get_dataset(cfg.dataset, data_dir or cfg.paths.data_dir)
     try:
         model = build_model(cfg, dataset)
-    except Exception as e:  # noqa: BLE001
+    except Exception as e:
         raise CheckpointError(f"{ckpt}: field 'config' does not build a model ({e})") from None
     load_state(ckpt, model, payload)
     return cfg, model, dataset, run_dir

@@ -1,9 +1,10 @@
 """Dataclass schemas of the config sections owned by liedfl: a misspelled or mistyped key in
 any yaml file (experiment, budget, ...) fails with a one-line ConfigError naming the key."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, List, Optional
+from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
@@ -34,8 +35,8 @@ class TrainSchema:
 @dataclass
 class RolloutSchema:
     enabled: bool = True
-    steps: Optional[int] = None
-    max_trajectories: Optional[int] = None
+    steps: int | None = None
+    max_trajectories: int | None = None
     reference: bool = True
 
 
@@ -54,7 +55,7 @@ class ModelSchema:
     mlp_width: int = 64
     mlp_depth: int = 3
     init_jitter: float = 0.1
-    known: List[str] = field(default_factory=list)  # parts set to the scene's true values and frozen
+    known: list[str] = field(default_factory=list)  # parts set to the scene's true values and frozen
 
 
 @dataclass
@@ -94,14 +95,18 @@ def validate(cfg: DictConfig) -> None:
             OmegaConf.merge(OmegaConf.structured(ModelSchema), OmegaConf.to_container(cfg.model, resolve=True))
         except OmegaConfBaseException as e:
             key = getattr(e, "full_key", None) or ""
-            raise ConfigError(f"config section 'model': {str(e).splitlines()[0]}" + (f" (key model.{key})" if key else "")) from None
+            raise ConfigError(
+                f"config section 'model': {str(e).splitlines()[0]}" + (f" (key model.{key})" if key else "")
+            ) from None
         known = cfg.model.get("known") or []
         if known:
             from .models.liedflnn import KNOWN_PARTS
 
             bad = [k for k in known if k not in KNOWN_PARTS]
             if bad:
-                raise ConfigError(f"model.known={list(known)}: unknown part {bad[0]!r}; choose from {', '.join(KNOWN_PARTS)}")
+                raise ConfigError(
+                    f"model.known={list(known)}: unknown part {bad[0]!r}; choose from {', '.join(KNOWN_PARTS)}"
+                )
     for path, allowed in CHOICES.items():
         node = cfg
         for p in path:

@@ -3,6 +3,7 @@
 loss = w_DEL * mean ||r_k||^2 + w_reg * mean penalty(log|det H|) over `reg_points` random pairs.
 Triplets are batched tensors (no Python loop over samples).
 """
+
 from __future__ import annotations
 
 import math
@@ -48,8 +49,9 @@ def make_schedule(opt, name: str, epochs: int):
     if name == "constant":
         return None
     if name == "cosine":
-        return torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(epochs, 1),
-                                                          eta_min=0.01 * opt.param_groups[0]["lr"])
+        return torch.optim.lr_scheduler.CosineAnnealingLR(
+            opt, T_max=max(epochs, 1), eta_min=0.01 * opt.param_groups[0]["lr"]
+        )
     raise ConfigError(f"train.optimizer.schedule must be 'constant' or 'cosine', got {name!r}")
 
 
@@ -60,8 +62,15 @@ def _trajectory_batches(data: Pose, steps: int) -> Pose:
     return data.index((slice(None), slice(0, steps + 1)))
 
 
-def fit(model, data: Pose, cfg_train: DictConfig, steps: int, seed: int = 0, show_progress: bool = True,
-        log_epochs: bool = True) -> dict:
+def fit(
+    model,
+    data: Pose,
+    cfg_train: DictConfig,
+    steps: int,
+    seed: int = 0,
+    show_progress: bool = True,
+    log_epochs: bool = True,
+) -> dict:
     """Train `model` on the first `steps` steps of `data` (T, N+1, ...).
 
     model.window == "triplet": shuffled mini-batches of pose triplets (plus `reg_points` random
@@ -94,7 +103,7 @@ def fit(model, data: Pose, cfg_train: DictConfig, steps: int, seed: int = 0, sho
             perm = torch.randperm(n, generator=gen)
             sums: dict[str, float] = {}
             for b in range(n_batches):
-                idx = perm[b * bs:(b + 1) * bs]
+                idx = perm[b * bs : (b + 1) * bs]
                 opt.zero_grad(set_to_none=True)
                 if window == "triplet":
                     batch = (prev.index(idx), cur.index(idx), nxt.index(idx))
@@ -116,11 +125,20 @@ def fit(model, data: Pose, cfg_train: DictConfig, steps: int, seed: int = 0, sho
             history.append({"epoch": epoch, **sums, "seconds": time.perf_counter() - t0})
             bar.update(task, advance=1, loss=sums["loss"])
             if log_epochs and not show_progress and (epoch % max(1, epochs // 10) == 0 or epoch == epochs):
-                console.print(f"epoch {epoch}/{epochs}  " + "  ".join(f"{k} {v:.3e}" for k, v in sums.items()) +
-                              f"  ({time.perf_counter() - t0:.1f} s)", highlight=False)
+                console.print(
+                    f"epoch {epoch}/{epochs}  "
+                    + "  ".join(f"{k} {v:.3e}" for k, v in sums.items())
+                    + f"  ({time.perf_counter() - t0:.1f} s)",
+                    highlight=False,
+                )
     wall = time.perf_counter() - t0
-    return {"history": history, "train_seconds": wall, "seconds_per_epoch": wall / max(epochs, 1),
-            "n_samples": n, "batches_per_epoch": n_batches}
+    return {
+        "history": history,
+        "train_seconds": wall,
+        "seconds_per_epoch": wall / max(epochs, 1),
+        "n_samples": n,
+        "batches_per_epoch": n_batches,
+    }
 
 
 def count_parameters(model) -> int:
@@ -141,28 +159,46 @@ def run_train(cfg: DictConfig) -> dict:
     model = build_model(cfg, dataset)
     n_params = count_parameters(model)
     comps = model.components()
-    console.print(f"[bold]model[/] {type(model).__name__} on {dataset.group.name}, h={dataset.h}: "
-                  f"components {', '.join(comps)}; {n_params} trainable parameters")
+    console.print(
+        f"[bold]model[/] {type(model).__name__} on {dataset.group.name}, h={dataset.h}: "
+        f"components {', '.join(comps)}; {n_params} trainable parameters"
+    )
     write_json(out / "components.json", {"model": type(model).__name__, "components": comps, "parameters": n_params})
 
     train_data = dataset.pose(dataset.train_idx)
-    result = fit(model, train_data, cfg.train, int(cfg.dataset.train_steps), seed=int(cfg.seed),
-                 show_progress=cfg.ui.progress)
+    result = fit(
+        model, train_data, cfg.train, int(cfg.dataset.train_steps), seed=int(cfg.seed), show_progress=cfg.ui.progress
+    )
     write_csv(out / "train_metrics.csv", result["history"])
-    timings = {"train_seconds": result["train_seconds"], "seconds_per_epoch": result["seconds_per_epoch"],
-               "epochs": int(cfg.train.epochs), "n_samples": result["n_samples"], "parameters": n_params}
+    timings = {
+        "train_seconds": result["train_seconds"],
+        "seconds_per_epoch": result["seconds_per_epoch"],
+        "epochs": int(cfg.train.epochs),
+        "n_samples": result["n_samples"],
+        "parameters": n_params,
+    }
     from .models.truth import parameter_recovery
 
     recovery = parameter_recovery(model, dataset)
     if recovery is not None:
         write_json(out / "recovery.json", recovery)
     config = OmegaConf.to_container(cfg, resolve=True)
-    save_checkpoint(out / "checkpoints" / "last.pt", model, config,
-                    {"dataset_path": str(Path(data_path).resolve()), "timings": timings, "components": comps})
-    console.print(f"trained {cfg.train.epochs} epochs in {result['train_seconds']:.1f} s "
-                  f"(final loss {result['history'][-1]['loss']:.3e}); checkpoint {out / 'checkpoints' / 'last.pt'}")
-    summary = {"run_dir": str(out), "dataset_path": str(Path(data_path).resolve()), "timings": timings,
-               "final_loss": result["history"][-1]["loss"]}
+    save_checkpoint(
+        out / "checkpoints" / "last.pt",
+        model,
+        config,
+        {"dataset_path": str(Path(data_path).resolve()), "timings": timings, "components": comps},
+    )
+    console.print(
+        f"trained {cfg.train.epochs} epochs in {result['train_seconds']:.1f} s "
+        f"(final loss {result['history'][-1]['loss']:.3e}); checkpoint {out / 'checkpoints' / 'last.pt'}"
+    )
+    summary = {
+        "run_dir": str(out),
+        "dataset_path": str(Path(data_path).resolve()),
+        "timings": timings,
+        "final_loss": result["history"][-1]["loss"],
+    }
     if cfg.rollout.enabled:
         ro = rollout_and_save(cfg, model, dataset, out / "rollout.h5", steps=cfg.rollout.steps)
         summary["rollout"] = ro

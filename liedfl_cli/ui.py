@@ -1,4 +1,5 @@
 """Console output: one rich console, progress bars that degrade to nothing when disabled."""
+
 from __future__ import annotations
 
 import contextlib
@@ -26,9 +27,14 @@ def progress_bar(enabled: bool = True):
         yield _NullBar()
         return
     with Progress(
-        TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-        TextColumn("loss {task.fields[loss]:.3e}"), TimeElapsedColumn(), TimeRemainingColumn(),
-        console=console, transient=not sys.stdout.isatty(),
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("loss {task.fields[loss]:.3e}"),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+        console=console,
+        transient=not sys.stdout.isatty(),
     ) as bar:
         yield bar
 

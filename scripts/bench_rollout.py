@@ -6,6 +6,7 @@ Uses the true-parameter schemes (same cost as a learned model of the same compon
 free rigid body (SO(3), no potential), the heavy body (SO(3), potential) and the heavy SE(3)
 body, plus a LieDFLNN with an MLP potential (64x3). Prints a markdown table.
 """
+
 import argparse
 import platform
 import time
@@ -22,7 +23,12 @@ PHYS = {"J": [1.521, 1.362, 1.211], "m": 0.5, "rho": [0.0, 0.5, 1.0]}
 def cases():
     yield "free body SO(3), true scheme", physics_model(SO3, 0.1, {**PHYS, "g": 0.0, "D": [0.05] * 3}), SO3, 0.1
     yield "heavy body SO(3), true scheme", physics_model(SO3, 0.05, {**PHYS, "g": 9.81, "D": [0.1] * 3}), SO3, 0.05
-    yield "heavy body SE(3), true scheme", physics_model(SE3, 0.05, {**PHYS, "g": 9.81, "D": [0.1] * 3 + [0] * 3}), SE3, 0.05
+    yield (
+        "heavy body SE(3), true scheme",
+        physics_model(SE3, 0.05, {**PHYS, "g": 9.81, "D": [0.1] * 3 + [0] * 3}),
+        SE3,
+        0.05,
+    )
     m = LieDFLNN(SE3, 0.05, potential="mlp", forces=["rayleigh"], mlp_width=64, mlp_depth=3)
     m.requires_grad_(False)
     yield "SE(3) LieDFLNN, MLP potential 64x3", m, SE3, 0.05
@@ -30,8 +36,10 @@ def cases():
 
 def start(G, n, h, seed=0):
     gen = torch.Generator().manual_seed(seed)
-    g0 = Pose(so3.exp(torch.randn(n, G.n_bodies, 3, generator=gen, dtype=torch.float64)),
-              torch.randn(n, G.n_se3, 3, generator=gen, dtype=torch.float64))
+    g0 = Pose(
+        so3.exp(torch.randn(n, G.n_bodies, 3, generator=gen, dtype=torch.float64)),
+        torch.randn(n, G.n_se3, 3, generator=gen, dtype=torch.float64),
+    )
     g1 = G.retract(g0, h * torch.randn(n, G.dim, generator=gen, dtype=torch.float64))
     return g0, g1
 

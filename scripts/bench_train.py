@@ -5,6 +5,7 @@
 Builds each scene's dataset (cached), the model of the matching experiment (paper sizes), and
 times `train.fit` for a few epochs at batch 1024 (fast path and generic autodiff path).
 """
+
 import argparse
 import time
 
@@ -37,8 +38,15 @@ def main():
     for name, ov in CASES:
         for mode in ("fast", "generic"):
             with initialize_config_dir(config_dir=conf, version_base="1.3"):
-                cfg = compose("train", overrides=[*ov, f"model.residual={mode}", f"paths.data_dir={args.data_dir}",
-                                                  "paths.output_dir=/tmp/liedfl-bench"])
+                cfg = compose(
+                    "train",
+                    overrides=[
+                        *ov,
+                        f"model.residual={mode}",
+                        f"paths.data_dir={args.data_dir}",
+                        "paths.output_dir=/tmp/liedfl-bench",
+                    ],
+                )
             ds, _ = get_dataset(cfg.dataset, args.data_dir)
             model = build_model(cfg, ds)
             data = ds.pose(ds.train_idx)
@@ -47,8 +55,10 @@ def main():
             t = time.perf_counter()
             out = fit(model, data, tcfg, int(cfg.dataset.train_steps), show_progress=False, log_epochs=False)
             sec = (time.perf_counter() - t) / args.epochs
-            print(f"| {name} | {mode} | {n} | {out['batches_per_epoch']} | {sec:.3f} | "
-                  f"{1e3 * sec / out['batches_per_epoch']:.1f} |")
+            print(
+                f"| {name} | {mode} | {n} | {out['batches_per_epoch']} | {sec:.3f} | "
+                f"{1e3 * sec / out['batches_per_epoch']:.1f} |"
+            )
 
 
 if __name__ == "__main__":

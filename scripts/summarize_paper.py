@@ -1,7 +1,8 @@
 """Turn the report.csv files of scripts/reproduce_paper.sh into the docs/results.md sections.
 
-    python scripts/summarize_paper.py outputs/paper > outputs/paper/summary.md
+python scripts/summarize_paper.py outputs/paper > outputs/paper/summary.md
 """
+
 import csv
 import sys
 from collections import defaultdict
@@ -41,11 +42,35 @@ def main(root: Path):
     e1 = rows(root / "exp1_euler_vs_lie")
     if e1:
         print("### Exp 1: rotation matrices vs Euler angles (heavy body on SO(3))\n")
-        body = [[r["model"], r["omega_scale"], r["epochs"], g(r["rel_rot_error_mean"]), g(r["rel_rot_error_final"]),
-                 g(r["geodesic_error_mean"]), r["newton_failures"], g(r["train_seconds"])]
-                for r in sorted(e1, key=lambda r: (r["model"], float(r["omega_scale"] or 0)))]
-        print(table(["model", "omega0 scale", "epochs", "rel. rot. error (mean)", "(final)", "geodesic (rad)",
-                     "Newton failures", "train s"], body) + "\n")
+        body = [
+            [
+                r["model"],
+                r["omega_scale"],
+                r["epochs"],
+                g(r["rel_rot_error_mean"]),
+                g(r["rel_rot_error_final"]),
+                g(r["geodesic_error_mean"]),
+                r["newton_failures"],
+                g(r["train_seconds"]),
+            ]
+            for r in sorted(e1, key=lambda r: (r["model"], float(r["omega_scale"] or 0)))
+        ]
+        print(
+            table(
+                [
+                    "model",
+                    "omega0 scale",
+                    "epochs",
+                    "rel. rot. error (mean)",
+                    "(final)",
+                    "geodesic (rad)",
+                    "Newton failures",
+                    "train s",
+                ],
+                body,
+            )
+            + "\n"
+        )
     e2 = rows(root / "exp2_discrete_vs_continuous")
     if e2:
         print("### Exp 2: discrete vs continuous (free rigid body, 10 test trajectories x 500 steps)\n")
@@ -54,17 +79,48 @@ def main(root: Path):
         for r in e2:
             err[r["model"]][int(r["train_steps"])] = g(r["rel_rot_error_mean"])
             tim[r["model"]][int(r["train_steps"])] = g(r["train_seconds"])
-        print(table(["model"] + [f"error, length {n}" for n in lengths] + [f"train s, length {n}" for n in lengths],
-                    [[m] + [err[m].get(n, "–") for n in lengths] + [tim[m].get(n, "–") for n in lengths]
-                     for m in sorted(err)]) + "\n")
+        print(
+            table(
+                ["model"] + [f"error, length {n}" for n in lengths] + [f"train s, length {n}" for n in lengths],
+                [
+                    [m] + [err[m].get(n, "–") for n in lengths] + [tim[m].get(n, "–") for n in lengths]
+                    for m in sorted(err)
+                ],
+            )
+            + "\n"
+        )
     e3 = rows(root / "exp3_manifold")
     if e3:
         print("### Exp 3: staying on the manifold (heavy rigid body on SE(3), 200-step rollout)\n")
-        body = [[r["model"], r["epochs"], g(r["rel_rot_error_mean"]), g(r.get("position_error_mean")),
-                 g(r["max_orth_drift"]), g(r["max_det_drift"]), r["newton_failures"], g(r["train_seconds"])]
-                for r in e3]
-        print(table(["model", "epochs", "rel. rot. error (mean)", "position error (mean)", "max ‖RᵀR − I‖_F",
-                     "max abs(det R − 1)", "Newton failures", "train s"], body) + "\n")
+        body = [
+            [
+                r["model"],
+                r["epochs"],
+                g(r["rel_rot_error_mean"]),
+                g(r.get("position_error_mean")),
+                g(r["max_orth_drift"]),
+                g(r["max_det_drift"]),
+                r["newton_failures"],
+                g(r["train_seconds"]),
+            ]
+            for r in e3
+        ]
+        print(
+            table(
+                [
+                    "model",
+                    "epochs",
+                    "rel. rot. error (mean)",
+                    "position error (mean)",
+                    "max ‖RᵀR − I‖_F",
+                    "max abs(det R − 1)",
+                    "Newton failures",
+                    "train s",
+                ],
+                body,
+            )
+            + "\n"
+        )
 
 
 if __name__ == "__main__":

@@ -4,6 +4,7 @@ The default torch dtype is deliberately left alone: every Lie-group test states 
 A modest hypothesis profile keeps the property tests fast (select another one with
 HYPOTHESIS_PROFILE=<name>, e.g. `thorough`).
 """
+
 from __future__ import annotations
 
 import os

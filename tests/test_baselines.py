@@ -3,6 +3,7 @@
 Fast tier (< 90 s): tiny scenes generated once per session; every baseline goes through
 `run_train` (train -> checkpoint -> rollout -> eval) with the smoke budget.
 """
+
 from __future__ import annotations
 
 import json
@@ -19,13 +20,13 @@ from omegaconf import OmegaConf
 from liedfl_cli.data.errors import ConfigError
 from liedfl_cli.data.scenes import generate
 from liedfl_cli.lie import SE3, SO3, Pose, euler, so3
+from liedfl_cli.mechanics.potentials import GravityPotential
 from liedfl_cli.models.baselines import BASELINES
 from liedfl_cli.models.build import build_model
 from liedfl_cli.models.euclidean_dflnn import EuclideanDFLNN
 from liedfl_cli.models.euler_dflnn import EulerDFLNN
 from liedfl_cli.models.glnn import GLNN
 from liedfl_cli.models.truth import physics_model
-from liedfl_cli.mechanics.potentials import GravityPotential
 from liedfl_cli.solvers.rollout import Rollout
 from liedfl_cli.train import fit, run_train
 
@@ -39,20 +40,50 @@ F64 = torch.float64
 def _cfg(tmp, name, extra=()):
     GlobalHydra.instance().clear()
     with initialize_config_dir(config_dir=CONF, version_base="1.3"):
-        return compose("train", overrides=[f"baseline={name}", "budget=smoke", "ui.progress=false",
-                                           "eval.plots=false", f"paths.data_dir={tmp}/data",
-                                           f"paths.output_dir={tmp}/run_{name}", *extra])
+        return compose(
+            "train",
+            overrides=[
+                f"baseline={name}",
+                "budget=smoke",
+                "ui.progress=false",
+                "eval.plots=false",
+                f"paths.data_dir={tmp}/data",
+                f"paths.output_dir={tmp}/run_{name}",
+                *extra,
+            ],
+        )
 
 
 def _scene(name="free_rigid_body", **kw):
-    base = dict(name=name, h=0.1, n_trajectories=4, steps=12, train_steps=12, rollout_steps=12, test_fraction=0.5,
-                n_test=None, seed=0, solver={"method": "RK45", "rtol": 1e-10, "atol": 1e-12})
+    base = dict(
+        name=name,
+        h=0.1,
+        n_trajectories=4,
+        steps=12,
+        train_steps=12,
+        rollout_steps=12,
+        test_fraction=0.5,
+        n_test=None,
+        seed=0,
+        solver={"method": "RK45", "rtol": 1e-10, "atol": 1e-12},
+    )
     if name == "free_rigid_body":
-        base.update(physics={"J": [1.521, 1.362, 1.211], "m": 0.5, "rho": [1.2, 0.5, 1.0], "g": 0.0,
-                             "D": [0.05] * 3}, initial={"omega_std": 1.0})
+        base.update(
+            physics={"J": [1.521, 1.362, 1.211], "m": 0.5, "rho": [1.2, 0.5, 1.0], "g": 0.0, "D": [0.05] * 3},
+            initial={"omega_std": 1.0},
+        )
     else:
-        base.update(h=0.05, physics={"J": [1.521, 1.362, 1.211], "m": 0.5, "rho": [0.0, 0.5, 1.0], "g": 9.81,
-                                     "D": [0.1] * 3 + [0.0] * 3}, initial={"p_std": 1.0, "omega_std": 1.0, "v_std": 1.0})
+        base.update(
+            h=0.05,
+            physics={
+                "J": [1.521, 1.362, 1.211],
+                "m": 0.5,
+                "rho": [0.0, 0.5, 1.0],
+                "g": 9.81,
+                "D": [0.1] * 3 + [0.0] * 3,
+            },
+            initial={"p_std": 1.0, "omega_std": 1.0, "v_std": 1.0},
+        )
     base.update(kw)
     return generate(base)
 
@@ -83,8 +114,9 @@ def test_euler_round_trip_random_rotations():
     assert torch.allclose(euler.from_matrix(euler.to_matrix(q)), q, atol=1e-10)
 
 
-@pytest.mark.parametrize("theta", [math.pi / 2, -math.pi / 2, math.pi / 2 - 1e-9, -math.pi / 2 + 1e-7,
-                                   math.pi / 2 - 1e-4, 1.0])
+@pytest.mark.parametrize(
+    "theta", [math.pi / 2, -math.pi / 2, math.pi / 2 - 1e-9, -math.pi / 2 + 1e-7, math.pi / 2 - 1e-4, 1.0]
+)
 def test_euler_round_trip_through_gimbal_lock(theta):
     q = torch.tensor([[0.3, theta, -1.2], [2.9, theta, 3.0], [-3.0, theta, 0.0]], dtype=F64)
     R = euler.to_matrix(q)
@@ -94,7 +126,7 @@ def test_euler_round_trip_through_gimbal_lock(theta):
     assert torch.allclose(q2[:, 1], q[:, 1], atol=1e-7)
     # only phi - psi (theta = pi/2) or phi + psi (theta = -pi/2) is determined at the lock
     s = 1.0 if theta > 0 else -1.0
-    comb = lambda a: euler.wrap(a[:, 0] - s * a[:, 2])  # noqa: E731
+    comb = lambda a: euler.wrap(a[:, 0] - s * a[:, 2])
     assert torch.allclose(euler.wrap(comb(q2) - comb(q)), torch.zeros(3, dtype=F64), atol=1e-7)
     if abs(theta) == math.pi / 2:
         assert (q2[:, 2] == 0).all()  # convention at the exact lock
@@ -133,9 +165,16 @@ def test_glnn_dopri5_with_true_parameters_reproduces_the_simulator(free_body):
 
 
 def test_glnn_potential_torque_with_the_true_gravity_reproduces_the_heavy_body():
-    ds = _scene("heavy_so3", h=0.05, n_trajectories=3, steps=20, train_steps=20, rollout_steps=20,
-                physics={"J": [1.521, 1.362, 1.211], "m": 0.5, "rho": [0.0, 0.5, 1.0], "g": 9.81, "D": [0.1] * 3},
-                initial={"omega_scale": 1.0, "omega_radius": 2.0})
+    ds = _scene(
+        "heavy_so3",
+        h=0.05,
+        n_trajectories=3,
+        steps=20,
+        train_steps=20,
+        rollout_steps=20,
+        physics={"J": [1.521, 1.362, 1.211], "m": 0.5, "rho": [0.0, 0.5, 1.0], "g": 9.81, "D": [0.1] * 3},
+        initial={"omega_scale": 1.0, "omega_radius": 2.0},
+    )
     truth = ds.pose()
     R, w0 = truth.R[:, :, 0], torch.as_tensor(ds.extras["omega"][:, 0, 0])
     models = {}
@@ -147,7 +186,7 @@ def test_glnn_potential_torque_with_the_true_gravity_reproduces_the_heavy_body()
     with torch.no_grad():
         pred = models["dopri5"].integrate(R[:, 0], w0, 20)
     assert (pred - R).abs().max() < 1e-5
-    g = lambda k: truth.index((slice(None), k))  # noqa: E731
+    g = lambda k: truth.index((slice(None), k))
     ro = models["midpoint"].rollout(g(0), g(1), 20, {"tol": 1e-10, "max_iter": 10})
     assert ro.converged.all() and (ro.pose.R - truth.R).abs().max() < 0.1
 
@@ -172,7 +211,7 @@ def test_euler_dflnn_with_true_parameters_tracks_the_motion():
     e = EulerDFLNN(SO3, 0.1, init_jitter=0.0)
     e.inertia.set_J(J_TRUE[None])
     e.damping.set_matrix(D_TRUE)
-    g = lambda k: Pose(truth[:, k, None], truth.new_zeros(2, 0, 3))  # noqa: E731
+    g = lambda k: Pose(truth[:, k, None], truth.new_zeros(2, 0, 3))
     ro = e.rollout(g(0), g(1), 20, {"tol": 1e-10, "max_iter": 20})
     assert ro.converged.all()
     # the observed start is w0-free: the error is the O(h) start-up plus the scheme's O(h^2)
@@ -191,7 +230,12 @@ def test_euclidean_residual_along_the_group_equals_liedflnn(G):
         poses.append(Pose(R[:, None], p[:, None][:, : G.n_se3]))
         R = R @ so3.exp(0.1 * torch.randn(T, 3, generator=gen, dtype=F64))
         p = p + 0.1 * torch.randn(T, 3, generator=gen, dtype=F64)
-    physics = {"J": [1.521, 1.362, 1.211], "m": 0.5, "rho": [0.1, 0.5, 1.0], "D": [0.05, 0.07, 0.1] + [0.0] * (3 * G.n_se3)}
+    physics = {
+        "J": [1.521, 1.362, 1.211],
+        "m": 0.5,
+        "rho": [0.1, 0.5, 1.0],
+        "D": [0.05, 0.07, 0.1] + [0.0] * (3 * G.n_se3),
+    }
     ref = physics_model(G, 0.1, physics)
     eu = EuclideanDFLNN(G, 0.1, potential=False, init_jitter=0.0)
     eu.inertia.set_J(J_TRUE[None])
@@ -206,14 +250,23 @@ def test_euclidean_residual_along_the_group_equals_liedflnn(G):
     rw = torch.stack([(r[:, :9].reshape(T, 3, 3) * (Rk @ E[i])).sum((-1, -2)) for i in range(3)], -1)
     parts = [rw] + ([(r[:, 9:, None] * Rk).sum(-2)] if G.n_se3 else [])  # (R_k e_i) . r_p
     assert torch.allclose(torch.cat(parts, -1), ref.residual(*poses), atol=1e-12)
-    assert torch.allclose(eu.lagrangian(eu.to_x(poses[0]), eu.to_x(poses[1])), ref.lagrangian(poses[0], poses[1]),
-                          atol=1e-12)
+    assert torch.allclose(
+        eu.lagrangian(eu.to_x(poses[0]), eu.to_x(poses[1])), ref.lagrangian(poses[0], poses[1]), atol=1e-12
+    )
 
 
 # ----------------------------------------------------------------------------- protocol and rollout shapes
 def _cfg_obj(**train):
-    base = {"w_del": 0.5, "w_reg": 0.5, "reg_points": 4, "reg_form": "relu", "epsilon": 10.0, "epochs": 30,
-            "batch_size": 1024, "optimizer": {"name": "adam", "lr": 1e-2, "weight_decay": 0.0}}
+    base = {
+        "w_del": 0.5,
+        "w_reg": 0.5,
+        "reg_points": 4,
+        "reg_form": "relu",
+        "epsilon": 10.0,
+        "epochs": 30,
+        "batch_size": 1024,
+        "optimizer": {"name": "adam", "lr": 1e-2, "weight_decay": 0.0},
+    }
     return OmegaConf.create({**base, **train})
 
 
@@ -221,7 +274,7 @@ def _cfg_obj(**train):
 def test_rollout_shapes_and_fields(name, free_body, data_dir):
     ds = free_body
     model = BASELINES[name](_cfg(data_dir, name), ds)
-    assert model.G == ds.group and model.h == ds.h and model.window in ("triplet", "trajectory")
+    assert ds.group == model.G and model.h == ds.h and model.window in ("triplet", "trajectory")
     assert model.components()
     truth = ds.pose()
     steps = 6

@@ -1,5 +1,6 @@
 """End to end through the installed `liedfl` command (subprocess, cwd = a temporary directory),
 plus `run_train` called in-process on a composed config. Everything runs on the smoke budget."""
+
 from __future__ import annotations
 
 import csv
@@ -34,8 +35,7 @@ def _env() -> dict:
 
 
 def liedfl(*args: str, cwd: Path, ok: bool = True) -> subprocess.CompletedProcess:
-    proc = subprocess.run([*_liedfl_cmd(), *args], cwd=cwd, env=_env(), capture_output=True, text=True,
-                          timeout=300)
+    proc = subprocess.run([*_liedfl_cmd(), *args], cwd=cwd, env=_env(), capture_output=True, text=True, timeout=300)
     if ok:
         assert proc.returncode == 0, f"liedfl {' '.join(args)} -> {proc.returncode}\n{proc.stdout}\n{proc.stderr}"
         assert "Traceback" not in proc.stderr, proc.stderr
@@ -54,8 +54,16 @@ def trained(tmp_path_factory) -> Path:
 
 def test_train_writes_the_run_directory(trained):
     run = trained
-    for rel in [".hydra/config.yaml", "checkpoints/last.pt", "train_metrics.csv", "rollout.h5", "eval.csv",
-                "eval.md", "components.json", *(f"plots/{p}.png" for p in PLOTS)]:
+    for rel in [
+        ".hydra/config.yaml",
+        "checkpoints/last.pt",
+        "train_metrics.csv",
+        "rollout.h5",
+        "eval.csv",
+        "eval.md",
+        "components.json",
+        *(f"plots/{p}.png" for p in PLOTS),
+    ]:
         f = run / rel
         assert f.is_file() and f.stat().st_size > 0, f"missing or empty: {rel}"
     cfg = OmegaConf.load(run / ".hydra" / "config.yaml")
@@ -134,8 +142,15 @@ def test_run_train_in_process(tmp_path):
 
     GlobalHydra.instance().clear()
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        cfg = compose(config_name="train", overrides=[
-            *FAST, "eval.plots=false", f"paths.output_dir={tmp_path / 'run'}", f"paths.data_dir={tmp_path / 'data'}"])
+        cfg = compose(
+            config_name="train",
+            overrides=[
+                *FAST,
+                "eval.plots=false",
+                f"paths.output_dir={tmp_path / 'run'}",
+                f"paths.data_dir={tmp_path / 'data'}",
+            ],
+        )
     validate(cfg)
     summary = run_train(cfg)
     run = tmp_path / "run"

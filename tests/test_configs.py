@@ -3,6 +3,7 @@
 Configs are discovered from conf/ at test time, so files added later (new datasets, forces,
 baselines, experiments) are covered without editing this file.
 """
+
 from __future__ import annotations
 
 import shutil
@@ -76,32 +77,41 @@ def test_train_composes_with_every_group_option(group, option, tmp_path):
 def test_experiment_and_budget_files_are_global():
     """Override files must be `# @package _global_` (else their keys land under experiment./budget.)."""
     files = sorted((CONF_DIR / "experiment").glob("*.yaml")) + sorted((CONF_DIR / "budget").glob("*.yaml"))
-    bad = [f"{p.relative_to(CONF_DIR)} starts with {p.read_text().lstrip(chr(0xFEFF)).splitlines()[:1]}"
-           for p in files if p.read_text().lstrip("\ufeff").splitlines()[:1] != ["# @package _global_"]]
+    bad = [
+        f"{p.relative_to(CONF_DIR)} starts with {p.read_text().lstrip(chr(0xFEFF)).splitlines()[:1]}"
+        for p in files
+        if p.read_text().lstrip("\ufeff").splitlines()[:1] != ["# @package _global_"]
+    ]
     assert not bad, "; ".join(bad)
 
 
 # ----------------------------------------------------------------------------- schema
-@pytest.mark.parametrize("override,key", [
-    ("+train.epoch=3", "epoch"),
-    ("+train.optimizer.lrate=0.1", "lrate"),
-    ("+solver.maxiter=3", "maxiter"),
-    ("+rollout.step=3", "step"),
-    ("+model.mlp_widht=3", "mlp_widht"),
-])
+@pytest.mark.parametrize(
+    "override,key",
+    [
+        ("+train.epoch=3", "epoch"),
+        ("+train.optimizer.lrate=0.1", "lrate"),
+        ("+solver.maxiter=3", "maxiter"),
+        ("+rollout.step=3", "step"),
+        ("+model.mlp_widht=3", "mlp_widht"),
+    ],
+)
 def test_misspelled_key_is_rejected(override, key, tmp_path):
     cfg = _compose("train", _paths(tmp_path) + [override])
     with pytest.raises(ConfigError, match=key):
         validate(cfg)
 
 
-@pytest.mark.parametrize("override,key", [
-    ("train.epochs=many", "epochs"),
-    ("train.optimizer.name=sgd", "train.optimizer.name"),
-    ("train.reg_form=cubic", "train.reg_form"),
-    ("model.residual=bogus", "model.residual"),
-    ("model.potential=quadratic", "model.potential"),
-])
+@pytest.mark.parametrize(
+    "override,key",
+    [
+        ("train.epochs=many", "epochs"),
+        ("train.optimizer.name=sgd", "train.optimizer.name"),
+        ("train.reg_form=cubic", "train.reg_form"),
+        ("model.residual=bogus", "model.residual"),
+        ("model.potential=quadratic", "model.potential"),
+    ],
+)
 def test_wrong_value_is_rejected(override, key, tmp_path):
     cfg = _compose("train", _paths(tmp_path) + [override])
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
@@ -117,16 +127,14 @@ def test_misspelled_key_in_an_experiment_file_is_caught(tmp_path):
     """An override file with a typo composes (Hydra merges it) but fails schema validation."""
     conf = tmp_path / "conf"
     shutil.copytree(CONF_DIR, conf)
-    (conf / "experiment" / "typo_test.yaml").write_text(
-        "# @package _global_\ntrain:\n  epoch: 3\n  batch_size: 32\n")
+    (conf / "experiment" / "typo_test.yaml").write_text("# @package _global_\ntrain:\n  epoch: 3\n  batch_size: 32\n")
     cfg = _compose("train", _paths(tmp_path) + ["experiment=typo_test"], conf_dir=conf)
     assert cfg.train.epoch == 3
     with pytest.raises(ConfigError, match=r"epoch") as e:
         validate(cfg)
     assert "\n" not in str(e.value)
     # the same file without the typo is fine
-    (conf / "experiment" / "typo_test.yaml").write_text(
-        "# @package _global_\ntrain:\n  epochs: 3\n  batch_size: 32\n")
+    (conf / "experiment" / "typo_test.yaml").write_text("# @package _global_\ntrain:\n  epochs: 3\n  batch_size: 32\n")
     cfg = _compose("train", _paths(tmp_path) + ["experiment=typo_test"], conf_dir=conf)
     validate(cfg)
     assert cfg.train.epochs == 3

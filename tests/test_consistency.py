@@ -1,5 +1,6 @@
 """Empirical convergence orders of the true-parameter scheme against tight-tolerance solutions:
 residual O(h^3), rollout O(h^2) at fixed final time (catches sign and convention errors)."""
+
 import pytest
 
 from liedfl_cli.consistency import residual_order, rollout_order
@@ -30,7 +31,7 @@ def test_wrong_physics_is_caught(change):
 
     h = 0.02
     traj = consistency.exact("so3", h, 0.4)
-    idx = lambda a, b: traj.index((slice(None), slice(a, b)))  # noqa: E731
+    idx = lambda a, b: traj.index((slice(None), slice(a, b)))
     good = physics_model(SO3, h, consistency.PHYSICS["so3"])
     bad = physics_model(SO3, h, {**consistency.PHYSICS["so3"], **change})
     r_good = good.residual(idx(0, -2), idx(1, -1), idx(2, None)).abs().max()

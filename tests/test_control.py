@@ -1,5 +1,6 @@
 """Learned control (Exp 5): C with unit-norm columns, the true PD force, known (frozen) Lagrangian
 parts, the pd_control scene, the torque evaluation and an end-to-end smoke run."""
+
 from __future__ import annotations
 
 import json
@@ -82,7 +83,9 @@ def test_feedforward_cancels_gravity():
     tau = pd_torque(R, np.zeros((5, 3)), ctrl, ph["m"], ph["rho"], ph["g"])
     from liedfl_cli.data.physics import RigidBodySO3
 
-    np.testing.assert_allclose(tau, -RigidBodySO3(J=ph["J"], m=0.5, rho=ph["rho"], g=9.81).gravity_torque(R), atol=1e-14)
+    np.testing.assert_allclose(
+        tau, -RigidBodySO3(J=ph["J"], m=0.5, rho=ph["rho"], g=9.81).gravity_torque(R), atol=1e-14
+    )
 
 
 def test_true_pd_force_matches_the_scene(pd_data):
@@ -97,8 +100,11 @@ def test_true_pd_force_matches_the_scene(pd_data):
     tau = ref.forces[0](Pose(R, torch.zeros(41, 0, 3, dtype=torch.float64)), w.reshape(41, 3))
     np.testing.assert_allclose(tau.numpy(), ds.extras["tau_control"][0, :, 0], atol=1e-13)
     traj = ds.pose([0])
-    args = (traj.index((slice(None), slice(0, -2))), traj.index((slice(None), slice(1, -1))),
-            traj.index((slice(None), slice(2, None))))
+    args = (
+        traj.index((slice(None), slice(0, -2))),
+        traj.index((slice(None), slice(1, -1))),
+        traj.index((slice(None), slice(2, None))),
+    )
     r = ref.residual(*args)
     ctrl = ref.forces.pop(0)
     r_uncontrolled = ref.residual(*args)
@@ -109,8 +115,14 @@ def test_true_pd_force_matches_the_scene(pd_data):
 def test_known_lagrangian_is_true_and_frozen(pd_data):
     ds = pd_data
     ph = ds.params["physics"]
-    model = LieDFLNN(SO3, ds.h, potential="none", forces={"control": {"width": 16, "depth": 2}},
-                     known=["inertia", "potential"], physics=ph)
+    model = LieDFLNN(
+        SO3,
+        ds.h,
+        potential="none",
+        forces={"control": {"width": 16, "depth": 2}},
+        known=["inertia", "potential"],
+        physics=ph,
+    )
     ref = true_model(ds)
     torch.testing.assert_close(model.inertia.Jd(), ref.inertia.Jd())
     assert not any(p.requires_grad for p in model.inertia.parameters())
@@ -121,8 +133,11 @@ def test_known_lagrangian_is_true_and_frozen(pd_data):
     # with the PD law in place of the learned control the model is the true-parameter scheme
     model.forces[0] = ref.forces[0]
     traj = ds.pose([0])
-    args = (traj.index((slice(None), slice(0, -2))), traj.index((slice(None), slice(1, -1))),
-            traj.index((slice(None), slice(2, None))))
+    args = (
+        traj.index((slice(None), slice(0, -2))),
+        traj.index((slice(None), slice(1, -1))),
+        traj.index((slice(None), slice(2, None))),
+    )
     torch.testing.assert_close(model.residual(*args), ref.residual(*args), rtol=0, atol=1e-12)
     with pytest.raises(ValueError, match="known"):
         LieDFLNN(SO3, ds.h, forces=[], known=["inertia"], physics=None)
@@ -140,8 +155,13 @@ def test_torque_evaluation_of_the_true_law(pd_data, tmp_path):
     assert err["rel_error_mean"] < 0.05 and err["rel_error_max"] < 0.2
     assert torque_errors(learned, learned)["rel_error_max"] == 0.0
     path = tmp_path / "plots" / "torque.png"
-    plot_torque({"learned": learned[0], "true": ds.extras["tau_ext"][0, :40], "rel_error": err["curve"]}, ds.h,
-                {"truth": ds.R[0], "model": ds.R[0], "_index": 0}, path, "test")
+    plot_torque(
+        {"learned": learned[0], "true": ds.extras["tau_ext"][0, :40], "rel_error": err["curve"]},
+        ds.h,
+        {"truth": ds.R[0], "model": ds.R[0], "_index": 0},
+        path,
+        "test",
+    )
     assert path.is_file() and path.stat().st_size > 1000
     assert not list(path.parent.glob(".*tmp*"))
 
@@ -150,9 +170,17 @@ def test_exp5_smoke_run_end_to_end(tmp_path):
     from liedfl_cli.train import run_train
 
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
-        cfg = compose(config_name="train", overrides=[
-            "experiment=exp5_control", "budget=smoke", f"paths.data_dir={tmp_path}", f"paths.output_dir={tmp_path}/run",
-            "ui.progress=false", "eval.plots=false"])
+        cfg = compose(
+            config_name="train",
+            overrides=[
+                "experiment=exp5_control",
+                "budget=smoke",
+                f"paths.data_dir={tmp_path}",
+                f"paths.output_dir={tmp_path}/run",
+                "ui.progress=false",
+                "eval.plots=false",
+            ],
+        )
     assert cfg.train.w_reg == 0 and cfg.train.w_del == 1 and list(cfg.model.known) == ["inertia", "potential"]
     summary = run_train(cfg)
     run = tmp_path / "run"

@@ -1,5 +1,6 @@
 """Bad inputs through the real CLI: one line on stderr naming the file / field / index, a non-zero
 exit, no Python traceback, and nothing half-written (no *.tmp* files, earlier outputs untouched)."""
+
 from __future__ import annotations
 
 import os
@@ -32,8 +33,7 @@ def _env() -> dict:
 
 
 def liedfl(*args: str, cwd: Path) -> subprocess.CompletedProcess:
-    return subprocess.run([*_liedfl_cmd(), *args], cwd=cwd, env=_env(), capture_output=True, text=True,
-                          timeout=300)
+    return subprocess.run([*_liedfl_cmd(), *args], cwd=cwd, env=_env(), capture_output=True, text=True, timeout=300)
 
 
 def one_line_error(proc: subprocess.CompletedProcess, *needles: str) -> str:
@@ -67,8 +67,10 @@ def trained(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("errors_run")
     GlobalHydra.instance().clear()
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        cfg = compose(config_name="train", overrides=[
-            *FAST, f"paths.output_dir={root / 'run'}", f"paths.data_dir={root / 'data'}"])
+        cfg = compose(
+            config_name="train",
+            overrides=[*FAST, f"paths.output_dir={root / 'run'}", f"paths.data_dir={root / 'data'}"],
+        )
     run_train(cfg)
     return root / "run"
 
@@ -126,8 +128,7 @@ def test_directory_argument_missing_or_mistyped(command, tmp_path):
 def test_eval_of_a_dir_without_checkpoint(run_copy, tmp_path):
     shutil.rmtree(run_copy / "checkpoints")
     before = snapshot(run_copy)
-    one_line_error(liedfl("eval", f"run={run_copy}", cwd=tmp_path), str(Path("checkpoints") / "last.pt"),
-                   "not found")
+    one_line_error(liedfl("eval", f"run={run_copy}", cwd=tmp_path), str(Path("checkpoints") / "last.pt"), "not found")
     assert snapshot(run_copy) == before
     no_tmp_files(run_copy)
 
@@ -138,8 +139,9 @@ def test_corrupted_checkpoint(command, run_copy, tmp_path):
     ckpt = run_copy / "checkpoints" / "last.pt"
     ckpt.write_bytes(np.random.default_rng(0).bytes(4096))
     before = snapshot(run_copy)
-    one_line_error(liedfl(command, f"run={run_copy}", "ui.progress=false", cwd=tmp_path), str(ckpt),
-                   "not a readable checkpoint")
+    one_line_error(
+        liedfl(command, f"run={run_copy}", "ui.progress=false", cwd=tmp_path), str(ckpt), "not a readable checkpoint"
+    )
     assert snapshot(run_copy) == before
     no_tmp_files(run_copy)
 
@@ -152,8 +154,12 @@ def test_checkpoint_with_wrong_shape(run_copy, tmp_path):
     torch.save(payload, ckpt)
     before = snapshot(run_copy)
     for command in ("rollout", "eval"):
-        one_line_error(liedfl(command, f"run={run_copy}", "ui.progress=false", cwd=tmp_path), str(ckpt),
-                       f"state_dict.{key}", "(7, 5)")
+        one_line_error(
+            liedfl(command, f"run={run_copy}", "ui.progress=false", cwd=tmp_path),
+            str(ckpt),
+            f"state_dict.{key}",
+            "(7, 5)",
+        )
     assert snapshot(run_copy) == before
     no_tmp_files(run_copy)
 
@@ -174,8 +180,7 @@ def test_rollout_steps_not_an_integer(run_copy, tmp_path):
 
 def test_eval_of_a_corrupted_rollout(run_copy, tmp_path):
     (run_copy / "rollout.h5").write_bytes(b"not hdf5 at all")
-    one_line_error(liedfl("eval", f"run={run_copy}", "eval.plots=false", cwd=tmp_path),
-                   str(run_copy / "rollout.h5"))
+    one_line_error(liedfl("eval", f"run={run_copy}", "eval.plots=false", cwd=tmp_path), str(run_copy / "rollout.h5"))
 
 
 # ----------------------------------------------------------------------------- datasets
@@ -213,12 +218,15 @@ def test_slightly_off_rotations_are_projected_with_a_warning(pristine_dataset, t
 
 
 # ----------------------------------------------------------------------------- config values
-@pytest.mark.parametrize("override,needles", [
-    ("train.optimizer.name=sgd", ["train.optimizer.name", "sgd"]),
-    ("model.residual=bogus", ["model.residual", "bogus"]),
-    ("+train.epoch=3", ["train.epoch"]),
-    ("train.epochs=many", ["train.epochs", "many"]),
-])
+@pytest.mark.parametrize(
+    "override,needles",
+    [
+        ("train.optimizer.name=sgd", ["train.optimizer.name", "sgd"]),
+        ("model.residual=bogus", ["model.residual", "bogus"]),
+        ("+train.epoch=3", ["train.epoch"]),
+        ("train.epochs=many", ["train.epochs", "many"]),
+    ],
+)
 def test_bad_config_value(override, needles, tmp_path):
     run = tmp_path / "run"
     proc = liedfl("train", *FAST, override, f"hydra.run.dir={run}", cwd=tmp_path)

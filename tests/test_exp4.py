@@ -1,5 +1,6 @@
 """Exp 4 (mocap cartwheels): the experiment config, a smoke training run end to end with the mocap
 table and plots (liedfl_cli/mocap_eval.py), and the mocap metrics against the recordings."""
+
 from __future__ import annotations
 
 import csv
@@ -17,8 +18,14 @@ from omegaconf import OmegaConf
 import liedfl_cli  # noqa: F401  (registers the ${scaled:...} resolvers)
 
 ROOT = Path(__file__).resolve().parents[1]
-PLOTS = ("mocap_errors.png", "mocap_skeleton_seq1.png", "mocap_skeleton_seq2.png", "mocap_root_trajectory.png",
-         "mocap_joint_axes_seq1.png", "mocap_joint_axes_seq2.png")
+PLOTS = (
+    "mocap_errors.png",
+    "mocap_skeleton_seq1.png",
+    "mocap_skeleton_seq2.png",
+    "mocap_root_trajectory.png",
+    "mocap_joint_axes_seq1.png",
+    "mocap_joint_axes_seq2.png",
+)
 
 
 def _compose(overrides: list[str]):
@@ -31,14 +38,20 @@ def test_exp4_config_matches_the_paper(tmp_path):
     cfg = _compose(["experiment=exp4_mocap", f"paths.data_dir={tmp_path}/data", f"paths.output_dir={tmp_path}/run"])
     c = OmegaConf.to_container(cfg, resolve=True)
     assert c["dataset"]["name"] == "cmu_cartwheel" and c["dataset"]["split"] == "reproduce"
-    assert list(c["force"]) == ["rayleigh_nonlinear", "nn"]          # F = F_NL + F_NN
+    assert list(c["force"]) == ["rayleigh_nonlinear", "nn"]  # F = F_NL + F_NN
     assert all((f["width"], f["depth"]) == (32, 3) for f in c["force"].values())
     assert (c["model"]["potential"], c["model"]["mlp_width"], c["model"]["mlp_depth"]) == ("mlp", 32, 3)
     assert (c["train"]["batch_size"], c["train"]["epochs"], c["train"]["reg_points"]) == (63, 10000, 10)
     assert c["rollout"]["reference"] is False and c["rollout"]["steps"] == c["dataset"]["steps"] == 470
     assert (c["group"]["n_se3"], c["group"]["n_so3"]) == (1, 22)
-    reduced = _compose(["experiment=exp4_mocap", "budget=reduced", f"paths.data_dir={tmp_path}/data",
-                        f"paths.output_dir={tmp_path}/run"])
+    reduced = _compose(
+        [
+            "experiment=exp4_mocap",
+            "budget=reduced",
+            f"paths.data_dir={tmp_path}/data",
+            f"paths.output_dir={tmp_path}/run",
+        ]
+    )
     assert reduced.train.epochs == 1000
 
 
@@ -47,8 +60,16 @@ def smoke_run(tmp_path_factory):
     from liedfl_cli.train import run_train
 
     tmp = tmp_path_factory.mktemp("exp4")
-    cfg = _compose(["experiment=exp4_mocap", "budget=smoke", "ui.progress=false", "eval.plots=true",
-                    f"paths.data_dir={tmp}/data", f"paths.output_dir={tmp}/run"])
+    cfg = _compose(
+        [
+            "experiment=exp4_mocap",
+            "budget=smoke",
+            "ui.progress=false",
+            "eval.plots=true",
+            f"paths.data_dir={tmp}/data",
+            f"paths.output_dir={tmp}/run",
+        ]
+    )
     summary = run_train(cfg)
     return cfg, summary, tmp / "run", tmp / "data"
 
@@ -60,7 +81,7 @@ def test_exp4_smoke_run_end_to_end(smoke_run):
     comps = json.loads((run / "components.json").read_text())["components"]
     assert any(c.startswith("F:rayleigh_nonlinear") for c in comps) and any(c.startswith("F:nn") for c in comps)
     assert any(c.startswith("V:MLP 32x3") for c in comps)
-    assert "extra_eval" in summary and set(summary["rollout"]) == {"model"}     # no reference scheme
+    assert "extra_eval" in summary and set(summary["rollout"]) == {"model"}  # no reference scheme
     for name in ("mocap_eval.csv", "mocap_eval.md", "mocap_eval.json"):
         assert (run / name).is_file(), name
     with open(run / "mocap_eval.csv") as f:

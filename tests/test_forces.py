@@ -1,5 +1,6 @@
 """Learned forces (rayleigh, rayleigh_nonlinear, nn, control): structure, Jacobians, residual paths,
 config composition, and the dissipation of structured damping in the discrete scheme."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -19,14 +20,21 @@ from liedfl_cli.solvers.rollout import rollout_discrete
 
 ROOT = Path(__file__).resolve().parents[1]
 GROUPS = [ProductGroup(0, 1), ProductGroup(1, 0), ProductGroup(1, 1), ProductGroup(2, 1)]
-PHYS2 = {"J": [[1.521, 1.362, 1.211], [0.9, 0.8, 0.6]], "m": [0.5, 1.0], "rho": [[0.0, 0.5, 1.0], [0.0, 0.0, -0.8]],
-         "g": 0.0, "D": [0.0] * 9}
+PHYS2 = {
+    "J": [[1.521, 1.362, 1.211], [0.9, 0.8, 0.6]],
+    "m": [0.5, 1.0],
+    "rho": [[0.0, 0.5, 1.0], [0.0, 0.0, -0.8]],
+    "g": 0.0,
+    "D": [0.0] * 9,
+}
 
 
 def random_pose(G, n, seed=0, step=None):
     gen = torch.Generator().manual_seed(seed)
-    return Pose(so3.exp(torch.randn(n, G.n_bodies, 3, generator=gen, dtype=torch.float64)),
-                torch.randn(n, G.n_se3, 3, generator=gen, dtype=torch.float64))
+    return Pose(
+        so3.exp(torch.randn(n, G.n_bodies, 3, generator=gen, dtype=torch.float64)),
+        torch.randn(n, G.n_se3, 3, generator=gen, dtype=torch.float64),
+    )
 
 
 def randomise(module, scale=0.5, seed=0):
@@ -75,8 +83,12 @@ def test_closed_form_force_jacobians_match_autodiff(name):
 
 
 def full_model(G, h=0.05, seed=0):
-    forces = {"rayleigh": {}, "rayleigh_nonlinear": {"width": 16, "depth": 2}, "nn": {"width": 16, "depth": 2},
-              "control": {"width": 16, "depth": 2}}
+    forces = {
+        "rayleigh": {},
+        "rayleigh_nonlinear": {"width": 16, "depth": 2},
+        "nn": {"width": 16, "depth": 2},
+        "control": {"width": 16, "depth": 2},
+    }
     torch.manual_seed(seed)
     m = LieDFLNN(G, h, potential="mlp", forces=forces, mlp_width=16, mlp_depth=2, init_jitter=0.3, seed=seed)
     for f in m.forces:
@@ -104,8 +116,16 @@ def test_hydra_force_list_composes_a_sum(tmp_path):
     from liedfl_cli.models.build import build_model
 
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
-        cfg = compose(config_name="train", overrides=["experiment=two_body", "budget=smoke", "force=[rayleigh_nonlinear,nn]",
-                                                      f"paths.data_dir={tmp_path}", f"paths.output_dir={tmp_path}/run"])
+        cfg = compose(
+            config_name="train",
+            overrides=[
+                "experiment=two_body",
+                "budget=smoke",
+                "force=[rayleigh_nonlinear,nn]",
+                f"paths.data_dir={tmp_path}",
+                f"paths.output_dir={tmp_path}/run",
+            ],
+        )
     assert list(cfg.force) == ["rayleigh_nonlinear", "nn"]
     assert cfg.force.nn.width == cfg.model.mlp_width
     c = OmegaConf.to_container(cfg.dataset, resolve=True)

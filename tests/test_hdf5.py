@@ -1,4 +1,5 @@
 """HDF5 dataset format: round trip, atomic writes, validation errors, projection, caching, configs."""
+
 from __future__ import annotations
 
 import copy
@@ -12,8 +13,18 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from liedfl_cli.data import (SCENES, ConfigError, Dataset, DatasetError, config_hash, dataset_path, generate,
-                             get_dataset, load_dataset, save_dataset)
+from liedfl_cli.data import (
+    SCENES,
+    ConfigError,
+    Dataset,
+    DatasetError,
+    config_hash,
+    dataset_path,
+    generate,
+    get_dataset,
+    load_dataset,
+    save_dataset,
+)
 from liedfl_cli.data import scenes as scenes_mod
 from liedfl_cli.data.mocap import REAL_DATA_SCENES
 from liedfl_cli.lie import so3
@@ -43,10 +54,18 @@ def multibody(T=5, N=4, seed=0) -> Dataset:
     g = torch.Generator().manual_seed(seed)
     R = so3.random((T, N + 1, 3), generator=g).numpy()
     p = torch.randn(T, N + 1, 1, 3, generator=g, dtype=torch.float64).numpy()
-    return Dataset(R=R, p=p, h=0.01, scene="custom", body_names=["root", "arm", "hand"],
-                   body_kinds=["se3", "so3", "so3"], params={"source": "test", "nested": {"a": [1, 2.5]}}, seed=7,
-                   split={"train": np.array([0, 2, 3]), "test": np.array([1, 4])},
-                   extras={"omega": np.ones((T, N + 1, 3, 3)), "torque": np.zeros((T, N, 3, 3), np.float32)})
+    return Dataset(
+        R=R,
+        p=p,
+        h=0.01,
+        scene="custom",
+        body_names=["root", "arm", "hand"],
+        body_kinds=["se3", "so3", "so3"],
+        params={"source": "test", "nested": {"a": [1, 2.5]}},
+        seed=7,
+        split={"train": np.array([0, 2, 3]), "test": np.array([1, 4])},
+        extras={"omega": np.ones((T, N + 1, 3, 3)), "torque": np.zeros((T, N, 3, 3), np.float32)},
+    )
 
 
 @pytest.fixture
@@ -60,8 +79,14 @@ def assert_same(a: Dataset, b: Dataset):
     for name in ("R", "p", "t"):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
         assert getattr(a, name).dtype == getattr(b, name).dtype
-    assert (a.h, a.scene, a.body_names, a.body_kinds, a.params, a.seed) == \
-           (b.h, b.scene, b.body_names, b.body_kinds, b.params, b.seed)
+    assert (a.h, a.scene, a.body_names, a.body_kinds, a.params, a.seed) == (
+        b.h,
+        b.scene,
+        b.body_names,
+        b.body_kinds,
+        b.params,
+        b.seed,
+    )
     assert a.split.keys() == b.split.keys()
     for k in a.split:
         np.testing.assert_array_equal(a.split[k], b.split[k])
@@ -201,7 +226,7 @@ def test_gross_non_rotation(saved):
 def test_reflection_rejected(saved):
     def reflect(f):
         R = f["R"][()]
-        R[0, 3, 1] = -R[0, 3, 1]   # orthogonal, det = -1
+        R[0, 3, 1] = -R[0, 3, 1]  # orthogonal, det = -1
         replace(f, "R", R)
 
     edit(saved, reflect)
@@ -264,7 +289,7 @@ def test_slightly_off_rotations_projected_with_one_warning(saved):
     for s in spots:
         mask[s] = False
         np.testing.assert_allclose(ds.R[s], ref[s], atol=1e-6)
-    np.testing.assert_array_equal(ds.R[mask], ref[mask])      # untouched rotations stay bit-exact
+    np.testing.assert_array_equal(ds.R[mask], ref[mask])  # untouched rotations stay bit-exact
 
 
 def test_user_written_minimal_float32_file(tmp_path):
@@ -279,7 +304,7 @@ def test_user_written_minimal_float32_file(tmp_path):
         f.create_dataset("R", data=R)
         f.create_dataset("p", data=p)
     with warnings.catch_warnings():
-        warnings.simplefilter("error")        # float32 rounding is below the float32 warn tolerance
+        warnings.simplefilter("error")  # float32 rounding is below the float32 warn tolerance
         ds = load_dataset(path)
     assert ds.R.dtype == np.float64 and ds.scene == "mine" and ds.body_names == ["body0"]
     np.testing.assert_array_equal(ds.split["train"], np.arange(3))
@@ -305,7 +330,7 @@ def test_generated_layout_and_extras():
     np.testing.assert_allclose(ds.t, 0.05 * np.arange(N1))
     ds3 = generate(tiny("heavy_so3"))
     assert ds3.p.shape == (T, N1, 0, 3) and ds3.extras["v"].shape == (T, N1, 0, 3)
-    np.testing.assert_allclose(ds3.R[:, 0, 0], np.broadcast_to(np.eye(3), (T, 3, 3)))   # R0 = I
+    np.testing.assert_allclose(ds3.R[:, 0, 0], np.broadcast_to(np.eye(3), (T, 3, 3)))  # R0 = I
 
 
 def test_get_dataset_caches(tmp_path, monkeypatch):
@@ -319,7 +344,7 @@ def test_get_dataset_caches(tmp_path, monkeypatch):
         raise AssertionError("should have loaded from the cache")
 
     monkeypatch.setitem(SCENES, "heavy_so3", boom)
-    ds2, path2 = get_dataset(OmegaConf.create(cfg), tmp_path)        # DictConfig gives the same hash
+    ds2, path2 = get_dataset(OmegaConf.create(cfg), tmp_path)  # DictConfig gives the same hash
     assert path2 == path1 and path1.stat().st_mtime_ns == mtime
     assert_same(ds1, ds2)
     # train/rollout lengths do not change the data, so they share the file

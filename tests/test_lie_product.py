@@ -1,4 +1,5 @@
 """Group axioms for every group (so3, se3, ProductGroup) and the ProductGroup layout helpers."""
+
 from __future__ import annotations
 
 import math
@@ -193,7 +194,7 @@ def test_log_exp_roundtrips(grp, dtype, b, seed, scale):
 
 
 def _flat(x, b):
-    return x.reshape(-1, *x.shape[len(b):])
+    return x.reshape(-1, *x.shape[len(b) :])
 
 
 def _flat_elem(g, b):

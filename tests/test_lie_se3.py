@@ -1,4 +1,5 @@
 """SE(3): exp/log/V against matrix exponentials, derivatives, homogeneous-matrix consistency."""
+
 from __future__ import annotations
 
 import math

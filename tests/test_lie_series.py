@@ -9,6 +9,7 @@ stays at the ulp level of the matrices (see test_lie_se3). The Taylor branch, cu
 (t^2)^4, is exact in value but its derivative carries a truncation of 5 c_5 (t^2)^4
 (~7e-15 relative for sinc at the float64 threshold).
 """
+
 from __future__ import annotations
 
 import math
@@ -69,7 +70,22 @@ def points(dtype, name):
     """t^2 values on both sides of the Taylor threshold, and up to pi^2 (V^{-1}: (2 pi - 0.5)^2)."""
     thr2 = torch.tensor(tol(dtype, "taylor") ** 2, dtype=dtype)
     below = torch.nextafter(thr2, torch.zeros_like(thr2))
-    pts = [0.0, 1e-30, 1e-16, 1e-8, 1e-4, thr2.item() / 4, below.item(), thr2.item(), 1.01 * thr2.item(), 4 * thr2.item(), 1.0, 4.0, 9.0, (math.pi - 1e-6) ** 2]
+    pts = [
+        0.0,
+        1e-30,
+        1e-16,
+        1e-8,
+        1e-4,
+        thr2.item() / 4,
+        below.item(),
+        thr2.item(),
+        1.01 * thr2.item(),
+        4 * thr2.item(),
+        1.0,
+        4.0,
+        9.0,
+        (math.pi - 1e-6) ** 2,
+    ]
     if name == "se3_vinv_coeff":
         pts += [25.0, (2 * math.pi - 0.5) ** 2]
     return torch.tensor(pts, dtype=dtype)
@@ -140,8 +156,8 @@ def test_float32_hessians_of_composites(t):
     w = t * a / torch.linalg.vector_norm(a)
     Cm = torch.randn(3, 3, generator=gen, dtype=torch.float64)
     for f in (so3.exp, se3.V_matrix, se3.V_inverse):
-        h64 = hessian(lambda u: (Cm * f(u)).sum(), w)
-        h32 = hessian(lambda u: (Cm.float() * f(u)).sum(), w.float()).double()
+        h64 = hessian(lambda u, f=f: (Cm * f(u)).sum(), w)
+        h32 = hessian(lambda u, f=f: (Cm.float() * f(u)).sum(), w.float()).double()
         assert (h32 - h64).abs().max() <= 3e-5 * h64.abs().max(), f.__name__
 
 

@@ -1,4 +1,5 @@
 """SO(3): exp/log values against matrix_exp, derivatives, quaternions, projection."""
+
 from __future__ import annotations
 
 import math
@@ -120,7 +121,9 @@ def test_log_gradcheck(theta):
     for a in axes(2):
         w = theta * a
         # d log(exp(w)) / dw = I at every angle, including w = 0 exactly.
-        torch.testing.assert_close(jacobian(lambda u: so3.log(so3.exp(u)), w), torch.eye(3, dtype=F64), rtol=0, atol=1e-12)
+        torch.testing.assert_close(
+            jacobian(lambda u: so3.log(so3.exp(u)), w), torch.eye(3, dtype=F64), rtol=0, atol=1e-12
+        )
         # With respect to the 9 matrix entries (log is smooth in them off the manifold too).
         # Near pi, q_w = cos(theta/2) ~ 5e-7 flips sign (the log jumps to the antipode)
         # under an entry perturbation of ~1e-6, so the finite-difference step must be smaller.
@@ -147,8 +150,8 @@ def test_exp_derivatives_match_matrix_exp_at_tiny_angles(theta):
     """
     C = torch.randn(3, 3, generator=torch.Generator().manual_seed(3), dtype=F64)
     w = theta * axes(1)[0]
-    f = lambda u: (C * so3.exp(u)).sum()  # noqa: E731
-    f_ref = lambda u: (C * mexp(u)).sum()  # noqa: E731
+    f = lambda u: (C * so3.exp(u)).sum()
+    f_ref = lambda u: (C * mexp(u)).sum()
     J, J_ref = jacobian(f, w), jacobian(f_ref, w)
     H, H_ref = hessian(f, w), hessian(f_ref, w)
     assert torch.isfinite(H).all()
@@ -178,7 +181,9 @@ def test_quaternion_product_is_rotation_product():
     p, q = torch.randn(2, 10, 4, generator=gen, dtype=F64)
     pw, pv, qw, qv = p[:, :1], p[:, 1:], q[:, :1], q[:, 1:]
     pq = torch.cat((pw * qw - (pv * qv).sum(-1, keepdim=True), pw * qv + qw * pv + torch.linalg.cross(pv, qv)), -1)
-    torch.testing.assert_close(so3.from_quaternion(pq), so3.from_quaternion(p) @ so3.from_quaternion(q), rtol=0, atol=1e-14)
+    torch.testing.assert_close(
+        so3.from_quaternion(pq), so3.from_quaternion(p) @ so3.from_quaternion(q), rtol=0, atol=1e-14
+    )
 
 
 def test_quaternion_and_log_at_exactly_pi():
@@ -191,7 +196,9 @@ def test_quaternion_and_log_at_exactly_pi():
     torch.testing.assert_close(sign * q[:, 1:], a, rtol=0, atol=1e-14)
     torch.testing.assert_close(so3.from_quaternion(q), Rs, rtol=0, atol=1e-14)
     w = so3.log(Rs)
-    torch.testing.assert_close(torch.linalg.vector_norm(w, dim=-1), torch.full((9,), math.pi, dtype=F64), rtol=0, atol=2e-15)
+    torch.testing.assert_close(
+        torch.linalg.vector_norm(w, dim=-1), torch.full((9,), math.pi, dtype=F64), rtol=0, atol=2e-15
+    )
     torch.testing.assert_close(so3.exp(w), Rs, rtol=0, atol=1e-14)
 
 

@@ -1,4 +1,5 @@
 """Motion-capture import (scene cmu_cartwheel), Savitzky–Golay smoothing on SO(3), mocap metrics."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -12,10 +13,16 @@ from scipy.spatial.transform import Rotation
 
 from liedfl_cli.data import ConfigError, Dataset, DatasetError, config_hash, get_dataset, load_dataset, save_dataset
 from liedfl_cli.data.bvh import read_bvh
-from liedfl_cli.data.mocap import (ASF_UNIT_M, CMU_BODY_JOINTS, Z_UP, cmu_cartwheel, mocap_errors,
-                                   recording_discrepancy, skeleton_points)
-from liedfl_cli.data.smoothing import (check_window, savgol_positions, savgol_rotations, savgol_table,
-                                       smooth_pose)
+from liedfl_cli.data.mocap import (
+    ASF_UNIT_M,
+    CMU_BODY_JOINTS,
+    Z_UP,
+    cmu_cartwheel,
+    mocap_errors,
+    recording_discrepancy,
+    skeleton_points,
+)
+from liedfl_cli.data.smoothing import check_window, savgol_positions, savgol_rotations, savgol_table, smooth_pose
 from liedfl_cli.lie import so3
 from liedfl_cli.lie.product import Pose
 
@@ -46,8 +53,9 @@ def imported(tmp_path_factory):
 # ---------------------------------------------------------------------- smoothing
 def test_savgol_positions_match_scipy_and_reproduce_polynomials():
     x = np.random.default_rng(0).standard_normal((150, 2, 3))
-    np.testing.assert_allclose(savgol_positions(x, 51, 6), savgol_filter(x, 51, 6, axis=0, mode="interp"),
-                               atol=1e-6)  # scipy's own coefficients are only ~1e-7 accurate here
+    np.testing.assert_allclose(
+        savgol_positions(x, 51, 6), savgol_filter(x, 51, 6, axis=0, mode="interp"), atol=1e-6
+    )  # scipy's own coefficients are only ~1e-7 accurate here
     t = np.linspace(-1.0, 2.0, 120)
     y = 3 * t**6 - t**3 + 2 * t - 1
     np.testing.assert_allclose(savgol_positions(y, 51, 6), y, atol=1e-11)
@@ -79,17 +87,17 @@ def test_smoothing_keeps_rotations_on_so3_through_full_turns():
     Rs = savgol_rotations(R, 51, 6)
     on_so3(Rs)
     d = so3.geodesic_distance(torch.from_numpy(Rs), torch.from_numpy(R)).numpy()
-    assert d.max() < 1e-5   # a clean smooth track (3 full turns) is left almost unchanged
+    assert d.max() < 1e-5  # a clean smooth track (3 full turns) is left almost unchanged
     # noise is reduced
     rng = np.random.default_rng(1)
     noisy = R @ so3.exp(torch.from_numpy(0.02 * rng.standard_normal((len(R), 3)))).numpy()
     dn = so3.geodesic_distance(torch.from_numpy(savgol_rotations(noisy, 51, 6)), torch.from_numpy(R)).numpy()
     d0 = so3.geodesic_distance(torch.from_numpy(noisy), torch.from_numpy(R)).numpy()
-    assert dn.mean() < 0.45 * d0.mean()     # white-noise gain of the 51/6 filter is about 0.37
+    assert dn.mean() < 0.45 * d0.mean()  # white-noise gain of the 51/6 filter is about 0.37
 
 
 def test_smoothing_leaves_uniform_rotation_unchanged_and_is_equivariant():
-    w = np.array([3.0, -2.0, 5.0])                      # 6.2 rad/s: a full turn per second
+    w = np.array([3.0, -2.0, 5.0])  # 6.2 rad/s: a full turn per second
     R = so3.exp(torch.from_numpy(w * np.arange(300)[:, None] / 120)).numpy()
     np.testing.assert_allclose(savgol_rotations(R, 51, 6), R, atol=1e-12)
     R = rotation_track(200)
@@ -162,16 +170,18 @@ def test_t_pose_dropped_and_frames_converted(imported):
     np.testing.assert_allclose(ds.extras["p_raw"][0, 0, 0], Z_UP @ [-2.4510, 16.5423, 42.9005], atol=1e-12)
     R_root = Rotation.from_euler("ZYX", [-175.2660, -6.5192, -165.3560], degrees=True).as_matrix()
     np.testing.assert_allclose(ds.extras["R_raw"][0, 0, 0], Z_UP @ R_root, atol=1e-12)
-    j = ds.body_names.index("LeftUpLeg")   # channels 10-12 of the second motion line
-    np.testing.assert_allclose(ds.extras["R_raw"][0, 0, j],
-                               Rotation.from_euler("ZYX", [-12.1131, -20.6462, -27.7235], degrees=True).as_matrix(),
-                               atol=1e-12)
-    assert ds.extras["p_raw"][0, 0, 0, 2] == pytest.approx(16.5423)   # hip height: z is up
+    j = ds.body_names.index("LeftUpLeg")  # channels 10-12 of the second motion line
+    np.testing.assert_allclose(
+        ds.extras["R_raw"][0, 0, j],
+        Rotation.from_euler("ZYX", [-12.1131, -20.6462, -27.7235], degrees=True).as_matrix(),
+        atol=1e-12,
+    )
+    assert ds.extras["p_raw"][0, 0, 0, 2] == pytest.approx(16.5423)  # hip height: z is up
 
 
 def test_round_trip_and_cache(imported, tmp_path):
     ds, path = imported
-    again, path2 = get_dataset(cfg(), path.parent)           # loads the cached file
+    again, path2 = get_dataset(cfg(), path.parent)  # loads the cached file
     assert path2 == path
     out = save_dataset(again, tmp_path / "copy.h5")
     back = load_dataset(out)
@@ -185,8 +195,16 @@ def test_round_trip_and_cache(imported, tmp_path):
 
 def test_overlapping_split_needs_the_flag(imported, tmp_path):
     ds, _ = imported
-    bad = Dataset(R=ds.R, p=ds.p, h=ds.h, scene="x", body_names=ds.body_names, body_kinds=ds.body_kinds,
-                  params={}, split={"train": [0, 1], "test": [1]})
+    bad = Dataset(
+        R=ds.R,
+        p=ds.p,
+        h=ds.h,
+        scene="x",
+        body_names=ds.body_names,
+        body_kinds=ds.body_kinds,
+        params={},
+        split={"train": [0, 1], "test": [1]},
+    )
     with pytest.raises(DatasetError, match="split_overlap"):
         save_dataset(bad, tmp_path / "bad.h5")
     bad.params = {"split_overlap": True}
@@ -201,7 +219,7 @@ def test_skeleton_points_reproduce_forward_kinematics(imported):
     pts, edges = skeleton_points(ds.extras["R_raw"][0, :5], ds.extras["p_raw"][0, :5], ds.params["skeleton"])
     np.testing.assert_allclose(pts[:, :23], pw[1:6, idx] @ Z_UP.T, atol=1e-10)
     assert pts.shape[1] == 23 + len(ds.params["skeleton"]["points"]) and len(edges) == pts.shape[1] - 1
-    toe = b.names.index("LeftToeBase")                           # dropped joint, kept as a drawing point
+    toe = b.names.index("LeftToeBase")  # dropped joint, kept as a drawing point
     k = 23 + [p for p, _ in ds.params["skeleton"]["points"]].index(ds.body_names.index("LeftFoot"))
     np.testing.assert_allclose(pts[:, k], pw[1:6, toe] @ Z_UP.T, atol=1e-10)
 
@@ -212,7 +230,7 @@ def test_recording_discrepancy_numbers(imported):
     d = recording_discrepancy(ds)
     assert d["root_rot"] == pytest.approx(1.535, abs=2e-3)
     assert d["joint_rot"] == pytest.approx(0.338, abs=2e-3)
-    assert d["root_pos"] == pytest.approx(6.645, abs=5e-3)          # from each start position
+    assert d["root_pos"] == pytest.approx(6.645, abs=5e-3)  # from each start position
     assert d["root_pos_m"] == pytest.approx(d["root_pos"] * ASF_UNIT_M)
     raw = recording_discrepancy(ds, raw=True)
     assert abs(raw["joint_rot"] - d["joint_rot"]) < 5e-3
@@ -220,8 +238,20 @@ def test_recording_discrepancy_numbers(imported):
 
 
 def test_options_subsample_scale_crop_no_smoothing():
-    ds = cmu_cartwheel(cfg(subsample=2, h=2 * 0.0083333, steps=100, train_steps=100, rollout_steps=100,
-                           length_scale=ASF_UNIT_M, z_up=False, smoothing=None, split="holdout", n_test=1))
+    ds = cmu_cartwheel(
+        cfg(
+            subsample=2,
+            h=2 * 0.0083333,
+            steps=100,
+            train_steps=100,
+            rollout_steps=100,
+            length_scale=ASF_UNIT_M,
+            z_up=False,
+            smoothing=None,
+            split="holdout",
+            n_test=1,
+        )
+    )
     assert ds.R.shape == (2, 101, 23, 3, 3)
     assert list(ds.train_idx) == [0] and list(ds.test_idx) == [1] and ds.params["split_overlap"] is False
     b = read_bvh(ROOT / "data" / "cmu_mocap" / "49_06.bvh")
@@ -230,18 +260,24 @@ def test_options_subsample_scale_crop_no_smoothing():
     np.testing.assert_array_equal(ds.R, ds.extras["R_raw"])
 
 
-@pytest.mark.parametrize("over,pattern", [
-    ({"n_trajectories": 3}, "n_trajectories=3 must equal the number of dataset.files"),
-    ({"smoothing": {"window": 50, "order": 6}}, "must be odd.*use 51"),
-    ({"steps": 480, "train_steps": 480, "rollout_steps": 480, "smoothing": None}, "49_07.bvh has 471 frames.*steps <= 470"),
-    ({"h": 0.01}, "dataset.h=0.01 does not match"),
-    ({"joints": ["LeftLeg"]}, "BVH parent 'LeftUpLeg' of joint 'LeftLeg' is not selected"),
-    ({"skip_frame": 1}, "unknown key"),
-    ({"split": "random"}, "dataset.split"),
-    ({"files": []}, "dataset.files"),
-    ({"length_scale": 0}, "length_scale"),
-    ({"import_version": 0}, "import_version=0"),
-])
+@pytest.mark.parametrize(
+    "over,pattern",
+    [
+        ({"n_trajectories": 3}, "n_trajectories=3 must equal the number of dataset.files"),
+        ({"smoothing": {"window": 50, "order": 6}}, "must be odd.*use 51"),
+        (
+            {"steps": 480, "train_steps": 480, "rollout_steps": 480, "smoothing": None},
+            "49_07.bvh has 471 frames.*steps <= 470",
+        ),
+        ({"h": 0.01}, "dataset.h=0.01 does not match"),
+        ({"joints": ["LeftLeg"]}, "BVH parent 'LeftUpLeg' of joint 'LeftLeg' is not selected"),
+        ({"skip_frame": 1}, "unknown key"),
+        ({"split": "random"}, "dataset.split"),
+        ({"files": []}, "dataset.files"),
+        ({"length_scale": 0}, "length_scale"),
+        ({"import_version": 0}, "import_version=0"),
+    ],
+)
 def test_config_errors(over, pattern):
     with pytest.raises(ConfigError, match=pattern):
         cmu_cartwheel(cfg(**over))

@@ -1,5 +1,6 @@
 """Two-body scene (SE(3) x SO(3)): ground-truth physics, invariants, data layout and the discrete
 scheme with the true parameters (fast == generic residual, O(h^3) residual, O(h^2) rollout)."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -35,8 +36,9 @@ def config(**over) -> dict:
 def physics(kind: str, g: float = 9.81, D: float = 0.0) -> dict:
     """Physics of the two_body scene with interaction `kind` (geometry kept apart from singularities)."""
     c = config()
-    c["interaction"].update(kind=kind, mu={"spring": 10.0, "newton": 2.0, "dipole": 0.05}.get(kind, 3.0),
-                            moment2=[1.0, 0.0, 0.0])
+    c["interaction"].update(
+        kind=kind, mu={"spring": 10.0, "newton": 2.0, "dipole": 0.05}.get(kind, 3.0), moment2=[1.0, 0.0, 0.0]
+    )
     c["physics"]["g"], c["physics"]["D"] = g, [D] * 9
     return two_body_physics(c)
 
@@ -75,13 +77,19 @@ def test_interaction_values_by_hand():
     Rz = so3.exp(torch.tensor([0.0, 0.0, 0.5], dtype=torch.float64))
     R[0, 1] = Rz
     g = Pose(R, torch.tensor([[[0.0, 0.0, -2.0]]], dtype=torch.float64))
-    kw = dict(r1=[0, 0, 0.5], r2=[0, 0, -1.0], moment1=[0, 0, 1.0], moment2=[0, 0, 1.0], masses=[2.0, 3.0],
-              rhos=[[0, 0, 0], [0, 0, -1.0]])
-    V = lambda kind, mu=1.5: float(InteractionPotential(Gp, kind, mu, **kw)(g))  # noqa: E731
-    assert V("spring") == pytest.approx(0.5 * 1.5 * 0.5**2)             # X1 = (0,0,-1.5), X2 = (0,0,-1)
+    kw = dict(
+        r1=[0, 0, 0.5],
+        r2=[0, 0, -1.0],
+        moment1=[0, 0, 1.0],
+        moment2=[0, 0, 1.0],
+        masses=[2.0, 3.0],
+        rhos=[[0, 0, 0], [0, 0, -1.0]],
+    )
+    V = lambda kind, mu=1.5: float(InteractionPotential(Gp, kind, mu, **kw)(g))
+    assert V("spring") == pytest.approx(0.5 * 1.5 * 0.5**2)  # X1 = (0,0,-1.5), X2 = (0,0,-1)
     assert V("relative_rotation") == pytest.approx(0.5 * 1.5 * 0.25)
     assert V("relative_rotation_trace") == pytest.approx(1.5 * (3 - (1 + 2 * np.cos(0.5))))
-    assert V("newton") == pytest.approx(-1.5 * 6.0 / 1.0)                 # c1 = (0,0,-2), c2 = (0,0,-1)
+    assert V("newton") == pytest.approx(-1.5 * 6.0 / 1.0)  # c1 = (0,0,-2), c2 = (0,0,-1)
     # coaxial dipoles along e3 at distance 0.5: mu/r^3 (1 - 3) = -2 mu / r^3
     assert V("dipole") == pytest.approx(-2 * 1.5 / 0.5**3)
 
@@ -90,7 +98,9 @@ def test_interaction_values_by_hand():
 def test_energy_conserved_without_damping(kind):
     system = two_body_system(physics(kind))
     R0, p0, xi0 = initial(system, 2)
-    sim = simulate_multibody(system, R0, p0, xi0, 0.05 * np.arange(41), {"method": "RK45", "rtol": 1e-10, "atol": 1e-12})
+    sim = simulate_multibody(
+        system, R0, p0, xi0, 0.05 * np.arange(41), {"method": "RK45", "rtol": 1e-10, "atol": 1e-12}
+    )
     E = system.energy(sim.R, sim.p, sim.w)
     assert np.ptp(system.kinetic(sim.w)) > 1e-2  # the bodies do exchange energy with the potential
     np.testing.assert_allclose(E, E[:, :1] * np.ones_like(E), rtol=0, atol=1e-8 * np.abs(E).max())
@@ -154,8 +164,11 @@ def test_two_body_scene_layout_and_roundtrip(tmp_path):
     # the true-parameter scheme is built from the file alone and nearly solves the data
     ref = true_model(back)
     traj = back.pose()
-    r = ref.residual(traj.index((slice(None), slice(0, -2))), traj.index((slice(None), slice(1, -1))),
-                     traj.index((slice(None), slice(2, None))))
+    r = ref.residual(
+        traj.index((slice(None), slice(0, -2))),
+        traj.index((slice(None), slice(1, -1))),
+        traj.index((slice(None), slice(2, None))),
+    )
     assert r.abs().max() < 5e-3
 
 
@@ -175,7 +188,7 @@ def test_two_body_config_errors():
 # ------------------------------------------------------------------ discrete scheme, true parameters
 def random_triplet(n=5, step=0.08, seed=0):
     gen = torch.Generator().manual_seed(seed)
-    rnd = lambda *s: torch.randn(*s, generator=gen, dtype=torch.float64)  # noqa: E731
+    rnd = lambda *s: torch.randn(*s, generator=gen, dtype=torch.float64)
     g0 = Pose(so3.exp(0.5 * rnd(n, 2, 3)), torch.tensor([0.0, 0.0, -2.6], dtype=torch.float64) + 0.2 * rnd(n, 1, 3))
     g1 = G.retract(g0, step * rnd(n, G.dim))
     return g0, g1, G.retract(g1, step * rnd(n, G.dim))
@@ -206,9 +219,11 @@ def test_residual_is_third_order_on_two_body():
     hs, res = (0.04, 0.02, 0.01), []
     for h in hs:
         traj = exact(ph, h, 0.4)
-        r = physics_model(G, h, ph).residual(traj.index((slice(None), slice(0, -2))),
-                                             traj.index((slice(None), slice(1, -1))),
-                                             traj.index((slice(None), slice(2, None))))
+        r = physics_model(G, h, ph).residual(
+            traj.index((slice(None), slice(0, -2))),
+            traj.index((slice(None), slice(1, -1))),
+            traj.index((slice(None), slice(2, None))),
+        )
         res.append(float(r.abs().max()))
     order = np.polyfit(np.log(hs), np.log(res), 1)[0]
     assert 2.7 < order < 3.3, (res, order)
@@ -219,8 +234,14 @@ def test_rollout_is_second_order_on_two_body():
     hs, errs = (0.04, 0.02, 0.01), []
     for h in hs:
         traj = exact(ph, h, 0.8)
-        ro = rollout_discrete(physics_model(G, h, ph), traj.index((slice(None), 0)), traj.index((slice(None), 1)),
-                              traj.R.shape[1] - 1, tol=1e-12, max_iter=20)
+        ro = rollout_discrete(
+            physics_model(G, h, ph),
+            traj.index((slice(None), 0)),
+            traj.index((slice(None), 1)),
+            traj.R.shape[1] - 1,
+            tol=1e-12,
+            max_iter=20,
+        )
         assert ro.n_failed == 0
         e = torch.linalg.matrix_norm(ro.pose.R[:, -1] - traj.R[:, -1]).max()
         e = max(float(e), float(torch.linalg.vector_norm(ro.pose.p[:, -1] - traj.p[:, -1], dim=-1).max()))
@@ -228,4 +249,3 @@ def test_rollout_is_second_order_on_two_body():
         assert float(so3.orthogonality_error(ro.pose.R).max()) < 1e-12
     order = np.polyfit(np.log(hs), np.log(errs), 1)[0]
     assert 1.8 < order < 2.2, (errs, order)
-

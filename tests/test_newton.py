@@ -1,7 +1,8 @@
 """Batched damped Newton and the rollout loop: convergence, flags, hard cases."""
+
 import torch
 
-from liedfl_cli.lie import SO3, SE3, Pose, so3
+from liedfl_cli.lie import SE3, SO3, Pose, so3
 from liedfl_cli.models.truth import physics_model
 from liedfl_cli.solvers.newton import damped_newton, jacobian
 from liedfl_cli.solvers.rollout import rollout_discrete
@@ -36,7 +37,7 @@ def test_newton_reports_non_convergence():
 
 
 def test_newton_keeps_going_when_a_row_has_no_root():
-    f = lambda x: torch.cat((x[:1] ** 2 + 1.0, x[1:] - 2.0))  # row 0: no real root  # noqa: E731
+    f = lambda x: torch.cat((x[:1] ** 2 + 1.0, x[1:] - 2.0))  # row 0: no real root
     sol = damped_newton(f, torch.ones(2, 1, dtype=torch.float64), tol=1e-10, max_iter=10)
     assert not sol.converged[0] and sol.converged[1]
     assert torch.isfinite(sol.xi).all()
@@ -45,7 +46,9 @@ def test_newton_keeps_going_when_a_row_has_no_root():
 
 def _so3_start(n=3, seed=0):
     gen = torch.Generator().manual_seed(seed)
-    g0 = Pose(so3.exp(torch.randn(n, 1, 3, generator=gen, dtype=torch.float64)), torch.zeros(n, 0, 3, dtype=torch.float64))
+    g0 = Pose(
+        so3.exp(torch.randn(n, 1, 3, generator=gen, dtype=torch.float64)), torch.zeros(n, 0, 3, dtype=torch.float64)
+    )
     g1 = SO3.retract(g0, 0.1 * torch.randn(n, 3, generator=gen, dtype=torch.float64))
     return g0, g1
 
@@ -58,8 +61,9 @@ def test_rollout_solves_residual_and_stays_on_so3_over_long_horizon():
     assert so3.orthogonality_error(ro.pose.R).max() < 1e-12
     assert (torch.linalg.det(ro.pose.R) - 1).abs().max() < 1e-12
     k = 500
-    r = model.residual(ro.pose.index((slice(None), k - 1)), ro.pose.index((slice(None), k)),
-                       ro.pose.index((slice(None), k + 1)))
+    r = model.residual(
+        ro.pose.index((slice(None), k - 1)), ro.pose.index((slice(None), k)), ro.pose.index((slice(None), k + 1))
+    )
     assert r.abs().max() < 1e-10
     # free, undamped body: spatial angular momentum R J w is conserved by the variational scheme
     J = model.inertia.J()[0]
@@ -82,7 +86,10 @@ def test_rollout_flags_non_converged_steps():
 def test_se3_rollout_stays_on_group():
     model = physics_model(SE3, 0.05, {**PHYS, "D": [0.1, 0.1, 0.1, 0, 0, 0]})
     gen = torch.Generator().manual_seed(3)
-    g0 = Pose(so3.exp(torch.randn(4, 1, 3, generator=gen, dtype=torch.float64)), torch.randn(4, 1, 3, generator=gen, dtype=torch.float64))
+    g0 = Pose(
+        so3.exp(torch.randn(4, 1, 3, generator=gen, dtype=torch.float64)),
+        torch.randn(4, 1, 3, generator=gen, dtype=torch.float64),
+    )
     g1 = SE3.retract(g0, 0.05 * torch.randn(4, 6, generator=gen, dtype=torch.float64))
     ro = rollout_discrete(model, g0, g1, steps=200)
     assert ro.converged.all()

@@ -1,4 +1,5 @@
 """Ground-truth rigid-body simulators: conservation laws, dissipation, signs and the paper's formulas."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -107,7 +108,12 @@ def test_se3_centre_of_mass_falls_freely_from_rhs():
     rng = np.random.default_rng(3)
     body = RigidBodySE3(J=rand_spd(rng, 3), m=0.5, rho=RHO, g=9.81)
     n = 16
-    R, p, w, v = rand_rot(rng, n), rng.standard_normal((n, 3)), 3 * rng.standard_normal((n, 3)), rng.standard_normal((n, 3))
+    R, p, w, v = (
+        rand_rot(rng, n),
+        rng.standard_normal((n, 3)),
+        3 * rng.standard_normal((n, 3)),
+        rng.standard_normal((n, 3)),
+    )
     wdot, vdot = body.accelerations(R, p, w, v)
     rho = np.asarray(RHO)
     inner = np.cross(w, np.cross(w, rho) + v) + np.cross(wdot, rho) + vdot
@@ -123,8 +129,14 @@ def test_energy_rate_equals_power(kind):
     R, w = rand_rot(rng, n), rng.standard_normal((n, 3))
     K = rng.standard_normal(3)
     if kind == "so3":
-        body = RigidBodySO3(J=rand_spd(rng, 3), m=0.5, rho=RHO, g=9.81, D=rand_spd(rng, 3, 0.0),
-                            tau_extra=lambda R, w: np.cross(R[..., 2, :], K))
+        body = RigidBodySO3(
+            J=rand_spd(rng, 3),
+            m=0.5,
+            rho=RHO,
+            g=9.81,
+            D=rand_spd(rng, 3, 0.0),
+            tau_extra=lambda R, w: np.cross(R[..., 2, :], K),
+        )
         y = body.pack(R, w)
 
         def E(Y):
@@ -182,7 +194,7 @@ def test_stacked_integration_matches_single_trajectories():
     R0, w0, t = rand_rot(rng, 4), 2 * rng.standard_normal((4, 3)), times(0.05, 40)
     both = simulate_so3(body, R0, w0, t)
     for i in range(4):
-        one = simulate_so3(body, R0[i:i + 1], w0[i:i + 1], t)
+        one = simulate_so3(body, R0[i : i + 1], w0[i : i + 1], t)
         np.testing.assert_allclose(one.R[0], both.R[i], atol=1e-8)
 
 
@@ -202,10 +214,11 @@ def test_free_so3_body_conserves_angular_momentum():
     rng = np.random.default_rng(8)
     body = RigidBodySO3(J=J_PAPER)
     sim = simulate_so3(body, rand_rot(rng, 6), 2 * rng.standard_normal((6, 3)), times(0.1, 100))
-    L_body = sim.w * np.asarray(J_PAPER)                      # J w in the body frame
-    L_space = (sim.R @ L_body[..., None])[..., 0]             # R J w in the world frame
-    np.testing.assert_allclose(np.linalg.norm(L_body, axis=-1),
-                               np.linalg.norm(L_body[:, :1], axis=-1).repeat(101, 1), rtol=1e-8)
+    L_body = sim.w * np.asarray(J_PAPER)  # J w in the body frame
+    L_space = (sim.R @ L_body[..., None])[..., 0]  # R J w in the world frame
+    np.testing.assert_allclose(
+        np.linalg.norm(L_body, axis=-1), np.linalg.norm(L_body[:, :1], axis=-1).repeat(101, 1), rtol=1e-8
+    )
     np.testing.assert_allclose(L_space, np.broadcast_to(L_space[:, :1], L_space.shape), atol=1e-8)
 
 
@@ -213,12 +226,18 @@ def test_se3_energy_conserved_and_centre_of_mass_parabola_without_damping():
     rng = np.random.default_rng(9)
     body = RigidBodySE3(J=J_PAPER, m=0.5, rho=RHO, g=9.81)
     n, h = 6, 0.05
-    sim = simulate_se3(body, rand_rot(rng, n), rng.standard_normal((n, 3)), rng.standard_normal((n, 3)),
-                       rng.standard_normal((n, 3)), times(h, 60))
+    sim = simulate_se3(
+        body,
+        rand_rot(rng, n),
+        rng.standard_normal((n, 3)),
+        rng.standard_normal((n, 3)),
+        rng.standard_normal((n, 3)),
+        times(h, 60),
+    )
     E = body.energy(sim.R, sim.p, sim.w, sim.v)
     assert np.abs(E - E[:, :1]).max() < 1e-8 * (np.abs(E).max() + 1.0)
     c = body.centre_of_mass(sim.R, sim.p)
-    acc = (c[:, 2:] - 2 * c[:, 1:-1] + c[:, :-2]) / h**2     # exact for a parabola up to rounding
+    acc = (c[:, 2:] - 2 * c[:, 1:-1] + c[:, :-2]) / h**2  # exact for a parabola up to rounding
     np.testing.assert_allclose(acc, np.broadcast_to([0, 0, -9.81], acc.shape), atol=1e-5)
 
 
@@ -233,16 +252,27 @@ def test_energy_strictly_decreases_with_damping_so3():
 def test_energy_strictly_decreases_with_damping_se3():
     rng = np.random.default_rng(11)
     body = RigidBodySE3(J=J_PAPER, m=0.5, rho=RHO, g=9.81, D=[0.1, 0.1, 0.1, 0.0, 0.0, 0.0])
-    sim = simulate_se3(body, rand_rot(rng, 6), rng.standard_normal((6, 3)), 1 + rng.standard_normal((6, 3)),
-                       rng.standard_normal((6, 3)), times(0.05, 100))
+    sim = simulate_se3(
+        body,
+        rand_rot(rng, 6),
+        rng.standard_normal((6, 3)),
+        1 + rng.standard_normal((6, 3)),
+        rng.standard_normal((6, 3)),
+        times(0.05, 100),
+    )
     assert (np.diff(body.energy(sim.R, sim.p, sim.w, sim.v), axis=1) < 0).all()
 
 
 def test_rk45_and_dop853_agree():
     rng = np.random.default_rng(12)
     body = RigidBodySE3(J=J_PAPER, m=0.5, rho=RHO, g=9.81, D=[0.1, 0.1, 0.1, 0, 0, 0])
-    args = (rand_rot(rng, 4), rng.standard_normal((4, 3)), rng.standard_normal((4, 3)), rng.standard_normal((4, 3)),
-            times(0.05, 40))
+    args = (
+        rand_rot(rng, 4),
+        rng.standard_normal((4, 3)),
+        rng.standard_normal((4, 3)),
+        rng.standard_normal((4, 3)),
+        times(0.05, 40),
+    )
     a = simulate_se3(body, *args, solver={"method": "RK45", "rtol": 1e-10, "atol": 1e-12})
     b = simulate_se3(body, *args, solver=SolverOptions("DOP853", 1e-12, 1e-13))
     np.testing.assert_allclose(a.R, b.R, atol=1e-8)
@@ -253,5 +283,10 @@ def test_drift_beyond_threshold_raises():
     rng = np.random.default_rng(13)
     body = RigidBodySO3(J=J_PAPER)
     with pytest.raises(SimulationError, match="drifted off SO"):
-        simulate_so3(body, rand_rot(rng, 2), 3 * rng.standard_normal((2, 3)), times(0.1, 100),
-                     solver={"method": "RK45", "rtol": 1e-3, "atol": 1e-6})
+        simulate_so3(
+            body,
+            rand_rot(rng, 2),
+            3 * rng.standard_normal((2, 3)),
+            times(0.1, 100),
+            solver={"method": "RK45", "rtol": 1e-3, "atol": 1e-6},
+        )

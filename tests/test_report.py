@@ -1,8 +1,8 @@
 """`liedfl report` over a small real sweep contains every run and writes its figures."""
+
 import csv
 import subprocess
 import sys
-from pathlib import Path
 
 
 def _liedfl(args, cwd):
@@ -10,8 +10,10 @@ def _liedfl(args, cwd):
 
 
 def test_report_over_small_sweep(tmp_path):
-    r = _liedfl(["train", "-m", "budget=smoke", "ui.progress=false", "eval.plots=false",
-                 "dataset.train_steps=4,8", "seed=0,1"], tmp_path)
+    r = _liedfl(
+        ["train", "-m", "budget=smoke", "ui.progress=false", "eval.plots=false", "dataset.train_steps=4,8", "seed=0,1"],
+        tmp_path,
+    )
     assert r.returncode == 0, r.stderr[-2000:]
     sweeps = list((tmp_path / "outputs" / "multirun").iterdir())
     assert len(sweeps) == 1

@@ -1,4 +1,5 @@
 """The closed-form fast paths equal the generic autodiff residual; regularity blocks agree."""
+
 import pytest
 import torch
 
@@ -12,7 +13,7 @@ GROUPS = [ProductGroup(0, 1), ProductGroup(1, 0), ProductGroup(1, 2), ProductGro
 
 def random_triplet(G, n=6, step=0.2, seed=0):
     gen = torch.Generator().manual_seed(seed)
-    rnd = lambda *s: torch.randn(*s, generator=gen, dtype=torch.float64)  # noqa: E731
+    rnd = lambda *s: torch.randn(*s, generator=gen, dtype=torch.float64)
     g0 = Pose(so3.exp(rnd(n, G.n_bodies, 3)), rnd(n, G.n_se3, 3))
     g1 = G.retract(g0, step * rnd(n, G.dim))
     g2 = G.retract(g1, step * rnd(n, G.dim))
@@ -72,7 +73,7 @@ def test_kinetic_derivatives_match_finite_differences(G):
     inc = G.increment(g0, g1)
     d1 = kinetic.kinetic_d1(G, inc, Jd, m, rho, model.h)
     d2 = kinetic.kinetic_d2(G, inc, Jd, m, rho, model.h)
-    K = lambda a, b: kinetic.kinetic_lagrangian(G, G.increment(G.retract(g0, a), G.retract(g1, b)), Jd, m, rho, model.h)  # noqa: E731
+    K = lambda a, b: kinetic.kinetic_lagrangian(G, G.increment(G.retract(g0, a), G.retract(g1, b)), Jd, m, rho, model.h)
     eps = 1e-6
     for i in range(G.dim):
         e = torch.zeros(2, G.dim, dtype=torch.float64)

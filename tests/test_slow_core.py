@@ -1,4 +1,5 @@
 """Slow tier: the issue's full-budget runs (minutes each). Run with `pytest -m slow`."""
+
 import json
 from pathlib import Path
 
@@ -13,8 +14,15 @@ pytestmark = pytest.mark.slow
 
 def _run(tmp_path, overrides):
     with initialize_config_dir(config_dir=CONF, version_base="1.3"):
-        cfg = compose("train", overrides=[*overrides, "ui.progress=false", f"paths.data_dir={tmp_path}/data",
-                                          f"paths.output_dir={tmp_path}/run"])
+        cfg = compose(
+            "train",
+            overrides=[
+                *overrides,
+                "ui.progress=false",
+                f"paths.data_dir={tmp_path}/data",
+                f"paths.output_dir={tmp_path}/run",
+            ],
+        )
     return run_train(cfg)
 
 

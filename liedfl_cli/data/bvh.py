@@ -21,13 +21,14 @@ t = OFFSET + (position channels, zero where absent), so world poses follow by `f
 Both CRLF and LF line endings (also mixed) are accepted.  Every problem raises `DatasetError` with a
 one-line message naming the file and the line (and value column) or field.
 """
+
 from __future__ import annotations
 
 import math
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional, Sequence, Union
 
 import numpy as np
 
@@ -44,12 +45,12 @@ _LINE_BREAK = re.compile(r"\r\n|\r|\n")
 class BVH:
     """Content of a BVH file.  Joints are numbered in file (depth-first) order, the root is joint 0."""
 
-    names: list[str]                     # joint names, (J,)
-    parents: list[int]                   # parent index of each joint, -1 for the root
-    offsets: np.ndarray                  # (J, 3) OFFSET of each joint in its parent's frame (file units)
-    channels: list[tuple[str, ...]]      # channel names of each joint, in file order
-    frame_time: float                    # seconds between frames
-    frames: np.ndarray                   # (F, C) channel values, C = sum of len(channels)
+    names: list[str]  # joint names, (J,)
+    parents: list[int]  # parent index of each joint, -1 for the root
+    offsets: np.ndarray  # (J, 3) OFFSET of each joint in its parent's frame (file units)
+    channels: list[tuple[str, ...]]  # channel names of each joint, in file order
+    frame_time: float  # seconds between frames
+    frames: np.ndarray  # (F, C) channel values, C = sum of len(channels)
     end_sites: list[tuple[int, np.ndarray]] = field(default_factory=list)  # (joint index, OFFSET (3,))
     source: str = "<string>"
 
@@ -74,8 +75,9 @@ class BVH:
         try:
             return self.names.index(name)
         except ValueError:
-            raise DatasetError(f"{self.source}: joint {name!r} is not in the hierarchy "
-                               f"(joints: {', '.join(self.names)})") from None
+            raise DatasetError(
+                f"{self.source}: joint {name!r} is not in the hierarchy (joints: {', '.join(self.names)})"
+            ) from None
 
     def children(self, j: int) -> list[int]:
         return [i for i, p in enumerate(self.parents) if p == j]
@@ -91,13 +93,13 @@ class BVH:
         cols = [s + i for i, c in enumerate(self.channels[j]) if c in ROTATION_CHANNELS]
         return self.frames[:, cols]
 
-    def local_rotations(self, joints: Optional[Sequence[int]] = None) -> np.ndarray:
+    def local_rotations(self, joints: Sequence[int] | None = None) -> np.ndarray:
         """(F, len(joints), 3, 3) local rotation matrices (all joints by default)."""
         joints = range(self.n_joints) if joints is None else joints
         out = [euler_to_matrix(self.euler_angles(j), self.rotation_order(j)) for j in joints]
         return np.stack(out, axis=1) if out else np.zeros((self.n_frames, 0, 3, 3))
 
-    def local_translations(self, joints: Optional[Sequence[int]] = None) -> np.ndarray:
+    def local_translations(self, joints: Sequence[int] | None = None) -> np.ndarray:
         """(F, len(joints), 3) translation of each joint in its parent's frame: OFFSET + position channels."""
         joints = range(self.n_joints) if joints is None else joints
         out = np.zeros((self.n_frames, len(joints), 3))
@@ -211,15 +213,17 @@ class _Tokens:
         self._fill()
         return self.line_no
 
-    def peek(self) -> Optional[str]:
+    def peek(self) -> str | None:
         self._fill()
         return self.items[self.pos] if self.pos < len(self.items) else None
 
     def next(self, what: str) -> str:
         tok = self.peek()
         if tok is None:
-            raise DatasetError(f"{self.source}: file is truncated: reached the end of the file while reading "
-                               f"{what} in the HIERARCHY section")
+            raise DatasetError(
+                f"{self.source}: file is truncated: reached the end of the file while reading "
+                f"{what} in the HIERARCHY section"
+            )
         self.pos += 1
         return tok
 
@@ -242,7 +246,7 @@ class _Tokens:
 
     def rest_of_line(self) -> list[str]:
         """Remaining tokens on the line of the last consumed token (consumed; may be empty)."""
-        out = self.items[self.pos:]
+        out = self.items[self.pos :]
         self.pos = len(self.items)
         return out
 
@@ -253,7 +257,9 @@ def _parse_channels(tok: _Tokens, joint: str) -> tuple[str, ...]:
     try:
         n = int(n_text)
     except ValueError:
-        raise DatasetError(f"{tok.source}: line {line}: joint {joint!r}: CHANNELS count {n_text!r} is not an integer") from None
+        raise DatasetError(
+            f"{tok.source}: line {line}: joint {joint!r}: CHANNELS count {n_text!r} is not an integer"
+        ) from None
     if not 0 <= n <= 6:
         raise DatasetError(f"{tok.source}: line {line}: joint {joint!r}: CHANNELS count {n} must be between 0 and 6")
     chans = []
@@ -261,11 +267,15 @@ def _parse_channels(tok: _Tokens, joint: str) -> tuple[str, ...]:
         line = tok.current_line
         c = tok.next(f"the channels of joint {joint!r}")
         if c not in CHANNEL_NAMES:
-            raise DatasetError(f"{tok.source}: line {line}: joint {joint!r}: unknown channel name {c!r} "
-                               f"(expected one of {', '.join(CHANNEL_NAMES)})")
+            raise DatasetError(
+                f"{tok.source}: line {line}: joint {joint!r}: unknown channel name {c!r} "
+                f"(expected one of {', '.join(CHANNEL_NAMES)})"
+            )
         if c in chans:
-            raise DatasetError(f"{tok.source}: line {line}: joint {joint!r}: channel order {' '.join(chans + [c])} "
-                               f"repeats {c!r}; each channel may appear once")
+            raise DatasetError(
+                f"{tok.source}: line {line}: joint {joint!r}: channel order {' '.join(chans + [c])} "
+                f"repeats {c!r}; each channel may appear once"
+            )
         chans.append(c)
     return tuple(chans)
 
@@ -333,8 +343,9 @@ def parse_bvh(text: str, source: str = "<string>") -> BVH:
                 end_sites.append((j, _parse_offset(tok, f"the End Site of joint {name!r}")))
                 tok.expect("}", f"closing the End Site of joint {name!r}")
             else:
-                raise DatasetError(f"{source}: line {line}: unexpected {kw!r} in joint {name!r} "
-                                   f"(expected JOINT, End Site or '}}')")
+                raise DatasetError(
+                    f"{source}: line {line}: unexpected {kw!r} in joint {name!r} (expected JOINT, End Site or '}}')"
+                )
 
     joint(-1)
 
@@ -360,7 +371,7 @@ def parse_bvh(text: str, source: str = "<string>") -> BVH:
         ln = lines[i].strip()
         if not ln.startswith(label):
             raise DatasetError(f"{source}: line {i + 1}: expected '{label} <value>', found {ln[:40]!r}")
-        return ln[len(label):].strip(), i + 1
+        return ln[len(label) :].strip(), i + 1
 
     value, i = header("Frames:", i)
     try:
@@ -368,7 +379,9 @@ def parse_bvh(text: str, source: str = "<string>") -> BVH:
         if n_frames < 0:
             raise ValueError
     except ValueError:
-        raise DatasetError(f"{source}: line {i}: field 'Frames' must be a non-negative integer, got {value!r}") from None
+        raise DatasetError(
+            f"{source}: line {i}: field 'Frames' must be a non-negative integer, got {value!r}"
+        ) from None
     value, i = header("Frame Time:", i)
     try:
         frame_time = float(value)
@@ -381,15 +394,19 @@ def parse_bvh(text: str, source: str = "<string>") -> BVH:
     body = [(k + 1, ln) for k, ln in enumerate(lines[i:], start=i) if ln.strip()]
     if len(body) != n_frames:
         hint = " (file truncated?)" if len(body) < n_frames else ""
-        raise DatasetError(f"{source}: field 'Frames' declares {n_frames} frames but the MOTION section has "
-                           f"{len(body)} lines of values{hint}")
+        raise DatasetError(
+            f"{source}: field 'Frames' declares {n_frames} frames but the MOTION section has "
+            f"{len(body)} lines of values{hint}"
+        )
     frames = np.empty((n_frames, n_chan))
     for f, (line_no, ln) in enumerate(body):
         vals = ln.split()
         if len(vals) != n_chan:
             hint = " (file truncated?)" if f == n_frames - 1 and len(vals) < n_chan else ""
-            raise DatasetError(f"{source}: line {line_no} (frame {f}): {len(vals)} values, but the hierarchy "
-                               f"declares {n_chan} channels{hint}")
+            raise DatasetError(
+                f"{source}: line {line_no} (frame {f}): {len(vals)} values, but the hierarchy "
+                f"declares {n_chan} channels{hint}"
+            )
         try:
             frames[f] = np.array(vals, dtype=np.float64)
         except ValueError:
@@ -397,16 +414,28 @@ def parse_bvh(text: str, source: str = "<string>") -> BVH:
                 try:
                     float(v)
                 except ValueError:
-                    raise DatasetError(f"{source}: line {line_no} (frame {f}), column {col + 1} "
-                                       f"(channel {_channel_label(names, channels, col)}): {v!r} is not a number") from None
+                    raise DatasetError(
+                        f"{source}: line {line_no} (frame {f}), column {col + 1} "
+                        f"(channel {_channel_label(names, channels, col)}): {v!r} is not a number"
+                    ) from None
             raise  # pragma: no cover
         bad = ~np.isfinite(frames[f])
         if bad.any():
             col = int(np.argmax(bad))
-            raise DatasetError(f"{source}: line {line_no} (frame {f}), column {col + 1} "
-                               f"(channel {_channel_label(names, channels, col)}): {vals[col]!r} is not finite")
-    return BVH(names=names, parents=parents, offsets=np.array(offsets).reshape(-1, 3), channels=channels,
-               frame_time=frame_time, frames=frames, end_sites=end_sites, source=source)
+            raise DatasetError(
+                f"{source}: line {line_no} (frame {f}), column {col + 1} "
+                f"(channel {_channel_label(names, channels, col)}): {vals[col]!r} is not finite"
+            )
+    return BVH(
+        names=names,
+        parents=parents,
+        offsets=np.array(offsets).reshape(-1, 3),
+        channels=channels,
+        frame_time=frame_time,
+        frames=frames,
+        end_sites=end_sites,
+        source=source,
+    )
 
 
 def _channel_label(names, channels, col: int) -> str:
@@ -417,7 +446,7 @@ def _channel_label(names, channels, col: int) -> str:
     return "?"  # pragma: no cover
 
 
-def read_bvh(path: Union[str, Path]) -> BVH:
+def read_bvh(path: str | Path) -> BVH:
     """Read and parse a BVH file (see `parse_bvh`)."""
     path = Path(path)
     if not path.is_file():
@@ -433,5 +462,14 @@ def read_bvh(path: Union[str, Path]) -> BVH:
     return parse_bvh(text, str(path))
 
 
-__all__ = ["BVH", "read_bvh", "parse_bvh", "euler_to_matrix", "axis_rotation", "forward_kinematics",
-           "ROTATION_CHANNELS", "POSITION_CHANNELS", "CHANNEL_NAMES"]
+__all__ = [
+    "BVH",
+    "read_bvh",
+    "parse_bvh",
+    "euler_to_matrix",
+    "axis_rotation",
+    "forward_kinematics",
+    "ROTATION_CHANNELS",
+    "POSITION_CHANNELS",
+    "CHANNEL_NAMES",
+]

@@ -3,6 +3,7 @@
 Every error that reaches a user carries a one-line message that names the file (or config key),
 the offending field and, where there is one, the first offending index.
 """
+
 from __future__ import annotations
 
 

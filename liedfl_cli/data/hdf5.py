@@ -4,6 +4,7 @@ A dataset holds T trajectories of N+1 poses of a product group SE(3)^m x SO(3)^n
 R (T, N+1, B, 3, 3) with the m SE(3) bodies first, p (T, N+1, m, 3).  Models may only see R, p, t and
 h; `extras` (ground-truth velocities, torques, ...) are for evaluation only.
 """
+
 from __future__ import annotations
 
 import json
@@ -12,7 +13,7 @@ import warnings
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any
 
 import h5py
 import numpy as np
@@ -32,17 +33,17 @@ BODY_KINDS = ("se3", "so3")
 class Dataset:
     """Trajectories of a product group plus metadata (all arrays numpy, float64)."""
 
-    R: np.ndarray                      # (T, N+1, B, 3, 3)
-    p: np.ndarray                      # (T, N+1, m, 3)
+    R: np.ndarray  # (T, N+1, B, 3, 3)
+    p: np.ndarray  # (T, N+1, m, 3)
     h: float
     scene: str
     body_names: list[str]
-    body_kinds: list[str]              # "se3" bodies first, then "so3"
+    body_kinds: list[str]  # "se3" bodies first, then "so3"
     params: dict[str, Any] = field(default_factory=dict)
     seed: int = -1
     split: dict[str, np.ndarray] = field(default_factory=dict)
     extras: dict[str, np.ndarray] = field(default_factory=dict)
-    t: Optional[np.ndarray] = None     # (N+1,); defaults to h * arange(N+1)
+    t: np.ndarray | None = None  # (N+1,); defaults to h * arange(N+1)
 
     def __post_init__(self):
         self.R = np.asarray(self.R, dtype=np.float64)
@@ -100,18 +101,22 @@ class Dataset:
         if isinstance(traj_idx, str):
             traj_idx = self.split[traj_idx]
         R, p = (self.R, self.p) if traj_idx is None else (self.R[traj_idx], self.p[traj_idx])
-        return Pose(torch.as_tensor(np.ascontiguousarray(R), dtype=dtype, device=device),
-                    torch.as_tensor(np.ascontiguousarray(p), dtype=dtype, device=device))
+        return Pose(
+            torch.as_tensor(np.ascontiguousarray(R), dtype=dtype, device=device),
+            torch.as_tensor(np.ascontiguousarray(p), dtype=dtype, device=device),
+        )
 
-    def validate(self, source: str = "<in-memory dataset>") -> "Dataset":
+    def validate(self, source: str = "<in-memory dataset>") -> Dataset:
         """Run the load-time checks on this dataset (projects slightly-off rotations in place)."""
         self.R = _validate(self, source)
         return self
 
     def __repr__(self) -> str:
-        return (f"Dataset(scene={self.scene!r}, group={self.group.name}, T={self.n_trajectories}, "
-                f"N={self.n_steps}, h={self.h}, train={len(self.train_idx)}, test={len(self.test_idx)}, "
-                f"extras={sorted(self.extras)})")
+        return (
+            f"Dataset(scene={self.scene!r}, group={self.group.name}, T={self.n_trajectories}, "
+            f"N={self.n_steps}, h={self.h}, train={len(self.train_idx)}, test={len(self.test_idx)}, "
+            f"extras={sorted(self.extras)})"
+        )
 
 
 # ---------------------------------------------------------------------- writing
@@ -208,7 +213,9 @@ def load_dataset(path) -> Dataset:
         with h5py.File(path, "r") as f:
             version = _attr(f, "format_version", src)
             if not isinstance(version, int) or not 1 <= version <= FORMAT_VERSION:
-                raise DatasetError(f"{src}: attribute 'format_version' is {version!r}; this liedfl reads 1..{FORMAT_VERSION}")
+                raise DatasetError(
+                    f"{src}: attribute 'format_version' is {version!r}; this liedfl reads 1..{FORMAT_VERSION}"
+                )
             h = _attr(f, "h", src)
             kinds = _json_attr(f, "body_kinds", src)
             names = _json_attr(f, "body_names", src, required=False)
@@ -219,7 +226,9 @@ def load_dataset(path) -> Dataset:
             for key, expected in (("n_se3", kinds.count("se3")), ("n_so3", kinds.count("so3"))):
                 given = _attr(f, key, src, required=False)
                 if given is not None and given != expected:
-                    raise DatasetError(f"{src}: attribute '{key}' is {given} but 'body_kinds' lists {expected} such bodies")
+                    raise DatasetError(
+                        f"{src}: attribute '{key}' is {given} but 'body_kinds' lists {expected} such bodies"
+                    )
             scene = _attr(f, "scene", src, required=False, default=path.stem)
             params = _json_attr(f, "params", src, required=False, default={})
             seed = _attr(f, "seed", src, required=False, default=-1)
@@ -258,9 +267,19 @@ def load_dataset(path) -> Dataset:
         if not np.issubdtype(np.asarray(split[k]).dtype, np.integer):
             raise DatasetError(f"{src}: dataset 'split/{k}' must hold integers, got dtype {np.asarray(split[k]).dtype}")
     input_dtype = torch.float32 if R.dtype == np.float32 else torch.float64
-    ds = Dataset(R=R, p=p, h=float(h), scene=str(scene), body_names=list(names), body_kinds=list(kinds),
-                 params=params, seed=int(seed), split=split or {},
-                 extras=extras, t=None if t is None else _float_array(t, "t", src))
+    ds = Dataset(
+        R=R,
+        p=p,
+        h=float(h),
+        scene=str(scene),
+        body_names=list(names),
+        body_kinds=list(kinds),
+        params=params,
+        seed=int(seed),
+        split=split or {},
+        extras=extras,
+        t=None if t is None else _float_array(t, "t", src),
+    )
     if split is None and ds.R.ndim >= 1:
         ds.split = {"train": np.arange(ds.R.shape[0]), "test": np.zeros(0, dtype=np.int64)}
     ds.R = _validate(ds, src, input_dtype=input_dtype)
@@ -284,12 +303,16 @@ def _validate(ds: Dataset, src: str, project: bool = True, input_dtype: torch.dt
     kinds, names = ds.body_kinds, ds.body_names
     bad = [i for i, k in enumerate(kinds) if k not in BODY_KINDS]
     if bad:
-        raise DatasetError(f"{src}: attribute 'body_kinds' has unknown kind {kinds[bad[0]]!r} at index {bad[0]} (use 'se3' or 'so3')")
+        raise DatasetError(
+            f"{src}: attribute 'body_kinds' has unknown kind {kinds[bad[0]]!r} at index {bad[0]} (use 'se3' or 'so3')"
+        )
     if not kinds:
         raise DatasetError(f"{src}: attribute 'body_kinds' is empty; a dataset needs at least one body")
     order = [i for i in range(1, len(kinds)) if kinds[i] == "se3" and kinds[i - 1] == "so3"]
     if order:
-        raise DatasetError(f"{src}: attribute 'body_kinds' lists 'se3' after 'so3' at index {order[0]}; SE(3) bodies come first")
+        raise DatasetError(
+            f"{src}: attribute 'body_kinds' lists 'se3' after 'so3' at index {order[0]}; SE(3) bodies come first"
+        )
     if len(names) != len(kinds):
         raise DatasetError(f"{src}: attribute 'body_names' has {len(names)} entries but 'body_kinds' has {len(kinds)}")
     if not np.isfinite(ds.h) or ds.h <= 0:
@@ -298,7 +321,9 @@ def _validate(ds: Dataset, src: str, project: bool = True, input_dtype: torch.dt
 
     R, p = ds.R, ds.p
     if R.ndim != 5 or R.shape[2:] != (B, 3, 3):
-        raise DatasetError(f"{src}: dataset 'R' has shape {R.shape}, expected (T, N+1, {B}, 3, 3) for body_kinds {kinds}")
+        raise DatasetError(
+            f"{src}: dataset 'R' has shape {R.shape}, expected (T, N+1, {B}, 3, 3) for body_kinds {kinds}"
+        )
     T, N1 = R.shape[:2]
     if T < 1 or N1 < 2:
         raise DatasetError(f"{src}: dataset 'R' has shape {R.shape}; need at least 1 trajectory of at least 2 poses")
@@ -317,7 +342,9 @@ def _validate(ds: Dataset, src: str, project: bool = True, input_dtype: torch.dt
         off = np.abs(np.diff(t) - ds.h) > 1e-6 * ds.h
         if off.any():
             k = _first(off)[0]
-            raise DatasetError(f"{src}: dataset 't' is not evenly spaced by h={ds.h}: t[{k + 1}] - t[{k}] = {t[k + 1] - t[k]!r}")
+            raise DatasetError(
+                f"{src}: dataset 't' is not evenly spaced by h={ds.h}: t[{k + 1}] - t[{k}] = {t[k + 1] - t[k]!r}"
+            )
 
     if set(ds.split) != {"train", "test"}:
         raise DatasetError(f"{src}: 'split' must have exactly 'train' and 'test', got {sorted(ds.split)}")
@@ -328,7 +355,9 @@ def _validate(ds: Dataset, src: str, project: bool = True, input_dtype: torch.dt
         out = (idx < 0) | (idx >= T)
         if out.any():
             j = _first(out)[0]
-            raise DatasetError(f"{src}: dataset 'split/{k}' has index {int(idx[j])} out of range [0, {T}) at position {j}")
+            raise DatasetError(
+                f"{src}: dataset 'split/{k}' has index {int(idx[j])} out of range [0, {T}) at position {j}"
+            )
         uniq, counts = np.unique(idx, return_counts=True)
         if (counts > 1).any():
             raise DatasetError(f"{src}: dataset 'split/{k}' lists trajectory {int(uniq[counts > 1][0])} twice")
@@ -336,8 +365,10 @@ def _validate(ds: Dataset, src: str, project: bool = True, input_dtype: torch.dt
     overlap_ok = isinstance(ds.params, dict) and ds.params.get("split_overlap") is True  # reproduction data
     if both.any() and not overlap_ok:
         j = _first(both)[0]
-        raise DatasetError(f"{src}: dataset 'split/test' shares trajectory {int(ds.split['test'][j])} with 'split/train' "
-                           f"(at position {j}); splits must be disjoint (unless params['split_overlap'] is true)")
+        raise DatasetError(
+            f"{src}: dataset 'split/test' shares trajectory {int(ds.split['test'][j])} with 'split/train' "
+            f"(at position {j}); splits must be disjoint (unless params['split_overlap'] is true)"
+        )
     for k, v in ds.extras.items():
         v = np.asarray(v)
         if v.ndim < 1 or v.shape[0] != T:
@@ -354,7 +385,8 @@ def _validate(ds: Dataset, src: str, project: bool = True, input_dtype: torch.dt
         i = _first(gross)
         raise DatasetError(
             f"{src}: dataset 'R' is not a rotation at index {i} (trajectory, sample, body): "
-            f"||R^T R - I||_F = {err[i]:.3g}, det R = {np.linalg.det(R[i]):.6g} (reject tolerance {reject_tol:g})")
+            f"||R^T R - I||_F = {err[i]:.3g}, det R = {np.linalg.det(R[i]):.6g} (reject tolerance {reject_tol:g})"
+        )
     off = worst > warn_tol
     if project and off.any():
         R = R.copy()
@@ -362,7 +394,9 @@ def _validate(ds: Dataset, src: str, project: bool = True, input_dtype: torch.dt
         warnings.warn(
             f"{src}: projected {int(off.sum())} of {off.size} rotations in 'R' onto SO(3) by SVD "
             f"(max ||R^T R - I||_F = {err.max():.3g}, max |det R - 1| = {det_err.max():.3g}, "
-            f"warn tolerance {warn_tol:g})", stacklevel=3)
+            f"warn tolerance {warn_tol:g})",
+            stacklevel=3,
+        )
     return R
 
 

@@ -32,12 +32,14 @@ params["split_overlap"] = true, which tells the HDF5 validation that the overlap
 `split: holdout` makes the last `n_test` (or round(test_fraction * T)) sequences the test set.
 The raw (unsmoothed, but cropped) poses are kept as extras `R_raw`, `p_raw` for evaluation.
 """
+
 from __future__ import annotations
 
 import hashlib
 import math
+from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any, Callable, Mapping, Optional
+from typing import Any
 
 import numpy as np
 import torch
@@ -47,8 +49,15 @@ from ..lie.product import Pose
 from .bvh import BVH, forward_kinematics, read_bvh
 from .errors import ConfigError, DatasetError
 from .hdf5 import Dataset
-from .scenes import GENERATOR_VERSION, _canonical_json_native, _check, config_hash, generator_config, \
-    register_scene, to_dict
+from .scenes import (
+    GENERATOR_VERSION,
+    _canonical_json_native,
+    _check,
+    config_hash,
+    generator_config,
+    register_scene,
+    to_dict,
+)
 from .smoothing import check_window, smooth_pose
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -60,35 +69,93 @@ ASF_UNIT_M = 0.0254 / 0.45
 Z_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
 """Rotation by +90 degrees about x: maps the BVH up axis y to z."""
 
-CMU_BODY_JOINTS = ("LHipJoint", "LeftUpLeg", "LeftLeg", "LeftFoot", "RHipJoint", "RightUpLeg", "RightLeg",
-                   "RightFoot", "LowerBack", "Spine", "Spine1", "Neck", "Neck1", "Head", "LeftShoulder",
-                   "LeftArm", "LeftForeArm", "LeftHand", "RightShoulder", "RightArm", "RightForeArm", "RightHand")
+CMU_BODY_JOINTS = (
+    "LHipJoint",
+    "LeftUpLeg",
+    "LeftLeg",
+    "LeftFoot",
+    "RHipJoint",
+    "RightUpLeg",
+    "RightLeg",
+    "RightFoot",
+    "LowerBack",
+    "Spine",
+    "Spine1",
+    "Neck",
+    "Neck1",
+    "Head",
+    "LeftShoulder",
+    "LeftArm",
+    "LeftForeArm",
+    "LeftHand",
+    "RightShoulder",
+    "RightArm",
+    "RightForeArm",
+    "RightHand",
+)
 """The paper's 22 body joints under their names in the CMU BVH conversion (PROVENANCE.md)."""
 
 BVH_TO_ASF = {
-    "Hips": "root", "LHipJoint": "lhipjoint", "RHipJoint": "rhipjoint", "LeftUpLeg": "lfemur",
-    "RightUpLeg": "rfemur", "LeftLeg": "ltibia", "RightLeg": "rtibia", "LeftFoot": "lfoot", "RightFoot": "rfoot",
-    "LeftToeBase": "ltoes", "RightToeBase": "rtoes", "LowerBack": "lowerback", "Spine": "upperback",
-    "Spine1": "thorax", "Neck": "lowerneck", "Neck1": "upperneck", "Head": "head", "LeftShoulder": "lclavicle",
-    "RightShoulder": "rclavicle", "LeftArm": "lhumerus", "RightArm": "rhumerus", "LeftForeArm": "lradius",
-    "RightForeArm": "rradius", "LeftHand": "lwrist", "RightHand": "rwrist", "LeftFingerBase": "lhand",
-    "RightFingerBase": "rhand", "LeftHandIndex1": "lfingers", "RightHandIndex1": "rfingers",
-    "LThumb": "lthumb", "RThumb": "rthumb",
+    "Hips": "root",
+    "LHipJoint": "lhipjoint",
+    "RHipJoint": "rhipjoint",
+    "LeftUpLeg": "lfemur",
+    "RightUpLeg": "rfemur",
+    "LeftLeg": "ltibia",
+    "RightLeg": "rtibia",
+    "LeftFoot": "lfoot",
+    "RightFoot": "rfoot",
+    "LeftToeBase": "ltoes",
+    "RightToeBase": "rtoes",
+    "LowerBack": "lowerback",
+    "Spine": "upperback",
+    "Spine1": "thorax",
+    "Neck": "lowerneck",
+    "Neck1": "upperneck",
+    "Head": "head",
+    "LeftShoulder": "lclavicle",
+    "RightShoulder": "rclavicle",
+    "LeftArm": "lhumerus",
+    "RightArm": "rhumerus",
+    "LeftForeArm": "lradius",
+    "RightForeArm": "rradius",
+    "LeftHand": "lwrist",
+    "RightHand": "rwrist",
+    "LeftFingerBase": "lhand",
+    "RightFingerBase": "rhand",
+    "LeftHandIndex1": "lfingers",
+    "RightHandIndex1": "rfingers",
+    "LThumb": "lthumb",
+    "RThumb": "rthumb",
 }
 
 IMPORT_VERSION = 1
 """Bump (here and in conf/dataset/cmu_cartwheel.yaml) when the import would change the data for the same
 config: the config, hence `import_version`, is part of the cache hash."""
 
-SCENE_KEYS = ("import_version", "files", "skip_frames", "subsample", "root", "joints", "length_scale", "unit_m", "z_up",
-              "smoothing", "split", "cap_trajectories")
+SCENE_KEYS = (
+    "import_version",
+    "files",
+    "skip_frames",
+    "subsample",
+    "root",
+    "joints",
+    "length_scale",
+    "unit_m",
+    "z_up",
+    "smoothing",
+    "split",
+    "cap_trajectories",
+)
 """Scene-specific keys of the cmu_cartwheel config (besides the common ones checked by scenes._check)."""
 
 REAL_DATA_SCENES = ("cmu_cartwheel",)
 """Scenes imported from recordings: no physics/initial/solver fields, fixed number of trajectories."""
 
-ATTRIBUTION = ("The data used in this project was obtained from mocap.cs.cmu.edu. "
-               "The database was created with funding from NSF EIA-0196217.")
+ATTRIBUTION = (
+    "The data used in this project was obtained from mocap.cs.cmu.edu. "
+    "The database was created with funding from NSF EIA-0196217."
+)
 
 
 # --------------------------------------------------------------------------- metrics
@@ -110,16 +177,20 @@ def mocap_errors(pred: Pose, true: Pose, relative_position: bool = False) -> dic
     R1, R2 = pred.R, true.R
     p1, p2 = pred.p, true.p
     if R1.shape != R2.shape or p1.shape != p2.shape:
-        raise ValueError(f"mocap_errors: shapes differ: R {tuple(R1.shape)} vs {tuple(R2.shape)}, "
-                         f"p {tuple(p1.shape)} vs {tuple(p2.shape)}")
+        raise ValueError(
+            f"mocap_errors: shapes differ: R {tuple(R1.shape)} vs {tuple(R2.shape)}, "
+            f"p {tuple(p1.shape)} vs {tuple(p2.shape)}"
+        )
     m = p1.shape[-2]
     if m < 1 or R1.shape[-3] <= m or R1.ndim < 4:
-        raise ValueError(f"mocap_errors: need a time axis, >= 1 SE(3) root and >= 1 SO(3) joint; "
-                         f"got R {tuple(R1.shape)}, p {tuple(p1.shape)}")
-    d = so3.geodesic_distance(R1, R2)                   # (..., K, B)
+        raise ValueError(
+            f"mocap_errors: need a time axis, >= 1 SE(3) root and >= 1 SO(3) joint; "
+            f"got R {tuple(R1.shape)}, p {tuple(p1.shape)}"
+        )
+    d = so3.geodesic_distance(R1, R2)  # (..., K, B)
     root_rot_t = d[..., 0]
     joint_rot_t = d[..., m:].mean(-1)
-    q1, q2 = p1[..., 0, :], p2[..., 0, :]                # (..., K, 3)
+    q1, q2 = p1[..., 0, :], p2[..., 0, :]  # (..., K, 3)
     if relative_position:
         q1, q2 = q1 - q1[..., :1, :], q2 - q2[..., :1, :]
     root_pos_t = torch.linalg.vector_norm(q1 - q2, dim=-1)
@@ -134,8 +205,9 @@ def mocap_errors(pred: Pose, true: Pose, relative_position: bool = False) -> dic
     }
 
 
-def recording_discrepancy(ds: Dataset, raw: bool = False, a: int = 0, b: int = 1,
-                          relative_position: bool = True) -> dict[str, float]:
+def recording_discrepancy(
+    ds: Dataset, raw: bool = False, a: int = 0, b: int = 1, relative_position: bool = True
+) -> dict[str, float]:
     """`mocap_errors` between trajectories a and b of a mocap dataset (the reference scale of Exp 4).
 
     raw: use the unsmoothed extras `R_raw`/`p_raw` instead of R/p.  relative_position: see
@@ -144,8 +216,11 @@ def recording_discrepancy(ds: Dataset, raw: bool = False, a: int = 0, b: int = 1
     """
     R = ds.extras["R_raw"] if raw else ds.R
     p = ds.extras["p_raw"] if raw else ds.p
-    e = mocap_errors(Pose(torch.as_tensor(R[a]), torch.as_tensor(p[a])),
-                     Pose(torch.as_tensor(R[b]), torch.as_tensor(p[b])), relative_position)
+    e = mocap_errors(
+        Pose(torch.as_tensor(R[a]), torch.as_tensor(p[a])),
+        Pose(torch.as_tensor(R[b]), torch.as_tensor(p[b])),
+        relative_position,
+    )
     out = {k: float(e[k]) for k in ("root_rot", "joint_rot", "root_pos")}
     unit = ds.params.get("length_unit_m")
     if unit is not None:
@@ -198,20 +273,42 @@ def _sha256(path: Path) -> str:
 
 def _scene_config(c: dict) -> dict:
     """Check the mocap-specific keys; returns them with defaults filled in (ConfigError on problems)."""
-    allowed = set(SCENE_KEYS) | {"name", "h", "n_trajectories", "steps", "train_steps", "rollout_steps",
-                                 "test_fraction", "n_test", "seed", "physics", "initial", "solver",
-                                 "defaults"}  # Hydra's defaults list, present when the yaml is loaded directly
+    allowed = set(SCENE_KEYS) | {
+        "name",
+        "h",
+        "n_trajectories",
+        "steps",
+        "train_steps",
+        "rollout_steps",
+        "test_fraction",
+        "n_test",
+        "seed",
+        "physics",
+        "initial",
+        "solver",
+        "defaults",
+    }  # Hydra's defaults list, present when the yaml is loaded directly
     unknown = sorted(set(c) - allowed)
     if unknown:
-        raise ConfigError(f"dataset config of scene {c['name']!r}: unknown key(s) {unknown} (allowed: {sorted(allowed)})")
+        raise ConfigError(
+            f"dataset config of scene {c['name']!r}: unknown key(s) {unknown} (allowed: {sorted(allowed)})"
+        )
     if c.get("import_version") != IMPORT_VERSION:
-        raise ConfigError(f"dataset.import_version={c.get('import_version')!r}, but this liedfl imports version "
-                          f"{IMPORT_VERSION}; update the dataset config")
+        raise ConfigError(
+            f"dataset.import_version={c.get('import_version')!r}, but this liedfl imports version "
+            f"{IMPORT_VERSION}; update the dataset config"
+        )
     s = {
-        "files": c.get("files"), "skip_frames": c.get("skip_frames", 1), "subsample": c.get("subsample", 1),
-        "root": c.get("root", "Hips"), "joints": c.get("joints", list(CMU_BODY_JOINTS)),
-        "length_scale": c.get("length_scale", 1.0), "unit_m": c.get("unit_m", ASF_UNIT_M),
-        "z_up": c.get("z_up", True), "smoothing": c.get("smoothing"), "split": c.get("split", "reproduce"),
+        "files": c.get("files"),
+        "skip_frames": c.get("skip_frames", 1),
+        "subsample": c.get("subsample", 1),
+        "root": c.get("root", "Hips"),
+        "joints": c.get("joints", list(CMU_BODY_JOINTS)),
+        "length_scale": c.get("length_scale", 1.0),
+        "unit_m": c.get("unit_m", ASF_UNIT_M),
+        "z_up": c.get("z_up", True),
+        "smoothing": c.get("smoothing"),
+        "split": c.get("split", "reproduce"),
         "cap_trajectories": c.get("cap_trajectories", False),
     }
     files = s["files"]
@@ -224,8 +321,10 @@ def _scene_config(c: dict) -> dict:
         # trajectories than there are recordings): use the first min(n_trajectories, len(files)) files.
         s["files"] = files = list(files)[: int(c["n_trajectories"])]
     elif int(c["n_trajectories"]) != len(files):
-        raise ConfigError(f"dataset.n_trajectories={c['n_trajectories']} must equal the number of dataset.files "
-                          f"({len(files)}): one trajectory per recording (or set dataset.cap_trajectories: true)")
+        raise ConfigError(
+            f"dataset.n_trajectories={c['n_trajectories']} must equal the number of dataset.files "
+            f"({len(files)}): one trajectory per recording (or set dataset.cap_trajectories: true)"
+        )
 
     def integer(key, low):
         v = s[key]
@@ -287,14 +386,17 @@ def import_bvh(path: Path, s: dict) -> tuple[np.ndarray, np.ndarray, dict, BVH, 
     names = [s["root"]] + s["joints"]
     missing = [n for n in names if n not in b.names]
     if missing:
-        raise DatasetError(f"{path}: joint(s) {missing} of dataset.root/joints are not in the hierarchy "
-                           f"(joints: {', '.join(b.names)})")
+        raise DatasetError(
+            f"{path}: joint(s) {missing} of dataset.root/joints are not in the hierarchy (joints: {', '.join(b.names)})"
+        )
     bodies = [b.names.index(n) for n in names]
     for n, j in zip(names[1:], bodies[1:]):
         if b.parents[j] not in bodies:
             parent = b.names[b.parents[j]] if b.parents[j] >= 0 else None
-            raise ConfigError(f"dataset.joints: the BVH parent {parent!r} of joint {n!r} is not selected; "
-                              f"local rotations are relative to the BVH parent, so a chain cannot skip joints")
+            raise ConfigError(
+                f"dataset.joints: the BVH parent {parent!r} of joint {n!r} is not selected; "
+                f"local rotations are relative to the BVH parent, so a chain cannot skip joints"
+            )
     skip = s["skip_frames"]
     if b.n_frames - skip < 2:
         raise DatasetError(f"{path}: {b.n_frames} frames leave fewer than 2 after skip_frames={skip}")
@@ -304,13 +406,18 @@ def import_bvh(path: Path, s: dict) -> tuple[np.ndarray, np.ndarray, dict, BVH, 
     if s["z_up"]:
         R[:, 0] = Z_UP @ R[:, 0]
         p = p @ Z_UP.T
-    info = {"file": str(path), "sha256": _sha256(path), "frames_in_file": b.n_frames,
-            "frames_after_skip": b.n_frames - skip, "frame_time": b.frame_time}
+    info = {
+        "file": str(path),
+        "sha256": _sha256(path),
+        "frames_in_file": b.n_frames,
+        "frames_after_skip": b.n_frames - skip,
+        "frame_time": b.frame_time,
+    }
     return R, p, info, b, bodies
 
 
 @register_scene("cmu_cartwheel")
-def cmu_cartwheel(cfg, progress: Optional[Callable[[float], None]] = None) -> Dataset:
+def cmu_cartwheel(cfg, progress: Callable[[float], None] | None = None) -> Dataset:
     """Exp 4: BVH recordings on SE(3) x SO(3)^n (see the module docstring for every step)."""
     c = _check(to_dict(cfg))
     s = _scene_config(c)
@@ -321,8 +428,9 @@ def cmu_cartwheel(cfg, progress: Optional[Callable[[float], None]] = None) -> Da
         R, p, info, b, bodies = import_bvh(path, s)
         h_file = b.frame_time * sub
         if abs(h - h_file) > 1e-6 * h_file:
-            raise ConfigError(f"dataset.h={h} does not match {path}: Frame Time {b.frame_time} x subsample {sub} "
-                              f"= {h_file}")
+            raise ConfigError(
+                f"dataset.h={h} does not match {path}: Frame Time {b.frame_time} x subsample {sub} = {h_file}"
+            )
         raw = (R[::sub], p[::sub])
         if s["smoothing"] is not None:
             try:
@@ -342,9 +450,11 @@ def cmu_cartwheel(cfg, progress: Optional[Callable[[float], None]] = None) -> Da
     available = min(r.shape[0] for r in Rs) - 1
     if steps > available:
         shortest = infos[int(np.argmin([r.shape[0] for r in Rs]))]["file"]
-        raise ConfigError(f"dataset.steps={steps} is longer than the recordings allow: {shortest} has "
-                          f"{available + 1} frames after skip_frames={s['skip_frames']} and subsample={sub}, "
-                          f"so steps <= {available}")
+        raise ConfigError(
+            f"dataset.steps={steps} is longer than the recordings allow: {shortest} has "
+            f"{available + 1} frames after skip_frames={s['skip_frames']} and subsample={sub}, "
+            f"so steps <= {available}"
+        )
     n1 = steps + 1
     for info in infos:
         info["frames_used"] = n1
@@ -358,9 +468,11 @@ def cmu_cartwheel(cfg, progress: Optional[Callable[[float], None]] = None) -> Da
     else:
         k = int(c["n_test"]) if c["n_test"] is not None else int(round(float(c["test_fraction"]) * T))
         if not 0 < k < T:
-            raise ConfigError(f"dataset.split=holdout with {T} recording(s) and n_test={c['n_test']}, "
-                              f"test_fraction={c['test_fraction']}: {k} test recording(s) leave no train or no "
-                              f"test recording; need 0 < test count < {T}")
+            raise ConfigError(
+                f"dataset.split=holdout with {T} recording(s) and n_test={c['n_test']}, "
+                f"test_fraction={c['test_fraction']}: {k} test recording(s) leave no train or no "
+                f"test recording; need 0 < test count < {T}"
+            )
         split = {"train": np.arange(T - k), "test": np.arange(T - k, T)}
     unit_m = s["unit_m"] / s["length_scale"]
     params = {
@@ -370,22 +482,53 @@ def cmu_cartwheel(cfg, progress: Optional[Callable[[float], None]] = None) -> Da
         "sources": infos,
         "split_overlap": s["split"] == "reproduce",
         "length_unit_m": unit_m,
-        "length_unit": (f"file unit x {s['length_scale']} (1 stored unit = {unit_m:.6g} m; the CMU files use "
-                        f"CMU ASF units, 1/0.45 inch = {ASF_UNIT_M:.6g} m)"),
-        "world_frame": ("z up: world = Rx(+90 deg) applied to the BVH world (y up)" if s["z_up"]
-                        else "BVH world frame (y up)"),
-        "bodies": {"root": "world pose of " + s["root"], "joints": "rotation relative to the BVH parent",
-                   "asf_names": [BVH_TO_ASF.get(n, n) for n in [s["root"]] + s["joints"]]},
-        "smoothing": (None if s["smoothing"] is None else
-                      {**s["smoothing"], "method": "Savitzky-Golay; rotations in the tangent space at each "
-                                                   "sample, positions plain; applied before subsample/crop"}),
+        "length_unit": (
+            f"file unit x {s['length_scale']} (1 stored unit = {unit_m:.6g} m; the CMU files use "
+            f"CMU ASF units, 1/0.45 inch = {ASF_UNIT_M:.6g} m)"
+        ),
+        "world_frame": (
+            "z up: world = Rx(+90 deg) applied to the BVH world (y up)" if s["z_up"] else "BVH world frame (y up)"
+        ),
+        "bodies": {
+            "root": "world pose of " + s["root"],
+            "joints": "rotation relative to the BVH parent",
+            "asf_names": [BVH_TO_ASF.get(n, n) for n in [s["root"]] + s["joints"]],
+        },
+        "smoothing": (
+            None
+            if s["smoothing"] is None
+            else {
+                **s["smoothing"],
+                "method": "Savitzky-Golay; rotations in the tangent space at each "
+                "sample, positions plain; applied before subsample/crop",
+            }
+        ),
         "skeleton": skeleton,
         "attribution": ATTRIBUTION,
     }
-    return Dataset(R=R, p=p, h=h, scene=c["name"], body_names=[s["root"]] + s["joints"],
-                   body_kinds=["se3"] + ["so3"] * len(s["joints"]), params=params, seed=int(c["seed"]),
-                   split=split, extras={"R_raw": R_raw, "p_raw": p_raw})
+    return Dataset(
+        R=R,
+        p=p,
+        h=h,
+        scene=c["name"],
+        body_names=[s["root"]] + s["joints"],
+        body_kinds=["se3"] + ["so3"] * len(s["joints"]),
+        params=params,
+        seed=int(c["seed"]),
+        split=split,
+        extras={"R_raw": R_raw, "p_raw": p_raw},
+    )
 
 
-__all__ = ["REAL_DATA_SCENES", "mocap_errors", "recording_discrepancy", "skeleton_points", "import_bvh", "cmu_cartwheel",
-           "CMU_BODY_JOINTS", "BVH_TO_ASF", "ASF_UNIT_M", "ATTRIBUTION"]
+__all__ = [
+    "REAL_DATA_SCENES",
+    "mocap_errors",
+    "recording_discrepancy",
+    "skeleton_points",
+    "import_bvh",
+    "cmu_cartwheel",
+    "CMU_BODY_JOINTS",
+    "BVH_TO_ASF",
+    "ASF_UNIT_M",
+    "ATTRIBUTION",
+]

@@ -19,10 +19,11 @@ over the whole stacked vector, so per-trajectory error control is (slightly) loo
 suggest for a single trajectory; at the default rtol = 1e-10 this is irrelevant.  After integration
 every sampled R is projected onto SO(3) provided its drift ||R^T R - I||_F stays below 1e-6.
 """
+
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Callable, Mapping, Optional
 
 import numpy as np
 import torch
@@ -75,12 +76,14 @@ class SolverOptions:
     atol: float = 1e-12
 
     @classmethod
-    def from_config(cls, cfg: Optional[Mapping]) -> "SolverOptions":
+    def from_config(cls, cfg: Mapping | None) -> SolverOptions:
         cfg = dict(cfg or {})
         unknown = set(cfg) - {"method", "rtol", "atol"}
         if unknown:
             raise ConfigError(f"solver: unknown key(s) {sorted(unknown)} (expected method, rtol, atol)")
-        opts = cls(str(cfg.get("method", cls.method)), float(cfg.get("rtol", cls.rtol)), float(cfg.get("atol", cls.atol)))
+        opts = cls(
+            str(cfg.get("method", cls.method)), float(cfg.get("rtol", cls.rtol)), float(cfg.get("atol", cls.atol))
+        )
         if opts.method not in ("RK45", "DOP853", "RK23", "Radau", "BDF", "LSODA"):
             raise ConfigError(f"solver.method must be a solve_ivp method such as RK45 or DOP853, got {opts.method!r}")
         if not (opts.rtol > 0 and opts.atol > 0):
@@ -103,7 +106,7 @@ class RigidBodySO3:
     rho: np.ndarray = field(default_factory=lambda: np.zeros(3))
     g: float = 0.0
     D: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
-    tau_extra: Optional[Callable[[np.ndarray, np.ndarray], np.ndarray]] = None
+    tau_extra: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None
 
     state_size = 12
 
@@ -186,7 +189,7 @@ class RigidBodySE3:
     rho: np.ndarray = field(default_factory=lambda: np.zeros(3))
     g: float = 0.0
     D: np.ndarray = field(default_factory=lambda: np.zeros((6, 6)))
-    wrench_extra: Optional[Callable] = None
+    wrench_extra: Callable | None = None
 
     state_size = 18
 
@@ -272,8 +275,15 @@ class RigidBodySE3:
     @staticmethod
     def pack(R, p, w, v) -> np.ndarray:
         R = np.asarray(R, np.float64)
-        return np.concatenate((R.reshape(*R.shape[:-2], 9), np.asarray(p, np.float64),
-                               np.asarray(w, np.float64), np.asarray(v, np.float64)), -1)
+        return np.concatenate(
+            (
+                R.reshape(*R.shape[:-2], 9),
+                np.asarray(p, np.float64),
+                np.asarray(w, np.float64),
+                np.asarray(v, np.float64),
+            ),
+            -1,
+        )
 
     @staticmethod
     def unpack(Y: np.ndarray) -> dict:
@@ -288,14 +298,19 @@ class Simulation:
     t: np.ndarray
     R: np.ndarray
     w: np.ndarray
-    p: Optional[np.ndarray] = None
-    v: Optional[np.ndarray] = None
+    p: np.ndarray | None = None
+    v: np.ndarray | None = None
     max_drift: float = 0.0
     nfev: int = 0
 
 
-def integrate(rhs, Y0: np.ndarray, t: np.ndarray, solver: SolverOptions | Mapping | None = None,
-              progress: Optional[Callable[[float], None]] = None) -> tuple[np.ndarray, int]:
+def integrate(
+    rhs,
+    Y0: np.ndarray,
+    t: np.ndarray,
+    solver: SolverOptions | Mapping | None = None,
+    progress: Callable[[float], None] | None = None,
+) -> tuple[np.ndarray, int]:
     """Integrate the stacked state Y0 (T, S) with one solve_ivp call; returns (Y (T, N+1, S), nfev).
 
     `progress(t)` (optional) is called with the current solver time, at most ~200 times.
@@ -312,14 +327,15 @@ def integrate(rhs, Y0: np.ndarray, t: np.ndarray, solver: SolverOptions | Mappin
     if progress is not None:
         span, last = float(t[-1] - t[0]), [t[0]]
 
-        def fun(tt, y):  # noqa: F811 - wrapper reporting progress
+        def fun(tt, y):
             if tt - last[0] >= span / 200 or tt >= t[-1]:
                 last[0] = tt
                 progress(float(tt))
             return rhs(tt, y)
 
-    sol = solve_ivp(fun, (float(t[0]), float(t[-1])), Y0.reshape(-1), method=opts.method, t_eval=t,
-                    rtol=opts.rtol, atol=opts.atol)
+    sol = solve_ivp(
+        fun, (float(t[0]), float(t[-1])), Y0.reshape(-1), method=opts.method, t_eval=t, rtol=opts.rtol, atol=opts.atol
+    )
     if sol.status != 0 or sol.y.shape[1] != t.size:
         raise SimulationError(f"solve_ivp ({opts.method}) failed: {sol.message}")
     if progress is not None:
@@ -327,7 +343,9 @@ def integrate(rhs, Y0: np.ndarray, t: np.ndarray, solver: SolverOptions | Mappin
     Y = sol.y.reshape(T, S, t.size).transpose(0, 2, 1)
     if not np.isfinite(Y).all():
         i = tuple(int(k) for k in np.argwhere(~np.isfinite(Y))[0])
-        raise SimulationError(f"solve_ivp ({opts.method}) produced a non-finite state at (trajectory, sample, entry) {i}")
+        raise SimulationError(
+            f"solve_ivp ({opts.method}) produced a non-finite state at (trajectory, sample, entry) {i}"
+        )
     return np.ascontiguousarray(Y), int(sol.nfev)
 
 
@@ -339,14 +357,20 @@ def project_rotations(R: np.ndarray, max_drift: float = MAX_DRIFT) -> tuple[np.n
         i = tuple(int(k) for k in np.unravel_index(int(drift.argmax()), drift.shape))
         raise SimulationError(
             f"integrated rotation drifted off SO(3) by ||R^T R - I||_F = {worst:.3e} > {max_drift:.0e} at "
-            f"(trajectory, sample) {i}; tighten solver.rtol/atol")
+            f"(trajectory, sample) {i}; tighten solver.rtol/atol"
+        )
     Rp = so3.project(torch.from_numpy(np.ascontiguousarray(R))).numpy()
     return Rp, worst
 
 
-def simulate_so3(body: RigidBodySO3, R0: np.ndarray, w0: np.ndarray, t: np.ndarray,
-                 solver: SolverOptions | Mapping | None = None,
-                 progress: Optional[Callable[[float], None]] = None) -> Simulation:
+def simulate_so3(
+    body: RigidBodySO3,
+    R0: np.ndarray,
+    w0: np.ndarray,
+    t: np.ndarray,
+    solver: SolverOptions | Mapping | None = None,
+    progress: Callable[[float], None] | None = None,
+) -> Simulation:
     """Integrate T trajectories from R0 (T, 3, 3), w0 (T, 3), sampled at times t (N+1,)."""
     Y, nfev = integrate(body.rhs, body.pack(R0, w0), t, solver, progress)
     s = body.unpack(Y)
@@ -354,18 +378,41 @@ def simulate_so3(body: RigidBodySO3, R0: np.ndarray, w0: np.ndarray, t: np.ndarr
     return Simulation(t=np.asarray(t, np.float64), R=R, w=np.ascontiguousarray(s["w"]), max_drift=drift, nfev=nfev)
 
 
-def simulate_se3(body: RigidBodySE3, R0: np.ndarray, p0: np.ndarray, w0: np.ndarray, v0: np.ndarray,
-                 t: np.ndarray, solver: SolverOptions | Mapping | None = None,
-                 progress: Optional[Callable[[float], None]] = None) -> Simulation:
+def simulate_se3(
+    body: RigidBodySE3,
+    R0: np.ndarray,
+    p0: np.ndarray,
+    w0: np.ndarray,
+    v0: np.ndarray,
+    t: np.ndarray,
+    solver: SolverOptions | Mapping | None = None,
+    progress: Callable[[float], None] | None = None,
+) -> Simulation:
     """Integrate T trajectories from (R0, p0, w0, v0) (each (T, ...)), sampled at times t (N+1,)."""
     Y, nfev = integrate(body.rhs, body.pack(R0, p0, w0, v0), t, solver, progress)
     s = body.unpack(Y)
     R, drift = project_rotations(s["R"])
-    return Simulation(t=np.asarray(t, np.float64), R=R, w=np.ascontiguousarray(s["w"]),
-                      p=np.ascontiguousarray(s["p"]), v=np.ascontiguousarray(s["v"]), max_drift=drift, nfev=nfev)
+    return Simulation(
+        t=np.asarray(t, np.float64),
+        R=R,
+        w=np.ascontiguousarray(s["w"]),
+        p=np.ascontiguousarray(s["p"]),
+        v=np.ascontiguousarray(s["v"]),
+        max_drift=drift,
+        nfev=nfev,
+    )
 
 
 __all__ = [
-    "MAX_DRIFT", "hat", "orthogonality_drift", "SolverOptions", "RigidBodySO3", "RigidBodySE3",
-    "Simulation", "integrate", "project_rotations", "simulate_so3", "simulate_se3",
+    "MAX_DRIFT",
+    "hat",
+    "orthogonality_drift",
+    "SolverOptions",
+    "RigidBodySO3",
+    "RigidBodySE3",
+    "Simulation",
+    "integrate",
+    "project_rotations",
+    "simulate_so3",
+    "simulate_se3",
 ]

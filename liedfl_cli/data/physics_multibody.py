@@ -19,10 +19,11 @@ Equations of motion (forced Euler-Poincare, per body):
 State of one trajectory (flat): the 9 entries of each R_i (row by row), the 3 entries of each
 SE(3) position, then xi (dim entries). All trajectories are integrated in ONE solve_ivp call.
 """
+
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable, Optional
 
 import numpy as np
 import torch
@@ -46,9 +47,9 @@ class MultiBodySystem:
     m: np.ndarray = field(default_factory=lambda: np.ones(2))
     rho: np.ndarray = field(default_factory=lambda: np.zeros((2, 3)))
     g: float = 0.0
-    D: Optional[np.ndarray] = None
-    interaction: Optional[dict] = None
-    wrench_extra: Optional[Callable] = None   # (Pose numpy R, p, xi (T, dim)) -> (T, dim) extra covector
+    D: np.ndarray | None = None
+    interaction: dict | None = None
+    wrench_extra: Callable | None = None  # (Pose numpy R, p, xi (T, dim)) -> (T, dim) extra covector
 
     def __post_init__(self):
         kinds = tuple(self.kinds)
@@ -100,15 +101,21 @@ class MultiBodySystem:
     def pack(self, R, p, xi) -> np.ndarray:
         """R (T, B, 3, 3), p (T, m, 3), xi (T, dim) -> (T, S)."""
         T = R.shape[0]
-        return np.concatenate((np.asarray(R, np.float64).reshape(T, -1), np.asarray(p, np.float64).reshape(T, -1),
-                               np.asarray(xi, np.float64)), -1)
+        return np.concatenate(
+            (
+                np.asarray(R, np.float64).reshape(T, -1),
+                np.asarray(p, np.float64).reshape(T, -1),
+                np.asarray(xi, np.float64),
+            ),
+            -1,
+        )
 
     def unpack(self, Y: np.ndarray) -> dict:
         B, m = self.G.n_bodies, self.G.n_se3
         lead = Y.shape[:-1]
         R = Y[..., : 9 * B].reshape(*lead, B, 3, 3)
-        p = Y[..., 9 * B: 9 * B + 3 * m].reshape(*lead, m, 3)
-        xi = Y[..., 9 * B + 3 * m:]
+        p = Y[..., 9 * B : 9 * B + 3 * m].reshape(*lead, m, 3)
+        xi = Y[..., 9 * B + 3 * m :]
         return {"R": R, "p": p, "xi": xi}
 
     # ------------------------------------------------------------------ forces
@@ -159,8 +166,8 @@ class MultiBodySystem:
         B, m = self.G.n_bodies, self.G.n_se3
         out = np.empty_like(Y)
         out[:, : 9 * B] = (R @ hat(w)).reshape(Y.shape[0], -1)
-        out[:, 9 * B: 9 * B + 3 * m] = (R[:, :m] @ v[..., None])[..., 0].reshape(Y.shape[0], -1)
-        out[:, 9 * B + 3 * m:] = self.accelerations(R, p, xi)
+        out[:, 9 * B : 9 * B + 3 * m] = (R[:, :m] @ v[..., None])[..., 0].reshape(Y.shape[0], -1)
+        out[:, 9 * B + 3 * m :] = self.accelerations(R, p, xi)
         return out.reshape(-1)
 
     # ------------------------------------------------------------------ invariants
@@ -200,8 +207,9 @@ class MultiBodySystem:
         return lin, ang
 
 
-def simulate_multibody(system: MultiBodySystem, R0, p0, xi0, t, solver=None,
-                       progress: Optional[Callable[[float], None]] = None) -> Simulation:
+def simulate_multibody(
+    system: MultiBodySystem, R0, p0, xi0, t, solver=None, progress: Callable[[float], None] | None = None
+) -> Simulation:
     """Integrate from R0 (T, B, 3, 3), p0 (T, m, 3), xi0 (T, dim); sample at t.
 
     Returns a `Simulation` with R (T, N+1, B, 3, 3), p (T, N+1, m, 3) and, in `w`, the flat
@@ -210,8 +218,15 @@ def simulate_multibody(system: MultiBodySystem, R0, p0, xi0, t, solver=None,
     Y, nfev = integrate(system.rhs, system.pack(R0, p0, xi0), t, solver, progress)
     st = system.unpack(Y)
     R, drift = project_rotations(st["R"])
-    return Simulation(t=np.asarray(t, np.float64), R=R, w=np.ascontiguousarray(st["xi"]),
-                      p=np.ascontiguousarray(st["p"]), v=None, max_drift=drift, nfev=nfev)
+    return Simulation(
+        t=np.asarray(t, np.float64),
+        R=R,
+        w=np.ascontiguousarray(st["xi"]),
+        p=np.ascontiguousarray(st["p"]),
+        v=None,
+        max_drift=drift,
+        nfev=nfev,
+    )
 
 
 __all__ = ["MultiBodySystem", "simulate_multibody"]

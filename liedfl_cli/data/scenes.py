@@ -9,14 +9,16 @@ test_fraction, n_test (null or int), seed, physics {J (diag), m, rho, g, D (diag
 initial {scene specific}, solver {method, rtol, atol}.  train_steps / rollout_steps only tell
 the consumers how much of each trajectory to use; they do not change the data (nor the hash).
 """
+
 from __future__ import annotations
 
 import copy
 import hashlib
 import json
 import time
+from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any, Callable, Mapping, Optional
+from typing import Any
 
 import numpy as np
 import torch
@@ -32,8 +34,20 @@ GENERATOR_VERSION = 1
 NON_GENERATOR_KEYS = ("train_steps", "rollout_steps")
 """Config keys that select how data is used, not what is generated (excluded from the hash)."""
 
-REQUIRED_KEYS = ("name", "h", "n_trajectories", "steps", "train_steps", "rollout_steps", "test_fraction",
-                 "n_test", "seed", "physics", "initial", "solver")
+REQUIRED_KEYS = (
+    "name",
+    "h",
+    "n_trajectories",
+    "steps",
+    "train_steps",
+    "rollout_steps",
+    "test_fraction",
+    "n_test",
+    "seed",
+    "physics",
+    "initial",
+    "solver",
+)
 
 Generator = Callable[..., Dataset]
 SCENES: dict[str, Generator] = {}
@@ -119,7 +133,10 @@ def _check(c: dict) -> dict:
     if not 0.0 <= num("test_fraction", positive=False) < 1.0:
         raise ConfigError(f"dataset.test_fraction must lie in [0, 1), got {c['test_fraction']!r}")
     if c["n_test"] is not None and not (num("n_test", int, positive=False) >= 0 and c["n_test"] <= c["n_trajectories"]):
-        raise ConfigError(f"dataset.n_test must be null or an integer in [0, n_trajectories={c['n_trajectories']}], got {c['n_test']!r}")
+        raise ConfigError(
+            f"dataset.n_test must be null or an integer in [0, n_trajectories={c['n_trajectories']}], "
+            f"got {c['n_test']!r}"
+        )
     need = max(int(c["train_steps"]), int(c["rollout_steps"]))
     if int(c["steps"]) < need:
         raise ConfigError(f"dataset.steps={c['steps']} is shorter than max(train_steps, rollout_steps)={need}")
@@ -134,11 +151,13 @@ def _keys(c: dict, sub: str, allowed: tuple[str, ...]) -> dict:
     d = dict(c[sub])
     missing, unknown = [k for k in allowed if k not in d], sorted(set(d) - set(allowed))
     if missing or unknown:
-        raise ConfigError(f"dataset.{sub} for scene {c['name']!r}: missing {missing}, unknown {unknown} (expected {list(allowed)})")
+        raise ConfigError(
+            f"dataset.{sub} for scene {c['name']!r}: missing {missing}, unknown {unknown} (expected {list(allowed)})"
+        )
     return d
 
 
-def make_split(n_trajectories: int, test_fraction: float, n_test: Optional[int], seed) -> dict[str, np.ndarray]:
+def make_split(n_trajectories: int, test_fraction: float, n_test: int | None, seed) -> dict[str, np.ndarray]:
     """Random split by trajectory: sorted disjoint index arrays 'train' and 'test'."""
     k = int(n_test) if n_test is not None else int(round(test_fraction * n_trajectories))
     perm = np.random.default_rng(seed).permutation(n_trajectories)
@@ -185,8 +204,15 @@ def _assemble(c: dict, sim: Simulation, body, kinds: list[str], split_seed, scen
         "simulation": {"max_orthogonality_drift": sim.max_drift, "nfev": sim.nfev},
     }
     return Dataset(
-        R=R, p=p, h=float(c["h"]), scene=c["name"], body_names=["body"], body_kinds=kinds, params=params,
-        seed=int(c["seed"]), split=make_split(T, float(c["test_fraction"]), c["n_test"], split_seed),
+        R=R,
+        p=p,
+        h=float(c["h"]),
+        scene=c["name"],
+        body_names=["body"],
+        body_kinds=kinds,
+        params=params,
+        seed=int(c["seed"]),
+        split=make_split(T, float(c["test_fraction"]), c["n_test"], split_seed),
         extras={"omega": sim.w[:, :, None], "v": v, "tau_ext": tau_ext[:, :, None], "f_ext": f_ext, "energy": energy},
         t=sim.t,
     )
@@ -210,13 +236,18 @@ def _physics(c: dict, dim: int) -> dict:
         raise ConfigError(f"dataset.physics.J must have positive diagonal entries, got {ph['J']}")
     if (D < 0).any():
         raise ConfigError(f"dataset.physics.D must be non-negative (positive semidefinite), got {ph['D']}")
-    return {"J": [float(x) for x in ph["J"]], "m": float(ph["m"]), "rho": [float(x) for x in ph["rho"]],
-            "g": float(ph["g"]), "D": [float(x) for x in ph["D"]]}
+    return {
+        "J": [float(x) for x in ph["J"]],
+        "m": float(ph["m"]),
+        "rho": [float(x) for x in ph["rho"]],
+        "g": float(ph["g"]),
+        "D": [float(x) for x in ph["D"]],
+    }
 
 
 # --------------------------------------------------------------------------- scenes
 @register_scene("heavy_so3")
-def heavy_so3(cfg, progress: Optional[Callable[[float], None]] = None) -> Dataset:
+def heavy_so3(cfg, progress: Callable[[float], None] | None = None) -> Dataset:
     """Exp 1: heavy rigid body on SO(3) with damping; R0 = I, w0 = omega_scale * U(ball(omega_radius))."""
     c = _check(to_dict(cfg))
     ph = _physics(c, 3)
@@ -231,7 +262,7 @@ def heavy_so3(cfg, progress: Optional[Callable[[float], None]] = None) -> Datase
 
 
 @register_scene("free_rigid_body")
-def free_rigid_body(cfg, progress: Optional[Callable[[float], None]] = None) -> Dataset:
+def free_rigid_body(cfg, progress: Callable[[float], None] | None = None) -> Dataset:
     """Exp 2: rigid body on SO(3) (g = 0 by default) with damping; Haar R0, w0 ~ N(0, omega_std^2 I)."""
     c = _check(to_dict(cfg))
     ph = _physics(c, 3)
@@ -246,7 +277,7 @@ def free_rigid_body(cfg, progress: Optional[Callable[[float], None]] = None) -> 
 
 
 @register_scene("heavy_se3")
-def heavy_se3(cfg, progress: Optional[Callable[[float], None]] = None) -> Dataset:
+def heavy_se3(cfg, progress: Callable[[float], None] | None = None) -> Dataset:
     """Exp 3: rigid body on SE(3) in gravity with damping on (w, v); Haar R0, Gaussian p0, w0, v0."""
     c = _check(to_dict(cfg))
     ph = _physics(c, 6)
@@ -263,7 +294,7 @@ def heavy_se3(cfg, progress: Optional[Callable[[float], None]] = None) -> Datase
 
 
 # --------------------------------------------------------------------------- caching front door
-def generate(cfg, progress: Optional[Callable[[float], None]] = None) -> Dataset:
+def generate(cfg, progress: Callable[[float], None] | None = None) -> Dataset:
     """Generate the dataset described by `cfg` (no caching)."""
     c = _check(to_dict(cfg))
     return SCENES[c["name"]](c, progress)
@@ -280,8 +311,10 @@ def get_dataset(cfg, data_dir="outputs/data", console=None) -> tuple[Dataset, Pa
         ds = load_dataset(path)
         stored = ds.params.get("config_hash")
         if stored is not None and stored != config_hash(c):
-            raise DatasetError(f"{path}: attribute 'params' holds config_hash {stored!r} but the file name says "
-                               f"{config_hash(c)!r}; delete the file to regenerate it")
+            raise DatasetError(
+                f"{path}: attribute 'params' holds config_hash {stored!r} but the file name says "
+                f"{config_hash(c)!r}; delete the file to regenerate it"
+            )
         return ds, path
 
     from rich.console import Console
@@ -290,21 +323,43 @@ def get_dataset(cfg, data_dir="outputs/data", console=None) -> tuple[Dataset, Pa
     console = console or Console(stderr=True)
     t_end = float(c["h"]) * int(c["steps"])
     start = time.perf_counter()
-    with Progress(TextColumn("[bold]{task.description}"), BarColumn(),
-                  TextColumn("t = {task.completed:.2f} / {task.total:.2f} s"), TimeElapsedColumn(),
-                  console=console, transient=True) as prog:
-        task = prog.add_task(f"simulating {c['name']} ({c['n_trajectories']} trajectories x {c['steps']} steps)",
-                             total=t_end)
+    with Progress(
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        TextColumn("t = {task.completed:.2f} / {task.total:.2f} s"),
+        TimeElapsedColumn(),
+        console=console,
+        transient=True,
+    ) as prog:
+        task = prog.add_task(
+            f"simulating {c['name']} ({c['n_trajectories']} trajectories x {c['steps']} steps)", total=t_end
+        )
         ds = SCENES[c["name"]](c, lambda tt: prog.update(task, completed=tt))
     save_dataset(ds, path)
-    console.print(f"[green]generated[/green] {c['name']}: {ds.n_trajectories} trajectories x {ds.n_steps} steps "
-                  f"in {time.perf_counter() - start:.1f} s -> {path}", soft_wrap=True)
+    console.print(
+        f"[green]generated[/green] {c['name']}: {ds.n_trajectories} trajectories x {ds.n_steps} steps "
+        f"in {time.perf_counter() - start:.1f} s -> {path}",
+        soft_wrap=True,
+    )
     return ds, path
 
 
-__all__ = ["SCENES", "GENERATOR_VERSION", "register_scene", "generator_config", "config_hash", "dataset_path",
-           "make_split", "haar_rotations", "uniform_ball", "generate", "get_dataset",
-           "heavy_so3", "free_rigid_body", "heavy_se3"]
+__all__ = [
+    "SCENES",
+    "GENERATOR_VERSION",
+    "register_scene",
+    "generator_config",
+    "config_hash",
+    "dataset_path",
+    "make_split",
+    "haar_rotations",
+    "uniform_ball",
+    "generate",
+    "get_dataset",
+    "heavy_so3",
+    "free_rigid_body",
+    "heavy_se3",
+]
 
 # Scenes defined in other modules register themselves into SCENES when imported.
 from . import mocap, scenes_multibody  # noqa: E402,F401

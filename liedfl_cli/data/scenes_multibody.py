@@ -23,9 +23,10 @@ pd_control (conf/dataset/pd_control.yaml)  Exp 5: the heavy body of Exp 1 driven
              expressed with disjoint train/test splits.
     extras: tau_control (T, N+1, 1, 3) the true PD torque (evaluation only); tau_ext = PD + damping.
 """
+
 from __future__ import annotations
 
-from typing import Callable, Optional
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -35,8 +36,20 @@ from .errors import ConfigError
 from .hdf5 import Dataset
 from .physics import RigidBodySO3, simulate_so3
 from .physics_multibody import MultiBodySystem, simulate_multibody
-from .scenes import (GENERATOR_VERSION, _canonical_json_native, _check, _keys, _physics, _rngs, _times,
-                     config_hash, generator_config, make_split, register_scene, to_dict)
+from .scenes import (
+    GENERATOR_VERSION,
+    _canonical_json_native,
+    _check,
+    _keys,
+    _physics,
+    _rngs,
+    _times,
+    config_hash,
+    generator_config,
+    make_split,
+    register_scene,
+    to_dict,
+)
 
 INTERACTION_KEYS = ("kind", "mu", "r1", "r2", "moment1", "moment2")
 CONTROL_KEYS = ("R_f", "k_r", "k_w", "feedforward")
@@ -55,8 +68,9 @@ def _block(c: dict, key: str, allowed: tuple[str, ...]) -> dict:
     d = dict(c[key])
     missing, unknown = [k for k in allowed if k not in d], sorted(set(d) - set(allowed))
     if missing or unknown:
-        raise ConfigError(f"dataset.{key} for scene {c['name']!r}: missing {missing}, unknown {unknown} "
-                          f"(expected {list(allowed)})")
+        raise ConfigError(
+            f"dataset.{key} for scene {c['name']!r}: missing {missing}, unknown {unknown} (expected {list(allowed)})"
+        )
     return d
 
 
@@ -78,7 +92,9 @@ def two_body_physics(c: dict) -> dict:
     ph = _keys(c, "physics", ("J", "m", "rho", "g", "D"))
     J = np.asarray(ph["J"], dtype=np.float64)
     if J.shape != (2, 3) or (J <= 0).any():
-        raise ConfigError(f"dataset.physics.J must be 2 lists of 3 positive diagonal entries (body 1, body 2), got {ph['J']!r}")
+        raise ConfigError(
+            f"dataset.physics.J must be 2 lists of 3 positive diagonal entries (body 1, body 2), got {ph['J']!r}"
+        )
     for i in range(2):
         a, b, cc = sorted(J[i])
         if a + b < cc:
@@ -98,17 +114,25 @@ def two_body_physics(c: dict) -> dict:
     inter = {"kind": str(it["kind"]), "mu": float(it["mu"])}
     for k in ("r1", "r2", "moment1", "moment2"):
         inter[k] = _vec(it[k], 3, f"interaction.{k}")
-    return {"J": J.tolist(), "m": m.tolist(), "rho": rho.tolist(), "g": float(ph["g"]), "D": D.tolist(),
-            "interaction": inter, "bodies": ["se3", "so3"]}
+    return {
+        "J": J.tolist(),
+        "m": m.tolist(),
+        "rho": rho.tolist(),
+        "g": float(ph["g"]),
+        "D": D.tolist(),
+        "interaction": inter,
+        "bodies": ["se3", "so3"],
+    }
 
 
 def two_body_system(physics: dict) -> MultiBodySystem:
-    return MultiBodySystem(("se3", "so3"), physics["J"], physics["m"], physics["rho"], physics["g"],
-                           physics["D"], physics["interaction"])
+    return MultiBodySystem(
+        ("se3", "so3"), physics["J"], physics["m"], physics["rho"], physics["g"], physics["D"], physics["interaction"]
+    )
 
 
 @register_scene("two_body")
-def two_body(cfg, progress: Optional[Callable[[float], None]] = None) -> Dataset:
+def two_body(cfg, progress: Callable[[float], None] | None = None) -> Dataset:
     """SE(3) x SO(3): free body 1 and pivoted body 2 in gravity, coupled by an interaction potential."""
     c = _check(to_dict(cfg))
     physics = two_body_physics(c)
@@ -130,11 +154,16 @@ def two_body(cfg, progress: Optional[Callable[[float], None]] = None) -> Dataset
     F_ext = system.external_covector(sim.R, sim.p, xi)
     tau_ext, f_ext = (a.numpy() for a in system.G.split(torch.from_numpy(F_ext)))
     return Dataset(
-        R=sim.R, p=sim.p, h=float(c["h"]), scene=c["name"], body_names=["body1", "body2"],
-        body_kinds=["se3", "so3"], params=_params(c, physics, sim), seed=int(c["seed"]),
+        R=sim.R,
+        p=sim.p,
+        h=float(c["h"]),
+        scene=c["name"],
+        body_names=["body1", "body2"],
+        body_kinds=["se3", "so3"],
+        params=_params(c, physics, sim),
+        seed=int(c["seed"]),
         split=make_split(T, float(c["test_fraction"]), c["n_test"], split_seed),
-        extras={"omega": w, "v": v, "tau_ext": tau_ext, "f_ext": f_ext,
-                "energy": system.energy(sim.R, sim.p, xi)},
+        extras={"omega": w, "v": v, "tau_ext": tau_ext, "f_ext": f_ext, "energy": system.energy(sim.R, sim.p, xi)},
         t=sim.t,
     )
 
@@ -158,7 +187,7 @@ def pd_torque(R: np.ndarray, w: np.ndarray, control: dict, m: float, rho, g: flo
 
 
 @register_scene("pd_control")
-def pd_control(cfg, progress: Optional[Callable[[float], None]] = None) -> Dataset:
+def pd_control(cfg, progress: Callable[[float], None] | None = None) -> Dataset:
     """Exp 5: heavy rigid body on SO(3) under PD attitude control toward R_f."""
     c = _check(to_dict(cfg))
     ph = _physics(c, 3)
@@ -166,8 +195,15 @@ def pd_control(cfg, progress: Optional[Callable[[float], None]] = None) -> Datas
     if not isinstance(ct["feedforward"], bool):
         raise ConfigError(f"dataset.control.feedforward must be true or false, got {ct['feedforward']!r}")
     K_R, K_w, J_bar = pd_gains(ph["J"], float(ct["k_r"]), float(ct["k_w"]))
-    control = {"R_f": _vec(ct["R_f"], 3, "control.R_f"), "k_r": float(ct["k_r"]), "k_w": float(ct["k_w"]),
-               "J_bar": J_bar, "K_R": K_R, "K_w": K_w, "feedforward": bool(ct["feedforward"])}
+    control = {
+        "R_f": _vec(ct["R_f"], 3, "control.R_f"),
+        "k_r": float(ct["k_r"]),
+        "k_w": float(ct["k_w"]),
+        "J_bar": J_bar,
+        "K_R": K_R,
+        "K_w": K_w,
+        "feedforward": bool(ct["feedforward"]),
+    }
     physics = dict(ph, control=control, bodies=["so3"])
     ini = _keys(c, "initial", ("R0", "omega0", "perturb"))
     rng, split_seed = _rngs(c["seed"])
@@ -176,8 +212,9 @@ def pd_control(cfg, progress: Optional[Callable[[float], None]] = None) -> Datas
     dR = eps * rng.standard_normal((T, 3))
     dw = eps * rng.standard_normal((T, 3))
     dR[0], dw[0] = 0.0, 0.0  # trajectory 0 is the configured initial condition
-    R0 = (so3.exp(torch.as_tensor(_vec(ini["R0"], 3, "initial.R0"), dtype=torch.float64))
-          @ so3.exp(torch.from_numpy(dR))).numpy()
+    R0 = (
+        so3.exp(torch.as_tensor(_vec(ini["R0"], 3, "initial.R0"), dtype=torch.float64)) @ so3.exp(torch.from_numpy(dR))
+    ).numpy()
     w0 = np.asarray(_vec(ini["omega0"], 3, "initial.omega0")) + dw
 
     def tau_pd(R, w):
@@ -187,12 +224,23 @@ def pd_control(cfg, progress: Optional[Callable[[float], None]] = None) -> Datas
     sim = simulate_so3(body, R0, w0, _times(c), c["solver"], progress)
     p = np.zeros(sim.R.shape[:2] + (0, 3))
     return Dataset(
-        R=sim.R[:, :, None], p=p, h=float(c["h"]), scene=c["name"], body_names=["body"], body_kinds=["so3"],
-        params=_params(c, physics, sim), seed=int(c["seed"]),
+        R=sim.R[:, :, None],
+        p=p,
+        h=float(c["h"]),
+        scene=c["name"],
+        body_names=["body"],
+        body_kinds=["so3"],
+        params=_params(c, physics, sim),
+        seed=int(c["seed"]),
         split=make_split(T, float(c["test_fraction"]), c["n_test"], split_seed),
-        extras={"omega": sim.w[:, :, None], "v": p.copy(), "tau_ext": body.external_torque(sim.R, sim.w)[:, :, None],
-                "tau_control": tau_pd(sim.R, sim.w)[:, :, None], "f_ext": p.copy(),
-                "energy": body.energy(sim.R, sim.w)},
+        extras={
+            "omega": sim.w[:, :, None],
+            "v": p.copy(),
+            "tau_ext": body.external_torque(sim.R, sim.w)[:, :, None],
+            "tau_control": tau_pd(sim.R, sim.w)[:, :, None],
+            "f_ext": p.copy(),
+            "energy": body.energy(sim.R, sim.w),
+        },
         t=sim.t,
     )
 

@@ -31,6 +31,7 @@ shrinks uniform rotations -- entries are sines and cosines, not polynomials -- b
 The window must be odd: scipy accepts an even `window_length` but then evaluates the fit half a sample
 off centre, i.e. shifts the whole track by h/2 in time.  The paper's "window 50" is therefore run as 51.
 """
+
 from __future__ import annotations
 
 import math
@@ -46,8 +47,10 @@ def check_window(window: int, order: int, n: int | None = None) -> None:
     if isinstance(window, bool) or int(window) != window or window < 1:
         raise ValueError(f"Savitzky-Golay window must be a positive integer, got {window!r}")
     if window % 2 == 0:
-        raise ValueError(f"Savitzky-Golay window must be odd (an even window shifts the track by half a "
-                         f"sample); got {window}, use {window + 1}")
+        raise ValueError(
+            f"Savitzky-Golay window must be odd (an even window shifts the track by half a "
+            f"sample); got {window}, use {window + 1}"
+        )
     if isinstance(order, bool) or int(order) != order or not 0 <= order < window:
         raise ValueError(f"Savitzky-Golay order must be an integer in [0, window={window}), got {order!r}")
     if n is not None and window > n:
@@ -65,8 +68,8 @@ def savgol_table(window: int, order: int) -> np.ndarray:
     check_window(window, order)
     half = window // 2
     t = (np.arange(window) - half) / max(half, 1)
-    V = np.polynomial.legendre.legvander(t, order)        # (window, order + 1)
-    return V @ np.linalg.pinv(V)                           # symmetric projector; row pos = weights at pos
+    V = np.polynomial.legendre.legvander(t, order)  # (window, order + 1)
+    return V @ np.linalg.pinv(V)  # symmetric projector; row pos = weights at pos
 
 
 def savgol_weights(n: int, window: int, order: int) -> tuple[np.ndarray, np.ndarray]:
@@ -101,15 +104,17 @@ def savgol_rotations(R: np.ndarray, window: int, order: int, max_angle: float = 
         raise ValueError(f"savgol_rotations expects rotations of shape (n, ..., 3, 3), got {R.shape}")
     n = R.shape[0]
     idx, c = savgol_weights(n, window, order)
-    centre = idx[:, window // 2]                                             # = k except near the ends
+    centre = idx[:, window // 2]  # = k except near the ends
     Rc = R[centre]
-    rel = np.swapaxes(Rc, -1, -2)[:, None] @ R[idx]                          # (n, window, ..., 3, 3)
-    xi, angle = _log_below_pi(rel)                                           # (n, window, ..., 3)
+    rel = np.swapaxes(Rc, -1, -2)[:, None] @ R[idx]  # (n, window, ..., 3, 3)
+    xi, angle = _log_below_pi(rel)  # (n, window, ..., 3)
     if angle.max() > max_angle:
         pos = np.unravel_index(int(np.argmax(angle)), angle.shape)
-        raise ValueError(f"rotation track turns by {angle.max():.3f} rad between samples {int(centre[pos[0]])} "
-                         f"and {int(idx[pos[0], pos[1]])} (index {tuple(int(i) for i in pos[2:])} of the other "
-                         f"axes), more than {max_angle:.3f} rad within half a window of {window}; use a shorter window")
+        raise ValueError(
+            f"rotation track turns by {angle.max():.3f} rad between samples {int(centre[pos[0]])} "
+            f"and {int(idx[pos[0], pos[1]])} (index {tuple(int(i) for i in pos[2:])} of the other "
+            f"axes), more than {max_angle:.3f} rad within half a window of {window}; use a shorter window"
+        )
     eta = np.einsum("kw,kw...->k...", c, xi)
     return Rc @ so3.exp(torch.from_numpy(eta)).numpy()
 

@@ -10,6 +10,7 @@ computed from psi and the combination phi -+ psi, which is well conditioned on e
     (1 + sin theta) (sin, cos)(phi - psi) = (R01 - R12, R11 + R02)
     (1 - sin theta) (sin, cos)(phi + psi) = (-(R01 + R12), R11 - R02)
 """
+
 from __future__ import annotations
 
 import math
@@ -53,7 +54,7 @@ def from_matrix(R: torch.Tensor) -> torch.Tensor:
     theta = torch.atan2(-r[..., 2, 0], cth)
     psi = torch.atan2(r[..., 1, 0], r[..., 0, 0])
     psi = torch.where(cth < GIMBAL_TOL, torch.zeros_like(psi), psi)
-    diff = torch.atan2(r[..., 0, 1] - r[..., 1, 2], r[..., 1, 1] + r[..., 0, 2])     # phi - psi
+    diff = torch.atan2(r[..., 0, 1] - r[..., 1, 2], r[..., 1, 1] + r[..., 0, 2])  # phi - psi
     summ = torch.atan2(-(r[..., 0, 1] + r[..., 1, 2]), r[..., 1, 1] - r[..., 0, 2])  # phi + psi
     phi = torch.where(-r[..., 2, 0] >= 0, diff + psi, summ - psi)
     return torch.stack((wrap(phi), theta, psi), -1)

@@ -5,6 +5,7 @@ A configuration is a `Pose(R, p)`: R of shape (..., m + n, 3, 3) holds every bod
 A tangent vector is one flat tensor of length 6m + 3n ordered body by body:
 (w_1, v_1, ..., w_m, v_m, w_{m+1}, ..., w_{m+n}).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -21,11 +22,11 @@ class Pose(NamedTuple):
     R: torch.Tensor
     p: torch.Tensor
 
-    def index(self, idx) -> "Pose":
+    def index(self, idx) -> Pose:
         """Index the leading (batch/time) dimensions of both parts alike."""
         return Pose(self.R[idx], self.p[idx])
 
-    def to(self, *args, **kwargs) -> "Pose":
+    def to(self, *args, **kwargs) -> Pose:
         return Pose(self.R.to(*args, **kwargs), self.p.to(*args, **kwargs))
 
 

@@ -4,6 +4,7 @@ Group law (R1, p1)(R2, p2) = (R1 R2, p1 + R1 p2); exp(w, v) = (exp(w), V(w) v) w
 V = I + cosc hat(w) + sinc3 hat(w)^2. The left perturbation used by the DEL residual is
 (R, p) exp(eta) whose first-order part is (R exp(eta_w), p + R eta_v).
 """
+
 from __future__ import annotations
 
 import torch

@@ -5,6 +5,7 @@ theta^2 and first and second derivatives through w.w stay finite at w = 0. The c
 form is evaluated on a `safe` argument in the Taylor region, so `torch.where` never
 mixes a NaN/inf gradient into the result.
 """
+
 from __future__ import annotations
 
 import torch

@@ -4,6 +4,7 @@ Conventions: hat(w) x = w x x; exp(hat(w)) = I + sinc hat(w) + cosc hat(w)^2 (Ro
 left perturbation R exp(hat(eta)); vee is the inverse of hat on skew matrices and the
 skew-projection vee((A - A^T)/2) on general matrices.
 """
+
 from __future__ import annotations
 
 import torch
@@ -18,9 +19,7 @@ def hat(w: torch.Tensor) -> torch.Tensor:
     """(..., 3) -> (..., 3, 3) skew matrix with hat(w) x = w x x."""
     x, y, z = w.unbind(-1)
     o = torch.zeros_like(x)
-    return torch.stack(
-        (torch.stack((o, -z, y), -1), torch.stack((z, o, -x), -1), torch.stack((-y, x, o), -1)), -2
-    )
+    return torch.stack((torch.stack((o, -z, y), -1), torch.stack((z, o, -x), -1), torch.stack((-y, x, o), -1)), -2)
 
 
 def vee(A: torch.Tensor) -> torch.Tensor:

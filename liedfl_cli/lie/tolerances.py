@@ -4,6 +4,7 @@
 series (kept to t^8, so the truncation error at the threshold is below the dtype's epsilon
 while the closed form's cancellation error would not be).
 """
+
 from __future__ import annotations
 
 import torch

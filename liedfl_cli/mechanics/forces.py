@@ -3,6 +3,7 @@
 They enter the DEL residual as F^-_k = F^+_k = (h/2) F(g_k, xi~_k) with xi~_k the paper's
 velocity estimate from the increment g_k^{-1} g_{k+1} (`kinetic.velocity_estimate`).
 """
+
 from __future__ import annotations
 
 import torch
@@ -28,7 +29,6 @@ class RayleighForce(nn.Module):
     def jacobian_xi(self, g: Pose, xi: torch.Tensor) -> torch.Tensor:
         """dF/d xi~ = -D, broadcast to (..., dim, dim)."""
         return (-self.D()).expand(*xi.shape[:-1], xi.shape[-1], xi.shape[-1])
-
 
     def describe(self) -> str:
         return f"rayleigh (D {self.D.dim}x{self.D.dim} SPSD)"
@@ -158,8 +158,18 @@ class PDControl(nn.Module):
 
     name = "pd_control"
 
-    def __init__(self, G: ProductGroup, K_R: float, K_w: float, R_f, feedforward: bool = False,
-                 m: float = 0.0, rho=(0.0, 0.0, 0.0), g: float = 0.0, scale: float = 1.0):
+    def __init__(
+        self,
+        G: ProductGroup,
+        K_R: float,
+        K_w: float,
+        R_f,
+        feedforward: bool = False,
+        m: float = 0.0,
+        rho=(0.0, 0.0, 0.0),
+        g: float = 0.0,
+        scale: float = 1.0,
+    ):
         super().__init__()
         self.G, self.K_R, self.K_w, self.feedforward = G, float(K_R), float(K_w), bool(feedforward)
         self.register_buffer("R_f", torch.as_tensor(R_f, dtype=torch.float64).reshape(3, 3))
@@ -183,15 +193,19 @@ class PDControl(nn.Module):
     def jacobian_xi(self, g: Pose, xi: torch.Tensor) -> torch.Tensor:
         eye = -self.K_w * torch.eye(self.G.dim, dtype=xi.dtype, device=xi.device)
         for s in self.G.body_slices()[: self.G.n_se3]:  # translational parts carry no torque
-            eye[s.start + 3:s.stop, s.start + 3:s.stop] = 0.0
+            eye[s.start + 3 : s.stop, s.start + 3 : s.stop] = 0.0
         return eye.expand(*xi.shape[:-1], self.G.dim, self.G.dim)
 
     def describe(self) -> str:
         return "pd_control (true PD torque" + (" + gravity feed-forward" if self.feedforward else "") + ")"
 
 
-FORCES = {"rayleigh": RayleighForce, "rayleigh_nonlinear": RayleighNonlinearForce, "nn": NNForce,
-          "control": ControlForce}
+FORCES = {
+    "rayleigh": RayleighForce,
+    "rayleigh_nonlinear": RayleighNonlinearForce,
+    "nn": NNForce,
+    "control": ControlForce,
+}
 """Learnable forces by config option name (conf/force/<name>.yaml)."""
 
 
@@ -203,8 +217,10 @@ def force_jacobian_xi(force: nn.Module, g: Pose, xi: torch.Tensor) -> torch.Tens
     with torch.enable_grad():
         x = xi.detach().requires_grad_(True)
         F = force(g, x)
-        rows = [torch.autograd.grad(F[..., i].sum(), x, retain_graph=True, create_graph=False)[0]
-                for i in range(F.shape[-1])]
+        rows = [
+            torch.autograd.grad(F[..., i].sum(), x, retain_graph=True, create_graph=False)[0]
+            for i in range(F.shape[-1])
+        ]
     return torch.stack(rows, -2)
 
 

@@ -9,6 +9,7 @@ tested against autodiff of `kinetic_lagrangian`.
 
 Shapes: W (..., B, 3, 3), z (..., m, 3), Jd (B, 3, 3), mass (m,), rho (m, 3).
 """
+
 from __future__ import annotations
 
 import torch
@@ -118,9 +119,9 @@ def velocity_estimate_jacobian(G: ProductGroup, inc: Pose, h: float) -> torch.Te
     lead = W.shape[:-3]
     out = W.new_zeros(*lead, G.dim, G.dim)
     for i, s in enumerate(G.body_slices()):
-        out[..., s.start:s.start + 3, s.start:s.start + 3] = dw[..., i, :, :]
+        out[..., s.start : s.start + 3, s.start : s.start + 3] = dw[..., i, :, :]
         if i < G.n_se3:
             w_t = so3.vee(W[..., i, :, :]) / h
-            out[..., s.start + 3:s.stop, s.start + 3:s.stop] = (eye - 0.5 * h * so3.hat(w_t)) @ W[..., i, :, :] / h
-            out[..., s.start + 3:s.stop, s.start:s.start + 3] = 0.5 * so3.hat(z[..., i, :]) @ dw[..., i, :, :]
+            out[..., s.start + 3 : s.stop, s.start + 3 : s.stop] = (eye - 0.5 * h * so3.hat(w_t)) @ W[..., i, :, :] / h
+            out[..., s.start + 3 : s.stop, s.start : s.start + 3] = 0.5 * so3.hat(z[..., i, :]) @ dw[..., i, :, :]
     return out

@@ -1,4 +1,5 @@
 """GELU multilayer perceptron (width x depth hidden layers), float64."""
+
 from __future__ import annotations
 
 import torch

@@ -5,6 +5,7 @@ inequality of a physical body), J_d = tr(J)/2 I - J (the matrix-representation i
 discrete rigid-body Lagrangian). Damping: D = L L^T + diag(lambda^2) with L lower triangular
 (SPSD). Mass: m = exp(log_m) > 0.
 """
+
 from __future__ import annotations
 
 import math

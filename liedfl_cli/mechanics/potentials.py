@@ -2,6 +2,7 @@
 
 Every potential maps a Pose with leading dims (...) to a tensor of shape (...).
 """
+
 from __future__ import annotations
 
 import torch
@@ -79,9 +80,19 @@ class InteractionPotential(nn.Module):
     All parameters are fixed buffers (no trainable parameters).
     """
 
-    def __init__(self, G: ProductGroup, kind: str, mu: float, r1=(0.0, 0.0, 0.0), r2=(0.0, 0.0, 0.0),
-                 moment1=(0.0, 0.0, 1.0), moment2=(0.0, 0.0, 1.0), masses=(1.0, 1.0),
-                 rhos=((0.0, 0.0, 0.0), (0.0, 0.0, 0.0)), bodies=(0, 1)):
+    def __init__(
+        self,
+        G: ProductGroup,
+        kind: str,
+        mu: float,
+        r1=(0.0, 0.0, 0.0),
+        r2=(0.0, 0.0, 0.0),
+        moment1=(0.0, 0.0, 1.0),
+        moment2=(0.0, 0.0, 1.0),
+        masses=(1.0, 1.0),
+        rhos=((0.0, 0.0, 0.0), (0.0, 0.0, 0.0)),
+        bodies=(0, 1),
+    ):
         super().__init__()
         if kind not in INTERACTIONS:
             raise ValueError(f"interaction.kind must be one of {INTERACTIONS}, got {kind!r}")

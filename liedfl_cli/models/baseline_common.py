@@ -1,4 +1,5 @@
 """Small pieces shared by the baseline models (config options, pose layout, explicit rollouts)."""
+
 from __future__ import annotations
 
 import torch
@@ -71,8 +72,13 @@ def explicit_rollout(pose: Pose, seconds: float) -> Rollout:
     """Rollout record of an explicit integrator: every step 'converged' with 0 iterations."""
     T, S1 = pose.R.shape[:2]
     n = max(S1 - 2, 0)
-    return Rollout(pose, torch.ones(T, n, dtype=torch.bool), torch.zeros(T, n, dtype=torch.long),
-                   torch.zeros(T, n, dtype=pose.R.dtype), seconds)
+    return Rollout(
+        pose,
+        torch.ones(T, n, dtype=torch.bool),
+        torch.zeros(T, n, dtype=torch.long),
+        torch.zeros(T, n, dtype=pose.R.dtype),
+        seconds,
+    )
 
 
 def with_data_start(pred: Pose, g0: Pose, g1: Pose) -> Pose:

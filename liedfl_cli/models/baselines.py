@@ -13,6 +13,7 @@ unknown key there, or a dataset group the baseline does not model, is a ConfigEr
 | euclidean_dflnn   | DFLNN on the entries of (R, p)  | SO(3) or SE(3)  | triplet (DEL residual + regularity)    |
 | neural_ode        | 2nd-order MLP field, torchdiffeq| any             | trajectory (MSE of x entries)          |
 """
+
 from __future__ import annotations
 
 from ..data.errors import ConfigError
@@ -29,8 +30,14 @@ def register(name: str):
     return deco
 
 
-_GLNN_COMMON = {"window": None, "potential": "auto", "damping": "auto", "mlp_width": 64, "mlp_depth": 3,
-                "init_jitter": 0.1}
+_GLNN_COMMON = {
+    "window": None,
+    "potential": "auto",
+    "damping": "auto",
+    "mlp_width": 64,
+    "mlp_depth": 3,
+    "init_jitter": 0.1,
+}
 _GLNN = {
     "glnn_rk4": ("dopri5", "trajectory", {"rtol": 1e-7, "atol": 1e-9, "max_num_steps": 100000}),
     "glnn_lie_midpoint": ("midpoint", "triplet", {"train_newton_iters": 4}),
@@ -46,9 +53,16 @@ def _glnn_builder(name: str):
 
         single_so3(dataset.group, name)
         opt = options(cfg, {**_GLNN_COMMON, **extra})
-        return GLNN(dataset.group, dataset.h, integrator=integrator, window=opt.pop("window") or window,
-                    potential=use_potential(opt, dataset), damping=use_damping(opt, cfg),
-                    **{k: v for k, v in opt.items() if k not in ("potential", "damping")}, seed=int(cfg.seed))
+        return GLNN(
+            dataset.group,
+            dataset.h,
+            integrator=integrator,
+            window=opt.pop("window") or window,
+            potential=use_potential(opt, dataset),
+            damping=use_damping(opt, cfg),
+            **{k: v for k, v in opt.items() if k not in ("potential", "damping")},
+            seed=int(cfg.seed),
+        )
 
     return build
 
@@ -65,9 +79,17 @@ def _euler(cfg, dataset):
 
     single_so3(dataset.group, "euler_dflnn")
     opt = options(cfg, _DFLNN)
-    return EulerDFLNN(dataset.group, dataset.h, potential=use_potential(opt, dataset), damping=use_damping(opt, cfg),
-                      mlp_width=opt["mlp_width"], mlp_depth=opt["mlp_depth"], init_jitter=opt["init_jitter"],
-                      epsilon=float(cfg.train.epsilon), seed=int(cfg.seed))
+    return EulerDFLNN(
+        dataset.group,
+        dataset.h,
+        potential=use_potential(opt, dataset),
+        damping=use_damping(opt, cfg),
+        mlp_width=opt["mlp_width"],
+        mlp_depth=opt["mlp_depth"],
+        init_jitter=opt["init_jitter"],
+        epsilon=float(cfg.train.epsilon),
+        seed=int(cfg.seed),
+    )
 
 
 @register("euclidean_dflnn")
@@ -76,20 +98,39 @@ def _euclidean(cfg, dataset):
 
     G = dataset.group
     if G.n_bodies != 1:
-        raise ConfigError(f"baseline=euclidean_dflnn models a single rigid body (SO(3) or SE(3)); "
-                          f"this dataset's group is {G.name}")
+        raise ConfigError(
+            f"baseline=euclidean_dflnn models a single rigid body (SO(3) or SE(3)); this dataset's group is {G.name}"
+        )
     opt = options(cfg, {**_DFLNN, "potential": "mlp"})
-    return EuclideanDFLNN(G, dataset.h, potential=use_potential(opt, dataset), damping=use_damping(opt, cfg),
-                          mlp_width=opt["mlp_width"], mlp_depth=opt["mlp_depth"], init_jitter=opt["init_jitter"],
-                          epsilon=float(cfg.train.epsilon), seed=int(cfg.seed))
+    return EuclideanDFLNN(
+        G,
+        dataset.h,
+        potential=use_potential(opt, dataset),
+        damping=use_damping(opt, cfg),
+        mlp_width=opt["mlp_width"],
+        mlp_depth=opt["mlp_depth"],
+        init_jitter=opt["init_jitter"],
+        epsilon=float(cfg.train.epsilon),
+        seed=int(cfg.seed),
+    )
 
 
 @register("neural_ode")
 def _neural_ode(cfg, dataset):
     from .neural_ode import NeuralODE
 
-    opt = options(cfg, {"window": "trajectory", "mlp_width": 64, "mlp_depth": 3, "method": "dopri5",
-                        "rtol": 1e-7, "atol": 1e-9, "max_num_steps": 100000})
+    opt = options(
+        cfg,
+        {
+            "window": "trajectory",
+            "mlp_width": 64,
+            "mlp_depth": 3,
+            "method": "dopri5",
+            "rtol": 1e-7,
+            "atol": 1e-9,
+            "max_num_steps": 100000,
+        },
+    )
     return NeuralODE(dataset.group, dataset.h, seed=int(cfg.seed), **opt)
 
 

@@ -1,4 +1,5 @@
 """Build the model a config asks for: LieDFLNN (baseline=none) or a baseline (later issues)."""
+
 from __future__ import annotations
 
 from hydra.utils import instantiate
@@ -29,8 +30,10 @@ def check_group(cfg: DictConfig, dataset) -> None:
     want = (int(grp.n_se3), int(grp.n_so3))
     have = (dataset.group.n_se3, dataset.group.n_so3)
     if want != have:
-        raise ConfigError(f"group (n_se3={want[0]}, n_so3={want[1]}) does not match dataset '{cfg.dataset.name}' "
-                          f"({dataset.group.name}); drop the group override or pick a matching group")
+        raise ConfigError(
+            f"group (n_se3={want[0]}, n_so3={want[1]}) does not match dataset '{cfg.dataset.name}' "
+            f"({dataset.group.name}); drop the group override or pick a matching group"
+        )
 
 
 def build_model(cfg: DictConfig, dataset):

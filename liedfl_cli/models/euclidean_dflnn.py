@@ -19,6 +19,7 @@ Hessian by autodiff; it is -(1/h) times the constant kinetic matrix). Rollout: d
 x_{k+1} in R^12 from 2 x_k - x_{k-1}; the predicted R is not orthogonal and is returned as is.
 Single-body groups only (SO(3) or SE(3)).
 """
+
 from __future__ import annotations
 
 import math
@@ -39,9 +40,18 @@ from .liedflnn import del_regularity_loss
 class EuclideanDFLNN(nn.Module):
     window = "triplet"
 
-    def __init__(self, G: ProductGroup, h: float, potential: bool = False, damping: bool = True,
-                 mlp_width: int = 64, mlp_depth: int = 3, init_jitter: float = 0.1, epsilon: float = 10.0,
-                 seed: int = 0):
+    def __init__(
+        self,
+        G: ProductGroup,
+        h: float,
+        potential: bool = False,
+        damping: bool = True,
+        mlp_width: int = 64,
+        mlp_depth: int = 3,
+        init_jitter: float = 0.1,
+        epsilon: float = 10.0,
+        seed: int = 0,
+    ):
         super().__init__()
         if G.n_bodies != 1:
             raise ValueError("EuclideanDFLNN models one body")
@@ -159,8 +169,13 @@ class EuclideanDFLNN(nn.Module):
         xs = [x_prev, x]
         conv, its, res = [], [], []
         for k in range(1, steps):
-            sol = damped_newton(lambda y, a=x_prev, b=x: self.residual(a, b, y), 2 * x - x_prev,
-                                tol=tol, max_iter=max_iter, max_halvings=halvings)
+            sol = damped_newton(
+                lambda y, a=x_prev, b=x: self.residual(a, b, y),
+                2 * x - x_prev,
+                tol=tol,
+                max_iter=max_iter,
+                max_halvings=halvings,
+            )
             x_prev, x = x, sol.x.detach()
             xs.append(x)
             conv.append(sol.converged)
@@ -170,6 +185,7 @@ class EuclideanDFLNN(nn.Module):
                 progress(k)
         pose = with_data_start(self.from_x(torch.stack(xs, 1)), g0, g1)
         T = g0.R.shape[0]
-        stack = lambda v, dt: torch.stack(v, 1) if v else torch.zeros(T, 0, dtype=dt)  # noqa: E731
-        return Rollout(pose, stack(conv, torch.bool), stack(its, torch.long), stack(res, torch.float64),
-                       time.perf_counter() - t0)
+        stack = lambda v, dt: torch.stack(v, 1) if v else torch.zeros(T, 0, dtype=dt)
+        return Rollout(
+            pose, stack(conv, torch.bool), stack(its, torch.long), stack(res, torch.float64), time.perf_counter() - t0
+        )

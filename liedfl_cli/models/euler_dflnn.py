@@ -19,6 +19,7 @@ only V sees the shift, and it then sees the same range as in training). q_{k+1} 
 damped Newton on r_k (solver tolerance / iterations), warm-started at 2 q_k - q_{k-1}, and
 converted back to SO(3) by `euler.to_matrix` for evaluation.
 """
+
 from __future__ import annotations
 
 import math
@@ -44,9 +45,18 @@ def _shift_to_principal(q_ref: torch.Tensor) -> torch.Tensor:
 class EulerDFLNN(nn.Module):
     window = "triplet"
 
-    def __init__(self, G: ProductGroup, h: float, potential: bool = False, damping: bool = True,
-                 mlp_width: int = 64, mlp_depth: int = 3, init_jitter: float = 0.1, epsilon: float = 10.0,
-                 seed: int = 0):
+    def __init__(
+        self,
+        G: ProductGroup,
+        h: float,
+        potential: bool = False,
+        damping: bool = True,
+        mlp_width: int = 64,
+        mlp_depth: int = 3,
+        init_jitter: float = 0.1,
+        epsilon: float = 10.0,
+        seed: int = 0,
+    ):
         super().__init__()
         self.G, self.h = G, float(h)
         gen = torch.Generator().manual_seed(int(seed))
@@ -80,7 +90,7 @@ class EulerDFLNN(nn.Module):
         if self.damping is None:
             return torch.zeros_like(q0)
         E = euler.rate_matrix(0.5 * (q0 + q1))
-        w = (E @ ((q1 - q0) / self.h)[..., None])
+        w = E @ ((q1 - q0) / self.h)[..., None]
         return -(E.transpose(-1, -2) @ (self.damping() @ w))[..., 0]
 
     def residual(self, q_prev: torch.Tensor, q: torch.Tensor, q_next: torch.Tensor) -> torch.Tensor:
@@ -133,8 +143,13 @@ class EulerDFLNN(nn.Module):
         for k in range(1, steps):
             shift = _shift_to_principal(q)
             q_prev, q = q_prev - shift, q - shift
-            sol = damped_newton(lambda x, a=q_prev, b=q: self.residual(a, b, x), 2 * q - q_prev,
-                                tol=tol, max_iter=max_iter, max_halvings=halvings)
+            sol = damped_newton(
+                lambda x, a=q_prev, b=q: self.residual(a, b, x),
+                2 * q - q_prev,
+                tol=tol,
+                max_iter=max_iter,
+                max_halvings=halvings,
+            )
             q_prev, q = q, sol.x.detach()
             Rs.append(euler.to_matrix(q))
             conv.append(sol.converged)
@@ -144,6 +159,7 @@ class EulerDFLNN(nn.Module):
                 progress(k)
         pose = with_data_start(so3_pose(torch.stack(Rs, 1)), g0, g1)
         T = g0.R.shape[0]
-        stack = lambda xs, dt: torch.stack(xs, 1) if xs else torch.zeros(T, 0, dtype=dt)  # noqa: E731
-        return Rollout(pose, stack(conv, torch.bool), stack(its, torch.long), stack(res, torch.float64),
-                       time.perf_counter() - t0)
+        stack = lambda xs, dt: torch.stack(xs, 1) if xs else torch.zeros(T, 0, dtype=dt)
+        return Rollout(
+            pose, stack(conv, torch.bool), stack(its, torch.long), stack(res, torch.float64), time.perf_counter() - t0
+        )

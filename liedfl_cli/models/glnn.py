@@ -28,6 +28,7 @@ differentiable Newton iterations whose Jacobian I - h/2 dA/dw omits the potentia
 on R (exact without a potential); rollouts use the damped Newton solver with the full autodiff
 Jacobian, tolerance and iteration limit of `solver`, and report real convergence flags.
 """
+
 from __future__ import annotations
 
 import time
@@ -55,10 +56,23 @@ class GLNN(nn.Module):
         train_newton_iters: Newton iterations of the midpoint solve in training.
     """
 
-    def __init__(self, G: ProductGroup, h: float, integrator: str = "dopri5", window: str = "trajectory",
-                 potential: bool = False, damping: bool = True, mlp_width: int = 64, mlp_depth: int = 3,
-                 init_jitter: float = 0.1, rtol: float = 1e-7, atol: float = 1e-9, max_num_steps: int = 100000,
-                 train_newton_iters: int = 4, seed: int = 0):
+    def __init__(
+        self,
+        G: ProductGroup,
+        h: float,
+        integrator: str = "dopri5",
+        window: str = "trajectory",
+        potential: bool = False,
+        damping: bool = True,
+        mlp_width: int = 64,
+        mlp_depth: int = 3,
+        init_jitter: float = 0.1,
+        rtol: float = 1e-7,
+        atol: float = 1e-9,
+        max_num_steps: int = 100000,
+        train_newton_iters: int = 4,
+        seed: int = 0,
+    ):
         super().__init__()
         if integrator not in INTEGRATORS:
             raise ValueError(f"integrator must be one of {INTEGRATORS}, got {integrator!r}")
@@ -136,8 +150,13 @@ class GLNN(nn.Module):
     def midpoint_step_solve(self, R, w, params, tol, max_iter, max_halvings):
         """Rollout midpoint step by damped Newton (autodiff Jacobian) with convergence flags."""
         guess = self.heun_step(R, w, params)[1]
-        sol = damped_newton(lambda x: self.midpoint_residual(R, w, x, params), guess.detach(),
-                            tol=tol, max_iter=max_iter, max_halvings=max_halvings)
+        sol = damped_newton(
+            lambda x: self.midpoint_residual(R, w, x, params),
+            guess.detach(),
+            tol=tol,
+            max_iter=max_iter,
+            max_halvings=max_halvings,
+        )
         w_next = sol.x.detach()
         return R @ so3.exp(0.5 * self.h * (w + w_next)), w_next, sol
 
@@ -152,8 +171,9 @@ class GLNN(nn.Module):
 
         t = self.h * torch.arange(steps + 1, dtype=R0.dtype)
         y0 = torch.cat((R0.reshape(n, 9), w0), -1)
-        ys = odeint(f, y0, t, rtol=self.rtol, atol=self.atol, method="dopri5",
-                    options={"max_num_steps": self.max_num_steps})
+        ys = odeint(
+            f, y0, t, rtol=self.rtol, atol=self.atol, method="dopri5", options={"max_num_steps": self.max_num_steps}
+        )
         return ys[..., :9].reshape(steps + 1, n, 3, 3).transpose(0, 1)
 
     def integrate(self, R0: torch.Tensor, w0: torch.Tensor, steps: int) -> torch.Tensor:

@@ -13,6 +13,7 @@ gravity + interaction potential; "damping": the Rayleigh D) are set to the scene
 from `physics` (a dataset's `params["physics"]`) and frozen (requires_grad False: not trained,
 not counted as trainable parameters). `components()` lists every active part.
 """
+
 from __future__ import annotations
 
 import math
@@ -67,8 +68,10 @@ class LieDFLNN(nn.Module):
         if bad:
             raise ValueError(f"model.known: unknown part(s) {bad}; choose from {list(KNOWN_PARTS)}")
         if known and not physics:
-            raise ValueError(f"model.known={list(known)} needs the scene's true parameters, but the dataset "
-                             "has no params['physics'] (real recordings have none)")
+            raise ValueError(
+                f"model.known={list(known)} needs the scene's true parameters, but the dataset "
+                "has no params['physics'] (real recordings have none)"
+            )
         self.G, self.h, self.residual_mode = G, float(h), residual
         self.known = known
         gen = torch.Generator().manual_seed(seed)
@@ -99,8 +102,10 @@ class LieDFLNN(nn.Module):
                 self.rho.requires_grad_(False)
         if "potential" in known:
             if potential == "mlp":
-                raise ValueError("model.potential=mlp together with model.known=[potential]: choose one "
-                                 "(the known potential replaces the network)")
+                raise ValueError(
+                    "model.potential=mlp together with model.known=[potential]: choose one "
+                    "(the known potential replaces the network)"
+                )
             self.potential = truth.true_potential(G, physics)  # None when the scene has no potential
         elif potential == "none":
             self.potential = None
@@ -140,7 +145,9 @@ class LieDFLNN(nn.Module):
         """
 
         def tag(label: str, *modules) -> str:
-            params = [p for m in modules if m is not None for p in (m.parameters() if isinstance(m, nn.Module) else [m])]
+            params = [
+                p for m in modules if m is not None for p in (m.parameters() if isinstance(m, nn.Module) else [m])
+            ]
             n = sum(p.numel() for p in params if p.requires_grad)
             if params and n == 0 or not params:
                 return f"{label} (known, frozen)"
@@ -213,7 +220,7 @@ class LieDFLNN(nn.Module):
         G = self.G
         if self.residual_mode == "generic":
             zero = inc.R.new_zeros(*inc.R.shape[:-3], G.dim)
-            f = lambda d: self.residual_var(g, G.compose(g, G.retract(inc, d)))  # noqa: E731
+            f = lambda d: self.residual_var(g, G.compose(g, G.retract(inc, d)))
             from ..solvers.newton import jacobian
 
             return jacobian(f, zero)
@@ -234,8 +241,16 @@ class LieDFLNN(nn.Module):
         from ..solvers.rollout import rollout_discrete
 
         s = solver or {}
-        return rollout_discrete(self, g0, g1, steps, tol=float(s.get("tol", 1e-5)), max_iter=int(s.get("max_iter", 10)),
-                                max_halvings=int(s.get("max_halvings", 6)), progress=progress)
+        return rollout_discrete(
+            self,
+            g0,
+            g1,
+            steps,
+            tol=float(s.get("tol", 1e-5)),
+            max_iter=int(s.get("max_iter", 10)),
+            max_halvings=int(s.get("max_halvings", 6)),
+            progress=progress,
+        )
 
     def residual(self, g_prev: Pose, g: Pose, g_next: Pose) -> torch.Tensor:
         """Forced DEL residual at g, shape (..., dim); zero on exact solutions of the learned scheme."""

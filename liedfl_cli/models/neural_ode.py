@@ -10,6 +10,7 @@ x_1..x_L (window "trajectory": the whole training window of each trajectory; "tr
 3-pose window of the train split as a length-2 trajectory). Rollout from (g0, g1): the same
 start, the ODE solution sampled every h, with g0, g1 in front. Works for any product group.
 """
+
 from __future__ import annotations
 
 import time
@@ -23,9 +24,19 @@ from .baseline_common import explicit_rollout, triplet_sequence, with_data_start
 
 
 class NeuralODE(nn.Module):
-    def __init__(self, G: ProductGroup, h: float, window: str = "trajectory", mlp_width: int = 64,
-                 mlp_depth: int = 3, method: str = "dopri5", rtol: float = 1e-7, atol: float = 1e-9,
-                 max_num_steps: int = 100000, seed: int = 0):
+    def __init__(
+        self,
+        G: ProductGroup,
+        h: float,
+        window: str = "trajectory",
+        mlp_width: int = 64,
+        mlp_depth: int = 3,
+        method: str = "dopri5",
+        rtol: float = 1e-7,
+        atol: float = 1e-9,
+        max_num_steps: int = 100000,
+        seed: int = 0,
+    ):
         super().__init__()
         self.G, self.h, self.window = G, float(h), window
         self.method, self.rtol, self.atol, self.max_num_steps = method, float(rtol), float(atol), int(max_num_steps)
@@ -42,7 +53,7 @@ class NeuralODE(nn.Module):
 
     def from_x(self, x: torch.Tensor) -> Pose:
         lead, B, m = x.shape[:-1], self.G.n_bodies, self.G.n_se3
-        return Pose(x[..., : 9 * B].reshape(*lead, B, 3, 3), x[..., 9 * B:].reshape(*lead, m, 3))
+        return Pose(x[..., : 9 * B].reshape(*lead, B, 3, 3), x[..., 9 * B :].reshape(*lead, m, 3))
 
     def integrate(self, x0: torch.Tensor, v0: torch.Tensor, steps: int) -> torch.Tensor:
         """(N, n), (N, n) -> x at t = 0, h, ..., steps h: (N, steps+1, n)."""
@@ -54,10 +65,14 @@ class NeuralODE(nn.Module):
             return torch.cat((y[:, n:], self.field(y)), -1)
 
         t = self.h * torch.arange(steps + 1, dtype=x0.dtype)
-        opts = {"max_num_steps": self.max_num_steps} if self.method in ("dopri5", "dopri8", "bosh3", "fehlberg2",
-                                                                        "adaptive_heun") else {}
-        ys = odeint(f, torch.cat((x0, v0), -1), t, rtol=self.rtol, atol=self.atol, method=self.method,
-                    options=opts or None)
+        opts = (
+            {"max_num_steps": self.max_num_steps}
+            if self.method in ("dopri5", "dopri8", "bosh3", "fehlberg2", "adaptive_heun")
+            else {}
+        )
+        ys = odeint(
+            f, torch.cat((x0, v0), -1), t, rtol=self.rtol, atol=self.atol, method=self.method, options=opts or None
+        )
         return ys[..., :n].transpose(0, 1)
 
     def loss(self, batch, *args):

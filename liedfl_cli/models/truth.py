@@ -14,6 +14,7 @@ give the frozen components of a model with a known Lagrangian (`model.known`).
   interaction (optional)  {kind, mu, r1, r2, moment1, moment2}, see mechanics.potentials
   control (optional)      {R_f (rotation vector), K_R, K_w, feedforward}, see forces.PDControl
 """
+
 from __future__ import annotations
 
 import torch
@@ -44,7 +45,9 @@ def body_parameters(G: ProductGroup, physics: dict):
     if D.ndim == 1:
         D = torch.diag(D)
     if D.shape != (G.dim, G.dim):
-        raise ValueError(f"physics.D has shape {tuple(D.shape)}, expected ({G.dim},) or ({G.dim}, {G.dim}) for {G.name}")
+        raise ValueError(
+            f"physics.D has shape {tuple(D.shape)}, expected ({G.dim},) or ({G.dim}, {G.dim}) for {G.name}"
+        )
     return J, masses, rhos, D
 
 
@@ -59,8 +62,11 @@ def true_potential(G: ProductGroup, physics: dict):
     if inter:
         a, b = (int(i) for i in inter.get("bodies", (0, 1)))
         kw = {k: inter[k] for k in ("r1", "r2", "moment1", "moment2") if k in inter}
-        terms.append(InteractionPotential(G, inter["kind"], float(inter["mu"]), masses=masses[[a, b]],
-                                          rhos=rhos[[a, b]], bodies=(a, b), **kw))
+        terms.append(
+            InteractionPotential(
+                G, inter["kind"], float(inter["mu"]), masses=masses[[a, b]], rhos=rhos[[a, b]], bodies=(a, b), **kw
+            )
+        )
     if not terms:
         return None
     return terms[0] if len(terms) == 1 else SumPotential(terms)
@@ -73,8 +79,16 @@ def true_control(G: ProductGroup, physics: dict):
         return None
     _, masses, rhos, _ = body_parameters(G, physics)
     R_f = so3.exp(torch.as_tensor(ctrl["R_f"], dtype=torch.float64))
-    return PDControl(G, ctrl["K_R"], ctrl["K_w"], R_f, bool(ctrl.get("feedforward", False)),
-                     m=float(masses[0]), rho=rhos[0], g=float(physics.get("g", 0.0)))
+    return PDControl(
+        G,
+        ctrl["K_R"],
+        ctrl["K_w"],
+        R_f,
+        bool(ctrl.get("feedforward", False)),
+        m=float(masses[0]),
+        rho=rhos[0],
+        g=float(physics.get("g", 0.0)),
+    )
 
 
 def physics_model(G: ProductGroup, h: float, physics: dict, residual: str = "fast") -> LieDFLNN:
@@ -128,7 +142,7 @@ def parameter_recovery(model, dataset) -> dict | None:
     with torch.no_grad():
         Jd, Jd_true = model.inertia.Jd(), ref.inertia.Jd()
         s, s_true = Jd.diagonal(dim1=-2, dim2=-1).sum(-1), Jd_true.diagonal(dim1=-2, dim2=-1).sum(-1)
-        rel = lambda a, b: float((a - b).abs().max() / b.abs().max().clamp_min(1e-300))  # noqa: E731
+        rel = lambda a, b: float((a - b).abs().max() / b.abs().max().clamp_min(1e-300))
         out = {
             "Jd_over_trace_max_rel_error": rel(Jd / s[:, None, None], Jd_true / s_true[:, None, None]),
             "scale_learned_over_true": float((s / s_true).mean()),

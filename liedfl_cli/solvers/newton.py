@@ -4,10 +4,12 @@
 `retract(x, delta)` and the Jacobian is d f(retract(x, delta)) / d delta at 0. Every
 trajectory of the batch iterates together; a row stops once converged.
 """
+
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import torch
 
@@ -16,9 +18,9 @@ from ..lie import Pose
 
 @dataclass
 class NewtonResult:
-    x: Any                      # solution (last iterate where not converged), same type as x0
-    converged: torch.Tensor     # (T,) bool
-    iterations: torch.Tensor    # (T,) int, Newton iterations used
+    x: Any  # solution (last iterate where not converged), same type as x0
+    converged: torch.Tensor  # (T,) bool
+    iterations: torch.Tensor  # (T,) int, Newton iterations used
     residual_norm: torch.Tensor  # (T,) max-norm of the residual at x
 
     @property

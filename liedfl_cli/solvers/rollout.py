@@ -1,4 +1,5 @@
 """Roll a discrete model forward from (g_0, g_1) by solving its DEL residual for each increment."""
+
 from __future__ import annotations
 
 import time
@@ -34,8 +35,9 @@ class Rollout:
 
 
 @torch.no_grad()
-def rollout_discrete(model, g0: Pose, g1: Pose, steps: int, tol: float = 1e-5, max_iter: int = 10,
-                     max_halvings: int = 6, progress=None) -> Rollout:
+def rollout_discrete(
+    model, g0: Pose, g1: Pose, steps: int, tol: float = 1e-5, max_iter: int = 10, max_halvings: int = 6, progress=None
+) -> Rollout:
     """Predict g_2..g_steps from g0, g1 (each with leading batch dim T).
 
     Newton works on the increment W_k = g_k^{-1} g_{k+1} (updated by W exp(delta), so it stays
@@ -52,8 +54,8 @@ def rollout_discrete(model, g0: Pose, g1: Pose, steps: int, tol: float = 1e-5, m
     for k in range(1, steps):
         with torch.enable_grad():  # potential gradients and autodiff Jacobians need autograd
             const = model.residual_const(g_prev, g).detach()
-            f = lambda x, g=g, const=const: const + model.residual_var(g, G.compose(g, x))  # noqa: E731
-            jac = lambda x, g=g: model.jacobian_var(g, x)  # noqa: E731
+            f = lambda x, g=g, const=const: const + model.residual_var(g, G.compose(g, x))
+            jac = lambda x, g=g: model.jacobian_var(g, x)
             sol = newton_solve(f, jac, inc, G.retract, tol=tol, max_iter=max_iter, max_halvings=max_halvings)
         # Newton-Schulz step on the increment: its retractions would otherwise accumulate
         # rounding drift off SO(3) across the warm-started steps (O(k eps) instead of O(sqrt(k) eps)).
@@ -70,7 +72,7 @@ def rollout_discrete(model, g0: Pose, g1: Pose, steps: int, tol: float = 1e-5, m
         if progress is not None:
             progress(k)
     T = g0.R.shape[0]
-    empty = lambda dt: torch.zeros(T, 0, dtype=dt)  # noqa: E731
+    empty = lambda dt: torch.zeros(T, 0, dtype=dt)
     return Rollout(
         Pose(torch.stack(Rs, 1), torch.stack(ps, 1)),
         torch.stack(conv, 1) if conv else empty(torch.bool),
