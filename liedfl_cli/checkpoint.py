@@ -8,7 +8,7 @@ from pathlib import Path
 import torch
 
 from . import __version__
-from .data.errors import CheckpointError
+from .errors import CheckpointError
 from .io_utils import atomic_path
 
 REQUIRED = ("state_dict", "config", "versions")

@@ -35,7 +35,7 @@ def _run(command: str, cfg):
     from omegaconf import OmegaConf
     from omegaconf.errors import OmegaConfBaseException
 
-    from .data.errors import ConfigError, LiedflError
+    from .errors import ConfigError, LiedflError
     from .schema import validate
     from .ui import fail
 

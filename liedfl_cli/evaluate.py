@@ -13,7 +13,7 @@ from omegaconf import DictConfig
 from rich.table import Table
 
 from . import plots
-from .data.errors import DatasetError
+from .errors import DatasetError
 from .io_utils import fmt, markdown_table, write_csv, write_json, write_text
 from .lie import Pose
 from .metrics import trajectory_metrics

@@ -60,7 +60,7 @@ def read_model_rollout(path: Path) -> dict:
     """rollout.h5 -> {R, p (T, S+1, ...), converged (T, S-1), iterations, traj_index, attrs}."""
     import h5py
 
-    from .data.errors import DatasetError
+    from .errors import DatasetError
 
     if not path.is_file():
         raise DatasetError(f"{path}: rollout file not found (run `liedfl rollout run=<dir>` first)")

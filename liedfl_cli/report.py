@@ -16,7 +16,7 @@ import numpy as np
 import yaml
 from omegaconf import DictConfig
 
-from .data.errors import ConfigError
+from .errors import ConfigError
 from .io_utils import markdown_table, write_csv, write_text
 from .ui import console
 

@@ -9,7 +9,7 @@ import h5py
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
-from .data.errors import ConfigError, DatasetError
+from .errors import ConfigError, DatasetError
 from .io_utils import atomic_path
 from .lie import Pose
 from .solvers.rollout import Rollout

@@ -7,7 +7,7 @@ from pathlib import Path
 from omegaconf import OmegaConf
 
 from .checkpoint import load_checkpoint, load_state
-from .data.errors import CheckpointError, ConfigError
+from .errors import CheckpointError, ConfigError
 
 
 def _recorded_dataset(run_dir: Path, recorded) -> Path | None:

@@ -9,7 +9,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from .data.errors import ConfigError
+from .errors import ConfigError
 
 
 @dataclass

@@ -14,7 +14,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from .checkpoint import save_checkpoint
-from .data.errors import ConfigError
+from .errors import ConfigError
 from .io_utils import write_csv, write_json
 from .lie import Pose
 from .ui import console, progress_bar

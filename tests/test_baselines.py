@@ -17,8 +17,8 @@ from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 from omegaconf import OmegaConf
 
-from liedfl_cli.data.errors import ConfigError
 from liedfl_cli.data.scenes import generate
+from liedfl_cli.errors import ConfigError
 from liedfl_cli.lie import SE3, SO3, Pose, euler, so3
 from liedfl_cli.mechanics.potentials import GravityPotential
 from liedfl_cli.models.baselines import BASELINES

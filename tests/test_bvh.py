@@ -12,7 +12,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from liedfl_cli.data.bvh import axis_rotation, euler_to_matrix, forward_kinematics, parse_bvh, read_bvh
-from liedfl_cli.data.errors import DatasetError
+from liedfl_cli.errors import DatasetError
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "cmu_mocap"
 FILES = {"49_06.bvh": 482, "49_07.bvh": 472}

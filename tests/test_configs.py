@@ -15,7 +15,7 @@ from hydra.core.global_hydra import GlobalHydra
 from omegaconf import OmegaConf
 
 from liedfl_cli.cli import COMMANDS, CONF_DIR
-from liedfl_cli.data.errors import ConfigError
+from liedfl_cli.errors import ConfigError
 from liedfl_cli.schema import validate
 
 PRIMARY = sorted(p.stem for p in CONF_DIR.glob("*.yaml"))

@@ -132,8 +132,8 @@ def test_mocap_errors_truth_and_discrepancy(smoke_run):
 
 
 def test_cap_trajectories_is_opt_in():
-    from liedfl_cli.data.errors import ConfigError
     from liedfl_cli.data.mocap import cmu_cartwheel
+    from liedfl_cli.errors import ConfigError
 
     c = OmegaConf.to_container(OmegaConf.load(ROOT / "conf" / "dataset" / "cmu_cartwheel.yaml"))
     c.pop("defaults", None)

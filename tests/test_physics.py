@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from liedfl_cli.data import physics
-from liedfl_cli.data.errors import SimulationError
 from liedfl_cli.data.physics import RigidBodySE3, RigidBodySO3, SolverOptions, hat, simulate_se3, simulate_so3
+from liedfl_cli.errors import SimulationError
 from liedfl_cli.lie import so3
 
 J_PAPER = [1.521, 1.362, 1.211]

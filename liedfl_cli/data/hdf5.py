@@ -20,10 +20,10 @@ import numpy as np
 import torch
 
 from .. import __version__
+from ..errors import DatasetError
 from ..lie import so3
 from ..lie.product import Pose, ProductGroup
 from ..lie.tolerances import tol
-from .errors import DatasetError
 
 FORMAT_VERSION = 1
 BODY_KINDS = ("se3", "so3")

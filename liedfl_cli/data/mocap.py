@@ -44,10 +44,10 @@ from typing import Any
 import numpy as np
 import torch
 
+from ..errors import ConfigError, DatasetError
 from ..lie import so3
 from ..lie.product import Pose
 from .bvh import BVH, forward_kinematics, read_bvh
-from .errors import ConfigError, DatasetError
 from .hdf5 import Dataset
 from .scenes import (
     GENERATOR_VERSION,

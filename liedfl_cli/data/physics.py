@@ -29,8 +29,8 @@ import numpy as np
 import torch
 from scipy.integrate import solve_ivp
 
+from ..errors import ConfigError, SimulationError
 from ..lie import so3
-from .errors import ConfigError, SimulationError
 
 MAX_DRIFT = 1e-6
 """Largest ||R^T R - I||_F accepted from the integrator before projection onto SO(3)."""

@@ -28,9 +28,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from ..errors import ConfigError
 from ..lie import Pose, ProductGroup
 from ..mechanics.potentials import GravityPotential, InteractionPotential, SumPotential, left_gradient
-from .errors import ConfigError
 from .physics import Simulation, _matrix, hat, integrate, project_rotations
 
 

@@ -23,8 +23,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from ..errors import ConfigError, DatasetError
 from ..lie import so3
-from .errors import ConfigError, DatasetError
 from .hdf5 import Dataset, load_dataset, save_dataset
 from .physics import RigidBodySE3, RigidBodySO3, Simulation, SolverOptions, simulate_se3, simulate_so3
 

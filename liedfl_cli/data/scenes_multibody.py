@@ -31,8 +31,8 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
+from ..errors import ConfigError
 from ..lie import so3
-from .errors import ConfigError
 from .hdf5 import Dataset
 from .physics import RigidBodySO3, simulate_so3
 from .physics_multibody import MultiBodySystem, simulate_multibody

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from ..data.errors import ConfigError
+from ..errors import ConfigError
 from ..lie import Pose
 from ..solvers.rollout import Rollout
 from .build import resolve_potential

@@ -16,7 +16,7 @@ unknown key there, or a dataset group the baseline does not model, is a ConfigEr
 
 from __future__ import annotations
 
-from ..data.errors import ConfigError
+from ..errors import ConfigError
 from .baseline_common import options, single_so3, use_damping, use_potential
 
 BASELINES: dict = {}

@@ -5,7 +5,7 @@ from __future__ import annotations
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from ..data.errors import ConfigError
+from ..errors import ConfigError
 from .liedflnn import LieDFLNN
 
 
