@@ -61,7 +61,7 @@ def torque_errors(learned: np.ndarray, true: np.ndarray) -> dict:
 
 def evaluate_control(cfg, model, dataset, run_dir) -> dict | None:
     """Exp 5 torque recovery; returns the summary dict (None for models without forces)."""
-    from .models.truth import true_model
+    from .models.true_scheme import true_model
 
     if not hasattr(model, "forces") or not len(model.forces):
         console.print("[yellow]control eval skipped:[/] the model has no force components")

@@ -41,8 +41,10 @@ COLUMNS = [
 
 
 def model_name(cfg: dict) -> str:
-    name = cfg.get("baseline", {}).get("name", "none")
-    return "liedflnn" if name == "none" else name
+    name = (cfg.get("model") or {}).get("name")
+    if name is None:  # runs written before model configs carried their name
+        name = (cfg.get("baseline") or {}).get("name", "none")
+    return "liedflnn" if name == "none" else str(name)
 
 
 def find_runs(sweep: Path) -> list[Path]:

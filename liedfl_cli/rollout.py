@@ -10,17 +10,19 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from .errors import ConfigError, DatasetError
+from .factory import solver_options
 from .io_utils import atomic_path
 from .lie import Pose
+from .solvers.options import SolverOptions
 from .solvers.rollout import Rollout
 from .ui import console, progress_bar
 
 
-def _roll(model, truth: Pose, steps: int, cfg_solver, label: str, show: bool) -> Rollout:
+def _roll(model, truth: Pose, steps: int, solver: SolverOptions, label: str, show: bool) -> Rollout:
     g0, g1 = truth.index((slice(None), 0)), truth.index((slice(None), 1))
     with progress_bar(show) as bar:
         task = bar.add_task(f"rollout {label}", total=max(steps - 1, 0), loss=float("nan"))
-        ro = model.rollout(g0, g1, steps, cfg_solver, progress=lambda k: bar.update(task, completed=k))
+        ro = model.rollout(g0, g1, steps, solver, progress=lambda k: bar.update(task, completed=k))
     if ro.n_failed:
         console.print(
             f"[bold yellow]warning:[/] {label}: Newton did not converge on {ro.n_failed} step(s); "
@@ -41,7 +43,7 @@ def test_trajectories(dataset, max_trajectories) -> tuple[np.ndarray, Pose]:
 def rollout_and_save(cfg: DictConfig, model, dataset, path, steps=None) -> dict:
     """Roll out `model` (and the true scheme, if the scene has one) from each test trajectory's
     first pair; write `path`. Returns timing/solver summaries."""
-    from .models.truth import true_model
+    from .models.true_scheme import true_model
 
     given = steps or cfg.dataset.rollout_steps
     try:
@@ -67,7 +69,7 @@ def rollout_and_save(cfg: DictConfig, model, dataset, path, steps=None) -> dict:
         for name, m in runs.items():
             was_training = m.training
             m.eval()
-            ro = _roll(m, truth, steps, cfg.solver, name, cfg.ui.progress)
+            ro = _roll(m, truth, steps, solver_options(cfg.solver), name, cfg.ui.progress)
             m.train(was_training)
             g = f.create_group(name)
             g.create_dataset("R", data=ro.pose.R.numpy())

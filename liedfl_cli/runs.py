@@ -33,7 +33,7 @@ def load_run(run_dir, data_dir=None):
     """-> (config, model with trained weights, dataset, run_dir)."""
     from .data.hdf5 import load_dataset
     from .data.scenes import get_dataset
-    from .models.build import build_model
+    from .factory import build_model
 
     if run_dir in (None, "", "???"):
         raise ConfigError("run=<run dir> is required (a directory written by `liedfl train`)")

@@ -50,6 +50,7 @@ class SolverSchema:
 @dataclass
 class ModelSchema:
     _target_: str = "liedfl_cli.models.liedflnn.LieDFLNN"
+    name: str = "liedflnn"
     potential: str = "auto"
     residual: str = "fast"
     mlp_width: int = 64

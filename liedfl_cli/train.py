@@ -15,22 +15,10 @@ from omegaconf import DictConfig, OmegaConf
 
 from .checkpoint import save_checkpoint
 from .errors import ConfigError
+from .factory import loss_options
 from .io_utils import write_csv, write_json
 from .lie import Pose
 from .ui import console, progress_bar
-
-
-def triplets(traj: Pose, steps: int) -> tuple[Pose, Pose, Pose]:
-    """All (g_{k-1}, g_k, g_{k+1}) with k+1 <= steps from trajectories (T, N+1, ...) -> each (T*(steps-1), ...)."""
-    steps = min(steps, traj.R.shape[1] - 1)
-    if steps < 2:
-        raise ConfigError(f"dataset.train_steps={steps}: need at least 2 steps to form a triplet")
-
-    def cut(a: int, b: int) -> Pose:
-        R, p = traj.R[:, a:b], traj.p[:, a:b]
-        return Pose(R.flatten(0, 1), p.flatten(0, 1))
-
-    return cut(0, steps - 1), cut(1, steps), cut(2, steps + 1)
 
 
 def make_optimizer(params, cfg_opt) -> torch.optim.Optimizer:
@@ -55,13 +43,6 @@ def make_schedule(opt, name: str, epochs: int):
     raise ConfigError(f"train.optimizer.schedule must be 'constant' or 'cosine', got {name!r}")
 
 
-def _trajectory_batches(data: Pose, steps: int) -> Pose:
-    """The first `steps` steps of every trajectory: (T, steps+1, ...)."""
-    if steps < 1:
-        raise ConfigError(f"dataset.train_steps={steps}: need at least 1 step")
-    return data.index((slice(None), slice(0, steps + 1)))
-
-
 def fit(
     model,
     data: Pose,
@@ -73,19 +54,13 @@ def fit(
 ) -> dict:
     """Train `model` on the first `steps` steps of `data` (T, N+1, ...).
 
-    model.window == "triplet": shuffled mini-batches of pose triplets (plus `reg_points` random
-    pairs for the regularity term); "trajectory": mini-batches of whole trajectories, for
-    baselines trained by unrolling. Returns history and timings.
+    The model says what a sample is (`model.training_set`: pose triplets or whole windows);
+    each epoch visits the samples in shuffled mini-batches (plus `reg_points` random pairs per
+    batch for models with a regularity term). Returns history and timings.
     """
-    window = getattr(model, "window", "triplet")
-    if window == "triplet":
-        prev, cur, nxt = triplets(data, int(steps))
-        n = prev.R.shape[0]
-    elif window == "trajectory":
-        trajs = _trajectory_batches(data, int(steps))
-        n = trajs.R.shape[0]
-    else:
-        raise ConfigError(f"model window {window!r} is not 'triplet' or 'trajectory'")
+    opts = loss_options(cfg_train)
+    samples = model.training_set(data, int(steps))
+    n = samples.n
     bs = min(int(cfg_train.batch_size), n)
     n_batches = math.ceil(n / bs)
     gen = torch.Generator().manual_seed(seed)
@@ -105,15 +80,7 @@ def fit(
             for b in range(n_batches):
                 idx = perm[b * bs : (b + 1) * bs]
                 opt.zero_grad(set_to_none=True)
-                if window == "triplet":
-                    batch = (prev.index(idx), cur.index(idx), nxt.index(idx))
-                    reg_pairs = None
-                    if cfg_train.reg_points > 0:
-                        reg_idx = torch.randint(0, n, (int(cfg_train.reg_points),), generator=gen)
-                        reg_pairs = (cur.index(reg_idx), nxt.index(reg_idx))
-                    loss, parts = model.loss(batch, reg_pairs, cfg_train)
-                else:
-                    loss, parts = model.loss(trajs.index(idx), cfg_train)
+                loss, parts = model.loss(samples.batch(idx, gen, opts.reg_points), opts)
                 if not torch.isfinite(loss):
                     raise FloatingPointError(f"training loss became {loss.item()} at epoch {epoch}, batch {b}")
                 loss.backward()
@@ -149,7 +116,7 @@ def run_train(cfg: DictConfig) -> dict:
     """`liedfl train`: data -> model -> fit -> checkpoint -> rollout -> eval. Returns a summary."""
     from .data.scenes import get_dataset
     from .evaluate import run_eval_from_objects
-    from .models.build import build_model
+    from .factory import build_model
     from .rollout import rollout_and_save
 
     out = Path(cfg.paths.output_dir)
@@ -177,7 +144,7 @@ def run_train(cfg: DictConfig) -> dict:
         "n_samples": result["n_samples"],
         "parameters": n_params,
     }
-    from .models.truth import parameter_recovery
+    from .recovery import parameter_recovery
 
     recovery = parameter_recovery(model, dataset)
     if recovery is not None:

@@ -15,7 +15,7 @@ import torch
 
 from liedfl_cli.lie import SE3, SO3, Pose, so3
 from liedfl_cli.models.liedflnn import LieDFLNN
-from liedfl_cli.models.truth import physics_model
+from liedfl_cli.models.true_scheme import physics_model
 
 PHYS = {"J": [1.521, 1.362, 1.211], "m": 0.5, "rho": [0.0, 0.5, 1.0]}
 

@@ -14,7 +14,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from liedfl_cli.data.scenes import get_dataset
-from liedfl_cli.models.build import build_model
+from liedfl_cli.factory import build_model
 from liedfl_cli.train import fit, triplets
 
 CASES = [

@@ -3,7 +3,11 @@
 python scripts/consistency_orders.py
 """
 
-from liedfl_cli.consistency import residual_order, rollout_order
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the test helpers live there
+from consistency import residual_order, rollout_order
 
 
 def main():

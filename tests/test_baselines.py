@@ -19,14 +19,13 @@ from omegaconf import OmegaConf
 
 from liedfl_cli.data.scenes import generate
 from liedfl_cli.errors import ConfigError
+from liedfl_cli.factory import build_model
 from liedfl_cli.lie import SE3, SO3, Pose, euler, so3
 from liedfl_cli.mechanics.potentials import GravityPotential
-from liedfl_cli.models.baselines import BASELINES
-from liedfl_cli.models.build import build_model
 from liedfl_cli.models.euclidean_dflnn import EuclideanDFLNN
 from liedfl_cli.models.euler_dflnn import EulerDFLNN
 from liedfl_cli.models.glnn import GLNN
-from liedfl_cli.models.truth import physics_model
+from liedfl_cli.models.true_scheme import physics_model
 from liedfl_cli.solvers.rollout import Rollout
 from liedfl_cli.train import fit, run_train
 
@@ -160,7 +159,7 @@ def test_glnn_dopri5_with_true_parameters_reproduces_the_simulator(free_body):
     R = free_body.pose().R[:, :, 0]
     w0 = torch.as_tensor(free_body.extras["omega"][:, 0, 0])
     with torch.no_grad():
-        pred = _true_glnn("dopri5").integrate(R[:, 0], w0, R.shape[1] - 1)
+        pred = _true_glnn("dopri5").integrate_rotations(R[:, 0], w0, R.shape[1] - 1)
     assert (pred - R).abs().max() < 1e-5
 
 
@@ -184,7 +183,7 @@ def test_glnn_potential_torque_with_the_true_gravity_reproduces_the_heavy_body()
         m.potential = GravityPotential(SO3, [0.5], [[0.0, 0.5, 1.0]], 9.81)
         models[integrator] = m
     with torch.no_grad():
-        pred = models["dopri5"].integrate(R[:, 0], w0, 20)
+        pred = models["dopri5"].integrate_rotations(R[:, 0], w0, 20)
     assert (pred - R).abs().max() < 1e-5
     g = lambda k: truth.index((slice(None), k))
     ro = models["midpoint"].rollout(g(0), g(1), 20, {"tol": 1e-10, "max_iter": 10})
@@ -196,9 +195,12 @@ def test_lie_integrators_are_second_order_and_stay_on_so3(integrator):
     R0 = so3.random((3,), generator=torch.Generator().manual_seed(3))
     w0 = torch.tensor([[1.0, -0.5, 0.8], [0.2, 1.5, -0.3], [-1.2, 0.4, 0.9]], dtype=F64)
     with torch.no_grad():
-        ref = _true_glnn("dopri5", 0.2).integrate(R0, w0, 5)[:, -1]
-        errs = [(_true_glnn(integrator, 0.2 / k).integrate(R0, w0, 5 * k)[:, -1] - ref).abs().max() for k in (1, 2, 4)]
-        R = _true_glnn(integrator, 0.05).integrate(R0, w0, 20)
+        ref = _true_glnn("dopri5", 0.2).integrate_rotations(R0, w0, 5)[:, -1]
+        errs = [
+            (_true_glnn(integrator, 0.2 / k).integrate_rotations(R0, w0, 5 * k)[:, -1] - ref).abs().max()
+            for k in (1, 2, 4)
+        ]
+        R = _true_glnn(integrator, 0.05).integrate_rotations(R0, w0, 20)
     assert 3.0 < errs[0] / errs[1] < 5.5 and 3.0 < errs[1] / errs[2] < 5.5, errs
     assert so3.orthogonality_error(R).max() < 1e-12
 
@@ -207,7 +209,7 @@ def test_euler_dflnn_with_true_parameters_tracks_the_motion():
     R0 = so3.identity((2,))
     w0 = torch.tensor([[0.5, 0.3, -0.4], [-0.2, 0.4, 0.6]], dtype=F64)
     with torch.no_grad():
-        truth = _true_glnn("dopri5").integrate(R0, w0, 20)
+        truth = _true_glnn("dopri5").integrate_rotations(R0, w0, 20)
     e = EulerDFLNN(SO3, 0.1, init_jitter=0.0)
     e.inertia.set_J(J_TRUE[None])
     e.damping.set_matrix(D_TRUE)
@@ -273,7 +275,7 @@ def _cfg_obj(**train):
 @pytest.mark.parametrize("name", NAMES)
 def test_rollout_shapes_and_fields(name, free_body, data_dir):
     ds = free_body
-    model = BASELINES[name](_cfg(data_dir, name), ds)
+    model = build_model(_cfg(data_dir, name), ds)
     assert ds.group == model.G and model.h == ds.h and model.window in ("triplet", "trajectory")
     assert model.components()
     truth = ds.pose()
@@ -298,25 +300,25 @@ def test_se3_baselines_and_group_errors(data_dir):
     ds = _scene("heavy_se3", n_trajectories=3, steps=6, train_steps=6, rollout_steps=6)
     truth = ds.pose()
     for name in ("euclidean_dflnn", "neural_ode"):
-        model = BASELINES[name](_cfg(data_dir, name, ["dataset=heavy_se3"]), ds)
+        model = build_model(_cfg(data_dir, name, ["dataset=heavy_se3"]), ds)
         ro = model.rollout(truth.index((slice(None), 0)), truth.index((slice(None), 1)), 4, {})
         assert ro.pose.R.shape == (3, 5, 1, 3, 3) and ro.pose.p.shape == (3, 5, 1, 3)
         assert torch.equal(ro.pose.p[:, 1], truth.p[:, 1])
     for name in ("glnn_rk4", "glnn_lie_midpoint", "glnn_lie_heun", "euler_dflnn"):
         with pytest.raises(ConfigError, match="SO\\(3\\)"):
-            BASELINES[name](_cfg(data_dir, name, ["dataset=heavy_se3"]), ds)
+            build_model(_cfg(data_dir, name, ["dataset=heavy_se3"]), ds)
 
 
 def test_unknown_baseline_key_is_a_config_error(free_body, data_dir):
     with pytest.raises(ConfigError, match="mlp_widht"):
-        build_model(_cfg(data_dir, "glnn_rk4", ["+baseline.mlp_widht=3"]), free_body)
+        build_model(_cfg(data_dir, "glnn_rk4", ["+model.mlp_widht=3"]), free_body)
 
 
 # ----------------------------------------------------------------------------- training
 @pytest.mark.parametrize("name", ["glnn_rk4", "glnn_lie_midpoint", "glnn_lie_heun", "euclidean_dflnn"])
 def test_loss_decreases_on_a_tiny_problem(name, free_body, data_dir):
     torch.manual_seed(0)
-    model = BASELINES[name](_cfg(data_dir, name), free_body)
+    model = build_model(_cfg(data_dir, name), free_body)
     res = fit(model, free_body.pose(free_body.train_idx), _cfg_obj(), 8, show_progress=False)
     first, last = res["history"][0]["loss"], res["history"][-1]["loss"]
     # Lie-midpoint on triplets starts close to its floor (two steps from a finite-difference

@@ -67,8 +67,10 @@ def test_primary_config_composes(name, tmp_path):
 def test_train_composes_with_every_group_option(group, option, tmp_path):
     cfg = _compose("train", _paths(tmp_path) + [f"{group}={option}"])
     _check(cfg)
-    if group in ("dataset", "baseline"):  # the option name is the `name` field the code dispatches on
+    if group in ("dataset", "model"):  # the option name is the `name` field the code dispatches on
         assert cfg[group].name == option, f"conf/{group}/{option}.yaml has name={cfg[group].name!r}"
+    if group == "baseline":  # a baseline option only selects the model of the same name
+        assert cfg.model.name == ("liedflnn" if option == "none" else option)
     # and the same option with the smoke budget (what CI and the CLI tests use)
     if group != "budget":
         _check(_compose("train", _paths(tmp_path) + [f"{group}={option}", "budget=smoke"]))
@@ -151,10 +153,19 @@ def test_force_options_match_registry():
     assert _options("force") == set(FORCES) | {"none"}
 
 
-def test_baseline_options_match_registry():
-    from liedfl_cli.models.baselines import BASELINES
+def test_model_configs_name_their_option_and_a_model_class():
+    """conf/model/<name>.yaml has name: <name> and a _target_ that is a Model of this package;
+    each baseline=<name> selects exactly conf/model/<name>.yaml (none selects liedflnn)."""
+    from liedfl_cli.factory import model_class
 
-    assert _options("baseline") == set(BASELINES) | {"none"}
+    for name in _options("model"):
+        cfg = OmegaConf.load(CONF_DIR / "model" / f"{name}.yaml")
+        assert cfg.name == name
+        model_class(cfg._target_)
+    assert _options("baseline") == _options("model") - {"liedflnn"} | {"none"}
+    for name in _options("baseline"):
+        text = (CONF_DIR / "baseline" / f"{name}.yaml").read_text()
+        assert f"override /model: {'liedflnn' if name == 'none' else name}" in text
 
 
 def test_dataset_options_match_registry():

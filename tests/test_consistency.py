@@ -2,8 +2,7 @@
 residual O(h^3), rollout O(h^2) at fixed final time (catches sign and convention errors)."""
 
 import pytest
-
-from liedfl_cli.consistency import residual_order, rollout_order
+from consistency import residual_order, rollout_order
 
 
 @pytest.mark.parametrize("kind", ["so3", "se3"])
@@ -25,9 +24,10 @@ def test_rollout_is_second_order_and_stays_on_group(kind):
 def test_wrong_physics_is_caught(change):
     """A flipped gravity sign, a missing damping force or swapped inertia axes leave a residual
     far above the O(h^3) level of the true scheme."""
-    from liedfl_cli import consistency
+    import consistency
+
     from liedfl_cli.lie import SO3
-    from liedfl_cli.models.truth import physics_model
+    from liedfl_cli.models.true_scheme import physics_model
 
     h = 0.02
     traj = consistency.exact("so3", h, 0.4)

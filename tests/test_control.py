@@ -18,7 +18,7 @@ from liedfl_cli.data.scenes_multibody import pd_torque
 from liedfl_cli.lie import SO3, Pose, ProductGroup, so3
 from liedfl_cli.mechanics.forces import ControlForce
 from liedfl_cli.models.liedflnn import LieDFLNN
-from liedfl_cli.models.truth import physics_model, true_model
+from liedfl_cli.models.true_scheme import physics_model, true_model
 from liedfl_cli.train import count_parameters
 
 ROOT = Path(__file__).resolve().parents[1]

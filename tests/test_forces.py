@@ -14,9 +14,9 @@ from liedfl_cli.lie import Pose, ProductGroup, so3
 from liedfl_cli.mechanics import kinetic
 from liedfl_cli.mechanics.forces import FORCES, RayleighForce, RayleighNonlinearForce, build_forces, force_jacobian_xi
 from liedfl_cli.models.liedflnn import LieDFLNN
-from liedfl_cli.models.truth import physics_model
+from liedfl_cli.models.true_scheme import physics_model
 from liedfl_cli.solvers.newton import jacobian
-from liedfl_cli.solvers.rollout import rollout_discrete
+from liedfl_cli.solvers.options import SolverOptions
 
 ROOT = Path(__file__).resolve().parents[1]
 GROUPS = [ProductGroup(0, 1), ProductGroup(1, 0), ProductGroup(1, 1), ProductGroup(2, 1)]
@@ -113,7 +113,7 @@ def test_fast_residual_and_newton_jacobian_equal_generic_with_every_force(G):
 def test_hydra_force_list_composes_a_sum(tmp_path):
     """`liedfl train 'force=[rayleigh_nonlinear,nn]'` selects both forces; the model adds them."""
     from liedfl_cli.data import generate
-    from liedfl_cli.models.build import build_model
+    from liedfl_cli.factory import build_model
 
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
         cfg = compose(
@@ -177,7 +177,7 @@ def test_structured_damping_never_gains_discrete_energy(damping):
         model.forces.append(f)
     g0 = random_pose(G, 4, 2)
     g1 = G.retract(g0, 0.05 * torch.randn(4, G.dim, generator=torch.Generator().manual_seed(3), dtype=torch.float64))
-    ro = rollout_discrete(model, g0, g1, 80, tol=1e-12, max_iter=30)
+    ro = model.rollout(g0, g1, 80, SolverOptions(tol=1e-12, max_iter=30))
     assert ro.n_failed == 0
     E = discrete_energy(model, ro.pose)
     dE = E[:, 1:] - E[:, :-1]

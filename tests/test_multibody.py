@@ -15,8 +15,8 @@ from liedfl_cli.data.physics_multibody import MultiBodySystem, simulate_multibod
 from liedfl_cli.data.scenes_multibody import two_body_physics, two_body_system
 from liedfl_cli.lie import Pose, ProductGroup, so3
 from liedfl_cli.mechanics.potentials import INTERACTIONS, InteractionPotential
-from liedfl_cli.models.truth import physics_model, true_model
-from liedfl_cli.solvers.rollout import rollout_discrete
+from liedfl_cli.models.true_scheme import physics_model, true_model
+from liedfl_cli.solvers.options import SolverOptions
 
 CONF = Path(__file__).resolve().parents[1] / "conf" / "dataset"
 G = ProductGroup(1, 1)
@@ -234,13 +234,11 @@ def test_rollout_is_second_order_on_two_body():
     hs, errs = (0.04, 0.02, 0.01), []
     for h in hs:
         traj = exact(ph, h, 0.8)
-        ro = rollout_discrete(
-            physics_model(G, h, ph),
+        ro = physics_model(G, h, ph).rollout(
             traj.index((slice(None), 0)),
             traj.index((slice(None), 1)),
             traj.R.shape[1] - 1,
-            tol=1e-12,
-            max_iter=20,
+            SolverOptions(tol=1e-12, max_iter=20),
         )
         assert ro.n_failed == 0
         e = torch.linalg.matrix_norm(ro.pose.R[:, -1] - traj.R[:, -1]).max()

@@ -1,1 +1,12 @@
-"""Models: LieDFLNN and (later) the paper's baselines, built by `build_model`."""
+"""Models: every model follows the contract of `models.base` and has one config file.
+
+| config (conf/model/)   | class (file)                      | kind     | groups         | trained on |
+|------------------------|-----------------------------------|----------|----------------|------------|
+| liedflnn               | LieDFLNN (liedflnn.py)            | implicit | any product    | triplets   |
+| euler_dflnn            | EulerDFLNN (euler_dflnn.py)       | implicit | SO(3)          | triplets   |
+| euclidean_dflnn        | EuclideanDFLNN (euclidean_dflnn.py)| implicit| SO(3) or SE(3) | triplets   |
+| glnn_rk4 / _lie_heun / _lie_midpoint | GLNN (glnn.py)      | explicit | SO(3)          | trajectories / triplets |
+| neural_ode             | NeuralODE (neural_ode.py)         | explicit | any product    | trajectories |
+
+`liedfl_cli.factory.build_model(cfg, dataset)` builds the one a config names.
+"""

@@ -22,22 +22,19 @@ Single-body groups only (SO(3) or SE(3)).
 
 from __future__ import annotations
 
-import math
-import time
-
 import torch
 from torch import nn
 
+from ..errors import ConfigError
 from ..lie import Pose, ProductGroup, so3
 from ..mechanics.mlp import MLP
 from ..mechanics.parameterizations import Inertia, PositiveVector, SPSDMatrix
-from ..solvers.newton import damped_newton
-from ..solvers.rollout import Rollout
-from .baseline_common import with_data_start
+from ..solvers.newton import NewtonProblem
+from .base import BuildContext, ImplicitModel, LossOptions, TripletBatch, config_options, initial_scale
 from .liedflnn import del_regularity_loss
 
 
-class EuclideanDFLNN(nn.Module):
+class EuclideanDFLNN(ImplicitModel):
     window = "triplet"
 
     def __init__(
@@ -60,7 +57,7 @@ class EuclideanDFLNN(nn.Module):
         self.n = 12 if self.se3 else 9
         gen = torch.Generator().manual_seed(int(seed))
         # Mixed Hessian = -(1/h) K with K ~ s I_n when J_d = s I, m = s: n log(s/h) = epsilon.
-        s = self.h * math.exp(float(epsilon) / self.n)
+        s = initial_scale(self.h, float(epsilon), self.n)
         self.inertia = Inertia(1, scale=2 * s, jitter=init_jitter, generator=gen)  # J = 2s I -> J_d = s I
         if self.se3:
             self.mass = PositiveVector(1, init=s)
@@ -69,6 +66,20 @@ class EuclideanDFLNN(nn.Module):
             self.mass, self.rho = None, None
         self.damping = SPSDMatrix(G.dim, init_diag=0.01 * s) if damping else None
         self.potential = MLP(self.n, 1, mlp_width, mlp_depth) if potential else None
+
+    OPTIONS = ("potential", "damping", "mlp_width", "mlp_depth", "init_jitter")
+
+    @classmethod
+    def from_config(cls, ctx: BuildContext, **options) -> EuclideanDFLNN:
+        """`potential` defaults to mlp even for a free body (see conf/model/euclidean_dflnn.yaml)."""
+        opt = config_options(cls, options, cls.OPTIONS)
+        if ctx.group.n_bodies != 1:
+            raise ConfigError(
+                f"euclidean_dflnn models a single rigid body (SO(3) or SE(3)); this dataset's group is {ctx.group.name}"
+            )
+        opt["potential"] = ctx.resolve_potential(opt.get("potential", "mlp")) == "mlp"
+        opt["damping"] = ctx.resolve_damping(opt.get("damping", "auto"))
+        return cls(ctx.group, ctx.h, epsilon=ctx.epsilon, seed=ctx.seed, **opt)
 
     def components(self) -> list[str]:
         out = ["J_d"] + (["m", "rho_COM"] if self.se3 else [])
@@ -151,41 +162,22 @@ class EuclideanDFLNN(nn.Module):
         return torch.stack(rows, -2)
 
     # ------------------------------------------------------------------ training
-    def loss(self, batch, reg_pairs, cfg_train):
-        r = self.residual(*(self.to_x(g) for g in batch))
+    def loss(self, batch: TripletBatch, opts: LossOptions):
+        r = self.residual(*(self.to_x(g) for g in batch.poses()))
         logdet = None
-        if reg_pairs is not None and cfg_train.w_reg > 0:
-            H = self.mixed_hessian(self.to_x(reg_pairs[0]), self.to_x(reg_pairs[1]))
+        if batch.reg is not None and opts.w_reg > 0:
+            H = self.mixed_hessian(self.to_x(batch.reg[0]), self.to_x(batch.reg[1]))
             logdet = torch.linalg.slogdet(H).logabsdet
-        return del_regularity_loss(r, logdet, cfg_train)
+        return del_regularity_loss(r, logdet, opts)
 
-    # ------------------------------------------------------------------ rollout
-    @torch.no_grad()
-    def rollout(self, g0: Pose, g1: Pose, steps: int, solver=None, progress=None) -> Rollout:
-        s = solver or {}
-        tol, max_iter, halvings = float(s.get("tol", 1e-5)), int(s.get("max_iter", 10)), int(s.get("max_halvings", 6))
-        t0 = time.perf_counter()
-        x_prev, x = self.to_x(g0), self.to_x(g1)
-        xs = [x_prev, x]
-        conv, its, res = [], [], []
-        for k in range(1, steps):
-            sol = damped_newton(
-                lambda y, a=x_prev, b=x: self.residual(a, b, y),
-                2 * x - x_prev,
-                tol=tol,
-                max_iter=max_iter,
-                max_halvings=halvings,
-            )
-            x_prev, x = x, sol.x.detach()
-            xs.append(x)
-            conv.append(sol.converged)
-            its.append(sol.iterations)
-            res.append(sol.residual_norm.detach())
-            if progress is not None:
-                progress(k)
-        pose = with_data_start(self.from_x(torch.stack(xs, 1)), g0, g1)
-        T = g0.R.shape[0]
-        stack = lambda v, dt: torch.stack(v, 1) if v else torch.zeros(T, 0, dtype=dt)
-        return Rollout(
-            pose, stack(conv, torch.bool), stack(its, torch.long), stack(res, torch.float64), time.perf_counter() - t0
-        )
+    # ------------------------------------------------------------------ implicit step (rollout)
+    def implicit_start(self, g0: Pose, g1: Pose):
+        return self.to_x(g0), self.to_x(g1)
+
+    def implicit_problem(self, state) -> NewtonProblem:
+        a, b = state
+        return NewtonProblem.euclidean(lambda y: self.residual(a, b, y), 2 * b - a)
+
+    def implicit_advance(self, state, x: torch.Tensor):
+        x = x.detach()
+        return (state[1], x), self.from_x(x)

@@ -22,18 +22,22 @@ converted back to SO(3) by `euler.to_matrix` for evaluation.
 
 from __future__ import annotations
 
-import math
-import time
-
 import torch
-from torch import nn
 
 from ..lie import Pose, ProductGroup, euler
 from ..mechanics.mlp import MLP
 from ..mechanics.parameterizations import Inertia, SPSDMatrix
-from ..solvers.newton import damped_newton
-from ..solvers.rollout import Rollout
-from .baseline_common import so3_pose, with_data_start
+from ..solvers.newton import NewtonProblem
+from .base import (
+    BuildContext,
+    ImplicitModel,
+    LossOptions,
+    TripletBatch,
+    config_options,
+    initial_scale,
+    require_single_so3,
+    so3_pose,
+)
 from .liedflnn import del_regularity_loss
 
 
@@ -42,7 +46,7 @@ def _shift_to_principal(q_ref: torch.Tensor) -> torch.Tensor:
     return q_ref - euler.wrap(q_ref)
 
 
-class EulerDFLNN(nn.Module):
+class EulerDFLNN(ImplicitModel):
     window = "triplet"
 
     def __init__(
@@ -61,10 +65,20 @@ class EulerDFLNN(nn.Module):
         self.G, self.h = G, float(h)
         gen = torch.Generator().manual_seed(int(seed))
         # Mixed Hessian ~ -(1/h) E^T J E: J = s I with 3 log(s/h) = epsilon starts at the threshold.
-        scale = self.h * math.exp(float(epsilon) / 3)
+        scale = initial_scale(self.h, float(epsilon), 3)
         self.inertia = Inertia(1, scale=scale, jitter=init_jitter, generator=gen)
         self.damping = SPSDMatrix(3, init_diag=0.01 * scale) if damping else None
         self.potential = MLP(3, 1, mlp_width, mlp_depth) if potential else None
+
+    OPTIONS = ("potential", "damping", "mlp_width", "mlp_depth", "init_jitter")
+
+    @classmethod
+    def from_config(cls, ctx: BuildContext, **options) -> EulerDFLNN:
+        opt = config_options(cls, options, cls.OPTIONS)
+        require_single_so3(ctx.group, "euler_dflnn")
+        opt["potential"] = ctx.resolve_potential(opt.get("potential", "auto")) == "mlp"
+        opt["damping"] = ctx.resolve_damping(opt.get("damping", "auto"))
+        return cls(ctx.group, ctx.h, epsilon=ctx.epsilon, seed=ctx.seed, **opt)
 
     def components(self) -> list[str]:
         out = ["J (in M(q) = E^T J E)"]
@@ -122,44 +136,31 @@ class EulerDFLNN(nn.Module):
         return list(q.unbind(-2))
 
     # ------------------------------------------------------------------ training
-    def loss(self, batch, reg_pairs, cfg_train):
-        q_prev, q, q_next = self.angles(*batch)
+    def loss(self, batch: TripletBatch, opts: LossOptions):
+        q_prev, q, q_next = self.angles(*batch.poses())
         r = self.residual(q_prev, q, q_next)
         logdet = None
-        if reg_pairs is not None and cfg_train.w_reg > 0:
-            a, b = self.angles(*reg_pairs)
+        if batch.reg is not None and opts.w_reg > 0:
+            a, b = self.angles(*batch.reg)
             logdet = torch.linalg.slogdet(self.mixed_hessian(a, b)).logabsdet
-        return del_regularity_loss(r, logdet, cfg_train)
+        return del_regularity_loss(r, logdet, opts)
 
-    # ------------------------------------------------------------------ rollout
-    @torch.no_grad()
-    def rollout(self, g0: Pose, g1: Pose, steps: int, solver=None, progress=None) -> Rollout:
-        s = solver or {}
-        tol, max_iter, halvings = float(s.get("tol", 1e-5)), int(s.get("max_iter", 10)), int(s.get("max_halvings", 6))
-        t0 = time.perf_counter()
-        q_prev, q = self.angles(g0, g1)
-        Rs = [g0.R[:, 0], g1.R[:, 0]]
-        conv, its, res = [], [], []
-        for k in range(1, steps):
-            shift = _shift_to_principal(q)
-            q_prev, q = q_prev - shift, q - shift
-            sol = damped_newton(
-                lambda x, a=q_prev, b=q: self.residual(a, b, x),
-                2 * q - q_prev,
-                tol=tol,
-                max_iter=max_iter,
-                max_halvings=halvings,
-            )
-            q_prev, q = q, sol.x.detach()
-            Rs.append(euler.to_matrix(q))
-            conv.append(sol.converged)
-            its.append(sol.iterations)
-            res.append(sol.residual_norm.detach())
-            if progress is not None:
-                progress(k)
-        pose = with_data_start(so3_pose(torch.stack(Rs, 1)), g0, g1)
-        T = g0.R.shape[0]
-        stack = lambda xs, dt: torch.stack(xs, 1) if xs else torch.zeros(T, 0, dtype=dt)
-        return Rollout(
-            pose, stack(conv, torch.bool), stack(its, torch.long), stack(res, torch.float64), time.perf_counter() - t0
-        )
+    # ------------------------------------------------------------------ implicit step (rollout)
+    def implicit_start(self, g0: Pose, g1: Pose):
+        return tuple(self.angles(g0, g1))
+
+    @staticmethod
+    def _principal_pair(state):
+        """(q_{k-1}, q_k) shifted by the multiple of 2 pi that makes q_k principal."""
+        q_prev, q = state
+        shift = _shift_to_principal(q)
+        return q_prev - shift, q - shift
+
+    def implicit_problem(self, state) -> NewtonProblem:
+        a, b = self._principal_pair(state)
+        return NewtonProblem.euclidean(lambda x: self.residual(a, b, x), 2 * b - a)
+
+    def implicit_advance(self, state, x: torch.Tensor):
+        _, b = self._principal_pair(state)
+        q_next = x.detach()
+        return (b, q_next), so3_pose(euler.to_matrix(q_next))

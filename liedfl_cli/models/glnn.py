@@ -31,22 +31,27 @@ Jacobian, tolerance and iteration limit of `solver`, and report real convergence
 
 from __future__ import annotations
 
-import time
-
 import torch
-from torch import nn
 
-from ..lie import Pose, ProductGroup, so3
+from ..errors import ConfigError
+from ..lie import ProductGroup, so3
 from ..mechanics.parameterizations import Inertia, SPSDMatrix
 from ..mechanics.potentials import MLPPotential
 from ..solvers.newton import damped_newton
-from ..solvers.rollout import Rollout
-from .baseline_common import explicit_rollout, so3_pose, triplet_sequence, with_data_start
+from ..solvers.options import SolverOptions
+from .base import Batch, BuildContext, ExplicitModel, LossOptions, config_options, require_single_so3, so3_pose
 
 INTEGRATORS = ("dopri5", "heun", "midpoint")
+# config options common to every integrator, and those of one integrator only
+COMMON_OPTIONS = ("integrator", "window", "potential", "damping", "mlp_width", "mlp_depth", "init_jitter")
+INTEGRATOR_OPTIONS = {
+    "dopri5": ("rtol", "atol", "max_num_steps"),
+    "heun": (),
+    "midpoint": ("train_newton_iters",),
+}
 
 
-class GLNN(nn.Module):
+class GLNN(ExplicitModel):
     """Continuous-time rigid body on SO(3) with learned J, D (and V), integrated by `integrator`.
 
     Args:
@@ -77,6 +82,7 @@ class GLNN(nn.Module):
         if integrator not in INTEGRATORS:
             raise ValueError(f"integrator must be one of {INTEGRATORS}, got {integrator!r}")
         self.G, self.h, self.integrator, self.window = G, float(h), integrator, window
+        self.adaptive = integrator == "dopri5"
         self.rtol, self.atol, self.max_num_steps = float(rtol), float(atol), int(max_num_steps)
         self.train_newton_iters = int(train_newton_iters)
         gen = torch.Generator().manual_seed(int(seed))
@@ -84,6 +90,20 @@ class GLNN(nn.Module):
         self.inertia = Inertia(1, scale=1.0, jitter=init_jitter, generator=gen)
         self.damping = SPSDMatrix(3, init_diag=0.01) if damping else None
         self.potential = MLPPotential(G, mlp_width, mlp_depth) if potential else None
+
+    @classmethod
+    def from_config(cls, ctx: BuildContext, **options) -> GLNN:
+        """Options of conf/model/glnn_*.yaml; `potential`/`damping: auto` follow the scene."""
+        integrator = options.get("integrator", "dopri5")
+        if integrator not in INTEGRATORS:
+            raise ConfigError(f"model.integrator={integrator!r}: choose one of {', '.join(INTEGRATORS)}")
+        opt = config_options(cls, options, COMMON_OPTIONS + INTEGRATOR_OPTIONS[integrator])
+        require_single_so3(ctx.group, f"GLNN ({integrator})")
+        if opt.get("window", "trajectory") not in ("triplet", "trajectory"):
+            raise ConfigError(f"model.window={opt['window']!r}: choose one of triplet, trajectory")
+        opt["potential"] = ctx.resolve_potential(opt.get("potential", "auto")) == "mlp"
+        opt["damping"] = ctx.resolve_damping(opt.get("damping", "auto"))
+        return cls(ctx.group, ctx.h, seed=ctx.seed, **opt)
 
     def components(self) -> list[str]:
         out = ["J"]
@@ -147,16 +167,10 @@ class GLNN(nn.Module):
             w_next = w_next - torch.linalg.solve(Jac, F[..., None])[..., 0]
         return R @ so3.exp(0.5 * self.h * (w + w_next)), w_next
 
-    def midpoint_step_solve(self, R, w, params, tol, max_iter, max_halvings):
+    def midpoint_step_solve(self, R, w, params, opts: SolverOptions):
         """Rollout midpoint step by damped Newton (autodiff Jacobian) with convergence flags."""
         guess = self.heun_step(R, w, params)[1]
-        sol = damped_newton(
-            lambda x: self.midpoint_residual(R, w, x, params),
-            guess.detach(),
-            tol=tol,
-            max_iter=max_iter,
-            max_halvings=max_halvings,
-        )
+        sol = damped_newton(lambda x: self.midpoint_residual(R, w, x, params), guess.detach(), opts)
         w_next = sol.x.detach()
         return R @ so3.exp(0.5 * self.h * (w + w_next)), w_next, sol
 
@@ -176,7 +190,7 @@ class GLNN(nn.Module):
         )
         return ys[..., :9].reshape(steps + 1, n, 3, 3).transpose(0, 1)
 
-    def integrate(self, R0: torch.Tensor, w0: torch.Tensor, steps: int) -> torch.Tensor:
+    def integrate_rotations(self, R0: torch.Tensor, w0: torch.Tensor, steps: int) -> torch.Tensor:
         """Differentiable prediction (N, steps+1, 3, 3) from R0 (N, 3, 3), w0 (N, 3)."""
         params = self._params()
         if self.integrator == "dopri5":
@@ -193,51 +207,30 @@ class GLNN(nn.Module):
         return so3.log(R0.transpose(-1, -2) @ R1) / self.h
 
     # ------------------------------------------------------------------ training
-    def loss(self, batch, *args):
-        """window "trajectory": loss(traj (B, L+1, ...), cfg_train); "triplet": loss((prev, cur, nxt),
-        reg_pairs, cfg_train). -> (mean squared error of predicted R entries, {"mse": ...})."""
-        seq = triplet_sequence(batch) if isinstance(batch, tuple) and not isinstance(batch, Pose) else batch
-        R = seq.R[:, :, 0]
-        pred = self.integrate(R[:, 0], self.initial_velocity(R[:, 0], R[:, 1]), R.shape[1] - 1)
+    def loss(self, batch: Batch, opts: LossOptions):
+        """Unroll from (R_0, w_0) over each window (a triplet is a length-2 window) -> (mean squared
+        error of the predicted R entries, {"mse": ...})."""
+        R = batch.as_sequence().R[:, :, 0]
+        pred = self.integrate_rotations(R[:, 0], self.initial_velocity(R[:, 0], R[:, 1]), R.shape[1] - 1)
         mse = ((pred[:, 1:] - R[:, 1:]) ** 2).mean()
         return mse, {"mse": mse}
 
-    # ------------------------------------------------------------------ rollout
-    @torch.no_grad()
-    def rollout(self, g0: Pose, g1: Pose, steps: int, solver=None, progress=None) -> Rollout:
-        s = solver or {}
-        t0 = time.perf_counter()
-        R0, R1 = g0.R[:, 0], g1.R[:, 0]
-        w = self.initial_velocity(R0, R1)
-        params = self._params()
-        T = R0.shape[0]
-        if self.integrator != "midpoint":
-            Rs = self.integrate(R0, w, steps)
-            if progress is not None:
-                progress(steps - 1)
-            pose = with_data_start(so3_pose(Rs), g0, g1)
-            return explicit_rollout(pose, time.perf_counter() - t0)
-        tol, max_iter = float(s.get("tol", 1e-5)), int(s.get("max_iter", 10))
-        halvings = int(s.get("max_halvings", 6))
-        Rs, R = [R0], R0
-        conv, its, res = [], [], []
-        for k in range(steps):
-            R, w, sol = self.midpoint_step_solve(R, w, params, tol, max_iter, halvings)
-            Rs.append(R)
-            conv.append(sol.converged)
-            its.append(sol.iterations)
-            res.append(sol.residual_norm)
-            if progress is not None and k >= 1:
-                progress(k)
-        pose = with_data_start(so3_pose(torch.stack(Rs, 1)), g0, g1)
-        if steps < 2:
-            e = torch.zeros(T, 0)
-            return Rollout(pose, e.bool(), e.long(), e.double(), time.perf_counter() - t0)
-        conv, its, res = torch.stack(conv, 1), torch.stack(its, 1), torch.stack(res, 1)
-        # The first step (to R_1) is replaced by the observed g1 but feeds the later ones: fold
-        # its diagnostics into those of the step to R_2.
-        converged, iterations, residual = conv[:, 1:].clone(), its[:, 1:].clone(), res[:, 1:].clone()
-        converged[:, 0] &= conv[:, 0]
-        iterations[:, 0] += its[:, 0]
-        residual[:, 0] = torch.maximum(residual[:, 0], res[:, 0])
-        return Rollout(pose, converged, iterations, residual, time.perf_counter() - t0)
+    # ------------------------------------------------------------------ rollout (solvers.rollout_explicit)
+    def initial_state(self, g0, g1):
+        R0 = g0.R[:, 0]
+        return R0, self.initial_velocity(R0, g1.R[:, 0]), self._params()
+
+    def state_pose(self, state):
+        return so3_pose(state[0])
+
+    def step(self, state, opts: SolverOptions):
+        R, w, params = state
+        if self.integrator == "heun":
+            R, w = self.heun_step(R, w, params)
+            return (R, w, params), None
+        R, w, sol = self.midpoint_step_solve(R, w, params, opts)
+        return (R, w, params), sol
+
+    def integrate(self, state, steps: int):
+        R0, w0, params = state
+        return so3_pose(self._odeint(R0, w0, steps, params))

@@ -22,28 +22,32 @@ import torch
 from torch import nn
 from torch.func import grad, jacfwd, jacrev, vmap
 
+from ..errors import ConfigError
 from ..lie import Pose, ProductGroup
 from ..mechanics import kinetic
 from ..mechanics.forces import build_forces, force_jacobian_xi
 from ..mechanics.parameterizations import Inertia, PositiveVector
 from ..mechanics.potentials import MLPPotential
+from ..mechanics.scene_physics import body_parameters, true_potential
+from ..solvers.newton import NewtonProblem, jacobian
+from .base import BuildContext, ImplicitModel, LossOptions, TripletBatch, config_options, initial_scale
 
 RESIDUAL_MODES = ("fast", "generic")
 KNOWN_PARTS = ("inertia", "potential", "damping")
 
 
-class LieDFLNN(nn.Module):
-    """Learned forced discrete mechanics on a product group.
-
-    Model protocol shared with the baselines: `window` ("triplet": trained on pose triplets),
-    `loss(batch, reg_pairs, cfg_train) -> (loss, parts)`, `rollout(g0, g1, steps, solver,
-    progress) -> solvers.rollout.Rollout`, `components()`.
+class LieDFLNN(ImplicitModel):
+    """Learned forced discrete mechanics on a product group (an `ImplicitModel`: trained on pose
+    triplets, rolled out by Newton on the DEL residual for each increment).
 
     Args:
-        G: group layout. h: time step. potential: "none" | "mlp". forces: names in FORCES.
-        residual: "fast" (closed-form kinetic derivatives) or "generic" (autodiff of L_d).
-        epsilon: log-det regularity threshold, also used to pick the initial scale.
+        G: group layout. h: time step. potential: "none" | "mlp". forces: names in FORCES, or
+        {name: options}. residual: "fast" (closed-form kinetic derivatives) or "generic"
+        (autodiff of L_d). epsilon: log-det regularity threshold, also used to pick the initial
+        scale. known / physics: parts set to the scene's true values and frozen.
     """
+
+    window = "triplet"
 
     def __init__(
         self,
@@ -76,13 +80,10 @@ class LieDFLNN(nn.Module):
         self.known = known
         gen = torch.Generator().manual_seed(seed)
         # Start with log|det H| at the regularity threshold so neither loss term dominates.
-        body_scales = [h * math.exp(epsilon / (6 if i < G.n_se3 else 3)) for i in range(G.n_bodies)]
+        body_scales = [initial_scale(h, epsilon, 6 if i < G.n_se3 else 3) for i in range(G.n_bodies)]
         scale = body_scales[0]
-        truth = None
         if known:
-            from . import truth  # late import: truth builds LieDFLNNs itself
-
-            J_true, m_true, rho_true, D_true = truth.body_parameters(G, physics)
+            J_true, m_true, rho_true, D_true = body_parameters(G, physics)
             if "inertia" in known:  # forces are scaled like the true inertia
                 scale = float(J_true.diagonal(dim1=-2, dim2=-1).mean())
         self.inertia = Inertia(G.n_bodies, scale=body_scales, jitter=init_jitter, generator=gen)
@@ -106,7 +107,7 @@ class LieDFLNN(nn.Module):
                     "model.potential=mlp together with model.known=[potential]: choose one "
                     "(the known potential replaces the network)"
                 )
-            self.potential = truth.true_potential(G, physics)  # None when the scene has no potential
+            self.potential = true_potential(G, physics)  # None when the scene has no potential
         elif potential == "none":
             self.potential = None
         elif potential == "mlp":
@@ -121,6 +122,30 @@ class LieDFLNN(nn.Module):
             ray[0].D.set_matrix(D_true)
             ray[0].requires_grad_(False)
 
+    OPTIONS = ("potential", "residual", "mlp_width", "mlp_depth", "init_jitter", "known")
+
+    @classmethod
+    def from_config(cls, ctx: BuildContext, **options) -> LieDFLNN:
+        """`model.potential: auto` is no potential for a free body (or with a known potential)."""
+        opt = config_options(cls, options, cls.OPTIONS)
+        known = tuple(opt.pop("known", None) or ())
+        potential = opt.pop("potential", "auto")
+        potential = "none" if potential == "auto" and "potential" in known else ctx.resolve_potential(potential)
+        try:
+            return cls(
+                ctx.group,
+                ctx.h,
+                potential=potential,
+                forces=dict(ctx.forces),
+                epsilon=ctx.epsilon,
+                seed=ctx.seed,
+                known=known,
+                physics=dict(ctx.physics) if known and ctx.physics else None,
+                **opt,
+            )
+        except ValueError as e:  # bad model/force options: one clear config error
+            raise ConfigError(str(e)) from None
+
     # ------------------------------------------------------------------ parameters
     def _params(self):
         Jd = self.inertia.Jd()
@@ -129,13 +154,11 @@ class LieDFLNN(nn.Module):
         empty = Jd.new_zeros(0)
         return Jd, empty, Jd.new_zeros(0, 3)
 
-    window = "triplet"
-
-    def loss(self, batch, reg_pairs, cfg_train):
+    def loss(self, batch: TripletBatch, opts: LossOptions):
         """w_DEL mean ||r||^2 + w_reg mean penalty(log|det H|) -> (loss, {"del_loss", "reg_loss"})."""
-        use_reg = reg_pairs is not None and cfg_train.w_reg > 0
-        logdet = self.regularity_logdet(*reg_pairs) if use_reg else None
-        return del_regularity_loss(self.residual(*batch), logdet, cfg_train)
+        use_reg = batch.reg is not None and opts.w_reg > 0
+        logdet = self.regularity_logdet(*batch.reg) if use_reg else None
+        return del_regularity_loss(self.residual(*batch.poses()), logdet, opts)
 
     def components(self) -> list[str]:
         """Every active component, with its trainable parameter count or "known, frozen".
@@ -221,8 +244,6 @@ class LieDFLNN(nn.Module):
         if self.residual_mode == "generic":
             zero = inc.R.new_zeros(*inc.R.shape[:-3], G.dim)
             f = lambda d: self.residual_var(g, G.compose(g, G.retract(inc, d)))
-            from ..solvers.newton import jacobian
-
             return jacobian(f, zero)
         Jd, m, rho = self._params()
         blocks = kinetic.mixed_hessian_blocks(G, inc, Jd, m, rho, self.h)
@@ -236,21 +257,39 @@ class LieDFLNN(nn.Module):
             J = J + 0.5 * self.h * (dF @ dxi)
         return J
 
-    def rollout(self, g0: Pose, g1: Pose, steps: int, solver=None, progress=None):
-        """Predict g_2..g_steps from (g0, g1) by Newton on the DEL residual (see solvers.rollout)."""
-        from ..solvers.rollout import rollout_discrete
+    # ------------------------------------------------------------------ implicit step (rollout)
+    def implicit_start(self, g0: Pose, g1: Pose):
+        """State (g_{k-1}, g_k, warm start = the last increment g_{k-1}^{-1} g_k)."""
+        return g0, g1, self.G.increment(g0, g1)
 
-        s = solver or {}
-        return rollout_discrete(
-            self,
-            g0,
-            g1,
-            steps,
-            tol=float(s.get("tol", 1e-5)),
-            max_iter=int(s.get("max_iter", 10)),
-            max_halvings=int(s.get("max_halvings", 6)),
-            progress=progress,
-        )
+    def implicit_problem(self, state) -> NewtonProblem:
+        """Solve the DEL residual for the increment W_k = g_k^{-1} g_{k+1}, updated by W exp(delta)
+        (so it stays on the group), warm-started from W_{k-1}; the part of the residual fixed by
+        (g_{k-1}, g_k) is computed once."""
+        g_prev, g, inc = state
+        G = self.G
+        with torch.enable_grad():  # potential gradients and autodiff Jacobians need autograd
+            const = self.residual_const(g_prev, g).detach()
+
+        def f(x):
+            with torch.enable_grad():
+                return const + self.residual_var(g, G.compose(g, x))
+
+        def jac(x):
+            with torch.enable_grad():
+                return self.jacobian_var(g, x)
+
+        return NewtonProblem(f, jac, inc, G.retract)
+
+    def implicit_advance(self, state, x: Pose):
+        # Newton-Schulz step on the increment: its retractions would otherwise accumulate
+        # rounding drift off SO(3) across the warm-started steps (O(k eps) instead of O(sqrt(k) eps)).
+        _, g, _ = state
+        W = x.R.detach()
+        W = 0.5 * W @ (3.0 * torch.eye(3, dtype=W.dtype) - W.transpose(-1, -2) @ W)
+        inc = Pose(W, x.p.detach())
+        g_next = self.G.compose(g, inc)
+        return (g, g_next, inc), g_next
 
     def residual(self, g_prev: Pose, g: Pose, g_next: Pose) -> torch.Tensor:
         """Forced DEL residual at g, shape (..., dim); zero on exact solutions of the learned scheme."""
@@ -304,12 +343,12 @@ def regularity_penalty(logdet: torch.Tensor, epsilon: float, form: str = "relu")
     raise ValueError(f"train.reg_form must be 'relu' or 'gaussian', got {form!r}")
 
 
-def del_regularity_loss(r: torch.Tensor, logdet: torch.Tensor | None, cfg_train):
+def del_regularity_loss(r: torch.Tensor, logdet: torch.Tensor | None, opts: LossOptions):
     """w_DEL mean ||r||^2 + w_reg mean penalty(logdet) -> (loss, {"del_loss", "reg_loss"}).
 
     Shared by every model trained on the DEL residual (LieDFLNN, Euler- and Euclidean DFLNN)."""
     del_loss = (r * r).mean()
     reg_loss = torch.zeros((), dtype=r.dtype)
     if logdet is not None:
-        reg_loss = regularity_penalty(logdet, float(cfg_train.epsilon), cfg_train.reg_form).mean()
-    return cfg_train.w_del * del_loss + cfg_train.w_reg * reg_loss, {"del_loss": del_loss, "reg_loss": reg_loss}
+        reg_loss = regularity_penalty(logdet, opts.epsilon, opts.reg_form).mean()
+    return opts.w_del * del_loss + opts.w_reg * reg_loss, {"del_loss": del_loss, "reg_loss": reg_loss}

@@ -13,17 +13,19 @@ start, the ODE solution sampled every h, with g0, g1 in front. Works for any pro
 
 from __future__ import annotations
 
-import time
-
 import torch
-from torch import nn
 
+from ..errors import ConfigError
 from ..lie import Pose, ProductGroup
 from ..mechanics.mlp import MLP
-from .baseline_common import explicit_rollout, triplet_sequence, with_data_start
+from .base import Batch, BuildContext, ExplicitModel, LossOptions, config_options
+
+ADAPTIVE_METHODS = ("dopri5", "dopri8", "bosh3", "fehlberg2", "adaptive_heun")
 
 
-class NeuralODE(nn.Module):
+class NeuralODE(ExplicitModel):
+    adaptive = True  # torchdiffeq integrates the whole time grid (any method)
+
     def __init__(
         self,
         G: ProductGroup,
@@ -45,6 +47,15 @@ class NeuralODE(nn.Module):
             torch.manual_seed(int(seed))
             self.field = MLP(2 * self.n, self.n, mlp_width, mlp_depth)
 
+    OPTIONS = ("window", "mlp_width", "mlp_depth", "method", "rtol", "atol", "max_num_steps")
+
+    @classmethod
+    def from_config(cls, ctx: BuildContext, **options) -> NeuralODE:
+        opt = config_options(cls, options, cls.OPTIONS)
+        if opt.get("window", "trajectory") not in ("triplet", "trajectory"):
+            raise ConfigError(f"model.window={opt['window']!r}: choose one of triplet, trajectory")
+        return cls(ctx.group, ctx.h, seed=ctx.seed, **opt)
+
     def components(self) -> list[str]:
         return [f"f:MLP({2 * self.n}->{self.n})", f"integrator:{self.method}"]
 
@@ -55,7 +66,7 @@ class NeuralODE(nn.Module):
         lead, B, m = x.shape[:-1], self.G.n_bodies, self.G.n_se3
         return Pose(x[..., : 9 * B].reshape(*lead, B, 3, 3), x[..., 9 * B :].reshape(*lead, m, 3))
 
-    def integrate(self, x0: torch.Tensor, v0: torch.Tensor, steps: int) -> torch.Tensor:
+    def integrate_x(self, x0: torch.Tensor, v0: torch.Tensor, steps: int) -> torch.Tensor:
         """(N, n), (N, n) -> x at t = 0, h, ..., steps h: (N, steps+1, n)."""
         from torchdiffeq import odeint
 
@@ -65,30 +76,27 @@ class NeuralODE(nn.Module):
             return torch.cat((y[:, n:], self.field(y)), -1)
 
         t = self.h * torch.arange(steps + 1, dtype=x0.dtype)
-        opts = (
-            {"max_num_steps": self.max_num_steps}
-            if self.method in ("dopri5", "dopri8", "bosh3", "fehlberg2", "adaptive_heun")
-            else {}
-        )
+        opts = {"max_num_steps": self.max_num_steps} if self.method in ADAPTIVE_METHODS else {}
         ys = odeint(
             f, torch.cat((x0, v0), -1), t, rtol=self.rtol, atol=self.atol, method=self.method, options=opts or None
         )
         return ys[..., :n].transpose(0, 1)
 
-    def loss(self, batch, *args):
-        """window "trajectory": loss(traj, cfg_train); "triplet": loss((prev, cur, nxt), reg_pairs,
-        cfg_train) -> (mean squared error of predicted x_1..x_L, {"mse": ...})."""
-        seq = triplet_sequence(batch) if isinstance(batch, tuple) and not isinstance(batch, Pose) else batch
-        x = self.to_x(seq)
-        pred = self.integrate(x[:, 0], (x[:, 1] - x[:, 0]) / self.h, x.shape[1] - 1)
+    def loss(self, batch: Batch, opts: LossOptions):
+        """Unroll each window from (x_0, (x_1 - x_0)/h) -> (mean squared error of the predicted
+        x_1..x_L, {"mse": ...}); a triplet is a length-2 window."""
+        x = self.to_x(batch.as_sequence())
+        pred = self.integrate_x(x[:, 0], (x[:, 1] - x[:, 0]) / self.h, x.shape[1] - 1)
         mse = ((pred[:, 1:] - x[:, 1:]) ** 2).mean()
         return mse, {"mse": mse}
 
-    @torch.no_grad()
-    def rollout(self, g0: Pose, g1: Pose, steps: int, solver=None, progress=None):
-        t0 = time.perf_counter()
+    # ------------------------------------------------------------------ rollout (solvers.rollout_explicit)
+    def initial_state(self, g0: Pose, g1: Pose):
         x0, x1 = self.to_x(g0), self.to_x(g1)
-        xs = self.integrate(x0, (x1 - x0) / self.h, steps)
-        if progress is not None:
-            progress(steps - 1)
-        return explicit_rollout(with_data_start(self.from_x(xs), g0, g1), time.perf_counter() - t0)
+        return x0, (x1 - x0) / self.h
+
+    def state_pose(self, state):
+        return self.from_x(state[0])
+
+    def integrate(self, state, steps: int) -> Pose:
+        return self.from_x(self.integrate_x(state[0], state[1], steps))

@@ -14,6 +14,26 @@ from typing import Any
 import torch
 
 from ..lie import Pose
+from .options import SolverOptions
+
+
+@dataclass
+class NewtonProblem:
+    """Find x with f(x) = 0 row by row, starting at x0.
+
+    f(x) -> (T, n); jac(x) -> (T, n, n) = d f(retract(x, delta)) / d delta at 0;
+    retract(x, delta (T, n)) -> x' (x is a Pose of increments or a plain tensor).
+    """
+
+    f: Callable[[Any], torch.Tensor]
+    jac: Callable[[Any], torch.Tensor]
+    x0: Any
+    retract: Callable[[Any, torch.Tensor], Any]
+
+    @classmethod
+    def euclidean(cls, f: Callable[[torch.Tensor], torch.Tensor], x0: torch.Tensor) -> NewtonProblem:
+        """A plain-tensor unknown (T, n) with an autodiff Jacobian and x + delta steps."""
+        return cls(f, lambda x: jacobian(f, x), x0, lambda x, d: x + d)
 
 
 @dataclass
@@ -49,15 +69,18 @@ def select(mask: torch.Tensor, a, b):
     return torch.where(mask.reshape(-1, *([1] * (a.dim() - 1))), a, b)
 
 
-def newton_solve(f, jac, x0, retract, tol: float = 1e-5, max_iter: int = 10, max_halvings: int = 6) -> NewtonResult:
+def newton_solve(f, jac, x0, retract, opts: SolverOptions | None = None) -> NewtonResult:
     """Damped Newton with backtracking on ||f||_2 for a batch of T independent problems.
 
     f(x) -> (T, n); jac(x) -> (T, n, n) = d f(retract(x, delta)) / d delta; retract(x, delta (T, n)).
     A row converges when the full Newton step of a non-singular Jacobian has max norm <= tol
     (the step is then applied, leaving an error ~ tol^2 by quadratic convergence). Rows with a
     singular Jacobian take a least-squares step and cannot converge on that iteration; a
-    step that finds no decrease in ||f|| after `max_halvings` halvings is taken in full.
+    step that finds no decrease in ||f|| after `max_halvings` halvings is taken in full
+    (tol, max_iter, max_halvings from `opts`).
     """
+    opts = opts or SolverOptions()
+    tol, max_iter, max_halvings = opts.tol, opts.max_iter, opts.max_halvings
     x = x0
     r = f(x)
     T = r.shape[0]
@@ -108,6 +131,11 @@ def newton_solve(f, jac, x0, retract, tol: float = 1e-5, max_iter: int = 10, max
     return NewtonResult(x, converged, iters, r.abs().amax(-1))
 
 
-def damped_newton(f, xi0: torch.Tensor, tol: float = 1e-5, max_iter: int = 10, max_halvings: int = 6) -> NewtonResult:
+def solve(problem: NewtonProblem, opts: SolverOptions | None = None) -> NewtonResult:
+    """`newton_solve` of a `NewtonProblem`."""
+    return newton_solve(problem.f, problem.jac, problem.x0, problem.retract, opts)
+
+
+def damped_newton(f, xi0: torch.Tensor, opts: SolverOptions | None = None) -> NewtonResult:
     """`newton_solve` for a plain tensor unknown (T, n) with an autodiff Jacobian."""
-    return newton_solve(f, lambda x: jacobian(f, x), xi0, lambda x, d: x + d, tol, max_iter, max_halvings)
+    return solve(NewtonProblem.euclidean(f, xi0), opts)

@@ -1,22 +1,31 @@
-"""Roll a discrete model forward from (g_0, g_1) by solving its DEL residual for each increment."""
+"""The rollout loops: one for implicit (DEL) models, one for explicit integrators.
+
+Both predict g_2..g_S from the observed pair (g_0, g_1) for a batch of T trajectories and
+return a `Rollout` whose pose sequence starts with g_0, g_1 as given. Implicit steps are
+solved by damped Newton (`solvers.newton`) and every step's convergence flag, iteration
+count and residual norm are kept; a step that does not converge keeps its last iterate and
+is flagged, never silently accepted. The models say what one step is (`models.base`).
+"""
 
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 
 from ..lie import Pose
-from .newton import newton_solve
+from .newton import NewtonResult, solve
+from .options import SolverOptions
 
 
 @dataclass
 class Rollout:
     """Predicted trajectory and solver diagnostics.
 
-    pose: R (T, S+1, B, 3, 3), p (T, S+1, m, 3); converged, iterations: (T, S-1) per implicit step;
-    residual_norm: (T, S-1); seconds: wall time of the whole rollout.
+    pose: R (T, S+1, B, 3, 3), p (T, S+1, m, 3); converged, iterations: (T, S-1) per step to
+    g_2..g_S; residual_norm: (T, S-1); seconds: wall time of the whole rollout.
     """
 
     pose: Pose
@@ -34,49 +43,85 @@ class Rollout:
         return int(bad[0]) + 1 if len(bad) else None  # step index k+1 that was not solved
 
 
-@torch.no_grad()
-def rollout_discrete(
-    model, g0: Pose, g1: Pose, steps: int, tol: float = 1e-5, max_iter: int = 10, max_halvings: int = 6, progress=None
-) -> Rollout:
-    """Predict g_2..g_steps from g0, g1 (each with leading batch dim T).
+def with_data_start(pred: Pose, g0: Pose, g1: Pose) -> Pose:
+    """Predicted sequence (T, S+1, ...) with its first two entries replaced by g0, g1 (every
+    model's rollout starts with the observed pair)."""
+    R, p = pred.R.clone(), pred.p.clone()
+    R[:, 0], R[:, 1] = g0.R, g1.R
+    p[:, 0], p[:, 1] = g0.p, g1.p
+    return Pose(R, p)
 
-    Newton works on the increment W_k = g_k^{-1} g_{k+1} (updated by W exp(delta), so it stays
-    on the group exactly) and is warm-started from W_{k-1}. A step whose Newton solve does
-    not converge is kept (last iterate) and flagged in `converged`; nothing is silently accepted.
-    `progress`: optional callable(k) for progress bars.
-    """
-    G = model.G
+
+def _stack(xs: list[torch.Tensor], T: int, dtype: torch.dtype) -> torch.Tensor:
+    return torch.stack(xs, 1) if xs else torch.zeros(T, 0, dtype=dtype)
+
+
+@torch.no_grad()
+def rollout_implicit(model: Any, g0: Pose, g1: Pose, steps: int, opts: SolverOptions, progress=None) -> Rollout:
+    """Roll an `ImplicitModel` forward: for k = 1..steps-1 solve the model's Newton problem
+    for g_{k+1} given its state (built from g_{k-1}, g_k). `progress`: optional callable(k)."""
     t0 = time.perf_counter()
+    state = model.implicit_start(g0, g1)
     Rs, ps = [g0.R, g1.R], [g0.p, g1.p]
-    g_prev, g = g0, g1
-    inc = G.increment(g0, g1)  # warm start: the previous increment
     conv, its, res = [], [], []
     for k in range(1, steps):
-        with torch.enable_grad():  # potential gradients and autodiff Jacobians need autograd
-            const = model.residual_const(g_prev, g).detach()
-            f = lambda x, g=g, const=const: const + model.residual_var(g, G.compose(g, x))
-            jac = lambda x, g=g: model.jacobian_var(g, x)
-            sol = newton_solve(f, jac, inc, G.retract, tol=tol, max_iter=max_iter, max_halvings=max_halvings)
-        # Newton-Schulz step on the increment: its retractions would otherwise accumulate
-        # rounding drift off SO(3) across the warm-started steps (O(k eps) instead of O(sqrt(k) eps)).
-        W = sol.x.R.detach()
-        W = 0.5 * W @ (3.0 * torch.eye(3, dtype=W.dtype) - W.transpose(-1, -2) @ W)
-        inc = Pose(W, sol.x.p.detach())
-        g_next = G.compose(g, inc)
+        sol = solve(model.implicit_problem(state), opts)
+        state, g_next = model.implicit_advance(state, sol.x)
         Rs.append(g_next.R)
         ps.append(g_next.p)
         conv.append(sol.converged)
         its.append(sol.iterations)
         res.append(sol.residual_norm.detach())
-        g_prev, g = g, g_next
         if progress is not None:
             progress(k)
     T = g0.R.shape[0]
-    empty = lambda dt: torch.zeros(T, 0, dtype=dt)
     return Rollout(
         Pose(torch.stack(Rs, 1), torch.stack(ps, 1)),
-        torch.stack(conv, 1) if conv else empty(torch.bool),
-        torch.stack(its, 1) if its else empty(torch.long),
-        torch.stack(res, 1) if res else empty(torch.float64),
+        _stack(conv, T, torch.bool),
+        _stack(its, T, torch.long),
+        _stack(res, T, g0.R.dtype),
         time.perf_counter() - t0,
     )
+
+
+@torch.no_grad()
+def rollout_explicit(model: Any, g0: Pose, g1: Pose, steps: int, opts: SolverOptions, progress=None) -> Rollout:
+    """Roll an `ExplicitModel` forward from its initial state (g0 and a velocity from g0, g1).
+
+    Adaptive integrators give the whole grid t = 0..steps h at once; fixed-step ones are
+    stepped `steps` times. The prediction of g1 is replaced by the observed g1 (it still feeds
+    the next steps), so the diagnostics of an implicit first step are folded into those of the
+    step to g_2. Explicit steps count as converged with 0 iterations.
+    """
+    t0 = time.perf_counter()
+    T = g0.R.shape[0]
+    state = model.initial_state(g0, g1)
+    sols: list[NewtonResult | None] = []
+    if model.adaptive:
+        seq = model.integrate(state, steps)
+        if progress is not None:
+            progress(steps - 1)
+    else:
+        poses = [model.state_pose(state)]
+        for k in range(steps):
+            state, sol = model.step(state, opts)
+            poses.append(model.state_pose(state))
+            sols.append(sol)
+            if progress is not None and k >= 1:
+                progress(k)
+        seq = Pose(torch.stack([g.R for g in poses], 1), torch.stack([g.p for g in poses], 1))
+    pose = with_data_start(seq, g0, g1)
+    n = max(steps - 1, 0)
+    if not sols or sols[0] is None or n == 0:
+        converged = torch.ones(T, n, dtype=torch.bool)
+        iterations = torch.zeros(T, n, dtype=torch.long)
+        residual = torch.zeros(T, n, dtype=g0.R.dtype)
+        return Rollout(pose, converged, iterations, residual, time.perf_counter() - t0)
+    conv = torch.stack([s.converged for s in sols], 1)  # type: ignore[union-attr]
+    its = torch.stack([s.iterations for s in sols], 1)  # type: ignore[union-attr]
+    res = torch.stack([s.residual_norm.detach() for s in sols], 1)  # type: ignore[union-attr]
+    converged, iterations, residual = conv[:, 1:].clone(), its[:, 1:].clone(), res[:, 1:].clone()
+    converged[:, 0] &= conv[:, 0]
+    iterations[:, 0] += its[:, 0]
+    residual[:, 0] = torch.maximum(residual[:, 0], res[:, 0])
+    return Rollout(pose, converged, iterations, residual, time.perf_counter() - t0)

@@ -11,10 +11,10 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .data.physics import RigidBodySE3, RigidBodySO3, simulate_se3, simulate_so3
-from .lie import SE3, SO3, Pose, so3
-from .models.truth import physics_model
-from .solvers.rollout import rollout_discrete
+from liedfl_cli.data.physics import RigidBodySE3, RigidBodySO3, simulate_se3, simulate_so3
+from liedfl_cli.lie import SE3, SO3, Pose, so3
+from liedfl_cli.models.true_scheme import physics_model
+from liedfl_cli.solvers.options import SolverOptions
 
 PHYSICS = {
     "so3": {"J": [1.521, 1.362, 1.211], "m": 0.5, "rho": [0.0, 0.5, 1.0], "g": 9.81, "D": [0.1, 0.1, 0.1]},
@@ -73,9 +73,8 @@ def rollout_order(kind: str, hs=(0.04, 0.02, 0.01, 0.005), final_time: float = 2
         traj = exact(kind, h, final_time)
         model = _model(kind, h)
         steps = traj.R.shape[1] - 1
-        ro = rollout_discrete(
-            model, traj.index((slice(None), 0)), traj.index((slice(None), 1)), steps, tol=1e-13, max_iter=20
-        )
+        opts = SolverOptions(tol=1e-13, max_iter=20)
+        ro = model.rollout(traj.index((slice(None), 0)), traj.index((slice(None), 1)), steps, opts)
         e = torch.linalg.matrix_norm(ro.pose.R[:, -1] - traj.R[:, -1]).max()
         if traj.p.shape[-2]:
             e = torch.maximum(e, torch.linalg.vector_norm(ro.pose.p[:, -1] - traj.p[:, -1], dim=-1).max())

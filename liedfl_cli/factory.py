@@ -1,0 +1,89 @@
+"""Configs -> objects: the model a run asks for, its loss and solver options.
+
+This is the only place where model configs meet model classes. `model._target_` names the class
+(conf/model/<name>.yaml; `baseline=<name>` only selects that file); it must be a `Model` of
+this package, and the class's `from_config(ctx, **options)` builds it for the dataset.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from hydra.utils import get_class
+from omegaconf import DictConfig, OmegaConf
+
+from .errors import ConfigError
+from .models.base import BuildContext, LossOptions, Model
+from .solvers.options import SolverOptions
+
+PACKAGE_PREFIX = "liedfl_cli.models."
+
+
+def _plain(node) -> Any:
+    return OmegaConf.to_container(node, resolve=True) if isinstance(node, DictConfig) else node
+
+
+def model_class(target: str) -> type[Model]:
+    """The class named by `model._target_`: only this package's models are accepted."""
+    if not isinstance(target, str) or not target.startswith(PACKAGE_PREFIX):
+        raise ConfigError(f"model._target_={target!r}: must name a model class under {PACKAGE_PREFIX}*")
+    try:
+        cls = get_class(target)
+    except Exception:
+        raise ConfigError(f"model._target_={target!r}: no such class") from None
+    if not (isinstance(cls, type) and issubclass(cls, Model)):
+        raise ConfigError(f"model._target_={target!r}: not a liedfl model (a subclass of models.base.Model)")
+    return cls
+
+
+def check_group(cfg: DictConfig, dataset) -> None:
+    """The composed `group` must describe the dataset's bodies (dataset files select it)."""
+    grp = cfg.get("group")
+    if grp is None:
+        return
+    want = (int(grp.n_se3), int(grp.n_so3))
+    have = (dataset.group.n_se3, dataset.group.n_so3)
+    if want != have:
+        raise ConfigError(
+            f"group (n_se3={want[0]}, n_so3={want[1]}) does not match dataset '{cfg.dataset.name}' "
+            f"({dataset.group.name}); drop the group override or pick a matching group"
+        )
+
+
+def build_context(cfg: DictConfig, dataset) -> BuildContext:
+    forces = _plain(cfg.force) if cfg.get("force") else {}
+    return BuildContext(
+        group=dataset.group,
+        h=float(dataset.h),
+        seed=int(cfg.seed),
+        epsilon=float(cfg.train.epsilon),
+        forces=forces or {},
+        physics=(dataset.params or {}).get("physics"),
+    )
+
+
+def build_model(cfg: DictConfig, dataset) -> Model:
+    """The model of `cfg.model` for the dataset's group and step; `model.name` names it."""
+    check_group(cfg, dataset)
+    options = dict(_plain(cfg.model))
+    cls = model_class(options.pop("_target_", None))
+    name = str(options.pop("name", cls.__name__.lower()))
+    try:
+        model = cls.from_config(build_context(cfg, dataset), **options)
+    except ConfigError:
+        raise
+    except ValueError as e:  # invalid option values: one clear config error
+        raise ConfigError(f"model={name}: {e}") from None
+    model.name = name
+    return model
+
+
+def loss_options(cfg_train) -> LossOptions:
+    return LossOptions.from_mapping(_plain(cfg_train))
+
+
+def solver_options(cfg_solver) -> SolverOptions:
+    try:
+        return SolverOptions.from_mapping(_plain(cfg_solver))
+    except ValueError as e:
+        raise ConfigError(str(e)) from None

@@ -1,0 +1,297 @@
+"""The one model contract: what every model (LieDFLNN and each baseline) gives training,
+rollout and evaluation, and the typed pieces exchanged with them.
+
+A model is an `nn.Module` subclass of `Model` that provides
+
+    Model.from_config(ctx, **options)   build from the scene (`BuildContext`) and its config options
+    model.window                        "triplet" | "trajectory": what one training sample is
+    model.training_set(data, steps)     the samples of a train split (`TripletSet` | `TrajectorySet`)
+    model.loss(batch, opts)             (scalar loss, {part name: scalar}) for one batch
+    model.rollout(g0, g1, steps, opts)  `solvers.rollout.Rollout` predicted from the first two poses
+    model.components()                  human-readable list of the active parts
+
+Rollouts are run by one loop per kind of model (`solvers.rollout`): `ImplicitModel`s (the DEL
+models: LieDFLNN, Euler-angle and Euclidean DFLNN) describe one implicit step as a Newton
+problem; `ExplicitModel`s (GLNN, Neural ODE) describe an integrator step, or integrate the
+whole time grid at once when their integrator is adaptive.
+
+Nothing here knows about Hydra: the pipeline (`liedfl_cli.factory`) turns configs into a
+`BuildContext` and plain keyword options.
+"""
+
+from __future__ import annotations
+
+import abc
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+from torch import nn
+
+from ..errors import ConfigError
+from ..lie import Pose, ProductGroup
+from ..solvers.newton import NewtonProblem, NewtonResult
+from ..solvers.options import SolverOptions
+from ..solvers.rollout import Rollout, rollout_explicit, rollout_implicit
+
+WINDOWS = ("triplet", "trajectory")
+
+
+def initial_scale(h: float, epsilon: float, n: int) -> float:
+    """Kinetic scale s with n log(s / h) = epsilon.
+
+    A discrete Lagrangian whose mixed Hessian is ~ -(s/h) I_n then starts exactly at the
+    regularity threshold log|det H| = epsilon, so neither loss term dominates at the start.
+    """
+    return h * math.exp(epsilon / n)
+
+
+def so3_pose(R: torch.Tensor) -> Pose:
+    """Rotations (..., 3, 3) of one SO(3) body -> Pose R (..., 1, 3, 3), p (..., 0, 3)."""
+    return Pose(R[..., None, :, :], R.new_zeros(*R.shape[:-2], 0, 3))
+
+
+def require_single_so3(G: ProductGroup, what: str) -> None:
+    if G.n_se3 != 0 or G.n_so3 != 1:
+        raise ConfigError(f"{what} models a single rigid body on SO(3); this dataset's group is {G.name}")
+
+
+# ---------------------------------------------------------------------------- build context
+@dataclass(frozen=True)
+class BuildContext:
+    """What a model needs to know about the scene and the run to be built.
+
+    group: the dataset's group layout. h: time step. seed: initialisation seed.
+    epsilon: regularity threshold (train.epsilon), also used for the initial scale.
+    forces: the `force` group as {name: options} (empty: no learned force).
+    physics: the scene's true parameters (a synthetic dataset's params["physics"]) or None.
+    """
+
+    group: ProductGroup
+    h: float
+    seed: int = 0
+    epsilon: float = 10.0
+    forces: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+    physics: Mapping[str, Any] | None = None
+
+    def scene_has_potential(self) -> bool:
+        """False only when the scene is known to have none: one body and gravity g = 0 (or data
+        declaring g = 0). Real recordings (no physics) may have one."""
+        physics = self.physics or {}
+        return not (self.group.n_bodies == 1 and "g" in physics and float(physics["g"]) == 0.0)
+
+    def resolve_potential(self, choice: str) -> str:
+        """`auto` -> "none" when the scene has no potential, else "mlp"; other choices as given."""
+        if choice not in ("auto", "mlp", "none"):
+            raise ConfigError(f"model.potential={choice!r}: choose one of auto, mlp, none")
+        if choice != "auto":
+            return choice
+        return "mlp" if self.scene_has_potential() else "none"
+
+    def resolve_damping(self, choice: Any) -> bool:
+        """`auto` -> learned Rayleigh damping iff the force group contains rayleigh."""
+        if choice == "auto":
+            return "rayleigh" in self.forces
+        if isinstance(choice, bool):
+            return choice
+        raise ConfigError(f"model.damping={choice!r}: choose auto, true or false")
+
+
+# ---------------------------------------------------------------------------- losses
+@dataclass(frozen=True)
+class LossOptions:
+    """Loss settings of the train config (paper: w_DEL = w_reg = 0.5, 10 regularity points).
+
+    w_del, w_reg: weights of mean ||r||^2 and of the regularity penalty. epsilon: threshold on
+    log|det H| per body block. reg_form: relu | gaussian. reg_points: pairs drawn per batch for
+    the regularity term (0 = none)."""
+
+    w_del: float = 0.5
+    w_reg: float = 0.5
+    epsilon: float = 10.0
+    reg_form: str = "relu"
+    reg_points: int = 10
+
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, Any]) -> LossOptions:
+        return cls(
+            w_del=float(values.get("w_del", cls.w_del)),
+            w_reg=float(values.get("w_reg", cls.w_reg)),
+            epsilon=float(values.get("epsilon", cls.epsilon)),
+            reg_form=str(values.get("reg_form", cls.reg_form)),
+            reg_points=int(values.get("reg_points", cls.reg_points)),
+        )
+
+
+LossParts = dict[str, torch.Tensor]
+
+
+# ---------------------------------------------------------------------------- batches
+@dataclass
+class TripletBatch:
+    """Pose triplets (g_{k-1}, g_k, g_{k+1}), each with leading shape (N,), and optionally
+    `reg`: pairs (g, g_next) with leading shape (P,) for the regularity term."""
+
+    prev: Pose
+    cur: Pose
+    nxt: Pose
+    reg: tuple[Pose, Pose] | None = None
+
+    def poses(self) -> tuple[Pose, Pose, Pose]:
+        return self.prev, self.cur, self.nxt
+
+    def as_sequence(self) -> Pose:
+        """The triplets as length-2 trajectories: R (N, 3, B, 3, 3), p (N, 3, m, 3)."""
+        stack = lambda *xs: torch.stack(xs, 1)
+        return Pose(stack(self.prev.R, self.cur.R, self.nxt.R), stack(self.prev.p, self.cur.p, self.nxt.p))
+
+
+@dataclass
+class TrajectoryBatch:
+    """Whole training windows: R (N, L+1, B, 3, 3), p (N, L+1, m, 3)."""
+
+    traj: Pose
+
+    def as_sequence(self) -> Pose:
+        return self.traj
+
+
+Batch = TripletBatch | TrajectoryBatch
+
+
+class TripletSet:
+    """Every triplet (g_{k-1}, g_k, g_{k+1}) with k + 1 <= steps of trajectories (T, N+1, ...),
+    flattened to (T * (steps - 1), ...)."""
+
+    def __init__(self, data: Pose, steps: int):
+        steps = min(int(steps), data.R.shape[1] - 1)
+        if steps < 2:
+            raise ConfigError(f"dataset.train_steps={steps}: need at least 2 steps to form a triplet")
+
+        def cut(a: int, b: int) -> Pose:
+            return Pose(data.R[:, a:b].flatten(0, 1), data.p[:, a:b].flatten(0, 1))
+
+        self.prev, self.cur, self.nxt = cut(0, steps - 1), cut(1, steps), cut(2, steps + 1)
+        self.n = self.prev.R.shape[0]
+
+    def batch(self, idx: torch.Tensor, generator: torch.Generator, reg_points: int) -> TripletBatch:
+        """Triplets `idx` plus `reg_points` random pairs drawn from `generator` (none when 0)."""
+        reg = None
+        if reg_points > 0:
+            reg_idx = torch.randint(0, self.n, (int(reg_points),), generator=generator)
+            reg = (self.cur.index(reg_idx), self.nxt.index(reg_idx))
+        return TripletBatch(self.prev.index(idx), self.cur.index(idx), self.nxt.index(idx), reg)
+
+
+class TrajectorySet:
+    """The first `steps` steps of every trajectory: (T, steps + 1, ...)."""
+
+    def __init__(self, data: Pose, steps: int):
+        if int(steps) < 1:
+            raise ConfigError(f"dataset.train_steps={steps}: need at least 1 step")
+        self.traj = data.index((slice(None), slice(0, int(steps) + 1)))
+        self.n = self.traj.R.shape[0]
+
+    def batch(self, idx: torch.Tensor, generator: torch.Generator, reg_points: int) -> TrajectoryBatch:
+        return TrajectoryBatch(self.traj.index(idx))
+
+
+TrainingSet = TripletSet | TrajectorySet
+
+
+# ---------------------------------------------------------------------------- the contract
+class Model(nn.Module, abc.ABC):
+    """Base class of every model. Subclasses set `G`, `h` and `window` and implement the
+    abstract methods; `name` is the config option that built the model (e.g. "glnn_rk4")."""
+
+    G: ProductGroup
+    h: float
+    window: str = "triplet"
+    name: str = ""
+
+    @classmethod
+    @abc.abstractmethod
+    def from_config(cls, ctx: BuildContext, **options: Any) -> Model:
+        """Build for the scene `ctx` from the model's config options (unknown keys: TypeError)."""
+
+    def training_set(self, data: Pose, steps: int) -> TrainingSet:
+        """Training samples of trajectories `data` (T, N+1, ...) over their first `steps` steps."""
+        if self.window == "triplet":
+            return TripletSet(data, steps)
+        if self.window == "trajectory":
+            return TrajectorySet(data, steps)
+        raise ConfigError(f"model window {self.window!r} is not one of {', '.join(WINDOWS)}")
+
+    @abc.abstractmethod
+    def loss(self, batch: Batch, opts: LossOptions) -> tuple[torch.Tensor, LossParts]:
+        """Scalar training loss of one batch and its named parts (for the metrics table)."""
+
+    @abc.abstractmethod
+    def rollout(self, g0: Pose, g1: Pose, steps: int, opts: SolverOptions | None = None, progress=None) -> Rollout:
+        """Predict g_2..g_steps from g0, g1 (leading batch dim T); the result starts with g0, g1."""
+
+    @abc.abstractmethod
+    def components(self) -> list[str]:
+        """Active components, e.g. ["J_d (6)", "F:rayleigh D (6)"]."""
+
+
+class ImplicitModel(Model):
+    """A model whose step solves an implicit equation r(g_{k-1}, g_k, g_{k+1}) = 0 (the DEL
+    models). `state` is whatever the model carries from step to step."""
+
+    @abc.abstractmethod
+    def implicit_start(self, g0: Pose, g1: Pose) -> Any:
+        """State before the first implicit step (the pair g0, g1 in the model's coordinates)."""
+
+    @abc.abstractmethod
+    def implicit_problem(self, state: Any) -> NewtonProblem:
+        """The Newton problem whose root gives the next configuration."""
+
+    @abc.abstractmethod
+    def implicit_advance(self, state: Any, x: Any) -> tuple[Any, Pose]:
+        """(next state, predicted pose g_{k+1}) from the solution x of `implicit_problem`."""
+
+    def rollout(self, g0: Pose, g1: Pose, steps: int, opts: SolverOptions | None = None, progress=None) -> Rollout:
+        return rollout_implicit(self, g0, g1, steps, SolverOptions.from_mapping(opts), progress)
+
+
+class ExplicitModel(Model):
+    """A continuous-time model advanced by an integrator (GLNN, Neural ODE). Fixed-step
+    integrators implement `step`; adaptive ones (`adaptive = True`) implement `integrate`."""
+
+    adaptive: bool = False
+
+    @abc.abstractmethod
+    def initial_state(self, g0: Pose, g1: Pose) -> Any:
+        """State at t = 0 (g0 and a velocity estimated from g0, g1)."""
+
+    @abc.abstractmethod
+    def state_pose(self, state: Any) -> Pose:
+        """The configuration of a state, leading shape (T,)."""
+
+    def step(self, state: Any, opts: SolverOptions) -> tuple[Any, NewtonResult | None]:
+        """One step of length h; implicit integrators return their Newton diagnostics."""
+        raise NotImplementedError(f"{type(self).__name__} integrates adaptively (see integrate)")
+
+    def integrate(self, state: Any, steps: int) -> Pose:
+        """Configurations at t = 0, h, ..., steps h: leading shape (T, steps + 1)."""
+        raise NotImplementedError(f"{type(self).__name__} integrates step by step (see step)")
+
+    def rollout(self, g0: Pose, g1: Pose, steps: int, opts: SolverOptions | None = None, progress=None) -> Rollout:
+        return rollout_explicit(self, g0, g1, steps, SolverOptions.from_mapping(opts), progress)
+
+
+def config_options(cls: type, options: Mapping[str, Any], allowed: tuple[str, ...]) -> dict[str, Any]:
+    """`options` checked against the names a model's config accepts (one-line error otherwise)."""
+    unknown = sorted(set(options) - set(allowed))
+    if unknown:
+        import difflib
+
+        close = difflib.get_close_matches(unknown[0], allowed, n=1)
+        hint = f" (did you mean '{close[0]}'?)" if close else ""
+        raise ConfigError(
+            f"model ({cls.__name__}): unknown key '{unknown[0]}'{hint}; expected some of {', '.join(sorted(allowed))}"
+        )
+    return dict(options)

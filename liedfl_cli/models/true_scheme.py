@@ -1,0 +1,45 @@
+"""The discrete scheme with the scene's true parameters (J_d, m, rho, D, the known potential and
+known forces such as a PD control).
+
+It is what a perfect LieDFLNN would learn: the yardstick for learned models ("true-parameter
+discrete scheme") and the subject of the O(h^3)/O(h^2) consistency checks.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from ..lie import ProductGroup
+from ..mechanics.scene_physics import body_parameters, true_control, true_potential
+from .liedflnn import LieDFLNN
+
+
+def physics_model(G: ProductGroup, h: float, physics: dict, residual: str = "fast") -> LieDFLNN:
+    """LieDFLNN carrying the true parameters of `physics` (every part frozen).
+
+    Bodies share J/m/rho when a single value is given.
+    """
+    J, masses, rhos, D = body_parameters(G, physics)
+    forces = ["rayleigh"] if torch.count_nonzero(D) else []
+    model = LieDFLNN(G, h, potential="none", forces=forces, residual=residual, init_jitter=0.0)
+    model.inertia.set_J(J)
+    if G.n_se3:
+        model.mass.set_value(masses[: G.n_se3])
+        with torch.no_grad():
+            model.rho.copy_(rhos[: G.n_se3])
+    if forces:
+        model.forces[0].D.set_matrix(D)
+    model.potential = true_potential(G, physics)
+    ctrl = true_control(G, physics)
+    if ctrl is not None:
+        model.forces.append(ctrl)
+    model.requires_grad_(False)
+    return model
+
+
+def true_model(dataset, residual: str = "fast") -> LieDFLNN | None:
+    """The true-parameter scheme of a synthetic dataset, or None for real recordings."""
+    physics = (dataset.params or {}).get("physics")
+    if not physics or "J" not in physics:
+        return None
+    return physics_model(dataset.group, dataset.h, physics, residual)

@@ -1,0 +1,39 @@
+"""Settings of the implicit-step solver, written once (the `solver` config group mirrors them)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, fields
+from typing import Any
+
+
+@dataclass(frozen=True)
+class SolverOptions:
+    """Damped Newton for implicit steps (paper: tolerance 1e-5, at most 10 iterations).
+
+    tol: a row converges when the max-norm of its full Newton step is <= tol.
+    max_iter: Newton iterations per step. max_halvings: backtracking halvings of a step that
+    does not reduce ||residual||_2 before the full step is taken anyway.
+    """
+
+    tol: float = 1e-5
+    max_iter: int = 10
+    max_halvings: int = 6
+
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, Any] | None) -> SolverOptions:
+        """Options from a plain mapping (a resolved `solver` config); missing keys take defaults,
+        unknown keys raise ValueError naming them."""
+        if values is None:
+            return cls()
+        if isinstance(values, SolverOptions):
+            return values
+        names = {f.name for f in fields(cls)}
+        unknown = sorted(set(values) - names)
+        if unknown:
+            raise ValueError(f"solver: unknown key(s) {unknown}; expected some of {sorted(names)}")
+        return cls(
+            tol=float(values.get("tol", cls.tol)),
+            max_iter=int(values.get("max_iter", cls.max_iter)),
+            max_halvings=int(values.get("max_halvings", cls.max_halvings)),
+        )
