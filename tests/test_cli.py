@@ -130,6 +130,25 @@ def test_eval_of_another_rollout_writes_next_to_it(trained, tmp_path):
     ]
 
 
+def test_eval_refuses_a_rollout_that_does_not_match_the_dataset(trained, tmp_path):
+    """Issue 11: a rollout.h5 with one predicted trajectory for two test trajectories is a one-line error
+    naming the file and field (exit 2), and the run's evaluation stays as it was."""
+    run = tmp_path / "run"
+    shutil.copytree(trained, run)
+    with h5py.File(run / "rollout.h5", "r+") as f:
+        assert len(f["traj_index"]) == 2
+        for k in ("R", "p"):
+            a = f[f"model/{k}"][:1]
+            del f[f"model/{k}"]
+            f[f"model/{k}"] = a
+    before = (run / "eval.csv").read_bytes()
+    proc = liedfl("eval", f"run={run}", "ui.progress=false", cwd=tmp_path, ok=False)
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr and len(lines) == 1, proc.stderr
+    assert lines[0].startswith(f"error: {run / 'rollout.h5'}: dataset 'model/R' holds 1 trajectories"), lines[0]
+    assert (run / "eval.csv").read_bytes() == before
+
+
 def test_data_writes_one_dataset(tmp_path):
     from liedfl_cli.data.hdf5 import load_dataset
 
