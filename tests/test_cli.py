@@ -102,6 +102,24 @@ def test_rollout_writes_a_new_folder(trained):
     assert not [p for p in run.rglob("*") if ".tmp" in p.name]
 
 
+def test_a_failed_rollout_leaves_no_folder(trained, monkeypatch):
+    """`liedfl rollout` removes its new folder when anything fails after creating it."""
+    from liedfl_cli import rollout as rollout_mod
+
+    def broken(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    before = sorted(p.name for p in (trained / "rollouts").iterdir()) if (trained / "rollouts").exists() else None
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose(config_name="rollout", overrides=[f"run={trained}", "steps=9", "ui.progress=false"])
+    monkeypatch.setattr(rollout_mod, "rollout_and_save", broken)
+    with pytest.raises(KeyboardInterrupt):
+        rollout_mod.run_rollout(cfg)
+    after = sorted(p.name for p in (trained / "rollouts").iterdir()) if (trained / "rollouts").exists() else None
+    assert after == before
+
+
 def test_eval_rewrites_eval_csv(trained, tmp_path):
     run = trained
     (run / "eval.csv").write_text("stale\n")
