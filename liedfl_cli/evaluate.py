@@ -96,12 +96,11 @@ def _rows(rf: RolloutFile, truth: Pose, timings: dict | None) -> tuple[list[dict
 def span_note(rf: RolloutFile, dataset) -> str:
     """Which steps each column covers (the errors need ground truth, the rest does not)."""
     n = min(rf.steps, dataset.n_steps)
-    note = (
+    return (
         f"errors (rel err, rel err end, geo err, pos err) over steps 0..{n}"
         + (f" (the dataset ends at step {dataset.n_steps})" if n < rf.steps else "")
         + f"; drift, non-finite and Newton columns over the whole rollout, steps 0..{rf.steps}"
     )
-    return note
 
 
 def rollout_path_arg(value, run_dir) -> Path:
@@ -120,8 +119,8 @@ def run_eval_from_objects(
     cfg: DictConfig, dataset, run_dir, timings: dict | None = None, rollout_path=None
 ) -> list[dict]:
     """Evaluate a rollout file against `dataset`: eval.csv, eval.md, eval_curves.json and plots/ next to
-    the file. rollout_path: default `<run_dir>/rollout.h5`; the run's recovery.json and loss curve are
-    added when the file is the run's own."""
+    the file. rollout_path: default `<run_dir>/rollout.h5`. The run's parameter recovery (recovery.json)
+    goes into eval.md of any rollout of the run, the loss curve only into the run's own plots."""
     run_dir = Path(run_dir)
     path = Path(rollout_path) if rollout_path is not None else run_dir / FILE_NAME
     out = path.parent

@@ -128,10 +128,6 @@ class RolloutFile:
     attrs: dict[str, Any] = field(default_factory=dict)
 
     @property
-    def n_trajectories(self) -> int:
-        return len(self.traj_index)
-
-    @property
     def layout(self) -> tuple[int, int]:
         """(B bodies, m SE(3) bodies) of the poses."""
         e = self.models["model"]
@@ -342,9 +338,7 @@ def write_rollout(path, *, steps: int, h: float, scene: str, traj_index, rollout
     entries = {k: v if isinstance(v, RolloutEntry) else RolloutEntry.from_rollout(v) for k, v in rollouts.items()}
     idx = np.asarray(traj_index, dtype=np.int64)
     rf = RolloutFile(path=path, steps=int(steps), h=float(h), traj_index=idx, models=entries, scene=str(scene))
-    if "model" in entries:
-        rf.group = _group_name(*rf.layout)
-    _check(rf)
+    rf.group = _group_name(*_check(rf).layout)
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
         f.attrs["steps"] = rf.steps
         f.attrs["h"] = rf.h
