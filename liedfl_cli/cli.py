@@ -224,6 +224,7 @@ def main() -> None:
         raise SystemExit(2)
     if command in DIR_ARGS:
         _check_dir_arg(command, argv[1:])
+    _one_line_warnings()
     import hydra
 
     @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name=command)
@@ -248,6 +249,25 @@ def main() -> None:
         else:
             os.environ["HYDRA_FULL_ERROR"] = user_full_error
     _sweep_exit()
+
+
+def _one_line_warnings() -> None:
+    """liedfl's own warnings (data projected, coarse sampling, ...) as one `warning: ...` line."""
+    import warnings
+
+    from .errors import LiedflWarning
+
+    shown = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        if isinstance(category, type) and issubclass(category, LiedflWarning):
+            from .ui import warning_line
+
+            warning_line(str(message))
+        else:
+            shown(message, category, filename, lineno, file, line)
+
+    warnings.showwarning = show
 
 
 def _sweep_exit() -> None:
