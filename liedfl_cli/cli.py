@@ -224,7 +224,11 @@ def main() -> None:
         raise SystemExit(2)
     if command in DIR_ARGS:
         _check_dir_arg(command, argv[1:])
+    _check_flags(command, argv[1:])
     _one_line_warnings()
+    from .status import reset
+
+    reset()
     import hydra
 
     @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name=command)
@@ -251,6 +255,25 @@ def main() -> None:
     _sweep_exit()
 
 
+def _check_flags(command: str, args: list[str]) -> None:
+    """Hydra's command-line parser, with its errors (an unknown flag, a flag without its value) as
+    one line instead of argparse's usage block."""
+    if "--version" in args:
+        return
+    try:
+        from hydra._internal.utils import get_args_parser
+    except ImportError:  # pragma: no cover (another Hydra layout: Hydra reports it itself)
+        return
+    parser = get_args_parser()
+
+    def error(message: str):
+        print(f"error: {message} (usage: liedfl {command} [key=value ...] [-m] [--cfg job] [--help])", file=sys.stderr)
+        raise SystemExit(2)
+
+    parser.error = error
+    parser.parse_args(args)
+
+
 def _one_line_warnings() -> None:
     """liedfl's own warnings (data projected, coarse sampling, ...) as one `warning: ...` line."""
     import warnings
@@ -258,6 +281,8 @@ def _one_line_warnings() -> None:
     from .errors import LiedflWarning
 
     shown = warnings.showwarning
+    if getattr(shown, "_liedfl", False):
+        return
 
     def show(message, category, filename, lineno, file=None, line=None):
         if isinstance(category, type) and issubclass(category, LiedflWarning):
@@ -267,6 +292,7 @@ def _one_line_warnings() -> None:
         else:
             shown(message, category, filename, lineno, file, line)
 
+    show._liedfl = True
     warnings.showwarning = show
 
 

@@ -129,6 +129,30 @@ TOP_LEVEL: dict[str, tuple[str, ...]] = {
     "eval": ("task_name", "run", "steps", "rollout", "eval", "ui", "paths", "solver"),
     "report": ("task_name", "sweep", "plots"),
 }
+_SOLVER = ("solver.tol", "solver.max_iter", "solver.max_halvings")
+_RUN_KEYS = ("run", "steps", "rollout.max_trajectories", "rollout.reference", "eval.plots", "ui.progress")
+REQUIRED: dict[str, tuple[str, ...]] = {
+    # keys the commands read (an override such as ~train.epochs removes them)
+    "train": (
+        "seed",
+        *(f"train.{k}" for k in ("epochs", "batch_size", "w_del", "w_reg", "reg_points", "reg_form", "epsilon")),
+        *(f"train.optimizer.{k}" for k in ("name", "lr", "weight_decay")),
+        *(f"rollout.{k}" for k in ("enabled", "steps", "max_trajectories", "reference")),
+        "eval.plots",
+        "ui.progress",
+        "paths.data_dir",
+        "paths.output_dir",
+        "dataset",
+        "model",
+        "force",
+        "baseline.name",
+        *_SOLVER,
+    ),
+    "data": ("ui.progress", "paths.data_dir", "dataset"),
+    "rollout": (*_RUN_KEYS, "paths.data_dir", *_SOLVER),
+    "eval": (*_RUN_KEYS, "paths.data_dir", *_SOLVER),
+    "report": ("sweep", "plots"),
+}
 DEFAULT_MODEL_TARGET = ModelSchema._target_
 TARGET_PREFIX = "liedfl_cli."
 
@@ -193,6 +217,18 @@ def _plain(node, full: str):
                 f"config key '{full}': {_first_line(e)}" + (f" (key {key})" if key and key != full else "")
             ) from None
     return node
+
+
+def _has(cfg, dotted: str) -> bool:
+    node = cfg
+    for part in dotted.split("."):
+        if not isinstance(node, DictConfig) or part not in node:
+            return False
+        try:
+            node = node[part]
+        except OmegaConfBaseException:
+            return True  # present; its value is checked (and reported) later
+    return True
 
 
 def _first_line(e: Exception) -> str:
@@ -420,12 +456,12 @@ def _check_values(cfg, command: str) -> None:
         if _value(cfg, "train.checkpoint_every") is not None:
             _int(cfg, "train.checkpoint_every", 1, nullable=True)
     if "rollout" in cfg:
-        if "steps" in cfg.rollout:
-            _int(cfg, "rollout.steps", 1, nullable=True)
+        if "steps" in cfg.rollout:  # a rollout needs the two given poses and at least one predicted step
+            _int(cfg, "rollout.steps", 2, nullable=True)
         if "max_trajectories" in cfg.rollout:
             _int(cfg, "rollout.max_trajectories", 1, nullable=True)
     if command in ("rollout", "eval") and "steps" in cfg:
-        _int(cfg, "steps", 1, nullable=True)
+        _int(cfg, "steps", 2, nullable=True)
     if "solver" in cfg:
         _float(cfg, "solver.tol", positive=True)
         _int(cfg, "solver.max_iter", 1)
@@ -473,6 +509,9 @@ def validate(cfg: DictConfig, command: str | None = None) -> None:
     top = TOP_LEVEL.get(str(command))
     if top is not None:
         _check_keys(cfg, (*top, "hydra"), "")
+    for dotted in REQUIRED.get(str(command), ()):
+        if not _has(cfg, dotted):
+            raise ConfigError(f"config key '{dotted}' is missing (removed by an override?)")
     _check_scalars(cfg, str(command))
     # sections with a dataclass schema: keys, then types
     for name, schema in SECTIONS.items():

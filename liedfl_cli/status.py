@@ -26,6 +26,11 @@ HYDRA_FILES = ("config.yaml", "hydra.yaml", "overrides.yaml")
 _state: dict[str, Any] = {"run_dir": None, "keep_from": None, "sweep_dir": None}
 
 
+def reset() -> None:
+    """Forget the run / sweep folders of a previous command (the CLI calls it first)."""
+    _state.update(run_dir=None, keep_from=None, sweep_dir=None)
+
+
 # ----------------------------------------------------------------------------- status files
 def write_status(run_dir, status: str, exit_code: int, error: str | None = None, **extra) -> Path:
     """Write `<run_dir>/status.json` atomically."""
