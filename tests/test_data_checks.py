@@ -239,3 +239,36 @@ def test_atomic_path_holds_a_signal_until_the_file_is_in_place(tmp_path):
         os.kill(os.getpid(), signal.SIGINT)  # held: the rename still happens, then the interrupt
     assert target.read_text() == "complete\n"
     assert [p.name for p in tmp_path.iterdir()] == ["a.txt"]
+
+
+def test_the_cli_shows_the_coarse_sampling_warning_on_one_line(tmp_path):
+    """`liedfl data` on a cached file with one increment of 0.6 pi: exit 0, one `warning:` line."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from liedfl_cli.cli import CONF_DIR
+    from liedfl_cli.data.scenes import get_dataset
+
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose(config_name="data", overrides=["budget=smoke"])
+    GlobalHydra.instance().clear()
+    _, path = get_dataset(cfg.dataset, tmp_path / "outputs" / "data")
+    with h5py.File(path, "r+") as f:
+        R = f["R"][...]
+        W = _axis_angle(0.6 * math.pi, (0.0, 0.0, 1.0))
+        R[2, 7:, 0] = (R[2, 6, 0] @ W @ R[2, 7, 0].T) @ R[2, 7:, 0]
+        f["R"][...] = R
+    env = {k: v for k, v in os.environ.items() if k not in ("LIEDFL_DATA_DIR", "HYDRA_FULL_ERROR")}
+    proc = subprocess.run(
+        [sys.executable, "-c", "from liedfl_cli.cli import main; main()", "data", "budget=smoke", "ui.progress=false"],
+        cwd=tmp_path,
+        env={**env, "COLUMNS": "200"},
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 0, proc.stderr
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("warning: "), proc.stderr
+    assert path.name in lines[0] and "0.600 pi" in lines[0] and "trajectory 2, step 6 -> 7, body 0" in lines[0]
