@@ -11,7 +11,8 @@ import signal
 import threading
 from pathlib import Path
 
-_TMP = re.compile(r".*\.tmp(\d+)$")
+# liedfl's temporary names: `.<name>.tmp<pid>` (atomic_path) and `<stem>.h5.tmp<pid>` (save_dataset)
+_TMP = re.compile(r"(?:\..+|.+\.h5)\.tmp(\d+)")
 
 
 def pid_alive(pid: int) -> bool:
@@ -30,9 +31,9 @@ def pid_alive(pid: int) -> bool:
 
 
 def clean_orphans(folder) -> list[Path]:
-    """Remove `*.tmp<pid>` files in `folder` left by processes that no longer exist (a writer killed
-    between writing its temporary file and renaming it). Files of live processes are kept.
-    Returns the removed paths."""
+    """Remove liedfl's temporary files (`.<name>.tmp<pid>`, `<stem>.h5.tmp<pid>`) in `folder` left by
+    processes that no longer exist (a writer killed between writing its temporary file and renaming
+    it). Files of live processes, and files not named like that, are kept. Returns the removed paths."""
     removed = []
     try:
         entries = list(Path(folder).iterdir())

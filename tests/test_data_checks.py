@@ -183,11 +183,12 @@ def test_orphaned_temporary_files_of_dead_writers_are_removed_at_the_next_write(
     orphan_small = tmp_path / f".eval.csv.tmp{dead}"
     live = tmp_path / f"scene-abc.h5.tmp{alive}"
     keep = tmp_path / "notes.tmp"  # no pid: not a liedfl temporary file
-    for p in (orphan, orphan_small, live, keep):
+    user = tmp_path / f"notes.txt.tmp{dead}"  # not named like liedfl's temporary files
+    for p in (orphan, orphan_small, live, keep, user):
         p.write_bytes(b"half written")
     save_dataset(_dataset(0.1, T=2, N=3, B=1), tmp_path / "x.h5")
     assert not orphan.exists() and not orphan_small.exists()
-    assert live.exists() and keep.exists()
+    assert live.exists() and keep.exists() and user.exists()
     orphan.write_bytes(b"again")
     write_text(tmp_path / "y.txt", "atomic_path cleans too\n")
     assert not orphan.exists() and live.exists()
