@@ -76,8 +76,9 @@ def classify(e: BaseException) -> tuple[str, int] | None:
         return f"config error: {text.splitlines()[0] if text else type(e).__name__}" + (
             f" (key {key})" if key else ""
         ), 2
-    if isinstance(e, KeyboardInterrupt):
-        return "interrupted", 130
+    if isinstance(e, KeyboardInterrupt):  # KeyboardInterrupt("<how to resume>") adds its text to the line
+        detail = " ".join(str(a) for a in e.args if str(a).strip())
+        return ("interrupted: " + detail if detail else "interrupted"), 130
     return None
 
 
@@ -151,6 +152,7 @@ def _run(command: str, cfg):
     from .status import write_status
     from .ui import error_line, fail
 
+    _one_line_warnings()  # (also in launcher worker processes, which do not run `main`)
     multirun, status_dir, hydra_dir = _job_context(command, cfg)
     t0 = time.perf_counter()
     try:

@@ -185,3 +185,27 @@ def test_status_of_a_job_without_status_file(tmp_path):
     failed = dict((d.name, e) for d, e in status.failed_runs(tmp_path))
     assert set(failed) == {"1", "2"}
     assert "did not finish" in failed["1"] and "unreadable" in failed["2"]
+
+
+def test_an_interruption_with_a_message_is_one_line_and_recorded(tmp_path, monkeypatch, capfd):
+    """What the training loop raises on Ctrl-C after saving a checkpoint: exit 130, the message kept."""
+    from liedfl_cli import cli, train
+    from liedfl_cli.io_utils import write_json
+
+    def run_train(cfg):
+        write_json(Path(cfg.paths.output_dir) / "components.json", {"model": "x"})
+        raise KeyboardInterrupt("checkpoint saved; resume with `liedfl train resume=run`")
+
+    monkeypatch.setattr(train, "run_train", run_train)
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "argv", ["liedfl", "train", *FAST, "hydra.run.dir=run"])
+    with pytest.raises(SystemExit) as e:
+        cli.main()
+    assert e.value.code == 130
+    line = "interrupted: checkpoint saved; resume with `liedfl train resume=run`"
+    assert capfd.readouterr().err.strip() == f"error: {line}"
+    assert json.loads((tmp_path / "run" / "status.json").read_text()) == {
+        "status": "interrupted",
+        "exit_code": 130,
+        "error": line,
+    }
