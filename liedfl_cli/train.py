@@ -325,11 +325,14 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
         f"trained {epochs} epochs in {result['train_seconds']:.1f} s "
         f"(final loss {result['history'][-1]['loss']:.3e}); checkpoint {ckpt}"
     )
+    from .data.checks import step_rotation_summary
+
     summary = {
         "run_dir": str(out),
         "dataset_path": dataset_path,
         "timings": timings,
         "final_loss": result["history"][-1]["loss"],
+        "data_step_rotation": step_rotation_summary(dataset),
     }
     from .recovery import parameter_recovery
 
