@@ -82,6 +82,7 @@ class EulerDFLNN(ImplicitModel):
 
     @classmethod
     def from_config(cls, ctx: BuildContext, **options) -> EulerDFLNN:
+        """Options of conf/model/euler_dflnn.yaml; `potential`/`damping: auto` follow the scene."""
         opt = config_options(cls, options, cls.OPTIONS)
         require_single_so3(ctx.group, "euler_dflnn")
         opt["potential"] = ctx.resolve_potential(opt.get("potential", "auto")) == "mlp"

@@ -235,7 +235,7 @@ class GLNN(ExplicitModel):
         return torch.stack(Rs, 1)
 
     def initial_velocity(self, R0: torch.Tensor, R1: torch.Tensor) -> torch.Tensor:
-        """w0 = log(R0^T R1) / h (the paper's finite-difference estimate), (..., 3)."""
+        """w0 = log(R0^T R1) / h (the paper's finite-difference estimate): R0, R1 (..., 3, 3) -> (..., 3)."""
         return so3.log(R0.transpose(-1, -2) @ R1) / self.h
 
     # ------------------------------------------------------------------ training

@@ -57,6 +57,7 @@ class NeuralODE(ExplicitModel):
 
     @classmethod
     def from_config(cls, ctx: BuildContext, **options) -> NeuralODE:
+        """Options of conf/model/neural_ode.yaml (window, MLP size, torchdiffeq method and tolerances)."""
         opt = config_options(cls, options, cls.OPTIONS)
         if opt.get("window", "trajectory") not in ("triplet", "trajectory"):
             raise ConfigError(f"model.window={opt['window']!r}: choose one of triplet, trajectory")

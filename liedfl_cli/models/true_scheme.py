@@ -44,7 +44,10 @@ def physics_model(G: ProductGroup, h: float, physics: dict, residual: str = "fas
 
 def true_model(dataset, residual: str = "fast") -> LieDFLNN | None:
     """The true-parameter scheme of a synthetic dataset (`physics_model` of its params["physics"]
-    on the dataset's group and h), or None for real recordings."""
+    on the dataset's group and h), or None for real recordings.
+
+    `dataset`: a `data.hdf5.Dataset` (read through .params, .group, .h only; not imported here,
+    since models/ may not import data/)."""
     physics = (dataset.params or {}).get("physics")
     if not physics or "J" not in physics:
         return None
