@@ -416,7 +416,10 @@ def cmu_cartwheel(cfg, progress: Callable[[float], None] | None = None) -> Datas
                 raise DatasetError(f"{path}: smoothing failed: {exc}") from None
         R, p = R[::sub], p[::sub]
         info["frames_available"] = int(R.shape[0])
-        Rs.append(R), ps.append(p), raws.append(raw), infos.append(info)
+        Rs.append(R)
+        ps.append(p)
+        raws.append(raw)
+        infos.append(info)
         sk = _skeleton(b, bodies, s["length_scale"])
         if skeleton is None:
             skeleton = sk
