@@ -486,8 +486,8 @@ def _check_split_sizes(cfg, d: dict) -> None:
 def _check_dataset_values(cfg, command: str) -> None:
     if not isinstance(cfg.get("dataset"), DictConfig):
         return
-    from .data.scenes import SCENES
     from .data.scene_common import check_config, to_dict
+    from .data.scenes import SCENES
 
     d = check_config(to_dict(_plain(cfg.dataset, "dataset")), SCENES)
     if command == "train":
