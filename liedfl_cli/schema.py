@@ -185,7 +185,7 @@ def _check_keys(node, valid, path: str, where: str = "") -> None:
         return
     for k in node:
         if k not in valid:
-            raise _unknown(path, k, valid, where)
+            raise _unknown(path, str(k), valid, where)
 
 
 def _check_dataclass_keys(node, schema, path: str) -> None:
@@ -315,7 +315,7 @@ def _check_reference_keys(node, ref, path: str, where: str) -> None:
                 child = node[k]
             except OmegaConfBaseException:
                 continue
-            _check_reference_keys(child, sub, f"{path}.{k}", where)
+            _check_reference_keys(child, sub, f"{path}.{k!s}", where)
 
 
 def _locate(dotted: str):
@@ -361,7 +361,7 @@ def _check_force(cfg) -> None:
     kinds = [o for o in _options("force") if o != "none"]
     for kind in force:
         if kind not in kinds:
-            raise ConfigError(f"unknown force 'force.{kind}'{closest(kind, kinds).replace('keys', 'forces')}")
+            raise ConfigError(f"unknown force 'force.{kind!s}'{closest(str(kind), kinds).replace('keys', 'forces')}")
         params = force[kind]
         if params is None:
             continue

@@ -225,16 +225,17 @@ def fit(
                     + f"  ({time.perf_counter() - t0:.1f} s)",
                     highlight=False,
                 )
-            stopping = stop is not None and stop.signum is not None
+            signum = stop.signum if stop is not None else None
+            stopping = signum is not None
             due = (epoch % every == 0) if every else (time.perf_counter() - last_save >= AUTO_CHECKPOINT_SECONDS)
             if save is not None and epoch < epochs and (due or stopping):
                 save(state(epoch))
                 last_save = time.perf_counter()
             if stopping and epoch < epochs:
-                name = signal.Signals(stop.signum).name  # type: ignore[arg-type]
+                assert signum is not None
                 raise TrainingInterrupted(
-                    f"{name}: training stopped after epoch {epoch}/{epochs}; checkpoint saved",
-                    128 + int(stop.signum),  # type: ignore[arg-type]
+                    f"{signal.Signals(signum).name}: training stopped after epoch {epoch}/{epochs}; checkpoint saved",
+                    128 + int(signum),
                 )
     wall = time.perf_counter() - t0
     return {
@@ -275,6 +276,7 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
     )
     write_json(out / "components.json", {"model": type(model).__name__, "components": comps, "parameters": n_params})
     config = OmegaConf.to_container(cfg, resolve=True)
+    assert isinstance(config, dict)
     dataset_path = str(Path(data_path).resolve())
 
     def save(train_state: dict, timings: dict | None = None) -> None:
