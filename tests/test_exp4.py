@@ -11,11 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
-from hydra.core.global_hydra import GlobalHydra
 from omegaconf import OmegaConf
 
 import liedfl_cli  # noqa: F401  (registers the ${scaled:...} resolvers)
+from helpers import compose_config
 
 ROOT = Path(__file__).resolve().parents[1]
 PLOTS = (
@@ -29,9 +28,7 @@ PLOTS = (
 
 
 def _compose(overrides: list[str]):
-    GlobalHydra.instance().clear()
-    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
-        return compose(config_name="train", overrides=overrides)
+    return compose_config("train", overrides)
 
 
 def test_exp4_config_matches_the_paper(tmp_path):
