@@ -70,6 +70,8 @@ def _job_context(command: str, cfg) -> tuple[bool, Path | None, Path | None]:
     hydra_dir = Path(str(hc.runtime.output_dir))
     if hc.mode == RunMode.MULTIRUN:
         return True, hydra_dir, hydra_dir
+    if command == "resume":  # the run continues in its own folder: status.json says "ok" once it finishes
+        return False, Path(str(cfg.resume)), hydra_dir  # (a failed resume leaves the run's status as it was)
     if command != "train":  # eval/rollout/report/data write into existing folders: no status file
         return False, None, hydra_dir
     try:
@@ -105,6 +107,7 @@ def _run(command: str, cfg):
 
     _one_line_warnings()  # (also in launcher worker processes, which do not run `main`)
     multirun, status_dir, hydra_dir = _job_context(command, cfg)
+    failure_dir = None if command == "resume" and not multirun else status_dir
     t0 = time.perf_counter()
     try:
         preflight(command, cfg)
@@ -114,7 +117,7 @@ def _run(command: str, cfg):
     except BaseException as e:
         known = classify(e)
         if known is None:  # a bug: keep its traceback, but record the failure first
-            _record_failure(multirun, status_dir, hydra_dir, f"internal error: {type(e).__name__}: {e}", 1, "failed")
+            _record_failure(multirun, failure_dir, hydra_dir, f"internal error: {type(e).__name__}: {e}", 1, "failed")
             if multirun and isinstance(e, Exception):
                 import traceback
 
@@ -123,7 +126,7 @@ def _run(command: str, cfg):
             raise
         message, code = known
         interrupted = isinstance(e, KeyboardInterrupt) or code in (130, 143)
-        _record_failure(multirun, status_dir, hydra_dir, message, code, "interrupted" if interrupted else "failed")
+        _record_failure(multirun, failure_dir, hydra_dir, message, code, "interrupted" if interrupted else "failed")
         if multirun and not interrupted:
             error_line(f"[job {status_dir.name}] {message}")
             return None

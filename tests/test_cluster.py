@@ -243,3 +243,40 @@ def test_launcher_configs_compose_and_name_the_plugin():
             cfg = compose("train", [f"hydra/launcher={name}"], return_hydra_config=True)
         assert cfg.hydra.launcher._target_ == f"hydra_plugins.hydra_submitit_launcher.submitit_launcher.{target}"
         assert "export OMP_NUM_THREADS=1" in list(cfg.hydra.launcher.setup)
+
+
+# ----------------------------------------------------------------------------- time limits
+def test_submitits_stop_inside_a_job_is_a_recorded_failure():
+    """submitit's handler of the warning signal raises UncompletedJobError in the job when training is
+    not running (data generation, rollout): one line, and the job returns (its status records it)."""
+    from submitit.core.utils import UncompletedJobError
+
+    from liedfl_cli.preflight import classify
+
+    message, code = classify(UncompletedJobError("Job not requeued because: timed-out too many times."))
+    assert code == 2
+    assert message == (
+        "stopped by the cluster (Job not requeued because: timed-out too many times): "
+        "`liedfl train resume=<job folder>` continues from its last checkpoint"
+    )
+
+
+@pytest.mark.slow
+def test_a_job_at_its_time_limit_saves_a_checkpoint_and_resumes(tmp_path):
+    """liedfl_local with timeout_min=1: submitit sends SIGUSR2 30 s before the limit; training stops
+    after the epoch with a checkpoint, the job records it, and `liedfl train resume=<job>` finishes
+    it (status ok: the report counts it). About a minute."""
+    proc = liedfl(
+        "train", "-m", "seed=0", "budget=smoke", "train.epochs=1000000", "hydra/launcher=liedfl_local",
+        "hydra.launcher.timeout_min=1", *FAST, cwd=tmp_path,
+    )  # fmt: skip
+    sweep_dir = _only_sweep(tmp_path)
+    st = _status(sweep_dir / "0")
+    assert proc.returncode == 1 and st["status"] == "failed" and st["exit_code"] == 140, (st, proc.stderr)
+    assert st["error"].startswith("SIGUSR2 (submitit: the job's time limit is near, or it is preempted): training")
+    assert "checkpoint saved; resume with: liedfl train resume=" in st["error"]
+    epoch = int(st["error"].split("after epoch ")[1].split("/")[0])
+    done = liedfl("train", f"resume={sweep_dir / '0'}", f"epochs={epoch + 2}", "ui.progress=false", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert _status(sweep_dir / "0")["status"] == "ok"
+    assert status.sweep_summary(sweep_dir)[:2] == (0, 1)
