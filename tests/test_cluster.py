@@ -280,3 +280,42 @@ def test_a_job_at_its_time_limit_saves_a_checkpoint_and_resumes(tmp_path):
     assert done.returncode == 0, done.stderr
     assert _status(sweep_dir / "0")["status"] == "ok"
     assert status.sweep_summary(sweep_dir)[:2] == (0, 1)
+
+
+# ----------------------------------------------------------------------------- paper reproduction
+@pytest.mark.slow
+def test_reproduce_paper_farms_its_sweeps_out_through_a_launcher(tmp_path):
+    """scripts/reproduce_paper.sh passes a launcher through to every sweep; its output feeds
+    `liedfl report` and summarize_paper.py unchanged (Exp 3 only, smoke budget: about a minute)."""
+    bin_dir = tmp_path / "bin"  # `liedfl` on PATH = this checkout (whatever is installed)
+    bin_dir.mkdir()
+    (bin_dir / "liedfl").write_text(
+        f'#!/bin/sh\nexec {sys.executable} -c "from liedfl_cli.cli import main; main()" "$@"\n'
+    )
+    (bin_dir / "liedfl").chmod(0o755)
+    root = Path(__file__).resolve().parent.parent
+    env = {k: v for k, v in os.environ.items() if k not in ("HYDRA_FULL_ERROR",)}
+    env.update(
+        PATH=f"{bin_dir}{os.pathsep}{env.get('PATH', '')}",
+        PYTHONPATH=f"{root}{os.pathsep}{env.get('PYTHONPATH', '')}",
+        OMP_NUM_THREADS="1",
+        MPLBACKEND="Agg",
+        LIEDFL_PAPER_DIR=str(tmp_path / "paper"),
+        LIEDFL_DATA_DIR=str(tmp_path / "data"),
+        LIEDFL_EXPERIMENTS="exp3_manifold",
+        LIEDFL_SWEEPS_AT_ONCE="1",
+    )
+    proc = subprocess.run(
+        ["bash", str(root / "scripts" / "reproduce_paper.sh"), "budget=smoke", "hydra/launcher=liedfl_local"],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    sweep_dir = tmp_path / "paper" / "exp3_manifold"
+    assert len(list(sweep_dir.glob(".submitit/*/*_result.pkl"))) == 3  # the jobs went through submitit
+    assert "\n3 runs.\n" in (sweep_dir / "report.md").read_text()
+    summary = (tmp_path / "paper" / "summary.md").read_text()
+    assert "### Exp 3" in summary and all(m in summary for m in ("liedflnn", "euclidean_dflnn", "neural_ode"))
