@@ -208,6 +208,9 @@ def main() -> None:
     launcher_error = None
     try:
         _hydra_main()
+    except KeyboardInterrupt:
+        _interrupted_sweep()
+        raise
     except Exception as e:
         if user_full_error == "1":
             raise
@@ -220,6 +223,21 @@ def main() -> None:
         else:
             os.environ["HYDRA_FULL_ERROR"] = user_full_error
     _sweep_exit(launcher_error)
+
+
+def _interrupted_sweep() -> None:
+    """Ctrl-C in the process that waits for the jobs of a submitit sweep: one line (the jobs run in
+    processes of their own; on a cluster they go on)."""
+    from .status import jobs_ran_elsewhere, sweep_dir
+    from .ui import fail
+
+    sd = sweep_dir()
+    if sd is not None and jobs_ran_elsewhere():
+        fail(
+            f"interrupted: stopped waiting for the jobs of {sd} (jobs that were not interrupted go on;"
+            f" `liedfl report sweep={sd}` lists them once they are done)",
+            130,
+        )
 
 
 def _launcher_failure(e: Exception) -> str | None:

@@ -319,3 +319,48 @@ def test_reproduce_paper_farms_its_sweeps_out_through_a_launcher(tmp_path):
     assert "\n3 runs.\n" in (sweep_dir / "report.md").read_text()
     summary = (tmp_path / "paper" / "summary.md").read_text()
     assert "### Exp 3" in summary and all(m in summary for m in ("liedflnn", "euclidean_dflnn", "neural_ode"))
+
+
+@pytest.mark.slow
+def test_ctrl_c_during_a_local_submitit_sweep_is_one_line_and_counts_the_job(tmp_path):
+    """Ctrl-C in a terminal: SIGINT to the launching process and to the local jobs (one process group).
+    The launching process stops waiting with one line (exit 130). submitit's local controller passes
+    the interrupt on to its job and kills it a second later, so the job records `interrupted` if it can
+    (usually without the end-of-epoch checkpoint: the second SIGINT stops it at once) and counts as failed.
+    submitit's controller's own KeyboardInterrupt traceback goes to .submitit/local_controller.err."""
+    import signal
+    import time
+
+    env = {k: v for k, v in os.environ.items() if k not in ("LIEDFL_DATA_DIR", "HYDRA_FULL_ERROR")}
+    env.update(OMP_NUM_THREADS="1", MPLBACKEND="Agg", COLUMNS="200")
+    args = ["train", "-m", "seed=0", "budget=smoke", "train.epochs=1000000", "hydra/launcher=liedfl_local", *FAST]
+    with open(tmp_path / "out.txt", "w") as out, open(tmp_path / "err.txt", "w") as err:
+        proc = subprocess.Popen(
+            [sys.executable, "-c", "from liedfl_cli.cli import main; main()", *args],
+            cwd=tmp_path,
+            env=env,
+            stdout=out,
+            stderr=err,
+            start_new_session=True,  # its own process group, as a terminal's foreground job
+            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # (SIGINT may be ignored here)
+        )
+        deadline = time.time() + 120
+        while time.time() < deadline and not list(tmp_path.glob("outputs/multirun/*/0/train_metrics.csv")):
+            time.sleep(0.2)
+        os.killpg(proc.pid, signal.SIGINT)
+        assert proc.wait(timeout=60) == 130
+    job = _only_sweep(tmp_path) / "0"
+    time.sleep(3)  # (the job is killed within about a second)
+    text = (tmp_path / "err.txt").read_text()
+    assert "Traceback" not in text
+    assert "KeyboardInterrupt" in (job.parent / ".submitit" / "local_controller.err").read_text()
+    assert [ln for ln in text.splitlines() if ln.strip()] == [
+        f"error: interrupted: stopped waiting for the jobs of {Path('outputs') / 'multirun' / job.parent.name} (jobs"
+        " that were not interrupted go on; `liedfl report sweep="
+        f"{Path('outputs') / 'multirun' / job.parent.name}` lists them once they are done)"
+    ]
+    if (job / "status.json").is_file():  # (stopped at once, or at the end of an epoch the second signal did not cut)
+        st = _status(job)
+        assert st["status"] == "interrupted" and st["exit_code"] == 130, st
+        assert st["error"] == "interrupted" or st["error"].startswith("SIGINT: training stopped after epoch"), st
+    assert status.sweep_summary(job.parent)[:2] == (1, 1)
