@@ -448,8 +448,8 @@ def _check_values(cfg, command: str) -> None:
         _int(cfg, "train.reg_points", 0)
         _float(cfg, "train.epsilon")
         if _value(cfg, "train.checkpoint_every") not in (None, "auto"):
-            _int(cfg, "train.checkpoint_every", 1, nullable=True)
-    if isinstance(cfg.get("rollout"), DictConfig):  # (`liedfl eval rollout=<file>`: a path there)
+            _int(cfg, "train.checkpoint_every", 1, what="auto or a positive integer")
+    if isinstance(cfg.get("rollout"), DictConfig):  # (`liedfl eval rollout=<dir>`: a path, or null)
         if "steps" in cfg.rollout:  # a rollout needs the two given poses and at least one predicted step
             _int(cfg, "rollout.steps", 2, nullable=True)
         if "max_trajectories" in cfg.rollout:

@@ -50,9 +50,29 @@ class StopRequest:
         self.signum: int | None = None
 
 
+def _cluster_warning_signal() -> int | None:
+    """The signal submitit sends a job shortly before its time limit or a preemption (SIGUSR2 unless
+    SUBMITIT_PREEMPT_SIGNAL says otherwise; `hydra.launcher.signal_delay_s` before the limit on SLURM);
+    None outside a submitit job."""
+    import os
+
+    if not os.environ.get("SUBMITIT_EXECUTOR"):
+        return None
+    return getattr(signal, "SIG" + os.environ.get("SUBMITIT_PREEMPT_SIGNAL", "USR2"), None)
+
+
+def stop_reason(signum: int) -> str:
+    name = signal.Signals(signum).name
+    if signum == _cluster_warning_signal():
+        return f"{name} (submitit: the job's time limit is near, or it is preempted)"
+    return name
+
+
 @contextlib.contextmanager
 def graceful_stop():
-    """SIGINT/SIGTERM -> finish the epoch, checkpoint, stop; a second signal stops at once."""
+    """SIGINT/SIGTERM -> finish the epoch, checkpoint, stop; a second signal stops at once. In a
+    submitit job (sweeps on SLURM, `hydra/launcher=liedfl_local`) also submitit's warning signal, so
+    that a job reaching its time limit saves a checkpoint it can be resumed from."""
     stop = StopRequest()
     if threading.current_thread() is not threading.main_thread():  # handlers need the main thread
         yield stop
@@ -64,7 +84,10 @@ def graceful_stop():
         stop.signum = signum
         console.print("[bold yellow]stop requested:[/] finishing the epoch and saving a checkpoint (again: stop now)")
 
-    previous = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    signums = [signal.SIGINT, signal.SIGTERM]
+    if _cluster_warning_signal() is not None:
+        signums.append(_cluster_warning_signal())
+    previous = {s: signal.signal(s, handler) for s in signums}
     try:
         yield stop
     finally:
@@ -231,10 +254,9 @@ def fit(
             if save is not None and epoch < epochs and (due or stopping):
                 save(state(epoch))
                 last_save = time.perf_counter()
-            if stopping and epoch < epochs:
-                assert signum is not None
+            if signum is not None and epoch < epochs:
                 raise TrainingInterrupted(
-                    f"{signal.Signals(signum).name}: training stopped after epoch {epoch}/{epochs}; checkpoint saved",
+                    f"{stop_reason(signum)}: training stopped after epoch {epoch}/{epochs}; checkpoint saved",
                     128 + int(signum),
                 )
     wall = time.perf_counter() - t0

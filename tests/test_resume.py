@@ -4,6 +4,7 @@ uninterrupted run for the same seed)."""
 from __future__ import annotations
 
 import csv
+import json
 import signal
 import subprocess
 import time
@@ -139,3 +140,9 @@ def test_sigint_saves_a_checkpoint_and_says_how_to_resume(tmp_path):
     assert len(errors) == 1 and "resume with: liedfl train resume=" in errors[0] and "Traceback" not in text
     ck = load_checkpoint(run / "checkpoints" / "last.pt")
     assert ck["epoch"] >= 2 and len(_losses(run)) == ck["epoch"]
+    assert json.loads((run / "status.json").read_text())["status"] == "interrupted"
+    # a resumed run that finishes says so in its status.json (a sweep's report then counts it as done)
+    resume = [*cli_command(), "train", f"resume={run}", f"epochs={ck['epoch'] + 1}", "ui.progress=false"]
+    done = subprocess.run(resume, cwd=tmp_path, env=cli_env(), capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert json.loads((run / "status.json").read_text())["status"] == "ok"
