@@ -1,0 +1,579 @@
+"""Fused hot paths of LieDFLNN: the same residual, regularity and Newton step as the reference
+methods of `models.liedflnn`, computed once and with few kernel calls.
+
+Compute once
+    `derive(model)` builds the derived parameters (J_d, m, rho, the constant Rayleigh D) once per
+    optimiser step and once per rollout; the reference path rebuilds them in every residual call.
+    `IncrementSet` stores the training triplets as what the loss needs, once at load: the summed
+    rotational increments A = W_1 + W_2^T (the kinetic residual of a rotation block is linear in
+    it), the SE(3) bodies' increments, the velocity estimates, and only the poses that a
+    configuration-dependent part (a potential network, a configuration-dependent force) reads.
+    Parts without trainable parameters (a known potential or force) are evaluated at load.
+
+Fewer kernels
+    Every rotational quantity that is linear in a rotation-like matrix (the kinetic residual
+    vee(J_d W^T - W J_d)/h, the mixed Hessian block, the velocity estimate and its Jacobian) is a
+    linear map of the 9 entries, built once from J_d (and D) by evaluating the reference formula
+    on the 9 basis matrices, then applied to the whole batch as one matrix product. For a single
+    body with constant Rayleigh damping, the Newton residual and its Jacobian are one product.
+
+Numbers: equal to the reference path to rounding (tests/test_fused.py checks <= 1e-12 relative).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch import nn
+
+from ..lie import Pose, ProductGroup, so3
+from ..lie.series import _split
+from ..mechanics import kinetic
+from ..mechanics.forces import PDControl, RayleighForce, RayleighNonlinearForce, force_jacobian_xi
+from ..mechanics.parameterizations import Inertia
+from ..mechanics.potentials import MLPPotential, left_gradient
+from ..solvers.newton import NewtonProblem
+from .base import TripletSet
+
+AFFINE_FORCES = (RayleighNonlinearForce, PDControl)
+"""Forces known to be affine in the velocity estimate: F(g, xi) = F(g, 0) + dF/dxi(g) xi."""
+
+
+# ---------------------------------------------------------------------------- small closed forms
+_EXP_TAYLOR = (
+    (1.0, -1 / 6, 1 / 120, -1 / 5040, 1 / 362880),  # sinc
+    (0.5, -1 / 24, 1 / 720, -1 / 40320, 1 / 3628800),  # cosc
+    (1 / 6, -1 / 120, 1 / 5040, -1 / 362880, 1 / 39916800),  # sinc3
+)
+
+
+@functools.lru_cache(maxsize=16)
+def _constants(dtype: torch.dtype, device: torch.device | None = None) -> dict[str, torch.Tensor]:
+    """Constant tensors of the fused paths, built once per dtype/device."""
+    eye = torch.eye(3, dtype=dtype, device=device)
+    return {
+        "eye": eye,
+        "basis": torch.eye(9, dtype=dtype, device=device).reshape(9, 3, 3),  # matrix units E_(ij)
+        "hat": so3.hat(eye).reshape(3, 9),  # w @ hat = hat(w).flatten(): entries +-1, exact
+        "taylor": torch.tensor(_EXP_TAYLOR, dtype=dtype, device=device),
+        "pair_sums": torch.tensor([[1.0, 1.0, 0.0], [1.0, 0.0, 1.0], [0.0, 1.0, 1.0]], dtype=dtype, device=device),
+    }
+
+
+def _basis(dtype, device=None) -> torch.Tensor:
+    """The 9 matrix units E_(ij), shape (9, 3, 3)."""
+    return _constants(dtype, device)["basis"]
+
+
+def _hat_map(dtype, device=None) -> torch.Tensor:
+    """(3, 9) with w @ map = hat(w).flatten() (entries +-1, so the product is exact)."""
+    return _constants(dtype, device)["hat"]
+
+
+def vee2(M: torch.Tensor) -> torch.Tensor:
+    """(..., 3, 3) -> (..., 3): vee(M - M^T) = (M21 - M12, M02 - M20, M10 - M01)."""
+    return torch.stack((M[..., 2, 1] - M[..., 1, 2], M[..., 0, 2] - M[..., 2, 0], M[..., 1, 0] - M[..., 0, 1]), -1)
+
+
+def exp_coefficients(t2: torch.Tensor) -> torch.Tensor:
+    """(sinc, cosc, sinc3) of `lie.series` as functions of t^2, stacked on a new last axis.
+
+    The same Taylor polynomials, threshold and closed forms as `series.sinc/cosc/sinc3`,
+    evaluated together (one Horner pass over the stacked coefficients)."""
+    small, s2, t = _split(t2)
+    coeffs = _constants(t2.dtype, t2.device)["taylor"]
+    x = t2[..., None]
+    taylor = coeffs[:, 4].expand(*t2.shape, 3)
+    for k in (3, 2, 1, 0):
+        taylor = taylor * x + coeffs[:, k]
+    sin_t = torch.sin(t)
+    closed = torch.stack((sin_t / t, 2.0 * torch.sin(0.5 * t) ** 2 / s2, (t - sin_t) / (s2 * t)), -1)
+    return torch.where(small[..., None], taylor, closed)
+
+
+def group_exp(G: ProductGroup, xi: torch.Tensor) -> Pose:
+    """`G.exp` with shared coefficients: R = I + sinc W + cosc W^2, p = (I + cosc W + sinc3 W^2) v."""
+    w, v = G.split(xi)
+    t2 = (w * w).sum(-1)
+    c = exp_coefficients(t2)[..., None, None, :]
+    const = _constants(w.dtype, w.device)
+    W = (w @ const["hat"]).unflatten(-1, (3, 3))
+    W2 = W @ W
+    eye = const["eye"]
+    R = eye + c[..., 0] * W + c[..., 1] * W2
+    m = G.n_se3
+    if not m:
+        return Pose(R, v)
+    V = eye + c[..., :m, :, :, 1] * W[..., :m, :, :] + c[..., :m, :, :, 2] * W2[..., :m, :, :]
+    return Pose(R, (V @ v[..., None])[..., 0])
+
+
+def group_retract(G: ProductGroup, g: Pose, xi: torch.Tensor) -> Pose:
+    """g exp(xi) (`G.retract` with `group_exp`)."""
+    return G.compose(g, group_exp(G, xi))
+
+
+def solve_small(J: torch.Tensor, r: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(J^{-1} r, singular) for (T, n, n), (T, n): closed-form inverse for n = 3, LU otherwise.
+
+    `singular` marks rows the reference solver (LU) would call singular: exactly zero determinant
+    for n = 3 (a zero pivot), LAPACK's info > 0 otherwise."""
+    if J.shape[-1] != 3:
+        sol, info = torch.linalg.solve_ex(J, r[..., None])
+        return sol[..., 0], info > 0
+    a, b, c = J[..., 0, :], J[..., 1, :], J[..., 2, :]
+    bc, ca, ab = torch.linalg.cross(b, c), torch.linalg.cross(c, a), torch.linalg.cross(a, b)
+    det = (a * bc).sum(-1)
+    x = (bc * r[..., 0:1] + ca * r[..., 1:2] + ab * r[..., 2:3]) / det[..., None]
+    return x, det == 0
+
+
+# ---------------------------------------------------------------------------- derived parameters
+@dataclass
+class Derived:
+    """Parameters of a LieDFLNN built once: J_d (B, 3, 3), mass (m,), rho (m, 3) and D, the sum
+    of the constant Rayleigh matrices (dim, dim), or None without a Rayleigh force."""
+
+    Jd: torch.Tensor
+    mass: torch.Tensor
+    rho: torch.Tensor
+    D: torch.Tensor | None
+
+
+def inertia_jd(inertia: Inertia) -> torch.Tensor:
+    """`Inertia.Jd()` with fewer kernels: J = R diag(e^a + e^b, e^a + e^c, e^b + e^c) R^T,
+    R = exp(hat(r)) (shared exp coefficients), J_d = tr(J)/2 I - J."""
+    r, abc = inertia.r, inertia.abc
+    const = _constants(r.dtype, r.device)
+    eye = const["eye"]
+    d = torch.exp(abc) @ const["pair_sums"]  # (B, 3)
+    c = exp_coefficients((r * r).sum(-1))[..., None, None, :]
+    K = (r @ const["hat"]).unflatten(-1, (3, 3))
+    Rt = eye + c[..., 0] * K + c[..., 1] * (K @ K)
+    J = (Rt * d[..., None, :]) @ Rt.transpose(-1, -2)
+    return (0.5 * d.sum(-1))[..., None, None] * eye - J
+
+
+def derive(model) -> Derived:
+    if isinstance(model.inertia, Inertia):
+        Jd = inertia_jd(model.inertia)
+        _, mass, rho = model._params() if model.G.n_se3 else (None, Jd.new_zeros(0), Jd.new_zeros(0, 3))
+    else:
+        Jd, mass, rho = model._params()
+    D = None
+    for f in model.forces:
+        if isinstance(f, RayleighForce):
+            D = f.D() if D is None else D + f.D()
+    return Derived(Jd, mass, rho, D)
+
+
+def kinetic_residual_map(Jd: torch.Tensor, h: float) -> torch.Tensor:
+    """(B, 9, 3): A.flatten() @ map = vee(J_d A - A^T J_d) / h, the rotational kinetic residual of
+    a triplet with A = W_1 + W_2^T (d2 of W_1 plus d1 of W_2, `kinetic.kinetic_d1/d2`)."""
+    E = _basis(Jd.dtype, Jd.device)[:, None]  # (9, 1, 3, 3)
+    out = so3.vee(Jd @ E - E.transpose(-1, -2) @ Jd) / h  # (9, B, 3)
+    return out.transpose(0, 1)
+
+
+def hessian_map(Jd: torch.Tensor, h: float) -> torch.Tensor:
+    """(B, 9, 9): W.flatten() @ map = H_rot(W).flatten(), H_ij = tr(hat(e_i) W hat(e_j) J_d) / h
+    (`kinetic.mixed_hessian_blocks`), i.e. h H = (<W, J_d> - tr W tr J_d) I - W^T J_d - J_d W^T
+    + tr(J_d) W^T + tr(W) J_d."""
+    E = _basis(Jd.dtype, Jd.device)[:, None]  # (9, 1, 3, 3)
+    trN = Jd.diagonal(dim1=-2, dim2=-1).sum(-1)[:, None, None]
+    trW = E.diagonal(dim1=-2, dim2=-1).sum(-1)[..., None, None]
+    inner = (E * Jd).sum((-1, -2))[..., None, None]
+    eye = torch.eye(3, dtype=Jd.dtype, device=Jd.device)
+    Et = E.transpose(-1, -2)
+    H = (inner - trW * trN) * eye - Et @ Jd - Jd @ Et + trN * Et + trW * Jd  # (9, B, 3, 3)
+    return (H / h).flatten(-2).transpose(0, 1)
+
+
+@functools.lru_cache(maxsize=8)
+def _map_contraction(dtype: torch.dtype, h: float) -> torch.Tensor:
+    """(9, 27 + 81): J_d.flatten() @ C = (kinetic_residual_map, hessian_map) flattened; both maps
+    are linear in J_d, so C is built once from the 9 basis matrices."""
+    E = _basis(dtype)
+    return torch.cat((kinetic_residual_map(E, h).flatten(-2), hessian_map(E, h).flatten(-2)), -1)
+
+
+def training_maps(Jd: torch.Tensor, h: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """(kinetic_residual_map (B, 9, 3), hessian_map (B, 9, 9)) of J_d (B, 3, 3) in one product."""
+    maps = Jd.flatten(-2) @ _map_contraction(Jd.dtype, float(h)).to(Jd.device)
+    return maps[..., :27].unflatten(-1, (9, 3)), maps[..., 27:].unflatten(-1, (9, 9))
+
+
+def _apply_map(X: torch.Tensor, M: torch.Tensor) -> torch.Tensor:
+    """X (..., B, 9) with per-body maps M (B, 9, k) -> (..., B, k)."""
+    if M.shape[0] == 1:
+        return X @ M[0]
+    return (X.unsqueeze(-2) @ M).squeeze(-2)
+
+
+def _trainable(module: nn.Module | None) -> bool:
+    return module is not None and any(p.requires_grad for p in module.parameters())
+
+
+# ---------------------------------------------------------------------------- potential gradient
+def mlp_input_gradient(net: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
+    """d sum(net(x)[..., 0]) / dx for a GELU MLP with one output, by hand (one forward pass and
+    one backward pass written as tensor operations, so autograd can differentiate it once more
+    for the parameters instead of running a double backward)."""
+    layers = list(net)
+    linears = [m for m in layers if isinstance(m, nn.Linear)]
+    zs = []
+    a = x
+    for lin in linears[:-1]:
+        z = nn.functional.linear(a, lin.weight, lin.bias)
+        zs.append(z)
+        a = nn.functional.gelu(z)
+    g = linears[-1].weight[0].expand(*x.shape[:-1], -1)
+    inv_sqrt2, inv_sqrt2pi = 1.0 / math.sqrt(2.0), 1.0 / math.sqrt(2.0 * math.pi)
+    for lin, z in zip(reversed(linears[:-1]), reversed(zs)):
+        dgelu = 0.5 * (1.0 + torch.erf(z * inv_sqrt2)) + z * torch.exp(-0.5 * z * z) * inv_sqrt2pi
+        g = (g * dgelu) @ lin.weight
+    return g
+
+
+def _is_plain_mlp(net: nn.Module) -> bool:
+    if not isinstance(net, nn.Sequential):
+        return False
+    for m in net:
+        if isinstance(m, nn.GELU):
+            if m.approximate != "none":
+                return False
+        elif not isinstance(m, nn.Linear):
+            return False
+    last = [m for m in net if isinstance(m, nn.Linear)][-1]
+    return last.out_features == 1
+
+
+def potential_covector(model, g: Pose, create_graph: bool = False) -> torch.Tensor:
+    """-h dV(g exp(eta))/d eta at 0 (`LieDFLNN.potential_covector`), shape (..., dim).
+
+    MLP potentials: the input gradient by hand; others: autograd over the matrices."""
+    G, V = model.G, model.potential
+    if isinstance(V, MLPPotential) and _is_plain_mlp(V.net):
+        lead = g.R.shape[:-3]
+        B, m = G.n_bodies, G.n_se3
+        dx = mlp_input_gradient(V.net, G.flatten(g))
+        dR = dx[..., : 9 * B].reshape(*lead, B, 3, 3)
+        dp = dx[..., 9 * B :].reshape(*lead, m, 3)
+        w = 2.0 * so3.vee(g.R.transpose(-1, -2) @ dR)
+        v = (g.R[..., :m, :, :].transpose(-1, -2) @ dp[..., None])[..., 0]
+        return -model.h * G.join(w, v)
+    return -model.h * left_gradient(V, G, g, create_graph=create_graph)
+
+
+# ---------------------------------------------------------------------------- training samples
+@dataclass
+class IncrementBatch:
+    """A batch of `IncrementSet`: the stored fields of the triplets `idx` and of the regularity
+    pairs (`reg_W`, `reg_logdetW`), or None where the loss does not need them."""
+
+    fields: dict[str, Any]
+    reg_W: torch.Tensor | None
+    reg_logdetW: torch.Tensor | None
+    forces: list[nn.Module]  # trainable forces other than Rayleigh, evaluated per batch
+    potential: bool  # the potential has trainable parameters: evaluated per batch
+
+
+class IncrementSet(TripletSet):
+    """Training triplets of a LieDFLNN stored as precomputed increments (see the module docstring).
+
+    Fields (N triplets, B bodies, m SE(3) bodies, dim the tangent dimension):
+      A (N, B, 9)             W_1 + W_2^T flattened (rotational kinetic residual)
+      W1, u1, z2 (N, m, ...)  SE(3) bodies only: W_1, W_1^T z_1, z_2
+      W2 (N, B, 9)            W_2 flattened (SE(3) residual terms and regularity pairs)
+      s (N, dim)              xi~_1 + xi~_2 (constant Rayleigh damping)
+      xi1, xi2, prev, cur     velocity estimates and poses for configuration-dependent forces
+      cur                     poses where the potential network is evaluated
+      static (N, dim)         the residual terms without trainable parameters (known parts)
+    """
+
+    def __init__(self, model, data: Pose, steps: int):
+        super().__init__(data, steps)
+        G, h = model.G, model.h
+        m = G.n_se3
+        inc1 = G.increment(self.prev, self.cur)
+        inc2 = G.increment(self.cur, self.nxt)
+        xi1 = kinetic.velocity_estimate(G, inc1, h)
+        xi2 = kinetic.velocity_estimate(G, inc2, h)
+        f: dict[str, torch.Tensor] = {"A": (inc1.R + inc2.R.transpose(-1, -2)).flatten(-2)}
+        W2 = inc2.R.flatten(-2)
+        if m:
+            f["W1"] = inc1.R[:, :m]
+            f["u1"] = (inc1.R[:, :m].transpose(-1, -2) @ inc1.p[..., None])[..., 0]
+            f["z2"] = inc2.p
+            f["W2"] = W2[:, :m]
+        self.reg_W = W2
+        self.reg_logdetW = torch.linalg.slogdet(inc2.R[:, :m]).logabsdet if m else None
+        rayleigh = [x for x in model.forces if isinstance(x, RayleighForce)]
+        others = [x for x in model.forces if not isinstance(x, RayleighForce)]
+        if rayleigh:
+            f["s"] = xi1 + xi2
+        self.dynamic_forces = [x for x in others if _trainable(x)]
+        self.potential_trainable = _trainable(model.potential)
+        if self.dynamic_forces:
+            f["xi"] = torch.stack((xi1, xi2))
+            f["prev"], f["cur"] = self.prev, self.cur
+        if self.potential_trainable:
+            f["cur"] = self.cur
+        static = torch.zeros_like(xi1)
+        with torch.no_grad():
+            for x in others:
+                if not _trainable(x):
+                    static = static + 0.5 * h * (x(self.prev, xi1) + x(self.cur, xi2))
+            if model.potential is not None and not self.potential_trainable:
+                static = static + potential_covector(model, self.cur)
+        if any(not _trainable(x) for x in others) or (model.potential is not None and not self.potential_trainable):
+            f["static"] = static
+        self.fields = f
+        del self.prev, self.cur, self.nxt  # everything needed is in `fields`
+
+    def batch(self, idx: torch.Tensor, generator: torch.Generator, reg_points: int) -> IncrementBatch:  # type: ignore[override]
+        """Triplets `idx` plus `reg_points` random pairs from `generator` (the draws of `TripletSet`)."""
+        reg_W = reg_ld = None
+        if reg_points > 0:
+            reg_idx = torch.randint(0, self.n, (int(reg_points),), generator=generator)
+            reg_W = self.reg_W.index_select(0, reg_idx)
+            reg_ld = self.reg_logdetW.index_select(0, reg_idx) if self.reg_logdetW is not None else None
+        fields = {}
+        for k, v in self.fields.items():
+            if isinstance(v, Pose):
+                fields[k] = Pose(v.R.index_select(0, idx), v.p.index_select(0, idx))
+            elif k == "xi":
+                fields[k] = v.index_select(1, idx)
+            else:
+                fields[k] = v.index_select(0, idx)
+        return IncrementBatch(fields, reg_W, reg_ld, self.dynamic_forces, self.potential_trainable)
+
+
+def training_residual(model, batch: IncrementBatch, P: Derived, kin_map: torch.Tensor) -> torch.Tensor:
+    """The forced DEL residual of the batch's triplets (`LieDFLNN.residual`), shape (N, dim);
+    kin_map = `kinetic_residual_map(P.Jd, h)`."""
+    G, h = model.G, model.h
+    m = G.n_se3
+    f = batch.fields
+    w = _apply_map(f["A"], kin_map)  # (N, B, 3)
+    if m:
+        rho = P.rho
+        W1 = f["W1"]
+        W2 = f["W2"].unflatten(-1, (3, 3))
+        W2rho = (W2 @ rho[..., None])[..., 0]
+        X2 = f["z2"] + W2rho - rho
+        a2 = f["z2"] + W2rho
+        WtX1 = f["u1"] + rho - (W1.transpose(-1, -2) @ rho[..., None])[..., 0]
+        scale = (P.mass / h)[..., None]
+        extra = scale * (torch.linalg.cross(X2, a2) + torch.linalg.cross(rho.expand_as(WtX1), WtX1))
+        w = torch.cat((w[..., :m, :] + extra, w[..., m:, :]), -2)
+        v = scale * (WtX1 - X2)
+    else:
+        v = w[..., :0, :]
+    r = G.join(w, v)
+    if P.D is not None:
+        r = r - (0.5 * h) * (f["s"] @ P.D.T)
+    if batch.forces:
+        r = r + batch_forces(model, batch.forces, f)
+    if "static" in f:
+        r = r + f["static"]
+    if batch.potential:
+        r = r + potential_covector(model, f["cur"], create_graph=True)
+    return r
+
+
+def batch_forces(model, forces: list[nn.Module], f: dict) -> torch.Tensor:
+    """(h/2)(F(g_prev, xi~_1) + F(g, xi~_2)) summed over `forces`, each evaluated once on both
+    time levels stacked."""
+    both = Pose(torch.cat((f["prev"].R, f["cur"].R)), torch.cat((f["prev"].p, f["cur"].p)))
+    xi = f["xi"].flatten(0, 1)
+    n = f["xi"].shape[1]
+    out = None
+    for x in forces:
+        F = x(both, xi)
+        out = F if out is None else out + F
+    assert out is not None
+    return 0.5 * model.h * (out[:n] + out[n:])
+
+
+def regularity_logdet(model, batch: IncrementBatch, P: Derived, hess_map: torch.Tensor) -> torch.Tensor:
+    """log|det| of each body's mixed-Hessian block at the regularity pairs, shape (P, B).
+
+    SE(3) blocks [[H + s P W P, -s P W], [s W P, -s W]] (s = m/h) have the Schur complement H, so
+    log|det| = log|det H| + 3 log s + log|det W|."""
+    assert batch.reg_W is not None
+    Hflat = _apply_map(batch.reg_W, hess_map)
+    logdet = torch.linalg.slogdet(Hflat.unflatten(-1, (3, 3))).logabsdet
+    m = model.G.n_se3
+    if m:
+        assert batch.reg_logdetW is not None
+        se = logdet[..., :m] + 3.0 * torch.log(P.mass / model.h) + batch.reg_logdetW
+        logdet = torch.cat((se, logdet[..., m:]), -1)
+    return logdet
+
+
+def residual_and_logdet(model, batch: IncrementBatch, opts) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """(residual (N, dim), regularity log|det| (P, B) or None) of a batch, with the derived
+    parameters built once (`LieDFLNN.loss` turns them into the loss)."""
+    P = derive(model)
+    kin_map, hess_map = training_maps(P.Jd, model.h)
+    use_reg = batch.reg_W is not None and opts.w_reg > 0
+    logdet = regularity_logdet(model, batch, P, hess_map) if use_reg else None
+    return training_residual(model, batch, P, kin_map), logdet
+
+
+# ---------------------------------------------------------------------------- rollout
+@dataclass
+class RolloutState:
+    """State of a fused rollout: poses g_{k-1}, g_k, the increment W_{k-1} (warm start), the
+    derived parameters and, for a single-body SO(3) model with constant forces, the linear maps."""
+
+    g_prev: Pose
+    g: Pose
+    inc: Pose
+    P: Derived
+    linear: torch.Tensor | None
+
+
+def rollout_start(model, g0: Pose, g1: Pose) -> RolloutState:
+    P = derive(model)
+    P = Derived(*(None if t is None else t.detach() for t in (P.Jd, P.mass, P.rho, P.D)))
+    return RolloutState(g0, g1, model.G.increment(g0, g1), P, _linear_map(model, P))
+
+
+def _linear_map(model, P: Derived) -> torch.Tensor | None:
+    """For SO(3)-only groups whose forces are constant Rayleigh matrices, residual_var and its
+    Jacobian are linear in the increments' entries: (9 B, dim + dim * dim) with
+    W.flatten() @ map = (residual_var, jacobian.flatten()). None otherwise."""
+    G, h = model.G, model.h
+    if G.n_se3 or any(not isinstance(f, RayleighForce) for f in model.forces):
+        return None
+    B, dim = G.n_bodies, G.dim
+    E = _basis(P.Jd.dtype, P.Jd.device)
+    rows = []
+    for b in range(B):
+        W = so3.identity((9, B), P.Jd.dtype) * 0.0
+        W[:, b] = E
+        inc = Pose(W, W.new_zeros(9, 0, 3))
+        r = kinetic.kinetic_d1(G, inc, P.Jd, P.mass, P.rho, h)
+        blocks = kinetic.mixed_hessian_blocks(G, inc, P.Jd, P.mass, P.rho, h)
+        J = W.new_zeros(9, dim, dim)
+        for s, blk in zip(G.body_slices(), blocks):
+            J[:, s, s] = blk
+        if P.D is not None:
+            xi = kinetic.velocity_estimate(G, inc, h)
+            dxi = kinetic.velocity_estimate_jacobian(G, inc, h)
+            r = r + 0.5 * h * -(xi @ P.D.T)
+            J = J + 0.5 * h * (-P.D @ dxi)
+        rows.append(torch.cat((r, J.flatten(-2)), -1))
+    return torch.cat(rows, 0)
+
+
+class FusedStep:
+    """One implicit step of a LieDFLNN: the residual, its Jacobian and a full Newton iteration
+    on the increment x = (W, z) with the part fixed by (g_{k-1}, g_k) computed once."""
+
+    def __init__(self, model, state: RolloutState):
+        G, h = model.G, model.h
+        self.model, self.G, self.h, self.P = model, G, h, state.P
+        g_prev, g, inc = state.g_prev, state.g, state.inc
+        self.g = g
+        P = state.P
+        xi_prev = kinetic.velocity_estimate(G, inc, h)
+        const = kinetic.kinetic_d2(G, inc, P.Jd, P.mass, P.rho, h)
+        B_aff = None if P.D is None else -P.D
+        self.generic: list[nn.Module] = []
+        half = None
+        for f in model.forces:
+            if isinstance(f, RayleighForce):
+                continue
+            Fp = f(g_prev, xi_prev)
+            half = Fp if half is None else half + Fp
+            if isinstance(f, AFFINE_FORCES):
+                zero = torch.zeros_like(xi_prev)
+                Bf = force_jacobian_xi(f, g, zero).detach()
+                half = half + f(g, zero)
+                B_aff = Bf if B_aff is None else B_aff + Bf
+            else:
+                self.generic.append(f)
+        if P.D is not None:
+            Fp = -(xi_prev @ P.D.T)
+            half = Fp if half is None else half + Fp
+        if half is not None:
+            const = const + 0.5 * h * half
+        if model.potential is not None:
+            const = const + potential_covector(model, g).detach()
+        self.const = const
+        self.B = B_aff
+        self.linear = state.linear
+
+    # residual and Jacobian of the unknown increment x
+    def f(self, x: Pose) -> torch.Tensor:
+        return self.f_and_jac(x, need_jac=False)[0]
+
+    def jac(self, x: Pose) -> torch.Tensor:
+        out = self.f_and_jac(x, need_jac=True)[1]
+        assert out is not None
+        return out
+
+    def f_and_jac(self, x: Pose, need_jac: bool = True) -> tuple[torch.Tensor, torch.Tensor | None]:
+        G, h, P = self.G, self.h, self.P
+        dim = G.dim
+        if self.linear is not None:
+            Wf = x.R.flatten(-3)
+            if need_jac:
+                out = Wf @ self.linear
+                return self.const + out[..., :dim], out[..., dim:].unflatten(-1, (dim, dim))
+            return self.const + Wf @ self.linear[:, :dim], None
+        r = self.const + kinetic.kinetic_d1(G, x, P.Jd, P.mass, P.rho, h)
+        xi = kinetic.velocity_estimate(G, x, h)
+        if self.B is not None:
+            r = r + 0.5 * h * (self.B @ xi[..., None])[..., 0]
+        for f in self.generic:
+            r = r + 0.5 * h * f(self.g, xi)
+        if not need_jac:
+            return r, None
+        blocks = kinetic.mixed_hessian_blocks(G, x, P.Jd, P.mass, P.rho, h)
+        if len(blocks) == 1:
+            J = blocks[0]
+        else:
+            J = x.R.new_zeros(*x.R.shape[:-3], dim, dim)
+            for s, blk in zip(G.body_slices(), blocks):
+                J[..., s, s] = blk
+        dF = self.B
+        for f in self.generic:
+            Jf = force_jacobian_xi(f, self.g, xi).detach()
+            dF = Jf if dF is None else dF + Jf
+        if dF is not None:
+            dxi = kinetic.velocity_estimate_jacobian(G, x, h)
+            J = J + 0.5 * h * (dF @ dxi)
+        return r, J
+
+    def retract(self, x: Pose, delta: torch.Tensor) -> Pose:
+        return group_retract(self.G, x, delta)
+
+    def iterate(self, x: Pose, r: torch.Tensor):
+        """One full Newton step from x: (delta, singular, candidate x', residual at x')."""
+        J = self.jac(x)
+        sol, singular = solve_small(J, r)
+        delta = -sol
+        cand = self.retract(x, delta)
+        return delta, singular, cand, self.f(cand)
+
+
+def rollout_problem(model, state: RolloutState) -> NewtonProblem:
+    step = FusedStep(model, state)
+    return NewtonProblem(step.f, step.jac, state.inc, step.retract, iterate=step.iterate)
+
+
+def rollout_advance(model, state: RolloutState, x: Pose) -> tuple[RolloutState, Pose]:
+    """Newton-Schulz-cleaned increment, next pose, next state (`LieDFLNN.implicit_advance`)."""
+    W = x.R.detach()
+    W = 0.5 * W @ (3.0 * torch.eye(3, dtype=W.dtype) - W.transpose(-1, -2) @ W)
+    inc = Pose(W, x.p.detach())
+    g_next = model.G.compose(state.g, inc)
+    return RolloutState(state.g, g_next, inc, state.P, state.linear), g_next
