@@ -102,8 +102,8 @@ def group_exp(G: ProductGroup, xi: torch.Tensor) -> Pose:
     c = exp_coefficients(t2)[..., None, None, :]
     const = _constants(w.dtype, w.device)
     W = (w @ const["hat"]).unflatten(-1, (3, 3))
-    W2 = W @ W
     eye = const["eye"]
+    W2 = w[..., :, None] * w[..., None, :] - t2[..., None, None] * eye  # hat(w)^2 = w w^T - |w|^2 I
     R = eye + c[..., 0] * W + c[..., 1] * W2
     m = G.n_se3
     if not m:
@@ -220,22 +220,22 @@ def _trainable(module: nn.Module | None) -> bool:
 
 # ---------------------------------------------------------------------------- potential gradient
 def mlp_input_gradient(net: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
-    """d sum(net(x)[..., 0]) / dx for a GELU MLP with one output, by hand (one forward pass and
-    one backward pass written as tensor operations, so autograd can differentiate it once more
-    for the parameters instead of running a double backward)."""
-    layers = list(net)
-    linears = [m for m in layers if isinstance(m, nn.Linear)]
-    zs = []
+    """d sum(net(x)[..., 0]) / dx for a GELU MLP with one output, by hand: one forward pass and
+    one backward pass written as tensor operations (autograd differentiates it once more for the
+    parameters instead of running a double backward). GELU(z) = z Phi(z), GELU'(z) = Phi(z) +
+    z phi(z) share Phi."""
+    linears = [m for m in net if isinstance(m, nn.Linear)]
+    inv_sqrt2, inv_sqrt2pi = 1.0 / math.sqrt(2.0), 1.0 / math.sqrt(2.0 * math.pi)
+    saved = []
     a = x
     for lin in linears[:-1]:
         z = nn.functional.linear(a, lin.weight, lin.bias)
-        zs.append(z)
-        a = nn.functional.gelu(z)
+        Phi = 0.5 + 0.5 * torch.erf(z * inv_sqrt2)
+        saved.append((z, Phi))
+        a = z * Phi
     g = linears[-1].weight[0].expand(*x.shape[:-1], -1)
-    inv_sqrt2, inv_sqrt2pi = 1.0 / math.sqrt(2.0), 1.0 / math.sqrt(2.0 * math.pi)
-    for lin, z in zip(reversed(linears[:-1]), reversed(zs)):
-        dgelu = 0.5 * (1.0 + torch.erf(z * inv_sqrt2)) + z * torch.exp(-0.5 * z * z) * inv_sqrt2pi
-        g = (g * dgelu) @ lin.weight
+    for lin, (z, Phi) in zip(reversed(linears[:-1]), reversed(saved)):
+        g = (g * (Phi + z * torch.exp(-0.5 * z * z) * inv_sqrt2pi)) @ lin.weight
     return g
 
 
@@ -428,138 +428,275 @@ def residual_and_logdet(model, batch: IncrementBatch, opts) -> tuple[torch.Tenso
 
 # ---------------------------------------------------------------------------- rollout
 @dataclass
+class RolloutMaps:
+    """What a rollout builds once from the model's parameters (all detached).
+
+    P: derived parameters. d1, d2, hess (B, 9, k): the rotational kinetic d1 / d2 residuals and
+    mixed-Hessian blocks as linear maps of W.flatten(). rho_map (m, 9, 3): W.flatten() @ map =
+    W rho. se3_block (m, 9, 36): the SE(3) bodies' 6x6 kinetic blocks. linear: for SO(3)-only
+    groups whose forces are constant Rayleigh matrices, (lin_f, lin_J, lin_const) with
+    W.flatten() @ lin_f = residual_var, @ lin_J = its Jacobian, and W_prev.flatten() @ lin_const
+    = d2 + (h/2) F(g_prev, xi~_prev); None otherwise. kin_index / dxi_index: flat positions of
+    the block-diagonal entries in a (dim, dim) matrix (several bodies)."""
+
+    P: Derived
+    d1: torch.Tensor
+    d2: torch.Tensor
+    hess: torch.Tensor
+    rho_map: torch.Tensor | None
+    se3_block: torch.Tensor | None
+    linear: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None
+    block_index: torch.Tensor | None
+
+
+@dataclass
 class RolloutState:
-    """State of a fused rollout: poses g_{k-1}, g_k, the increment W_{k-1} (warm start), the
-    derived parameters and, for a single-body SO(3) model with constant forces, the linear maps."""
+    """State of a fused rollout: poses g_{k-1}, g_k, the increment W_{k-1} (warm start) and the
+    maps built once per rollout."""
 
     g_prev: Pose
     g: Pose
     inc: Pose
-    P: Derived
-    linear: torch.Tensor | None
+    maps: RolloutMaps
 
 
-def rollout_start(model, g0: Pose, g1: Pose) -> RolloutState:
+def _d2_map(Jd: torch.Tensor, h: float) -> torch.Tensor:
+    """(B, 9, 3): W.flatten() @ map = vee(J_d W - W^T J_d) / h (`kinetic.kinetic_d2`, rotation)."""
+    E = _basis(Jd.dtype, Jd.device)[:, None]
+    return (so3.vee(Jd @ E - E.transpose(-1, -2) @ Jd) / h).transpose(0, 1)
+
+
+def _d1_map(Jd: torch.Tensor, h: float) -> torch.Tensor:
+    """(B, 9, 3): W.flatten() @ map = vee(J_d W^T - W J_d) / h (`kinetic.kinetic_d1`, rotation)."""
+    E = _basis(Jd.dtype, Jd.device)[:, None]
+    return (so3.vee(Jd @ E.transpose(-1, -2) - E @ Jd) / h).transpose(0, 1)
+
+
+def _block_index(G: ProductGroup) -> torch.Tensor:
+    """Flat positions in a (dim, dim) matrix of the block-diagonal entries, body by body
+    (6x6 for SE(3) bodies, 3x3 for SO(3) bodies, row-major within a block)."""
+    out = []
+    for s in G.body_slices():
+        rows = torch.arange(s.start, s.stop)
+        out.append((rows[:, None] * G.dim + rows[None, :]).flatten())
+    return torch.cat(out)
+
+
+def rollout_maps(model) -> RolloutMaps:
+    G, h = model.G, model.h
     P = derive(model)
     P = Derived(*(None if t is None else t.detach() for t in (P.Jd, P.mass, P.rho, P.D)))
-    return RolloutState(g0, g1, model.G.increment(g0, g1), P, _linear_map(model, P))
+    m = G.n_se3
+    d1, d2, hess = _d1_map(P.Jd, h), _d2_map(P.Jd, h), hessian_map(P.Jd, h)
+    rho_map = se3_block = None
+    if m:
+        E = _basis(P.Jd.dtype, P.Jd.device)
+        rho_map = (E[None] @ P.rho[:, None, :, None])[..., 0]  # (m, 9, 3)
+        se3_block = torch.stack(
+            [
+                kinetic.mixed_hessian_blocks(
+                    ProductGroup(1, 0),
+                    Pose(E[:, None], E.new_zeros(9, 1, 3)),
+                    P.Jd[i : i + 1],
+                    P.mass[i : i + 1],
+                    P.rho[i : i + 1],
+                    h,
+                )[0].flatten(-2)
+                for i in range(m)
+            ]
+        )
+    linear = None
+    if not m and all(isinstance(f, RayleighForce) for f in model.forces):
+        linear = _linear_maps(model, P)
+    block_index = _block_index(G) if G.n_bodies > 1 else None
+    return RolloutMaps(P, d1, d2, hess, rho_map, se3_block, linear, block_index)
 
 
-def _linear_map(model, P: Derived) -> torch.Tensor | None:
-    """For SO(3)-only groups whose forces are constant Rayleigh matrices, residual_var and its
-    Jacobian are linear in the increments' entries: (9 B, dim + dim * dim) with
-    W.flatten() @ map = (residual_var, jacobian.flatten()). None otherwise."""
+def _linear_maps(model, P: Derived) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(lin_f (9B, dim), lin_J (9B, dim * dim), lin_const (9B, dim)) of an SO(3)-only model with
+    constant forces, built by evaluating the reference formulas on the basis increments."""
     G, h = model.G, model.h
-    if G.n_se3 or any(not isinstance(f, RayleighForce) for f in model.forces):
-        return None
     B, dim = G.n_bodies, G.dim
     E = _basis(P.Jd.dtype, P.Jd.device)
-    rows = []
+    fs, Js, cs = [], [], []
     for b in range(B):
-        W = so3.identity((9, B), P.Jd.dtype) * 0.0
+        W = E.new_zeros(9, B, 3, 3)
         W[:, b] = E
         inc = Pose(W, W.new_zeros(9, 0, 3))
         r = kinetic.kinetic_d1(G, inc, P.Jd, P.mass, P.rho, h)
-        blocks = kinetic.mixed_hessian_blocks(G, inc, P.Jd, P.mass, P.rho, h)
+        c = kinetic.kinetic_d2(G, inc, P.Jd, P.mass, P.rho, h)
         J = W.new_zeros(9, dim, dim)
-        for s, blk in zip(G.body_slices(), blocks):
-            J[:, s, s] = blk
+        for sl, blk in zip(G.body_slices(), kinetic.mixed_hessian_blocks(G, inc, P.Jd, P.mass, P.rho, h)):
+            J[:, sl, sl] = blk
         if P.D is not None:
-            xi = kinetic.velocity_estimate(G, inc, h)
-            dxi = kinetic.velocity_estimate_jacobian(G, inc, h)
-            r = r + 0.5 * h * -(xi @ P.D.T)
-            J = J + 0.5 * h * (-P.D @ dxi)
-        rows.append(torch.cat((r, J.flatten(-2)), -1))
-    return torch.cat(rows, 0)
+            F = -(kinetic.velocity_estimate(G, inc, h) @ P.D.T)
+            r = r + 0.5 * h * F
+            c = c + 0.5 * h * F
+            J = J + 0.5 * h * (-P.D @ kinetic.velocity_estimate_jacobian(G, inc, h))
+        fs.append(r)
+        Js.append(J.flatten(-2))
+        cs.append(c)
+    return torch.cat(fs).contiguous(), torch.cat(Js).contiguous(), torch.cat(cs).contiguous()
+
+
+def rollout_start(model, g0: Pose, g1: Pose) -> RolloutState:
+    return RolloutState(g0, g1, model.G.increment(g0, g1), rollout_maps(model))
+
+
+def _kinetic_se3_terms(W: torch.Tensor, z: torch.Tensor, maps: RolloutMaps, h: float):
+    """SE(3) bodies' kinetic pieces at increments W (T, m, 3, 3), z (T, m, 3): (X, W rho)."""
+    assert maps.rho_map is not None
+    Wrho = _apply_map(W.flatten(-2), maps.rho_map)
+    return z + Wrho - maps.P.rho, Wrho
+
+
+def kinetic_d1(G: ProductGroup, x: Pose, maps: RolloutMaps, h: float) -> torch.Tensor:
+    """`kinetic.kinetic_d1` with the rotational part from its linear map."""
+    w = _apply_map(x.R.flatten(-2), maps.d1)
+    m = G.n_se3
+    if not m:
+        return G.join(w, w[..., :0, :])
+    X, Wrho = _kinetic_se3_terms(x.R[..., :m, :, :], x.p, maps, h)
+    scale = (maps.P.mass / h)[..., None]
+    w = torch.cat((w[..., :m, :] + scale * torch.linalg.cross(X, x.p + Wrho), w[..., m:, :]), -2)
+    return G.join(w, -scale * X)
+
+
+def kinetic_d2(G: ProductGroup, x: Pose, maps: RolloutMaps, h: float) -> torch.Tensor:
+    """`kinetic.kinetic_d2` with the rotational part from its linear map."""
+    w = _apply_map(x.R.flatten(-2), maps.d2)
+    m = G.n_se3
+    if not m:
+        return G.join(w, w[..., :0, :])
+    Wm = x.R[..., :m, :, :]
+    X, _ = _kinetic_se3_terms(Wm, x.p, maps, h)
+    WtX = (Wm.transpose(-1, -2) @ X[..., None])[..., 0]
+    scale = (maps.P.mass / h)[..., None]
+    rho = maps.P.rho.expand_as(WtX)
+    w = torch.cat((w[..., :m, :] + scale * torch.linalg.cross(rho, WtX), w[..., m:, :]), -2)
+    return G.join(w, scale * WtX)
+
+
+def kinetic_blocks(G: ProductGroup, x: Pose, maps: RolloutMaps) -> torch.Tensor:
+    """Block-diagonal entries of the kinetic mixed Hessian, body by body: (T, 36 m + 9 n)."""
+    m = G.n_se3
+    Wf = x.R.flatten(-2)
+    parts = []
+    if m:
+        assert maps.se3_block is not None
+        parts.append(_apply_map(Wf[..., :m, :], maps.se3_block).flatten(-2))
+    if G.n_so3:
+        parts.append(_apply_map(Wf[..., m:, :], maps.hess[m:]).flatten(-2))
+    return parts[0] if len(parts) == 1 else torch.cat(parts, -1)
+
+
+def velocity_jacobian_blocks(G: ProductGroup, x: Pose, h: float) -> torch.Tensor:
+    """Block-diagonal entries of `kinetic.velocity_estimate_jacobian`, body by body: (T, 36 m + 9 n)."""
+    W, z = x.R, x.p
+    eye = _constants(W.dtype, W.device)["eye"]
+    trW = W.diagonal(dim1=-2, dim2=-1).sum(-1)[..., None, None]
+    dw = (trW * eye - W.transpose(-1, -2)) / (2 * h)  # (T, B, 3, 3)
+    m = G.n_se3
+    if not m:
+        return dw.flatten(-3)
+    Wm, dwm = W[..., :m, :, :], dw[..., :m, :, :]
+    w_t = so3.vee(Wm) / h
+    dvv = (eye - 0.5 * h * so3.hat(w_t)) @ Wm / h
+    dvw = 0.5 * so3.hat(z) @ dwm
+    top = torch.cat((dwm, torch.zeros_like(dwm)), -1)
+    se = torch.cat((top, torch.cat((dvw, dvv), -1)), -2).flatten(-3)
+    return se if not G.n_so3 else torch.cat((se, dw[..., m:, :, :].flatten(-3)), -1)
+
+
+def _block_diagonal(vals: torch.Tensor, index: torch.Tensor | None, dim: int) -> torch.Tensor:
+    """(T, nnz) block-diagonal entries -> (T, dim, dim) (one body: the block itself)."""
+    if index is None:
+        return vals.unflatten(-1, (dim, dim))
+    out = vals.new_zeros(*vals.shape[:-1], dim * dim)
+    out.index_copy_(-1, index, vals)
+    return out.unflatten(-1, (dim, dim))
 
 
 class FusedStep:
-    """One implicit step of a LieDFLNN: the residual, its Jacobian and a full Newton iteration
-    on the increment x = (W, z) with the part fixed by (g_{k-1}, g_k) computed once."""
+    """One implicit step of a LieDFLNN: the residual, its Jacobian and a full Newton iteration on
+    the increment x = (W, z), with the part fixed by (g_{k-1}, g_k) computed once: the kinetic
+    d2 term, the forces at (g_{k-1}, xi~_{k-1}), the potential's covector at g_k and, for forces
+    affine in xi~ (Rayleigh, configuration-dependent Rayleigh, PD control), their value at
+    xi~ = 0 and their Jacobian at g_k."""
 
     def __init__(self, model, state: RolloutState):
         G, h = model.G, model.h
-        self.model, self.G, self.h, self.P = model, G, h, state.P
+        self.G, self.h, self.maps, self.g = G, h, state.maps, state.g
+        maps, P = state.maps, state.maps.P
         g_prev, g, inc = state.g_prev, state.g, state.inc
-        self.g = g
-        P = state.P
-        xi_prev = kinetic.velocity_estimate(G, inc, h)
-        const = kinetic.kinetic_d2(G, inc, P.Jd, P.mass, P.rho, h)
-        B_aff = None if P.D is None else -P.D
         self.generic: list[nn.Module] = []
-        half = None
-        for f in model.forces:
-            if isinstance(f, RayleighForce):
-                continue
-            Fp = f(g_prev, xi_prev)
-            half = Fp if half is None else half + Fp
-            if isinstance(f, AFFINE_FORCES):
-                zero = torch.zeros_like(xi_prev)
-                Bf = force_jacobian_xi(f, g, zero).detach()
-                half = half + f(g, zero)
-                B_aff = Bf if B_aff is None else B_aff + Bf
-            else:
-                self.generic.append(f)
-        if P.D is not None:
-            Fp = -(xi_prev @ P.D.T)
-            half = Fp if half is None else half + Fp
-        if half is not None:
-            const = const + 0.5 * h * half
+        self.B = None
+        if maps.linear is not None:
+            const = inc.R.flatten(-3) @ maps.linear[2]
+        else:
+            xi_prev = kinetic.velocity_estimate(G, inc, h)
+            const = kinetic_d2(G, inc, maps, h)
+            B_aff = None if P.D is None else -P.D
+            half = None if P.D is None else -(xi_prev @ P.D.T)
+            for f in model.forces:
+                if isinstance(f, RayleighForce):
+                    continue
+                Fp = f(g_prev, xi_prev)
+                half = Fp if half is None else half + Fp
+                if isinstance(f, AFFINE_FORCES):
+                    zero = torch.zeros_like(xi_prev)
+                    Bf = force_jacobian_xi(f, g, zero).detach()
+                    half = half + f(g, zero)
+                    B_aff = Bf if B_aff is None else B_aff + Bf
+                else:
+                    self.generic.append(f)
+            if half is not None:
+                const = const + 0.5 * h * half
+            self.B = B_aff
         if model.potential is not None:
             const = const + potential_covector(model, g).detach()
         self.const = const
-        self.B = B_aff
-        self.linear = state.linear
 
-    # residual and Jacobian of the unknown increment x
     def f(self, x: Pose) -> torch.Tensor:
-        return self.f_and_jac(x, need_jac=False)[0]
+        """The residual at the increment x, (T, dim)."""
+        G, h, maps = self.G, self.h, self.maps
+        if maps.linear is not None:
+            return self.const + x.R.flatten(-3) @ maps.linear[0]
+        r = self.const + kinetic_d1(G, x, maps, h)
+        if self.B is not None or self.generic:
+            xi = kinetic.velocity_estimate(G, x, h)
+            if self.B is not None:
+                r = r + 0.5 * h * (
+                    xi @ self.B.transpose(-1, -2) if self.B.dim() == 2 else (self.B @ xi[..., None])[..., 0]
+                )
+            for f in self.generic:
+                r = r + 0.5 * h * f(self.g, xi)
+        return r
 
     def jac(self, x: Pose) -> torch.Tensor:
-        out = self.f_and_jac(x, need_jac=True)[1]
-        assert out is not None
-        return out
-
-    def f_and_jac(self, x: Pose, need_jac: bool = True) -> tuple[torch.Tensor, torch.Tensor | None]:
-        G, h, P = self.G, self.h, self.P
+        """d f(x exp(delta)) / d delta at 0, (T, dim, dim)."""
+        G, h, maps = self.G, self.h, self.maps
         dim = G.dim
-        if self.linear is not None:
-            Wf = x.R.flatten(-3)
-            if need_jac:
-                out = Wf @ self.linear
-                return self.const + out[..., :dim], out[..., dim:].unflatten(-1, (dim, dim))
-            return self.const + Wf @ self.linear[:, :dim], None
-        r = self.const + kinetic.kinetic_d1(G, x, P.Jd, P.mass, P.rho, h)
-        xi = kinetic.velocity_estimate(G, x, h)
-        if self.B is not None:
-            r = r + 0.5 * h * (self.B @ xi[..., None])[..., 0]
-        for f in self.generic:
-            r = r + 0.5 * h * f(self.g, xi)
-        if not need_jac:
-            return r, None
-        blocks = kinetic.mixed_hessian_blocks(G, x, P.Jd, P.mass, P.rho, h)
-        if len(blocks) == 1:
-            J = blocks[0]
-        else:
-            J = x.R.new_zeros(*x.R.shape[:-3], dim, dim)
-            for s, blk in zip(G.body_slices(), blocks):
-                J[..., s, s] = blk
+        if maps.linear is not None:
+            return (x.R.flatten(-3) @ maps.linear[1]).unflatten(-1, (dim, dim))
+        J = _block_diagonal(kinetic_blocks(G, x, maps), maps.block_index, dim)
         dF = self.B
-        for f in self.generic:
-            Jf = force_jacobian_xi(f, self.g, xi).detach()
-            dF = Jf if dF is None else dF + Jf
+        if self.generic:
+            xi = kinetic.velocity_estimate(G, x, h)
+            for f in self.generic:
+                Jf = force_jacobian_xi(f, self.g, xi).detach()
+                dF = Jf if dF is None else dF + Jf
         if dF is not None:
-            dxi = kinetic.velocity_estimate_jacobian(G, x, h)
+            dxi = _block_diagonal(velocity_jacobian_blocks(G, x, h), maps.block_index, dim)
             J = J + 0.5 * h * (dF @ dxi)
-        return r, J
+        return J
 
     def retract(self, x: Pose, delta: torch.Tensor) -> Pose:
         return group_retract(self.G, x, delta)
 
     def iterate(self, x: Pose, r: torch.Tensor):
         """One full Newton step from x: (delta, singular, candidate x', residual at x')."""
-        J = self.jac(x)
-        sol, singular = solve_small(J, r)
+        sol, singular = solve_small(self.jac(x), r)
         delta = -sol
         cand = self.retract(x, delta)
         return delta, singular, cand, self.f(cand)
@@ -573,7 +710,8 @@ def rollout_problem(model, state: RolloutState) -> NewtonProblem:
 def rollout_advance(model, state: RolloutState, x: Pose) -> tuple[RolloutState, Pose]:
     """Newton-Schulz-cleaned increment, next pose, next state (`LieDFLNN.implicit_advance`)."""
     W = x.R.detach()
-    W = 0.5 * W @ (3.0 * torch.eye(3, dtype=W.dtype) - W.transpose(-1, -2) @ W)
+    eye = _constants(W.dtype, W.device)["eye"]
+    W = 0.5 * W @ (3.0 * eye - W.transpose(-1, -2) @ W)
     inc = Pose(W, x.p.detach())
     g_next = model.G.compose(state.g, inc)
-    return RolloutState(state.g, g_next, inc, state.P, state.linear), g_next
+    return RolloutState(state.g, g_next, inc, state.maps), g_next
