@@ -92,7 +92,7 @@ def solver_options(cfg_solver) -> SolverOptions:
 def configure_runtime(cfg: DictConfig):
     """Apply `cfg.runtime` (threads, fused paths, compilation) to this process; a job of a joblib
     sweep runs on one thread (the jobs share the cores)."""
-    from . import runtime
+    from .solvers import runtime
 
     parallel = False
     try:

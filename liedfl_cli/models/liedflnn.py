@@ -22,7 +22,6 @@ import torch
 from torch import nn
 from torch.func import grad, jacfwd, jacrev, vmap
 
-from .. import runtime
 from ..errors import ConfigError
 from ..lie import Pose, ProductGroup
 from ..mechanics import kinetic
@@ -30,6 +29,7 @@ from ..mechanics.forces import build_forces, force_jacobian_xi
 from ..mechanics.parameterizations import Inertia, PositiveVector
 from ..mechanics.potentials import MLPPotential
 from ..mechanics.scene_physics import body_parameters, true_potential
+from ..solvers import runtime
 from ..solvers.newton import NewtonProblem, jacobian
 from . import fused
 from .base import BuildContext, ImplicitModel, LossOptions, TripletBatch, config_options, initial_scale

@@ -15,8 +15,8 @@ from typing import Any
 
 import torch
 
-from .. import runtime
 from ..lie import Pose
+from . import runtime
 from .newton import NewtonResult, solve, solve_reference
 from .options import SolverOptions
 

@@ -1,4 +1,5 @@
-"""Process-wide execution settings (`runtime` config section): threads, fused paths, compilation.
+"""Process-wide execution settings of the numerical engine (`runtime` config section): threads,
+fused paths, compilation.
 
     runtime.threads   auto | N   torch intra-op threads (auto: 1, measured fastest here; 1 per job
                                  under the joblib launcher whatever N says)
@@ -19,13 +20,14 @@ import contextlib
 import functools
 import os
 import shutil
+import sys
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, fields, replace
 from typing import Any
 
 import torch
 
-from .errors import ConfigError
+from ..errors import ConfigError
 
 COMPILE_CHOICES = ("auto", "true", "false")
 DEFAULT_THREADS = 1
@@ -122,9 +124,7 @@ _said_no_compiler = False
 def _say_once(message: str) -> None:
     global _said_no_compiler
     if not _said_no_compiler:
-        from .ui import console
-
-        console.print(message, highlight=False)
+        print(f"warning: {message}", file=sys.stderr, flush=True)
         _said_no_compiler = True
 
 
