@@ -1,10 +1,25 @@
-"""Checkpoints: state dict + resolved config + versions, written atomically, loaded with checks."""
+"""Checkpoints: state dict + resolved config + versions, written atomically, loaded with checks.
+
+Checkpoints are loaded with `torch.load(..., weights_only=True)`: the safe unpickler accepts tensors
+and plain Python containers (dict, list, tuple, str, int, float, bool, None) and refuses anything
+else, so a crafted `last.pt` cannot run code. `save_checkpoint` therefore stores plain types only:
+it converts what has an obvious plain form (str subclasses such as `torch.__version__`, numpy arrays
+and scalars, paths) and refuses the rest with a `CheckpointError` naming the field, and it re-reads
+the written file with the safe loader before renaming it into place.
+
+Resume payloads (optimizer / scheduler `state_dict()`s, `capture_rng_state()`, an epoch number)
+are plain already and round-trip unchanged.
+"""
 
 from __future__ import annotations
 
 import platform
-from pathlib import Path
+import random
+from collections import OrderedDict
+from pathlib import Path, PurePath
+from typing import Any
 
+import numpy as np
 import torch
 
 from . import __version__
@@ -14,25 +29,123 @@ from .io_utils import atomic_path
 REQUIRED = ("state_dict", "config", "versions")
 
 
+# ----------------------------------------------------------------------------- plain types
+def to_plain(x: Any, where: str = "checkpoint") -> Any:
+    """`x` converted to types the weights_only unpickler accepts; CheckpointError naming `where` otherwise.
+
+    Tensors are detached (and moved to the CPU); numpy arrays become tensors; numpy scalars,
+    str / int / float subclasses (e.g. `torch.__version__`, a TorchVersion) and paths become the
+    plain builtin; dicts (keys str/int/float/bool/None), lists and tuples are converted element-wise.
+    """
+    if x is None or type(x) in (bool, int, float, str):
+        return x
+    if isinstance(x, torch.Tensor):
+        return x.detach().cpu()
+    if isinstance(x, np.ndarray):
+        if x.dtype == object or not (np.issubdtype(x.dtype, np.number) or x.dtype == np.bool_):
+            raise CheckpointError(f"cannot store field '{where}': numpy array of dtype {x.dtype}")
+        return torch.from_numpy(np.ascontiguousarray(x).copy())
+    if isinstance(x, np.generic):
+        return to_plain(x.item(), where)
+    if isinstance(x, int):  # bool subclasses are not possible; IntEnum and friends are
+        return int(x)
+    if isinstance(x, float):
+        return float(x)
+    if isinstance(x, str):
+        return str.__str__(x)
+    if isinstance(x, PurePath):
+        return str(x)
+    if isinstance(x, (dict, OrderedDict)):
+        out = {}
+        for k, v in x.items():
+            key = to_plain(k, f"{where}.<key>")
+            if not (key is None or type(key) in (bool, int, float, str)):
+                raise CheckpointError(f"cannot store field '{where}': key {k!r} of type {type(k).__name__}")
+            out[key] = to_plain(v, f"{where}.{k}")
+        return out
+    if isinstance(x, (list, tuple)):
+        items = [to_plain(v, f"{where}[{i}]") for i, v in enumerate(x)]
+        return items if isinstance(x, list) else tuple(items)
+    try:  # omegaconf containers (a config passed without to_container)
+        from omegaconf import DictConfig, ListConfig, OmegaConf
+
+        if isinstance(x, (DictConfig, ListConfig)):
+            return to_plain(OmegaConf.to_container(x, resolve=True), where)
+    except ImportError:  # pragma: no cover
+        pass
+    raise CheckpointError(
+        f"cannot store field '{where}' of type {type(x).__module__}.{type(x).__qualname__} in a checkpoint "
+        "(only tensors, numbers, strings, None, lists, tuples and dicts)"
+    )
+
+
+def _safe_load(path, what: str = "checkpoint"):
+    """torch.load with weights_only=True; TorchVersion (a str subclass) is allowed so that checkpoints
+    written before versions were stored as plain strings stay readable."""
+    kwargs = {"map_location": "cpu", "weights_only": True}
+    safe_globals = getattr(torch.serialization, "safe_globals", None)
+    if safe_globals is not None:
+        from torch.torch_version import TorchVersion
+
+        with safe_globals([TorchVersion]):
+            return torch.load(path, **kwargs)
+    return torch.load(path, **kwargs)  # pragma: no cover (torch < 2.5)
+
+
+def _refusal(e: Exception) -> str:
+    """The informative line of torch's (multi-line) weights_only refusal."""
+    lines = [ln.strip() for ln in str(e).splitlines() if ln.strip()]
+    for key in ("GLOBAL", "Unsupported", "unsupported", "error"):
+        for ln in lines:
+            if key in ln and "Weights only load failed" not in ln:
+                return ln.rstrip(".")
+    return lines[-1] if lines else type(e).__name__
+
+
+# ----------------------------------------------------------------------------- save / load
 def save_checkpoint(path, model, config: dict, extra: dict | None = None) -> None:
+    """Write `{state_dict, config, versions, **extra}` atomically; every value must be plain (see
+    `to_plain`). Extra keys used for resume: `optimizer`, `scheduler` (their `state_dict()`),
+    `rng` (`capture_rng_state()`), `epoch` (int)."""
+    extra = dict(extra or {})
+    clash = sorted(set(extra) & set(REQUIRED))
+    if clash:
+        raise CheckpointError(f"{path}: extra field(s) {clash} would overwrite the checkpoint's own fields")
     payload = {
-        "state_dict": model.state_dict(),
-        "config": config,
-        "versions": {"liedfl": __version__, "torch": torch.__version__, "python": platform.python_version()},
-        **(extra or {}),
+        "state_dict": to_plain(model.state_dict(), "state_dict"),
+        "config": to_plain(config, "config"),
+        "versions": {"liedfl": __version__, "torch": str(torch.__version__), "python": platform.python_version()},
     }
+    for k, v in extra.items():
+        payload[str(k)] = to_plain(v, str(k))
     with atomic_path(path) as tmp:
         torch.save(payload, tmp)
+        try:  # what is written must load with the safe loader
+            _safe_load(tmp)
+        except Exception as e:
+            raise CheckpointError(
+                f"{path}: the checkpoint would not load with weights_only=True ({_refusal(e)})"
+            ) from None
 
 
 def load_checkpoint(path) -> dict:
+    """Load a checkpoint with the safe unpickler (weights_only=True); CheckpointError on any problem."""
+    import pickle
+
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"{path}: checkpoint not found")
     try:
-        payload = torch.load(path, map_location="cpu", weights_only=False)
+        payload = _safe_load(path)
+    except pickle.UnpicklingError as e:
+        if "GLOBAL" in str(e):  # a reference to a class or function: what runs code on unpickling
+            raise CheckpointError(
+                f"{path}: refused: the file holds Python objects other than tensors and plain data "
+                f"({_refusal(e)}); only checkpoints written by liedfl are loaded"
+            ) from None
+        raise CheckpointError(f"{path}: not a readable checkpoint (UnpicklingError: {_refusal(e)})") from None
     except Exception as e:
-        raise CheckpointError(f"{path}: not a readable checkpoint ({type(e).__name__}: {e})") from None
+        raise CheckpointError(f"{path}: not a readable checkpoint ({type(e).__name__}: {_refusal(e)})") from None
     if not isinstance(payload, dict):
         raise CheckpointError(f"{path}: checkpoint is not a dict")
     for k in REQUIRED:
@@ -56,9 +169,70 @@ def load_state(path, model, payload: dict) -> None:
             raise CheckpointError(
                 f"{path}: field 'state_dict.{k}' has shape {tuple(v.shape)}, model expects {tuple(own[k].shape)}"
             )
-        if not torch.isfinite(v).all():
+        if v.is_floating_point() and not torch.isfinite(v).all():
             raise CheckpointError(f"{path}: field 'state_dict.{k}' has non-finite values")
     for k in own:
         if k not in sd:
             raise CheckpointError(f"{path}: field 'state_dict' lacks key '{k}'")
     model.load_state_dict(sd)
+
+
+# ----------------------------------------------------------------------------- RNG state
+def capture_rng_state(generators: dict[str, torch.Generator] | None = None) -> dict:
+    """The global RNG states of torch (CPU, and CUDA when available), numpy and Python's `random`,
+    plus the states of named `torch.Generator`s, as weights_only-safe types (tensors, ints, floats).
+    `restore_rng_state` puts them back."""
+    np_state = np.random.get_state(legacy=True)  # noqa: NPY002 (the global legacy state is what is saved)
+    py_version, py_state, py_gauss = random.getstate()
+    state = {
+        "torch": torch.get_rng_state(),
+        "numpy": {
+            "bit_generator": str(np_state[0]),
+            "key": torch.from_numpy(np.asarray(np_state[1], dtype=np.int64)),
+            "pos": int(np_state[2]),
+            "has_gauss": int(np_state[3]),
+            "cached_gaussian": float(np_state[4]),
+        },
+        "python": {
+            "version": int(py_version),
+            "state": torch.tensor(py_state, dtype=torch.int64),
+            "gauss_next": None if py_gauss is None else float(py_gauss),
+        },
+        "generators": {k: g.get_state() for k, g in (generators or {}).items()},
+    }
+    if torch.cuda.is_available():  # pragma: no cover (no GPU in CI)
+        state["cuda"] = list(torch.cuda.get_rng_state_all())
+    return state
+
+
+def restore_rng_state(state: dict, generators: dict[str, torch.Generator] | None = None) -> None:
+    """Inverse of `capture_rng_state` (CheckpointError on a malformed state)."""
+    try:
+        torch.set_rng_state(state["torch"])
+        n = state["numpy"]
+        key = n["key"].numpy().astype(np.uint32)
+        legacy = (n["bit_generator"], key, int(n["pos"]), int(n["has_gauss"]), float(n["cached_gaussian"]))
+        np.random.set_state(legacy)  # noqa: NPY002
+        p = state["python"]
+        gauss = p["gauss_next"]
+        random.setstate((int(p["version"]), tuple(int(v) for v in p["state"].tolist()), gauss))
+        saved = state.get("generators", {})
+        for k, g in (generators or {}).items():
+            if k not in saved:
+                raise KeyError(f"generators.{k}")
+            g.set_state(saved[k])
+        if "cuda" in state and torch.cuda.is_available():  # pragma: no cover
+            torch.cuda.set_rng_state_all(state["cuda"])
+    except (KeyError, TypeError, ValueError, AttributeError, RuntimeError) as e:
+        raise CheckpointError(f"field 'rng' is not a valid RNG state ({type(e).__name__}: {e})") from None
+
+
+__all__ = [
+    "REQUIRED",
+    "save_checkpoint",
+    "load_checkpoint",
+    "load_state",
+    "to_plain",
+    "capture_rng_state",
+    "restore_rng_state",
+]

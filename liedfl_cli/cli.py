@@ -21,6 +21,7 @@ COMMANDS = {
 DIR_ARGS = {
     "rollout": ("run", "run dir", "run directory", "a directory written by `liedfl train`"),
     "eval": ("run", "run dir", "run directory", "a directory written by `liedfl train`"),
+    "resume": ("resume", "run dir", "run directory", "a directory written by `liedfl train`"),
     "report": ("sweep", "multirun dir", "multirun directory", "a directory written by `liedfl train -m`"),
 }
 USAGE = (
@@ -48,6 +49,10 @@ def _run(command: str, cfg):
             from .train import run_train
 
             return run_train(cfg)
+        if command == "resume":
+            from .train import run_resume
+
+            return run_resume(cfg)
         if command == "data":
             from .data.command import run_data
 
@@ -65,7 +70,7 @@ def _run(command: str, cfg):
 
             return run_report(cfg)
     except LiedflError as e:
-        fail(str(e))
+        fail(str(e), code=getattr(e, "exit_code", 2))
     except FloatingPointError as e:
         fail(f"numerical failure: {e}")
     except OmegaConfBaseException as e:  # e.g. a broken interpolation in an override file
@@ -110,7 +115,9 @@ def main() -> None:
         print(USAGE)
         raise SystemExit(0 if argv else 2)
     command = argv[0]
-    if command not in COMMANDS:
+    if command == "train" and any(a.startswith("resume=") for a in argv[1:]):
+        command = "resume"  # `liedfl train resume=<run dir>` has its own primary config
+    if command not in COMMANDS and command != "resume":
         print(f"error: unknown command {command!r}\n\n{USAGE}", file=sys.stderr)
         raise SystemExit(2)
     if not (CONF_DIR / f"{command}.yaml").is_file():

@@ -30,6 +30,7 @@ class TrainSchema:
     reg_points: int = 10
     reg_form: str = "relu"
     epsilon: float = 10.0
+    checkpoint_every: Any = "auto"  # auto | positive int (checked in train.checkpoint_interval)
 
 
 @dataclass
