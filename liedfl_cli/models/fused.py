@@ -22,6 +22,7 @@ Numbers: equal to the reference path to rounding (tests/test_fused.py checks <= 
 
 from __future__ import annotations
 
+import copy
 import functools
 import math
 from dataclasses import dataclass
@@ -36,6 +37,7 @@ from ..mechanics import kinetic
 from ..mechanics.forces import PDControl, RayleighForce, RayleighNonlinearForce, force_jacobian_xi
 from ..mechanics.parameterizations import Inertia
 from ..mechanics.potentials import MLPPotential, left_gradient
+from ..solvers import runtime
 from ..solvers.newton import NewtonProblem
 from .base import TripletSet
 
@@ -458,6 +460,7 @@ class RolloutState:
     g: Pose
     inc: Pose
     maps: RolloutMaps
+    compile: bool = False
 
 
 def _d2_map(Jd: torch.Tensor, h: float) -> torch.Tensor:
@@ -540,7 +543,10 @@ def _linear_maps(model, P: Derived) -> tuple[torch.Tensor, torch.Tensor, torch.T
 
 
 def rollout_start(model, g0: Pose, g1: Pose) -> RolloutState:
-    return RolloutState(g0, g1, model.G.increment(g0, g1), rollout_maps(model))
+    """State before the first step; the Newton step is compiled when `runtime.compile` asks for it
+    for this rollout's size (`runtime.planned_rollout`)."""
+    compile_it = runtime.want_compile("rollout")
+    return RolloutState(g0, g1, model.G.increment(g0, g1), rollout_maps(model), compile_it)
 
 
 def _kinetic_se3_terms(W: torch.Tensor, z: torch.Tensor, maps: RolloutMaps, h: float):
@@ -622,15 +628,15 @@ class FusedStep:
     the increment x = (W, z), with the part fixed by (g_{k-1}, g_k) computed once: the kinetic
     d2 term, the forces at (g_{k-1}, xi~_{k-1}), the potential's covector at g_k and, for forces
     affine in xi~ (Rayleigh, configuration-dependent Rayleigh, PD control), their value at
-    xi~ = 0 and their Jacobian at g_k."""
+    xi~ = 0 and their Jacobian at g_k. Other forces (`generic`) are evaluated per iteration."""
 
-    def __init__(self, model, state: RolloutState):
+    def __init__(self, model, state: RolloutState, compiled_iterate=None):
         G, h = model.G, model.h
         self.G, self.h, self.maps, self.g = G, h, state.maps, state.g
         maps, P = state.maps, state.maps.P
         g_prev, g, inc = state.g_prev, state.g, state.inc
         self.generic: list[nn.Module] = []
-        self.B = None
+        self.B: torch.Tensor | None = None
         if maps.linear is not None:
             const = inc.R.flatten(-3) @ maps.linear[2]
         else:
@@ -656,55 +662,91 @@ class FusedStep:
         if model.potential is not None:
             const = const + potential_covector(model, g).detach()
         self.const = const
+        self.compiled_iterate = compiled_iterate if not self.generic else None
 
     def f(self, x: Pose) -> torch.Tensor:
         """The residual at the increment x, (T, dim)."""
-        G, h, maps = self.G, self.h, self.maps
-        if maps.linear is not None:
-            return self.const + x.R.flatten(-3) @ maps.linear[0]
-        r = self.const + kinetic_d1(G, x, maps, h)
-        if self.B is not None or self.generic:
-            xi = kinetic.velocity_estimate(G, x, h)
-            if self.B is not None:
-                r = r + 0.5 * h * (
-                    xi @ self.B.transpose(-1, -2) if self.B.dim() == 2 else (self.B @ xi[..., None])[..., 0]
-                )
+        r = step_residual(self.G, self.h, x, self.const, self.B, self.maps)
+        if self.generic:
+            xi = kinetic.velocity_estimate(self.G, x, self.h)
             for f in self.generic:
-                r = r + 0.5 * h * f(self.g, xi)
+                r = r + 0.5 * self.h * f(self.g, xi)
         return r
 
     def jac(self, x: Pose) -> torch.Tensor:
         """d f(x exp(delta)) / d delta at 0, (T, dim, dim)."""
-        G, h, maps = self.G, self.h, self.maps
-        dim = G.dim
-        if maps.linear is not None:
-            return (x.R.flatten(-3) @ maps.linear[1]).unflatten(-1, (dim, dim))
-        J = _block_diagonal(kinetic_blocks(G, x, maps), maps.block_index, dim)
-        dF = self.B
+        extra = None
         if self.generic:
-            xi = kinetic.velocity_estimate(G, x, h)
+            xi = kinetic.velocity_estimate(self.G, x, self.h)
             for f in self.generic:
                 Jf = force_jacobian_xi(f, self.g, xi).detach()
-                dF = Jf if dF is None else dF + Jf
-        if dF is not None:
-            dxi = _block_diagonal(velocity_jacobian_blocks(G, x, h), maps.block_index, dim)
-            J = J + 0.5 * h * (dF @ dxi)
-        return J
+                extra = Jf if extra is None else extra + Jf
+        return step_jacobian(self.G, self.h, x, self.B, self.maps, extra)
 
     def retract(self, x: Pose, delta: torch.Tensor) -> Pose:
         return group_retract(self.G, x, delta)
 
+    def restrict(self, rows: torch.Tensor) -> NewtonProblem:
+        """The Newton problem of the rows `rows` (for the last iterations of a few rows)."""
+        sub = copy.copy(self)
+        sub.const = self.const.index_select(0, rows)
+        sub.g = Pose(self.g.R.index_select(0, rows), self.g.p.index_select(0, rows))
+        if self.B is not None and self.B.dim() == 3:
+            sub.B = self.B.index_select(0, rows)
+        return sub.problem(None)
+
+    def problem(self, x0) -> NewtonProblem:
+        return NewtonProblem(self.f, self.jac, x0, self.retract, iterate=self.iterate, restrict=self.restrict)
+
     def iterate(self, x: Pose, r: torch.Tensor):
         """One full Newton step from x: (delta, singular, candidate x', residual at x')."""
+        if self.compiled_iterate is not None:
+            return self.compiled_iterate(self.G, self.h, x, r, self.const, self.B, self.maps)
+        if not self.generic:
+            return step_iterate(self.G, self.h, x, r, self.const, self.B, self.maps)
         sol, singular = solve_small(self.jac(x), r)
         delta = -sol
         cand = self.retract(x, delta)
         return delta, singular, cand, self.f(cand)
 
 
+def step_residual(G: ProductGroup, h: float, x: Pose, const, B, maps: RolloutMaps) -> torch.Tensor:
+    """Residual at the increment x without per-iteration (generic) forces, (T, dim)."""
+    if maps.linear is not None:
+        return const + x.R.flatten(-3) @ maps.linear[0]
+    r = const + kinetic_d1(G, x, maps, h)
+    if B is not None:
+        xi = kinetic.velocity_estimate(G, x, h)
+        Bxi = xi @ B.transpose(-1, -2) if B.dim() == 2 else (B @ xi[..., None])[..., 0]
+        r = r + 0.5 * h * Bxi
+    return r
+
+
+def step_jacobian(G: ProductGroup, h: float, x: Pose, B, maps: RolloutMaps, extra=None) -> torch.Tensor:
+    """Jacobian of `step_residual` (+ `extra`, the generic forces' dF/dxi~), (T, dim, dim)."""
+    dim = G.dim
+    if maps.linear is not None:
+        return (x.R.flatten(-3) @ maps.linear[1]).unflatten(-1, (dim, dim))
+    J = _block_diagonal(kinetic_blocks(G, x, maps), maps.block_index, dim)
+    dF = B if extra is None else (extra if B is None else B + extra)
+    if dF is not None:
+        dxi = _block_diagonal(velocity_jacobian_blocks(G, x, h), maps.block_index, dim)
+        J = J + 0.5 * h * (dF @ dxi)
+    return J
+
+
+def step_iterate(G: ProductGroup, h: float, x: Pose, r: torch.Tensor, const, B, maps: RolloutMaps):
+    """One full Newton step (no generic forces): (delta, singular, x', residual at x'). Pure
+    tensor code: what `runtime.compile` compiles."""
+    sol, singular = solve_small(step_jacobian(G, h, x, B, maps), r)
+    delta = -sol
+    cand = group_retract(G, x, delta)
+    return delta, singular, cand, step_residual(G, h, cand, const, B, maps)
+
+
 def rollout_problem(model, state: RolloutState) -> NewtonProblem:
-    step = FusedStep(model, state)
-    return NewtonProblem(step.f, step.jac, state.inc, step.retract, iterate=step.iterate)
+    compiled = runtime.compiled(step_iterate, "rollout_step") if state.compile else None
+    return FusedStep(model, state, compiled).problem(state.inc)
 
 
 def rollout_advance(model, state: RolloutState, x: Pose) -> tuple[RolloutState, Pose]:
@@ -714,4 +756,4 @@ def rollout_advance(model, state: RolloutState, x: Pose) -> tuple[RolloutState, 
     W = 0.5 * W @ (3.0 * eye - W.transpose(-1, -2) @ W)
     inc = Pose(W, x.p.detach())
     g_next = model.G.compose(state.g, inc)
-    return RolloutState(state.g, g_next, inc, state.maps), g_next
+    return RolloutState(state.g, g_next, inc, state.maps, state.compile), g_next

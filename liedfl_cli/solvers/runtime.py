@@ -35,9 +35,10 @@ DEFAULT_THREADS = 1
 as fast as two on an idle machine at the batch sizes used here and several times faster when
 other work shares the cores)."""
 
-COMPILE_MIN_WORK = 2.0e8
-"""`compile: auto` compiles a rollout when trajectories x steps reach this many row-steps: below it
-the one-off compilation (~10-30 s on 2 cores) costs more than it saves (docs/benchmarks.md)."""
+COMPILE_MIN_WORK = {"rollout": 2.0e7, "train": 1.0e5}
+"""`compile: auto` compiles a hot path only for work large enough to repay the one-off compilation
+(tens of seconds on 2 cores, docs/benchmarks.md): a rollout of trajectories x steps row-steps, a
+training run of optimiser steps."""
 
 
 @dataclass(frozen=True)
@@ -128,12 +129,21 @@ def _say_once(message: str) -> None:
         _said_no_compiler = True
 
 
-def want_compile(work: float) -> bool:
-    """Whether to compile a hot path of `work` row-steps under the current `runtime.compile`."""
+_planned: dict[str, float] = {}
+
+
+def plan(kind: str, work: float) -> None:
+    """Announce the size of the coming hot-path work ("rollout": row-steps, "train": optimiser
+    steps), which `compile: auto` weighs against the compilation time."""
+    _planned[kind] = float(work)
+
+
+def want_compile(kind: str) -> bool:
+    """Whether to compile the hot path `kind` ("rollout" | "train") under `runtime.compile`."""
     opts = current()
     if not opts.fused or opts.compile == "false":
         return False
-    if opts.compile == "auto" and work < COMPILE_MIN_WORK:
+    if opts.compile == "auto" and _planned.get(kind, 0.0) < COMPILE_MIN_WORK[kind]:
         return False
     if not compiler_available():
         _say_once("runtime.compile: no C++ compiler found (g++/c++/clang++), running the fused paths uncompiled")
