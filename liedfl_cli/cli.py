@@ -13,8 +13,8 @@ CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
 COMMANDS = {
     "train": "train and evaluate a model (generates the dataset if needed)",
     "data": "only generate (or import) a dataset",
-    "rollout": "roll a trained run out: liedfl rollout run=<run dir> [steps=N]",
-    "eval": "metrics table and plots of a run: liedfl eval run=<run dir>",
+    "rollout": "roll a trained run out into <run>/rollouts/<name>/: liedfl rollout run=<run dir> [steps=N]",
+    "eval": "metrics table and plots of a run: liedfl eval run=<run dir> [rollout=<rollout file>]",
     "report": "one table and figures over a sweep: liedfl report sweep=<multirun dir>",
 }
 # commands whose Hydra run dir is `${<key>}`, an existing directory named on the command line

@@ -1,4 +1,8 @@
-"""`liedfl eval`: metrics table and plots of a run from its rollout.h5 and dataset."""
+"""`liedfl eval`: metrics table and plots of a rollout file (a run's rollout.h5 by default) and its dataset.
+
+Errors against ground truth cover the steps the dataset has; drift, the first non-finite step and the
+Newton statistics cover the whole rollout (a rollout may be longer than the dataset); eval.md and the
+printed table say which span each column covers."""
 
 from __future__ import annotations
 
@@ -6,17 +10,15 @@ import csv
 import json
 from pathlib import Path
 
-import h5py
-import numpy as np
-import torch
 from omegaconf import DictConfig
 from rich.table import Table
 
 from . import plots
-from .errors import DatasetError
+from .errors import ConfigError
 from .io_utils import fmt, markdown_table, write_csv, write_json, write_text
 from .lie import Pose
-from .metrics import trajectory_metrics
+from .metrics import drift_metrics, error_metrics
+from .rollout_file import FILE_NAME, RolloutFile, load_rollout
 from .ui import console
 
 SHORT = {
@@ -35,14 +37,14 @@ SHORT = {
     "seconds_per_epoch": "s/epoch",
     "parameters": "params",
 }
+ERROR_COLUMNS = ["rel_rot_error_mean", "rel_rot_error_final", "geodesic_error_mean", "position_error_mean"]
+"""Columns computed against ground truth: over the steps the dataset has."""
+DRIFT_COLUMNS = ["max_orth_drift", "max_det_drift"]
+"""Distance from the group: over the whole rollout (as are the non-finite step and the Newton columns)."""
 COLUMNS = [
     "model",
-    "rel_rot_error_mean",
-    "rel_rot_error_final",
-    "geodesic_error_mean",
-    "position_error_mean",
-    "max_orth_drift",
-    "max_det_drift",
+    *ERROR_COLUMNS,
+    *DRIFT_COLUMNS,
     "nonfinite_step",
     "newton_failures",
     "first_failure_step",
@@ -52,106 +54,120 @@ COLUMNS = [
     "seconds_per_epoch",
     "parameters",
 ]
+_ROW_ORDER = (
+    "rel_rot_error_mean",
+    "rel_rot_error_final",
+    "geodesic_error_mean",
+    "max_orth_drift",
+    "max_det_drift",
+    "position_error_mean",
+    "position_error_final",
+    "nonfinite_step",
+)
+"""Order of the metric fields in a row (eval.csv's column order)."""
 
 
-def read_rollout(path) -> tuple[dict, np.ndarray, dict]:
-    """-> ({name: Pose + diagnostics}, traj_index, attrs); clear error for a bad file."""
-    path = Path(path)
-    if not path.is_file():
-        raise DatasetError(f"{path}: rollout file not found (run `liedfl rollout run=<dir>` first)")
-    try:
-        f = h5py.File(path, "r")
-    except OSError as e:
-        raise DatasetError(f"{path}: not an HDF5 file ({e})") from None
-    try:
-        with f:
-            if "traj_index" not in f or "model" not in f:
-                raise DatasetError(f"{path}: dataset 'traj_index' or group 'model' missing")
-            if "steps" not in f.attrs:
-                raise DatasetError(f"{path}: attribute 'steps' is missing")
-            out = {}
-            for name in f:
-                if not isinstance(f[name], h5py.Group):
-                    continue
-                g = f[name]
-                missing = [k for k in ("R", "p", "converged", "iterations") if k not in g]
-                if missing:
-                    raise DatasetError(f"{path}: group '{name}' lacks dataset '{missing[0]}'")
-                out[name] = {
-                    "pose": Pose(torch.from_numpy(g["R"][...]), torch.from_numpy(g["p"][...])),
-                    "converged": g["converged"][...],
-                    "iterations": g["iterations"][...],
-                    **{k: g.attrs[k] for k in g.attrs},
-                }
-            return out, f["traj_index"][...], dict(f.attrs)
-    except DatasetError:
-        raise
-    except (OSError, KeyError, ValueError, TypeError) as e:
-        raise DatasetError(f"{path}: cannot read rollout file ({type(e).__name__}: {e})") from None
-
-
-def _rows(rollouts: dict, truth: Pose, timings: dict | None):
+def _rows(rf: RolloutFile, truth: Pose, timings: dict | None) -> tuple[list[dict], dict]:
+    """One row per rolled-out model: errors over the steps with ground truth (truth's length), drift,
+    non-finite step and Newton statistics over the whole rollout; per-step curves of each."""
     rows, curves = [], {}
-    S = truth.R.shape[1]
-    for name, ro in rollouts.items():
-        pred = ro["pose"]
-        s = min(S, pred.R.shape[1])
-        m = trajectory_metrics(pred.index((slice(None), slice(0, s))), truth.index((slice(None), slice(0, s))))
-        curves[name] = m["curves"]
-        row = {"model": name, **m["scalars"]}
-        row["newton_failures"] = int((~ro["converged"].astype(bool)).sum())
-        ff = int(ro.get("first_failure", -1))
-        row["first_failure_step"] = ff if ff >= 0 else None
-        row["mean_newton_iterations"] = float(ro["iterations"].mean()) if ro["iterations"].size else 0.0
-        row["rollout_s_per_step"] = float(ro.get("seconds_per_step", float("nan")))
+    for name, ro in rf.models.items():
+        pred = ro.pose
+        n = min(ro.steps, truth.R.shape[1] - 1)
+        span = (slice(None), slice(0, n + 1))
+        err = error_metrics(pred.index(span), truth.index(span))
+        drift = drift_metrics(pred)
+        curves[name] = {**err["curves"], **drift["curves"]}
+        scalars = {**err["scalars"], **drift["scalars"]}
+        row = {"model": name, **{k: scalars[k] for k in _ROW_ORDER if k in scalars}}
+        row["newton_failures"] = ro.n_failed
+        row["first_failure_step"] = ro.first_failure
+        row["mean_newton_iterations"] = ro.mean_iterations
+        sps = ro.seconds_per_step
+        row["rollout_s_per_step"] = sps if sps is not None else float("nan")
         if name == "model" and timings:
             row.update({k: timings.get(k) for k in ("train_seconds", "seconds_per_epoch", "parameters")})
+        row["error_steps"] = n
+        row["rollout_steps"] = ro.steps
         rows.append(row)
     return rows, curves
 
 
-def run_eval_from_objects(cfg: DictConfig, dataset, run_dir, timings: dict | None = None) -> list[dict]:
+def span_note(rf: RolloutFile, dataset) -> str:
+    """Which steps each column covers (the errors need ground truth, the rest does not)."""
+    n = min(rf.steps, dataset.n_steps)
+    return (
+        f"errors (rel err, rel err end, geo err, pos err) over steps 0..{n}"
+        + (f" (the dataset ends at step {dataset.n_steps})" if n < rf.steps else "")
+        + f"; drift, non-finite and Newton columns over the whole rollout, steps 0..{rf.steps}"
+    )
+
+
+def rollout_path_arg(value, run_dir) -> Path:
+    """The rollout file to evaluate: `rollout=<file or folder holding rollout.h5>`, else `<run>/rollout.h5`."""
+    if value in (None, "", "???"):
+        return Path(run_dir) / FILE_NAME
+    path = Path(str(value)).expanduser()
+    if path.is_dir():
+        path = path / FILE_NAME
+    if not path.is_file():
+        raise ConfigError(f"rollout={value}: no such rollout file")
+    return path
+
+
+def run_eval_from_objects(
+    cfg: DictConfig, dataset, run_dir, timings: dict | None = None, rollout_path=None
+) -> list[dict]:
+    """Evaluate a rollout file against `dataset`: eval.csv, eval.md, eval_curves.json and plots/ next to
+    the file. rollout_path: default `<run_dir>/rollout.h5`. The run's parameter recovery (recovery.json)
+    goes into eval.md of any rollout of the run, the loss curve only into the run's own plots."""
     run_dir = Path(run_dir)
-    rollouts, idx, attrs = read_rollout(run_dir / "rollout.h5")
-    bad = (idx < 0) | (idx >= dataset.n_trajectories)
-    if bad.any():
-        j = int(bad.nonzero()[0][0])
-        raise DatasetError(
-            f"{run_dir / 'rollout.h5'}: dataset 'traj_index' has trajectory {int(idx[j])} at index {j}, "
-            f"but the run's dataset has {dataset.n_trajectories}; re-run `liedfl rollout run={run_dir}`"
-        )
+    path = Path(rollout_path) if rollout_path is not None else run_dir / FILE_NAME
+    out = path.parent
+    rf = load_rollout(path, dataset)
+    idx = rf.traj_index
     truth = dataset.pose(idx)
-    rows, curves = _rows(rollouts, truth, timings)
+    rows, curves = _rows(rf, truth, timings)
+    own = out.resolve() == run_dir.resolve()
     recovery_path = run_dir / "recovery.json"
-    write_csv(run_dir / "eval.csv", rows)
+    write_csv(out / "eval.csv", rows)
     cols = [c for c in COLUMNS if any(r.get(c) is not None for r in rows)]
+    note = span_note(rf, dataset)
     md = (
         f"# Evaluation: {dataset.scene} ({dataset.group.name}, h={dataset.h}), "
-        f"{len(idx)} test trajectories x {int(attrs['steps'])} steps\n\n"
+        f"{len(idx)} test trajectories x {rf.steps} steps\n\n"
     )
+    if not own:
+        md += f"Rollout file: `{path}` (run `{run_dir}`)\n\n"
+    md += f"Spans: {note}.\n\n"
     md += markdown_table(rows, cols)
     if recovery_path.is_file():
         rec = json.loads(recovery_path.read_text())
         md += "\n## Parameter recovery (normalised by tr J_d)\n\n" + markdown_table([rec], list(rec))
-    write_text(run_dir / "eval.md", md)
-    write_json(run_dir / "eval_curves.json", {k: {kk: vv.tolist() for kk, vv in v.items()} for k, v in curves.items()})
-    table = Table(title=f"{dataset.scene}: test rollout ({len(idx)} x {int(attrs['steps'])} steps)")
+    write_text(out / "eval.md", md)
+    write_json(out / "eval_curves.json", {k: {kk: vv.tolist() for kk, vv in v.items()} for k, v in curves.items()})
+    table = Table(title=f"{dataset.scene}: test rollout ({len(idx)} x {rf.steps} steps)")
     for c in cols:
         table.add_column(SHORT.get(c, c), overflow="fold")
     for r in rows:
         table.add_row(*[fmt(r.get(c)) for c in cols])
     console.print(
         "columns: rel err = mean ||R^-R||_F/||R||_F over steps; geo err = mean geodesic error (rad); "
-        "drifts are maxima over the rollout; full names in eval.md",
+        f"drifts are maxima; {note}; full names in eval.md",
         style="dim",
     )
+    if rf.steps > dataset.n_steps:
+        console.print(
+            f"[yellow]note:[/] the rollout ({rf.steps} steps) is longer than the dataset ({dataset.n_steps} steps): "
+            "errors cover the steps with ground truth only"
+        )
     console.print(table)
     if cfg.eval.plots:
         h = dataset.h
-        pdir = run_dir / "plots"
+        pdir = out / "plots"
         plots.error_vs_step(curves, h, pdir / "error_vs_step.png")
         plots.drift_vs_step(curves, h, pdir / "drift_vs_step.png")
-        preds = {k: v["pose"] for k, v in rollouts.items()}
+        preds = {k: v.pose for k, v in rf.models.items()}
         plots.sphere(truth.R.numpy(), {k: v.R.numpy() for k, v in preds.items()}, pdir / "sphere.png")
         plots.predicted_vs_true(
             Pose(truth.R.numpy(), truth.p.numpy()),
@@ -160,7 +176,7 @@ def run_eval_from_objects(cfg: DictConfig, dataset, run_dir, timings: dict | Non
             pdir / "predicted_vs_true.png",
         )
         hist = run_dir / "train_metrics.csv"
-        if hist.is_file():
+        if own and hist.is_file():
             with open(hist) as f:
                 history = [{k: float(v) for k, v in r.items() if k and v not in (None, "")} for r in csv.DictReader(f)]
             if history and all("epoch" in r for r in history):
@@ -169,16 +185,20 @@ def run_eval_from_objects(cfg: DictConfig, dataset, run_dir, timings: dict | Non
 
 
 def run_eval(cfg: DictConfig) -> list[dict]:
-    """`liedfl eval run=<dir>`: recompute eval.csv / eval.md / plots of a run, and the scene's
-    extra evaluation (torque recovery, mocap table) when it has one."""
+    """`liedfl eval run=<dir> [rollout=<file>]`: recompute the evaluation (eval.csv / eval.md / plots and
+    the scene's extra evaluation: torque recovery, mocap table) of the run's rollout.h5, or of another
+    rollout file of the run (written next to that file)."""
     from omegaconf import OmegaConf
 
     from .checkpoint import load_checkpoint
-    from .extras import run_extra_evals
+    from .evaluation import run_extra_evals
     from .runs import load_run
 
     run_cfg, model, dataset, run_dir = load_run(cfg.run, cfg.paths.data_dir)
+    path = rollout_path_arg(cfg.get("rollout"), run_dir)
     timings = load_checkpoint(Path(run_dir) / "checkpoints" / "last.pt").get("timings")
-    rows = run_eval_from_objects(cfg, dataset, run_dir, timings)
-    run_extra_evals(OmegaConf.merge(run_cfg, {"eval": cfg.eval, "ui": cfg.ui}), model, dataset, run_dir)
+    rows = run_eval_from_objects(cfg, dataset, run_dir, timings, rollout_path=path)
+    run_extra_evals(
+        OmegaConf.merge(run_cfg, {"eval": cfg.eval, "ui": cfg.ui}), model, dataset, run_dir, rollout_path=path
+    )
     return rows

@@ -1,15 +1,14 @@
 """Error and drift metrics shared by every model (DESIGN section 5).
 
 All functions take predicted and true trajectories with matching leading dims and return
-per-sample values; `trajectory_metrics` averages over bodies and gives per-step curves
-(mean over trajectories) plus scalar summaries. Predictions of Euclidean baselines may be
-off the manifold: their drift is measured as it is, and the geodesic error uses the nearest
-rotation (SVD projection).
+per-sample values; `error_metrics` (against ground truth) and `drift_metrics` (distance from the
+group, no ground truth needed) average over bodies and give per-step curves (mean over trajectories)
+plus scalar summaries. Predictions of Euclidean baselines may be off the manifold: their drift is
+measured as it is, and the geodesic error uses the nearest rotation (SVD projection).
 """
 
 from __future__ import annotations
 
-import numpy as np
 import torch
 
 from .lie import Pose, so3
@@ -40,44 +39,48 @@ def orthogonality_drift(R_hat: torch.Tensor) -> torch.Tensor:
     return so3.orthogonality_error(R_hat)
 
 
-def trajectory_metrics(pred: Pose, true: Pose) -> dict:
-    """Per-step curves (numpy, shape (S+1,), mean over trajectories and bodies) and scalars.
+def error_metrics(pred: Pose, true: Pose) -> dict:
+    """Errors against ground truth: per-step curves (numpy, shape (S+1,), mean over trajectories and
+    bodies) and scalars (means over trajectories, steps and bodies; `*_final` at the last step).
 
-    pred, true: R (T, S+1, B, 3, 3), p (T, S+1, m, 3).
+    pred, true: R (T, S+1, B, 3, 3), p (T, S+1, m, 3), over the steps where ground truth exists.
     """
-    if not torch.isfinite(pred.R).all():
-        bad = (~torch.isfinite(pred.R)).nonzero()[0].tolist()
-        nonfinite_at = bad[1]
-    else:
-        nonfinite_at = None
     rel = relative_rotation_error(pred.R, true.R).mean(-1)  # (T, S+1)
     geo = geodesic_error(torch.nan_to_num(pred.R), true.R).mean(-1)
-    orth = orthogonality_drift(pred.R).amax(-1)
-    det = det_drift(pred.R).amax(-1)
-    curves = {
-        "rel_rot_error": rel.mean(0),
-        "geodesic_error": geo.mean(0),
-        "orth_drift": orth.mean(0),
-        "det_drift": det.mean(0),
-    }
+    curves = {"rel_rot_error": rel.mean(0), "geodesic_error": geo.mean(0)}
     scalars = {
         "rel_rot_error_mean": rel.mean(),
         "rel_rot_error_final": rel[:, -1].mean(),
         "geodesic_error_mean": geo.mean(),
-        "max_orth_drift": orth.max(),
-        "max_det_drift": det.max(),
     }
     if pred.p.shape[-2] > 0:
         pos = position_error(pred.p, true.p).mean(-1)
         curves["position_error"] = pos.mean(0)
         scalars["position_error_mean"] = pos.mean()
         scalars["position_error_final"] = pos[:, -1].mean()
-    out_curves = {k: v.detach().cpu().numpy() for k, v in curves.items()}
-    out_scalars = {k: float(v) for k, v in scalars.items()}
-    out_scalars["nonfinite_step"] = nonfinite_at
-    return {"curves": out_curves, "scalars": out_scalars}
+    return {"curves": _numpy(curves), "scalars": {k: float(v) for k, v in scalars.items()}}
 
 
-def relative_torque_error(tau_hat: np.ndarray, tau: np.ndarray) -> np.ndarray:
-    """||tau_hat - tau|| / ||tau|| along a trajectory, shape (...)."""
-    return np.linalg.norm(tau_hat - tau, axis=-1) / np.maximum(np.linalg.norm(tau, axis=-1), 1e-300)
+def drift_metrics(pred: Pose) -> dict:
+    """Distance from the group, over the whole rollout: per-step curves (numpy, shape (S+1,), mean over
+    trajectories of the maximum over bodies), the maxima, and the first step holding a non-finite
+    rotation entry in any trajectory (None if there is none).
+
+    pred: R (T, S+1, B, 3, 3).
+    """
+    finite = torch.isfinite(pred.R).flatten(2).all(-1)  # (T, S+1)
+    bad_steps = (~finite).any(0).nonzero()
+    orth = orthogonality_drift(pred.R).amax(-1)
+    det = det_drift(pred.R).amax(-1)
+    return {
+        "curves": _numpy({"orth_drift": orth.mean(0), "det_drift": det.mean(0)}),
+        "scalars": {
+            "max_orth_drift": float(orth.max()),
+            "max_det_drift": float(det.max()),
+            "nonfinite_step": int(bad_steps[0]) if len(bad_steps) else None,
+        },
+    }
+
+
+def _numpy(curves: dict) -> dict:
+    return {k: v.detach().cpu().numpy() for k, v in curves.items()}

@@ -15,11 +15,20 @@ from .io_utils import atomic_path
 COLORS = {"truth": "black", "model": "tab:blue", "true_scheme": "tab:orange"}
 
 
-def _save(fig, path: Path) -> None:
+def save_figure(fig, path: Path) -> None:
+    """Write `fig` as a PNG to `path` atomically and close it."""
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=120, bbox_inches="tight", format="png")
     plt.close(fig)
+
+
+def draw_unit_sphere(ax) -> None:
+    """The unit sphere as a light wireframe on a 3-D axis, with equal aspect: the backdrop of every plot
+    of a direction (a body axis R e_i, a bone direction) over time."""
+    u, v = np.mgrid[0 : 2 * np.pi : 30j, 0 : np.pi : 15j]
+    ax.plot_wireframe(np.cos(u) * np.sin(v), np.sin(u) * np.sin(v), np.cos(v), color="0.85", linewidth=0.4)
+    ax.set_box_aspect((1, 1, 1))
 
 
 def error_vs_step(curves: dict[str, dict], h: float, path: Path) -> None:
@@ -35,7 +44,7 @@ def error_vs_step(curves: dict[str, dict], h: float, path: Path) -> None:
         ax.set_title(key.replace("_", " "))
         ax.grid(alpha=0.3)
     axes[0][0].legend()
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def drift_vs_step(curves: dict[str, dict], h: float, path: Path) -> None:
@@ -48,7 +57,7 @@ def drift_vs_step(curves: dict[str, dict], h: float, path: Path) -> None:
         ax.set_xlabel("time")
         ax.grid(alpha=0.3)
     axes[0].legend()
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def sphere(
@@ -57,18 +66,16 @@ def sphere(
     """Body axis R e_axis of the first trajectories on the unit sphere. R arrays (T, S+1, B, 3, 3)."""
     fig = plt.figure(figsize=(5, 5))
     ax = fig.add_subplot(projection="3d")
-    u, v = np.mgrid[0 : 2 * np.pi : 30j, 0 : np.pi : 15j]
-    ax.plot_wireframe(np.cos(u) * np.sin(v), np.sin(u) * np.sin(v), np.cos(v), color="0.85", linewidth=0.4)
+    draw_unit_sphere(ax)
     for t in range(min(n_traj, truth_R.shape[0])):
         x = truth_R[t, :, body, :, axis]
         ax.plot(*x.T, color="black", linewidth=1.2, label="truth" if t == 0 else None)
         for name, R in preds.items():
             y = R[t, :, body, :, axis]
             ax.plot(*y.T, "--", color=COLORS.get(name), linewidth=1.0, label=name if t == 0 else None)
-    ax.set_box_aspect((1, 1, 1))
     ax.legend(loc="upper left")
     ax.set_title(f"body {body} axis e{axis + 1} on the unit sphere")
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def predicted_vs_true(truth, preds: dict, h: float, path: Path, traj: int = 0, body: int = 0) -> None:
@@ -91,7 +98,7 @@ def predicted_vs_true(truth, preds: dict, h: float, path: Path, traj: int = 0, b
                 ax.plot(np.arange(P.p.shape[1]) * h, P.p[traj, :, body, j], "--", color=COLORS.get(name))
             ax.set_title(f"p_{j + 1}")
     axes[0][0].legend()
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def loss_curve(history: list[dict], path: Path) -> None:
@@ -107,4 +114,4 @@ def loss_curve(history: list[dict], path: Path) -> None:
     ax.set_xlabel("epoch")
     ax.legend()
     ax.grid(alpha=0.3)
-    _save(fig, path)
+    save_figure(fig, path)

@@ -16,8 +16,10 @@ import numpy as np
 import yaml
 from omegaconf import DictConfig
 
-from .errors import ConfigError
+from .errors import ConfigError, LiedflError
+from .evaluate import DRIFT_COLUMNS, ERROR_COLUMNS
 from .io_utils import markdown_table, write_csv, write_text
+from .rollout_file import FILE_NAME, read_rollout
 from .ui import console
 
 COLUMNS = [
@@ -30,12 +32,8 @@ COLUMNS = [
     "train_seconds",
     "seconds_per_epoch",
     "rollout_s_per_step",
-    "rel_rot_error_mean",
-    "rel_rot_error_final",
-    "geodesic_error_mean",
-    "position_error_mean",
-    "max_orth_drift",
-    "max_det_drift",
+    *ERROR_COLUMNS,
+    *DRIFT_COLUMNS,
     "newton_failures",
 ]
 
@@ -90,14 +88,21 @@ def _curves(sweep: Path, row: dict) -> dict:
     return json.loads(path.read_text()).get("model", {}) if path.is_file() else {}
 
 
+def _first_axes(path: Path) -> dict:
+    """{name: R e3 of body 0 along the first trajectory (S+1, 3)} from a run's rollout file; {} (with a
+    warning) when it is missing or unreadable: the report's table does not depend on it."""
+    if not path.is_file():
+        return {}
+    try:
+        rf = read_rollout(path)
+    except LiedflError as e:
+        console.print(f"[yellow]warning:[/] {e}; its sphere panel is left empty")
+        return {}
+    return {name: e.R[0, :, 0, :, 2] for name, e in rf.models.items()}
+
+
 def make_plots(sweep: Path, rows: list[dict]) -> list[Path]:
-    import h5py
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from .plots import _save
+    from .plots import draw_unit_sphere, plt, save_figure
 
     out = []
     pdir = sweep / "plots"
@@ -117,7 +122,7 @@ def make_plots(sweep: Path, rows: list[dict]) -> list[Path]:
     ax.set_ylabel("mean relative rotation error")
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
-    _save(fig, pdir / "error_vs_training_length.png")
+    save_figure(fig, pdir / "error_vs_training_length.png")
     out.append(pdir / "error_vs_training_length.png")
 
     # drift vs step, first run of each model
@@ -135,7 +140,7 @@ def make_plots(sweep: Path, rows: list[dict]) -> list[Path]:
         ax.set_xlabel("step")
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8)
-    _save(fig, pdir / "drift_vs_step.png")
+    save_figure(fig, pdir / "drift_vs_step.png")
     out.append(pdir / "drift_vs_step.png")
 
     # predicted trajectories on the sphere, one panel per model (first test trajectory)
@@ -143,16 +148,14 @@ def make_plots(sweep: Path, rows: list[dict]) -> list[Path]:
     for i, m in enumerate(models):
         r = next(r for r in rows if r["model"] == m)
         ax = fig.add_subplot(1, len(models), i + 1, projection="3d")
-        ro = sweep / r["run"] / "rollout.h5"
-        if ro.is_file():
-            with h5py.File(ro, "r") as f:
-                R = f["model/R"][0, :, 0]
-                if "true_scheme" in f:
-                    ax.plot(*f["true_scheme/R"][0, :, 0, :, 2].T, color="0.6", lw=0.8, label="true scheme")
-            ax.plot(*R[:, :, 2].T, color=colors[m], lw=1.0, label=m)
+        draw_unit_sphere(ax)
+        axes_e3 = _first_axes(sweep / r["run"] / FILE_NAME)
+        if "true_scheme" in axes_e3:
+            ax.plot(*axes_e3["true_scheme"].T, color="0.6", lw=0.8, label="true scheme")
+        if "model" in axes_e3:
+            ax.plot(*axes_e3["model"].T, color=colors[m], lw=1.0, label=m)
         ax.set_title(m, fontsize=9)
-        ax.set_box_aspect((1, 1, 1))
-    _save(fig, pdir / "sphere_per_model.png")
+    save_figure(fig, pdir / "sphere_per_model.png")
     out.append(pdir / "sphere_per_model.png")
 
     # error against speed
@@ -172,7 +175,7 @@ def make_plots(sweep: Path, rows: list[dict]) -> list[Path]:
         ax.set_ylabel("mean relative rotation error")
         ax.grid(alpha=0.3, which="both")
     axes[0].legend(fontsize=8)
-    _save(fig, pdir / "error_vs_speed.png")
+    save_figure(fig, pdir / "error_vs_speed.png")
     out.append(pdir / "error_vs_speed.png")
     return out
 

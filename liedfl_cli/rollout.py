@@ -1,18 +1,22 @@
 """`liedfl rollout`: roll a trained model (and the true-parameter scheme) over the test split
-and write `rollout.h5` (format in docs/data_format.md, section "rollout.h5")."""
+and write `rollout.h5` (format in docs/data_format.md, section "rollout.h5"; written by
+`rollout_file.write_rollout`). `liedfl train` writes `<run>/rollout.h5`; `liedfl rollout run=<run>`
+writes a new folder `<run>/rollouts/<name>/` each time."""
 
 from __future__ import annotations
 
+import contextlib
+import shutil
+from datetime import datetime
 from pathlib import Path
 
-import h5py
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from .errors import ConfigError, DatasetError
 from .factory import solver_options
-from .io_utils import atomic_path
 from .lie import Pose
+from .rollout_file import write_rollout
 from .solvers.options import SolverOptions
 from .solvers.rollout import Rollout
 from .ui import console, progress_bar
@@ -40,12 +44,8 @@ def test_trajectories(dataset, max_trajectories) -> tuple[np.ndarray, Pose]:
     return idx, dataset.pose(idx)
 
 
-def rollout_and_save(cfg: DictConfig, model, dataset, path, steps=None) -> dict:
-    """Roll out `model` (and the true scheme, if the scene has one) from each test trajectory's
-    first pair; write `path`. Returns timing/solver summaries."""
-    from .models.true_scheme import true_model
-
-    given = steps or cfg.dataset.rollout_steps
+def rollout_steps(given) -> int:
+    """The rollout length from a config value (ConfigError unless an integer >= 2)."""
     try:
         steps = int(given)
     except (TypeError, ValueError):
@@ -54,59 +54,82 @@ def rollout_and_save(cfg: DictConfig, model, dataset, path, steps=None) -> dict:
         raise ConfigError(f"rollout steps={given!r}: must be an integer")
     if steps < 2:
         raise ConfigError(f"rollout steps={steps}: need at least 2")
+    return steps
+
+
+def rollout_and_save(cfg: DictConfig, model, dataset, path, steps=None) -> dict:
+    """Roll out `model` (and the true scheme, if the scene has one) from each test trajectory's
+    first pair; write `path`. Returns timing/solver summaries."""
+    from .models.true_scheme import true_model
+
+    steps = rollout_steps(steps if steps is not None else cfg.dataset.rollout_steps)
     idx, truth = test_trajectories(dataset, cfg.rollout.max_trajectories)
     runs = {"model": model}
     if cfg.rollout.reference:
         ref = true_model(dataset)
         if ref is not None:
             runs["true_scheme"] = ref
-    results = {}
-    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
-        f.attrs["steps"] = steps
-        f.attrs["h"] = dataset.h
-        f.attrs["dataset_scene"] = dataset.scene
-        f.create_dataset("traj_index", data=idx)
-        for name, m in runs.items():
-            was_training = m.training
-            m.eval()
-            ro = _roll(m, truth, steps, solver_options(cfg.solver), name, cfg.ui.progress)
-            m.train(was_training)
-            g = f.create_group(name)
-            g.create_dataset("R", data=ro.pose.R.numpy())
-            g.create_dataset("p", data=ro.pose.p.numpy())
-            g.create_dataset("converged", data=ro.converged.numpy())
-            g.create_dataset("iterations", data=ro.iterations.numpy())
-            g.create_dataset("residual_norm", data=ro.residual_norm.numpy())
-            per_step = ro.seconds / max(steps - 1, 1)
-            g.attrs.update(
-                {
-                    "seconds": ro.seconds,
-                    "seconds_per_step": per_step,
-                    "n_failed": ro.n_failed,
-                    "first_failure": ro.first_failure() or -1,
-                    "n_trajectories": len(idx),
-                }
-            )
-            results[name] = {
-                "seconds": ro.seconds,
-                "seconds_per_step": per_step,
-                "n_failed": ro.n_failed,
-                "first_failure": ro.first_failure(),
-                "mean_newton_iterations": float(ro.iterations.double().mean()) if ro.iterations.numel() else 0.0,
-            }
+    rollouts = {}
+    for name, m in runs.items():
+        was_training = m.training
+        m.eval()
+        ro = _roll(m, truth, steps, solver_options(cfg.solver), name, cfg.ui.progress)
+        m.train(was_training)
+        rollouts[name] = ro
+    written = write_rollout(path, steps=steps, h=dataset.h, scene=dataset.scene, traj_index=idx, rollouts=rollouts)
+    results = {name: entry.summary() for name, entry in written.models.items()}
     console.print(f"rollout of {len(idx)} test trajectories x {steps} steps written to {path}")
     return results
 
 
+def new_rollout_dir(run_dir, steps: int) -> Path:
+    """Create and return a new folder `<run>/rollouts/<date>_<time>_steps<N>` (suffix _2, _3, ... if taken)."""
+    base = Path(run_dir) / "rollouts"
+    base.mkdir(exist_ok=True)
+    stamp = datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
+    for k in range(1, 1000):
+        out = base / (f"{stamp}_steps{steps}" + (f"_{k}" if k > 1 else ""))
+        try:
+            out.mkdir()
+            return out
+        except FileExistsError:
+            continue
+    raise ConfigError(f"{base}: cannot create a new rollout folder for {stamp}_steps{steps}")
+
+
 def run_rollout(cfg: DictConfig) -> dict:
-    """`liedfl rollout run=<dir> [steps=N]`: reload the run's checkpoint and write <run>/rollout.h5."""
+    """`liedfl rollout run=<dir> [steps=N]`: reload the run's checkpoint, roll it out into a new folder
+    `<run>/rollouts/<name>/rollout.h5` and evaluate it there (eval.csv, eval.md, plots, the scene's
+    extra evaluation). The run's own rollout.h5 and evaluation are never touched; on failure the new
+    folder is removed."""
+    from .checkpoint import load_checkpoint
+    from .evaluate import run_eval_from_objects
+    from .evaluation import run_extra_evals
+    from .rollout_file import FILE_NAME
     from .runs import load_run
 
     run_cfg, model, dataset, run_dir = load_run(cfg.run, cfg.paths.data_dir)
     merged = OmegaConf.merge(
         run_cfg,
-        {"rollout": {k: v for k, v in cfg.rollout.items() if v is not None}, "ui": cfg.ui, "solver": cfg.solver},
+        {
+            "rollout": {k: v for k, v in cfg.rollout.items() if v is not None},
+            "ui": cfg.ui,
+            "solver": cfg.solver,
+            "eval": cfg.eval,
+        },
     )
-    return rollout_and_save(
-        merged, model, dataset, Path(run_dir) / "rollout.h5", steps=cfg.steps or run_cfg.dataset.rollout_steps
-    )
+    steps = rollout_steps(cfg.steps if cfg.steps is not None else run_cfg.dataset.rollout_steps)
+    out = new_rollout_dir(run_dir, steps)
+    try:
+        path = out / FILE_NAME
+        results = rollout_and_save(merged, model, dataset, path, steps=steps)
+        timings = load_checkpoint(Path(run_dir) / "checkpoints" / "last.pt").get("timings")
+        rows = run_eval_from_objects(merged, dataset, run_dir, timings, rollout_path=path)
+        extra = run_extra_evals(merged, model, dataset, run_dir, rollout_path=path)
+    except BaseException:
+        shutil.rmtree(out, ignore_errors=True)
+        with contextlib.suppress(OSError):
+            out.parent.rmdir()  # only if empty: the first rollout of this run failed
+        raise
+    console.print(f"rollout and its evaluation written to {out}")
+    return {"dir": str(out), "rollout": results, "eval": rows, "extra_eval": extra}

@@ -346,7 +346,7 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
         ro = rollout_and_save(cfg, model, dataset, out / "rollout.h5", steps=cfg.rollout.steps)
         summary["rollout"] = ro
         summary["eval"] = run_eval_from_objects(cfg, dataset, out, timings)
-        from .extras import run_extra_evals
+        from .evaluation import run_extra_evals
 
         extra = run_extra_evals(cfg, model, dataset, out)
         if extra is not None:
@@ -356,7 +356,7 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
 
 
 def run_resume(cfg: DictConfig) -> dict:
-    """`liedfl train resume=<run dir> [train.epochs=N] [ui.progress=false]`: continue a run from
+    """`liedfl train resume=<run dir> [epochs=N] [ui.progress=false]`: continue a run from
     `checkpoints/last.pt` with the run's own config (only the epoch count and the progress
     display may change), in the same run directory."""
     run_dir = Path(str(cfg.resume))
@@ -373,10 +373,13 @@ def run_resume(cfg: DictConfig) -> dict:
         raise CheckpointError(f"{ckpt}: field 'config' is not a mapping")
     saved = OmegaConf.create(payload["config"])
     saved.paths.output_dir = str(run_dir)
-    if cfg.train.get("epochs") is not None:
-        epochs = int(cfg.train.epochs)
+    if cfg.get("epochs") is not None:
+        try:
+            epochs = int(cfg.epochs)
+        except (TypeError, ValueError):
+            raise ConfigError(f"epochs={cfg.epochs!r}: must be an integer") from None
         if epochs < int(payload["epoch"]):
-            raise ConfigError(f"train.epochs={epochs}: the checkpoint is already at epoch {int(payload['epoch'])}")
+            raise ConfigError(f"epochs={epochs}: the checkpoint is already at epoch {int(payload['epoch'])}")
         saved.train.epochs = epochs
     saved.ui = cfg.ui
     return run_train(saved, resume=payload)

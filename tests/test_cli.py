@@ -79,15 +79,45 @@ def test_train_writes_the_run_directory(trained):
     assert not [p for p in run.rglob("*") if ".tmp" in p.name]
 
 
-def test_rollout_rewrites_rollout_h5(trained):
+def test_rollout_writes_a_new_folder(trained):
+    """`liedfl rollout` writes <run>/rollouts/<name>/ (rollout.h5 and its evaluation) each time and leaves
+    the run's own rollout.h5 and evaluation byte for byte as they were."""
     run = trained
+    own = {name: (run / name).read_bytes() for name in ("rollout.h5", "eval.csv", "eval.md", "eval_curves.json")}
     with h5py.File(run / "rollout.h5") as f:
         assert int(f.attrs["steps"]) != 15
-    liedfl("rollout", f"run={run}", "steps=15", "ui.progress=false", cwd=run.parents[2])
-    with h5py.File(run / "rollout.h5") as f:
-        assert int(f.attrs["steps"]) == 15
-        assert f["model/R"].shape[1] == 16
+    for _ in range(2):
+        liedfl("rollout", f"run={run}", "steps=15", "ui.progress=false", "eval.plots=false", cwd=run.parents[2])
+    new = sorted(d for d in (run / "rollouts").iterdir() if "_steps15" in d.name)
+    assert len(new) == 2 and all(d.name.endswith(("_steps15", "_steps15_2")) for d in new), new
+    for d in new:
+        with h5py.File(d / "rollout.h5") as f:
+            assert int(f.attrs["steps"]) == 15
+            assert f["model/R"].shape[1] == 16
+        with open(d / "eval.csv") as f:
+            rows = list(csv.DictReader(f))
+        assert rows[0]["model"] == "model" and int(rows[0]["rollout_steps"]) == 15
+        assert "steps 0..15" in (d / "eval.md").read_text()
+    assert {name: (run / name).read_bytes() for name in own} == own
     assert not [p for p in run.rglob("*") if ".tmp" in p.name]
+
+
+def test_a_failed_rollout_leaves_no_folder(trained, monkeypatch):
+    """`liedfl rollout` removes its new folder when anything fails after creating it."""
+    from liedfl_cli import rollout as rollout_mod
+
+    def broken(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    before = sorted(p.name for p in (trained / "rollouts").iterdir()) if (trained / "rollouts").exists() else None
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose(config_name="rollout", overrides=[f"run={trained}", "steps=9", "ui.progress=false"])
+    monkeypatch.setattr(rollout_mod, "rollout_and_save", broken)
+    with pytest.raises(KeyboardInterrupt):
+        rollout_mod.run_rollout(cfg)
+    after = sorted(p.name for p in (trained / "rollouts").iterdir()) if (trained / "rollouts").exists() else None
+    assert after == before
 
 
 def test_eval_rewrites_eval_csv(trained, tmp_path):
@@ -98,6 +128,43 @@ def test_eval_rewrites_eval_csv(trained, tmp_path):
         rows = list(csv.DictReader(f))
     assert rows and rows[0]["model"] == "model" and math.isfinite(float(rows[0]["rel_rot_error_mean"]))
     assert list(tmp_path.iterdir()) == []  # the recorded dataset was found; nothing regenerated here
+
+
+def test_eval_of_another_rollout_writes_next_to_it(trained, tmp_path):
+    """`liedfl eval run=<run> rollout=<file or folder>` evaluates that file and writes next to it only."""
+    run = trained
+    liedfl("rollout", f"run={run}", "steps=12", "ui.progress=false", "eval.plots=false", cwd=tmp_path)
+    folder = next(d for d in (run / "rollouts").iterdir() if d.name.endswith("_steps12"))
+    (folder / "eval.csv").unlink()
+    own = (run / "eval.csv").read_bytes()
+    liedfl("eval", f"run={run}", f"rollout={folder}", "ui.progress=false", "eval.plots=false", cwd=tmp_path)
+    with open(folder / "eval.csv") as f:
+        assert int(next(csv.DictReader(f))["rollout_steps"]) == 12
+    assert (run / "eval.csv").read_bytes() == own
+    proc = liedfl("eval", f"run={run}", f"rollout={folder / 'nope.h5'}", "ui.progress=false", cwd=tmp_path, ok=False)
+    assert proc.returncode != 0 and "Traceback" not in proc.stderr
+    assert [line for line in proc.stderr.splitlines() if line.strip()] == [
+        f"error: rollout={folder / 'nope.h5'}: no such rollout file"
+    ]
+
+
+def test_eval_refuses_a_rollout_that_does_not_match_the_dataset(trained, tmp_path):
+    """Issue 11: a rollout.h5 with one predicted trajectory for two test trajectories is a one-line error
+    naming the file and field (exit 2), and the run's evaluation stays as it was."""
+    run = tmp_path / "run"
+    shutil.copytree(trained, run)
+    with h5py.File(run / "rollout.h5", "r+") as f:
+        assert len(f["traj_index"]) == 2
+        for k in ("R", "p"):
+            a = f[f"model/{k}"][:1]
+            del f[f"model/{k}"]
+            f[f"model/{k}"] = a
+    before = (run / "eval.csv").read_bytes()
+    proc = liedfl("eval", f"run={run}", "ui.progress=false", cwd=tmp_path, ok=False)
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr and len(lines) == 1, proc.stderr
+    assert lines[0].startswith(f"error: {run / 'rollout.h5'}: dataset 'model/R' holds 1 trajectories"), lines[0]
+    assert (run / "eval.csv").read_bytes() == before
 
 
 def test_data_writes_one_dataset(tmp_path):

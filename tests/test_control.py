@@ -12,9 +12,9 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from liedfl_cli.control_eval import force_torques, plot_torque, torque_errors
 from liedfl_cli.data import generate
 from liedfl_cli.data.scenes_multibody import pd_torque
+from liedfl_cli.evaluation.control import force_torques, plot_torque, torque_errors
 from liedfl_cli.lie import SO3, Pose, ProductGroup, so3
 from liedfl_cli.mechanics.forces import ControlForce
 from liedfl_cli.models.liedflnn import LieDFLNN

@@ -1,5 +1,5 @@
 """Exp 4 (mocap cartwheels): the experiment config, a smoke training run end to end with the mocap
-table and plots (liedfl_cli/mocap_eval.py), and the mocap metrics against the recordings."""
+table and plots (liedfl_cli/evaluation/mocap.py), and the mocap metrics against the recordings."""
 
 from __future__ import annotations
 
@@ -112,7 +112,7 @@ def test_mocap_errors_truth_and_discrepancy(smoke_run):
     """Truth against itself is zero; recording 0 against recording 1 is `recording_discrepancy`."""
     from liedfl_cli.data.mocap import mocap_errors, recording_discrepancy
     from liedfl_cli.data.scenes import get_dataset
-    from liedfl_cli.mocap_eval import discrepancy
+    from liedfl_cli.evaluation.mocap import discrepancy
 
     cfg, _, _, data_dir = smoke_run
     ds, _ = get_dataset(cfg.dataset, data_dir)

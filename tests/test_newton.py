@@ -79,7 +79,7 @@ def test_rollout_flags_non_converged_steps():
     g0, g1 = _so3_start()
     ro = model.rollout(g0, g1, 20, SolverOptions(tol=1e-30, max_iter=1))
     assert ro.n_failed == 3 * 19
-    assert ro.first_failure() == 1
+    assert ro.first_failure() == 2  # the first predicted pose, g_2
     assert not ro.converged.any()
 
 

@@ -110,10 +110,10 @@ def test_resume_of_a_finished_run_redoes_the_evaluation_and_can_extend(tmp_path)
     run = Path(s["run_dir"])
     run_resume(_cfg(tmp_path, "", [f"resume={run}", "ui.progress=false"], name="resume"))
     assert len(_losses(run)) == 6
-    run_resume(_cfg(tmp_path, "", [f"resume={run}", "ui.progress=false", "train.epochs=8"], name="resume"))
+    run_resume(_cfg(tmp_path, "", [f"resume={run}", "ui.progress=false", "epochs=8"], name="resume"))
     assert [r[0] for r in _losses(run)] == [str(i) for i in range(1, 9)]
     with pytest.raises(ConfigError, match="already at epoch 8"):
-        run_resume(_cfg(tmp_path, "", [f"resume={run}", "train.epochs=5"], name="resume"))
+        run_resume(_cfg(tmp_path, "", [f"resume={run}", "epochs=5"], name="resume"))
 
 
 def test_resume_needs_a_checkpoint_with_training_state(tmp_path):

@@ -3,7 +3,7 @@
 from ..errors import CheckpointError, ConfigError, DatasetError, LiedflError, SimulationError
 from .hdf5 import FORMAT_VERSION, Dataset, load_dataset, save_dataset
 from .physics import RigidBodySE3, RigidBodySO3, SolverOptions, simulate_se3, simulate_so3
-from .scenes import SCENES, config_hash, dataset_path, generate, get_dataset, register_scene
+from .scenes import SCENES, config_hash, dataset_path, generate, get_dataset
 
 __all__ = [
     "CheckpointError",
@@ -25,5 +25,4 @@ __all__ = [
     "dataset_path",
     "generate",
     "get_dataset",
-    "register_scene",
 ]

@@ -1,6 +1,6 @@
 """Real recordings: BVH motion capture imported onto SE(3) x SO(3)^n.
 
-Registered into `scenes.SCENES` on import (see the end of scenes.py).
+Listed in the scene registry `scenes.SCENES`.
 
 Scene `cmu_cartwheel` (config conf/dataset/cmu_cartwheel.yaml, paper Experiment 4): CMU subject 49,
 cartwheel trials 06 and 07 (BVH files shipped under data/cmu_mocap/, see PROVENANCE.md there).
@@ -49,15 +49,7 @@ from ..lie import so3
 from ..lie.product import Pose
 from .bvh import BVH, forward_kinematics, read_bvh
 from .hdf5 import Dataset
-from .scenes import (
-    GENERATOR_VERSION,
-    _canonical_json_native,
-    _check,
-    config_hash,
-    generator_config,
-    register_scene,
-    to_dict,
-)
+from .scene_common import REQUIRED_KEYS, check_config, dataset_params, to_dict
 from .smoothing import check_window, smooth_pose
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -147,7 +139,7 @@ SCENE_KEYS = (
     "split",
     "cap_trajectories",
 )
-"""Scene-specific keys of the cmu_cartwheel config (besides the common ones checked by scenes._check)."""
+"""Scene-specific keys of the cmu_cartwheel config (besides the common ones, scene_common.REQUIRED_KEYS)."""
 
 REAL_DATA_SCENES = ("cmu_cartwheel",)
 """Scenes imported from recordings: no physics/initial/solver fields, fixed number of trajectories."""
@@ -273,21 +265,7 @@ def _sha256(path: Path) -> str:
 
 def _scene_config(c: dict) -> dict:
     """Check the mocap-specific keys; returns them with defaults filled in (ConfigError on problems)."""
-    allowed = set(SCENE_KEYS) | {
-        "name",
-        "h",
-        "n_trajectories",
-        "steps",
-        "train_steps",
-        "rollout_steps",
-        "test_fraction",
-        "n_test",
-        "seed",
-        "physics",
-        "initial",
-        "solver",
-        "defaults",
-    }  # Hydra's defaults list, present when the yaml is loaded directly
+    allowed = set(SCENE_KEYS) | set(REQUIRED_KEYS) | {"defaults"}  # Hydra's defaults list, when the yaml is loaded
     unknown = sorted(set(c) - allowed)
     if unknown:
         raise ConfigError(
@@ -416,10 +394,9 @@ def import_bvh(path: Path, s: dict) -> tuple[np.ndarray, np.ndarray, dict, BVH, 
     return R, p, info, b, bodies
 
 
-@register_scene("cmu_cartwheel")
 def cmu_cartwheel(cfg, progress: Callable[[float], None] | None = None) -> Dataset:
     """Exp 4: BVH recordings on SE(3) x SO(3)^n (see the module docstring for every step)."""
-    c = _check(to_dict(cfg))
+    c = check_config(to_dict(cfg))
     s = _scene_config(c)
     sub, steps, h = s["subsample"], int(c["steps"]), float(c["h"])
     Rs, ps, raws, infos, skeleton = [], [], [], [], None
@@ -475,26 +452,24 @@ def cmu_cartwheel(cfg, progress: Callable[[float], None] | None = None) -> Datas
             )
         split = {"train": np.arange(T - k), "test": np.arange(T - k, T)}
     unit_m = s["unit_m"] / s["length_scale"]
-    params = {
-        "config": _canonical_json_native(generator_config(c)),
-        "config_hash": config_hash(c),
-        "generator_version": GENERATOR_VERSION,
-        "sources": infos,
-        "split_overlap": s["split"] == "reproduce",
-        "length_unit_m": unit_m,
-        "length_unit": (
+    params = dataset_params(
+        c,
+        sources=infos,
+        split_overlap=s["split"] == "reproduce",
+        length_unit_m=unit_m,
+        length_unit=(
             f"file unit x {s['length_scale']} (1 stored unit = {unit_m:.6g} m; the CMU files use "
             f"CMU ASF units, 1/0.45 inch = {ASF_UNIT_M:.6g} m)"
         ),
-        "world_frame": (
+        world_frame=(
             "z up: world = Rx(+90 deg) applied to the BVH world (y up)" if s["z_up"] else "BVH world frame (y up)"
         ),
-        "bodies": {
+        bodies={
             "root": "world pose of " + s["root"],
             "joints": "rotation relative to the BVH parent",
             "asf_names": [BVH_TO_ASF.get(n, n) for n in [s["root"]] + s["joints"]],
         },
-        "smoothing": (
+        smoothing=(
             None
             if s["smoothing"] is None
             else {
@@ -503,9 +478,9 @@ def cmu_cartwheel(cfg, progress: Callable[[float], None] | None = None) -> Datas
                 "sample, positions plain; applied before subsample/crop",
             }
         ),
-        "skeleton": skeleton,
-        "attribution": ATTRIBUTION,
-    }
+        skeleton=skeleton,
+        attribution=ATTRIBUTION,
+    )
     return Dataset(
         R=R,
         p=p,

@@ -1,7 +1,7 @@
 """Multibody and controlled scenes (two bodies on SE(3) x SO(3), PD-controlled heavy body).
 
-Registered into `scenes.SCENES` on import (see the end of scenes.py). Besides the common
-dataset fields (scenes.REQUIRED_KEYS) these scenes read one extra block:
+Listed in the registry `scenes.SCENES`. Besides the common dataset fields
+(scene_common.REQUIRED_KEYS) these scenes read one extra block:
 
 two_body   (conf/dataset/two_body.yaml)  SE(3) x SO(3): body 1 a free rigid body in gravity,
     body 2 a heavy body on a pivot at the world origin, coupled by an interaction potential.
@@ -36,52 +36,21 @@ from ..lie import so3
 from .hdf5 import Dataset
 from .physics import RigidBodySO3, simulate_so3
 from .physics_multibody import MultiBodySystem, simulate_multibody
-from .scenes import (
-    GENERATOR_VERSION,
-    _canonical_json_native,
-    _check,
-    _keys,
-    _physics,
-    _rngs,
-    _times,
-    config_hash,
-    generator_config,
+from .scene_common import (
+    check_config,
+    dataset_params,
     make_split,
-    register_scene,
+    rigid_physics,
+    rngs,
+    sample_times,
+    section,
+    simulation_info,
     to_dict,
+    vector,
 )
 
 INTERACTION_KEYS = ("kind", "mu", "r1", "r2", "moment1", "moment2")
 CONTROL_KEYS = ("R_f", "k_r", "k_w", "feedforward")
-
-
-def _vec(x, n: int, name: str) -> list[float]:
-    a = np.asarray(x, dtype=np.float64)
-    if a.shape != (n,) or not np.isfinite(a).all():
-        raise ConfigError(f"dataset.{name} must be a list of {n} finite numbers, got {x!r}")
-    return [float(v) for v in a]
-
-
-def _block(c: dict, key: str, allowed: tuple[str, ...]) -> dict:
-    if key not in c or not isinstance(c[key], dict):
-        raise ConfigError(f"dataset.{key} is required for scene {c['name']!r} (keys {list(allowed)})")
-    d = dict(c[key])
-    missing, unknown = [k for k in allowed if k not in d], sorted(set(d) - set(allowed))
-    if missing or unknown:
-        raise ConfigError(
-            f"dataset.{key} for scene {c['name']!r}: missing {missing}, unknown {unknown} (expected {list(allowed)})"
-        )
-    return d
-
-
-def _params(c: dict, physics: dict, sim) -> dict:
-    return {
-        "config": _canonical_json_native(generator_config(c)),
-        "config_hash": config_hash(c),
-        "generator_version": GENERATOR_VERSION,
-        "physics": physics,
-        "simulation": {"max_orthogonality_drift": sim.max_drift, "nfev": sim.nfev},
-    }
 
 
 # --------------------------------------------------------------------------- two bodies
@@ -89,7 +58,7 @@ def two_body_physics(c: dict) -> dict:
     """Validated physics + interaction of a two_body config -> the dict stored in params["physics"]."""
     from ..mechanics.potentials import INTERACTIONS
 
-    ph = _keys(c, "physics", ("J", "m", "rho", "g", "D"))
+    ph = section(c, "physics", ("J", "m", "rho", "g", "D"))
     J = np.asarray(ph["J"], dtype=np.float64)
     if J.shape != (2, 3) or (J <= 0).any():
         raise ConfigError(
@@ -108,12 +77,12 @@ def two_body_physics(c: dict) -> dict:
     D = np.asarray(ph["D"], dtype=np.float64)
     if D.shape != (9,) or (D < 0).any():
         raise ConfigError(f"dataset.physics.D must be 9 non-negative numbers (diagonal on w1, v1, w2), got {ph['D']!r}")
-    it = _block(c, "interaction", INTERACTION_KEYS)
+    it = section(c, "interaction", INTERACTION_KEYS)
     if it["kind"] not in INTERACTIONS:
         raise ConfigError(f"dataset.interaction.kind must be one of {list(INTERACTIONS)}, got {it['kind']!r}")
     inter = {"kind": str(it["kind"]), "mu": float(it["mu"])}
     for k in ("r1", "r2", "moment1", "moment2"):
-        inter[k] = _vec(it[k], 3, f"interaction.{k}")
+        inter[k] = vector(it[k], 3, f"interaction.{k}")
     return {
         "J": J.tolist(),
         "m": m.tolist(),
@@ -131,15 +100,14 @@ def two_body_system(physics: dict) -> MultiBodySystem:
     )
 
 
-@register_scene("two_body")
 def two_body(cfg, progress: Callable[[float], None] | None = None) -> Dataset:
     """SE(3) x SO(3): free body 1 and pivoted body 2 in gravity, coupled by an interaction potential."""
-    c = _check(to_dict(cfg))
+    c = check_config(to_dict(cfg))
     physics = two_body_physics(c)
-    ini = _keys(c, "initial", ("rot_std", "offset", "p_std", "omega_std", "v_std"))
-    offset = np.asarray(_vec(ini["offset"], 3, "initial.offset"))
+    ini = section(c, "initial", ("rot_std", "offset", "p_std", "omega_std", "v_std"))
+    offset = np.asarray(vector(ini["offset"], 3, "initial.offset"))
     system = two_body_system(physics)
-    rng, split_seed = _rngs(c["seed"])
+    rng, split_seed = rngs(c["seed"])
     T = int(c["n_trajectories"])
     R0 = so3.exp(torch.from_numpy(float(ini["rot_std"]) * rng.standard_normal((T, 2, 3)))).numpy()
     r1, r2 = np.asarray(physics["interaction"]["r1"]), np.asarray(physics["interaction"]["r2"])
@@ -148,7 +116,7 @@ def two_body(cfg, progress: Callable[[float], None] | None = None) -> Dataset:
     w0 = float(ini["omega_std"]) * rng.standard_normal((T, 2, 3))
     v0 = float(ini["v_std"]) * rng.standard_normal((T, 1, 3))
     xi0 = system.G.join(torch.from_numpy(w0), torch.from_numpy(v0)).numpy()
-    sim = simulate_multibody(system, R0, p0, xi0, _times(c), c["solver"], progress)
+    sim = simulate_multibody(system, R0, p0, xi0, sample_times(c), c["solver"], progress)
     xi = sim.w
     w, v = (a.numpy() for a in system.G.split(torch.from_numpy(xi)))
     F_ext = system.external_covector(sim.R, sim.p, xi)
@@ -160,7 +128,7 @@ def two_body(cfg, progress: Callable[[float], None] | None = None) -> Dataset:
         scene=c["name"],
         body_names=["body1", "body2"],
         body_kinds=["se3", "so3"],
-        params=_params(c, physics, sim),
+        params=dataset_params(c, physics=physics, simulation=simulation_info(sim)),
         seed=int(c["seed"]),
         split=make_split(T, float(c["test_fraction"]), c["n_test"], split_seed),
         extras={"omega": w, "v": v, "tau_ext": tau_ext, "f_ext": f_ext, "energy": system.energy(sim.R, sim.p, xi)},
@@ -186,17 +154,16 @@ def pd_torque(R: np.ndarray, w: np.ndarray, control: dict, m: float, rho, g: flo
     return tau
 
 
-@register_scene("pd_control")
 def pd_control(cfg, progress: Callable[[float], None] | None = None) -> Dataset:
     """Exp 5: heavy rigid body on SO(3) under PD attitude control toward R_f."""
-    c = _check(to_dict(cfg))
-    ph = _physics(c, 3)
-    ct = _block(c, "control", CONTROL_KEYS)
+    c = check_config(to_dict(cfg))
+    ph = rigid_physics(c, 3)
+    ct = section(c, "control", CONTROL_KEYS)
     if not isinstance(ct["feedforward"], bool):
         raise ConfigError(f"dataset.control.feedforward must be true or false, got {ct['feedforward']!r}")
     K_R, K_w, J_bar = pd_gains(ph["J"], float(ct["k_r"]), float(ct["k_w"]))
     control = {
-        "R_f": _vec(ct["R_f"], 3, "control.R_f"),
+        "R_f": vector(ct["R_f"], 3, "control.R_f"),
         "k_r": float(ct["k_r"]),
         "k_w": float(ct["k_w"]),
         "J_bar": J_bar,
@@ -205,23 +172,24 @@ def pd_control(cfg, progress: Callable[[float], None] | None = None) -> Dataset:
         "feedforward": bool(ct["feedforward"]),
     }
     physics = dict(ph, control=control, bodies=["so3"])
-    ini = _keys(c, "initial", ("R0", "omega0", "perturb"))
-    rng, split_seed = _rngs(c["seed"])
+    ini = section(c, "initial", ("R0", "omega0", "perturb"))
+    rng, split_seed = rngs(c["seed"])
     T = int(c["n_trajectories"])
     eps = float(ini["perturb"])
     dR = eps * rng.standard_normal((T, 3))
     dw = eps * rng.standard_normal((T, 3))
     dR[0], dw[0] = 0.0, 0.0  # trajectory 0 is the configured initial condition
     R0 = (
-        so3.exp(torch.as_tensor(_vec(ini["R0"], 3, "initial.R0"), dtype=torch.float64)) @ so3.exp(torch.from_numpy(dR))
+        so3.exp(torch.as_tensor(vector(ini["R0"], 3, "initial.R0"), dtype=torch.float64))
+        @ so3.exp(torch.from_numpy(dR))
     ).numpy()
-    w0 = np.asarray(_vec(ini["omega0"], 3, "initial.omega0")) + dw
+    w0 = np.asarray(vector(ini["omega0"], 3, "initial.omega0")) + dw
 
     def tau_pd(R, w):
         return pd_torque(R, w, control, ph["m"], ph["rho"], ph["g"])
 
     body = RigidBodySO3(J=ph["J"], m=ph["m"], rho=ph["rho"], g=ph["g"], D=ph["D"], tau_extra=tau_pd)
-    sim = simulate_so3(body, R0, w0, _times(c), c["solver"], progress)
+    sim = simulate_so3(body, R0, w0, sample_times(c), c["solver"], progress)
     p = np.zeros(sim.R.shape[:2] + (0, 3))
     return Dataset(
         R=sim.R[:, :, None],
@@ -230,7 +198,7 @@ def pd_control(cfg, progress: Callable[[float], None] | None = None) -> Dataset:
         scene=c["name"],
         body_names=["body"],
         body_kinds=["so3"],
-        params=_params(c, physics, sim),
+        params=dataset_params(c, physics=physics, simulation=simulation_info(sim)),
         seed=int(c["seed"]),
         split=make_split(T, float(c["test_fraction"]), c["n_test"], split_seed),
         extras={
@@ -244,19 +212,5 @@ def pd_control(cfg, progress: Callable[[float], None] | None = None) -> Dataset:
         t=sim.t,
     )
 
-
-def _pd_control_eval(cfg, model, dataset, run_dir):
-    from ..control_eval import evaluate_control
-
-    return evaluate_control(cfg, model, dataset, run_dir)
-
-
-def _register_extra_evals() -> None:
-    from ..extras import EXTRA_EVALS
-
-    EXTRA_EVALS.setdefault("pd_control", _pd_control_eval)
-
-
-_register_extra_evals()
 
 __all__ = ["two_body", "pd_control", "two_body_physics", "two_body_system", "pd_gains", "pd_torque"]

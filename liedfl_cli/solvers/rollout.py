@@ -40,8 +40,11 @@ class Rollout:
         return int((~self.converged).sum())
 
     def first_failure(self) -> int | None:
+        """Index of the first pose (any trajectory) whose solve did not converge, or None.
+
+        converged[:, j] is the solve for pose g_{j+2} (the pose sequence starts with g_0, g_1)."""
         bad = (~self.converged).any(0).nonzero()
-        return int(bad[0]) + 1 if len(bad) else None  # step index k+1 that was not solved
+        return int(bad[0]) + 2 if len(bad) else None
 
 
 def with_data_start(pred: Pose, g0: Pose, g1: Pose) -> Pose:

@@ -1,8 +1,9 @@
 """Exp 4 evaluation: the paper's mocap table (reproduction errors vs the ground-truth discrepancy).
 
-Registered as EXTRA_EVALS["cmu_cartwheel"] (the import at the end of extras.py) and run by
-`liedfl train` after the standard evaluation. From the run's rollout.h5 (group `model`, one rollout
-per test sequence started from its true first pair) and the dataset:
+Listed as SCENE_EVALS["cmu_cartwheel"] in `liedfl_cli.evaluation` and run by `liedfl train`,
+`liedfl rollout` and `liedfl eval` after the standard evaluation. From a rollout file (group `model`,
+one rollout per test sequence started from its true first pair; read and checked against the dataset
+by `rollout_file.load_rollout`) and the dataset:
 
   per sequence   mean over the rollout of: root rotation geodesic error |log(R^_0^T R_0)| (rad), the
                  joint rotation geodesic error averaged over the 22 joints (rad), and the root position
@@ -12,15 +13,18 @@ per test sequence started from its true first pair) and the dataset:
   discrepancy    the same three numbers between the two ground-truth recordings, frame by frame over
                  their common (cropped) length, root positions measured from each recording's start
                  (`data.mocap.recording_discrepancy`, the paper's reference scale).
+  span           errors where ground truth exists: samples 0..min(S, N) of a rollout of S steps over a
+                 dataset of N steps; the Newton and non-finite diagnostics cover the whole rollout.
   paper          the numbers of the paper's table next to ours, and a verdict line saying whether
                  every one of our errors is below the corresponding discrepancy (ours and the paper's).
-  Newton         the rollout's non-converged implicit steps (rollout.h5 `model/converged`).
+  Newton         the rollout's non-converged implicit steps (`model/converged` of the rollout file).
   diagnostics    per sequence and metric, the time until the per-timestep error first exceeds the
                  per-timestep discrepancy; and teacher-forced one-step errors (g_{k+1} from the true
                  (g_{k-1}, g_k), one batched Newton solve) next to constant-velocity extrapolation,
                  which separate the model's local error from the compounding of the rollout.
 
-Files: mocap_eval.csv, mocap_eval.md, mocap_eval.json and, with eval.plots, plots/mocap_errors.png
+Files, next to the rollout file: mocap_eval.csv, mocap_eval.md, mocap_eval.json and, with eval.plots,
+plots/mocap_errors.png
 (per-timestep errors, discrepancy in grey), plots/mocap_skeleton_seq<i>.png (skeletons at uniform
 intervals by forward kinematics from the BVH offsets in params.skeleton: truth green/red, prediction
 blue), plots/mocap_root_trajectory.png (root path and frames in 3-D) and
@@ -34,9 +38,15 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from rich.markup import escape
+from rich.table import Table
 
-from .io_utils import markdown_table, write_csv, write_json, write_text
-from .ui import console
+from ..data.mocap import ASF_UNIT_M, mocap_errors, recording_discrepancy, skeleton_points
+from ..io_utils import fmt, markdown_table, write_csv, write_json, write_text
+from ..lie import Pose
+from ..plots import draw_unit_sphere, plt, save_figure
+from ..rollout_file import FILE_NAME, RolloutEntry, load_rollout
+from ..ui import console
 
 PAPER = {
     "sequences": [
@@ -55,34 +65,9 @@ AXIS_JOINTS = ("LeftUpLeg", "RightUpLeg", "LeftArm", "RightArm", "LeftLeg", "Rig
 """Joints whose bone direction (R_j times the unit offset of its child) is drawn on the sphere."""
 
 
-# --------------------------------------------------------------------------- reading
-def read_model_rollout(path: Path) -> dict:
-    """rollout.h5 -> {R, p (T, S+1, ...), converged (T, S-1), iterations, traj_index, attrs}."""
-    import h5py
-
-    from .errors import DatasetError
-
-    if not path.is_file():
-        raise DatasetError(f"{path}: rollout file not found (run `liedfl rollout run=<dir>` first)")
-    with h5py.File(path, "r") as f:
-        if "model" not in f or "traj_index" not in f:
-            raise DatasetError(f"{path}: group 'model' or dataset 'traj_index' missing")
-        g = f["model"]
-        return {
-            "R": g["R"][...],
-            "p": g["p"][...],
-            "converged": g["converged"][...].astype(bool) if "converged" in g else None,
-            "iterations": g["iterations"][...] if "iterations" in g else None,
-            "traj_index": f["traj_index"][...].astype(int),
-            "attrs": dict(g.attrs),
-            "file_attrs": dict(f.attrs),
-        }
-
-
+# --------------------------------------------------------------------------- helpers
 def _asf_per_unit(dataset) -> float:
     """CMU ASF units per stored length unit (1.0 for length_scale 1)."""
-    from .data.mocap import ASF_UNIT_M
-
     return float(dataset.params.get("length_unit_m", ASF_UNIT_M)) / ASF_UNIT_M
 
 
@@ -94,9 +79,6 @@ def _sequence_name(dataset, i: int) -> str:
 # --------------------------------------------------------------------------- numbers
 def sequence_errors(pred_R, pred_p, true_R, true_p) -> dict:
     """Per-sequence errors over the predicted samples k >= 2: scalars and per-step curves (numpy)."""
-    from .data.mocap import mocap_errors
-    from .lie.product import Pose
-
     e = mocap_errors(
         Pose(torch.as_tensor(pred_R), torch.as_tensor(pred_p)), Pose(torch.as_tensor(true_R), torch.as_tensor(true_p))
     )
@@ -113,8 +95,6 @@ def discrepancy(dataset) -> dict | None:
     """Ground-truth discrepancy between recordings 0 and 1 (scalars and curves), None with < 2."""
     if dataset.n_trajectories < 2:
         return None
-    from .data.mocap import mocap_errors, recording_discrepancy
-
     d = recording_discrepancy(dataset)
     e = mocap_errors(dataset.pose([0]).index(0), dataset.pose([1]).index(0), relative_position=True)
     d.update({k + "_t": e[k + "_t"].numpy() for k in METRICS})
@@ -148,9 +128,6 @@ def one_step_errors(model, truth_R, truth_p, solver) -> dict | None:
     (the zero-force free-flight guess), and the Newton convergence count. None for models without
     a `rollout(g0, g1, steps, solver)` method.
     """
-    from .data.mocap import mocap_errors
-    from .lie.product import Pose
-
     if not hasattr(model, "rollout") or not hasattr(model, "G"):
         return None
     R, p = torch.as_tensor(truth_R), torch.as_tensor(truth_p)
@@ -183,13 +160,14 @@ def _finite(x) -> bool:
 
 
 def build_rows(
-    err: dict, disc: dict | None, idx: np.ndarray, dataset, ro: dict, asf: float, unit_m: float, steps: int
+    err: dict, disc: dict | None, idx: np.ndarray, dataset, ro: RolloutEntry, asf: float, unit_m: float, steps: int
 ) -> list[dict]:
+    """Table rows: one per rolled-out sequence (errors over `steps` steps, Newton failures over the whole
+    rollout), then the ground-truth discrepancy."""
     rows = []
     for n, i in enumerate(idx):
         paper = PAPER["sequences"][i] if i < len(PAPER["sequences"]) else {}
-        conv = ro["converged"]
-        fails = int((~conv[n]).sum()) if conv is not None else None
+        fails = int((~ro.converged[n]).sum())
         row = {
             "row": f"Sequence {i + 1} ({_sequence_name(dataset, i)}) prediction",
             "steps": steps,
@@ -249,33 +227,27 @@ def verdict(rows: list[dict], disc: dict | None, asf: float) -> dict:
 
 
 # --------------------------------------------------------------------------- entry point
-def evaluate_mocap(cfg, model, dataset, run_dir) -> dict:
-    """Exp 4 table, files and plots of a run (see the module docstring)."""
-    from rich.markup import escape
-    from rich.table import Table
+def evaluate_mocap(cfg, model, dataset, run_dir, rollout_path=None) -> dict:
+    """Exp 4 table, files and plots of a rollout (see the module docstring).
 
-    from .io_utils import fmt
-
-    run_dir = Path(run_dir)
-    ro = read_model_rollout(run_dir / "rollout.h5")
-    idx = ro["traj_index"]
-    S = ro["R"].shape[1] - 1
+    rollout_path: the rollout file (default `<run_dir>/rollout.h5`); the files go next to it."""
+    path = Path(rollout_path) if rollout_path is not None else Path(run_dir) / FILE_NAME
+    out_dir = path.parent
+    rf = load_rollout(path, dataset)
+    ro, idx = rf.model, rf.traj_index
+    S = ro.steps
+    n_err = min(S, dataset.n_steps)  # errors where ground truth exists; Newton over the whole rollout
     truth = dataset.pose(idx)
-    tR, tp = truth.R.numpy()[:, : S + 1], truth.p.numpy()[:, : S + 1]
-    err = sequence_errors(ro["R"], ro["p"], tR, tp)
+    tR, tp = truth.R.numpy()[:, : n_err + 1], truth.p.numpy()[:, : n_err + 1]
+    pR, pp = ro.R[:, : n_err + 1], ro.p[:, : n_err + 1]
+    err = sequence_errors(pR, pp, tR, tp)
     disc = discrepancy(dataset)
     asf = _asf_per_unit(dataset)
     unit_m = float(dataset.params.get("length_unit_m", float("nan")))
-    rows = build_rows(err, disc, idx, dataset, ro, asf, unit_m, S)
+    rows = build_rows(err, disc, idx, dataset, ro, asf, unit_m, n_err)
     ver = verdict(rows, disc, asf)
-    conv = ro["converged"]
-    n_fail = int((~conv).sum()) if conv is not None else None
-    first_fail = None
-    if conv is not None and n_fail:
-        first_fail = int(np.nonzero((~conv).any(0))[0][0]) + 2  # converged[:, j] solves for sample j + 2
-    nonfinite = [
-        int(i) for n, i in enumerate(idx) if not (np.isfinite(ro["R"][n]).all() and np.isfinite(ro["p"][n]).all())
-    ]
+    n_fail, first_fail = ro.n_failed, ro.first_failure
+    nonfinite = [int(i) for n, i in enumerate(idx) if not (np.isfinite(ro.R[n]).all() and np.isfinite(ro.p[n]).all())]
     until = below_until(err, disc, dataset.h)
     onestep = one_step_errors(model, tR, tp, cfg.get("solver") if hasattr(cfg, "get") else None)
     per_joint = {
@@ -296,15 +268,13 @@ def evaluate_mocap(cfg, model, dataset, run_dir) -> dict:
         verdict_line("paper", "Below the paper's discrepancy numbers (0.373 / 0.416 / 6.624)"),
     ]
     newton_line = (
-        f"Newton: {n_fail} non-converged implicit step(s) out of {conv.size} "
-        f"({'first at sample ' + str(first_fail) if n_fail else 'none'}); "
-        f"mean iterations {float(ro['iterations'].mean()):.2f}"
-        if conv is not None
-        else "Newton: no convergence flags in rollout.h5"
+        f"Newton (whole rollout, samples 2..{S}): {n_fail} non-converged implicit step(s) out of "
+        f"{ro.converged.size} ({'first at sample ' + str(first_fail) if n_fail else 'none'}); "
+        f"mean iterations {ro.mean_iterations:.2f}"
     )
     if nonfinite:
         newton_line += f"; NON-FINITE rollout for trajectory(ies) {nonfinite}"
-    sps = ro["attrs"].get("seconds_per_step")
+    sps = ro.seconds_per_step
     summary = {
         "rows": rows,
         "verdict": ver,
@@ -312,6 +282,7 @@ def evaluate_mocap(cfg, model, dataset, run_dir) -> dict:
         "first_failure_sample": first_fail,
         "nonfinite_trajectories": nonfinite,
         "rollout_steps": S,
+        "error_steps": n_err,
         "rollout_seconds_per_step": float(sps) if sps is not None else None,
         "joint_rot_per_joint": per_joint,
         "below_discrepancy_until_s": {_sequence_name(dataset, i): u for i, u in zip(idx, until)},
@@ -334,8 +305,8 @@ def evaluate_mocap(cfg, model, dataset, run_dir) -> dict:
         "asf_units_per_stored_unit": asf,
         "paper": PAPER,
     }
-    write_json(run_dir / "mocap_eval.json", summary)
-    write_csv(run_dir / "mocap_eval.csv", rows)
+    write_json(out_dir / "mocap_eval.json", summary)
+    write_csv(out_dir / "mocap_eval.csv", rows)
     cols = [
         "row",
         "steps",
@@ -351,9 +322,10 @@ def evaluate_mocap(cfg, model, dataset, run_dir) -> dict:
     md = (
         f"# Exp 4: cartwheel reproduction errors ({dataset.scene}, h={dataset.h}, rollout of {S} steps from the "
         f"true first pair)\n\n"
-        "Means over the rollout (predicted samples k = 2..S): root rotation geodesic error (rad), joint rotation "
-        "geodesic error averaged over the joints (rad), root position error |p^ - p| in CMU ASF units (the file "
-        "unit of the CMU BVH files and the paper's unit; 1 ASF unit = 1/0.45 inch = 0.0564 m) and in metres. "
+        f"Means over the predicted samples k = 2..{n_err} (where the recording has ground truth): root rotation "
+        "geodesic error (rad), joint rotation geodesic error averaged over the joints (rad), root position error "
+        "|p^ - p| in CMU ASF units (the file unit of the CMU BVH files and the paper's unit; "
+        "1 ASF unit = 1/0.45 inch = 0.0564 m) and in metres. "
         f"Ground truth discrepancy: the same numbers between the two recordings over their common "
         f"{int(dataset.n_steps) + 1} frames, root positions measured from each recording's start. "
         "`*_paper`: the paper's table.\n\n"
@@ -385,7 +357,7 @@ def evaluate_mocap(cfg, model, dataset, run_dir) -> dict:
         md += markdown_table(orows, list(orows[0]))
     md += "\n\n## Mean joint rotation error per joint (rad, mean over the rolled-out sequences)\n\n"
     md += markdown_table([per_joint], list(per_joint))
-    write_text(run_dir / "mocap_eval.md", md)
+    write_text(out_dir / "mocap_eval.md", md)
 
     table = Table(title=f"Exp 4 mocap reproduction ({S} steps); ours vs paper")
     for c in (
@@ -427,15 +399,13 @@ def evaluate_mocap(cfg, model, dataset, run_dir) -> dict:
         console.print(escape(x), highlight=False)
 
     if cfg.eval.plots:
-        pdir = run_dir / "plots"
+        pdir = out_dir / "plots"
         plot_errors(err, disc, idx, dataset, asf, pdir / "mocap_errors.png")
         for n, i in enumerate(idx):
             sk = _skeleton_for(dataset, i)
-            plot_skeletons(
-                tR[n], tp[n], ro["R"][n], ro["p"][n], sk, dataset.h, i, pdir / f"mocap_skeleton_seq{i + 1}.png"
-            )
-            plot_joint_axes(tR[n], ro["R"][n], sk, dataset.body_names, i, pdir / f"mocap_joint_axes_seq{i + 1}.png")
-        plot_root_trajectory(tR, tp, ro["R"], ro["p"], idx, dataset, pdir / "mocap_root_trajectory.png")
+            plot_skeletons(tR[n], tp[n], pR[n], pp[n], sk, dataset.h, i, pdir / f"mocap_skeleton_seq{i + 1}.png")
+            plot_joint_axes(tR[n], pR[n], sk, dataset.body_names, i, pdir / f"mocap_joint_axes_seq{i + 1}.png")
+        plot_root_trajectory(tR, tp, pR, pp, idx, dataset, pdir / "mocap_root_trajectory.png")
     return summary
 
 
@@ -448,19 +418,9 @@ def _skeleton_for(dataset, i: int) -> dict:
     return sk
 
 
-def _plt():
-    import matplotlib.pyplot as plt
-
-    from . import plots  # noqa: F401  (selects the Agg backend)
-
-    return plt
-
-
 def plot_errors(err: dict, disc: dict | None, idx, dataset, asf: float, path: Path) -> None:
     """Per-timestep errors of each sequence (3 panels) with the ground-truth discrepancy in grey."""
-    from .plots import _save
 
-    plt = _plt()
     h = dataset.h
     fig, axes = plt.subplots(1, 3, figsize=(14, 3.6))
     for ax, k in zip(axes, METRICS):
@@ -482,7 +442,7 @@ def plot_errors(err: dict, disc: dict | None, idx, dataset, asf: float, path: Pa
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8)
     fig.suptitle("Exp 4: per-timestep reproduction error (rollout from the true first pair)")
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def _limits(ax, pts: np.ndarray) -> None:
@@ -499,10 +459,7 @@ def _limits(ax, pts: np.ndarray) -> None:
 
 def plot_skeletons(tR, tp, pR, pp, skeleton: dict, h: float, i: int, path: Path, n_frames: int = 8) -> None:
     """Skeletons (forward kinematics) at uniform intervals: truth (green/red) vs prediction (blue)."""
-    from .data.mocap import skeleton_points
-    from .plots import _save
 
-    plt = _plt()
     S = tR.shape[0] - 1
     frames = np.unique(np.linspace(0, S, min(n_frames, S + 1)).round().astype(int))
     P_true, edges = skeleton_points(tR[frames], tp[frames], skeleton)
@@ -521,14 +478,12 @@ def plot_skeletons(tR, tp, pR, pp, skeleton: dict, h: float, i: int, path: Path,
         if c == 0:
             ax.legend(fontsize=7, loc="upper left")
     fig.suptitle(f"Sequence {i + 1}: skeleton at uniform intervals (truth vs prediction)")
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def plot_root_trajectory(tR, tp, pR, pp, idx, dataset, path: Path, n_frames: int = 8) -> None:
     """Root position path in 3-D with the root frame (axes) at uniform intervals, truth vs prediction."""
-    from .plots import _save
 
-    plt = _plt()
     fig = plt.figure(figsize=(5.2 * len(idx), 5))
     for n, i in enumerate(idx):
         ax = fig.add_subplot(1, len(idx), n + 1, projection="3d")
@@ -551,7 +506,7 @@ def plot_root_trajectory(tR, tp, pR, pp, idx, dataset, path: Path, n_frames: int
         _limits(ax, pts)
         ax.set_title(f"Sequence {i + 1} ({_sequence_name(dataset, i)}): root in SE(3)")
         ax.legend(fontsize=8, loc="upper left")
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def _bone_axes(skeleton: dict, names: list[str]) -> list[tuple[int, str, np.ndarray]]:
@@ -570,36 +525,24 @@ def _bone_axes(skeleton: dict, names: list[str]) -> list[tuple[int, str, np.ndar
 
 def plot_joint_axes(tR, pR, skeleton: dict, names: list[str], i: int, path: Path) -> None:
     """Bone direction R_j d_j (d_j: unit offset of the child in joint j's frame) on the unit sphere."""
-    from .plots import _save
 
-    plt = _plt()
     axes_list = _bone_axes(skeleton, names)
     if not axes_list:
         return
     fig = plt.figure(figsize=(3.4 * len(axes_list), 3.6))
-    u, v = np.mgrid[0 : 2 * np.pi : 30j, 0 : np.pi : 15j]
     color = SEQ_COLORS[i % 2] if i < 2 else "black"
     for c, (j, name, d) in enumerate(axes_list):
         ax = fig.add_subplot(1, len(axes_list), c + 1, projection="3d")
-        ax.plot_wireframe(np.cos(u) * np.sin(v), np.sin(u) * np.sin(v), np.cos(v), color="0.88", linewidth=0.3)
+        draw_unit_sphere(ax)
         ax.plot(*(tR[:, j] @ d).T, color=color, linewidth=1.6, label="truth")
         ax.plot(*(pR[:, j] @ d).T, "--", color=PRED_COLOR, linewidth=1.2, label="prediction")
-        ax.set_box_aspect((1, 1, 1))
         ax.set_title(name, fontsize=9)
         ax.set_xticklabels([]), ax.set_yticklabels([]), ax.set_zticklabels([])
         if c == 0:
             ax.legend(fontsize=7, loc="upper left")
     fig.suptitle(f"Sequence {i + 1}: selected joint rotations (bone direction in the parent frame) on S^2")
-    _save(fig, path)
+    save_figure(fig, path)
 
-
-def _register() -> None:
-    from .extras import EXTRA_EVALS
-
-    EXTRA_EVALS.setdefault("cmu_cartwheel", evaluate_mocap)
-
-
-_register()
 
 __all__ = [
     "PAPER",
@@ -607,7 +550,6 @@ __all__ = [
     "sequence_errors",
     "discrepancy",
     "verdict",
-    "read_model_rollout",
     "below_until",
     "one_step_errors",
     "plot_errors",

@@ -1,7 +1,7 @@
 """Exp 5 evaluation: the learned control torque along the observed trajectory vs the true one.
 
-Registered as EXTRA_EVALS["pd_control"] by `data.scenes_multibody` and run by `liedfl train` after
-the standard evaluation. For every trajectory of each split, at k = 0..N-1:
+Listed as SCENE_EVALS["pd_control"] in `liedfl_cli.evaluation` and run by `liedfl train`,
+`liedfl rollout` and `liedfl eval` after the standard evaluation. For every trajectory of each split, at k = 0..N-1:
 
   learned   tau_theta(R_k, w~_k): the rotational part of the sum of the model's forces, with
             w~_k = vee(W_k - W_k^T)/(2h) from the data increment W_k = R_k^T R_{k+1} (what the
@@ -13,9 +13,9 @@ the standard evaluation. For every trajectory of each split, at k = 0..N-1:
             separates identification error from the O(h) error of the velocity estimate.
 
 Relative error per step ||tau_theta - tau|| / ||tau||; summary mean and max over steps and the
-aggregate ||tau_theta - tau||_2 / ||tau||_2 over all steps. Files: control_eval.json,
-control_eval.md, plots/torque.png (torque components learned vs true, relative error, and the
-rollout's body axis R e3 on the sphere; from rollout.h5 when present).
+aggregate ||tau_theta - tau||_2 / ||tau||_2 over all steps. Files, next to the rollout file:
+control_eval.json, control_eval.md, plots/torque.png (torque components learned vs true, relative
+error, and the rollout's body axis R e3 on the sphere; from the rollout file when present).
 """
 
 from __future__ import annotations
@@ -25,10 +25,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .io_utils import atomic_path, markdown_table, write_json, write_text
-from .lie import Pose
-from .mechanics.kinetic import velocity_estimate
-from .ui import console
+from ..io_utils import markdown_table, write_json, write_text
+from ..lie import Pose
+from ..mechanics.kinetic import velocity_estimate
+from ..plots import COLORS, draw_unit_sphere, plt, save_figure
+from ..rollout_file import FILE_NAME, load_rollout
+from ..ui import console
 
 
 @torch.no_grad()
@@ -59,14 +61,18 @@ def torque_errors(learned: np.ndarray, true: np.ndarray) -> dict:
     }
 
 
-def evaluate_control(cfg, model, dataset, run_dir) -> dict | None:
-    """Exp 5 torque recovery; returns the summary dict (None for models without forces)."""
-    from .models.true_scheme import true_model
+def evaluate_control(cfg, model, dataset, run_dir, rollout_path=None) -> dict | None:
+    """Exp 5 torque recovery; returns the summary dict (None for models without forces).
+
+    rollout_path: the rollout file drawn in the plot (default `<run_dir>/rollout.h5`; the plot goes
+    without it when it does not exist); the files go next to it."""
+    from ..models.true_scheme import true_model
 
     if not hasattr(model, "forces") or not len(model.forces):
         console.print("[yellow]control eval skipped:[/] the model has no force components")
         return None
-    run_dir = Path(run_dir)
+    path = Path(rollout_path) if rollout_path is not None else Path(run_dir) / FILE_NAME
+    out_dir = path.parent
     h = dataset.h
     ref = true_model(dataset)
     rows, curves = [], {}
@@ -102,7 +108,7 @@ def evaluate_control(cfg, model, dataset, run_dir) -> dict | None:
     if not rows:
         return None
     summary = {"rows": rows, "reference": "extras/tau_ext (true non-conservative torque at the true angular velocity)"}
-    write_json(run_dir / "control_eval.json", summary)
+    write_json(out_dir / "control_eval.json", summary)
     md = (
         "# Control recovery (learned torque along the observed trajectories)\n\n"
         "Relative error ||tau_theta(R_k, w~_k) - tau(R_k, w_k)|| / ||tau(R_k, w_k)|| per step (mean, max), "
@@ -110,7 +116,7 @@ def evaluate_control(cfg, model, dataset, run_dir) -> dict | None:
         "same velocity estimate w~_k.\n\n"
     )
     md += markdown_table(rows, list(rows[0]))
-    write_text(run_dir / "control_eval.md", md)
+    write_text(out_dir / "control_eval.md", md)
     for r in rows:
         console.print(
             f"control recovery ({r['split']}): relative torque error mean {r['rel_error_mean']:.3e}, "
@@ -118,36 +124,25 @@ def evaluate_control(cfg, model, dataset, run_dir) -> dict | None:
         )
     if cfg.eval.plots:
         key = "test" if "test" in curves else "train"
-        plot_torque(curves[key], h, _rollout_R(run_dir, dataset), run_dir / "plots" / "torque.png", key)
+        plot_torque(curves[key], h, _rollout_R(path, dataset), out_dir / "plots" / "torque.png", key)
     return summary
 
 
-def _rollout_R(run_dir: Path, dataset) -> dict:
-    """{name: R (S+1, B, 3, 3)} of the first rolled-out trajectory (truth included), from rollout.h5."""
-    path = run_dir / "rollout.h5"
+def _rollout_R(path: Path, dataset) -> dict:
+    """{name: R (S+1, B, 3, 3)} of the first rolled-out trajectory (truth included, over the steps it
+    has), from a rollout file ({} when there is none)."""
     if not path.is_file():
         return {}
-    import h5py
-
-    out = {}
-    with h5py.File(path, "r") as f:
-        i = int(f["traj_index"][0])
-        for name in f:
-            if isinstance(f[name], h5py.Group) and "R" in f[name]:
-                out[name] = f[name]["R"][0]
-    S = min(len(R) for R in out.values()) if out else 0
-    out["truth"] = dataset.R[i, :S]
+    rf = load_rollout(path, dataset)
+    i = int(rf.traj_index[0])
+    out = {name: e.R[0] for name, e in rf.models.items()}
+    out["truth"] = dataset.R[i, : rf.steps + 1]
     out["_index"] = i
     return out
 
 
 def plot_torque(curve: dict, h: float, rollouts: dict, path: Path, split: str) -> None:
     """Torque components learned vs true, relative error, rollout on the sphere and its rotation error."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     learned, true = curve["learned"], curve["true"]  # (N, B, 3)
     N = learned.shape[0]
     t = np.arange(N) * h
@@ -169,15 +164,12 @@ def plot_torque(curve: dict, h: float, rollouts: dict, path: Path, split: str) -
     rollouts = dict(rollouts)
     index = rollouts.pop("_index", None)
     if rollouts:
-        colors = {"truth": "black", "model": "tab:blue", "true_scheme": "tab:orange"}
         ax3 = fig.add_subplot(2, 3, 5, projection="3d")
-        u, v = np.mgrid[0 : 2 * np.pi : 30j, 0 : np.pi : 15j]
-        ax3.plot_wireframe(np.cos(u) * np.sin(v), np.sin(u) * np.sin(v), np.cos(v), color="0.85", linewidth=0.4)
+        draw_unit_sphere(ax3)
         for name, R in rollouts.items():
             ax3.plot(
-                *R[:, 0, :, 2].T, "-" if name == "truth" else "--", color=colors.get(name), linewidth=1.0, label=name
+                *R[:, 0, :, 2].T, "-" if name == "truth" else "--", color=COLORS.get(name), linewidth=1.0, label=name
             )
-        ax3.set_box_aspect((1, 1, 1))
         ax3.legend(loc="upper left", fontsize=8)
         ax3.set_title(f"rollout: body axis R e3 (trajectory {index})")
         ax = fig.add_subplot(2, 3, 6)
@@ -187,16 +179,13 @@ def plot_torque(curve: dict, h: float, rollouts: dict, path: Path, split: str) -
                 continue
             S = min(len(R), len(truth))
             err = np.linalg.norm(R[:S] - truth[:S], axis=(-2, -1)).mean(-1) / np.sqrt(3.0)
-            ax.semilogy(np.arange(S) * h, np.maximum(err, 1e-17), color=colors.get(name), label=name)
+            ax.semilogy(np.arange(S) * h, np.maximum(err, 1e-17), color=COLORS.get(name), label=name)
         ax.set_title("rollout relative rotation error ||R^ - R||_F / ||R||_F")
         ax.set_xlabel("time")
         ax.grid(alpha=0.3)
         ax.legend()
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 __all__ = ["force_torques", "torque_errors", "evaluate_control", "plot_torque"]

@@ -1,0 +1,133 @@
+"""The import rules of docs/architecture.md, checked on the source (every import counts, also
+one inside a function: a lazy import still makes a dependency)."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+PKG = Path(__file__).resolve().parents[1] / "liedfl_cli"
+CORE = ("lie", "mechanics", "models", "solvers")  # the math layers: no config system below the pipeline
+CONFIG_LIBS = ("hydra", "omegaconf")
+
+
+def _module_name(path: Path) -> str:
+    rel = path.relative_to(PKG.parent).with_suffix("")
+    parts = list(rel.parts)
+    if parts[-1] == "__init__":
+        parts = parts[:-1]
+    return ".".join(parts)
+
+
+def _imports(path: Path) -> set[str]:
+    """Absolute names of every module imported by `path` (relative imports resolved)."""
+    mod = _module_name(path)
+    package = mod if path.name == "__init__.py" else mod.rpartition(".")[0]
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+        if isinstance(node, ast.Import):
+            out.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")
+                base = base[: len(base) - (node.level - 1)]
+                prefix = ".".join(base + ([node.module] if node.module else []))
+            else:
+                prefix = node.module or ""
+            out.add(prefix)
+            out.update(f"{prefix}.{a.name}" for a in node.names)  # `from . import x` imports module x
+    return out
+
+
+MODULES = {_module_name(p): p for p in sorted(PKG.rglob("*.py"))}
+GRAPH = {
+    m: {i for i in _imports(p) if i in MODULES and i != m and not m.startswith(i + ".")} for m, p in MODULES.items()
+}
+
+
+def _layer(mod: str) -> str:
+    parts = mod.split(".")
+    return parts[1] if len(parts) > 2 or (len(parts) == 2 and (PKG / parts[1]).is_dir()) else "pipeline"
+
+
+def test_the_math_layers_do_not_import_the_config_system():
+    bad = [
+        f"{m} imports {i}"
+        for m, p in MODULES.items()
+        if _layer(m) in CORE
+        for i in _imports(p)
+        if i.split(".")[0] in CONFIG_LIBS
+    ]
+    assert not bad, bad
+
+
+def test_the_math_layers_do_not_import_the_pipeline_data_or_evaluation():
+    allowed = {"lie": {"lie"}, "mechanics": {"lie", "mechanics"}, "solvers": {"lie", "solvers"}}
+    allowed["models"] = {"lie", "mechanics", "solvers", "models"}
+    bad = []
+    for m in MODULES:
+        layer = _layer(m)
+        if layer not in allowed:
+            continue
+        for i in GRAPH[m]:
+            if i in ("liedfl_cli", "liedfl_cli.errors"):  # the package root and the error types
+                continue
+            if _layer(i) not in allowed[layer]:
+                bad.append(f"{m} imports {i}")
+    assert not bad, bad
+
+
+def test_data_does_not_import_models_evaluation_or_the_pipeline():
+    bad = [
+        f"{m} imports {i}"
+        for m in MODULES
+        if _layer(m) == "data"
+        for i in GRAPH[m]
+        if i not in ("liedfl_cli", "liedfl_cli.errors", "liedfl_cli.io_utils", "liedfl_cli.ui")
+        and _layer(i) not in ("data", "lie", "mechanics")
+    ]
+    assert not bad, bad
+
+
+def test_there_are_no_import_cycles():
+    """Tarjan's strongly connected components of the module graph: all of size one."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    cycles: list[list[str]] = []
+    counter = [0]
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = counter[0]
+        counter[0] += 1
+        stack.append(v)
+        on_stack.add(v)
+        for w in GRAPH[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                cycles.append(sorted(comp))
+
+    for v in GRAPH:
+        if v not in index:
+            visit(v)
+    assert not cycles, cycles
+
+
+def test_the_graph_is_not_trivially_empty():
+    """Guards the checks above against a broken parser: known edges must be seen."""
+    assert "liedfl_cli.models.base" in GRAPH["liedfl_cli.models.liedflnn"]
+    assert "liedfl_cli.solvers.newton" in GRAPH["liedfl_cli.solvers.rollout"]
+    assert _layer("liedfl_cli.train") == "pipeline" and _layer("liedfl_cli.lie.so3") == "lie"
