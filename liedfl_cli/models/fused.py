@@ -53,9 +53,18 @@ _EXP_TAYLOR = (
 )
 
 
-@functools.lru_cache(maxsize=16)
+_CONSTANTS: dict[tuple, dict[str, torch.Tensor]] = {}
+
+
 def _constants(dtype: torch.dtype, device: torch.device | None = None) -> dict[str, torch.Tensor]:
     """Constant tensors of the fused paths, built once per dtype/device."""
+    key = (dtype, device)
+    if key not in _CONSTANTS:
+        _CONSTANTS[key] = _build_constants(dtype, device)
+    return _CONSTANTS[key]
+
+
+def _build_constants(dtype: torch.dtype, device: torch.device | None) -> dict[str, torch.Tensor]:
     eye = torch.eye(3, dtype=dtype, device=device)
     return {
         "eye": eye,
@@ -163,7 +172,10 @@ def inertia_jd(inertia: Inertia) -> torch.Tensor:
 def derive(model) -> Derived:
     if isinstance(model.inertia, Inertia):
         Jd = inertia_jd(model.inertia)
-        _, mass, rho = model._params() if model.G.n_se3 else (None, Jd.new_zeros(0), Jd.new_zeros(0, 3))
+        if model.G.n_se3:
+            mass, rho = model.mass(), model.rho
+        else:
+            mass, rho = Jd.new_zeros(0), Jd.new_zeros(0, 3)
     else:
         Jd, mass, rho = model._params()
     D = None
@@ -292,8 +304,9 @@ class IncrementSet(TripletSet):
       W1, u1, z2 (N, m, ...)  SE(3) bodies only: W_1, W_1^T z_1, z_2
       W2 (N, B, 9)            W_2 flattened (SE(3) residual terms and regularity pairs)
       s (N, dim)              xi~_1 + xi~_2 (constant Rayleigh damping)
-      xi1, xi2, prev, cur     velocity estimates and poses for configuration-dependent forces
-      cur                     poses where the potential network is evaluated
+      xi (2, N, dim)          velocity estimates of both time levels (configuration-dependent forces)
+      levels (L, N, ...)      poses of both levels (L = 2) for those forces, or of the current
+                              one (L = 1) where only the potential network reads them
       static (N, dim)         the residual terms without trainable parameters (known parts)
     """
 
@@ -320,11 +333,11 @@ class IncrementSet(TripletSet):
             f["s"] = xi1 + xi2
         self.dynamic_forces = [x for x in others if _trainable(x)]
         self.potential_trainable = _trainable(model.potential)
-        if self.dynamic_forces:
+        if self.dynamic_forces:  # both time levels, stacked: (2, N, ...)
             f["xi"] = torch.stack((xi1, xi2))
-            f["prev"], f["cur"] = self.prev, self.cur
-        if self.potential_trainable:
-            f["cur"] = self.cur
+            f["levels"] = Pose(torch.stack((self.prev.R, self.cur.R)), torch.stack((self.prev.p, self.cur.p)))
+        elif self.potential_trainable:  # the current level only: (1, N, ...)
+            f["levels"] = Pose(self.cur.R[None], self.cur.p[None])
         static = torch.zeros_like(xi1)
         with torch.no_grad():
             for x in others:
@@ -346,12 +359,10 @@ class IncrementSet(TripletSet):
             reg_ld = self.reg_logdetW.index_select(0, reg_idx) if self.reg_logdetW is not None else None
         fields = {}
         for k, v in self.fields.items():
-            if isinstance(v, Pose):
-                fields[k] = Pose(v.R.index_select(0, idx), v.p.index_select(0, idx))
-            elif k == "xi":
-                fields[k] = v.index_select(1, idx)
+            if k == "levels":
+                fields[k] = Pose(v.R.index_select(1, idx), v.p.index_select(1, idx))
             else:
-                fields[k] = v.index_select(0, idx)
+                fields[k] = v.index_select(1 if k == "xi" else 0, idx)
         return IncrementBatch(fields, reg_W, reg_ld, self.dynamic_forces, self.potential_trainable)
 
 
@@ -384,22 +395,33 @@ def training_residual(model, batch: IncrementBatch, P: Derived, kin_map: torch.T
     if "static" in f:
         r = r + f["static"]
     if batch.potential:
-        r = r + potential_covector(model, f["cur"], create_graph=True)
+        levels = f["levels"]
+        r = r + potential_covector(model, Pose(levels.R[-1], levels.p[-1]), create_graph=True)
     return r
 
 
 def batch_forces(model, forces: list[nn.Module], f: dict) -> torch.Tensor:
     """(h/2)(F(g_prev, xi~_1) + F(g, xi~_2)) summed over `forces`, each evaluated once on both
     time levels stacked."""
-    both = Pose(torch.cat((f["prev"].R, f["cur"].R)), torch.cat((f["prev"].p, f["cur"].p)))
+    levels = f["levels"]
+    both = Pose(levels.R.flatten(0, 1), levels.p.flatten(0, 1))
     xi = f["xi"].flatten(0, 1)
     n = f["xi"].shape[1]
     out = None
     for x in forces:
-        F = x(both, xi)
+        F = force_value(x, both, xi)
         out = F if out is None else out + F
     assert out is not None
     return 0.5 * model.h * (out[:n] + out[n:])
+
+
+def force_value(force: nn.Module, g: Pose, xi: torch.Tensor) -> torch.Tensor:
+    """F(g, xi~); the configuration-dependent Rayleigh force D(g) xi~ = L (L^T xi~) as two
+    matrix-vector products instead of forming the dim x dim matrix L L^T per sample."""
+    if type(force) is RayleighNonlinearForce:
+        L = force.L(g)
+        return -(L @ (L.transpose(-1, -2) @ xi[..., None]))[..., 0]
+    return force(g, xi)
 
 
 def regularity_logdet(model, batch: IncrementBatch, P: Derived, hess_map: torch.Tensor) -> torch.Tensor:
