@@ -19,6 +19,7 @@ class OptimizerSchema:
     weight_decay: float = 0.0
     schedule: str = "constant"
     precondition_frequency: int = 10  # SOAP: steps between eigenbasis updates
+    max_precondition_dim: int = 10000  # SOAP: larger dimensions are not preconditioned
 
 
 @dataclass

@@ -118,7 +118,14 @@ def make_optimizer(params, cfg_opt) -> torch.optim.Optimizer:
         from pytorch_optimizer import SOAP
 
         every = int(cfg_opt.get("precondition_frequency", 10))
-        return SOAP(params, lr=cfg_opt.lr, weight_decay=cfg_opt.weight_decay, precondition_frequency=every)
+        largest = int(cfg_opt.get("max_precondition_dim", 10000))
+        return SOAP(
+            params,
+            lr=cfg_opt.lr,
+            weight_decay=cfg_opt.weight_decay,
+            precondition_frequency=every,
+            max_precondition_dim=largest,
+        )
     if name == "adam":
         return torch.optim.Adam(params, lr=cfg_opt.lr, weight_decay=cfg_opt.weight_decay)
     raise ConfigError(f"train.optimizer.name must be 'soap' or 'adam', got {name!r}")

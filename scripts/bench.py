@@ -53,7 +53,8 @@ BATCHES = (1, 10, 1000, 10000)
 def config(overrides: list[str], data_dir: str):
     GlobalHydra.instance().clear()
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
-        return compose("train", overrides=[*overrides, f"paths.data_dir={data_dir}", "paths.output_dir=/tmp/liedfl-bench"])
+        paths = [f"paths.data_dir={data_dir}", "paths.output_dir=/tmp/liedfl-bench"]
+        return compose("train", overrides=[*overrides, *paths])
 
 
 def epoch_seconds(overrides: list[str], epochs: int, repeats: int, data_dir: str) -> dict:
@@ -137,7 +138,8 @@ def main() -> None:
     out["train_triplets_per_s"] = r["n_samples"] / r["fused"]
     out["baseline_train_triplets_per_s"] = r["n_samples"] / r["reference"]
     out["train_s_per_epoch"], out["baseline_train_s_per_epoch"] = r["fused"], r["reference"]
-    log(f"default train: {out['train_triplets_per_s']:.0f} triplets/s (reference {out['baseline_train_triplets_per_s']:.0f})")
+    ref_rate = out["baseline_train_triplets_per_s"]
+    log(f"default train: {out['train_triplets_per_s']:.0f} triplets/s (reference {ref_rate:.0f})")
     r = epoch_seconds(["experiment=exp3_manifold", "baseline=none"], 2 if q else 5, 1 if q else 2, args.data_dir)
     out["exp3_s_per_epoch"], out["baseline_exp3_s_per_epoch"] = r["fused"], r["reference"]
     log(f"exp3: {r['fused']:.3f} s/epoch (reference {r['reference']:.3f})")
