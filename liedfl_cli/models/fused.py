@@ -32,7 +32,7 @@ import torch
 from torch import nn
 
 from ..lie import Pose, ProductGroup, so3
-from ..lie.series import _split
+from ..lie.tolerances import tol
 from ..mechanics import kinetic
 from ..mechanics.forces import PDControl, RayleighForce, RayleighNonlinearForce, force_jacobian_xi
 from ..mechanics.parameterizations import Inertia
@@ -53,10 +53,10 @@ _EXP_TAYLOR = (
 )
 
 
-_CONSTANTS: dict[tuple, dict[str, torch.Tensor]] = {}
+_CONSTANTS: dict[tuple, dict[str, Any]] = {}
 
 
-def _constants(dtype: torch.dtype, device: torch.device | None = None) -> dict[str, torch.Tensor]:
+def _constants(dtype: torch.dtype, device: torch.device | None = None) -> dict[str, Any]:
     """Constant tensors of the fused paths, built once per dtype/device."""
     key = (dtype, device)
     if key not in _CONSTANTS:
@@ -64,13 +64,13 @@ def _constants(dtype: torch.dtype, device: torch.device | None = None) -> dict[s
     return _CONSTANTS[key]
 
 
-def _build_constants(dtype: torch.dtype, device: torch.device | None) -> dict[str, torch.Tensor]:
+def _build_constants(dtype: torch.dtype, device: torch.device | None) -> dict[str, Any]:
     eye = torch.eye(3, dtype=dtype, device=device)
     return {
         "eye": eye,
         "basis": torch.eye(9, dtype=dtype, device=device).reshape(9, 3, 3),  # matrix units E_(ij)
         "hat": so3.hat(eye).reshape(3, 9),  # w @ hat = hat(w).flatten(): entries +-1, exact
-        "taylor": torch.tensor(_EXP_TAYLOR, dtype=dtype, device=device),
+        "taylor_by_degree": tuple(torch.tensor(_EXP_TAYLOR, dtype=dtype, device=device).T.contiguous()),
         "pair_sums": torch.tensor([[1.0, 1.0, 0.0], [1.0, 0.0, 1.0], [0.0, 1.0, 1.0]], dtype=dtype, device=device),
     }
 
@@ -95,20 +95,30 @@ def exp_coefficients(t2: torch.Tensor) -> torch.Tensor:
 
     The same Taylor polynomials, threshold and closed forms as `series.sinc/cosc/sinc3`,
     evaluated together (one Horner pass over the stacked coefficients)."""
-    small, s2, t = _split(t2)
-    coeffs = _constants(t2.dtype, t2.device)["taylor"]
+    small = t2 < tol(t2.dtype, "taylor") ** 2
+    s2 = t2.masked_fill(small, 1.0)
+    t = torch.sqrt(s2)
+    c0, c1, c2, c3, c4 = _constants(t2.dtype, t2.device)["taylor_by_degree"]  # (3,) each
     x = t2[..., None]
-    taylor = coeffs[:, 4].expand(*t2.shape, 3)
-    for k in (3, 2, 1, 0):
-        taylor = taylor * x + coeffs[:, k]
+    taylor = torch.addcmul(c3, c4, x)
+    for c in (c2, c1, c0):
+        taylor = torch.addcmul(c, taylor, x)
     sin_t = torch.sin(t)
-    closed = torch.stack((sin_t / t, 2.0 * torch.sin(0.5 * t) ** 2 / s2, (t - sin_t) / (s2 * t)), -1)
+    half = torch.sin(0.5 * t)
+    closed = torch.stack((sin_t / t, 2.0 * (half * half) / s2, (t - sin_t) / (s2 * t)), -1)
     return torch.where(small[..., None], taylor, closed)
+
+
+def _split_tangent(G: ProductGroup, xi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """`G.split`, a plain view for SO(3)-only groups."""
+    if not G.n_se3:
+        return xi.unflatten(-1, (G.n_bodies, 3)), xi.new_zeros(*xi.shape[:-1], 0, 3)
+    return G.split(xi)
 
 
 def group_exp(G: ProductGroup, xi: torch.Tensor) -> Pose:
     """`G.exp` with shared coefficients: R = I + sinc W + cosc W^2, p = (I + cosc W + sinc3 W^2) v."""
-    w, v = G.split(xi)
+    w, v = _split_tangent(G, xi)
     t2 = (w * w).sum(-1)
     c = exp_coefficients(t2)[..., None, None, :]
     const = _constants(w.dtype, w.device)
@@ -123,9 +133,16 @@ def group_exp(G: ProductGroup, xi: torch.Tensor) -> Pose:
     return Pose(R, (V @ v[..., None])[..., 0])
 
 
+def compose(G: ProductGroup, g: Pose, h: Pose) -> Pose:
+    """`G.compose` (g h body by body); for SO(3)-only groups just the rotation product."""
+    if not G.n_se3:
+        return Pose(g.R @ h.R, g.p)
+    return G.compose(g, h)
+
+
 def group_retract(G: ProductGroup, g: Pose, xi: torch.Tensor) -> Pose:
     """g exp(xi) (`G.retract` with `group_exp`)."""
-    return G.compose(g, group_exp(G, xi))
+    return compose(G, g, group_exp(G, xi))
 
 
 def solve_small(J: torch.Tensor, r: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -777,5 +794,5 @@ def rollout_advance(model, state: RolloutState, x: Pose) -> tuple[RolloutState, 
     eye = _constants(W.dtype, W.device)["eye"]
     W = 0.5 * W @ (3.0 * eye - W.transpose(-1, -2) @ W)
     inc = Pose(W, x.p.detach())
-    g_next = model.G.compose(state.g, inc)
+    g_next = compose(model.G, state.g, inc)
     return RolloutState(state.g, g_next, inc, state.maps, state.compile), g_next
