@@ -152,7 +152,7 @@ def test_fused_rollout_equals_the_reference_to_the_newton_tolerance(name):
     model = make(name)
     model.requires_grad_(False)
     g0, g1 = _start(model.G, 6, 0.1)
-    ref, fus = _both_rollouts(model, g0, g1, 25)
+    ref, fus = _both_rollouts(model, g0, g1, 12)
     assert torch.equal(ref.converged, fus.converged)
     assert torch.equal(ref.iterations, fus.iterations)
     tol = SolverOptions().tol
