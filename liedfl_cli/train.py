@@ -30,6 +30,7 @@ from .errors import CheckpointError, ConfigError, LiedflError
 from .factory import loss_options
 from .io_utils import write_json
 from .lie import Pose
+from .solvers import runtime
 from .ui import console, progress_bar
 
 AUTO_CHECKPOINT_SECONDS = 60.0  # `checkpoint_every: auto` loses at most about this much work
@@ -171,6 +172,7 @@ def fit(
     n = samples.n
     bs = n if cfg_train.get("full_batch", False) else min(int(cfg_train.batch_size), n)
     n_batches = math.ceil(n / bs)
+    runtime.plan("train", int(cfg_train.epochs) * n_batches)  # runtime.compile: auto weighs this
     gen = torch.Generator().manual_seed(seed)
     params = [p for p in model.parameters() if p.requires_grad]
     if not params:

@@ -169,7 +169,9 @@ class LieDFLNN(ImplicitModel):
     def loss(self, batch: TripletBatch | fused.IncrementBatch, opts: LossOptions):
         """w_DEL mean ||r||^2 + w_reg mean penalty(log|det H|) -> (loss, {"del_loss", "reg_loss"})."""
         if isinstance(batch, fused.IncrementBatch):
-            return del_regularity_loss(*fused.residual_and_logdet(self, batch, opts), opts)
+            if runtime.want_compile("train"):  # the whole loss, forward and backward, compiled
+                return runtime.compiled(fused_loss, "train_loss")(self, batch, opts)
+            return fused_loss(self, batch, opts)
         use_reg = batch.reg is not None and opts.w_reg > 0
         logdet = self.regularity_logdet(*batch.reg) if use_reg else None
         return del_regularity_loss(self.residual(*batch.poses()), logdet, opts)
@@ -362,6 +364,12 @@ def regularity_penalty(logdet: torch.Tensor, epsilon: float, form: str = "relu")
         u = torch.exp(torch.clamp(logdet - epsilon, max=50.0))
         return torch.exp(-0.5 * (u - 1.0) ** 2) / math.sqrt(2 * math.pi)
     raise ValueError(f"train.reg_form must be 'relu' or 'gaussian', got {form!r}")
+
+
+def fused_loss(model: LieDFLNN, batch: fused.IncrementBatch, opts: LossOptions):
+    """`LieDFLNN.loss` of an `IncrementBatch`: the fused residual and regularity (what
+    `runtime.compile` compiles for training)."""
+    return del_regularity_loss(*fused.residual_and_logdet(model, batch, opts), opts)
 
 
 def del_regularity_loss(r: torch.Tensor, logdet: torch.Tensor | None, opts: LossOptions):
