@@ -14,8 +14,9 @@ Fewer kernels
     Every rotational quantity that is linear in a rotation-like matrix (the kinetic residual
     vee(J_d W^T - W J_d)/h, the mixed Hessian block, the velocity estimate and its Jacobian) is a
     linear map of the 9 entries, built once from J_d (and D) by evaluating the reference formula
-    on the 9 basis matrices, then applied to the whole batch as one matrix product. For a single
-    body with constant Rayleigh damping, the Newton residual and its Jacobian are one product.
+    on the 9 basis matrices, then applied to the whole batch as one matrix product. For SO(3)
+    bodies with constant Rayleigh damping, the Newton residual and its Jacobian are one product
+    each; the Newton step solves 3x3 systems in closed form.
 
 Numbers: equal to the reference path to rounding (tests/test_fused.py checks <= 1e-12 relative).
 """
@@ -23,7 +24,6 @@ Numbers: equal to the reference path to rounding (tests/test_fused.py checks <= 
 from __future__ import annotations
 
 import copy
-import functools
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -78,16 +78,6 @@ def _build_constants(dtype: torch.dtype, device: torch.device | None) -> dict[st
 def _basis(dtype, device=None) -> torch.Tensor:
     """The 9 matrix units E_(ij), shape (9, 3, 3)."""
     return _constants(dtype, device)["basis"]
-
-
-def _hat_map(dtype, device=None) -> torch.Tensor:
-    """(3, 9) with w @ map = hat(w).flatten() (entries +-1, so the product is exact)."""
-    return _constants(dtype, device)["hat"]
-
-
-def vee2(M: torch.Tensor) -> torch.Tensor:
-    """(..., 3, 3) -> (..., 3): vee(M - M^T) = (M21 - M12, M02 - M20, M10 - M01)."""
-    return torch.stack((M[..., 2, 1] - M[..., 1, 2], M[..., 0, 2] - M[..., 2, 0], M[..., 1, 0] - M[..., 0, 1]), -1)
 
 
 def exp_coefficients(t2: torch.Tensor) -> torch.Tensor:
@@ -224,12 +214,17 @@ def hessian_map(Jd: torch.Tensor, h: float) -> torch.Tensor:
     return (H / h).flatten(-2).transpose(0, 1)
 
 
-@functools.lru_cache(maxsize=8)
+_CONTRACTIONS: dict[tuple, torch.Tensor] = {}
+
+
 def _map_contraction(dtype: torch.dtype, h: float) -> torch.Tensor:
     """(9, 27 + 81): J_d.flatten() @ C = (kinetic_residual_map, hessian_map) flattened; both maps
-    are linear in J_d, so C is built once from the 9 basis matrices."""
-    E = _basis(dtype)
-    return torch.cat((kinetic_residual_map(E, h).flatten(-2), hessian_map(E, h).flatten(-2)), -1)
+    are linear in J_d, so C is built once (per dtype and h) from the 9 basis matrices."""
+    key = (dtype, h)
+    if key not in _CONTRACTIONS:
+        E = _basis(dtype)
+        _CONTRACTIONS[key] = torch.cat((kinetic_residual_map(E, h).flatten(-2), hessian_map(E, h).flatten(-2)), -1)
+    return _CONTRACTIONS[key]
 
 
 def training_maps(Jd: torch.Tensor, h: float) -> tuple[torch.Tensor, torch.Tensor]:
