@@ -35,7 +35,7 @@ DEFAULT_THREADS = 1
 as fast as two on an idle machine at the batch sizes used here and several times faster when
 other work shares the cores)."""
 
-COMPILE_MIN_WORK = {"rollout": 2.0e7, "train": 1.0e5}
+COMPILE_MIN_WORK = {"rollout": 5.0e7, "train": 1.0e5}
 """`compile: auto` compiles a hot path only for work large enough to repay the one-off compilation
 (tens of seconds on 2 cores, docs/benchmarks.md): a rollout of trajectories x steps row-steps, a
 training run of optimiser steps."""
