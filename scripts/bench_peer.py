@@ -8,8 +8,9 @@ u_dim=1, time_step=h)` (networks of width 10, a fixed 5 Newton iterations per st
 search or convergence check), rolled out by its `predict` from random rotations, unit angular
 velocity scale and zero control. liedfl is timed on (a) the free rigid body with true parameters
 and (b) an SO(3) LieDFLNN with an MLP potential of width 10 x 2 and Rayleigh damping (the peer's
-network size), Newton to tolerance 1e-5 with line search. Figures: microseconds per step per
-trajectory (best of 3), alternately peer / liedfl, and their ratios.
+network size), Newton to tolerance 1e-5 with line search, on the fused paths and on the reference
+paths (`_reference`). Figures: microseconds per step per trajectory (best of 3), peer and liedfl
+alternately, and their ratios (peer_over_X > 1: liedfl is faster).
 """
 
 from __future__ import annotations
@@ -76,10 +77,13 @@ def main() -> None:
         t_peer = best_of(lambda x0=x0, steps=steps: peer.predict(steps, x0)) / steps / n * 1e6
         row = {"batch": n, "steps": steps, "peer_us_per_step_traj": t_peer}
         for name, model in ours.items():
-            model.rollout(g0, g1, 3)
-            t = best_of(lambda model=model, g0=g0, g1=g1, steps=steps: model.rollout(g0, g1, steps + 1)) / steps / n
-            row[f"{name}_us_per_step_traj"] = t * 1e6
-            row[f"peer_over_{name}"] = t_peer / (t * 1e6)
+            for label, fused in (("", True), ("_reference", False)):
+                with runtime.using(fused=fused):
+                    model.rollout(g0, g1, 3)
+                    t = best_of(lambda model=model, g0=g0, g1=g1, steps=steps: model.rollout(g0, g1, steps + 1))
+                t = t / steps / n * 1e6
+                row[f"{name}{label}_us_per_step_traj"] = t
+                row[f"peer_over_{name}{label}"] = t_peer / t
         out["rows"].append(row)
         print(json.dumps(row), flush=True)
     out["load_avg_end"] = list(os.getloadavg())
