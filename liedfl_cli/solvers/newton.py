@@ -125,14 +125,19 @@ def _newton_rows(problem: NewtonProblem, x, r, rn, opts: SolverOptions, max_iter
     for it in range(max_iter):
         if T == 0:
             break
-        active = ~converged
         delta, singular, cand, rc = iterate(x, r)
         rcn = torch.linalg.vector_norm(rc, dim=-1)
         finite = torch.isfinite(rcn)
         ok = finite & (rcn <= rn * (1 - 1e-4) + 1e-300)
-        full_step = delta.abs().amax(-1)
-        irregular = active & (singular | ~torch.isfinite(delta).all(-1) | ~ok)
-        new_converged = converged | (active & (full_step <= tol) & finite)
+        full_step = delta.abs().amax(-1)  # not finite exactly where delta is not
+        irregular = singular | ~(ok & torch.isfinite(full_step))
+        new_converged = (full_step <= tol) & finite
+        if any_converged:  # rows that converged earlier take no part
+            active = ~converged
+            irregular = irregular & active
+            new_converged = converged | (active & new_converged)
+        else:
+            active = torch.ones_like(converged)
         flags = torch.stack((irregular.any(), new_converged.sum())).tolist()
         if flags[0]:  # a singular Jacobian or a step without decrease: redo row by row
             x, r, rn, singular, full_step = _careful_iteration(f, jac, retract, x, r, rn, active, opts)
