@@ -389,3 +389,21 @@ def test_train_config_has_the_runtime_section():
     assert set(cfg.runtime) == {"threads", "fused", "compile"}
     assert cfg.train.full_batch is False and cfg.train.optimizer.precondition_frequency == 10
     assert cfg.train.optimizer.max_precondition_dim == 10000
+
+
+@pytest.mark.parametrize("scale", [1e-3, 0.5, 2.0])
+def test_hand_written_gradients_pass_gradcheck(scale):
+    gen = torch.Generator().manual_seed(0)
+    r = (scale * torch.randn(2, 3, generator=gen, dtype=torch.float64)).requires_grad_()
+    abc = torch.randn(2, 3, generator=gen, dtype=torch.float64).requires_grad_()
+    assert torch.autograd.gradcheck(fused._InertiaJd.apply, (r, abc))
+    model = make("free_so3_rayleigh")
+    _, batch = both_batches(model, trajectories(SO3))
+    A, s, W = batch.fields["A"][:6], batch.fields["s"][:6], batch.reg_W[:4]
+    C = fused._map_contraction(torch.float64, 0.1)
+    for form in ("relu", "gaussian"):
+        settings = (0.1, 0.5, 0.5, 10.0 * scale, form)
+        Jd = (fused.inertia_jd(model.inertia).detach().flatten(-2) * scale).requires_grad_()
+        D = torch.eye(3, dtype=torch.float64).requires_grad_()
+        fn = lambda Jd, D, settings=settings: fused._RotationalLoss.apply(Jd, D, A, s, None, W, C, settings)
+        assert torch.autograd.gradcheck(fn, (Jd, D))

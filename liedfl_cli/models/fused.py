@@ -80,6 +80,11 @@ def _basis(dtype, device=None) -> torch.Tensor:
     return _constants(dtype, device)["basis"]
 
 
+def vee2(M: torch.Tensor) -> torch.Tensor:
+    """(..., 3, 3) -> (..., 3): vee(M - M^T) = (M21 - M12, M02 - M20, M10 - M01)."""
+    return torch.stack((M[..., 2, 1] - M[..., 1, 2], M[..., 0, 2] - M[..., 2, 0], M[..., 1, 0] - M[..., 0, 1]), -1)
+
+
 def exp_coefficients(t2: torch.Tensor) -> torch.Tensor:
     """(sinc, cosc, sinc3) of `lie.series` as functions of t^2, stacked on a new last axis.
 
@@ -163,17 +168,43 @@ class Derived:
 
 
 def inertia_jd(inertia: Inertia) -> torch.Tensor:
-    """`Inertia.Jd()` with fewer kernels: J = R diag(e^a + e^b, e^a + e^c, e^b + e^c) R^T,
-    R = exp(hat(r)) (shared exp coefficients), J_d = tr(J)/2 I - J."""
-    r, abc = inertia.r, inertia.abc
-    const = _constants(r.dtype, r.device)
-    eye = const["eye"]
-    d = torch.exp(abc) @ const["pair_sums"]  # (B, 3)
-    c = exp_coefficients((r * r).sum(-1))[..., None, None, :]
-    K = (r @ const["hat"]).unflatten(-1, (3, 3))
-    Rt = eye + c[..., 0] * K + c[..., 1] * (K @ K)
-    J = (Rt * d[..., None, :]) @ Rt.transpose(-1, -2)
-    return (0.5 * d.sum(-1))[..., None, None] * eye - J
+    """`Inertia.Jd()` with fewer kernels and a hand-written gradient (`_InertiaJd`)."""
+    return _InertiaJd.apply(inertia.r, inertia.abc)
+
+
+class _InertiaJd(torch.autograd.Function):
+    """J_d(r, abc) = tr(J)/2 I - J, J = R diag(d) R^T, R = exp(hat(r)), d = (e^a + e^b, e^a + e^c,
+    e^b + e^c) (`Inertia`), with shared exp coefficients. Gradient, for G = dL/dJ_d:
+    dL/dd_k = tr(G)/2 - (R^T G R)_kk, dL/dR = -(G + G^T) R diag(d), and through R = exp(hat(r)),
+    dL/dr = J_l(r) vee(R^T dL/dR - (R^T dL/dR)^T) with J_l = I + cosc hat(r) + sinc3 hat(r)^2."""
+
+    @staticmethod
+    def forward(ctx, r, abc):
+        const = _constants(r.dtype, r.device)
+        eye = const["eye"]
+        e = torch.exp(abc)
+        d = e @ const["pair_sums"]  # (B, 3)
+        c = exp_coefficients((r * r).sum(-1))[..., None, None, :]
+        K = (r @ const["hat"]).unflatten(-1, (3, 3))
+        K2 = K @ K
+        Rt = eye + c[..., 0] * K + c[..., 1] * K2
+        J = (Rt * d[..., None, :]) @ Rt.transpose(-1, -2)
+        ctx.save_for_backward(e, d, c, K, K2, Rt)
+        return (0.5 * d.sum(-1))[..., None, None] * eye - J
+
+    @staticmethod
+    def backward(ctx, G):
+        e, d, c, K, K2, Rt = ctx.saved_tensors
+        const = _constants(G.dtype, G.device)
+        trG = G.diagonal(dim1=-2, dim2=-1).sum(-1)
+        RtGR = Rt.transpose(-1, -2) @ G @ Rt
+        dd = 0.5 * trG[..., None] - RtGR.diagonal(dim1=-2, dim2=-1)
+        dabc = (dd @ const["pair_sums"].T) * e
+        dR = -((G + G.transpose(-1, -2)) @ Rt) * d[..., None, :]
+        M = Rt.transpose(-1, -2) @ dR
+        Jl = const["eye"] + c[..., 1] * K + c[..., 2] * K2
+        dr = (Jl @ vee2(M)[..., None])[..., 0]
+        return dr, dabc
 
 
 def derive(model) -> Derived:
@@ -460,6 +491,89 @@ def residual_and_logdet(model, batch: IncrementBatch, opts) -> tuple[torch.Tenso
     use_reg = batch.reg_W is not None and opts.w_reg > 0
     logdet = regularity_logdet(model, batch, P, hess_map) if use_reg else None
     return training_residual(model, batch, P, kin_map), logdet
+
+
+def rotational_only(model, batch: IncrementBatch) -> bool:
+    """Whether `rotational_loss` applies: SO(3) bodies only, and nothing trainable besides J_d and
+    the constant Rayleigh D (frozen parts are in the batch's `static` field)."""
+    return not model.G.n_se3 and not batch.forces and not batch.potential
+
+
+def rotational_loss(model, batch: IncrementBatch, opts) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """The loss of an SO(3)-only model whose trainable parts are J_d and D, with its gradient
+    with respect to (J_d, D) written by hand (`_RotationalLoss`): the batch-sized part of the
+    graph is a handful of kernels each way; autograd only sees J_d's and D's parameterisations."""
+    P = derive(model)
+    reg = batch.reg_W if batch.reg_W is not None and opts.w_reg > 0 else None
+    static = batch.fields.get("static")
+    s = batch.fields.get("s")
+    C = _map_contraction(P.Jd.dtype, float(model.h)).to(P.Jd.device)
+    settings = (float(model.h), float(opts.w_del), float(opts.w_reg), float(opts.epsilon), str(opts.reg_form))
+    A = batch.fields["A"]
+    loss, del_loss, reg_loss = _RotationalLoss.apply(P.Jd.flatten(-2), P.D, A, s, static, reg, C, settings)
+    return loss, {"del_loss": del_loss, "reg_loss": reg_loss}
+
+
+def _penalty_and_slope(logdet: torch.Tensor, epsilon: float, form: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """`liedflnn.regularity_penalty` and its derivative with respect to logdet."""
+    if form == "relu":
+        gap = epsilon - logdet
+        return torch.relu(gap), -(gap > 0).to(logdet.dtype)
+    if form == "gaussian":
+        x = logdet - epsilon
+        u = torch.exp(torch.clamp(x, max=50.0))
+        pen = torch.exp(-0.5 * (u - 1.0) ** 2) / math.sqrt(2 * math.pi)
+        return pen, -pen * (u - 1.0) * u * (x <= 50.0).to(logdet.dtype)
+    raise ValueError(f"train.reg_form must be 'relu' or 'gaussian', got {form!r}")
+
+
+class _RotationalLoss(torch.autograd.Function):
+    """(loss, del_loss, reg_loss) of `rotational_loss` from J_d.flatten() (B, 9) and D (dim, dim):
+
+        r = A @ kinetic_residual_map(J_d) - (h/2) s D^T + static,    del_loss = mean r^2
+        H = W_2 @ hessian_map(J_d),                                   reg_loss = mean penalty(log|det H|)
+
+    Both maps are J_d.flatten() @ C (`_map_contraction`), so the gradient is
+    dJ_d = (A^T dr) C_r^T + (W_2^T dH) C_H^T with dH = dlogdet H^-T, and dD = -(h/2) dr^T s."""
+
+    @staticmethod
+    def forward(ctx, Jd_flat, D, A, s, static, reg_W, C, settings):
+        h, w_del, w_reg, epsilon, form = settings
+        B = Jd_flat.shape[0]
+        maps = Jd_flat @ C
+        kin = maps[:, :27].unflatten(-1, (9, 3))
+        r = _apply_map(A, kin).flatten(-2)
+        if D is not None:
+            r = r - (0.5 * h) * (s @ D.T)
+        if static is not None:
+            r = r + static
+        del_loss = (r * r).mean()
+        reg_loss = torch.zeros((), dtype=r.dtype, device=r.device)
+        H = slope = None
+        if reg_W is not None:
+            H = _apply_map(reg_W, maps[:, 27:].unflatten(-1, (9, 9))).unflatten(-1, (3, 3))
+            pen, slope = _penalty_and_slope(torch.linalg.slogdet(H).logabsdet, epsilon, form)
+            reg_loss = pen.mean()
+        ctx.save_for_backward(r, A, s, reg_W, H, slope, C)
+        ctx.settings = (h, w_del, w_reg, B, D is not None)
+        return w_del * del_loss + w_reg * reg_loss, del_loss, reg_loss
+
+    @staticmethod
+    def backward(ctx, g_loss, g_del, g_reg):
+        r, A, s, reg_W, H, slope, C = ctx.saved_tensors
+        h, w_del, w_reg, B, has_D = ctx.settings
+        g_del = g_loss * w_del + (g_del if g_del is not None else 0.0)
+        g_reg = g_loss * w_reg + (g_reg if g_reg is not None else 0.0)
+        dr = (2.0 * g_del / r.numel()) * r
+        dkin = A.permute(1, 2, 0) @ dr.unflatten(-1, (B, 3)).transpose(0, 1)  # (B, 9, N) @ (B, N, 3)
+        dJd = dkin.flatten(-2) @ C[:, :27].T
+        dD = -(0.5 * h) * (dr.T @ s) if has_D else None
+        if reg_W is not None:
+            dlogdet = (g_reg / slope.numel()) * slope  # (P, B)
+            dH = dlogdet[..., None, None] * torch.linalg.inv(H).transpose(-1, -2)
+            dhess = reg_W.permute(1, 2, 0) @ dH.flatten(-2).transpose(0, 1)  # (B, 9, P) @ (B, P, 9)
+            dJd = dJd + dhess.flatten(-2) @ C[:, 27:].T
+        return dJd, dD, None, None, None, None, None, None
 
 
 # ---------------------------------------------------------------------------- rollout

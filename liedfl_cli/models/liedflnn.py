@@ -368,7 +368,10 @@ def regularity_penalty(logdet: torch.Tensor, epsilon: float, form: str = "relu")
 
 def fused_loss(model: LieDFLNN, batch: fused.IncrementBatch, opts: LossOptions):
     """`LieDFLNN.loss` of an `IncrementBatch`: the fused residual and regularity (what
-    `runtime.compile` compiles for training)."""
+    `runtime.compile` compiles for training); SO(3)-only models whose trainable parts are J_d and
+    D take the hand-written gradient of `fused.rotational_loss`."""
+    if fused.rotational_only(model, batch) and not torch.compiler.is_compiling():
+        return fused.rotational_loss(model, batch, opts)
     return del_regularity_loss(*fused.residual_and_logdet(model, batch, opts), opts)
 
 
