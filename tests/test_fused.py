@@ -397,6 +397,10 @@ def test_hand_written_gradients_pass_gradcheck(scale):
     r = (scale * torch.randn(2, 3, generator=gen, dtype=torch.float64)).requires_grad_()
     abc = torch.randn(2, 3, generator=gen, dtype=torch.float64).requires_grad_()
     assert torch.autograd.gradcheck(fused._InertiaJd.apply, (r, abc))
+    assert torch.autograd.gradcheck(fused._InertiaJdScalar.apply, (r, abc))
+    entries = torch.randn(6, generator=gen, dtype=torch.float64).requires_grad_()
+    lam = torch.randn(3, generator=gen, dtype=torch.float64).requires_grad_()
+    assert torch.autograd.gradcheck(lambda e, lm: fused._SPSDScalar.apply(e, lm, 3), (entries, lam))
     model = make("free_so3_rayleigh")
     _, batch = both_batches(model, trajectories(SO3))
     A, s, W = batch.fields["A"][:6], batch.fields["s"][:6], batch.reg_W[:4]

@@ -35,7 +35,7 @@ from ..lie import Pose, ProductGroup, so3
 from ..lie.tolerances import tol
 from ..mechanics import kinetic
 from ..mechanics.forces import PDControl, RayleighForce, RayleighNonlinearForce, force_jacobian_xi
-from ..mechanics.parameterizations import Inertia
+from ..mechanics.parameterizations import Inertia, SPSDMatrix
 from ..mechanics.potentials import MLPPotential, left_gradient
 from ..solvers import runtime
 from ..solvers.newton import NewtonProblem
@@ -168,8 +168,81 @@ class Derived:
 
 
 def inertia_jd(inertia: Inertia) -> torch.Tensor:
-    """`Inertia.Jd()` with fewer kernels and a hand-written gradient (`_InertiaJd`)."""
+    """`Inertia.Jd()` with a hand-written gradient: in scalar arithmetic for a few bodies
+    (`_InertiaJdScalar`: a handful of tensor calls instead of ~70), else `_InertiaJd`."""
+    if inertia.r.shape[0] <= SCALAR_BODIES and inertia.r.device.type == "cpu":
+        return _InertiaJdScalar.apply(inertia.r, inertia.abc)
     return _InertiaJd.apply(inertia.r, inertia.abc)
+
+
+SCALAR_BODIES = 4  # up to this many bodies J_d is built in Python scalars (per-call cost ~ a few kernels)
+
+
+def _exp_coefficients_scalar(t2: float) -> tuple[float, float, float]:
+    """(sinc, cosc, sinc3) of t^2 as Python floats: `exp_coefficients` for one angle."""
+    if t2 < tol(torch.float64, "taylor") ** 2:
+        out = []
+        for coeffs in _EXP_TAYLOR:
+            acc = coeffs[4]
+            for c in coeffs[3::-1]:
+                acc = acc * t2 + c
+            out.append(acc)
+        return out[0], out[1], out[2]
+    t = math.sqrt(t2)
+    sin_t, half = math.sin(t), math.sin(0.5 * t)
+    return sin_t / t, 2.0 * (half * half) / t2, (t - sin_t) / (t2 * t)
+
+
+def _matmul3(A, B):
+    return [[A[i][0] * B[0][j] + A[i][1] * B[1][j] + A[i][2] * B[2][j] for j in range(3)] for i in range(3)]
+
+
+def _transpose3(A):
+    return [[A[j][i] for j in range(3)] for i in range(3)]
+
+
+def _hat3(w):
+    x, y, z = w
+    return [[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]]
+
+
+class _InertiaJdScalar(torch.autograd.Function):
+    """`_InertiaJd` computed body by body in Python floats (same formulas, float64 rounding)."""
+
+    @staticmethod
+    def forward(ctx, r, abc):
+        rs, abcs = r.tolist(), abc.tolist()
+        saved, out = [], []
+        for w, (a, b, c) in zip(rs, abcs):
+            e = (math.exp(a), math.exp(b), math.exp(c))
+            d = (e[0] + e[1], e[0] + e[2], e[1] + e[2])
+            s1, s2, s3 = _exp_coefficients_scalar(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
+            K = _hat3(w)
+            K2 = _matmul3(K, K)
+            R = [[(i == j) + s1 * K[i][j] + s2 * K2[i][j] for j in range(3)] for i in range(3)]
+            half = 0.5 * (d[0] + d[1] + d[2])
+            J = [[sum(R[i][k] * d[k] * R[j][k] for k in range(3)) for j in range(3)] for i in range(3)]
+            out.append([[half * (i == j) - J[i][j] for j in range(3)] for i in range(3)])
+            saved.append((e, d, s2, s3, K, K2, R))
+        ctx.saved = saved
+        return torch.tensor(out, dtype=r.dtype, device=r.device)
+
+    @staticmethod
+    def backward(ctx, G):
+        dr_all, dabc_all = [], []
+        for (e, d, s2, s3, K, K2, R), Gb in zip(ctx.saved, G.tolist()):
+            trG = Gb[0][0] + Gb[1][1] + Gb[2][2]
+            RtGR = _matmul3(_transpose3(R), _matmul3(Gb, R))
+            dd = [0.5 * trG - RtGR[k][k] for k in range(3)]
+            dabc_all.append([(dd[0] + dd[1]) * e[0], (dd[0] + dd[2]) * e[1], (dd[1] + dd[2]) * e[2]])
+            S = [[Gb[i][j] + Gb[j][i] for j in range(3)] for i in range(3)]
+            SR = _matmul3(S, R)
+            M = _matmul3(_transpose3(R), [[-SR[i][k] * d[k] for k in range(3)] for i in range(3)])
+            v = (M[2][1] - M[1][2], M[0][2] - M[2][0], M[1][0] - M[0][1])
+            Jl = [[(i == j) + s2 * K[i][j] + s3 * K2[i][j] for j in range(3)] for i in range(3)]
+            dr_all.append([Jl[i][0] * v[0] + Jl[i][1] * v[1] + Jl[i][2] * v[2] for i in range(3)])
+        opts = {"dtype": G.dtype, "device": G.device}
+        return torch.tensor(dr_all, **opts), torch.tensor(dabc_all, **opts)
 
 
 class _InertiaJd(torch.autograd.Function):
@@ -219,8 +292,50 @@ def derive(model) -> Derived:
     D = None
     for f in model.forces:
         if isinstance(f, RayleighForce):
-            D = f.D() if D is None else D + f.D()
+            Df = spsd_matrix(f.D)
+            D = Df if D is None else D + Df
     return Derived(Jd, mass, rho, D)
+
+
+SCALAR_DIM = 6  # SPSD matrices up to this size are built in Python scalars
+
+
+def spsd_matrix(module: SPSDMatrix) -> torch.Tensor:
+    """`SPSDMatrix()` (D = sym(L L^T) + diag(lambda^2)); small ones in Python scalars with a
+    hand-written gradient (`_SPSDScalar`)."""
+    if type(module) is SPSDMatrix and module.dim <= SCALAR_DIM and module.lam.device.type == "cpu":
+        return _SPSDScalar.apply(module.L_entries, module.lam, module.dim)
+    return module()
+
+
+class _SPSDScalar(torch.autograd.Function):
+    """D = (M + M^T)/2 + diag(lambda^2), M = L L^T, L lower triangular from its row-major entries.
+    Gradient for G = dL/dD: dL/dL = (G + G^T) L (lower part), dL/dlambda = 2 lambda diag(G)."""
+
+    @staticmethod
+    def forward(ctx, entries, lam, n):
+        L = [[0.0] * n for _ in range(n)]
+        flat = entries.tolist()
+        k = 0
+        for i in range(n):
+            for j in range(i + 1):
+                L[i][j] = flat[k]
+                k += 1
+        lams = lam.tolist()
+        M = [[sum(L[i][t] * L[j][t] for t in range(n)) for j in range(n)] for i in range(n)]
+        D = [[0.5 * (M[i][j] + M[j][i]) + (lams[i] * lams[i] if i == j else 0.0) for j in range(n)] for i in range(n)]
+        ctx.saved = (L, lams, n)
+        return torch.tensor(D, dtype=lam.dtype, device=lam.device)
+
+    @staticmethod
+    def backward(ctx, G):
+        L, lams, n = ctx.saved
+        g = G.tolist()
+        S = [[g[i][j] + g[j][i] for j in range(n)] for i in range(n)]
+        d_entries = [sum(S[i][t] * L[t][j] for t in range(n)) for i in range(n) for j in range(i + 1)]
+        d_lam = [2.0 * lams[i] * g[i][i] for i in range(n)]
+        opts = {"dtype": G.dtype, "device": G.device}
+        return torch.tensor(d_entries, **opts), torch.tensor(d_lam, **opts), None
 
 
 def kinetic_residual_map(Jd: torch.Tensor, h: float) -> torch.Tensor:
