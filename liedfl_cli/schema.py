@@ -41,6 +41,8 @@ class OptimizerSchema:
     lr: float = 3e-3
     weight_decay: float = 0.0
     schedule: str = "constant"
+    precondition_frequency: int = 10  # SOAP: steps between eigenbasis updates
+    max_precondition_dim: int = 10000  # SOAP: larger dimensions are not preconditioned
 
 
 @dataclass
@@ -54,6 +56,7 @@ class TrainSchema:
     reg_form: str = "relu"
     epsilon: float = 10.0
     checkpoint_every: Any = "auto"  # auto | positive int (checked in train.checkpoint_interval)
+    full_batch: bool = False  # one optimiser step per epoch over every sample
 
 
 @dataclass
@@ -100,6 +103,13 @@ class ModelSchema:
 
 
 @dataclass
+class RuntimeSchema:  # execution settings, liedfl_cli/solvers/runtime.py
+    threads: Any = "auto"  # auto | positive int (checked in runtime.RuntimeOptions)
+    fused: bool = True
+    compile: Any = "auto"  # auto | true | false
+
+
+@dataclass
 class GroupSchema:
     n_se3: int = 0
     n_so3: int = 1
@@ -112,6 +122,7 @@ SECTIONS: dict[str, Any] = {
     "ui": UiSchema,
     "solver": SolverSchema,
     "group": GroupSchema,
+    "runtime": RuntimeSchema,
 }
 CHOICES = {
     ("train", "reg_form"): ("relu", "gaussian"),

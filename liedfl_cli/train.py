@@ -30,6 +30,7 @@ from .errors import CheckpointError, ConfigError, LiedflError
 from .factory import loss_options
 from .io_utils import write_json
 from .lie import Pose
+from .solvers import runtime
 from .ui import console, progress_bar
 
 AUTO_CHECKPOINT_SECONDS = 60.0  # `checkpoint_every: auto` loses at most about this much work
@@ -140,7 +141,15 @@ def make_optimizer(params, cfg_opt) -> torch.optim.Optimizer:
     if name == "soap":
         from pytorch_optimizer import SOAP
 
-        return SOAP(params, lr=cfg_opt.lr, weight_decay=cfg_opt.weight_decay)
+        every = int(cfg_opt.get("precondition_frequency", 10))
+        largest = int(cfg_opt.get("max_precondition_dim", 10000))
+        return SOAP(
+            params,
+            lr=cfg_opt.lr,
+            weight_decay=cfg_opt.weight_decay,
+            precondition_frequency=every,
+            max_precondition_dim=largest,
+        )
     if name == "adam":
         return torch.optim.Adam(params, lr=cfg_opt.lr, weight_decay=cfg_opt.weight_decay)
     raise ConfigError(f"train.optimizer.name must be 'soap' or 'adam', got {name!r}")
@@ -184,8 +193,9 @@ def fit(
     opts = loss_options(cfg_train)
     samples = model.training_set(data, int(steps))
     n = samples.n
-    bs = min(int(cfg_train.batch_size), n)
+    bs = n if cfg_train.get("full_batch", False) else min(int(cfg_train.batch_size), n)
     n_batches = math.ceil(n / bs)
+    runtime.plan("train", int(cfg_train.epochs) * n_batches)  # runtime.compile: auto weighs this
     gen = torch.Generator().manual_seed(seed)
     params = [p for p in model.parameters() if p.requires_grad]
     if not params:
@@ -279,9 +289,10 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
     rollout -> eval. `resume`: a checkpoint payload to continue from. Returns a summary."""
     from .data.scenes import get_dataset
     from .evaluate import run_eval_from_objects
-    from .factory import build_model
+    from .factory import build_model, configure_runtime
     from .rollout import rollout_and_save
 
+    configure_runtime(cfg)  # threads, fused paths, compilation (cfg.runtime)
     out = Path(cfg.paths.output_dir)
     out.mkdir(parents=True, exist_ok=True)
     ckpt = out / "checkpoints" / "last.pt"

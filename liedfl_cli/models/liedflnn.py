@@ -29,7 +29,9 @@ from ..mechanics.forces import build_forces, force_jacobian_xi
 from ..mechanics.parameterizations import Inertia, PositiveVector
 from ..mechanics.potentials import MLPPotential
 from ..mechanics.scene_physics import body_parameters, true_potential
+from ..solvers import runtime
 from ..solvers.newton import NewtonProblem, jacobian
+from . import fused
 from .base import BuildContext, ImplicitModel, LossOptions, TripletBatch, config_options, initial_scale
 
 RESIDUAL_MODES = ("fast", "generic")
@@ -154,8 +156,22 @@ class LieDFLNN(ImplicitModel):
         empty = Jd.new_zeros(0)
         return Jd, empty, Jd.new_zeros(0, 3)
 
-    def loss(self, batch: TripletBatch, opts: LossOptions):
+    def _fused(self) -> bool:
+        """Whether the fused paths (`models.fused`) serve this model (`runtime.fused`, fast residual)."""
+        return self.residual_mode == "fast" and runtime.current().fused
+
+    def training_set(self, data: Pose, steps: int):
+        """Triplets as precomputed increments (`fused.IncrementSet`) on the fused path."""
+        if self._fused():
+            return fused.IncrementSet(self, data, steps)
+        return super().training_set(data, steps)
+
+    def loss(self, batch: TripletBatch | fused.IncrementBatch, opts: LossOptions):
         """w_DEL mean ||r||^2 + w_reg mean penalty(log|det H|) -> (loss, {"del_loss", "reg_loss"})."""
+        if isinstance(batch, fused.IncrementBatch):
+            if runtime.want_compile("train"):  # the whole loss, forward and backward, compiled
+                return runtime.compiled(fused_loss, "train_loss")(self, batch, opts)
+            return fused_loss(self, batch, opts)
         use_reg = batch.reg is not None and opts.w_reg > 0
         logdet = self.regularity_logdet(*batch.reg) if use_reg else None
         return del_regularity_loss(self.residual(*batch.poses()), logdet, opts)
@@ -259,13 +275,18 @@ class LieDFLNN(ImplicitModel):
 
     # ------------------------------------------------------------------ implicit step (rollout)
     def implicit_start(self, g0: Pose, g1: Pose):
-        """State (g_{k-1}, g_k, warm start = the last increment g_{k-1}^{-1} g_k)."""
+        """State (g_{k-1}, g_k, warm start = the last increment g_{k-1}^{-1} g_k); on the fused path
+        a `fused.RolloutState` that also carries the parameters derived once for the rollout."""
+        if self._fused():
+            return fused.rollout_start(self, g0, g1)
         return g0, g1, self.G.increment(g0, g1)
 
     def implicit_problem(self, state) -> NewtonProblem:
         """Solve the DEL residual for the increment W_k = g_k^{-1} g_{k+1}, updated by W exp(delta)
         (so it stays on the group), warm-started from W_{k-1}; the part of the residual fixed by
         (g_{k-1}, g_k) is computed once."""
+        if isinstance(state, fused.RolloutState):
+            return fused.rollout_problem(self, state)
         g_prev, g, inc = state
         G = self.G
         with torch.enable_grad():  # potential gradients and autodiff Jacobians need autograd
@@ -284,6 +305,8 @@ class LieDFLNN(ImplicitModel):
     def implicit_advance(self, state, x: Pose):
         # Newton-Schulz step on the increment: its retractions would otherwise accumulate
         # rounding drift off SO(3) across the warm-started steps (O(k eps) instead of O(sqrt(k) eps)).
+        if isinstance(state, fused.RolloutState):
+            return fused.rollout_advance(self, state, x)
         _, g, _ = state
         W = x.R.detach()
         W = 0.5 * W @ (3.0 * torch.eye(3, dtype=W.dtype) - W.transpose(-1, -2) @ W)
@@ -341,6 +364,15 @@ def regularity_penalty(logdet: torch.Tensor, epsilon: float, form: str = "relu")
         u = torch.exp(torch.clamp(logdet - epsilon, max=50.0))
         return torch.exp(-0.5 * (u - 1.0) ** 2) / math.sqrt(2 * math.pi)
     raise ValueError(f"train.reg_form must be 'relu' or 'gaussian', got {form!r}")
+
+
+def fused_loss(model: LieDFLNN, batch: fused.IncrementBatch, opts: LossOptions):
+    """`LieDFLNN.loss` of an `IncrementBatch`: the fused residual and regularity (what
+    `runtime.compile` compiles for training); SO(3)-only models whose trainable parts are J_d and
+    D take the hand-written gradient of `fused.rotational_loss`."""
+    if fused.rotational_only(model, batch) and not torch.compiler.is_compiling():
+        return fused.rotational_loss(model, batch, opts)
+    return del_regularity_loss(*fused.residual_and_logdet(model, batch, opts), opts)
 
 
 def del_regularity_loss(r: torch.Tensor, logdet: torch.Tensor | None, opts: LossOptions):
