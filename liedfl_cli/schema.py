@@ -134,11 +134,11 @@ CHOICES = {
 _TRAIN_KEYS = ("task_name", "seed", "epoch_scale", "train", "rollout", "eval", "ui", "paths")
 TOP_LEVEL: dict[str, tuple[str, ...]] = {
     # `budgets`: per-model budget tables of the experiment files; `resume`: resume=<run dir> (train.py)
-    "train": (*_TRAIN_KEYS, "group", "dataset", "model", "force", "baseline", "solver", "budgets", "resume"),
+    "train": (*_TRAIN_KEYS, "group", "dataset", "model", "force", "baseline", "solver", "budgets", "resume", "runtime"),
     # budget files also set train/rollout/epoch_scale, which `liedfl data` ignores
     "data": ("task_name", "ui", "paths", "group", "dataset", "train", "rollout", "epoch_scale", "seed"),
-    "rollout": ("task_name", "run", "steps", "rollout", "eval", "ui", "paths", "solver"),
-    "eval": ("task_name", "run", "rollout", "eval", "ui", "paths", "solver"),
+    "rollout": ("task_name", "run", "steps", "rollout", "eval", "ui", "paths", "solver", "runtime"),
+    "eval": ("task_name", "run", "rollout", "eval", "ui", "paths", "solver", "runtime"),
     "report": ("task_name", "sweep", "plots"),
     "resume": ("task_name", "resume", "epochs", "ui"),
 }
