@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from .errors import ConfigError
@@ -52,12 +52,14 @@ class SolverSchema:
 class ModelSchema:
     _target_: str = "liedfl_cli.models.liedflnn.LieDFLNN"
     name: str = "liedflnn"
-    potential: str = "auto"
+    potential: Any = "auto"  # auto | none | mlp | uniform_gravity | a list of mlp, uniform_gravity
     residual: str = "fast"
     mlp_width: int = 64
     mlp_depth: int = 3
     init_jitter: float = 0.1
     known: list[str] = field(default_factory=list)  # parts set to the scene's true values and frozen
+    gravity: Any = "auto"  # field strength of uniform_gravity: auto (the data's g, else 9.81) | a number
+    learn_gravity_direction: bool = False
 
 
 @dataclass
@@ -76,7 +78,7 @@ CHOICES = {
     ("train", "reg_form"): ("relu", "gaussian"),
     ("train", "optimizer", "name"): ("soap", "adam"),
     ("train", "optimizer", "schedule"): ("constant", "cosine"),
-    ("model", "potential"): ("auto", "mlp", "none"),
+    ("model", "potential"): ("auto", "mlp", "none", "uniform_gravity"),  # or a list of mlp, uniform_gravity
     ("model", "residual"): ("fast", "generic"),
 }
 
@@ -115,5 +117,7 @@ def validate(cfg: DictConfig) -> None:
             node = node.get(p) if isinstance(node, DictConfig) else None
             if node is None:
                 break
+        if isinstance(node, ListConfig) and path == ("model", "potential"):
+            node = next((x for x in node if x not in ("mlp", "uniform_gravity")), None)
         if node is not None and node not in allowed:
             raise ConfigError(f"{'.'.join(path)}={node!r}: choose one of {', '.join(allowed)}")

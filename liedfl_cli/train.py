@@ -273,7 +273,17 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
         f"[bold]model[/] {type(model).__name__} on {dataset.group.name}, h={dataset.h}: "
         f"components {', '.join(comps)}; {n_params} trainable parameters"
     )
-    write_json(out / "components.json", {"model": type(model).__name__, "components": comps, "parameters": n_params})
+    for note in getattr(model, "notes", ()):  # e.g. what model.potential=auto chose and why
+        console.print(f"[bold]model[/] {note}", highlight=False)
+    write_json(
+        out / "components.json",
+        {
+            "model": type(model).__name__,
+            "components": comps,
+            "parameters": n_params,
+            "notes": list(getattr(model, "notes", ())),
+        },
+    )
     config = OmegaConf.to_container(cfg, resolve=True)
     dataset_path = str(Path(data_path).resolve())
 

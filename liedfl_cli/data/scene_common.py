@@ -145,22 +145,35 @@ def vector(x, n: int, name: str) -> list[float]:
 
 
 def rigid_physics(c: dict, dim: int) -> dict:
-    """Validated `dataset.physics` of a single rigid body {J (3), m, rho (3), g, D (dim)} as plain floats."""
+    """Validated `dataset.physics` of a single rigid body {J (3), m, rho (3), g, D (dim diagonal or dim x dim)}
+    as plain floats."""
     ph = section(c, "physics", ("J", "m", "rho", "g", "D"))
-    for key, n in (("J", 3), ("rho", 3), ("D", dim)):
+    for key, n in (("J", 3), ("rho", 3)):
         if np.shape(ph[key]) != (n,):
             raise ConfigError(f"dataset.physics.{key} must be a list of {n} numbers, got {ph[key]!r}")
     J, D = np.asarray(ph["J"], float), np.asarray(ph["D"], float)
     if (J <= 0).any():
         raise ConfigError(f"dataset.physics.J must have positive diagonal entries, got {ph['J']}")
-    if (D < 0).any():
-        raise ConfigError(f"dataset.physics.D must be non-negative (positive semidefinite), got {ph['D']}")
+    if D.shape == (dim,):
+        if (D < 0).any():
+            raise ConfigError(f"dataset.physics.D must be non-negative (positive semidefinite), got {ph['D']}")
+        D_out = [float(x) for x in D]
+    elif D.shape == (dim, dim):  # a full damping matrix (symmetric positive semidefinite)
+        if not np.isfinite(D).all() or np.abs(D - D.T).max() > 1e-12 * max(1.0, np.abs(D).max()):
+            raise ConfigError(f"dataset.physics.D must be symmetric, got {ph['D']}")
+        if np.linalg.eigvalsh(D).min() < -1e-12 * max(1.0, np.abs(D).max()):
+            raise ConfigError(f"dataset.physics.D must be positive semidefinite, got {ph['D']}")
+        D_out = [[float(x) for x in row] for row in D]
+    else:
+        raise ConfigError(
+            f"dataset.physics.D must be a list of {dim} numbers (diagonal) or a {dim}x{dim} matrix, got {ph['D']!r}"
+        )
     return {
         "J": [float(x) for x in ph["J"]],
         "m": float(ph["m"]),
         "rho": [float(x) for x in ph["rho"]],
         "g": float(ph["g"]),
-        "D": [float(x) for x in ph["D"]],
+        "D": D_out,
     }
 
 
