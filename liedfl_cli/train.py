@@ -254,7 +254,7 @@ def count_parameters(model) -> int:
 def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
     """`liedfl train`: data -> model -> fit (with checkpoints) -> checkpoint -> recovery ->
     rollout -> eval. `resume`: a checkpoint payload to continue from. Returns a summary."""
-    from .data.scenes import get_dataset
+    from .data.scenes import dataset_steps, get_dataset
     from .evaluate import run_eval_from_objects
     from .factory import build_model
     from .rollout import rollout_and_save
@@ -312,7 +312,7 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
                     model,
                     train_data,
                     cfg.train,
-                    int(cfg.dataset.train_steps),
+                    dataset_steps(cfg.dataset, dataset, "train_steps"),
                     seed=int(cfg.seed),
                     show_progress=cfg.ui.progress,
                     resume=resume,

@@ -290,7 +290,7 @@ def _sha256(path: Path) -> str:
 
 def _scene_config(c: dict) -> dict:
     """Check the mocap-specific keys; returns them with defaults filled in (ConfigError on problems)."""
-    allowed = set(SCENE_KEYS) | set(REQUIRED_KEYS) | {"defaults"}  # Hydra's defaults list, when the yaml is loaded
+    allowed = set(SCENE_KEYS) | set(REQUIRED_KEYS) | {"defaults", "noise"}  # defaults: Hydra's list, in the yaml
     unknown = sorted(set(c) - allowed)
     if unknown:
         raise ConfigError(

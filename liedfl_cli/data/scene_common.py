@@ -71,10 +71,23 @@ def _canonical(x):
     raise ConfigError(f"dataset config value {x!r} of type {type(x).__name__} is not JSON-compatible")
 
 
+OPTIONAL_KEYS = ("noise", "smoothing")
+"""Keys every dataset config may have (data/transforms.py); when off (null, or a noise of zeros) they are
+left out of the hash, so datasets cached before they existed keep their names."""
+
+
+def _option_off(key: str, value) -> bool:
+    if value is None:
+        return True
+    if key == "noise" and isinstance(value, Mapping):
+        return all(isinstance(v, (int, float)) and not isinstance(v, bool) and v == 0 for v in value.values())
+    return False
+
+
 def generator_config(cfg) -> dict[str, Any]:
     """The part of the dataset config that determines the generated data (plus the generator version)."""
     c = to_dict(cfg)
-    out = {k: v for k, v in c.items() if k not in NON_GENERATOR_KEYS}
+    out = {k: v for k, v in c.items() if k not in NON_GENERATOR_KEYS and not (k in OPTIONAL_KEYS and _option_off(k, v))}
     out["generator_version"] = GENERATOR_VERSION
     return out
 
@@ -231,6 +244,7 @@ def simulation_info(sim) -> dict:
 __all__ = [
     "GENERATOR_VERSION",
     "NON_GENERATOR_KEYS",
+    "OPTIONAL_KEYS",
     "REQUIRED_KEYS",
     "to_dict",
     "generator_config",
