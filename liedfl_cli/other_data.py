@@ -15,19 +15,35 @@ SOURCE_FILE = "source.json"
 """Written next to a rollout of a run on other data: which dataset it was rolled out on."""
 
 
+def _group_error(model, run_dir, scene: str, n_se3: int, n_so3: int) -> ConfigError | None:
+    from .lie import ProductGroup
+
+    G = model.G
+    if (G.n_se3, G.n_so3) == (n_se3, n_so3):
+        return None
+    return ConfigError(
+        f"run={run_dir} models {G.name} but dataset '{scene}' is {ProductGroup(n_se3, n_so3).name}: "
+        "the model's group must be the data's"
+    )
+
+
 def check_model_fits_data(model, dataset, run_dir) -> None:
     """The model's group and time step must be the dataset's (one-line ConfigError otherwise)."""
-    G, H = model.G, dataset.group
-    if (G.n_se3, G.n_so3) != (H.n_se3, H.n_so3):
-        raise ConfigError(
-            f"run={run_dir} models {G.name} but dataset '{dataset.scene}' is {H.name}: "
-            "the model's group must be the data's"
-        )
-    if abs(float(model.h) - float(dataset.h)) > 1e-5 * float(model.h):
-        raise ConfigError(
-            f"run={run_dir} was trained with h={model.h:g} but dataset '{dataset.scene}' has h={dataset.h:g}: "
-            "a discrete model only steps with its own h"
-        )
+    err = _group_error(model, run_dir, dataset.scene, dataset.group.n_se3, dataset.group.n_so3)
+    if err is not None:
+        raise err
+    err = _h_error(model, run_dir, dataset.scene, dataset.h)
+    if err is not None:
+        raise err
+
+
+def _h_error(model, run_dir, scene: str, h: float) -> ConfigError | None:
+    if abs(float(model.h) - float(h)) <= 1e-5 * float(model.h):
+        return None
+    return ConfigError(
+        f"run={run_dir} was trained with h={model.h:g} but dataset '{scene}' has h={float(h):g}: "
+        "a discrete model only steps with its own h"
+    )
 
 
 def other_dataset(cfg: DictConfig, model, run_dir):
@@ -37,6 +53,15 @@ def other_dataset(cfg: DictConfig, model, run_dir):
     ds_cfg = cfg.get("dataset")
     if ds_cfg is None:
         return None
+    grp = cfg.get("group")  # set by a scene's dataset file: checked before anything is generated
+    if grp is not None:
+        err = _group_error(model, run_dir, str(ds_cfg.get("name")), int(grp.n_se3), int(grp.n_so3))
+        if err is not None:
+            raise err
+    if isinstance(ds_cfg.get("h"), (int, float)):  # likewise the step of a generated scene
+        err = _h_error(model, run_dir, str(ds_cfg.get("name")), float(ds_cfg.h))
+        if err is not None:
+            raise err
     dataset, path = get_dataset(ds_cfg, cfg.paths.data_dir)
     check_model_fits_data(model, dataset, run_dir)
     plain = OmegaConf.to_container(ds_cfg, resolve=True)

@@ -24,9 +24,9 @@ import sys
 from pathlib import Path
 
 READINGS = {  # slug: (description, train.epsilon)
-    "literal": ("log|det H| >= 100", 100.0),
-    "det100": ("|det H| >= 100, i.e. log|det H| >= 4.605", math.log(100.0)),
-    "eps10": ("log|det H| >= 10 (before)", 10.0),
+    "literal": ("log det H >= 100", 100.0),
+    "det100": ("det H >= 100, i.e. log det H >= 4.605", math.log(100.0)),
+    "eps10": ("log det H >= 10 (before)", 10.0),
 }
 
 
