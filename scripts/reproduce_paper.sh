@@ -13,5 +13,10 @@ for exp in ${LIEDFL_EXPERIMENTS:-exp1_euler_vs_lie exp2_discrete_vs_continuous e
   liedfl train -m "experiment=$exp" ui.progress=false "hydra.sweep.dir=$out/$exp" "$@"
   liedfl report "sweep=$out/$exp"
 done
+# Beyond the paper: Exp 3 with the structured potential (uniform_gravity) instead of the MLP
+if [[ " ${LIEDFL_EXPERIMENTS:-exp3_manifold} " == *" exp3_manifold "* ]]; then
+  liedfl train experiment=exp3_manifold model.potential=uniform_gravity ui.progress=false \
+    "hydra.run.dir=$out/exp3_manifold_structured" "$@"
+fi
 python scripts/summarize_paper.py "$out" > "$out/summary.md"
 echo "summary: $out/summary.md"
