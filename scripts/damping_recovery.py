@@ -49,7 +49,7 @@ def train(ds, start: str, epochs: int) -> dict:
 
     fit(model, ds.pose(ds.train_idx), cfg, 100, seed=0, show_progress=False, log_epochs=False, on_epoch=on_epoch)
     rec = parameter_recovery(model, ds)
-    s = float(model.inertia.Jd()[0].trace())
+    s = float(model.inertia.Jd()[0].trace().detach())
     s_true = sum((1.521, 1.362, 1.211)) / 2
     return {
         "start": start,
