@@ -94,12 +94,14 @@ class SolverSchema:
 class ModelSchema:
     _target_: str = "liedfl_cli.models.liedflnn.LieDFLNN"
     name: str = "liedflnn"
-    potential: str = "auto"
+    potential: Any = "auto"  # auto | none | mlp | uniform_gravity | a list of mlp, uniform_gravity
     residual: str = "fast"
     mlp_width: int = 64
     mlp_depth: int = 3
     init_jitter: float = 0.1
     known: list[str] = field(default_factory=list)  # parts set to the scene's true values and frozen
+    gravity: Any = "auto"  # field strength of uniform_gravity: auto (the data's g, else 9.81) | a number
+    learn_gravity_direction: bool = False
 
 
 @dataclass
@@ -128,7 +130,7 @@ CHOICES = {
     ("train", "reg_form"): ("relu", "gaussian"),
     ("train", "optimizer", "name"): ("soap", "adam"),
     ("train", "optimizer", "schedule"): ("constant", "cosine"),
-    ("model", "potential"): ("auto", "mlp", "none"),
+    ("model", "potential"): ("auto", "mlp", "none", "uniform_gravity"),  # or a list of mlp, uniform_gravity
     ("model", "residual"): ("fast", "generic"),
 }
 _TRAIN_KEYS = ("task_name", "seed", "epoch_scale", "train", "rollout", "eval", "ui", "paths")
@@ -137,7 +139,8 @@ TOP_LEVEL: dict[str, tuple[str, ...]] = {
     "train": (*_TRAIN_KEYS, "group", "dataset", "model", "force", "baseline", "solver", "budgets", "resume", "runtime"),
     # budget files also set train/rollout/epoch_scale, which `liedfl data` ignores
     "data": ("task_name", "ui", "paths", "group", "dataset", "train", "rollout", "epoch_scale", "seed"),
-    "rollout": ("task_name", "run", "steps", "rollout", "eval", "ui", "paths", "solver", "runtime"),
+    # rollout run=<run> dataset=<scene>: other data (the dataset file selects its group)
+    "rollout": ("task_name", "run", "steps", "rollout", "eval", "ui", "paths", "solver", "runtime", "dataset", "group"),
     "eval": ("task_name", "run", "rollout", "eval", "ui", "paths", "solver", "runtime"),
     "report": ("task_name", "sweep", "plots"),
     "resume": ("task_name", "resume", "epochs", "ui"),
@@ -360,6 +363,10 @@ def _check_dataset_keys(cfg) -> None:
     ref = _reference("dataset", name)
     if ref is None:  # a scene registered by user code: its generator checks its keys
         return
+    if name == "file" and isinstance(ref, dict):  # budget files set generator sizes on every dataset
+        from .data.scenes import FILE_IGNORED_KEYS
+
+        ref = {**ref, **{k: None for k in FILE_IGNORED_KEYS}}
     _check_reference_keys(ds, ref, "dataset", f" for scene '{name}'")
 
 
@@ -497,10 +504,11 @@ def _check_split_sizes(cfg, d: dict) -> None:
 def _check_dataset_values(cfg, command: str) -> None:
     if not isinstance(cfg.get("dataset"), DictConfig):
         return
-    from .data.scene_common import check_config, to_dict
-    from .data.scenes import SCENES
+    from .data.scenes import _checked, is_file_config
 
-    d = check_config(to_dict(_plain(cfg.dataset, "dataset")), SCENES)
+    if is_file_config(cfg.dataset):  # a user's file: its keys are checked when it is read
+        return
+    d = _checked(_plain(cfg.dataset, "dataset"))
     if command == "train":
         _check_split_sizes(cfg, d)
 
@@ -542,6 +550,8 @@ def validate(cfg: DictConfig, command: str | None = None) -> None:
         for path, allowed in CHOICES.items():
             if path[0] == "model":
                 node = _value(cfg, ".".join(path))
+                if isinstance(node, ListConfig) and path == ("model", "potential"):  # structured + learned parts
+                    node = next((x for x in node if x not in ("mlp", "uniform_gravity")), None)
                 if node is not None and node not in allowed:
                     raise ConfigError(f"{'.'.join(path)}={node!r}: choose one of {', '.join(allowed)}")
     _check_dataset_values(cfg, str(command))

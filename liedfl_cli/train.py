@@ -287,7 +287,7 @@ def count_parameters(model) -> int:
 def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
     """`liedfl train`: data -> model -> fit (with checkpoints) -> checkpoint -> recovery ->
     rollout -> eval. `resume`: a checkpoint payload to continue from. Returns a summary."""
-    from .data.scenes import get_dataset
+    from .data.scenes import dataset_steps, get_dataset
     from .evaluate import run_eval_from_objects
     from .factory import build_model, configure_runtime
     from .rollout import rollout_and_save
@@ -307,7 +307,17 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
         f"[bold]model[/] {type(model).__name__} on {dataset.group.name}, h={dataset.h}: "
         f"components {', '.join(comps)}; {n_params} trainable parameters"
     )
-    write_json(out / "components.json", {"model": type(model).__name__, "components": comps, "parameters": n_params})
+    for note in getattr(model, "notes", ()):  # e.g. what model.potential=auto chose and why
+        console.print(f"[bold]model[/] {note}", highlight=False)
+    write_json(
+        out / "components.json",
+        {
+            "model": type(model).__name__,
+            "components": comps,
+            "parameters": n_params,
+            "notes": list(getattr(model, "notes", ())),
+        },
+    )
     config = OmegaConf.to_container(cfg, resolve=True)
     assert isinstance(config, dict)
     dataset_path = str(Path(data_path).resolve())
@@ -337,7 +347,7 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
                     model,
                     train_data,
                     cfg.train,
-                    int(cfg.dataset.train_steps),
+                    dataset_steps(cfg.dataset, dataset, "train_steps"),
                     seed=int(cfg.seed),
                     show_progress=cfg.ui.progress,
                     resume=resume,

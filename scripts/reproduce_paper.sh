@@ -50,6 +50,11 @@ else
     liedfl report "sweep=$out/$exp"  # every sweep, failed jobs included
   done
 fi
+# Beyond the paper: Exp 3 with the structured potential (uniform_gravity) instead of the MLP
+if [[ " $experiments " == *" exp3_manifold "* ]]; then
+  liedfl train experiment=exp3_manifold model.potential=uniform_gravity ui.progress=false \
+    "hydra.run.dir=$out/exp3_manifold_structured" "$@" || failed=1
+fi
 python scripts/summarize_paper.py "$out" > "$out/summary.md"
 echo "summary: $out/summary.md"
 if [ "$failed" -ne 0 ]; then

@@ -166,6 +166,6 @@ def test_model_configs_name_their_option_and_a_model_class():
 
 
 def test_dataset_options_match_registry():
-    from liedfl_cli.data.scenes import SCENES
+    from liedfl_cli.data.scenes import FILE_SCENE, SCENES
 
-    assert _options("dataset") == set(SCENES)
+    assert _options("dataset") == set(SCENES) | {FILE_SCENE}  # file: a dataset file, not a generator

@@ -53,12 +53,18 @@ class NeuralODE(ExplicitModel):
             torch.manual_seed(int(seed))
             self.field = MLP(2 * self.n, self.n, mlp_width, mlp_depth)
 
-    OPTIONS = ("window", "mlp_width", "mlp_depth", "method", "rtol", "atol", "max_num_steps")
+    OPTIONS = ("window", "mlp_width", "mlp_depth", "method", "rtol", "atol", "max_num_steps", "potential")
 
     @classmethod
     def from_config(cls, ctx: BuildContext, **options) -> NeuralODE:
-        """Options of conf/model/neural_ode.yaml (window, MLP size, torchdiffeq method and tolerances)."""
+        """`potential` (set for every model of a sweep by the experiment files) may only be auto or mlp:
+        the vector field is one MLP, which holds any potential force implicitly."""
         opt = config_options(cls, options, cls.OPTIONS)
+        if opt.pop("potential", "auto") not in ("auto", "mlp"):
+            raise ConfigError(
+                "model=neural_ode: its vector field is one MLP (any potential is in it); "
+                "model.potential must be auto or mlp"
+            )
         if opt.get("window", "trajectory") not in ("triplet", "trajectory"):
             raise ConfigError(f"model.window={opt['window']!r}: choose one of triplet, trajectory")
         return cls(ctx.group, ctx.h, seed=ctx.seed, **opt)
