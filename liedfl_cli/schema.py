@@ -550,7 +550,7 @@ def validate(cfg: DictConfig, command: str | None = None) -> None:
         for path, allowed in CHOICES.items():
             if path[0] == "model":
                 node = _value(cfg, ".".join(path))
-                if isinstance(node, ListConfig) and path == ("model", "potential"):  # structured + learned parts
+                if isinstance(node, (list, ListConfig)) and path == ("model", "potential"):  # structured + learned
                     node = next((x for x in node if x not in ("mlp", "uniform_gravity")), None)
                 if node is not None and node not in allowed:
                     raise ConfigError(f"{'.'.join(path)}={node!r}: choose one of {', '.join(allowed)}")
