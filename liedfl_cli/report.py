@@ -83,7 +83,7 @@ def collect(sweep: Path) -> list[dict]:
         cfg = _read(run / ".hydra" / "config.yaml", "yaml")
         if not isinstance(cfg, dict) or not isinstance(cfg.get("dataset"), dict):
             raise DatasetError(f"{run / '.hydra' / 'config.yaml'}: not a liedfl train config (no 'dataset' section)")
-        overrides = []
+        overrides: list = []
         ov = run / ".hydra" / "overrides.yaml"
         if ov.is_file():
             overrides = _read(ov, "yaml") or []
@@ -138,7 +138,7 @@ def make_plots(sweep: Path, rows: list[dict]) -> list[Path]:
     # error vs training length (mean over runs of the same model and length)
     fig, ax = plt.subplots(figsize=(5, 3.6))
     for m in models:
-        pts = {}
+        pts: dict = {}
         for r in rows:
             if r["model"] == m and r["rel_rot_error_mean"] is not None:
                 pts.setdefault(r["train_steps"], []).append(r["rel_rot_error_mean"])
@@ -190,13 +190,13 @@ def make_plots(sweep: Path, rows: list[dict]) -> list[Path]:
         axes, ("train_seconds", "rollout_s_per_step"), ("training wall time (s)", "rollout time per step (s)")
     ):
         for m in models:
-            pts = [
+            speed_error = [
                 (r[key], r["rel_rot_error_mean"])
                 for r in rows
                 if r["model"] == m and r.get(key) and r["rel_rot_error_mean"]
             ]
-            if pts:
-                ax.loglog(*zip(*pts), "o", label=m, color=colors[m])
+            if speed_error:
+                ax.loglog(*zip(*speed_error), "o", label=m, color=colors[m])
         ax.set_xlabel(label)
         ax.set_ylabel("mean relative rotation error")
         ax.grid(alpha=0.3, which="both")

@@ -85,9 +85,10 @@ def graceful_stop():
         stop.signum = signum
         console.print("[bold yellow]stop requested:[/] finishing the epoch and saving a checkpoint (again: stop now)")
 
-    signums = [signal.SIGINT, signal.SIGTERM]
-    if _cluster_warning_signal() is not None:
-        signums.append(_cluster_warning_signal())
+    signums: list[int] = [signal.SIGINT, signal.SIGTERM]
+    warning = _cluster_warning_signal()
+    if warning is not None:
+        signums.append(warning)
     previous = {s: signal.signal(s, handler) for s in signums}
     try:
         yield stop

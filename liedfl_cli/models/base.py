@@ -120,7 +120,7 @@ class BuildContext:
                 return self._auto_potential()
             if choice == "none":
                 return (), "model.potential=none"
-            parts = (choice,)
+            parts: tuple[str, ...] = (choice,)
         elif isinstance(choice, (list, tuple)):
             parts = tuple(str(c) for c in choice)
         else:
