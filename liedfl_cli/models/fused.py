@@ -34,6 +34,7 @@ from torch import nn
 from ..lie import Pose, ProductGroup, so3
 from ..lie.tolerances import tol
 from ..mechanics import kinetic
+from ..mechanics.damping import apply_blocks
 from ..mechanics.forces import PDControl, RayleighForce, RayleighNonlinearForce, force_jacobian_xi
 from ..mechanics.parameterizations import Inertia, SPSDMatrix
 from ..mechanics.potentials import MLPPotential, left_gradient
@@ -575,8 +576,13 @@ def batch_forces(model, forces: list[nn.Module], f: dict) -> torch.Tensor:
 
 def force_value(force: nn.Module, g: Pose, xi: torch.Tensor) -> torch.Tensor:
     """F(g, xi~); the configuration-dependent Rayleigh force D(g) xi~ = L (L^T xi~) as two
-    matrix-vector products instead of forming the dim x dim matrix L L^T per sample."""
+    matrix-vector products instead of forming the dim x dim matrix L L^T per sample (per body:
+    block by block, so neither L nor D is ever a dim x dim matrix)."""
     if type(force) is RayleighNonlinearForce:
+        if force.per_body is not None:
+            L_se, L_so = force.per_body.factors(g)
+            Lt_xi = apply_blocks(force.G, L_se.transpose(-1, -2), L_so.transpose(-1, -2), xi)
+            return -apply_blocks(force.G, L_se, L_so, Lt_xi)
         L = force.L(g)
         return -(L @ (L.transpose(-1, -2) @ xi[..., None]))[..., 0]
     return force(g, xi)
