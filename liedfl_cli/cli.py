@@ -6,23 +6,20 @@ the plain function that does the work (`run_train`, ...), which tests call direc
 
 from __future__ import annotations
 
+import contextlib
+import os
 import sys
 from pathlib import Path
+
+from .preflight import DIR_ARGS, classify, preflight, preflight_or_fail  # noqa: F401 (re-exported)
 
 CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
 COMMANDS = {
     "train": "train and evaluate a model (generates the dataset if needed)",
     "data": "only generate (or import) a dataset",
-    "rollout": "roll a trained run out into <run>/rollouts/<name>/: liedfl rollout run=<run dir> [steps=N]",
-    "eval": "metrics table and plots of a run: liedfl eval run=<run dir> [rollout=<rollout file>]",
+    "rollout": "roll a trained run out: liedfl rollout run=<run dir> [steps=N]",
+    "eval": "metrics table and plots of a run: liedfl eval run=<run dir>",
     "report": "one table and figures over a sweep: liedfl report sweep=<multirun dir>",
-}
-# commands whose Hydra run dir is `${<key>}`, an existing directory named on the command line
-DIR_ARGS = {
-    "rollout": ("run", "run dir", "run directory", "a directory written by `liedfl train`"),
-    "eval": ("run", "run dir", "run directory", "a directory written by `liedfl train`"),
-    "resume": ("resume", "run dir", "run directory", "a directory written by `liedfl train`"),
-    "report": ("sweep", "multirun dir", "multirun directory", "a directory written by `liedfl train -m`"),
 }
 USAGE = (
     "usage: liedfl {"
@@ -32,54 +29,117 @@ USAGE = (
 )
 
 
-def _run(command: str, cfg):
-    from omegaconf import OmegaConf
-    from omegaconf.errors import OmegaConfBaseException
+def _dispatch(command: str, cfg):
+    if command == "train":
+        from .train import run_train
 
-    from .errors import ConfigError, LiedflError
-    from .schema import validate
-    from .ui import fail
+        return run_train(cfg)
+    if command == "resume":
+        from .train import run_resume
 
+        return run_resume(cfg)
+    if command == "data":
+        from .data.command import run_data
+
+        return run_data(cfg)
+    if command == "rollout":
+        from .rollout import run_rollout
+
+        return run_rollout(cfg)
+    if command == "eval":
+        from .evaluate import run_eval
+        from .runs import check_run_files
+
+        check_run_files(cfg.run)
+        return run_eval(cfg)
+    if command == "report":
+        from .report import run_report
+
+        return run_report(cfg)
+    raise AssertionError(command)
+
+
+def _job_context(command: str, cfg) -> tuple[bool, Path | None, Path | None]:
+    """(multirun?, the folder that gets status.json, Hydra's run folder) of the running job."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    if not HydraConfig.initialized():
+        return False, None, None
+    hc = HydraConfig.get()
+    hydra_dir = Path(str(hc.runtime.output_dir))
+    if hc.mode == RunMode.MULTIRUN:
+        return True, hydra_dir, hydra_dir
+    if command == "resume":  # the run continues in its own folder: status.json says "ok" once it finishes
+        return False, Path(str(cfg.resume)), hydra_dir  # (a failed resume leaves the run's status as it was)
+    if command != "train":  # eval/rollout/report/data write into existing folders: no status file
+        return False, None, hydra_dir
     try:
-        if command in DIR_ARGS and OmegaConf.is_missing(cfg, DIR_ARGS[command][0]):
-            key, what, _, hint = DIR_ARGS[command]
-            raise ConfigError(f"{key}=<{what}> is required ({hint})")
-        validate(cfg)
-        if command == "train":
-            from .train import run_train
+        out = Path(str(cfg.paths.output_dir))
+    except Exception:  # an unresolvable path: fall back to Hydra's folder
+        out = hydra_dir
+    return False, out, hydra_dir
 
-            return run_train(cfg)
-        if command == "resume":
-            from .train import run_resume
 
-            return run_resume(cfg)
-        if command == "data":
-            from .data.command import run_data
+def _has_content(d: Path) -> bool:
+    return d.is_dir() and any(e.name != ".hydra" and e.suffix != ".log" for e in d.iterdir())
 
-            return run_data(cfg)
-        if command == "rollout":
-            from .rollout import run_rollout
 
-            return run_rollout(cfg)
-        if command == "eval":
-            from .evaluate import run_eval
+def _record_failure(multirun: bool, status_dir, hydra_dir, message: str, code: int, status: str) -> None:
+    from .status import remove_unused_run_dir, write_status
 
-            return run_eval(cfg)
-        if command == "report":
-            from .report import run_report
+    if not multirun and hydra_dir is not None:
+        remove_unused_run_dir(hydra_dir)
+    if status_dir is None or not status_dir.is_dir():
+        return
+    if multirun or _has_content(status_dir):
+        with contextlib.suppress(OSError):
+            write_status(status_dir, status, code, error=message)
 
-            return run_report(cfg)
-    except LiedflError as e:
-        fail(str(e), code=getattr(e, "exit_code", 2))
-    except FloatingPointError as e:
-        fail(f"numerical failure: {e}")
-    except OmegaConfBaseException as e:  # e.g. a broken interpolation in an override file
-        key = getattr(e, "full_key", None)
-        fail(
-            f"config error: {str(e).splitlines()[0] if str(e) else type(e).__name__}" + (f" (key {key})" if key else "")
-        )
-    except KeyboardInterrupt:
-        fail("interrupted", code=130)
+
+def _run(command: str, cfg):
+    """One job: preflight, the command, status.json. In a multirun a failing job records its status
+    and returns (the sweep goes on; `main` reports the count); in a single run it exits non-zero."""
+    import time
+
+    from .status import write_status
+    from .ui import error_line, fail
+
+    _one_line_warnings()  # (also in launcher worker processes, which do not run `main`)
+    multirun, status_dir, hydra_dir = _job_context(command, cfg)
+    failure_dir = None if command == "resume" and not multirun else status_dir
+    t0 = time.perf_counter()
+    try:
+        preflight(command, cfg)
+        result = _dispatch(command, cfg)
+    except SystemExit:
+        raise
+    except BaseException as e:
+        known = classify(e)
+        if known is None:  # a bug: keep its traceback, but record the failure first
+            _record_failure(multirun, failure_dir, hydra_dir, f"internal error: {type(e).__name__}: {e}", 1, "failed")
+            if multirun and isinstance(e, Exception):
+                import traceback
+
+                traceback.print_exc()
+                return None
+            raise
+        message, code = known
+        interrupted = isinstance(e, KeyboardInterrupt) or code in (130, 143)
+        _record_failure(multirun, failure_dir, hydra_dir, message, code, "interrupted" if interrupted else "failed")
+        if multirun and not interrupted:
+            error_line(f"[job {status_dir.name}] {message}")
+            return None
+        fail(message, code)
+    if status_dir is not None:
+        write_status(status_dir, "ok", 0, seconds=round(time.perf_counter() - t0, 3), **_threads())
+    return result
+
+
+def _threads() -> dict:
+    """torch's intra-op threads in the job, for status.json (one per job when jobs share a machine)."""
+    torch = sys.modules.get("torch")
+    return {} if torch is None else {"threads": int(torch.get_num_threads())}
 
 
 def _check_dir_arg(command: str, args: list[str]) -> None:
@@ -116,7 +176,7 @@ def main() -> None:
         raise SystemExit(0 if argv else 2)
     command = argv[0]
     if command == "train" and any(a.startswith("resume=") for a in argv[1:]):
-        command = "resume"  # `liedfl train resume=<run dir>` has its own primary config
+        command = "resume"  # `liedfl train resume=<run dir>` has its own primary config (conf/resume.yaml)
     if command not in COMMANDS and command != "resume":
         print(f"error: unknown command {command!r}\n\n{USAGE}", file=sys.stderr)
         raise SystemExit(2)
@@ -128,6 +188,11 @@ def main() -> None:
         raise SystemExit(2)
     if command in DIR_ARGS:
         _check_dir_arg(command, argv[1:])
+    _check_flags(command, argv[1:])
+    _one_line_warnings()
+    from .status import reset
+
+    reset()
     import hydra
 
     @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name=command)
@@ -135,7 +200,212 @@ def main() -> None:
         return _run(command, cfg)
 
     sys.argv = [f"liedfl-{command}", *argv[1:]]
-    _hydra_main()
+    # Hydra prints its own errors over several lines and exits; with HYDRA_FULL_ERROR it raises them
+    # instead, so that they can be reduced to one line here (the user's HYDRA_FULL_ERROR=1 keeps
+    # Hydra's full text).
+    user_full_error = os.environ.get("HYDRA_FULL_ERROR")
+    os.environ["HYDRA_FULL_ERROR"] = "1"
+    launcher_error = None
+    try:
+        _hydra_main()
+    except KeyboardInterrupt:
+        _interrupted_sweep()
+        raise
+    except Exception as e:
+        if user_full_error == "1":
+            raise
+        launcher_error = _launcher_failure(e)
+        if launcher_error is None:
+            _hydra_failure(command, e)
+    finally:
+        if user_full_error is None:
+            os.environ.pop("HYDRA_FULL_ERROR", None)
+        else:
+            os.environ["HYDRA_FULL_ERROR"] = user_full_error
+    _sweep_exit(launcher_error)
+
+
+def _interrupted_sweep() -> None:
+    """Ctrl-C in the process that waits for the jobs of a submitit sweep: one line (the jobs run in
+    processes of their own; on a cluster they go on)."""
+    from .status import jobs_ran_elsewhere, sweep_dir
+    from .ui import fail
+
+    sd = sweep_dir()
+    if sd is not None and jobs_ran_elsewhere():
+        fail(
+            f"interrupted: stopped waiting for the jobs of {sd} (jobs that were not interrupted go on;"
+            f" `liedfl report sweep={sd}` lists them once they are done)",
+            130,
+        )
+
+
+def _launcher_failure(e: Exception) -> str | None:
+    """One line for an error of the sweep's launcher (None for anything else). submitit raises in the
+    launching process when a job died without returning (killed, out of memory, past its time limit,
+    interrupted) or could not be submitted; the jobs' own failures are recorded in their folders."""
+    from .status import sweep_dir
+
+    if sweep_dir() is None or type(e).__module__.split(".")[0] != "submitit":
+        return None
+    lines = [ln.strip() for ln in str(e).splitlines() if ln.strip() and not set(ln.strip()) <= set("-=")]
+    text = type(e).__name__ if not lines else lines[0] if len(lines) == 1 else f"{lines[0]} ... {lines[-1]}"
+    return f"{type(e).__name__}: {text}" if not text.startswith(type(e).__name__) else text
+
+
+def _check_flags(command: str, args: list[str]) -> None:
+    """Hydra's command-line parser, with its errors (an unknown flag, a flag without its value) as
+    one line instead of argparse's usage block."""
+    if "--version" in args:
+        return
+    try:
+        from hydra._internal.utils import get_args_parser
+    except ImportError:  # pragma: no cover (another Hydra layout: Hydra reports it itself)
+        return
+    parser = get_args_parser()
+
+    def error(message: str):
+        print(f"error: {message} (usage: liedfl {command} [key=value ...] [-m] [--cfg job] [--help])", file=sys.stderr)
+        raise SystemExit(2)
+
+    parser.error = error
+    parser.parse_args(args)
+
+
+def _one_line_warnings() -> None:
+    """liedfl's own warnings (data projected, coarse sampling, ...) as one `warning: ...` line."""
+    import warnings
+
+    from .errors import LiedflWarning
+
+    shown = warnings.showwarning
+    if getattr(shown, "_liedfl", False):
+        return
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        if isinstance(category, type) and issubclass(category, LiedflWarning):
+            from .ui import warning_line
+
+            warning_line(str(message))
+        else:
+            shown(message, category, filename, lineno, file, line)
+
+    show._liedfl = True
+    warnings.showwarning = show
+
+
+def _sweep_exit(launcher_error: str | None = None) -> None:
+    """After a multirun: one summary line, exit code = number of failed jobs (capped at 100).
+
+    The summary is read from the job folders (status.json), whichever process ran the jobs. Jobs that
+    ran elsewhere (submitit) printed their errors into their logs: their error lines are repeated
+    here. launcher_error: the launcher stopped the sweep (the exit code is then at least 1)."""
+    from .status import jobs_ran_elsewhere, sweep_dir, sweep_summary
+    from .ui import console, error_line, fail
+
+    sd = sweep_dir()
+    if sd is None or not Path(sd).is_dir():
+        if launcher_error is not None:
+            fail(f"launcher: {launcher_error}")
+        return
+    failed, total, failures = sweep_summary(sd)
+    if jobs_ran_elsewhere():
+        for d, message in failures:
+            error_line(f"[job {d.name}] {message}")
+    if failed:
+        error_line(f"{failed} of {total} jobs failed: {', '.join(str(d) for d, _ in failures)}")
+    if launcher_error is not None:
+        error_line(
+            f"launcher: {launcher_error} (jobs still running go on; `liedfl report sweep={sd}` lists them"
+            f" once they are done; job logs: {Path(sd) / '.submitit'})"
+        )
+    if failed or launcher_error is not None:
+        raise SystemExit(min(max(failed, 1), 100))
+    console.print(f"all {total} jobs finished: {sd}", highlight=False, soft_wrap=True)
+
+
+def _hydra_failure(command: str, e: Exception) -> None:
+    """Hydra's own errors (override grammar, composition, a missing option) as one line plus a hint;
+    anything else goes on up with its traceback."""
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
+    from .ui import fail
+
+    if isinstance(e, OSError) and e.filename:  # e.g. a run folder that cannot be created
+        fail(f"{e.filename}: {e.strerror or type(e).__name__}")
+    if not isinstance(e, (HydraException, OmegaConfBaseException)):
+        raise e
+    message = hydra_message(command, e)
+    if "hydra/launcher/submitit" in message:  # the plugin's configs exist only once it is installed
+        message += ' (the submitit launchers need hydra-submitit-launcher: pip install -e ".[cluster]")'
+    fail(message + " (HYDRA_FULL_ERROR=1 shows Hydra's full message)")
+
+
+def hydra_message(command: str, e: BaseException) -> str:
+    """One line from a (multi-line) Hydra exception: its first line, the informative next lines, the
+    available options of a missing config and, for an unknown key, the closest existing one."""
+    import re
+
+    text = str(e)
+    lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+    options: list[str] = []
+    rest: list[str] = []
+    in_options = False
+    for ln in lines[1:]:
+        if ln.startswith("Available options"):
+            in_options = True
+            continue
+        if in_options and re.fullmatch(r"[\w.\-/]+", ln):
+            options.append(ln)
+            continue
+        in_options = False
+        if ln.startswith(
+            ("See http", "full_key:", "object_type", "reference_type", "Set the environment", "Config search path")
+        ) or ln.startswith("provider="):
+            continue
+        rest.append(ln.rstrip("."))
+    msg = (lines[0] if lines else type(e).__name__).rstrip(".")
+    override = getattr(e, "override", None)
+    if override is not None:
+        msg = f"cannot parse override '{override}': {msg}"
+    if rest:
+        msg += ": " + "; ".join(rest)
+    cause = e.__cause__
+    if cause is not None and str(cause).strip():
+        first = str(cause).strip().splitlines()[0].rstrip(".")
+        if first not in msg:
+            msg += f" ({first})"
+    if options:
+        msg += f" (available: {', '.join(options)})"
+    m = re.search(r"Could not (?:override|append to|delete) '([^']+)'", text)
+    if m:
+        msg += _closest_existing_key(command, m.group(1))
+    return msg
+
+
+def _closest_existing_key(command: str, dotted: str) -> str:
+    """' (did you mean X?)' from the config composed without overrides; '' when nothing is close."""
+    try:
+        from hydra import compose, initialize_config_dir
+        from hydra.core.global_hydra import GlobalHydra
+        from omegaconf import DictConfig, OmegaConf
+
+        from .schema import closest
+
+        GlobalHydra.instance().clear()
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            base = compose(config_name=command)
+        parent, _, key = dotted.rpartition(".")
+        node = OmegaConf.select(base, parent) if parent else base
+        if not isinstance(node, DictConfig):
+            return ""
+        hint = closest(key, list(node.keys()))
+        if "did you mean" not in hint:
+            return ""
+        return hint.replace("'", f"'{parent}." if parent else "'", 1)
+    except Exception:  # a hint only
+        return ""
 
 
 if __name__ == "__main__":

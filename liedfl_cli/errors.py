@@ -27,4 +27,20 @@ class SimulationError(LiedflError, RuntimeError):
     """Ground-truth integration failed (solver failure or too much drift off SO(3))."""
 
 
-__all__ = ["LiedflError", "DatasetError", "CheckpointError", "ConfigError", "SimulationError"]
+class LiedflWarning(UserWarning):
+    """Base class of liedfl's warnings (the CLI prints them as one `warning: ...` line)."""
+
+
+class DataWarning(LiedflWarning):
+    """A dataset is usable but suspicious (rotations projected onto SO(3), coarse sampling, ...)."""
+
+
+__all__ = [
+    "LiedflError",
+    "DatasetError",
+    "CheckpointError",
+    "ConfigError",
+    "SimulationError",
+    "LiedflWarning",
+    "DataWarning",
+]

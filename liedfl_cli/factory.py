@@ -59,6 +59,7 @@ def build_context(cfg: DictConfig, dataset) -> BuildContext:
         epsilon=float(cfg.train.epsilon),
         forces=forces or {},
         physics=(dataset.params or {}).get("physics"),
+        metadata=dataset.params or {},
     )
 
 

@@ -6,21 +6,96 @@ import contextlib
 import csv
 import json
 import os
+import re
+import signal
+import threading
 from pathlib import Path
+
+# liedfl's temporary names: `.<name>.tmp<pid>` (atomic_path) and `<stem>.h5.tmp<pid>` (save_dataset)
+_TMP = re.compile(r"(?:\..+|.+\.h5)\.tmp(\d+)")
+
+
+def pid_alive(pid: int) -> bool:
+    """Whether a process with this id exists (on this machine)."""
+    if pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, owned by someone else
+        return True
+    except OSError:
+        return True
+    return True
+
+
+def clean_orphans(folder) -> list[Path]:
+    """Remove liedfl's temporary files (`.<name>.tmp<pid>`, `<stem>.h5.tmp<pid>`) in `folder` left by
+    processes that no longer exist (a writer killed between writing its temporary file and renaming
+    it). Files of live processes, and files not named like that, are kept. Returns the removed paths."""
+    removed: list[Path] = []
+    try:
+        entries = list(Path(folder).iterdir())
+    except OSError:
+        return removed
+    me = os.getpid()
+    for p in entries:
+        m = _TMP.fullmatch(p.name)
+        if not m or int(m.group(1)) == me or pid_alive(int(m.group(1))):
+            continue
+        try:
+            if p.is_file() or p.is_symlink():
+                p.unlink()
+                removed.append(p)
+        except OSError:
+            pass
+    return removed
+
+
+@contextlib.contextmanager
+def deferred_signals(signums=(signal.SIGINT, signal.SIGTERM)):
+    """Hold SIGINT/SIGTERM while the block runs (a file being written and renamed), then deliver them
+    to the handlers that were installed before. A Ctrl-C in the middle of an HDF5 or torch write
+    would otherwise be raised inside library code (and may be swallowed as "Exception ignored").
+    Only the main thread can install handlers; elsewhere the block runs unprotected."""
+    if threading.current_thread() is not threading.main_thread():
+        yield []
+        return
+    received: list[int] = []
+
+    def hold(signum, frame):
+        received.append(signum)
+
+    old = {}
+    try:
+        for s in signums:
+            old[s] = signal.signal(s, hold)
+        yield received
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+        for s in dict.fromkeys(received):
+            signal.raise_signal(s)
 
 
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike):
-    """Yield a temporary path next to `path`; rename it onto `path` only if the block succeeds."""
+    """Yield a temporary path next to `path`; rename it onto `path` only if the block succeeds.
+
+    SIGINT/SIGTERM are held until the file is in place (or the temporary file removed) and then
+    delivered; temporary files of dead processes in the same folder are removed first."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    clean_orphans(path.parent)
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    try:
-        yield tmp
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    with deferred_signals():
+        try:
+            yield tmp
+            os.replace(tmp, path)
+        finally:
+            if tmp.exists():
+                tmp.unlink()
 
 
 def write_text(path, text: str) -> None:

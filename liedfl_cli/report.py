@@ -16,7 +16,7 @@ import numpy as np
 import yaml
 from omegaconf import DictConfig
 
-from .errors import ConfigError, LiedflError
+from .errors import ConfigError, DatasetError, LiedflError
 from .evaluate import DRIFT_COLUMNS, ERROR_COLUMNS
 from .io_utils import markdown_table, write_csv, write_text
 from .rollout_file import FILE_NAME, read_rollout
@@ -52,16 +52,42 @@ def find_runs(sweep: Path) -> list[Path]:
     )
 
 
+def _read(path: Path, kind: str):
+    """A run file as parsed YAML / CSV rows / JSON; DatasetError naming the file when garbled."""
+    from .runs import read_json_object
+
+    try:
+        if kind == "json":
+            return read_json_object(path)
+        text = path.read_text()
+        if kind == "yaml":
+            return yaml.safe_load(text)
+        rows = list(csv.DictReader(text.splitlines()))
+        if rows and "model" not in rows[0]:
+            raise DatasetError(f"{path}: column 'model' is missing")
+        return rows
+    except (UnicodeDecodeError, yaml.YAMLError, csv.Error) as e:
+        raise DatasetError(f"{path}: not a valid {kind.upper()} file ({type(e).__name__})") from None
+
+
+def _number(path: Path, key: str, v):
+    try:
+        return float(v) if v not in (None, "") else None
+    except (TypeError, ValueError):
+        raise DatasetError(f"{path}: column '{key}' holds {v!r}, not a number") from None
+
+
 def collect(sweep: Path) -> list[dict]:
     rows = []
     for run in find_runs(sweep):
-        cfg = yaml.safe_load((run / ".hydra" / "config.yaml").read_text())
-        overrides = []
+        cfg = _read(run / ".hydra" / "config.yaml", "yaml")
+        if not isinstance(cfg, dict) or not isinstance(cfg.get("dataset"), dict):
+            raise DatasetError(f"{run / '.hydra' / 'config.yaml'}: not a liedfl train config (no 'dataset' section)")
+        overrides: list = []
         ov = run / ".hydra" / "overrides.yaml"
         if ov.is_file():
-            overrides = yaml.safe_load(ov.read_text()) or []
-        with open(run / "eval.csv") as f:
-            evals = {r["model"]: r for r in csv.DictReader(f)}
+            overrides = _read(ov, "yaml") or []
+        evals = {r["model"]: r for r in _read(run / "eval.csv", "csv")}
         if "model" not in evals:
             continue
         e = evals["model"]
@@ -73,11 +99,11 @@ def collect(sweep: Path) -> list[dict]:
             "setting": " ".join(overrides),
         }
         for k in COLUMNS[5:]:
-            v = e.get(k)
-            row[k] = float(v) if v not in (None, "") else None
+            row[k] = _number(run / "eval.csv", k, e.get(k))
         summary = run / "summary.json"
         if summary.is_file():
-            t = json.loads(summary.read_text()).get("timings", {})
+            t = _read(summary, "json").get("timings", {})
+            t = t if isinstance(t, dict) else {}
             row.update({k: t.get(k) for k in ("parameters", "train_seconds", "seconds_per_epoch")})
         rows.append(row)
     return rows
@@ -112,7 +138,7 @@ def make_plots(sweep: Path, rows: list[dict]) -> list[Path]:
     # error vs training length (mean over runs of the same model and length)
     fig, ax = plt.subplots(figsize=(5, 3.6))
     for m in models:
-        pts = {}
+        pts: dict = {}
         for r in rows:
             if r["model"] == m and r["rel_rot_error_mean"] is not None:
                 pts.setdefault(r["train_steps"], []).append(r["rel_rot_error_mean"])
@@ -164,13 +190,13 @@ def make_plots(sweep: Path, rows: list[dict]) -> list[Path]:
         axes, ("train_seconds", "rollout_s_per_step"), ("training wall time (s)", "rollout time per step (s)")
     ):
         for m in models:
-            pts = [
+            speed_error = [
                 (r[key], r["rel_rot_error_mean"])
                 for r in rows
                 if r["model"] == m and r.get(key) and r["rel_rot_error_mean"]
             ]
-            if pts:
-                ax.loglog(*zip(*pts), "o", label=m, color=colors[m])
+            if speed_error:
+                ax.loglog(*zip(*speed_error), "o", label=m, color=colors[m])
         ax.set_xlabel(label)
         ax.set_ylabel("mean relative rotation error")
         ax.grid(alpha=0.3, which="both")
@@ -186,14 +212,22 @@ def run_report(cfg: DictConfig) -> dict:
         raise ConfigError(
             f"sweep={cfg.sweep}: not a directory (give a multirun directory, e.g. outputs/multirun/<date>)"
         )
+    from .status import failed_runs
+
     rows = collect(sweep)
-    if not rows:
+    failed = [(str(d.relative_to(sweep)), err) for d, err in failed_runs(sweep)]
+    if not rows and not failed:
         raise ConfigError(f"sweep={sweep}: no finished runs found (folders with .hydra/config.yaml and eval.csv)")
     rows.sort(key=lambda r: (r["dataset"], r["model"], r["train_steps"], r["run"]))
-    write_csv(sweep / "report.csv", rows)
+    if rows:
+        write_csv(sweep / "report.csv", rows)
     cols = [c for c in COLUMNS if any(r.get(c) not in (None, "") for r in rows)]
-    write_text(sweep / "report.md", f"# Report: {sweep}\n\n{len(rows)} runs.\n\n" + markdown_table(rows, cols))
-    plots = make_plots(sweep, rows) if cfg.plots else []
+    md = f"# Report: {sweep}\n\n{len(rows)} runs" + (f", {len(failed)} failed" if failed else "") + ".\n\n"
+    md += markdown_table(rows, cols) if rows else ""
+    if failed:
+        md += "\n## Failed runs\n\n" + markdown_table([{"run": d, "error": e} for d, e in failed], ["run", "error"])
+    write_text(sweep / "report.md", md)
+    plots = make_plots(sweep, rows) if cfg.plots and rows else []
     from rich.table import Table
 
     from .io_utils import fmt
@@ -213,6 +247,12 @@ def run_report(cfg: DictConfig) -> dict:
         table.add_column(c.replace("_", " "))
     for r in rows:
         table.add_row(*[fmt(r.get(c)) for c in short])
-    console.print(table)
-    console.print(f"report written to {sweep / 'report.md'} and {sweep / 'report.csv'}; plots: {len(plots)}")
-    return {"rows": rows, "plots": [str(p) for p in plots]}
+    if rows:
+        console.print(table)
+    if failed:
+        console.print(f"[bold red]failed runs[/] ({len(failed)}):", highlight=False)
+        for d, e in failed:
+            console.print(f"  {d}: {e}", highlight=False, markup=False, soft_wrap=True)
+    written = f"{sweep / 'report.md'}" + (f" and {sweep / 'report.csv'}" if rows else "")
+    console.print(f"report written to {written}; plots: {len(plots)}")
+    return {"rows": rows, "plots": [str(p) for p in plots], "failed": failed}

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import csv
+import json
+import math
 from pathlib import Path
 
 from omegaconf import OmegaConf
 
 from .checkpoint import load_checkpoint, load_state
-from .errors import CheckpointError, ConfigError
+from .errors import CheckpointError, ConfigError, DatasetError
 
 
 def _recorded_dataset(run_dir: Path, recorded) -> Path | None:
@@ -59,3 +62,61 @@ def load_run(run_dir, data_dir=None):
         raise CheckpointError(f"{ckpt}: field 'config' does not build a model ({e})") from None
     load_state(ckpt, model, payload)
     return cfg, model, dataset, run_dir
+
+
+# ----------------------------------------------------------------------------- other run files
+def read_train_metrics(path) -> list[dict]:
+    """`train_metrics.csv` -> rows of floats; DatasetError naming the file, row and column when garbled."""
+    path = Path(path)
+    try:
+        with open(path, newline="") as f:
+            reader = csv.DictReader(f)
+            header = reader.fieldnames
+            if not header or any(not h or not h.strip() for h in header):
+                raise DatasetError(f"{path}: missing or empty column name in the header line")
+            for col in ("epoch", "loss"):
+                if col not in header:
+                    raise DatasetError(f"{path}: column '{col}' is missing (header: {', '.join(header)})")
+            rows = []
+            for i, r in enumerate(reader, start=2):
+                if None in r:
+                    raise DatasetError(f"{path}: line {i} has more fields than the header")
+                row = {}
+                for k, v in r.items():
+                    if v in (None, ""):
+                        continue
+                    try:
+                        x = float(v)
+                    except ValueError:
+                        raise DatasetError(f"{path}: line {i}, column '{k}': {v!r} is not a number") from None
+                    if k == "epoch" and not (math.isfinite(x) and x == int(x) and x >= 1):
+                        raise DatasetError(f"{path}: line {i}, column 'epoch': {v!r} is not a positive integer")
+                    row[k] = x
+                rows.append(row)
+    except (UnicodeDecodeError, csv.Error) as e:
+        raise DatasetError(f"{path}: not a CSV text file ({type(e).__name__})") from None
+    return rows
+
+
+def read_json_object(path) -> dict:
+    """A JSON file holding an object; DatasetError naming the file when garbled."""
+    path = Path(path)
+    try:
+        obj = json.loads(path.read_text())
+    except UnicodeDecodeError:
+        raise DatasetError(f"{path}: not a UTF-8 text file") from None
+    except json.JSONDecodeError as e:
+        raise DatasetError(f"{path}: not valid JSON ({e.msg} at line {e.lineno}, column {e.colno})") from None
+    if not isinstance(obj, dict):
+        raise DatasetError(f"{path}: expected a JSON object, got {type(obj).__name__}")
+    return obj
+
+
+def check_run_files(run_dir) -> None:
+    """The files `liedfl eval` reads besides the checkpoint and the rollout (`train_metrics.csv`,
+    `recovery.json`), checked before anything is recomputed: a garbled one is a one-line error."""
+    run_dir = Path(str(run_dir))
+    if (run_dir / "train_metrics.csv").is_file():
+        read_train_metrics(run_dir / "train_metrics.csv")
+    if (run_dir / "recovery.json").is_file():
+        read_json_object(run_dir / "recovery.json")

@@ -1,15 +1,38 @@
-"""Dataclass schemas of the config sections owned by liedfl: a misspelled or mistyped key in
-any yaml file (experiment, budget, ...) fails with a one-line ConfigError naming the key."""
+"""Up-front validation of a composed config: every problem is one `ConfigError` line naming the key.
+
+`validate(cfg)` runs before anything is written (the CLI calls it from a Hydra callback, before
+Hydra creates the run directory, and again when the job starts):
+
+- **unknown keys** at every level (the top level, every section, `dataset` and its blocks, `force`,
+  `model`) are rejected, naming the key and the closest valid one (difflib);
+- **types** of the sections owned by liedfl (dataclass schemas below);
+- **values**: positive epochs / batch size / learning rate, an integer seed, rollout lengths,
+  a usable `paths.data_dir`, `model._target_` restricted to liedfl's own classes, the dataset's
+  numbers and a non-empty train (and, with a rollout, test) split.
+
+The allowed keys of a dataset are those of the scene's reference file `conf/dataset/<scene>.yaml`
+(the generators accept exactly those), of a model those of `conf/model/<name>.yaml`, of a
+force those of `conf/force/<kind>.yaml`: a new option file extends the allowed set by itself.
+"""
 
 from __future__ import annotations
 
+import dataclasses
+import difflib
+import functools
+import math
+import os
+import typing
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from .errors import ConfigError
+
+CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
 
 
 @dataclass
@@ -45,6 +68,22 @@ class RolloutSchema:
 
 
 @dataclass
+class EvalSchema:
+    plots: bool = True
+
+
+@dataclass
+class UiSchema:
+    progress: bool = True
+
+
+@dataclass
+class PathsSchema:
+    data_dir: str = "outputs/data"
+    output_dir: str = "."
+
+
+@dataclass
 class SolverSchema:
     tol: float = 1e-5
     max_iter: int = 10
@@ -55,12 +94,14 @@ class SolverSchema:
 class ModelSchema:
     _target_: str = "liedfl_cli.models.liedflnn.LieDFLNN"
     name: str = "liedflnn"
-    potential: str = "auto"
+    potential: Any = "auto"  # auto | none | mlp | uniform_gravity | a list of mlp, uniform_gravity
     residual: str = "fast"
     mlp_width: int = 64
     mlp_depth: int = 3
     init_jitter: float = 0.1
     known: list[str] = field(default_factory=list)  # parts set to the scene's true values and frozen
+    gravity: Any = "auto"  # field strength of uniform_gravity: auto (the data's g, else 9.81) | a number
+    learn_gravity_direction: bool = False
 
 
 @dataclass
@@ -79,6 +120,8 @@ class GroupSchema:
 SECTIONS: dict[str, Any] = {
     "train": TrainSchema,
     "rollout": RolloutSchema,
+    "eval": EvalSchema,
+    "ui": UiSchema,
     "solver": SolverSchema,
     "group": GroupSchema,
     "runtime": RuntimeSchema,
@@ -87,44 +130,428 @@ CHOICES = {
     ("train", "reg_form"): ("relu", "gaussian"),
     ("train", "optimizer", "name"): ("soap", "adam"),
     ("train", "optimizer", "schedule"): ("constant", "cosine"),
-    ("model", "potential"): ("auto", "mlp", "none"),
+    ("model", "potential"): ("auto", "mlp", "none", "uniform_gravity"),  # or a list of mlp, uniform_gravity
     ("model", "residual"): ("fast", "generic"),
 }
+_TRAIN_KEYS = ("task_name", "seed", "epoch_scale", "train", "rollout", "eval", "ui", "paths")
+TOP_LEVEL: dict[str, tuple[str, ...]] = {
+    # `budgets`: per-model budget tables of the experiment files; `resume`: resume=<run dir> (train.py)
+    "train": (*_TRAIN_KEYS, "group", "dataset", "model", "force", "baseline", "solver", "budgets", "resume", "runtime"),
+    # budget files also set train/rollout/epoch_scale, which `liedfl data` ignores
+    "data": ("task_name", "ui", "paths", "group", "dataset", "train", "rollout", "epoch_scale", "seed"),
+    # rollout run=<run> dataset=<scene>: other data (the dataset file selects its group)
+    "rollout": ("task_name", "run", "steps", "rollout", "eval", "ui", "paths", "solver", "runtime", "dataset", "group"),
+    "eval": ("task_name", "run", "rollout", "eval", "ui", "paths", "solver", "runtime"),
+    "report": ("task_name", "sweep", "plots"),
+    "resume": ("task_name", "resume", "epochs", "ui"),
+}
+_SOLVER = ("solver.tol", "solver.max_iter", "solver.max_halvings")
+_RUN_KEYS = ("run", "steps", "rollout.max_trajectories", "rollout.reference", "eval.plots", "ui.progress")
+REQUIRED: dict[str, tuple[str, ...]] = {
+    # keys the commands read (an override such as ~train.epochs removes them)
+    "train": (
+        "seed",
+        *(f"train.{k}" for k in ("epochs", "batch_size", "w_del", "w_reg", "reg_points", "reg_form", "epsilon")),
+        *(f"train.optimizer.{k}" for k in ("name", "lr", "weight_decay")),
+        *(f"rollout.{k}" for k in ("enabled", "steps", "max_trajectories", "reference")),
+        "eval.plots",
+        "ui.progress",
+        "paths.data_dir",
+        "paths.output_dir",
+        "dataset",
+        "model",
+        "force",
+        "model.name",
+        *_SOLVER,
+    ),
+    "data": ("ui.progress", "paths.data_dir", "dataset"),
+    "rollout": (*_RUN_KEYS, "paths.data_dir", *_SOLVER),
+    "eval": ("run", "eval.plots", "ui.progress", "paths.data_dir", *_SOLVER),
+    "report": ("sweep", "plots"),
+    "resume": ("resume", "ui.progress"),
+}
+DEFAULT_MODEL_TARGET = ModelSchema._target_
+TARGET_PREFIX = "liedfl_cli."
 
 
-def validate(cfg: DictConfig) -> None:
-    """Raise ConfigError for unknown keys, wrong types or invalid choices in known sections."""
-    for name, schema in SECTIONS.items():
-        if name not in cfg or (name == "rollout" and cfg.get("task_name") == "eval"):
-            continue  # (`liedfl eval rollout=<file>`: there `rollout` is a path, not this section)
+# ----------------------------------------------------------------------------- helpers
+def closest(key: str, valid) -> str:
+    """' (did you mean X?)' for the closest valid key, else ' (valid keys: ...)'."""
+    valid = sorted(str(v) for v in valid)
+    match = difflib.get_close_matches(str(key), valid, n=1, cutoff=0.6)
+    if match:
+        return f" (did you mean '{match[0]}'?)"
+    return f" (valid keys: {', '.join(valid)})" if valid else " (this section takes no keys)"
+
+
+def _unknown(path: str, key: str, valid, where: str = "") -> ConfigError:
+    full = f"{path}.{key}" if path else str(key)
+    valid = [v for v in valid if v != "hydra"]
+    hint = closest(key, valid)
+    if "did you mean" in hint:
+        prefix = f"{path}." if path else ""
+        hint = hint.replace("'", f"'{prefix}", 1)
+    return ConfigError(f"unknown config key '{full}'{where}{hint}")
+
+
+def _check_keys(node, valid, path: str, where: str = "") -> None:
+    if not isinstance(node, (DictConfig, dict)):
+        return
+    for k in node:
+        if k not in valid:
+            raise _unknown(path, str(k), valid, where)
+
+
+def _check_dataclass_keys(node, schema, path: str) -> None:
+    """Unknown keys of `node` against the fields of `schema` (recursing into nested dataclasses)."""
+    if not isinstance(node, (DictConfig, dict)):
+        return
+    hints = typing.get_type_hints(schema)
+    names = [f.name for f in dataclasses.fields(schema)]
+    _check_keys(node, names, path)
+    for name in names:
+        sub = hints[name]
+        if dataclasses.is_dataclass(sub) and name in node:
+            _check_dataclass_keys(_get(node, name, f"{path}.{name}"), sub, f"{path}.{name}")
+
+
+def _get(node, key: str, full: str):
+    """node[key] with its interpolations resolved, errors as ConfigError naming `full`."""
+    try:
+        return node[key]
+    except OmegaConfBaseException as e:
+        raise ConfigError(f"config key '{full}': {_first_line(e)}") from None
+
+
+def _plain(node, full: str):
+    """A config subtree as plain Python (interpolations resolved)."""
+    if isinstance(node, (DictConfig, ListConfig)):
         try:
-            OmegaConf.merge(OmegaConf.structured(schema), OmegaConf.to_container(cfg[name], resolve=True))
+            return OmegaConf.to_container(node, resolve=True)
         except OmegaConfBaseException as e:
-            msg = str(e).splitlines()[0]
-            key = getattr(e, "full_key", None) or ""
-            raise ConfigError(f"config section '{name}': {msg}" + (f" (key {name}.{key})" if key else "")) from None
-    if "model" in cfg and cfg.model.get("_target_", "").endswith("LieDFLNN"):
-        try:
-            OmegaConf.merge(OmegaConf.structured(ModelSchema), OmegaConf.to_container(cfg.model, resolve=True))
-        except OmegaConfBaseException as e:
-            key = getattr(e, "full_key", None) or ""
+            key = getattr(e, "full_key", None)
             raise ConfigError(
-                f"config section 'model': {str(e).splitlines()[0]}" + (f" (key model.{key})" if key else "")
+                f"config key '{full}': {_first_line(e)}" + (f" (key {key})" if key and key != full else "")
             ) from None
-        known = cfg.model.get("known") or []
-        if known:
-            from .models.liedflnn import KNOWN_PARTS
+    return node
 
-            bad = [k for k in known if k not in KNOWN_PARTS]
-            if bad:
-                raise ConfigError(
-                    f"model.known={list(known)}: unknown part {bad[0]!r}; choose from {', '.join(KNOWN_PARTS)}"
-                )
+
+def _has(cfg, dotted: str) -> bool:
+    node = cfg
+    for part in dotted.split("."):
+        if not isinstance(node, DictConfig) or part not in node:
+            return False
+        try:
+            node = node[part]
+        except OmegaConfBaseException:
+            return True  # present; its value is checked (and reported) later
+    return True
+
+
+def _first_line(e: Exception) -> str:
+    text = str(e).strip()
+    return text.splitlines()[0] if text else type(e).__name__
+
+
+def _value(cfg, dotted: str):
+    """The resolved value at `dotted` (None when absent)."""
+    try:
+        v = OmegaConf.select(cfg, dotted, throw_on_missing=False)
+    except OmegaConfBaseException as e:
+        raise ConfigError(f"config key '{dotted}': {_first_line(e)}") from None
+    return _plain(v, dotted)
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _int(cfg, key: str, minimum: int, nullable: bool = False, what: str | None = None):
+    v = _value(cfg, key)
+    if v is None and nullable:
+        return None
+    if not _is_int(v) or v < minimum:
+        need = what or ("a positive integer" if minimum == 1 else f"an integer >= {minimum}")
+        raise ConfigError(f"{key}={v!r}: must be {need}" + (" or null" if nullable else ""))
+    return v
+
+
+def _float(cfg, key: str, positive: bool = False, nonnegative: bool = False):
+    v = _value(cfg, key)
+    if not _is_number(v) or not math.isfinite(v) or (positive and v <= 0) or (nonnegative and v < 0):
+        need = "a positive number" if positive else "a number >= 0" if nonnegative else "a finite number"
+        raise ConfigError(f"{key}={v!r}: must be {need}")
+    return v
+
+
+@functools.cache
+def _reference(group: str, option: str):
+    """Plain content of conf/<group>/<option>.yaml (None when there is no such file)."""
+    import yaml
+
+    path = CONF_DIR / group / f"{option}.yaml"
+    if not path.is_file():
+        return None
+    data = yaml.safe_load(path.read_text()) or {}
+    if isinstance(data, dict):
+        data.pop("defaults", None)
+    return data
+
+
+def _options(group: str) -> list[str]:
+    return sorted(p.stem for p in (CONF_DIR / group).glob("*.yaml"))
+
+
+# ----------------------------------------------------------------------------- sections
+def _check_types(cfg, name: str, schema) -> None:
+    try:
+        OmegaConf.merge(OmegaConf.structured(schema), _plain(cfg[name], name))
+    except OmegaConfBaseException as e:
+        key = getattr(e, "full_key", None) or ""
+        raise ConfigError(
+            f"config section '{name}': {_first_line(e)}" + (f" (key {name}.{key})" if key else "")
+        ) from None
+
+
+def _check_reference_keys(node, ref, path: str, where: str) -> None:
+    """Keys of `node` against the reference mapping `ref`, recursing where both are mappings."""
+    if not isinstance(node, (DictConfig, dict)) or not isinstance(ref, dict):
+        return
+    _check_keys(node, list(ref), path, where)
+    for k in node:
+        sub = ref.get(k)
+        if isinstance(sub, dict) and sub:
+            try:
+                child = node[k]
+            except OmegaConfBaseException:
+                continue
+            _check_reference_keys(child, sub, f"{path}.{k!s}", where)
+
+
+def _locate(dotted: str):
+    """The object named by a dotted path (None when it cannot be imported)."""
+    import importlib
+
+    parts = dotted.split(".")
+    for i in range(len(parts) - 1, 0, -1):
+        try:
+            obj = importlib.import_module(".".join(parts[:i]))
+        except ImportError:
+            continue
+        try:
+            for attr in parts[i:]:
+                obj = getattr(obj, attr)
+        except AttributeError:
+            return None
+        return obj
+    return None
+
+
+def _check_dataset_keys(cfg) -> None:
+    ds = cfg.get("dataset")
+    if not isinstance(ds, DictConfig):
+        if ds is not None:
+            raise ConfigError(f"dataset must be a mapping, got {ds!r}")
+        return
+    name = _value(cfg, "dataset.name")
+    if not isinstance(name, str):
+        raise ConfigError(f"dataset.name={name!r}: must be a scene name ({', '.join(_options('dataset'))})")
+    ref = _reference("dataset", name)
+    if ref is None:  # a scene registered by user code: its generator checks its keys
+        return
+    if name == "file" and isinstance(ref, dict):  # budget files set generator sizes on every dataset
+        from .data.scenes import FILE_IGNORED_KEYS
+
+        ref = {**ref, **{k: None for k in FILE_IGNORED_KEYS}}
+    _check_reference_keys(ds, ref, "dataset", f" for scene '{name}'")
+
+
+def _check_force(cfg) -> None:
+    force = cfg.get("force")
+    if force is None:
+        return
+    if not isinstance(force, DictConfig):
+        raise ConfigError(f"force must be a mapping of force kinds, got {force!r}")
+    kinds = [o for o in _options("force") if o != "none"]
+    for kind in force:
+        if kind not in kinds:
+            raise ConfigError(f"unknown force 'force.{kind!s}'{closest(str(kind), kinds).replace('keys', 'forces')}")
+        params = force[kind]
+        if params is None:
+            continue
+        if not isinstance(params, DictConfig):
+            raise ConfigError(f"force.{kind} must be a mapping of options, got {params!r}")
+        _check_keys(params, list(_reference("force", kind) or {}), f"force.{kind}")
+
+
+def _check_model(cfg) -> None:
+    """`model._target_` names a model class of this package (`factory.model_class`); the keys are
+    those of the model's reference file conf/model/<name>.yaml (LieDFLNN: typed by ModelSchema)."""
+    model = cfg.get("model")
+    if model is None:
+        return
+    if not isinstance(model, DictConfig):
+        raise ConfigError(f"model must be a mapping, got {model!r}")
+    target = _value(cfg, "model._target_")
+    if not isinstance(target, str) or not target.startswith(TARGET_PREFIX):
+        raise ConfigError(
+            f"model._target_={target!r}: only liedfl's own model classes may be instantiated "
+            f"(a name starting with '{TARGET_PREFIX}models.', e.g. {DEFAULT_MODEL_TARGET})"
+        )
+    from .factory import model_class
+    from .models.liedflnn import LieDFLNN
+
+    cls = model_class(target)
+    name = _value(cfg, "model.name")
+    if issubclass(cls, LieDFLNN):
+        _check_dataclass_keys(model, ModelSchema, "model")
+        _check_types(cfg, "model", ModelSchema)
+    else:
+        names = _options("model")
+        reference = _reference("model", name) if name in names else None
+        if reference is None:
+            raise ConfigError(f"model.name={name!r}: choose one of {', '.join(names)}")
+        _check_keys(model, list(reference), "model", f" for model '{name}'")
+    known = _value(cfg, "model.known") or []
+    if known:
+        from .models.liedflnn import KNOWN_PARTS
+
+        bad = [k for k in known if k not in KNOWN_PARTS]
+        if bad:
+            raise ConfigError(
+                f"model.known={list(known)}: unknown part {bad[0]!r}; choose from {', '.join(KNOWN_PARTS)}"
+            )
+
+
+def _check_data_dir(cfg, must_write: bool) -> None:
+    raw = _value(cfg, "paths.data_dir")
+    if not isinstance(raw, str) or not raw.strip():
+        raise ConfigError(f"paths.data_dir={raw!r}: must be a directory path")
+    path = Path(raw).expanduser()
+    if path.exists():
+        if not path.is_dir():
+            raise ConfigError(f"paths.data_dir={raw}: exists and is not a directory")
+        if must_write and not os.access(path, os.W_OK | os.X_OK):
+            raise ConfigError(f"paths.data_dir={raw}: directory is not writable")
+        return
+    parent = path.absolute()
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise ConfigError(f"paths.data_dir={raw}: cannot be created ({parent} is not a directory)")
+    if must_write and not os.access(parent, os.W_OK | os.X_OK):
+        raise ConfigError(f"paths.data_dir={raw}: cannot be created ({parent} is not writable)")
+
+
+def _check_scalars(cfg, command: str) -> None:
+    """Top-level scalars (checked first: section values interpolate them)."""
+    if "seed" in cfg:
+        _int(cfg, "seed", 0, what="an integer >= 0")
+    if "epoch_scale" in cfg and command == "train":
+        _float(cfg, "epoch_scale", positive=True)
+
+
+def _check_values(cfg, command: str) -> None:
+    if command == "train" and "train" in cfg:
+        _int(cfg, "train.epochs", 1)
+        _int(cfg, "train.batch_size", 1)
+        _float(cfg, "train.optimizer.lr", positive=True)
+        _float(cfg, "train.optimizer.weight_decay", nonnegative=True)
+        _float(cfg, "train.w_del", nonnegative=True)
+        _float(cfg, "train.w_reg", nonnegative=True)
+        _int(cfg, "train.reg_points", 0)
+        _float(cfg, "train.epsilon")
+        if _value(cfg, "train.checkpoint_every") not in (None, "auto"):
+            _int(cfg, "train.checkpoint_every", 1, what="auto or a positive integer")
+    if isinstance(cfg.get("rollout"), DictConfig):  # (`liedfl eval rollout=<dir>`: a path, or null)
+        if "steps" in cfg.rollout:  # a rollout needs the two given poses and at least one predicted step
+            _int(cfg, "rollout.steps", 2, nullable=True)
+        if "max_trajectories" in cfg.rollout:
+            _int(cfg, "rollout.max_trajectories", 1, nullable=True)
+    if command in ("rollout", "eval") and "steps" in cfg:
+        _int(cfg, "steps", 2, nullable=True)
+    if "solver" in cfg:
+        _float(cfg, "solver.tol", positive=True)
+        _int(cfg, "solver.max_iter", 1)
+        _int(cfg, "solver.max_halvings", 0)
+    if "paths" in cfg and command in ("train", "data", "rollout", "eval"):
+        _check_data_dir(cfg, must_write=command in ("train", "data"))
+
+
+def _check_split_sizes(cfg, d: dict) -> None:
+    """Generated scenes split by `n_test` / `test_fraction` (scenes.make_split): the train split must
+    not be empty, nor the test split when the run rolls out."""
+    if "split" in d:  # imported recordings choose their split themselves (data/mocap.py)
+        return
+    T = int(d["n_trajectories"])
+    k = int(d["n_test"]) if d.get("n_test") is not None else int(round(float(d["test_fraction"]) * T))
+    if T - k < 1:
+        raise ConfigError(
+            f"dataset.n_test={d.get('n_test')!r} (test_fraction={d.get('test_fraction')!r}) leaves no training "
+            f"trajectory out of n_trajectories={T}"
+        )
+    if k < 1 and bool(_value(cfg, "rollout.enabled")):
+        raise ConfigError(
+            f"dataset.n_test={d.get('n_test')!r} (test_fraction={d.get('test_fraction')!r}) gives an empty test "
+            f"split, but rollout.enabled is true; set dataset.n_test >= 1 or rollout.enabled=false"
+        )
+
+
+def _check_dataset_values(cfg, command: str) -> None:
+    if not isinstance(cfg.get("dataset"), DictConfig):
+        return
+    from .data.scenes import _checked, is_file_config
+
+    if is_file_config(cfg.dataset):  # a user's file: its keys are checked when it is read
+        return
+    d = _checked(_plain(cfg.dataset, "dataset"))
+    if command == "train":
+        _check_split_sizes(cfg, d)
+
+
+# ----------------------------------------------------------------------------- entry point
+def validate(cfg: DictConfig, command: str | None = None) -> None:
+    """Raise ConfigError for unknown keys, wrong types or invalid values (see the module docstring).
+
+    command: the liedfl command (default: `cfg.task_name`); it selects the allowed top-level keys.
+    A `hydra` node (present in Hydra callbacks) is ignored."""
+    command = command or (cfg.get("task_name") if isinstance(cfg, DictConfig) else None)
+    top = TOP_LEVEL.get(str(command))
+    if top is not None:
+        _check_keys(cfg, (*top, "hydra"), "")
+    for dotted in REQUIRED.get(str(command), ()):
+        if not _has(cfg, dotted):
+            raise ConfigError(f"config key '{dotted}' is missing (removed by an override?)")
+    _check_scalars(cfg, str(command))
+    # sections with a dataclass schema: keys, then types
+    for name, schema in SECTIONS.items():
+        if name == "rollout" and command == "eval":
+            continue  # `liedfl eval rollout=<file>`: there `rollout` is a path, not this section
+        if name in cfg and cfg[name] is not None:
+            _check_dataclass_keys(cfg[name], schema, name)
+            _check_types(cfg, name, schema)
+    if "paths" in cfg:
+        _check_keys(cfg.paths, [f.name for f in dataclasses.fields(PathsSchema)], "paths")
+    _check_dataset_keys(cfg)
+    _check_force(cfg)
     for path, allowed in CHOICES.items():
-        node = cfg
-        for p in path:
-            node = node.get(p) if isinstance(node, DictConfig) else None
-            if node is None:
-                break
+        if path[0] == "model":
+            continue
+        node = _value(cfg, ".".join(path))
         if node is not None and node not in allowed:
             raise ConfigError(f"{'.'.join(path)}={node!r}: choose one of {', '.join(allowed)}")
+    _check_values(cfg, str(command))
+    if "model" in cfg:
+        _check_model(cfg)
+        for path, allowed in CHOICES.items():
+            if path[0] == "model":
+                node = _value(cfg, ".".join(path))
+                if isinstance(node, (list, ListConfig)) and path == ("model", "potential"):  # structured + learned
+                    node = next((x for x in node if x not in ("mlp", "uniform_gravity")), None)
+                if node is not None and node not in allowed:
+                    raise ConfigError(f"{'.'.join(path)}={node!r}: choose one of {', '.join(allowed)}")
+    _check_dataset_values(cfg, str(command))

@@ -39,8 +39,8 @@ def progress_bar(enabled: bool = True):
         yield bar
 
 
-def fail(message: str, code: int = 2):
-    """Print a one-line error and exit non-zero.
+def error_line(message: str) -> None:
+    """Print `error: <message>` on one stderr line.
 
     The message is printed literally (square brackets in paths or lists are not rich markup) and
     on one line (line breaks of wrapped exception texts are joined)."""
@@ -48,4 +48,17 @@ def fail(message: str, code: int = 2):
 
     one_line = " ".join(part.strip() for part in str(message).splitlines() if part.strip())
     err_console.print(f"[bold red]error:[/] {escape(one_line)}", highlight=False, soft_wrap=True)
+
+
+def warning_line(message: str) -> None:
+    """Print `warning: <message>` on one stderr line."""
+    from rich.markup import escape
+
+    one_line = " ".join(part.strip() for part in str(message).splitlines() if part.strip())
+    err_console.print(f"[bold yellow]warning:[/] {escape(one_line)}", highlight=False, soft_wrap=True)
+
+
+def fail(message: str, code: int = 2):
+    """Print a one-line error (see `error_line`) and exit non-zero."""
+    error_line(message)
     raise SystemExit(code)

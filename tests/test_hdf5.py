@@ -49,10 +49,21 @@ def tiny(name: str, **over) -> dict:
     return c
 
 
+def smooth_rotations(shape, g: torch.Generator, step: float = 0.3) -> torch.Tensor:
+    """(T, N+1, B, 3, 3): R_0 Haar-random, R_(k+1) = R_k exp(step * N(0, I))."""
+    T, N1, B = shape
+    R = [so3.random((T, B), generator=g)]
+    for _ in range(N1 - 1):
+        xi = step * torch.randn(T, B, 3, generator=g, dtype=torch.float64)
+        R.append(R[-1] @ so3.exp(xi))
+    return torch.stack(R, 1)
+
+
 def multibody(T=5, N=4, seed=0) -> Dataset:
-    """A hand-made SE(3) x SO(3)^2 dataset (random data, not physics)."""
+    """A hand-made SE(3) x SO(3)^2 dataset (random data, not physics): random initial attitudes, random
+    per-step turns of about 0.3 rad (well-sampled motion: the load-time check rejects steps near pi)."""
     g = torch.Generator().manual_seed(seed)
-    R = so3.random((T, N + 1, 3), generator=g).numpy()
+    R = smooth_rotations((T, N + 1, 3), g).numpy()
     p = torch.randn(T, N + 1, 1, 3, generator=g, dtype=torch.float64).numpy()
     return Dataset(
         R=R,
@@ -295,7 +306,7 @@ def test_slightly_off_rotations_projected_with_one_warning(saved):
 def test_user_written_minimal_float32_file(tmp_path):
     """The minimal file of docs/data_format.md: R, p, h, body_kinds; float32 uses the float32 tolerances."""
     path = tmp_path / "mine.h5"
-    R = so3.random((3, 10, 1), generator=torch.Generator().manual_seed(1)).numpy().astype(np.float32)
+    R = smooth_rotations((3, 10, 1), torch.Generator().manual_seed(1)).numpy().astype(np.float32)
     p = np.random.default_rng(0).standard_normal((3, 10, 1, 3)).astype(np.float32)
     with h5py.File(path, "w") as f:
         f.attrs["format_version"] = 1
@@ -303,9 +314,11 @@ def test_user_written_minimal_float32_file(tmp_path):
         f.attrs["body_kinds"] = json.dumps(["se3"])
         f.create_dataset("R", data=R)
         f.create_dataset("p", data=p)
+    with pytest.raises(DatasetError, match="group 'split' is missing"):  # training needs a split
+        load_dataset(path)
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # float32 rounding is below the float32 warn tolerance
-        ds = load_dataset(path)
+        ds = load_dataset(path, require_split=False)
     assert ds.R.dtype == np.float64 and ds.scene == "mine" and ds.body_names == ["body0"]
     np.testing.assert_array_equal(ds.split["train"], np.arange(3))
     assert ds.split["test"].size == 0
@@ -383,4 +396,5 @@ def test_yaml_configs_match_registry_and_fields(name):
     assert set(c["physics"]) == {"J", "m", "rho", "g", "D"} and set(c["solver"]) == {"method", "rtol", "atol"}
     assert c["steps"] == max(c["train_steps"], c["rollout_steps"])
     assert isinstance(c["solver"]["rtol"], float) and c["solver"]["rtol"] == 1e-10
-    assert {p.stem for p in CONF.glob("*.yaml")} == set(SCENES)
+    # every scene has its file; `file` (a user's dataset file, not generated) is the one extra option
+    assert {p.stem for p in CONF.glob("*.yaml")} == set(SCENES) | {scenes_mod.FILE_SCENE}

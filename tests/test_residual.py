@@ -98,7 +98,7 @@ def test_mixed_hessian_closed_form_equals_autodiff(G):
     for s in G.body_slices():
         mask[s, s] = False
     if mask.any():
-        assert H[..., mask].abs().max() < 1e-12
+        assert H[..., mask].abs().max() < 1e-12 * H.abs().max()  # relative: entries ~ J/h
 
 
 def test_so3_regularity_matches_paper_determinant():
@@ -138,7 +138,8 @@ def test_parameterisations_are_spd_and_spsd():
         J = m.inertia.J()
         assert torch.linalg.eigvalsh(Jd).min() > 0 and torch.linalg.eigvalsh(J).min() > 0
         ev = torch.linalg.eigvalsh(J)
-        assert (ev[:, 0] + ev[:, 1] >= ev[:, 2] - 1e-12).all()  # physical (triangle inequality)
+        # physical (triangle inequality); eigenvalues reach ~350 here: the slack is relative to them
+        assert (ev[:, 0] + ev[:, 1] >= ev[:, 2] * (1 - 1e-12)).all()
         D = m.forces[0].D()
         torch.testing.assert_close(D, D.T)
-        assert torch.linalg.eigvalsh(D).min() > -1e-10
+        assert torch.linalg.eigvalsh(D).min() > -1e-10 * D.abs().max()  # entries reach ~260

@@ -20,7 +20,8 @@ import numpy as np
 import torch
 
 from .. import __version__
-from ..errors import DatasetError
+from ..errors import DatasetError, DataWarning
+from ..io_utils import clean_orphans, deferred_signals
 from ..lie import so3
 from ..lie.product import Pose, ProductGroup
 from ..lie.tolerances import tol
@@ -54,6 +55,8 @@ class Dataset:
         self.body_kinds = [str(b) for b in self.body_kinds]
         if self.t is None and self.R.ndim >= 2:
             self.t = self.h * np.arange(self.R.shape[1], dtype=np.float64)
+        elif self.t is not None:
+            self.t = np.asarray(self.t, dtype=np.float64)
         if not self.split and self.R.ndim >= 1:
             self.split = {"train": np.arange(self.R.shape[0]), "test": np.zeros(0, dtype=np.int64)}
         self.split = {k: np.asarray(v, dtype=np.int64).reshape(-1) for k, v in self.split.items()}
@@ -124,11 +127,21 @@ def save_dataset(ds: Dataset, path) -> Path:
     """Write `ds` to `path` atomically (write `<path>.tmp<pid>`, then os.replace). Returns the path.
 
     The temporary name carries the process id, so parallel sweep jobs that generate the same
-    dataset never write into one temporary file; the last rename wins with identical content."""
+    dataset never write into one temporary file; the last rename wins with identical content.
+    Temporary files of writers that died (killed between writing and renaming) are removed first."""
     path = Path(path)
     _validate(ds, str(path), project=False)
     path.parent.mkdir(parents=True, exist_ok=True)
+    clean_orphans(path.parent)
     tmp = path.with_suffix(f".h5.tmp{os.getpid()}")
+    # SIGINT/SIGTERM are held while the file is written and renamed, then delivered (a Ctrl-C
+    # exits with "interrupted" and leaves no temporary file)
+    with deferred_signals():
+        _write(ds, path, tmp)
+    return path
+
+
+def _write(ds: Dataset, path: Path, tmp: Path) -> None:
     try:
         with h5py.File(tmp, "w") as f:
             a = f.attrs
@@ -157,7 +170,6 @@ def save_dataset(ds: Dataset, path) -> Path:
         if tmp.exists():
             tmp.unlink()
         raise
-    return path
 
 
 # ---------------------------------------------------------------------- reading
@@ -197,11 +209,17 @@ def _array(f, name: str, src: str):
     return obj[()]
 
 
-def load_dataset(path) -> Dataset:
+def load_dataset(path, require_split: bool = True) -> Dataset:
     """Read and validate an HDF5 dataset file; every problem raises `DatasetError`.
 
     Rotations off SO(3) by more than the warn tolerance (1e-9 float64 / 1e-5 float32) but less than
-    the reject tolerance (1e-3) are projected by SVD with a single warning.
+    the reject tolerance (1e-3) are projected by SVD with a single warning. `R`, `p` and `t` are
+    returned as float64 whatever their stored precision (float32 data are checked with the float32
+    tolerances; float16 is refused); extras keep their dtype, in native byte order.
+
+    require_split: the file must hold the `split` group with a non-empty `split/train` (what
+    training needs; the default). With False, a file without it loads with every trajectory in
+    `train` and an empty `test`.
     """
     path = Path(path)
     src = str(path)
@@ -248,7 +266,7 @@ def load_dataset(path) -> Dataset:
             extras = {}
             if "extras" in f:
                 for k in f["extras"]:
-                    extras[k] = _array(f, f"extras/{k}", src)
+                    extras[k] = _native(_array(f, f"extras/{k}", src))
     except DatasetError:
         raise
     except (OSError, KeyError, ValueError, TypeError) as exc:
@@ -280,9 +298,16 @@ def load_dataset(path) -> Dataset:
         extras=extras,
         t=None if t is None else _float_array(t, "t", src),
     )
+    if split is None and require_split:
+        raise DatasetError(
+            f"{src}: group 'split' is missing (it must hold 'split/train' and 'split/test', the trajectory "
+            "indices to train and to test on; see docs/data_format.md)"
+        )
     if split is None and ds.R.ndim >= 1:
         ds.split = {"train": np.arange(ds.R.shape[0]), "test": np.zeros(0, dtype=np.int64)}
-    ds.R = _validate(ds, src, input_dtype=input_dtype)
+    ds.R = _validate(ds, src, input_dtype=input_dtype, t_dtype=None if t is None else np.asarray(t).dtype)
+    if require_split and ds.split["train"].size == 0:
+        raise DatasetError(f"{src}: dataset 'split/train' is empty: there is nothing to train on")
     return ds
 
 
@@ -290,6 +315,18 @@ def _float_array(a, name: str, src: str) -> np.ndarray:
     a = np.asarray(a)
     if not np.issubdtype(a.dtype, np.floating):
         raise DatasetError(f"{src}: dataset '{name}' must hold floating-point numbers, got dtype {a.dtype}")
+    if a.dtype.itemsize < 4:
+        raise DatasetError(
+            f"{src}: dataset '{name}' is stored as {a.dtype.name} ({np.finfo(a.dtype).precision} significant digits); "
+            "store it as float32 or float64"
+        )
+    return a
+
+
+def _native(a):
+    """A numeric array in native byte order, same precision (torch refuses big-endian arrays)."""
+    if isinstance(a, np.ndarray) and a.dtype.kind in "iufcb" and not a.dtype.isnative:
+        return a.astype(a.dtype.newbyteorder("="))
     return a
 
 
@@ -298,8 +335,11 @@ def _first(mask: np.ndarray) -> tuple:
     return tuple(int(i) for i in np.argwhere(mask)[0])
 
 
-def _validate(ds: Dataset, src: str, project: bool = True, input_dtype: torch.dtype = torch.float64) -> np.ndarray:
-    """Check `ds`; return R (projected where slightly off SO(3) if `project`). Raises DatasetError."""
+def _validate(
+    ds: Dataset, src: str, project: bool = True, input_dtype: torch.dtype = torch.float64, t_dtype=None
+) -> np.ndarray:
+    """Check `ds`; return R (projected where slightly off SO(3) if `project`). Raises DatasetError.
+    t_dtype: the stored dtype of `t` (its spacing is checked to that precision)."""
     kinds, names = ds.body_kinds, ds.body_names
     bad = [i for i, k in enumerate(kinds) if k not in BODY_KINDS]
     if bad:
@@ -339,7 +379,10 @@ def _validate(ds: Dataset, src: str, project: bool = True, input_dtype: torch.dt
             raise DatasetError(f"{src}: dataset 't' has shape {t.shape}, expected ({N1},) to match 'R'")
         if not np.isfinite(t).all():
             raise DatasetError(f"{src}: dataset 't' has non-finite value at index {_first(~np.isfinite(t))}")
-        off = np.abs(np.diff(t) - ds.h) > 1e-6 * ds.h
+        spacing_tol = 1e-6 * ds.h
+        if t_dtype is not None and np.dtype(t_dtype).itemsize < 8:  # rounding of the stored times
+            spacing_tol = max(spacing_tol, 4 * float(np.finfo(t_dtype).eps) * float(np.abs(t).max()))
+        off = np.abs(np.diff(t) - ds.h) > spacing_tol
         if off.any():
             k = _first(off)[0]
             raise DatasetError(
@@ -395,8 +438,13 @@ def _validate(ds: Dataset, src: str, project: bool = True, input_dtype: torch.dt
             f"{src}: projected {int(off.sum())} of {off.size} rotations in 'R' onto SO(3) by SVD "
             f"(max ||R^T R - I||_F = {err.max():.3g}, max |det R - 1| = {det_err.max():.3g}, "
             f"warn tolerance {warn_tol:g})",
+            DataWarning,
             stacklevel=3,
         )
+    # per-step rotation: a warning above pi/2, an error above 0.9 pi (data/checks.py)
+    from .checks import check_step_rotation
+
+    check_step_rotation(R, src, names)
     return R
 
 

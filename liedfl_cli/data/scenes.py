@@ -7,7 +7,8 @@ recordings) and are listed here explicitly: adding a scene means one generator f
 line in `SCENES` (plus its conf/dataset/<name>.yaml). `get_dataset(cfg, data_dir)` caches the
 result as `<data_dir>/<name>-<hash>.h5`, keyed by the generator-relevant part of the config;
 train_steps / rollout_steps only tell the consumers how much of each trajectory to use, they do not
-change the data (nor the hash).
+change the data (nor the hash). Every scene also takes `noise` and `smoothing` (`transforms`), applied
+after its generator.
 """
 
 from __future__ import annotations
@@ -16,9 +17,10 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from ..errors import DatasetError
+from ..errors import ConfigError, DatasetError
+from . import transforms
 from .hdf5 import Dataset, load_dataset, save_dataset
-from .mocap import cmu_cartwheel
+from .mocap import REAL_DATA_SCENES, cmu_cartwheel
 from .scene_common import (
     GENERATOR_VERSION,
     REQUIRED_KEYS,
@@ -48,7 +50,61 @@ SCENES: dict[str, Generator] = {
 
 def _checked(cfg) -> dict:
     """The dataset config as a plain dict, its common fields checked and its scene registered."""
-    return check_config(to_dict(cfg), SCENES)
+    c = check_config(to_dict(cfg), SCENES)
+    transforms.noise_spec(c.get("noise"))
+    transforms.smoothing_spec(c.get("smoothing"))
+    return c
+
+
+def _generate(c: dict, progress=None) -> Dataset:
+    """The scene's generator, then the options of every scene (noise, smoothing: `transforms`)."""
+    ds = SCENES[c["name"]](c, progress)
+    return transforms.apply(ds, c, smoothing_done=c["name"] in REAL_DATA_SCENES)
+
+
+FILE_SCENE = "file"
+"""`dataset=file dataset.path=<file.h5>`: a dataset file read as it is (conf/dataset/file.yaml)."""
+
+
+FILE_IGNORED_KEYS = ("n_trajectories", "steps", "n_test")
+"""Generator keys that budget files (conf/budget/smoke.yaml) set on every dataset: a file has its own
+trajectories and length, so they are accepted and ignored."""
+
+
+def is_file_config(cfg) -> bool:
+    """Whether a dataset config names a file (`name: file`)."""
+    get = getattr(cfg, "get", None)
+    return callable(get) and get("name") == FILE_SCENE
+
+
+def load_file(cfg) -> tuple[Dataset, Path]:
+    """The dataset of `dataset=file`: `path` read and validated (`load_dataset`), then its `noise` and
+    `smoothing` options applied in memory (the file is not copied into the cache)."""
+    c = to_dict(cfg)
+    allowed = {"name", "path", "train_steps", "rollout_steps", *transforms.OPTION_KEYS, "defaults"}
+    allowed |= set(FILE_IGNORED_KEYS)
+    unknown = sorted(set(c) - allowed)
+    if unknown:
+        keys = sorted(allowed - {"defaults", *FILE_IGNORED_KEYS})
+        raise ConfigError(f"dataset=file: unknown key(s) {unknown} (allowed: {keys})")
+    path = c.get("path")
+    if not isinstance(path, str) or not path or path == "???":
+        raise ConfigError("dataset=file needs dataset.path=<a liedfl HDF5 dataset file>")
+    for key in ("train_steps", "rollout_steps"):
+        v = c.get(key)
+        if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
+            raise ConfigError(f"dataset.{key}={v!r}: null (the whole file) or a positive integer")
+    transforms.noise_spec(c.get("noise"))
+    transforms.smoothing_spec(c.get("smoothing"))
+    ds = load_dataset(Path(path).expanduser())
+    ds = transforms.apply(ds, {**c, "seed": ds.seed})
+    return ds, Path(path)
+
+
+def dataset_steps(cfg, dataset, key: str) -> int:
+    """`dataset.train_steps` / `dataset.rollout_steps`, or the dataset's length where it is null."""
+    value = cfg.get(key) if cfg is not None else None
+    return int(dataset.n_steps) if value is None else int(value)
 
 
 def dataset_path(cfg, data_dir="outputs/data") -> Path:
@@ -58,15 +114,20 @@ def dataset_path(cfg, data_dir="outputs/data") -> Path:
 
 def generate(cfg, progress: Callable[[float], None] | None = None) -> Dataset:
     """Generate the dataset described by `cfg` (no caching)."""
+    if is_file_config(cfg):
+        return load_file(cfg)[0]
     c = _checked(cfg)
-    return SCENES[c["name"]](c, progress)
+    return _generate(c, progress)
 
 
 def get_dataset(cfg, data_dir="outputs/data", console=None) -> tuple[Dataset, Path]:
     """Load `<data_dir>/<name>-<hash>.h5` if present (validated), else generate, save and return it.
 
     console: optional rich Console for the progress display (default: a stderr console).
+    `dataset=file`: the named file itself (`load_file`).
     """
+    if is_file_config(cfg):
+        return load_file(cfg)
     c = _checked(cfg)
     path = dataset_path(c, data_dir)
     if path.exists():
@@ -96,7 +157,7 @@ def get_dataset(cfg, data_dir="outputs/data", console=None) -> tuple[Dataset, Pa
         task = prog.add_task(
             f"simulating {c['name']} ({c['n_trajectories']} trajectories x {c['steps']} steps)", total=t_end
         )
-        ds = SCENES[c["name"]](c, lambda tt: prog.update(task, completed=tt))
+        ds = _generate(c, lambda tt: prog.update(task, completed=tt))
     save_dataset(ds, path)
     console.print(
         f"[green]generated[/green] {c['name']}: {ds.n_trajectories} trajectories x {ds.n_steps} steps "
@@ -108,6 +169,9 @@ def get_dataset(cfg, data_dir="outputs/data", console=None) -> tuple[Dataset, Pa
 
 __all__ = [
     "SCENES",
+    "FILE_SCENE",
+    "load_file",
+    "dataset_steps",
     "GENERATOR_VERSION",
     "REQUIRED_KEYS",
     "generator_config",
