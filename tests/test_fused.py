@@ -40,6 +40,15 @@ MODELS = {
             mlp_width=8,
         ),
     ),
+    "se3xso3x2_coupled_nonlinear": (
+        THREE_BODY,
+        dict(
+            potential="mlp",
+            forces={"rayleigh_nonlinear": {"width": 8, "depth": 2, "coupling": "coupled"}},
+            mlp_width=8,
+        ),
+    ),
+    "se3xso3_per_body_rayleigh": (TWO_BODY, dict(potential="none", forces={"rayleigh": {"coupling": "per_body"}})),
     "so3_control": (SO3, dict(potential="mlp", forces={"control": {"width": 8}}, mlp_width=8)),
     "so3_no_force": (SO3, dict(potential="none", forces=[])),
 }
