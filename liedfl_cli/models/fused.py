@@ -440,6 +440,8 @@ def potential_covector(model, g: Pose, create_graph: bool = False) -> torch.Tens
         w = 2.0 * so3.vee(g.R.transpose(-1, -2) @ dR)
         v = (g.R[..., :m, :, :].transpose(-1, -2) @ dp[..., None])[..., 0]
         return -model.h * G.join(w, v)
+    if create_graph and not (g.R.requires_grad or g.p.requires_grad):  # data poses: leaves of the graph
+        g = Pose(g.R.detach().requires_grad_(True), g.p.detach().requires_grad_(True))
     return -model.h * left_gradient(V, G, g, create_graph=create_graph)
 
 
