@@ -34,6 +34,7 @@ from torch import nn
 from ..lie import Pose, ProductGroup, so3
 from ..lie.tolerances import tol
 from ..mechanics import kinetic
+from ..mechanics.damping import PerBodySPSD
 from ..mechanics.forces import PDControl, RayleighForce, RayleighNonlinearForce, force_jacobian_xi
 from ..mechanics.parameterizations import Inertia, SPSDMatrix
 from ..mechanics.potentials import MLPPotential, left_gradient
@@ -300,7 +301,7 @@ def derive(model) -> Derived:
 SCALAR_DIM = 6  # SPSD matrices up to this size are built in Python scalars
 
 
-def spsd_matrix(module: SPSDMatrix) -> torch.Tensor:
+def spsd_matrix(module: SPSDMatrix | PerBodySPSD) -> torch.Tensor:
     """`SPSDMatrix()` (D = sym(L L^T) + diag(lambda^2)); small ones in Python scalars with a
     hand-written gradient (`_SPSDScalar`)."""
     if type(module) is SPSDMatrix and module.dim <= SCALAR_DIM and module.lam.device.type == "cpu":
@@ -476,7 +477,7 @@ class IncrementSet(TripletSet):
         inc2 = G.increment(self.cur, self.nxt)
         xi1 = kinetic.velocity_estimate(G, inc1, h)
         xi2 = kinetic.velocity_estimate(G, inc2, h)
-        f: dict[str, torch.Tensor] = {"A": (inc1.R + inc2.R.transpose(-1, -2)).flatten(-2)}
+        f: dict[str, Any] = {"A": (inc1.R + inc2.R.transpose(-1, -2)).flatten(-2)}
         W2 = inc2.R.flatten(-2)
         if m:
             f["W1"] = inc1.R[:, :m]
@@ -515,7 +516,7 @@ class IncrementSet(TripletSet):
             reg_idx = torch.randint(0, self.n, (int(reg_points),), generator=generator)
             reg_W = self.reg_W.index_select(0, reg_idx)
             reg_ld = self.reg_logdetW.index_select(0, reg_idx) if self.reg_logdetW is not None else None
-        fields = {}
+        fields: dict[str, Any] = {}  # tensors, and the Pose of "levels"
         for k, v in self.fields.items():
             if k == "levels":
                 fields[k] = Pose(v.R.index_select(1, idx), v.p.index_select(1, idx))
@@ -751,7 +752,7 @@ def _block_index(G: ProductGroup) -> torch.Tensor:
 def rollout_maps(model) -> RolloutMaps:
     G, h = model.G, model.h
     P = derive(model)
-    P = Derived(*(None if t is None else t.detach() for t in (P.Jd, P.mass, P.rho, P.D)))
+    P = Derived(P.Jd.detach(), P.mass.detach(), P.rho.detach(), None if P.D is None else P.D.detach())
     m = G.n_se3
     d1, d2, hess = _d1_map(P.Jd, h), _d2_map(P.Jd, h), hessian_map(P.Jd, h)
     rho_map = se3_block = None
