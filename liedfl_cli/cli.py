@@ -10,6 +10,7 @@ import contextlib
 import os
 import sys
 from pathlib import Path
+from typing import NoReturn
 
 from .preflight import DIR_ARGS, classify, preflight, preflight_or_fail  # noqa: F401 (re-exported)
 
@@ -128,6 +129,7 @@ def _run(command: str, cfg):
         interrupted = isinstance(e, KeyboardInterrupt) or code in (130, 143)
         _record_failure(multirun, failure_dir, hydra_dir, message, code, "interrupted" if interrupted else "failed")
         if multirun and not interrupted:
+            assert status_dir is not None  # a multirun job's status folder is Hydra's job folder
             error_line(f"[job {status_dir.name}] {message}")
             return None
         fail(message, code)
@@ -264,11 +266,11 @@ def _check_flags(command: str, args: list[str]) -> None:
         return
     parser = get_args_parser()
 
-    def error(message: str):
+    def error(message: str) -> NoReturn:
         print(f"error: {message} (usage: liedfl {command} [key=value ...] [-m] [--cfg job] [--help])", file=sys.stderr)
         raise SystemExit(2)
 
-    parser.error = error
+    parser.error = error  # type: ignore[method-assign]  # replaces Hydra's parser's method on purpose
     parser.parse_args(args)
 
 
@@ -290,7 +292,7 @@ def _one_line_warnings() -> None:
         else:
             shown(message, category, filename, lineno, file, line)
 
-    show._liedfl = True
+    show._liedfl = True  # type: ignore[attr-defined]  # a function attribute: marks the hook as installed
     warnings.showwarning = show
 
 

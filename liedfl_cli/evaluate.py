@@ -170,8 +170,8 @@ def run_eval_from_objects(
         preds = {k: v.pose for k, v in rf.models.items()}
         plots.sphere(truth.R.numpy(), {k: v.R.numpy() for k, v in preds.items()}, pdir / "sphere.png")
         plots.predicted_vs_true(
-            Pose(truth.R.numpy(), truth.p.numpy()),
-            {k: Pose(v.R.numpy(), v.p.numpy()) for k, v in preds.items()},
+            plots.ArrayPose(truth.R.numpy(), truth.p.numpy()),
+            {k: plots.ArrayPose(v.R.numpy(), v.p.numpy()) for k, v in preds.items()},
             h,
             pdir / "predicted_vs_true.png",
         )

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import NamedTuple
 
 import matplotlib
 
@@ -11,6 +12,14 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from .io_utils import atomic_path
+
+
+class ArrayPose(NamedTuple):
+    """A `lie.Pose` as numpy arrays, as the plots read it: R (..., B, 3, 3), p (..., m, 3)."""
+
+    R: np.ndarray
+    p: np.ndarray
+
 
 COLORS = {"truth": "black", "model": "tab:blue", "true_scheme": "tab:orange"}
 
@@ -78,7 +87,9 @@ def sphere(
     save_figure(fig, path)
 
 
-def predicted_vs_true(truth, preds: dict, h: float, path: Path, traj: int = 0, body: int = 0) -> None:
+def predicted_vs_true(
+    truth: ArrayPose, preds: dict[str, ArrayPose], h: float, path: Path, traj: int = 0, body: int = 0
+) -> None:
     """Components of R e3 (and p for SE(3) bodies) over time for one trajectory."""
     has_p = truth.p.shape[-2] > body
     rows = 2 if has_p else 1

@@ -42,6 +42,8 @@ def parameter_recovery(model, dataset) -> dict | None:
             out["D_ratio_learned"] = float(D.diagonal()[:3].mean() / s[0])
             out["D_ratio_true"] = float(D_true.diagonal()[:3].mean() / s_true[0])
         if model.G.n_se3:
+            assert model.mass is not None and model.rho is not None  # set for SE(3) bodies
+            assert ref.mass is not None and ref.rho is not None
             out["m_over_trace_rel_error"] = rel(model.mass() / s[: model.G.n_se3], ref.mass() / s_true[: model.G.n_se3])
             out["rho_max_abs_error"] = float((model.rho - ref.rho).abs().max())
             out["rho_max_rel_error"] = rel(model.rho, ref.rho)

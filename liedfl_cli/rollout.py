@@ -133,6 +133,7 @@ def run_rollout(cfg: DictConfig) -> dict:
             "eval": cfg.eval,
         },
     )
+    assert isinstance(merged, DictConfig)  # merged into the run's config, a DictConfig
     source = None
     if other is not None:
         dataset, ds_cfg, source = other

@@ -167,6 +167,7 @@ def rigid_physics(c: dict, dim: int) -> dict:
     J, D = np.asarray(ph["J"], float), np.asarray(ph["D"], float)
     if (J <= 0).any():
         raise ConfigError(f"dataset.physics.J must have positive diagonal entries, got {ph['J']}")
+    D_out: list[float] | list[list[float]]
     if D.shape == (dim,):
         if (D < 0).any():
             raise ConfigError(f"dataset.physics.D must be non-negative (positive semidefinite), got {ph['D']}")

@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -54,7 +55,7 @@ from ..plots import draw_unit_sphere, plt, save_figure
 from ..rollout_file import FILE_NAME, RolloutEntry, load_rollout
 from ..ui import console
 
-PAPER = {
+PAPER: dict[str, Any] = {
     "sequences": [
         {"root_rot": 0.193, "joint_rot": 0.186, "root_pos": 0.887},
         {"root_rot": 0.188, "joint_rot": 0.233, "root_pos": 1.409},
@@ -120,7 +121,7 @@ def discrepancy(dataset, joints="moving") -> dict | None:
         return None
     if isinstance(joints, str) and joints == "moving":
         joints = moving_joints(dataset)
-    d = recording_discrepancy(dataset, joints=joints)
+    d: dict[str, Any] = recording_discrepancy(dataset, joints=joints)  # scalars, then the curves
     e = mocap_errors(dataset.pose([0]).index(0), dataset.pose([1]).index(0), relative_position=True, joints=joints)
     d.update({k + "_t": e[k + "_t"].numpy() for k in (*METRICS, "joint_rot_all")})
     return d
@@ -131,7 +132,7 @@ def below_until(err: dict, disc: dict | None, h: float) -> list[dict]:
     per-timestep error first exceeds the per-timestep discrepancy (None: never exceeds it)."""
     out = []
     for n in range(err["root_rot"].shape[0]):
-        row = {}
+        row: dict[str, float | None] = {}
         for k in METRICS:
             if disc is None:
                 row[k] = None
@@ -237,7 +238,7 @@ def verdict(rows: list[dict], disc: dict | None, asf: float, full: bool = True) 
     full: the rollout covers the whole recording. Otherwise no verdict is given: both entries are
     {"given": False, "reason": ...} (a 12-step smoke rollout says nothing about the paper's claim)."""
     seq = [r for r in rows if r["row"].startswith("Sequence")]
-    out = {}
+    out: dict[str, dict[str, Any] | None] = {}
     paper = PAPER["discrepancy"]
     for name, ref in (
         (

@@ -24,6 +24,7 @@ Layout of the flat tangent vector (body by body, SE(3) bodies first) as in `lie.
 from __future__ import annotations
 
 import math
+from typing import cast
 
 import torch
 from torch import nn
@@ -96,7 +97,7 @@ class PerBodySPSD(nn.Module):
         if torch.count_nonzero(D * (1 - mask)):
             raise ValueError("damping couples different bodies; per-body damping cannot represent it")
         for blk, s in zip(self.blocks, self.G.body_slices()):
-            blk.set_matrix(D[s, s])
+            cast(SPSDMatrix, blk).set_matrix(D[s, s])  # nn.ModuleList yields nn.Module
 
 
 class PerBodyDampingNet(nn.Module):

@@ -37,6 +37,7 @@ class RayleighForce(nn.Module):
     def __init__(self, G: ProductGroup, scale: float = 1.0, init_diag: float = 0.01, coupling: str = "coupled"):
         super().__init__()
         self.coupling = _coupling(coupling)
+        self.D: PerBodySPSD | SPSDMatrix
         if self.coupling == "per_body" and G.n_bodies > 1:
             self.D = PerBodySPSD(G, init_diag=init_diag * scale)
         else:
@@ -87,6 +88,7 @@ class RayleighNonlinearForce(nn.Module):
         self.G, n = G, G.dim
         self.coupling = _coupling(coupling)
         c = float(init_diag * scale) ** 0.5
+        self.per_body: PerBodyDampingNet | None
         if self.coupling == "per_body":
             self.per_body = PerBodyDampingNet(G, c, width, depth)
             return
@@ -207,6 +209,9 @@ class PDControl(nn.Module):
 
     name = "pd_control"
 
+    R_f: torch.Tensor
+    mg_rho: torch.Tensor
+
     def __init__(
         self,
         G: ProductGroup,
@@ -261,8 +266,9 @@ FORCES = {
 def force_jacobian_xi(force: nn.Module, g: Pose, xi: torch.Tensor) -> torch.Tensor:
     """dF(g, xi~)/d xi~ (..., dim, dim): the force's closed form if it has one, else autodiff
     (one reverse pass per tangent direction; rows of the batch are independent)."""
-    if hasattr(force, "jacobian_xi"):
-        return force.jacobian_xi(g, xi)
+    closed_form = getattr(force, "jacobian_xi", None)
+    if closed_form is not None:
+        return closed_form(g, xi)
     with torch.enable_grad():
         x = xi.detach().requires_grad_(True)
         F = force(g, x)

@@ -73,6 +73,9 @@ class SPSDMatrix(nn.Module):
     0 and only diagonal damping is ever fitted; with lambda = 0 likewise for lambda.)
     """
 
+    _rows: torch.Tensor
+    _cols: torch.Tensor
+
     def __init__(self, dim: int, init_diag: float = 0.1, jitter: float = 0.0, generator=None):
         super().__init__()
         self.dim = dim

@@ -33,6 +33,9 @@ class GravityPotential(nn.Module):
     masses (B,), rhos (B, 3) are fixed buffers: this is the known potential of the scenes.
     """
 
+    masses: torch.Tensor
+    rhos: torch.Tensor
+
     def __init__(self, G: ProductGroup, masses, rhos, gravity: float):
         super().__init__()
         self.G = G
@@ -71,6 +74,11 @@ class UniformGravityPotential(nn.Module):
     m / tr J_d and c / tr J_d with the truth; rho and u are identified as they are.
     """
 
+    gravity: torch.Tensor
+    direction_raw: torch.Tensor
+    mass: nn.Module  # SE(3) bodies only (with rho)
+    rho: torch.Tensor
+
     def __init__(
         self,
         G: ProductGroup,
@@ -85,6 +93,7 @@ class UniformGravityPotential(nn.Module):
             raise ValueError("uniform_gravity on SE(3) bodies needs the kinetic term's mass and rho_COM")
         self.register_buffer("gravity", torch.tensor(float(gravity), dtype=torch.float64))
         if G.n_se3:
+            assert mass is not None and rho is not None  # checked above
             self.mass = mass  # shared modules: registered here too, counted once by parameters()
             self.rho = rho
         self.moment = nn.Parameter(torch.zeros(G.n_so3, 3, dtype=torch.float64)) if G.n_so3 else None
@@ -169,6 +178,11 @@ class InteractionPotential(nn.Module):
     All parameters are fixed buffers (no trainable parameters).
     """
 
+    r: torch.Tensor
+    n: torch.Tensor
+    m: torch.Tensor
+    rho: torch.Tensor
+
     def __init__(
         self,
         G: ProductGroup,
@@ -245,8 +259,9 @@ class SumPotential(nn.Module):
 
 
 def _describe(p: nn.Module) -> str:
-    if hasattr(p, "describe"):
-        return p.describe()
+    describe = getattr(p, "describe", None)
+    if describe is not None:
+        return describe()
     return type(p).__name__
 
 

@@ -34,6 +34,7 @@ from torch import nn
 from ..lie import Pose, ProductGroup, so3
 from ..lie.tolerances import tol
 from ..mechanics import kinetic
+from ..mechanics.damping import PerBodySPSD
 from ..mechanics.forces import PDControl, RayleighForce, RayleighNonlinearForce, force_jacobian_xi
 from ..mechanics.parameterizations import Inertia, SPSDMatrix
 from ..mechanics.potentials import MLPPotential, left_gradient
@@ -300,7 +301,7 @@ def derive(model) -> Derived:
 SCALAR_DIM = 6  # SPSD matrices up to this size are built in Python scalars
 
 
-def spsd_matrix(module: nn.Module) -> torch.Tensor:
+def spsd_matrix(module: SPSDMatrix | PerBodySPSD) -> torch.Tensor:
     """`SPSDMatrix()` (D = sym(L L^T) + diag(lambda^2)); small ones in Python scalars with a
     hand-written gradient (`_SPSDScalar`)."""
     if type(module) is SPSDMatrix and module.dim <= SCALAR_DIM and module.lam.device.type == "cpu":
@@ -519,7 +520,7 @@ class IncrementSet(TripletSet):
             reg_idx = torch.randint(0, self.n, (int(reg_points),), generator=generator)
             reg_W = self.reg_W.index_select(0, reg_idx)
             reg_ld = self.reg_logdetW.index_select(0, reg_idx) if self.reg_logdetW is not None else None
-        fields: dict[str, Any] = {}
+        fields: dict[str, Any] = {}  # tensors, and the Pose of "levels"
         for k, v in self.fields.items():
             if k == "levels":
                 fields[k] = Pose(v.R.index_select(1, idx), v.p.index_select(1, idx))

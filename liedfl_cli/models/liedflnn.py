@@ -17,6 +17,7 @@ not counted as trainable parameters). `components()` lists every active part.
 from __future__ import annotations
 
 import math
+from typing import cast
 
 import torch
 from torch import nn
@@ -25,7 +26,7 @@ from torch.func import grad, jacfwd, jacrev, vmap
 from ..errors import ConfigError
 from ..lie import Pose, ProductGroup
 from ..mechanics import kinetic
-from ..mechanics.forces import build_forces, force_jacobian_xi
+from ..mechanics.forces import RayleighForce, build_forces, force_jacobian_xi
 from ..mechanics.parameterizations import Inertia, PositiveVector
 from ..mechanics.potentials import STANDARD_GRAVITY, MLPPotential, SumPotential, UniformGravityPotential
 from ..mechanics.scene_physics import body_parameters, true_potential
@@ -34,6 +35,7 @@ from ..solvers.newton import NewtonProblem, jacobian
 from . import fused
 from .base import (
     POTENTIAL_PARTS,
+    Batch,
     BuildContext,
     ImplicitModel,
     LossOptions,
@@ -74,6 +76,7 @@ class LieDFLNN(ImplicitModel):
     """
 
     window = "triplet"
+    notes: list[str]  # set by from_config: what `auto` options chose
 
     def __init__(
         self,
@@ -111,10 +114,13 @@ class LieDFLNN(ImplicitModel):
         body_scales = [initial_scale(h, epsilon, 6 if i < G.n_se3 else 3) for i in range(G.n_bodies)]
         scale = body_scales[0]
         if known:
+            assert physics is not None  # checked above
             J_true, m_true, rho_true, D_true = body_parameters(G, physics)
             if "inertia" in known:  # forces are scaled like the true inertia
                 scale = float(J_true.diagonal(dim1=-2, dim2=-1).mean())
         self.inertia = Inertia(G.n_bodies, scale=body_scales, jitter=init_jitter, generator=gen)
+        self.mass: PositiveVector | None  # SE(3) bodies only
+        self.rho: nn.Parameter | None  # SE(3) bodies only, (m, 3)
         if G.n_se3:
             self.mass = PositiveVector(G.n_se3, init=scale)
             self.rho = nn.Parameter(init_jitter * torch.randn(G.n_se3, 3, generator=gen, dtype=torch.float64))
@@ -124,6 +130,7 @@ class LieDFLNN(ImplicitModel):
             self.inertia.set_J(J_true)
             self.inertia.requires_grad_(False)
             if G.n_se3:
+                assert self.mass is not None and self.rho is not None
                 self.mass.set_value(m_true[: G.n_se3])
                 self.mass.requires_grad_(False)
                 with torch.no_grad():
@@ -136,9 +143,10 @@ class LieDFLNN(ImplicitModel):
                     f"model.potential={potential} together with model.known=[potential]: choose one "
                     "(the known potential replaces the learned one)"
                 )
+            assert physics is not None  # checked above
             self.potential = true_potential(G, physics)  # None when the scene has no potential
         else:
-            terms = []
+            terms: list[nn.Module] = []
             for part in parts:
                 if part == "mlp":
                     terms.append(MLPPotential(G, mlp_width, mlp_depth))
@@ -154,6 +162,7 @@ class LieDFLNN(ImplicitModel):
             ray = [f for f in self.forces if getattr(f, "name", None) == "rayleigh"]
             if not ray:
                 raise ValueError("model.known=[damping] needs the rayleigh force (force=[rayleigh,...])")
+            assert isinstance(ray[0], RayleighForce)  # the force named "rayleigh"
             ray[0].D.set_matrix(D_true)
             ray[0].requires_grad_(False)
 
@@ -176,6 +185,7 @@ class LieDFLNN(ImplicitModel):
         opt = config_options(cls, options, cls.OPTIONS)
         known = tuple(opt.pop("known", None) or ())
         choice = opt.pop("potential", "auto")
+        parts: tuple[str, ...]
         if choice == "auto" and "potential" in known:
             parts, why = (), "auto: none (model.known holds the true potential)"
         else:
@@ -210,6 +220,7 @@ class LieDFLNN(ImplicitModel):
     def _params(self):
         Jd = self.inertia.Jd()
         if self.G.n_se3:
+            assert self.mass is not None and self.rho is not None
             return Jd, self.mass(), self.rho
         empty = Jd.new_zeros(0)
         return Jd, empty, Jd.new_zeros(0, 3)
@@ -224,14 +235,14 @@ class LieDFLNN(ImplicitModel):
             return fused.IncrementSet(self, data, steps)
         return super().training_set(data, steps)
 
-    def loss(self, batch: TripletBatch | fused.IncrementBatch, opts: LossOptions):
+    def loss(self, batch: Batch | fused.IncrementBatch, opts: LossOptions):
         """w_DEL mean ||r||^2 + w_reg mean penalty(log|det H|) -> (loss, {"del_loss", "reg_loss"})."""
         if isinstance(batch, fused.IncrementBatch):
             if runtime.want_compile("train"):  # the whole loss, forward and backward, compiled
                 return runtime.compiled(fused_loss, "train_loss")(self, batch, opts)
             return fused_loss(self, batch, opts)
-        use_reg = batch.reg is not None and opts.w_reg > 0
-        logdet = self.regularity_logdet(*batch.reg) if use_reg else None
+        assert isinstance(batch, TripletBatch), "LieDFLNN trains on triplets (window = 'triplet')"
+        logdet = self.regularity_logdet(*batch.reg) if batch.reg is not None and opts.w_reg > 0 else None
         return del_regularity_loss(self.residual(*batch.poses()), logdet, opts)
 
     def components(self) -> list[str]:
@@ -263,7 +274,8 @@ class LieDFLNN(ImplicitModel):
             desc = self.potential.describe() if hasattr(self.potential, "describe") else type(self.potential).__name__
             out.append(tag(f"V:{desc}", self.potential))
         for f in self.forces:
-            desc = f.describe() if hasattr(f, "describe") else getattr(f, "name", type(f).__name__)
+            describe = getattr(f, "describe", None)
+            desc = describe() if describe is not None else getattr(f, "name", type(f).__name__)
             out.append(tag(f"F:{desc}", f))
         return out
 
@@ -333,7 +345,8 @@ class LieDFLNN(ImplicitModel):
         if len(self.forces):
             xi = kinetic.velocity_estimate(G, inc, self.h)
             dxi = kinetic.velocity_estimate_jacobian(G, inc, self.h)
-            dF = sum(force_jacobian_xi(f, g, xi) for f in self.forces)
+            # a Tensor, not the int 0 that sum() gives for no forces (there is at least one)
+            dF = cast(torch.Tensor, sum(force_jacobian_xi(f, g, xi) for f in self.forces))
             J = J + 0.5 * self.h * (dF @ dxi)
         return J
 

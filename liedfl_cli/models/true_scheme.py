@@ -27,6 +27,7 @@ def physics_model(G: ProductGroup, h: float, physics: dict, residual: str = "fas
     model = LieDFLNN(G, h, potential="none", forces=forces, residual=residual, init_jitter=0.0)
     model.inertia.set_J(J)
     if G.n_se3:
+        assert model.mass is not None and model.rho is not None  # set for SE(3) bodies
         model.mass.set_value(masses[: G.n_se3])
         with torch.no_grad():
             model.rho.copy_(rhos[: G.n_se3])
