@@ -395,6 +395,29 @@ def test_compiled_newton_step_rolls_out_the_same():
     assert float((a.pose.R - b.pose.R).abs().max()) <= SolverOptions().tol
 
 
+@pytest.mark.slow
+@pytest.mark.skipif(not runtime.compiler_available(), reason="no C++ compiler: the fallback is tested above")
+def test_compiled_training_loss_of_a_many_body_model_equals_eager(monkeypatch, capsys):
+    """More than `fused.SCALAR_BODIES` bodies take the tensor J_d path (`_InertiaJd`), which once
+    made torch.compile fail on Exp 4's loss (a saved view; a cache filled while tracing)."""
+    monkeypatch.setattr(runtime, "_compiled", {})
+    G = ProductGroup(1, fused.SCALAR_BODIES)
+    model = LieDFLNN(G, 0.1, potential="mlp", forces=["rayleigh"], mlp_width=8, init_jitter=0.3, seed=0)
+    _, fus = both_batches(model, trajectories(G))
+    opts = LossOptions()
+    params = [p for p in model.parameters() if p.requires_grad]
+    with runtime.using(compile="false"):
+        eager, _ = model.loss(fus, opts)
+        g_eager = torch.autograd.grad(eager, params)
+    with runtime.using(compile="true"):
+        comp, _ = model.loss(fus, opts)
+        g_comp = torch.autograd.grad(comp, params)
+    assert "compilation failed" not in capsys.readouterr().err
+    assert abs(float(comp - eager)) <= 1e-12 * abs(float(eager))
+    scale = max(float(g.abs().max()) for g in g_eager)
+    assert max(float((a - b).abs().max()) for a, b in zip(g_comp, g_eager)) <= 1e-10 * scale
+
+
 def test_train_config_has_the_runtime_section():
     cfg = OmegaConf.load(CONF_DIR / "train.yaml")
     assert set(cfg.runtime) == {"threads", "fused", "compile"}

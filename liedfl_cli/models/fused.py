@@ -258,8 +258,10 @@ class _InertiaJd(torch.autograd.Function):
         eye = const["eye"]
         e = torch.exp(abc)
         d = e @ const["pair_sums"]  # (B, 3)
-        c = exp_coefficients((r * r).sum(-1))[..., None, None, :]
-        K = (r @ const["hat"]).unflatten(-1, (3, 3))
+        # c and K saved as fresh tensors, not views: torch.compile refuses to save a view of
+        # an intermediate from an autograd.Function (InternalTorchDynamoError on Exp 4's loss)
+        c = exp_coefficients((r * r).sum(-1)).unsqueeze(-2).unsqueeze(-2).clone()
+        K = (r @ const["hat"]).unflatten(-1, (3, 3)).clone()
         K2 = K @ K
         Rt = eye + c[..., 0] * K + c[..., 1] * K2
         J = (Rt * d[..., None, :]) @ Rt.transpose(-1, -2)
@@ -374,6 +376,15 @@ def _map_contraction(dtype: torch.dtype, h: float) -> torch.Tensor:
         E = _basis(dtype)
         _CONTRACTIONS[key] = torch.cat((kinetic_residual_map(E, h).flatten(-2), hessian_map(E, h).flatten(-2)), -1)
     return _CONTRACTIONS[key]
+
+
+def warm_caches(dtype: torch.dtype, device: torch.device, h: float) -> None:
+    """Build the module's constant caches eagerly: a compiled function must not fill a global
+    cache while it is traced (torch.compile refuses tensors created in a traced region that
+    outlive it, e.g. the Exp 4 loss: InternalTorchDynamoError)."""
+    _constants(dtype, device)
+    _constants(dtype, None)
+    _map_contraction(dtype, float(h))
 
 
 def training_maps(Jd: torch.Tensor, h: float) -> tuple[torch.Tensor, torch.Tensor]:

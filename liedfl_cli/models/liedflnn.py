@@ -239,6 +239,8 @@ class LieDFLNN(ImplicitModel):
         """w_DEL mean ||r||^2 + w_reg mean penalty(log|det H|) -> (loss, {"del_loss", "reg_loss"})."""
         if isinstance(batch, fused.IncrementBatch):
             if runtime.want_compile("train"):  # the whole loss, forward and backward, compiled
+                ref = next(self.parameters())
+                fused.warm_caches(ref.dtype, ref.device, float(self.h))
                 return runtime.compiled(fused_loss, "train_loss")(self, batch, opts)
             return fused_loss(self, batch, opts)
         assert isinstance(batch, TripletBatch), "LieDFLNN trains on triplets (window = 'triplet')"
