@@ -153,8 +153,11 @@ def orthogonality_error(R: torch.Tensor) -> torch.Tensor:
 
 
 def random(
-    batch_shape: Sequence[int] = (), generator: torch.Generator | None = None, dtype: torch.dtype = torch.float64
+    batch_shape: Sequence[int] = (),
+    generator: torch.Generator | None = None,
+    dtype: torch.dtype = torch.float64,
+    device: torch.device | None = None,
 ) -> torch.Tensor:
-    """Haar-uniform random rotations of shape (*batch_shape, 3, 3)."""
-    q = torch.randn(*batch_shape, 4, generator=generator, dtype=dtype)
+    """Haar-uniform random rotations of shape (*batch_shape, 3, 3) (on the generator's device)."""
+    q = torch.randn(*batch_shape, 4, generator=generator, dtype=dtype, device=device)
     return from_quaternion(q)

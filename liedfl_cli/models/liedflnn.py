@@ -373,7 +373,7 @@ class LieDFLNN(ImplicitModel):
             return fused.rollout_advance(self, state, x)
         _, g, _ = state
         W = x.R.detach()
-        W = 0.5 * W @ (3.0 * torch.eye(3, dtype=W.dtype) - W.transpose(-1, -2) @ W)
+        W = 0.5 * W @ (3.0 * torch.eye(3, dtype=W.dtype, device=W.device) - W.transpose(-1, -2) @ W)
         inc = Pose(W, x.p.detach())
         g_next = self.G.compose(g, inc)
         return (g, g_next, inc), g_next
@@ -444,7 +444,7 @@ def del_regularity_loss(r: torch.Tensor, logdet: torch.Tensor | None, opts: Loss
 
     Shared by every model trained on the DEL residual (LieDFLNN, Euler- and Euclidean DFLNN)."""
     del_loss = (r * r).mean()
-    reg_loss = torch.zeros((), dtype=r.dtype)
+    reg_loss = torch.zeros((), dtype=r.dtype, device=r.device)
     if logdet is not None:
         reg_loss = regularity_penalty(logdet, opts.epsilon, opts.reg_form).mean()
     return opts.w_del * del_loss + opts.w_reg * reg_loss, {"del_loss": del_loss, "reg_loss": reg_loss}
