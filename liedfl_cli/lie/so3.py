@@ -146,6 +146,13 @@ def project(M: torch.Tensor) -> torch.Tensor:
     return U @ D @ Vh
 
 
+def orthonormalize(R: torch.Tensor) -> torch.Tensor:
+    """One Newton-Schulz (polar) step toward the nearest rotation, R (3 I - R^T R) / 2: (..., 3, 3) ->
+    (..., 3, 3). For matrices near SO(3): an error e = ||R^T R - I|| becomes O(e^2) plus rounding."""
+    eye = torch.eye(3, dtype=R.dtype, device=R.device)
+    return 0.5 * R @ (3.0 * eye - R.transpose(-1, -2) @ R)
+
+
 def orthogonality_error(R: torch.Tensor) -> torch.Tensor:
     """||R^T R - I||_F: (..., 3, 3) -> (...)."""
     eye = torch.eye(3, dtype=R.dtype, device=R.device)

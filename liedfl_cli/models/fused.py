@@ -32,7 +32,7 @@ import torch
 from torch import nn
 
 from ..lie import Pose, ProductGroup, so3
-from ..lie.tolerances import tol
+from ..lie.tolerances import projects_poses, tol
 from ..mechanics import kinetic
 from ..mechanics.forces import PDControl, RayleighForce, RayleighNonlinearForce, force_jacobian_xi
 from ..mechanics.parameterizations import Inertia, SPSDMatrix
@@ -1020,4 +1020,6 @@ def rollout_advance(model, state: RolloutState, x: Pose) -> tuple[RolloutState, 
     W = 0.5 * W @ (3.0 * eye - W.transpose(-1, -2) @ W)
     inc = Pose(W, x.p.detach())
     g_next = compose(model.G, state.g, inc)
+    if projects_poses(W.dtype):  # below float64 the composed poses drift off SO(3) too
+        g_next = Pose(so3.orthonormalize(g_next.R), g_next.p)
     return RolloutState(state.g, g_next, inc, state.maps, state.compile), g_next

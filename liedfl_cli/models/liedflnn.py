@@ -23,7 +23,8 @@ from torch import nn
 from torch.func import grad, jacfwd, jacrev, vmap
 
 from ..errors import ConfigError
-from ..lie import Pose, ProductGroup
+from ..lie import Pose, ProductGroup, so3
+from ..lie.tolerances import projects_poses
 from ..mechanics import kinetic
 from ..mechanics.forces import build_forces, force_jacobian_xi
 from ..mechanics.parameterizations import Inertia, PositiveVector
@@ -376,6 +377,8 @@ class LieDFLNN(ImplicitModel):
         W = 0.5 * W @ (3.0 * torch.eye(3, dtype=W.dtype, device=W.device) - W.transpose(-1, -2) @ W)
         inc = Pose(W, x.p.detach())
         g_next = self.G.compose(g, inc)
+        if projects_poses(W.dtype):  # below float64 the composed poses drift off SO(3) too
+            g_next = Pose(so3.orthonormalize(g_next.R), g_next.p)
         return (g, g_next, inc), g_next
 
     def residual(self, g_prev: Pose, g: Pose, g_next: Pose) -> torch.Tensor:
