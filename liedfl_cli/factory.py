@@ -3,6 +3,9 @@
 This is the only place where model configs meet model classes. `model._target_` names the class
 (conf/model/<name>.yaml; `baseline=<name>` only selects that file); it must be a `Model` of
 this package, and the class's `from_config(ctx, **options)` builds it for the dataset.
+
+Where models and data live (`runtime.device`, `runtime.dtype`) is decided here too: `place` moves a
+model there, `data_pose` converts a dataset's trajectories; nothing below the pipeline chooses.
 """
 
 from __future__ import annotations
