@@ -23,8 +23,8 @@ def tol(dtype: torch.dtype, name: str) -> float:
 PROJECT_POSES: dict[torch.dtype, bool] = {torch.float64: False, torch.float32: True}
 """Whether a rollout re-orthonormalises every composed pose g_{k+1} = g_k W_k, not only the increment
 W_k (`so3.orthonormalize`). In float64 the poses stay within ~1e-13 of SO(3) over thousands of steps
-without it (and results stay as they were); in float32 they drift ~1e-4 in 2000 steps without it,
-~1e-6 with it (README, "Runtime settings"; `scripts/float32_cost.py`)."""
+without it (and results stay as they were); in float32 they drift 2.5e-4 in 2000 steps without it,
+4e-7 with it (README, "Runtime settings"; `scripts/float32_cost.py`)."""
 
 
 def projects_poses(dtype: torch.dtype) -> bool:
