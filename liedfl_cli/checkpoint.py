@@ -79,16 +79,17 @@ def to_plain(x: Any, where: str = "checkpoint") -> Any:
     )
 
 
-def _safe_load(path, what: str = "checkpoint"):
-    """torch.load with weights_only=True; TorchVersion (a str subclass) is allowed so that checkpoints
-    written before versions were stored as plain strings stay readable."""
+def _safe_load(path, what: str = "checkpoint", map_location: Any = "cpu"):
+    """torch.load with weights_only=True, tensors moved to `map_location`; TorchVersion (a str
+    subclass) is allowed so that checkpoints written before versions were stored as plain strings
+    stay readable."""
     safe_globals = getattr(torch.serialization, "safe_globals", None)
     if safe_globals is not None:
         from torch.torch_version import TorchVersion
 
         with safe_globals([TorchVersion]):
-            return torch.load(path, map_location="cpu", weights_only=True)
-    return torch.load(path, map_location="cpu", weights_only=True)  # pragma: no cover (torch < 2.5)
+            return torch.load(path, map_location=map_location, weights_only=True)
+    return torch.load(path, map_location=map_location, weights_only=True)  # pragma: no cover (torch < 2.5)
 
 
 def _refusal(e: Exception) -> str:
@@ -127,15 +128,18 @@ def save_checkpoint(path, model, config: dict, extra: dict | None = None) -> Non
             ) from None
 
 
-def load_checkpoint(path) -> dict:
-    """Load a checkpoint with the safe unpickler (weights_only=True); CheckpointError on any problem."""
+def load_checkpoint(path, map_location: Any = "cpu") -> dict:
+    """Load a checkpoint with the safe unpickler (weights_only=True); CheckpointError on any problem.
+
+    map_location: where its tensors go (`torch.load`'s argument: "cpu", a device such as the
+    runtime's, ...). Training state (RNG states) must stay on the CPU: resume loads with the default."""
     import pickle
 
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"{path}: checkpoint not found")
     try:
-        payload = _safe_load(path)
+        payload = _safe_load(path, map_location=map_location)
     except pickle.UnpicklingError as e:
         if "GLOBAL" in str(e):  # a reference to a class or function: what runs code on unpickling
             raise CheckpointError(

@@ -192,9 +192,11 @@ def run_eval(cfg: DictConfig) -> list[dict]:
 
     from .checkpoint import load_checkpoint
     from .evaluation import run_extra_evals
+    from .factory import configure_runtime
     from .other_data import rollout_dataset
     from .runs import load_run
 
+    configure_runtime(cfg)  # this command's runtime section (the model of the scene's extra evaluation)
     run_cfg, model, dataset, run_dir = load_run(cfg.run, cfg.paths.data_dir)
     path = rollout_path_arg(cfg.get("rollout"), run_dir)
     dataset, run_cfg = rollout_dataset(path, model, dataset, run_cfg, run_dir, cfg.paths.data_dir)

@@ -3,16 +3,22 @@
 This is the only place where model configs meet model classes. `model._target_` names the class
 (conf/model/<name>.yaml; `baseline=<name>` only selects that file); it must be a `Model` of
 this package, and the class's `from_config(ctx, **options)` builds it for the dataset.
+
+Where models and data live (`runtime.device`, `runtime.dtype`) is decided here too: `place` moves a
+model there, `data_pose` converts a dataset's trajectories; nothing below the pipeline chooses.
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, TypeVar
 
+import torch
 from hydra.utils import get_class
 from omegaconf import DictConfig, OmegaConf
+from torch import nn
 
 from .errors import ConfigError
+from .lie import Pose
 from .models.base import BuildContext, LossOptions, Model
 from .solvers.options import SolverOptions
 
@@ -64,7 +70,9 @@ def build_context(cfg: DictConfig, dataset) -> BuildContext:
 
 
 def build_model(cfg: DictConfig, dataset) -> Model:
-    """The model of `cfg.model` for the dataset's group and step; `model.name` names it."""
+    """The model of `cfg.model` for the dataset's group and step; `model.name` names it. Built on the
+    CPU in float64 (the same initial weights whatever the runtime), then moved to the runtime's
+    device and dtype (`place`)."""
     check_group(cfg, dataset)
     options = dict(_plain(cfg.model))
     cls = model_class(options.pop("_target_", None))
@@ -76,7 +84,32 @@ def build_model(cfg: DictConfig, dataset) -> Model:
     except ValueError as e:  # invalid option values: one clear config error
         raise ConfigError(f"model={name}: {e}") from None
     model.name = name
-    return model
+    return place(model)
+
+
+def placement() -> tuple[torch.device, torch.dtype]:
+    """(device, dtype) of this command's models and data: `runtime.device` / `runtime.dtype` as
+    applied by `configure_runtime` (cpu / float64 before it runs)."""
+    from .solvers import runtime
+
+    return runtime.placement()
+
+
+ModuleT = TypeVar("ModuleT", bound=nn.Module)
+
+
+def place(module: ModuleT) -> ModuleT:
+    """`module` moved to the runtime's device and dtype (in place; floating-point parameters and
+    buffers only). A no-op on the CPU in float64."""
+    device, dtype = placement()
+    return module.to(device=device, dtype=dtype)
+
+
+def data_pose(dataset, traj_idx=None) -> Pose:
+    """`dataset.pose(traj_idx)` (trajectories on the CPU in float64 as loaded) converted to the
+    runtime's device and dtype."""
+    device, dtype = placement()
+    return dataset.pose(traj_idx, dtype=dtype, device=device)
 
 
 def loss_options(cfg_train) -> LossOptions:
@@ -91,8 +124,9 @@ def solver_options(cfg_solver) -> SolverOptions:
 
 
 def configure_runtime(cfg: DictConfig):
-    """Apply `cfg.runtime` (threads, fused paths, compilation) to this process; a job of a joblib
-    sweep runs on one thread (the jobs share the cores)."""
+    """Apply `cfg.runtime` (threads, fused paths, compilation, device, dtype) to this process; a job
+    of a joblib sweep runs on one thread (the jobs share the cores). `runtime.device=cuda` without a
+    CUDA device: ConfigError."""
     from .solvers import runtime
 
     parallel = False

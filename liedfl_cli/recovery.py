@@ -3,6 +3,8 @@ the common scale that the DEL residual cannot see."""
 
 from __future__ import annotations
 
+import copy
+
 import torch
 
 from .models.liedflnn import LieDFLNN
@@ -27,6 +29,9 @@ def parameter_recovery(model, dataset) -> dict | None:
     ref = true_model(dataset)
     if ref is None or not isinstance(model, LieDFLNN):
         return None
+    p = next(model.parameters(), None)
+    if p is not None and (p.device.type != "cpu" or p.dtype != torch.float64):  # compared on the CPU in float64
+        model = copy.deepcopy(model).to(device="cpu", dtype=torch.float64)
     with torch.no_grad():
         Jd, Jd_true = model.inertia.Jd(), ref.inertia.Jd()
         s, s_true = Jd.diagonal(dim1=-2, dim2=-1).sum(-1), Jd_true.diagonal(dim1=-2, dim2=-1).sum(-1)

@@ -43,12 +43,15 @@ def _roll(model, truth: Pose, steps: int, solver: SolverOptions, label: str, sho
 
 
 def test_trajectories(dataset, max_trajectories) -> tuple[np.ndarray, Pose]:
+    """(indices, poses) of the test trajectories rolled out, on the runtime's device and dtype."""
+    from .factory import data_pose
+
     idx = np.asarray(dataset.test_idx)
     if len(idx) == 0:
         raise DatasetError(f"{dataset.scene}: field 'split/test' is empty: nothing to roll out")
     if max_trajectories:
         idx = idx[: int(max_trajectories)]
-    return idx, dataset.pose(idx)
+    return idx, data_pose(dataset, idx)
 
 
 def rollout_steps(given) -> int:
@@ -65,9 +68,10 @@ def rollout_steps(given) -> int:
 
 
 def rollout_and_save(cfg: DictConfig, model, dataset, path, steps=None) -> dict:
-    """Roll out `model` (and the true scheme, if the scene has one) from each test trajectory's
-    first pair; write `path`. Returns timing/solver summaries."""
+    """Roll out `model` (and the true scheme, if the scene has one, on the same device and dtype) from
+    each test trajectory's first pair; write `path` (CPU float64). Returns timing/solver summaries."""
     from .data.scenes import dataset_steps
+    from .factory import place
     from .models.true_scheme import true_model
 
     steps = rollout_steps(steps if steps is not None else dataset_steps(cfg.dataset, dataset, "rollout_steps"))
@@ -76,7 +80,7 @@ def rollout_and_save(cfg: DictConfig, model, dataset, path, steps=None) -> dict:
     if cfg.rollout.reference:
         ref = true_model(dataset)
         if ref is not None:
-            runs["true_scheme"] = ref
+            runs["true_scheme"] = place(ref)
     rollouts = {}
     for name, m in runs.items():
         was_training = m.training
@@ -117,11 +121,13 @@ def run_rollout(cfg: DictConfig) -> dict:
     from .checkpoint import load_checkpoint
     from .evaluate import run_eval_from_objects
     from .evaluation import run_extra_evals
+    from .factory import configure_runtime
     from .io_utils import write_json
     from .other_data import SOURCE_FILE, other_dataset
     from .rollout_file import FILE_NAME
     from .runs import load_run
 
+    configure_runtime(cfg)  # this command's runtime section: threads, device, dtype, ...
     run_cfg, model, dataset, run_dir = load_run(cfg.run, cfg.paths.data_dir)
     other = other_dataset(cfg, model, run_dir)
     merged = OmegaConf.merge(

@@ -94,14 +94,16 @@ class RolloutEntry:
 
     @classmethod
     def from_rollout(cls, ro) -> RolloutEntry:
-        """From a solver `Rollout` (pose, converged, iterations, residual_norm: tensors; seconds)."""
-        R = ro.pose.R.detach().cpu().numpy()
+        """From a solver `Rollout` (pose, converged, iterations, residual_norm: tensors on any device, in
+        any floating dtype; seconds): the file holds CPU float64 (float32 rollouts are widened)."""
+        f64 = lambda t: t.detach().to(device="cpu", dtype=torch.float64).numpy()
+        R = f64(ro.pose.R)
         entry = cls(
             R=R,
-            p=ro.pose.p.detach().cpu().numpy(),
+            p=f64(ro.pose.p),
             converged=ro.converged.detach().cpu().numpy().astype(bool),
             iterations=ro.iterations.detach().cpu().numpy(),
-            residual_norm=ro.residual_norm.detach().cpu().numpy(),
+            residual_norm=f64(ro.residual_norm),
         )
         steps = entry.steps
         entry.attrs = {

@@ -33,10 +33,11 @@ def _recorded_dataset(run_dir: Path, recorded) -> Path | None:
 
 
 def load_run(run_dir, data_dir=None):
-    """-> (config, model with trained weights, dataset, run_dir)."""
+    """-> (config, model with trained weights on the runtime's device and dtype, dataset, run_dir).
+    The checkpoint is loaded with `map_location` = that device."""
     from .data.hdf5 import load_dataset
     from .data.scenes import get_dataset
-    from .factory import build_model
+    from .factory import build_model, placement
 
     if run_dir in (None, "", "???"):
         raise ConfigError("run=<run dir> is required (a directory written by `liedfl train`)")
@@ -44,7 +45,7 @@ def load_run(run_dir, data_dir=None):
     if not run_dir.is_dir():
         raise ConfigError(f"run={run_dir}: no such run directory")
     ckpt = run_dir / "checkpoints" / "last.pt"
-    payload = load_checkpoint(ckpt)
+    payload = load_checkpoint(ckpt, map_location=placement()[0])
     if not isinstance(payload["config"], dict):
         raise CheckpointError(f"{ckpt}: field 'config' is not a mapping (got {type(payload['config']).__name__})")
     try:

@@ -109,6 +109,8 @@ class RuntimeSchema:  # execution settings, liedfl_cli/solvers/runtime.py
     threads: Any = "auto"  # auto | positive int (checked in runtime.RuntimeOptions)
     fused: bool = True
     compile: Any = "auto"  # auto | true | false
+    device: str = "cpu"  # cpu | cuda | auto (availability checked when the job starts: runtime.configure)
+    dtype: str = "float64"  # float64 | float32
 
 
 @dataclass
@@ -132,6 +134,8 @@ CHOICES = {
     ("train", "optimizer", "schedule"): ("constant", "cosine"),
     ("model", "potential"): ("auto", "mlp", "none", "uniform_gravity"),  # or a list of mlp, uniform_gravity
     ("model", "residual"): ("fast", "generic"),
+    ("runtime", "device"): ("cpu", "cuda", "auto"),
+    ("runtime", "dtype"): ("float64", "float32"),
 }
 _TRAIN_KEYS = ("task_name", "seed", "epoch_scale", "train", "rollout", "eval", "ui", "paths")
 TOP_LEVEL: dict[str, tuple[str, ...]] = {

@@ -290,16 +290,16 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
     rollout -> eval. `resume`: a checkpoint payload to continue from. Returns a summary."""
     from .data.scenes import dataset_steps, get_dataset
     from .evaluate import run_eval_from_objects
-    from .factory import build_model, configure_runtime
+    from .factory import build_model, configure_runtime, data_pose
     from .rollout import rollout_and_save
 
-    configure_runtime(cfg)  # threads, fused paths, compilation (cfg.runtime)
+    configure_runtime(cfg)  # threads, fused paths, compilation, device, dtype (cfg.runtime)
     out = Path(cfg.paths.output_dir)
     out.mkdir(parents=True, exist_ok=True)
     ckpt = out / "checkpoints" / "last.pt"
     torch.manual_seed(int(cfg.seed))
     dataset, data_path = get_dataset(cfg.dataset, cfg.paths.data_dir)
-    model = build_model(cfg, dataset)
+    model = build_model(cfg, dataset)  # on the runtime's device, in its dtype
     if resume is not None:
         load_state(ckpt, model, resume)
     n_params = count_parameters(model)
@@ -331,7 +331,7 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
 
     history = list(resume.get("history", [])) if resume else []
     log = MetricsLog(out / "train_metrics.csv", history)
-    train_data = dataset.pose(dataset.train_idx)
+    train_data = data_pose(dataset, dataset.train_idx)
     epochs = int(cfg.train.epochs)
     if resume is not None and int(resume["epoch"]) >= epochs:  # training done: redo what follows it
         result = {"history": history, "train_seconds": resume.get("timings", {}).get("train_seconds", 0.0)}

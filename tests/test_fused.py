@@ -420,7 +420,7 @@ def test_compiled_training_loss_of_a_many_body_model_equals_eager(monkeypatch, c
 
 def test_train_config_has_the_runtime_section():
     cfg = OmegaConf.load(CONF_DIR / "train.yaml")
-    assert set(cfg.runtime) == {"threads", "fused", "compile"}
+    assert set(cfg.runtime) == {"threads", "fused", "compile", "device", "dtype"}
     assert cfg.train.full_batch is False and cfg.train.optimizer.precondition_frequency == 10
     assert cfg.train.optimizer.max_precondition_dim == 10000
 

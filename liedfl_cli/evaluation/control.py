@@ -28,6 +28,7 @@ import torch
 from ..io_utils import markdown_table, write_json, write_text
 from ..lie import Pose
 from ..mechanics.kinetic import velocity_estimate
+from ..models.base import tensor_placement
 from ..plots import COLORS, draw_unit_sphere, plt, save_figure
 from ..rollout_file import FILE_NAME, load_rollout
 from ..ui import console
@@ -35,8 +36,10 @@ from ..ui import console
 
 @torch.no_grad()
 def force_torques(model, traj: Pose, h: float) -> np.ndarray:
-    """Rotational part of sum_F F(g_k, xi~_k) along trajectories (T, N+1, ...) -> (T, N, B, 3)."""
+    """Rotational part of sum_F F(g_k, xi~_k) along trajectories (T, N+1, ...) -> (T, N, B, 3), computed
+    on the model's device and in its dtype, returned in float64."""
     G = model.G
+    traj = traj.to(**tensor_placement(model))
     g = traj.index((slice(None), slice(0, -1)))
     inc = G.increment(g, traj.index((slice(None), slice(1, None))))
     xi = velocity_estimate(G, inc, h)
@@ -44,7 +47,7 @@ def force_torques(model, traj: Pose, h: float) -> np.ndarray:
     for f in model.forces:
         total = total + f(g, xi)
     w, _ = G.split(total)
-    return w.numpy()
+    return w.to(device="cpu", dtype=torch.float64).numpy()
 
 
 def torque_errors(learned: np.ndarray, true: np.ndarray) -> dict:

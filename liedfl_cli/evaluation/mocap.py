@@ -51,6 +51,7 @@ from rich.table import Table
 from ..data.mocap import ASF_UNIT_M, mocap_errors, moving_joints, recording_discrepancy, skeleton_points
 from ..io_utils import fmt, markdown_table, write_csv, write_json, write_text
 from ..lie import Pose
+from ..models.base import tensor_placement
 from ..plots import draw_unit_sphere, plt, save_figure
 from ..rollout_file import FILE_NAME, RolloutEntry, load_rollout
 from ..ui import console
@@ -156,7 +157,8 @@ def one_step_errors(model, truth_R, truth_p, solver, joints=None) -> dict | None
     """
     if not hasattr(model, "rollout") or not hasattr(model, "G"):
         return None
-    R, p = torch.as_tensor(truth_R), torch.as_tensor(truth_p)
+    on = tensor_placement(model)  # the model's device and dtype; errors in float64 on the CPU
+    R, p = torch.as_tensor(truth_R).to(**on), torch.as_tensor(truth_p).to(**on)
     T, K = R.shape[0], R.shape[1] - 2
     if K < 1:
         return None
@@ -170,6 +172,8 @@ def one_step_errors(model, truth_R, truth_p, solver, joints=None) -> dict | None
         model.train(was_training)
     pred = ro.pose.index((slice(None), 2))
     cv = model.G.compose(g1, model.G.increment(g0, g1))
+    f64 = lambda g: g.to(device="cpu", dtype=torch.float64)
+    pred, cv, g2 = f64(pred), f64(cv), f64(g2)
     unflat = lambda g: Pose(g.R.reshape(T, K, *g.R.shape[1:]), g.p.reshape(T, K, *g.p.shape[1:]))
     true = unflat(g2)
     em, ec = mocap_errors(unflat(pred), true, joints=joints), mocap_errors(unflat(cv), true, joints=joints)

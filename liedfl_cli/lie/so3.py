@@ -146,6 +146,13 @@ def project(M: torch.Tensor) -> torch.Tensor:
     return U @ D @ Vh
 
 
+def orthonormalize(R: torch.Tensor) -> torch.Tensor:
+    """One Newton-Schulz (polar) step toward the nearest rotation, R (3 I - R^T R) / 2: (..., 3, 3) ->
+    (..., 3, 3). For matrices near SO(3): an error e = ||R^T R - I|| becomes O(e^2) plus rounding."""
+    eye = torch.eye(3, dtype=R.dtype, device=R.device)
+    return 0.5 * R @ (3.0 * eye - R.transpose(-1, -2) @ R)
+
+
 def orthogonality_error(R: torch.Tensor) -> torch.Tensor:
     """||R^T R - I||_F: (..., 3, 3) -> (...)."""
     eye = torch.eye(3, dtype=R.dtype, device=R.device)
@@ -153,8 +160,11 @@ def orthogonality_error(R: torch.Tensor) -> torch.Tensor:
 
 
 def random(
-    batch_shape: Sequence[int] = (), generator: torch.Generator | None = None, dtype: torch.dtype = torch.float64
+    batch_shape: Sequence[int] = (),
+    generator: torch.Generator | None = None,
+    dtype: torch.dtype = torch.float64,
+    device: torch.device | None = None,
 ) -> torch.Tensor:
-    """Haar-uniform random rotations of shape (*batch_shape, 3, 3)."""
-    q = torch.randn(*batch_shape, 4, generator=generator, dtype=dtype)
+    """Haar-uniform random rotations of shape (*batch_shape, 3, 3) (on the generator's device)."""
+    q = torch.randn(*batch_shape, 4, generator=generator, dtype=dtype, device=device)
     return from_quaternion(q)

@@ -91,8 +91,8 @@ class PerBodySPSD(nn.Module):
         """Set from a (dim, dim) matrix; its off-block entries must vanish."""
         mask = block_diagonal(
             self.G,
-            torch.ones(self.G.n_se3, 6, 6, dtype=D.dtype),
-            torch.ones(self.G.n_so3, 3, 3, dtype=D.dtype),
+            torch.ones(self.G.n_se3, 6, 6, dtype=D.dtype, device=D.device),
+            torch.ones(self.G.n_so3, 3, 3, dtype=D.dtype, device=D.device),
         )
         if torch.count_nonzero(D * (1 - mask)):
             raise ValueError("damping couples different bodies; per-body damping cannot represent it")

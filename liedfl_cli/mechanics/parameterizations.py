@@ -110,7 +110,7 @@ class SPSDMatrix(nn.Module):
             self.L_entries.zero_()
             self.lam.copy_(torch.sqrt(torch.clamp(torch.diagonal(D), min=0.0)))
         else:
-            L = torch.linalg.cholesky(D + 1e-12 * torch.eye(self.dim, dtype=D.dtype))
+            L = torch.linalg.cholesky(D + 1e-12 * torch.eye(self.dim, dtype=D.dtype, device=D.device))
             self.L_entries.copy_(L[self._rows, self._cols])
             self.lam.zero_()
 

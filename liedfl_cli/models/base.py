@@ -22,6 +22,7 @@ Nothing here knows about Hydra: the pipeline (`liedfl_cli.factory`) turns config
 from __future__ import annotations
 
 import abc
+import itertools
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -249,8 +250,9 @@ class TripletSet:
         """Triplets `idx` plus `reg_points` random pairs drawn from `generator` (none when 0)."""
         reg = None
         if reg_points > 0:
-            reg_idx = torch.randint(0, self.n, (int(reg_points),), generator=generator)
+            reg_idx = torch.randint(0, self.n, (int(reg_points),), generator=generator).to(self.cur.R.device)
             reg = (self.cur.index(reg_idx), self.nxt.index(reg_idx))
+        idx = idx.to(self.cur.R.device)  # (drawn on the CPU generator of the training loop)
         return TripletBatch(self.prev.index(idx), self.cur.index(idx), self.nxt.index(idx), reg)
 
 
@@ -264,7 +266,7 @@ class TrajectorySet:
         self.n = self.traj.R.shape[0]
 
     def batch(self, idx: torch.Tensor, generator: torch.Generator, reg_points: int) -> TrajectoryBatch:
-        return TrajectoryBatch(self.traj.index(idx))
+        return TrajectoryBatch(self.traj.index(idx.to(self.traj.R.device)))
 
 
 TrainingSet = TripletSet | TrajectorySet
@@ -350,6 +352,17 @@ class ExplicitModel(Model):
 
     def rollout(self, g0: Pose, g1: Pose, steps: int, opts: SolverOptions | None = None, progress=None) -> Rollout:
         return rollout_explicit(self, g0, g1, steps, SolverOptions.from_mapping(opts), progress)
+
+
+def tensor_placement(module: Any) -> dict[str, Any]:
+    """{"device", "dtype"} of a module's first floating-point parameter or buffer, for `Tensor.to(**...)`
+    of the inputs given to it ({} for anything else: inputs stay as they are). The pipeline decides
+    where models live (`factory.place`); code that feeds them data of its own reads it here."""
+    if isinstance(module, nn.Module):
+        for t in itertools.chain(module.parameters(), module.buffers()):
+            if t.is_floating_point():
+                return {"device": t.device, "dtype": t.dtype}
+    return {}
 
 
 def config_options(cls: type, options: Mapping[str, Any], allowed: tuple[str, ...]) -> dict[str, Any]:

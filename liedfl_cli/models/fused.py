@@ -32,7 +32,7 @@ import torch
 from torch import nn
 
 from ..lie import Pose, ProductGroup, so3
-from ..lie.tolerances import tol
+from ..lie.tolerances import projects_poses, tol
 from ..mechanics import kinetic
 from ..mechanics.damping import PerBodySPSD
 from ..mechanics.forces import PDControl, RayleighForce, RayleighNonlinearForce, force_jacobian_xi
@@ -527,8 +527,9 @@ class IncrementSet(TripletSet):
     def batch(self, idx: torch.Tensor, generator: torch.Generator, reg_points: int) -> IncrementBatch:  # type: ignore[override]
         """Triplets `idx` plus `reg_points` random pairs from `generator` (the draws of `TripletSet`)."""
         reg_W = reg_ld = None
+        idx = idx.to(self.reg_W.device)  # indices drawn on the training loop's CPU generator
         if reg_points > 0:
-            reg_idx = torch.randint(0, self.n, (int(reg_points),), generator=generator)
+            reg_idx = torch.randint(0, self.n, (int(reg_points),), generator=generator).to(idx.device)
             reg_W = self.reg_W.index_select(0, reg_idx)
             reg_ld = self.reg_logdetW.index_select(0, reg_idx) if self.reg_logdetW is not None else None
         fields: dict[str, Any] = {}  # tensors, and the Pose of "levels"
@@ -755,12 +756,12 @@ def _d1_map(Jd: torch.Tensor, h: float) -> torch.Tensor:
     return (so3.vee(Jd @ E.transpose(-1, -2) - E @ Jd) / h).transpose(0, 1)
 
 
-def _block_index(G: ProductGroup) -> torch.Tensor:
+def _block_index(G: ProductGroup, device: torch.device) -> torch.Tensor:
     """Flat positions in a (dim, dim) matrix of the block-diagonal entries, body by body
-    (6x6 for SE(3) bodies, 3x3 for SO(3) bodies, row-major within a block)."""
+    (6x6 for SE(3) bodies, 3x3 for SO(3) bodies, row-major within a block), on `device`."""
     out = []
     for s in G.body_slices():
-        rows = torch.arange(s.start, s.stop)
+        rows = torch.arange(s.start, s.stop, device=device)
         out.append((rows[:, None] * G.dim + rows[None, :]).flatten())
     return torch.cat(out)
 
@@ -791,7 +792,7 @@ def rollout_maps(model) -> RolloutMaps:
     linear = None
     if not m and all(isinstance(f, RayleighForce) for f in model.forces):
         linear = _linear_maps(model, P)
-    block_index = _block_index(G) if G.n_bodies > 1 else None
+    block_index = _block_index(G, P.Jd.device) if G.n_bodies > 1 else None
     return RolloutMaps(P, d1, d2, hess, rho_map, se3_block, linear, block_index)
 
 
@@ -1036,4 +1037,6 @@ def rollout_advance(model, state: RolloutState, x: Pose) -> tuple[RolloutState, 
     W = 0.5 * W @ (3.0 * eye - W.transpose(-1, -2) @ W)
     inc = Pose(W, x.p.detach())
     g_next = compose(model.G, state.g, inc)
+    if projects_poses(W.dtype):  # below float64 the composed poses drift off SO(3) too
+        g_next = Pose(so3.orthonormalize(g_next.R), g_next.p)
     return RolloutState(state.g, g_next, inc, state.maps, state.compile), g_next

@@ -186,7 +186,7 @@ class GLNN(ExplicitModel):
         R (..., 3, 3), w (..., 3) -> (R' = R exp(h (w + w')/2) (..., 3, 3), w' (..., 3)).
         """
         w_next = w + self.h * self.accel(R, w, params)
-        eye = torch.eye(3, dtype=w.dtype)
+        eye = torch.eye(3, dtype=w.dtype, device=w.device)
         for _ in range(self.train_newton_iters):
             F = self.midpoint_residual(R, w, w_next, params)
             Jac = eye - 0.5 * self.h * self.accel_jacobian_w(0.5 * (w + w_next), params)
@@ -215,7 +215,7 @@ class GLNN(ExplicitModel):
             R, w = y[:, :9].reshape(n, 3, 3), y[:, 9:]
             return torch.cat(((R @ so3.hat(w)).reshape(n, 9), self.accel(R, w, params)), -1)
 
-        t = self.h * torch.arange(steps + 1, dtype=R0.dtype)
+        t = self.h * torch.arange(steps + 1, dtype=R0.dtype, device=R0.device)
         y0 = torch.cat((R0.reshape(n, 9), w0), -1)
         ys = odeint(
             f, y0, t, rtol=self.rtol, atol=self.atol, method="dopri5", options={"max_num_steps": self.max_num_steps}

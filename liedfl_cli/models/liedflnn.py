@@ -24,7 +24,8 @@ from torch import nn
 from torch.func import grad, jacfwd, jacrev, vmap
 
 from ..errors import ConfigError
-from ..lie import Pose, ProductGroup
+from ..lie import Pose, ProductGroup, so3
+from ..lie.tolerances import projects_poses
 from ..mechanics import kinetic
 from ..mechanics.forces import RayleighForce, build_forces, force_jacobian_xi
 from ..mechanics.parameterizations import Inertia, PositiveVector
@@ -388,9 +389,11 @@ class LieDFLNN(ImplicitModel):
             return fused.rollout_advance(self, state, x)
         _, g, _ = state
         W = x.R.detach()
-        W = 0.5 * W @ (3.0 * torch.eye(3, dtype=W.dtype) - W.transpose(-1, -2) @ W)
+        W = 0.5 * W @ (3.0 * torch.eye(3, dtype=W.dtype, device=W.device) - W.transpose(-1, -2) @ W)
         inc = Pose(W, x.p.detach())
         g_next = self.G.compose(g, inc)
+        if projects_poses(W.dtype):  # below float64 the composed poses drift off SO(3) too
+            g_next = Pose(so3.orthonormalize(g_next.R), g_next.p)
         return (g, g_next, inc), g_next
 
     def residual(self, g_prev: Pose, g: Pose, g_next: Pose) -> torch.Tensor:
@@ -459,7 +462,7 @@ def del_regularity_loss(r: torch.Tensor, logdet: torch.Tensor | None, opts: Loss
 
     Shared by every model trained on the DEL residual (LieDFLNN, Euler- and Euclidean DFLNN)."""
     del_loss = (r * r).mean()
-    reg_loss = torch.zeros((), dtype=r.dtype)
+    reg_loss = torch.zeros((), dtype=r.dtype, device=r.device)
     if logdet is not None:
         reg_loss = regularity_penalty(logdet, opts.epsilon, opts.reg_form).mean()
     return opts.w_del * del_loss + opts.w_reg * reg_loss, {"del_loss": del_loss, "reg_loss": reg_loss}

@@ -91,7 +91,7 @@ class NeuralODE(ExplicitModel):
         def f(t, y):
             return torch.cat((y[:, n:], self.field(y)), -1)
 
-        t = self.h * torch.arange(steps + 1, dtype=x0.dtype)
+        t = self.h * torch.arange(steps + 1, dtype=x0.dtype, device=x0.device)
         opts = {"max_num_steps": self.max_num_steps} if self.method in ADAPTIVE_METHODS else {}
         ys = odeint(
             f, torch.cat((x0, v0), -1), t, rtol=self.rtol, atol=self.atol, method=self.method, options=opts or None

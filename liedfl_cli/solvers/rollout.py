@@ -56,8 +56,9 @@ def with_data_start(pred: Pose, g0: Pose, g1: Pose) -> Pose:
     return Pose(R, p)
 
 
-def _stack(xs: list[torch.Tensor], T: int, dtype: torch.dtype) -> torch.Tensor:
-    return torch.stack(xs, 1) if xs else torch.zeros(T, 0, dtype=dtype)
+def _stack(xs: list[torch.Tensor], like: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """The per-step values (T,) stacked to (T, S-1); (T, 0) on `like`'s device without steps."""
+    return torch.stack(xs, 1) if xs else torch.zeros(like.shape[0], 0, dtype=dtype, device=like.device)
 
 
 @torch.no_grad()
@@ -80,12 +81,11 @@ def rollout_implicit(model: Any, g0: Pose, g1: Pose, steps: int, opts: SolverOpt
         res.append(sol.residual_norm.detach())
         if progress is not None:
             progress(k)
-    T = g0.R.shape[0]
     return Rollout(
         Pose(torch.stack(Rs, 1), torch.stack(ps, 1)),
-        _stack(conv, T, torch.bool),
-        _stack(its, T, torch.long),
-        _stack(res, T, g0.R.dtype),
+        _stack(conv, g0.R, torch.bool),
+        _stack(its, g0.R, torch.long),
+        _stack(res, g0.R, g0.R.dtype),
         time.perf_counter() - t0,
     )
 
@@ -119,9 +119,9 @@ def rollout_explicit(model: Any, g0: Pose, g1: Pose, steps: int, opts: SolverOpt
     pose = with_data_start(seq, g0, g1)
     n = max(steps - 1, 0)
     if not sols or sols[0] is None or n == 0:
-        converged = torch.ones(T, n, dtype=torch.bool)
-        iterations = torch.zeros(T, n, dtype=torch.long)
-        residual = torch.zeros(T, n, dtype=g0.R.dtype)
+        converged = torch.ones(T, n, dtype=torch.bool, device=g0.R.device)
+        iterations = torch.zeros(T, n, dtype=torch.long, device=g0.R.device)
+        residual = torch.zeros(T, n, dtype=g0.R.dtype, device=g0.R.device)
         return Rollout(pose, converged, iterations, residual, time.perf_counter() - t0)
     conv = torch.stack([s.converged for s in sols], 1)  # type: ignore[union-attr]
     its = torch.stack([s.iterations for s in sols], 1)  # type: ignore[union-attr]

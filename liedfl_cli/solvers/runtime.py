@@ -1,5 +1,5 @@
 """Process-wide execution settings of the numerical engine (`runtime` config section): threads,
-fused paths, compilation.
+fused paths, compilation, device and dtype.
 
     runtime.threads   auto | N   torch intra-op threads (auto: 1, measured fastest here; 1 per job
                                  under the joblib launcher whatever N says)
@@ -8,8 +8,14 @@ fused paths, compilation.
                                  auto compiles only work large enough to repay the compilation
                                  (docs/benchmarks.md); without a C++ compiler it falls back to
                                  eager, saying so once.
+    runtime.device    cpu | cuda | auto   where models and data live (auto: cuda when torch sees a
+                                 CUDA device, else cpu; cuda without one: one-line ConfigError)
+    runtime.dtype     float64 | float32   floating-point type of models and data (float32: poses are
+                                 re-orthonormalised every rollout step, README "Runtime settings")
 
-The models and solvers read `current()`; the pipeline calls `configure(cfg.runtime)` once per
+The models and solvers read `current()` for threads, fused paths and compilation only: the device
+and dtype are the pipeline's (`placement()`, used by `factory.build_model` and the commands), and
+models and solvers take them from their inputs. The pipeline calls `configure(cfg.runtime)` once per
 command (`factory.configure_runtime`, which knows about Hydra's launchers; this module does not).
 `using(...)` switches settings temporarily (tests, benchmarks).
 """
@@ -30,6 +36,9 @@ import torch
 from ..errors import ConfigError
 
 COMPILE_CHOICES = ("auto", "true", "false")
+DEVICE_CHOICES = ("cpu", "cuda", "auto")
+DTYPES = {"float64": torch.float64, "float32": torch.float32}
+"""`runtime.dtype` names -> torch dtypes (the one place below the pipeline that names them)."""
 DEFAULT_THREADS = 1
 """Threads for `runtime.threads: auto` (docs/benchmarks.md: on the 2-core machine one thread was
 as fast as two on an idle machine at the batch sizes used here and several times faster when
@@ -46,6 +55,8 @@ class RuntimeOptions:
     threads: int | str = "auto"
     fused: bool = True
     compile: str = "auto"
+    device: str = "cpu"
+    dtype: str = "float64"
 
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any] | None) -> RuntimeOptions:
@@ -67,7 +78,13 @@ class RuntimeOptions:
         fused = values.get("fused", True)
         if not isinstance(fused, bool):
             raise ConfigError(f"runtime.fused={fused!r}: choose true or false")
-        return cls(threads=threads, fused=fused, compile=comp)
+        device = values.get("device", "cpu")
+        if device not in DEVICE_CHOICES:
+            raise ConfigError(f"runtime.device={device!r}: choose one of {', '.join(DEVICE_CHOICES)}")
+        dtype = values.get("dtype", "float64")
+        if dtype not in DTYPES:
+            raise ConfigError(f"runtime.dtype={dtype!r}: choose one of {', '.join(DTYPES)}")
+        return cls(threads=threads, fused=fused, compile=comp, device=device, dtype=dtype)
 
 
 _current = RuntimeOptions()
@@ -92,9 +109,32 @@ def configure(values: Mapping[str, Any] | None, parallel_job: bool = False) -> R
     `parallel_job`: this process is one of several sweep jobs run side by side (joblib)."""
     global _current
     opts = RuntimeOptions.from_mapping(values)
+    resolve_device(opts.device)  # cuda without a CUDA device: fail before any work
     torch.set_num_threads(resolve_threads(opts.threads, parallel_job))
     _current = opts
     return opts
+
+
+def resolve_device(name: str) -> torch.device:
+    """`runtime.device` -> the torch device: cpu; cuda (ConfigError when torch sees no CUDA device);
+    auto: cuda when torch sees one, else cpu."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ConfigError(
+            f"runtime.device=cuda: no CUDA device is available (torch {torch.__version__}, "
+            f"CUDA build {torch.version.cuda or 'none'}); use runtime.device=cpu or auto"
+        )
+    if name not in DEVICE_CHOICES:
+        raise ConfigError(f"runtime.device={name!r}: choose one of {', '.join(DEVICE_CHOICES)}")
+    return torch.device(name)
+
+
+def placement() -> tuple[torch.device, torch.dtype]:
+    """(device, dtype) of the current settings, for the pipeline: models are built, then moved there
+    (`factory.build_model`); datasets are converted there after loading."""
+    opts = current()
+    return resolve_device(opts.device), DTYPES[opts.dtype]
 
 
 @contextlib.contextmanager
