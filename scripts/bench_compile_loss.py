@@ -1,0 +1,72 @@
+"""Compile time and per-step cost of the compiled LieDFLNN training loss against eager, one process.
+
+    python scripts/bench_compile_loss.py [--experiment exp4_mocap] [--steps 20] [--data-dir DIR]
+
+Builds the experiment's model and one training batch (fused engine), compiles `fused_loss`
+(`torch.compile(dynamic=True)`, as `runtime.compile=true` does), and prints the compile time and the
+CPU time of one forward + backward step, eager and compiled (best of 3 x `--steps`). Figures:
+docs/benchmarks.md, "Compilation".
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "scripts"))
+
+from bench import config  # noqa: E402
+
+from liedfl_cli.data.scenes import get_dataset  # noqa: E402
+from liedfl_cli.factory import build_model  # noqa: E402
+from liedfl_cli.models import fused  # noqa: E402
+from liedfl_cli.models.base import LossOptions  # noqa: E402
+from liedfl_cli.models.liedflnn import fused_loss  # noqa: E402
+from liedfl_cli.solvers import runtime  # noqa: E402
+
+
+def step_seconds(fn, model, batch, opts, steps: int) -> float:
+    best = float("inf")
+    for _ in range(3):
+        t = time.process_time()
+        for _ in range(steps):
+            loss, _ = fn(model, batch, opts)
+            loss.backward()
+        best = min(best, (time.process_time() - t) / steps)
+    return best
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--experiment", default="exp4_mocap")
+    ap.add_argument("--steps", type=int, default=20)
+    ap.add_argument("--data-dir", default=str(ROOT / "outputs" / "data"))
+    args = ap.parse_args()
+    runtime.configure({"threads": 1, "compile": "false"})
+    cfg = config([f"experiment={args.experiment}"], args.data_dir)
+    ds, _ = get_dataset(cfg.dataset, args.data_dir)
+    model = build_model(cfg, ds)
+    tset = model.training_set(ds.pose(ds.train_idx), int(cfg.dataset.train_steps))
+    batch = tset.batch(torch.arange(min(int(cfg.train.batch_size), tset.n)), torch.Generator().manual_seed(0), 10)
+    opts = LossOptions()
+    fused.warm_caches(torch.float64, torch.device("cpu"), float(model.h))
+    compiled = torch.compile(fused_loss, dynamic=True)
+    t = time.perf_counter()
+    compiled(model, batch, opts)[0].backward()
+    compile_s = time.perf_counter() - t
+    eager = step_seconds(fused_loss, model, batch, opts, args.steps)
+    comp = step_seconds(compiled, model, batch, opts, args.steps)
+    print(
+        f"{args.experiment}: compile {compile_s:.1f} s; forward+backward CPU per step: eager {eager * 1e3:.2f} ms, "
+        f"compiled {comp * 1e3:.2f} ms"
+    )
+
+
+if __name__ == "__main__":
+    main()
