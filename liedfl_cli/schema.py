@@ -447,9 +447,9 @@ def _check_values(cfg, command: str) -> None:
         _float(cfg, "train.w_reg", nonnegative=True)
         _int(cfg, "train.reg_points", 0)
         _float(cfg, "train.epsilon")
-        if _value(cfg, "train.checkpoint_every") is not None:
+        if _value(cfg, "train.checkpoint_every") not in (None, "auto"):
             _int(cfg, "train.checkpoint_every", 1, nullable=True)
-    if "rollout" in cfg:
+    if isinstance(cfg.get("rollout"), DictConfig):  # (`liedfl eval rollout=<file>`: a path, not this section)
         if "steps" in cfg.rollout:  # a rollout needs the two given poses and at least one predicted step
             _int(cfg, "rollout.steps", 2, nullable=True)
         if "max_trajectories" in cfg.rollout:
@@ -486,9 +486,9 @@ def _check_split_sizes(cfg, d: dict) -> None:
 def _check_dataset_values(cfg, command: str) -> None:
     if not isinstance(cfg.get("dataset"), DictConfig):
         return
-    from .data.scenes import _check, to_dict
+    from .data.scenes import _checked
 
-    d = _check(to_dict(_plain(cfg.dataset, "dataset")))
+    d = _checked(_plain(cfg.dataset, "dataset"))
     if command == "train":
         _check_split_sizes(cfg, d)
 
