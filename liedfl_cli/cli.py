@@ -1,6 +1,6 @@
 """`liedfl <command> [hydra overrides]`: a thin dispatcher over one @hydra.main per command.
 
-Hydra has no subcommands; the first word picks the primary config (conf/<command>.yaml) and
+Hydra has no subcommands; the first word picks the primary config (liedfl_cli/conf/<command>.yaml) and
 the plain function that does the work (`run_train`, ...), which tests call directly.
 """
 
@@ -13,7 +13,7 @@ from pathlib import Path
 
 from .preflight import DIR_ARGS, classify, preflight, preflight_or_fail  # noqa: F401 (re-exported)
 
-CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
+CONF_DIR = Path(__file__).resolve().parent / "conf"
 COMMANDS = {
     "train": "train and evaluate a model (generates the dataset if needed)",
     "data": "only generate (or import) a dataset",
@@ -167,13 +167,13 @@ def main() -> None:
         raise SystemExit(0 if argv else 2)
     command = argv[0]
     if command == "train" and any(a.startswith("resume=") for a in argv[1:]):
-        command = "resume"  # `liedfl train resume=<run dir>` has its own primary config (conf/resume.yaml)
+        command = "resume"  # `liedfl train resume=<run dir>` has its own primary config (liedfl_cli/conf/resume.yaml)
     if command not in COMMANDS and command != "resume":
         print(f"error: unknown command {command!r}\n\n{USAGE}", file=sys.stderr)
         raise SystemExit(2)
     if not (CONF_DIR / f"{command}.yaml").is_file():
         print(
-            f"error: config directory {CONF_DIR} not found; install liedfl with `pip install -e .` from a clone",
+            f"error: config directory {CONF_DIR} not found; reinstall liedfl (`pip install .`)",
             file=sys.stderr,
         )
         raise SystemExit(2)

@@ -32,7 +32,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from .errors import ConfigError
 
-CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
+CONF_DIR = Path(__file__).resolve().parent / "conf"  # the configs ship inside the package
 
 
 @dataclass

@@ -31,7 +31,7 @@ def main():
     args = ap.parse_args()
     import pathlib
 
-    conf = str(pathlib.Path(__file__).resolve().parents[1] / "conf")
+    conf = str(pathlib.Path(__file__).resolve().parents[1] / "liedfl_cli" / "conf")
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads")
     print("| scene / model | residual path | triplets | batches / epoch | s / epoch | ms / step |")
     print("|---|---|---|---|---|---|")

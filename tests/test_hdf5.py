@@ -30,7 +30,7 @@ from liedfl_cli.data.mocap import REAL_DATA_SCENES
 from liedfl_cli.lie import so3
 from liedfl_cli.lie.product import ProductGroup
 
-CONF = Path(__file__).resolve().parents[1] / "conf" / "dataset"
+CONF = Path(__file__).resolve().parents[1] / "liedfl_cli" / "conf" / "dataset"
 
 
 def yaml_cfg(name: str) -> dict:
