@@ -467,7 +467,7 @@ def _check_values(cfg, command: str) -> None:
 def _check_split_sizes(cfg, d: dict) -> None:
     """Generated scenes split by `n_test` / `test_fraction` (scenes.make_split): the train split must
     not be empty, nor the test split when the run rolls out."""
-    if "split" in d:  # imported recordings choose their split themselves (data/mocap.py)
+    if "split" in d or d.get("name") in ("file", "import"):  # recordings and files: data/mocap.py, data/files.py
         return
     T = int(d["n_trajectories"])
     k = int(d["n_test"]) if d.get("n_test") is not None else int(round(float(d["test_fraction"]) * T))

@@ -63,9 +63,21 @@ def test_primary_config_composes(name, tmp_path):
     assert cfg.task_name == name
 
 
+def _own_data(group: str, option: str, tmp: Path) -> list[str]:
+    """The file a scene that reads the user's data needs (dataset=file, dataset=import)."""
+    from own_data import write_csv, write_h5
+
+    if group != "dataset" or option not in ("file", "import"):
+        return []
+    if option == "file":
+        return [f"dataset.path={write_h5(tmp / 'my.h5')}"]
+    return [f"dataset.path={write_csv(tmp / 'log.csv')[0]}", "dataset.rotation=wxyz"]
+
+
 @pytest.mark.parametrize("group,option", GROUP_OPTIONS, ids=[f"{g}={o}" for g, o in GROUP_OPTIONS])
 def test_train_composes_with_every_group_option(group, option, tmp_path):
-    cfg = _compose("train", _paths(tmp_path) + [f"{group}={option}"])
+    own = _own_data(group, option, tmp_path)
+    cfg = _compose("train", _paths(tmp_path) + [f"{group}={option}", *own])
     _check(cfg)
     if group in ("dataset", "model"):  # the option name is the `name` field the code dispatches on
         assert cfg[group].name == option, f"liedfl_cli/conf/{group}/{option}.yaml has name={cfg[group].name!r}"
@@ -73,7 +85,7 @@ def test_train_composes_with_every_group_option(group, option, tmp_path):
         assert cfg.model.name == ("liedflnn" if option == "none" else option)
     # and the same option with the smoke budget (what CI and the CLI tests use)
     if group != "budget":
-        _check(_compose("train", _paths(tmp_path) + [f"{group}={option}", "budget=smoke"]))
+        _check(_compose("train", _paths(tmp_path) + [f"{group}={option}", *own, "budget=smoke"]))
 
 
 def test_experiment_and_budget_files_are_global():

@@ -26,6 +26,7 @@ from liedfl_cli.data import (
     save_dataset,
 )
 from liedfl_cli.data import scenes as scenes_mod
+from liedfl_cli.data.files import SOURCE_SCENES
 from liedfl_cli.data.mocap import REAL_DATA_SCENES
 from liedfl_cli.lie import so3
 from liedfl_cli.lie.product import ProductGroup
@@ -39,7 +40,7 @@ def yaml_cfg(name: str) -> dict:
     return c
 
 
-SIMULATED = sorted(set(SCENES) - set(REAL_DATA_SCENES))
+SIMULATED = sorted(set(SCENES) - set(REAL_DATA_SCENES) - set(SOURCE_SCENES))  # (file/import: test_own_data.py)
 
 
 def tiny(name: str, **over) -> dict:

@@ -17,6 +17,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from ..errors import DatasetError
+from .files import SOURCE_SCENES, check_source_config, file_digest, from_file, hashed_config, import_recording
 from .hdf5 import Dataset, load_dataset, save_dataset
 from .mocap import cmu_cartwheel
 from .scene_common import (
@@ -42,18 +43,38 @@ SCENES: dict[str, Generator] = {
     "two_body": two_body,
     "pd_control": pd_control,
     "cmu_cartwheel": cmu_cartwheel,
+    "file": from_file,
+    "import": import_recording,
 }
 """Every scene a dataset config may name (`dataset.name`), with its generator `fn(cfg, progress=None)`."""
 
 
 def _checked(cfg) -> dict:
     """The dataset config as a plain dict, its common fields checked and its scene registered."""
-    return check_config(to_dict(cfg), SCENES)
+    c = to_dict(cfg)
+    if c.get("name") in SOURCE_SCENES:  # the user's own file (data/files.py): its own keys
+        return check_source_config(c)
+    return check_config(c, SCENES)
+
+
+def _hash(c: dict) -> str:
+    """The cache hash of a checked config; a user's file also hashes its content (files.hashed_config)."""
+    return config_hash(hashed_config(c) if c["name"] in SOURCE_SCENES else c)
+
+
+def _with_digest(c: dict) -> dict:
+    """A source scene's config with the SHA-256 of its file(s), computed once (generator and cache name)."""
+    if c["name"] in SOURCE_SCENES and not c.get("source_sha256"):
+        from .files import _paths
+
+        c = {**c, "source_sha256": file_digest(_paths(c))}
+    return c
 
 
 def dataset_path(cfg, data_dir="outputs/data") -> Path:
     """`<data_dir>/<name>-<config_hash>.h5`."""
-    return Path(data_dir) / f"{_checked(cfg)['name']}-{config_hash(cfg)}.h5"
+    c = _with_digest(_checked(cfg))
+    return Path(data_dir) / f"{c['name']}-{_hash(c)}.h5"
 
 
 def generate(cfg, progress: Callable[[float], None] | None = None) -> Dataset:
@@ -67,15 +88,15 @@ def get_dataset(cfg, data_dir="outputs/data", console=None) -> tuple[Dataset, Pa
 
     console: optional rich Console for the progress display (default: a stderr console).
     """
-    c = _checked(cfg)
+    c = _with_digest(_checked(cfg))
     path = dataset_path(c, data_dir)
     if path.exists():
         ds = load_dataset(path)
         stored = ds.params.get("config_hash")
-        if stored is not None and stored != config_hash(c):
+        if stored is not None and stored != _hash(c):
             raise DatasetError(
                 f"{path}: attribute 'params' holds config_hash {stored!r} but the file name says "
-                f"{config_hash(c)!r}; delete the file to regenerate it"
+                f"{_hash(c)!r}; delete the file to regenerate it"
             )
         return ds, path
 
@@ -83,7 +104,7 @@ def get_dataset(cfg, data_dir="outputs/data", console=None) -> tuple[Dataset, Pa
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     console = console or Console(stderr=True)
-    t_end = float(c["h"]) * int(c["steps"])
+    t_end = float(c["h"]) * int(c["steps"]) if c["name"] not in SOURCE_SCENES else 1.0
     start = time.perf_counter()
     with Progress(
         TextColumn("[bold]{task.description}"),
@@ -93,14 +114,17 @@ def get_dataset(cfg, data_dir="outputs/data", console=None) -> tuple[Dataset, Pa
         console=console,
         transient=True,
     ) as prog:
-        task = prog.add_task(
-            f"simulating {c['name']} ({c['n_trajectories']} trajectories x {c['steps']} steps)", total=t_end
+        what = (
+            f"reading {c['path']}"
+            if c["name"] in SOURCE_SCENES
+            else f"simulating {c['name']} ({c['n_trajectories']} trajectories x {c['steps']} steps)"
         )
+        task = prog.add_task(what, total=t_end)
         ds = SCENES[c["name"]](c, lambda tt: prog.update(task, completed=tt))
     save_dataset(ds, path)
     console.print(
-        f"[green]generated[/green] {c['name']}: {ds.n_trajectories} trajectories x {ds.n_steps} steps "
-        f"in {time.perf_counter() - start:.1f} s -> {path}",
+        f"[green]{'read' if c['name'] in SOURCE_SCENES else 'generated'}[/green] {c['name']}: "
+        f"{ds.n_trajectories} trajectories x {ds.n_steps} steps in {time.perf_counter() - start:.1f} s -> {path}",
         soft_wrap=True,
     )
     return ds, path
