@@ -236,6 +236,15 @@ def pareto_front(points: list[tuple[float, float]]) -> list[tuple[float, float]]
     return front
 
 
+def _plain_log_ticks(axis) -> None:
+    """Log-axis tick labels as plain numbers (0.2, 0.5, 1, 2, 5, ...), readable also within one decade."""
+    from matplotlib.ticker import FuncFormatter, LogLocator
+
+    axis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+    axis.set_minor_locator(LogLocator(subs=(2.0, 5.0)))
+    axis.set_minor_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+
+
 def _colors(models: list[str]):
     from .plots import plt
 
@@ -261,16 +270,20 @@ def plot_error_vs_speed(summary: list[dict], path: Path) -> bool:
                 continue
             m = s["model"]
             ax.errorbar(x, y, xerr=dx or None, yerr=dy or None, fmt="o", color=colors[m], capsize=3, ms=5,
-                        label=m if m not in shown else None)  # fmt: skip
+                        label=m if m not in shown else None, zorder=3)  # fmt: skip
             shown.add(m)
-            ax.annotate(s["label"], (x, y), textcoords="offset points", xytext=(5, 4), fontsize=7)
-            pts.append((x, y))
-        front = pareto_front(pts)
-        if len(front) >= 1:
+            pts.append((x, y, s["label"]))
+        # labels: alternately above and below the point (in order of x), so neighbours do not overlap
+        for i, (x, y, label) in enumerate(sorted(pts)):
+            ax.annotate(label, (x, y), textcoords="offset points", xytext=(5, 5 if i % 2 == 0 else -11), fontsize=7)
+        front = pareto_front([(x, y) for x, y, _ in pts])
+        if front:
             fx, fy = zip(*front)
-            ax.step(fx, fy, where="post", color="0.35", ls="--", lw=1, label="Pareto front")
+            ax.step(fx, fy, where="post", color="black", ls="--", lw=1.2, label="Pareto front", zorder=2)
+            ax.plot(fx, fy, "o", ms=10, mfc="none", mec="black", zorder=4)
         ax.set_xscale("log")
         ax.set_yscale("log")
+        _plain_log_ticks(ax.xaxis)
         ax.set_xlabel(xlabel)
         ax.set_ylabel(ERROR_LABEL, fontsize=8)
         ax.grid(alpha=0.3, which="both")
@@ -386,6 +399,7 @@ def plot_error_vs_training_length(rows: list[dict], keys: list[str], path: Path)
         if xs:
             ax.errorbar(xs, ys, yerr=es, fmt="o-", color=colors[runs[0]["model"]], capsize=3, label=label)
     ax.set_yscale("log")
+    ax.set_xticks(lengths)
     ax.set_xlabel("training trajectory length [steps]")
     ax.set_ylabel(ERROR_LABEL, fontsize=8)
     ax.grid(alpha=0.3, which="both")
@@ -438,10 +452,9 @@ def plot_sphere_per_model(sweep: Path, rows: list[dict], path: Path) -> bool:
             ax.plot(*_on_sphere(tracks["true_scheme"]).T, color="0.6", lw=0.8, ls=":", label="true scheme")
         if "model" in tracks:
             ax.plot(*_on_sphere(tracks["model"]).T, "--", color=colors[m], lw=1.0, label=m)
-        ax.set_title(f"{m}: body axis R e3", fontsize=9)
+        ax.set_title(f"{m} (run {r['run']}): body axis R e3", fontsize=9)
         ax.legend(fontsize=7, loc="upper left")
-    fig.suptitle(f"first test trajectory on the unit sphere (runs {', '.join(sorted({r['run'] for r in rows}))[:80]})",
-                 fontsize=9)  # fmt: skip
+    fig.suptitle("first test trajectory of each model's first run on the unit sphere", fontsize=9)
     save_figure(fig, path)
     return True
 
@@ -467,9 +480,10 @@ def make_plots(sweep: Path, rows: list[dict]) -> list[Path]:
 def report_markdown(sweep: Path, rows: list[dict], failed: list[tuple[str, str]]) -> str:
     keys = varying_settings(rows)
     summary = summarize(rows, keys)
-    md = f"# Report: {sweep}\n\n{len(rows)} runs" + (f", {len(failed)} failed" if failed else "")
+    md = f"# Report: {sweep}\n\n{len(rows)} runs" + (f", {len(failed)} failed" if failed else "") + ".\n\n"
     if rows:
-        md += f": {len({r['model'] for r in rows})} model(s), {len(summary)} model/setting combination(s).\n\n"
+        n_models = len({r["model"] for r in rows})
+        md += f"{n_models} model(s), {len(summary)} model/setting combination(s).\n\n"
         constant = {
             c: rows[0].get(c)
             for c in ("dataset", "train_steps", "parameters")
@@ -498,11 +512,15 @@ def report_markdown(sweep: Path, rows: list[dict], failed: list[tuple[str, str]]
             "|log(R̂ᵀR)|; orth. drift: largest ‖RᵀR − I‖_F over the rollout; rollout [s/step/traj.]: wall time per "
             "step divided by the trajectories rolled out together.\n\n"
         )
+        # the runs: the settings that differ (one column per override key; model and train_steps have their
+        # own) and the numbers that differ
+        own = ("dataset.train_steps", "baseline", "model")
+        extra = [k for k in keys if k not in own]
+        runs = [{**r, **{k: _overrides(r["setting"].split()).get(k) for k in extra}} for r in rows]
         varying = [c for c in COLUMNS if c == "run" or len({str(r.get(c)) for r in rows}) > 1]
-        varying = [c for c in varying if any(r.get(c) not in (None, "") for r in rows)]
-        md += "## Runs (columns that differ between runs)\n\n" + markdown_table(rows, varying)
-    else:
-        md += ".\n\n"
+        varying = [c for c in varying if c != "setting" and any(r.get(c) not in (None, "") for r in rows)]
+        varying[1:1] = extra
+        md += "## Runs (the columns that differ between runs)\n\n" + markdown_table(runs, varying)
     if failed:
         md += "\n## Failed runs\n\n" + markdown_table([{"run": d, "error": e} for d, e in failed], ["run", "error"])
     return md

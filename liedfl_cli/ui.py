@@ -176,23 +176,23 @@ def print_table(
     they fit, numbers never broken; a line names the columns left out (all are in `where`). Returns
     the columns shown."""
     from rich.table import Table
+    from rich.text import Text
 
     from .io_utils import fmt
 
     out = out or console
     shown, left = fit_columns(rows, columns, headers, out.width, priority)
-    table = Table(title=title, title_justify="left")
+    table = Table(title=Text(title) if title else None, title_justify="left")
     for c in shown:
-        table.add_column(
-            headers.get(c, c), no_wrap=True, overflow="ellipsis", justify="left" if c == columns[0] else "right"
-        )
+        just = "left" if c == columns[0] else "right"
+        table.add_column(Text(headers.get(c, c)), no_wrap=True, overflow="ellipsis", justify=just)
     for r in rows:
-        table.add_row(*[r.get(c) if isinstance(r.get(c), str) else fmt(r.get(c)) for c in shown])
+        table.add_row(*[Text(r.get(c) if isinstance(r.get(c), str) else fmt(r.get(c))) for c in shown])
     out.print(table)
     if left:
         note = f"{len(left)} more column(s) ({', '.join(headers.get(c, c) for c in left)})"
-        out.print(note + (f" in {where}" if where else "") + "; a wider terminal shows more", style="dim",
-                  highlight=False)  # fmt: skip
+        note += (f" in {where}" if where else "") + "; a wider terminal shows more"
+        out.print(note, style="dim", highlight=False, markup=False)
     return shown
 
 
