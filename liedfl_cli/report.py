@@ -236,13 +236,38 @@ def pareto_front(points: list[tuple[float, float]]) -> list[tuple[float, float]]
     return front
 
 
-def _plain_log_ticks(axis) -> None:
-    """Log-axis tick labels as plain numbers (0.2, 0.5, 1, 2, 5, ...), readable also within one decade."""
-    from matplotlib.ticker import FuncFormatter, LogLocator
+def _label_points(ax, pts: list[tuple[float, float, str]], fontsize: float = 7) -> None:
+    """Label each point next to it, at the first of a few offsets (right above, right below, further up
+    or down, left) where the label does not cover one placed before (boxes estimated from the text)."""
+    ax.figure.canvas.draw()  # final limits and transforms
+    to_px, dpi = ax.transData.transform, ax.figure.dpi / 72.0
+    placed: list[tuple[float, float, float, float]] = []
+    for x, y, label in sorted(pts):
+        px, py = to_px((x, y))
+        w, hgt = 0.55 * fontsize * len(label) * dpi, 1.3 * fontsize * dpi
+        for dx, dy in ((5, 4), (5, -12), (5, 14), (5, -22), (5, 24), (-5 - w / dpi, 4), (-5 - w / dpi, -12)):
+            x0, y0 = px + dx * dpi, py + dy * dpi
+            box = (x0, y0, x0 + w, y0 + hgt)
+            if not any(box[0] < b[2] and b[0] < box[2] and box[1] < b[3] and b[1] < box[3] for b in placed):
+                break
+        placed.append(box)
+        ax.annotate(label, (x, y), textcoords="offset points", xytext=(dx, dy), fontsize=fontsize)
 
-    axis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
-    axis.set_minor_locator(LogLocator(subs=(2.0, 5.0)))
-    axis.set_minor_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+
+def _plain_log_ticks(ax) -> None:
+    """Log-axis tick labels as plain numbers (0.5, 1, 2, 5, ...; 1e-05 when small), labelling the 2s and
+    5s between decades only when the axis spans less than two decades (else they would overlap)."""
+    import math
+
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
+    plain = FuncFormatter(lambda v, _: f"{v:g}")
+    for axis, (lo, hi) in ((ax.xaxis, ax.get_xlim()), (ax.yaxis, ax.get_ylim())):
+        if axis.get_scale() != "log" or lo <= 0:
+            continue
+        axis.set_major_formatter(plain)
+        axis.set_minor_locator(LogLocator(subs=(2.0, 5.0)))
+        axis.set_minor_formatter(plain if math.log10(hi / lo) < 2 else NullFormatter())
 
 
 def _colors(models: list[str]):
@@ -273,9 +298,6 @@ def plot_error_vs_speed(summary: list[dict], path: Path) -> bool:
                         label=m if m not in shown else None, zorder=3)  # fmt: skip
             shown.add(m)
             pts.append((x, y, s["label"]))
-        # labels: alternately above and below the point (in order of x), so neighbours do not overlap
-        for i, (x, y, label) in enumerate(sorted(pts)):
-            ax.annotate(label, (x, y), textcoords="offset points", xytext=(5, 5 if i % 2 == 0 else -11), fontsize=7)
         front = pareto_front([(x, y) for x, y, _ in pts])
         if front:
             fx, fy = zip(*front)
@@ -283,11 +305,12 @@ def plot_error_vs_speed(summary: list[dict], path: Path) -> bool:
             ax.plot(fx, fy, "o", ms=10, mfc="none", mec="black", zorder=4)
         ax.set_xscale("log")
         ax.set_yscale("log")
-        _plain_log_ticks(ax.xaxis)
         ax.set_xlabel(xlabel)
         ax.set_ylabel(ERROR_LABEL, fontsize=8)
         ax.grid(alpha=0.3, which="both")
         ax.legend(fontsize=7)
+        _plain_log_ticks(ax)
+        _label_points(ax, pts)
     n_max = max(s[ERROR][2] for s in summary)
     fig.suptitle(
         "error against speed: one point per model and setting"
@@ -405,6 +428,7 @@ def plot_error_vs_training_length(rows: list[dict], keys: list[str], path: Path)
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=7)
     ax.set_title("error against training length (mean ± std over seeds)", fontsize=10)
+    _plain_log_ticks(ax)
     save_figure(fig, path)
     return True
 
