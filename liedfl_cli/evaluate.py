@@ -128,10 +128,13 @@ def print_eval_table(rows: list[dict], cols: list[str], title: str, out=None) ->
 
 def length_unit(dataset) -> str | None:
     """The unit of the dataset's positions: metres unless it records another (mocap: CMU ASF units)."""
-    params = dataset.params or {}
-    unit = params.get("length_unit_m")
-    if unit is None or float(unit) == 1.0:
+    from .data.mocap import ASF_UNIT_M
+
+    unit = (dataset.params or {}).get("length_unit_m")
+    if unit is None or abs(float(unit) - 1.0) < 1e-9:
         return "m"
+    if abs(float(unit) / ASF_UNIT_M - 1.0) < 1e-4:
+        return "CMU ASF units"
     return f"units of {float(unit):.4g} m"
 
 

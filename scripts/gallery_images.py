@@ -21,7 +21,7 @@ def small_png(src: Path, max_kb: int) -> bytes:
     while True:
         im = img if scale == 1.0 else img.resize((int(img.width * scale), int(img.height * scale)), Image.LANCZOS)
         buf = io.BytesIO()
-        im.quantize(colors=256, method=Image.Quantize.MEDIANCUT).save(buf, format="PNG", optimize=True)
+        im.quantize(colors=256, method=Image.Quantize.FASTOCTREE).save(buf, format="PNG", optimize=True)
         if buf.tell() <= max_kb * 1024 or scale < 0.3:
             return buf.getvalue()
         scale *= 0.85
