@@ -22,7 +22,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -205,6 +205,8 @@ def make_pose(
 
 def _pose(x, G: ProductGroup, name: str) -> Pose:
     """A Pose / (R, p) pair / dict as a float64 Pose on G (checked)."""
+    R: Any
+    p: Any
     if isinstance(x, Pose):
         R, p = x.R, x.p
     elif isinstance(x, Mapping) and "R" in x:
@@ -223,7 +225,7 @@ def _pair(run_or_model, g0, g1) -> tuple[Any, Pose, Pose, bool]:
     model = getattr(run_or_model, "model", run_or_model)
     if not isinstance(model, torch.nn.Module) or not hasattr(model, "rollout"):
         raise InputError(f"expected a Run (api.load_run) or a liedfl model, got {type(run_or_model).__name__}")
-    G = model.G
+    G = cast(ProductGroup, model.G)
     a, b = _pose(g0, G, "g0"), _pose(g1, G, "g1")
     if a.R.shape != b.R.shape:
         raise InputError(f"g0 and g1 differ in shape: R {tuple(a.R.shape)} vs {tuple(b.R.shape)}")

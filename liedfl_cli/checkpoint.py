@@ -82,14 +82,13 @@ def to_plain(x: Any, where: str = "checkpoint") -> Any:
 def _safe_load(path, what: str = "checkpoint"):
     """torch.load with weights_only=True; TorchVersion (a str subclass) is allowed so that checkpoints
     written before versions were stored as plain strings stay readable."""
-    kwargs = {"map_location": "cpu", "weights_only": True}
     safe_globals = getattr(torch.serialization, "safe_globals", None)
     if safe_globals is not None:
         from torch.torch_version import TorchVersion
 
         with safe_globals([TorchVersion]):
-            return torch.load(path, **kwargs)
-    return torch.load(path, **kwargs)  # pragma: no cover (torch < 2.5)
+            return torch.load(path, map_location="cpu", weights_only=True)
+    return torch.load(path, map_location="cpu", weights_only=True)  # pragma: no cover (torch < 2.5)
 
 
 def _refusal(e: Exception) -> str:
@@ -182,9 +181,9 @@ def capture_rng_state(generators: dict[str, torch.Generator] | None = None) -> d
     """The global RNG states of torch (CPU, and CUDA when available), numpy and Python's `random`,
     plus the states of named `torch.Generator`s, as weights_only-safe types (tensors, ints, floats).
     `restore_rng_state` puts them back."""
-    np_state = np.random.get_state(legacy=True)  # noqa: NPY002 (the global legacy state is what is saved)
+    np_state: Any = np.random.get_state(legacy=True)  # noqa: NPY002 (the global legacy state is what is saved)
     py_version, py_state, py_gauss = random.getstate()
-    state = {
+    state: dict[str, Any] = {
         "torch": torch.get_rng_state(),
         "numpy": {
             "bit_generator": str(np_state[0]),

@@ -102,6 +102,8 @@ def _job_context(command: str, cfg) -> tuple[bool, Path | None, Path | None]:
     hydra_dir = Path(str(hc.runtime.output_dir))
     if hc.mode == RunMode.MULTIRUN:
         return True, hydra_dir, hydra_dir
+    if command == "resume":  # the run continues in its own folder: status.json says "ok" once it finishes
+        return False, Path(str(cfg.resume)), hydra_dir  # (a failed resume leaves the run's status as it was)
     if command != "train":  # eval/rollout/report/data write into existing folders: no status file
         return False, None, hydra_dir
     try:
@@ -160,6 +162,7 @@ def _run_job(command: str, cfg):
 
     _one_line_warnings()  # (also in launcher worker processes, which do not run `main`)
     multirun, status_dir, hydra_dir = _job_context(command, cfg)
+    failure_dir = None if command == "resume" and not multirun else status_dir
     t0 = time.perf_counter()
     try:
         preflight(command, cfg)
@@ -169,7 +172,7 @@ def _run_job(command: str, cfg):
     except BaseException as e:
         known = classify(e)
         if known is None:  # a bug: keep its traceback, but record the failure first
-            _record_failure(multirun, status_dir, hydra_dir, f"internal error: {type(e).__name__}: {e}", 1, "failed")
+            _record_failure(multirun, failure_dir, hydra_dir, f"internal error: {type(e).__name__}: {e}", 1, "failed")
             if multirun and isinstance(e, Exception):
                 import traceback
 
@@ -178,14 +181,20 @@ def _run_job(command: str, cfg):
             raise
         message, code = known
         interrupted = isinstance(e, KeyboardInterrupt) or code in (130, 143)
-        _record_failure(multirun, status_dir, hydra_dir, message, code, "interrupted" if interrupted else "failed")
+        _record_failure(multirun, failure_dir, hydra_dir, message, code, "interrupted" if interrupted else "failed")
         if multirun and not interrupted:
             error_line(f"[job {status_dir.name}] {message}")
             return None
         fail(message, code)
     if status_dir is not None:
-        write_status(status_dir, "ok", 0, seconds=round(time.perf_counter() - t0, 3))
+        write_status(status_dir, "ok", 0, seconds=round(time.perf_counter() - t0, 3), **_threads())
     return result
+
+
+def _threads() -> dict:
+    """torch's intra-op threads in the job, for status.json (one per job when jobs share a machine)."""
+    torch = sys.modules.get("torch")
+    return {} if torch is None else {"threads": int(torch.get_num_threads())}
 
 
 def _check_dir_arg(command: str, args: list[str]) -> None:
@@ -258,18 +267,52 @@ def main() -> None:
     # Hydra's full text).
     user_full_error = os.environ.get("HYDRA_FULL_ERROR")
     os.environ["HYDRA_FULL_ERROR"] = "1"
+    launcher_error = None
     try:
         _hydra_main()
+    except KeyboardInterrupt:
+        _interrupted_sweep()
+        raise
     except Exception as e:
         if user_full_error == "1":
             raise
-        _hydra_failure(command, e)
+        launcher_error = _launcher_failure(e)
+        if launcher_error is None:
+            _hydra_failure(command, e)
     finally:
         if user_full_error is None:
             os.environ.pop("HYDRA_FULL_ERROR", None)
         else:
             os.environ["HYDRA_FULL_ERROR"] = user_full_error
-    _sweep_exit()
+    _sweep_exit(launcher_error)
+
+
+def _interrupted_sweep() -> None:
+    """Ctrl-C in the process that waits for the jobs of a submitit sweep: one line (the jobs run in
+    processes of their own; on a cluster they go on)."""
+    from .status import jobs_ran_elsewhere, sweep_dir
+    from .ui import fail
+
+    sd = sweep_dir()
+    if sd is not None and jobs_ran_elsewhere():
+        fail(
+            f"interrupted: stopped waiting for the jobs of {sd} (jobs that were not interrupted go on;"
+            f" `liedfl report sweep={sd}` lists them once they are done)",
+            130,
+        )
+
+
+def _launcher_failure(e: Exception) -> str | None:
+    """One line for an error of the sweep's launcher (None for anything else). submitit raises in the
+    launching process when a job died without returning (killed, out of memory, past its time limit,
+    interrupted) or could not be submitted; the jobs' own failures are recorded in their folders."""
+    from .status import sweep_dir
+
+    if sweep_dir() is None or type(e).__module__.split(".")[0] != "submitit":
+        return None
+    lines = [ln.strip() for ln in str(e).splitlines() if ln.strip() and not set(ln.strip()) <= set("-=")]
+    text = type(e).__name__ if not lines else lines[0] if len(lines) == 1 else f"{lines[0]} ... {lines[-1]}"
+    return f"{type(e).__name__}: {text}" if not text.startswith(type(e).__name__) else text
 
 
 def _help_overrides(command: str, args: list[str]) -> list[str]:
@@ -324,18 +367,33 @@ def _one_line_warnings() -> None:
     warnings.showwarning = show
 
 
-def _sweep_exit() -> None:
-    """After a multirun: one summary line, exit code = number of failed jobs (capped at 100)."""
-    from .status import sweep_dir, sweep_summary
-    from .ui import console, error_line
+def _sweep_exit(launcher_error: str | None = None) -> None:
+    """After a multirun: one summary line, exit code = number of failed jobs (capped at 100).
+
+    The summary is read from the job folders (status.json), whichever process ran the jobs. Jobs that
+    ran elsewhere (submitit) printed their errors into their logs: their error lines are repeated
+    here. launcher_error: the launcher stopped the sweep (the exit code is then at least 1)."""
+    from .status import jobs_ran_elsewhere, sweep_dir, sweep_summary
+    from .ui import console, error_line, fail
 
     sd = sweep_dir()
     if sd is None or not Path(sd).is_dir():
+        if launcher_error is not None:
+            fail(f"launcher: {launcher_error}")
         return
     failed, total, failures = sweep_summary(sd)
+    if jobs_ran_elsewhere():
+        for d, message in failures:
+            error_line(f"[job {d.name}] {message}")
     if failed:
         error_line(f"{failed} of {total} jobs failed: {', '.join(str(d) for d, _ in failures)}")
-        raise SystemExit(min(failed, 100))
+    if launcher_error is not None:
+        error_line(
+            f"launcher: {launcher_error} (jobs still running go on; `liedfl report sweep={sd}` lists them"
+            f" once they are done; job logs: {Path(sd) / '.submitit'})"
+        )
+    if failed or launcher_error is not None:
+        raise SystemExit(min(max(failed, 1), 100))
     console.print(f"all {total} jobs finished: {sd}", highlight=False, soft_wrap=True)
 
 
@@ -351,7 +409,10 @@ def _hydra_failure(command: str, e: Exception) -> None:
         fail(f"{e.filename}: {e.strerror or type(e).__name__}")
     if not isinstance(e, (HydraException, OmegaConfBaseException)):
         raise e
-    fail(hydra_message(command, e) + " (HYDRA_FULL_ERROR=1 shows Hydra's full message)")
+    message = hydra_message(command, e)
+    if "hydra/launcher/submitit" in message:  # the plugin's configs exist only once it is installed
+        message += ' (the submitit launchers need hydra-submitit-launcher: pip install -e ".[cluster]")'
+    fail(message + " (HYDRA_FULL_ERROR=1 shows Hydra's full message)")
 
 
 def hydra_message(command: str, e: BaseException) -> str:

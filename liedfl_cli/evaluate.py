@@ -240,10 +240,12 @@ def run_eval(cfg: DictConfig) -> list[dict]:
 
     from .checkpoint import load_checkpoint
     from .evaluation import run_extra_evals
+    from .other_data import rollout_dataset
     from .runs import load_run
 
     run_cfg, model, dataset, run_dir = load_run(cfg.run, cfg.paths.data_dir)
     path = rollout_path_arg(cfg.get("rollout"), run_dir)
+    dataset, run_cfg = rollout_dataset(path, model, dataset, run_cfg, run_dir, cfg.paths.data_dir)
     timings = load_checkpoint(Path(run_dir) / "checkpoints" / "last.pt").get("timings")
     rows = run_eval_from_objects(
         cfg,

@@ -59,6 +59,7 @@ def build_context(cfg: DictConfig, dataset) -> BuildContext:
         epsilon=float(cfg.train.epsilon),
         forces=forces or {},
         physics=(dataset.params or {}).get("physics"),
+        metadata=dataset.params or {},
     )
 
 
@@ -87,3 +88,19 @@ def solver_options(cfg_solver) -> SolverOptions:
         return SolverOptions.from_mapping(_plain(cfg_solver))
     except ValueError as e:
         raise ConfigError(str(e)) from None
+
+
+def configure_runtime(cfg: DictConfig):
+    """Apply `cfg.runtime` (threads, fused paths, compilation) to this process; a job of a joblib
+    sweep runs on one thread (the jobs share the cores)."""
+    from .solvers import runtime
+
+    parallel = False
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        if HydraConfig.initialized():
+            parallel = "joblib" in str(HydraConfig.get().launcher.get("_target_", "")).lower()
+    except Exception:  # no Hydra context (tests, scripts): not a sweep job
+        parallel = False
+    return runtime.configure(_plain(cfg.get("runtime")), parallel_job=parallel)

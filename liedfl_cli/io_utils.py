@@ -34,7 +34,7 @@ def clean_orphans(folder) -> list[Path]:
     """Remove liedfl's temporary files (`.<name>.tmp<pid>`, `<stem>.h5.tmp<pid>`) in `folder` left by
     processes that no longer exist (a writer killed between writing its temporary file and renaming
     it). Files of live processes, and files not named like that, are kept. Returns the removed paths."""
-    removed = []
+    removed: list[Path] = []
     try:
         entries = list(Path(folder).iterdir())
     except OSError:

@@ -217,7 +217,7 @@ def loss_curve(history: list[dict], path: Path) -> None:
     keys += sorted(
         {k for h in history for k in h if k.endswith("_loss") and k not in keys and all(k in hh for hh in history)}
     )
-    zeros = {}
+    zeros: dict[str, tuple] = {}
     for i, key in enumerate(keys):
         y = np.asarray([h[key] for h in history], dtype=np.float64)
         color = plt.get_cmap("tab10")(i % 10)

@@ -58,4 +58,13 @@ def classify(e: BaseException) -> tuple[str, int] | None:
     if isinstance(e, KeyboardInterrupt):  # KeyboardInterrupt("<how to resume>") adds its text to the line
         detail = " ".join(str(a) for a in e.args if str(a).strip())
         return ("interrupted: " + detail if detail else "interrupted"), 130
+    if type(e).__name__ == "UncompletedJobError" and type(e).__module__.split(".")[0] == "submitit":
+        # raised inside a submitit job by submitit's handler of the cluster's warning signal (the
+        # job's time limit, hydra.launcher.timeout_min, or a preemption): the job records it and ends
+        lines = [ln.strip() for ln in str(e).splitlines() if ln.strip()]
+        why = lines[0].rstrip(".") if lines else "time limit or preemption"
+        return (
+            f"stopped by the cluster ({why}): `liedfl train resume=<job folder>` continues from its last checkpoint",
+            2,
+        )
     return None

@@ -20,8 +20,9 @@ def parameter_recovery(model, dataset) -> dict | None:
     """Learned vs true parameters after removing the common scale (divide by tr J_d).
 
     The residual is linear in (L_d, F), so only the regularity term fixes the overall scale;
-    J_d, D and m are compared after normalising each side by its own tr J_d. Errors are
-    max |entry difference| / max |true entry| over the compared arrays.
+    J_d, D and m (and the first moments m rho of pivot bodies under a uniform_gravity potential)
+    are compared after normalising each side by its own tr J_d; rho is a length and compared as
+    it is. Errors are max |entry difference| / max |true entry| over the compared arrays.
     """
     ref = true_model(dataset)
     if ref is None or not isinstance(model, LieDFLNN):
@@ -43,4 +44,26 @@ def parameter_recovery(model, dataset) -> dict | None:
         if model.G.n_se3:
             out["m_over_trace_rel_error"] = rel(model.mass() / s[: model.G.n_se3], ref.mass() / s_true[: model.G.n_se3])
             out["rho_max_abs_error"] = float((model.rho - ref.rho).abs().max())
+            out["rho_max_rel_error"] = rel(model.rho, ref.rho)
+        grav = _uniform_gravity(model)
+        physics = (dataset.params or {}).get("physics") or {}
+        if grav is not None and model.G.n_so3 and "m" in physics:
+            from .mechanics.scene_physics import body_parameters
+
+            _, masses, rhos, _ = body_parameters(model.G, physics)
+            m = model.G.n_se3
+            true_c = (masses[m:, None] * rhos[m:]) / s_true[m:, None]
+            out["pivot_moment_over_trace_rel_error"] = rel(grav.moment / s[m:, None], true_c)
+        if grav is not None and grav.learn_direction:
+            u, e3 = grav.direction(), torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+            sin = torch.linalg.vector_norm(torch.linalg.cross(u, e3))
+            out["gravity_direction_error_rad"] = float(torch.atan2(sin, u @ e3))
     return out
+
+
+def _uniform_gravity(model):
+    from .mechanics.potentials import SumPotential, UniformGravityPotential
+
+    V = getattr(model, "potential", None)
+    terms = list(V.terms) if isinstance(V, SumPotential) else [V]
+    return next((t for t in terms if isinstance(t, UniformGravityPotential)), None)

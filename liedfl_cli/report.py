@@ -138,7 +138,7 @@ def collect(sweep: Path) -> list[dict]:
         cfg = _read(run / ".hydra" / "config.yaml", "yaml")
         if not isinstance(cfg, dict) or not isinstance(cfg.get("dataset"), dict):
             raise DatasetError(f"{run / '.hydra' / 'config.yaml'}: not a liedfl train config (no 'dataset' section)")
-        overrides = []
+        overrides: list = []
         ov = run / ".hydra" / "overrides.yaml"
         if ov.is_file():
             overrides = _read(ov, "yaml") or []
@@ -385,7 +385,7 @@ def plot_error_vs_time(sweep: Path, summary: list[dict], path: Path) -> bool:
         return False
     ref, h = reference if reference else (None, None)
     for ax, (key, ylabel) in zip(axes, panels):
-        if ref and key in ref:
+        if ref and h is not None and key in ref:
             y = np.asarray(ref[key], dtype=np.float64)
             y[~(y > 0)] = np.nan
             start = 2 if key != "orth_drift" else 0
@@ -418,7 +418,7 @@ def plot_error_vs_training_length(rows: list[dict], keys: list[str], path: Path)
             if mean is not None and mean > 0:
                 xs.append(L)
                 ys.append(mean)
-                es.append(std if n > 1 else 0.0)
+                es.append(std if std is not None and n > 1 else 0.0)
         if xs:
             ax.errorbar(xs, ys, yerr=es, fmt="o-", color=colors[runs[0]["model"]], capsize=3, label=label)
     ax.set_yscale("log")

@@ -1,7 +1,14 @@
 """`liedfl rollout`: roll a trained model (and the true-parameter scheme) over the test split
 and write `rollout.h5` (format in docs/data_format.md, section "rollout.h5"; written by
 `rollout_file.write_rollout`). `liedfl train` writes `<run>/rollout.h5`; `liedfl rollout run=<run>`
-writes a new folder `<run>/rollouts/<name>/` each time."""
+writes a new folder `<run>/rollouts/<name>/` each time.
+
+`liedfl rollout run=<run> dataset=<scene> [dataset.<key>=...]` (or `dataset=file dataset.path=<h5>`)
+rolls the run out on other data: that dataset's test split, from each trajectory's true first pair,
+evaluated against that dataset. The model's group and time step must be the data's (one-line
+ConfigError otherwise). The folder is `<run>/rollouts/<date>_<time>_<scene>_steps<N>/` and its
+`source.json` names the dataset (file, scene, config), which `liedfl eval run=<run> rollout=<folder>`
+then evaluates against."""
 
 from __future__ import annotations
 
@@ -60,9 +67,10 @@ def rollout_steps(given) -> int:
 def rollout_and_save(cfg: DictConfig, model, dataset, path, steps=None) -> dict:
     """Roll out `model` (and the true scheme, if the scene has one) from each test trajectory's
     first pair; write `path`. Returns timing/solver summaries."""
+    from .data.scenes import dataset_steps
     from .models.true_scheme import true_model
 
-    steps = rollout_steps(steps if steps is not None else cfg.dataset.rollout_steps)
+    steps = rollout_steps(steps if steps is not None else dataset_steps(cfg.dataset, dataset, "rollout_steps"))
     idx, truth = test_trajectories(dataset, cfg.rollout.max_trajectories)
     runs = {"model": model}
     if cfg.rollout.reference:
@@ -83,11 +91,14 @@ def rollout_and_save(cfg: DictConfig, model, dataset, path, steps=None) -> dict:
     return results
 
 
-def new_rollout_dir(run_dir, steps: int) -> Path:
-    """Create and return a new folder `<run>/rollouts/<date>_<time>_steps<N>` (suffix _2, _3, ... if taken)."""
+def new_rollout_dir(run_dir, steps: int, tag: str | None = None) -> Path:
+    """Create and return a new folder `<run>/rollouts/<date>_<time>[_<tag>]_steps<N>` (suffix _2, _3, ...
+    if taken); `tag`: the other dataset's scene name when rolling out on other data."""
     base = Path(run_dir) / "rollouts"
     base.mkdir(exist_ok=True)
     stamp = datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
+    if tag:
+        stamp += "_" + "".join(ch if ch.isalnum() or ch in "-_." else "-" for ch in str(tag))
     for k in range(1, 1000):
         out = base / (f"{stamp}_steps{steps}" + (f"_{k}" if k > 1 else ""))
         try:
@@ -99,17 +110,21 @@ def new_rollout_dir(run_dir, steps: int) -> Path:
 
 
 def run_rollout(cfg: DictConfig) -> dict:
-    """`liedfl rollout run=<dir> [steps=N]`: reload the run's checkpoint, roll it out into a new folder
-    `<run>/rollouts/<name>/rollout.h5` and evaluate it there (eval.csv, eval.md, plots, the scene's
-    extra evaluation). The run's own rollout.h5 and evaluation are never touched; on failure the new
-    folder is removed."""
+    """`liedfl rollout run=<dir> [steps=N] [dataset=<scene> ...]`: reload the run's checkpoint, roll it out
+    into a new folder `<run>/rollouts/<name>/rollout.h5` and evaluate it there (eval.csv, eval.md, plots,
+    the scene's extra evaluation). With `dataset=...` the rollout runs on that dataset's test split and
+    is evaluated against it (`source.json` records it). The run's own rollout.h5 and evaluation are never
+    touched; on failure the new folder is removed."""
     from .checkpoint import load_checkpoint
     from .evaluate import run_eval_from_objects
     from .evaluation import run_extra_evals
+    from .io_utils import write_json
+    from .other_data import SOURCE_FILE, other_dataset
     from .rollout_file import FILE_NAME
     from .runs import load_run
 
     run_cfg, model, dataset, run_dir = load_run(cfg.run, cfg.paths.data_dir)
+    other = other_dataset(cfg, model, run_dir)
     merged = OmegaConf.merge(
         run_cfg,
         {
@@ -119,9 +134,23 @@ def run_rollout(cfg: DictConfig) -> dict:
             "eval": cfg.eval,
         },
     )
-    steps = rollout_steps(cfg.steps if cfg.steps is not None else run_cfg.dataset.rollout_steps)
-    out = new_rollout_dir(run_dir, steps)
+    source = None
+    if other is not None:
+        dataset, ds_cfg, source = other
+        merged.dataset = ds_cfg  # replaces the run's dataset section (no key-by-key merge)
+    from .data.scenes import dataset_steps
+
+    steps = rollout_steps(
+        cfg.steps if cfg.steps is not None else dataset_steps(merged.dataset, dataset, "rollout_steps")
+    )
+    out = new_rollout_dir(run_dir, steps, tag=dataset.scene if source else None)
     try:
+        if source is not None:
+            console.print(
+                f"rolling {run_dir} out on dataset '{dataset.scene}' ({dataset.group.name}, "
+                f"{len(dataset.test_idx)} test trajectories) from {source['dataset_path']}"
+            )
+            write_json(out / SOURCE_FILE, source)
         path = out / FILE_NAME
         results = rollout_and_save(merged, model, dataset, path, steps=steps)
         timings = load_checkpoint(Path(run_dir) / "checkpoints" / "last.pt").get("timings")
@@ -133,4 +162,4 @@ def run_rollout(cfg: DictConfig) -> dict:
             out.parent.rmdir()  # only if empty: the first rollout of this run failed
         raise
     console.print(f"rollout and its evaluation written to {out}")
-    return {"dir": str(out), "rollout": results, "eval": rows, "extra_eval": extra}
+    return {"dir": str(out), "rollout": results, "eval": rows, "extra_eval": extra, "source": source}

@@ -41,6 +41,8 @@ class OptimizerSchema:
     lr: float = 3e-3
     weight_decay: float = 0.0
     schedule: str = "constant"
+    precondition_frequency: int = 10  # SOAP: steps between eigenbasis updates
+    max_precondition_dim: int = 10000  # SOAP: larger dimensions are not preconditioned
 
 
 @dataclass
@@ -54,6 +56,7 @@ class TrainSchema:
     reg_form: str = "relu"
     epsilon: float = 10.0
     checkpoint_every: Any = "auto"  # auto | positive int (checked in train.checkpoint_interval)
+    full_batch: bool = False  # one optimiser step per epoch over every sample
 
 
 @dataclass
@@ -91,12 +94,21 @@ class SolverSchema:
 class ModelSchema:
     _target_: str = "liedfl_cli.models.liedflnn.LieDFLNN"
     name: str = "liedflnn"
-    potential: str = "auto"
+    potential: Any = "auto"  # auto | none | mlp | uniform_gravity | a list of mlp, uniform_gravity
     residual: str = "fast"
     mlp_width: int = 64
     mlp_depth: int = 3
     init_jitter: float = 0.1
     known: list[str] = field(default_factory=list)  # parts set to the scene's true values and frozen
+    gravity: Any = "auto"  # field strength of uniform_gravity: auto (the data's g, else 9.81) | a number
+    learn_gravity_direction: bool = False
+
+
+@dataclass
+class RuntimeSchema:  # execution settings, liedfl_cli/solvers/runtime.py
+    threads: Any = "auto"  # auto | positive int (checked in runtime.RuntimeOptions)
+    fused: bool = True
+    compile: Any = "auto"  # auto | true | false
 
 
 @dataclass
@@ -112,22 +124,24 @@ SECTIONS: dict[str, Any] = {
     "ui": UiSchema,
     "solver": SolverSchema,
     "group": GroupSchema,
+    "runtime": RuntimeSchema,
 }
 CHOICES = {
     ("train", "reg_form"): ("relu", "gaussian"),
     ("train", "optimizer", "name"): ("soap", "adam"),
     ("train", "optimizer", "schedule"): ("constant", "cosine"),
-    ("model", "potential"): ("auto", "mlp", "none"),
+    ("model", "potential"): ("auto", "mlp", "none", "uniform_gravity"),  # or a list of mlp, uniform_gravity
     ("model", "residual"): ("fast", "generic"),
 }
 _TRAIN_KEYS = ("task_name", "seed", "epoch_scale", "train", "rollout", "eval", "ui", "paths")
 TOP_LEVEL: dict[str, tuple[str, ...]] = {
     # `budgets`: per-model budget tables of the experiment files; `resume`: resume=<run dir> (train.py)
-    "train": (*_TRAIN_KEYS, "group", "dataset", "model", "force", "baseline", "solver", "budgets", "resume"),
+    "train": (*_TRAIN_KEYS, "group", "dataset", "model", "force", "baseline", "solver", "budgets", "resume", "runtime"),
     # budget files also set train/rollout/epoch_scale, which `liedfl data` ignores
     "data": ("task_name", "ui", "paths", "group", "dataset", "train", "rollout", "epoch_scale", "seed"),
-    "rollout": ("task_name", "run", "steps", "rollout", "eval", "ui", "paths", "solver"),
-    "eval": ("task_name", "run", "rollout", "eval", "ui", "paths", "solver"),
+    # rollout run=<run> dataset=<scene>: other data (the dataset file selects its group)
+    "rollout": ("task_name", "run", "steps", "rollout", "eval", "ui", "paths", "solver", "runtime", "dataset", "group"),
+    "eval": ("task_name", "run", "rollout", "eval", "ui", "paths", "solver", "runtime"),
     "report": ("task_name", "sweep", "plots"),
     "resume": ("task_name", "resume", "epochs", "ui"),
 }
@@ -185,7 +199,7 @@ def _check_keys(node, valid, path: str, where: str = "") -> None:
         return
     for k in node:
         if k not in valid:
-            raise _unknown(path, k, valid, where)
+            raise _unknown(path, str(k), valid, where)
 
 
 def _check_dataclass_keys(node, schema, path: str) -> None:
@@ -315,7 +329,7 @@ def _check_reference_keys(node, ref, path: str, where: str) -> None:
                 child = node[k]
             except OmegaConfBaseException:
                 continue
-            _check_reference_keys(child, sub, f"{path}.{k}", where)
+            _check_reference_keys(child, sub, f"{path}.{k!s}", where)
 
 
 def _locate(dotted: str):
@@ -361,7 +375,7 @@ def _check_force(cfg) -> None:
     kinds = [o for o in _options("force") if o != "none"]
     for kind in force:
         if kind not in kinds:
-            raise ConfigError(f"unknown force 'force.{kind}'{closest(kind, kinds).replace('keys', 'forces')}")
+            raise ConfigError(f"unknown force 'force.{kind!s}'{closest(str(kind), kinds).replace('keys', 'forces')}")
         params = force[kind]
         if params is None:
             continue
@@ -448,8 +462,8 @@ def _check_values(cfg, command: str) -> None:
         _int(cfg, "train.reg_points", 0)
         _float(cfg, "train.epsilon")
         if _value(cfg, "train.checkpoint_every") not in (None, "auto"):
-            _int(cfg, "train.checkpoint_every", 1, nullable=True)
-    if isinstance(cfg.get("rollout"), DictConfig):  # (`liedfl eval rollout=<file>`: a path, not this section)
+            _int(cfg, "train.checkpoint_every", 1, what="auto or a positive integer")
+    if isinstance(cfg.get("rollout"), DictConfig):  # (`liedfl eval rollout=<dir>`: a path, or null)
         if "steps" in cfg.rollout:  # a rollout needs the two given poses and at least one predicted step
             _int(cfg, "rollout.steps", 2, nullable=True)
         if "max_trajectories" in cfg.rollout:
@@ -530,6 +544,8 @@ def validate(cfg: DictConfig, command: str | None = None) -> None:
         for path, allowed in CHOICES.items():
             if path[0] == "model":
                 node = _value(cfg, ".".join(path))
+                if isinstance(node, (list, ListConfig)) and path == ("model", "potential"):  # structured + learned
+                    node = next((x for x in node if x not in ("mlp", "uniform_gravity")), None)
                 if node is not None and node not in allowed:
                     raise ConfigError(f"{'.'.join(path)}={node!r}: choose one of {', '.join(allowed)}")
     _check_dataset_values(cfg, str(command))

@@ -7,7 +7,9 @@
 - `LiedflCallback` (registered under `hydra.callbacks` in every primary config) validates the config
   in `on_run_start`, i.e. before Hydra creates the run directory, and records which directories the
   run is about to create, so that `remove_unused_run_dir` can take back a run folder that holds
-  nothing but Hydra's own files when a single run fails.
+  nothing but Hydra's own files when a single run fails. In a multirun it records, in the process
+  that launches the sweep, the sweep folder and the launcher: the summary is read from the job
+  folders afterwards, so it does not matter which process (or machine: submitit) ran each job.
 """
 
 from __future__ import annotations
@@ -23,12 +25,14 @@ from .io_utils import write_json
 STATUS_FILE = "status.json"
 HYDRA_FILES = ("config.yaml", "hydra.yaml", "overrides.yaml")
 
-_state: dict[str, Any] = {"run_dir": None, "keep_from": None, "sweep_dir": None}
+SUBMITIT_PLUGIN = "hydra_plugins.hydra_submitit_launcher"
+
+_state: dict[str, Any] = {"run_dir": None, "keep_from": None, "sweep_dir": None, "launcher": None}
 
 
 def reset() -> None:
     """Forget the run / sweep folders of a previous command (the CLI calls it first)."""
-    _state.update(run_dir=None, keep_from=None, sweep_dir=None)
+    _state.update(run_dir=None, keep_from=None, sweep_dir=None, launcher=None)
 
 
 # ----------------------------------------------------------------------------- status files
@@ -93,6 +97,35 @@ def sweep_summary(sweep_dir) -> tuple[int, int, list[tuple[Path, str]]]:
 def sweep_dir() -> str | None:
     """The sweep folder of the multirun this process launched (set by the callback)."""
     return _state["sweep_dir"]
+
+
+def jobs_ran_elsewhere() -> bool:
+    """True when the jobs of this process's multirun wrote their output somewhere other than this
+    console: the submitit launchers run each job in its own process with stdout/stderr in
+    `<sweep>/.submitit/<job id>/`."""
+    return str(_state["launcher"] or "").startswith(SUBMITIT_PLUGIN)
+
+
+def check_launcher(config) -> None:
+    """One line, before anything is created, for a submitit launcher that cannot work here: the plugin
+    is not installed (`hydra/launcher=liedfl_local` names the plugin's class), or a SLURM launcher on
+    a machine without SLURM (submitit needs `srun`)."""
+    import importlib.util
+    import shutil
+
+    from omegaconf import OmegaConf
+
+    from .ui import fail
+
+    target = str(OmegaConf.select(config, "hydra.launcher._target_", default="") or "")
+    if not target.startswith(SUBMITIT_PLUGIN):
+        return
+    choices = OmegaConf.select(config, "hydra.runtime.choices", default=None) or {}
+    choice = f"hydra/launcher={choices.get('hydra/launcher', target)}"
+    if importlib.util.find_spec(SUBMITIT_PLUGIN) is None or importlib.util.find_spec("submitit") is None:
+        fail(f'{choice}: hydra-submitit-launcher is not installed (pip install -e ".[cluster]")')
+    if target.endswith(".SlurmLauncher") and shutil.which("srun") is None:
+        fail(f"{choice}: SLURM's srun is not on PATH: submit the sweep from a machine of the cluster")
 
 
 # ----------------------------------------------------------------------------- failed single runs
@@ -163,6 +196,8 @@ class LiedflCallback(Callback):
 
         d = OmegaConf.select(config, "hydra.sweep.dir", default=None)
         _state["sweep_dir"] = None if d is None else str(d)
+        _state["launcher"] = OmegaConf.select(config, "hydra.launcher._target_", default=None)
+        check_launcher(config)  # (before the launcher is instantiated and the sweep folder created)
 
 
 __all__ = [
@@ -174,5 +209,7 @@ __all__ = [
     "failed_runs",
     "sweep_summary",
     "sweep_dir",
+    "jobs_ran_elsewhere",
+    "check_launcher",
     "remove_unused_run_dir",
 ]

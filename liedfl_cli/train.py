@@ -30,6 +30,7 @@ from .errors import CheckpointError, ConfigError, LiedflError
 from .factory import loss_options
 from .io_utils import write_json
 from .lie import Pose
+from .solvers import runtime
 from .ui import console, err_console, progress_bar
 
 AUTO_CHECKPOINT_SECONDS = 60.0  # `checkpoint_every: auto` loses at most about this much work
@@ -50,9 +51,29 @@ class StopRequest:
         self.signum: int | None = None
 
 
+def _cluster_warning_signal() -> int | None:
+    """The signal submitit sends a job shortly before its time limit or a preemption (SIGUSR2 unless
+    SUBMITIT_PREEMPT_SIGNAL says otherwise; `hydra.launcher.signal_delay_s` before the limit on SLURM);
+    None outside a submitit job."""
+    import os
+
+    if not os.environ.get("SUBMITIT_EXECUTOR"):
+        return None
+    return getattr(signal, "SIG" + os.environ.get("SUBMITIT_PREEMPT_SIGNAL", "USR2"), None)
+
+
+def stop_reason(signum: int) -> str:
+    name = signal.Signals(signum).name
+    if signum == _cluster_warning_signal():
+        return f"{name} (submitit: the job's time limit is near, or it is preempted)"
+    return name
+
+
 @contextlib.contextmanager
 def graceful_stop():
-    """SIGINT/SIGTERM -> finish the epoch, checkpoint, stop; a second signal stops at once."""
+    """SIGINT/SIGTERM -> finish the epoch, checkpoint, stop; a second signal stops at once. In a
+    submitit job (sweeps on SLURM, `hydra/launcher=liedfl_local`) also submitit's warning signal, so
+    that a job reaching its time limit saves a checkpoint it can be resumed from."""
     stop = StopRequest()
     if threading.current_thread() is not threading.main_thread():  # handlers need the main thread
         yield stop
@@ -64,7 +85,11 @@ def graceful_stop():
         stop.signum = signum
         console.print("[bold yellow]stop requested:[/] finishing the epoch and saving a checkpoint (again: stop now)")
 
-    previous = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    signums: list[int] = [signal.SIGINT, signal.SIGTERM]
+    warning = _cluster_warning_signal()
+    if warning is not None:
+        signums.append(warning)
+    previous = {s: signal.signal(s, handler) for s in signums}
     try:
         yield stop
     finally:
@@ -117,7 +142,15 @@ def make_optimizer(params, cfg_opt) -> torch.optim.Optimizer:
     if name == "soap":
         from pytorch_optimizer import SOAP
 
-        return SOAP(params, lr=cfg_opt.lr, weight_decay=cfg_opt.weight_decay)
+        every = int(cfg_opt.get("precondition_frequency", 10))
+        largest = int(cfg_opt.get("max_precondition_dim", 10000))
+        return SOAP(
+            params,
+            lr=cfg_opt.lr,
+            weight_decay=cfg_opt.weight_decay,
+            precondition_frequency=every,
+            max_precondition_dim=largest,
+        )
     if name == "adam":
         return torch.optim.Adam(params, lr=cfg_opt.lr, weight_decay=cfg_opt.weight_decay)
     raise ConfigError(f"train.optimizer.name must be 'soap' or 'adam', got {name!r}")
@@ -161,8 +194,9 @@ def fit(
     opts = loss_options(cfg_train)
     samples = model.training_set(data, int(steps))
     n = samples.n
-    bs = min(int(cfg_train.batch_size), n)
+    bs = n if cfg_train.get("full_batch", False) else min(int(cfg_train.batch_size), n)
     n_batches = math.ceil(n / bs)
+    runtime.plan("train", int(cfg_train.epochs) * n_batches)  # runtime.compile: auto weighs this
     gen = torch.Generator().manual_seed(seed)
     params = [p for p in model.parameters() if p.requires_grad]
     if not params:
@@ -225,16 +259,16 @@ def fit(
                     + f"  ({time.perf_counter() - t0:.1f} s)",
                     highlight=False,
                 )
-            stopping = stop is not None and stop.signum is not None
+            signum = stop.signum if stop is not None else None
+            stopping = signum is not None
             due = (epoch % every == 0) if every else (time.perf_counter() - last_save >= AUTO_CHECKPOINT_SECONDS)
             if save is not None and epoch < epochs and (due or stopping):
                 save(state(epoch))
                 last_save = time.perf_counter()
-            if stopping and epoch < epochs:
-                name = signal.Signals(stop.signum).name  # type: ignore[arg-type]
+            if signum is not None and epoch < epochs:
                 raise TrainingInterrupted(
-                    f"{name}: training stopped after epoch {epoch}/{epochs}; checkpoint saved",
-                    128 + int(stop.signum),  # type: ignore[arg-type]
+                    f"{stop_reason(signum)}: training stopped after epoch {epoch}/{epochs}; checkpoint saved",
+                    128 + int(signum),
                 )
     wall = time.perf_counter() - t0
     return {
@@ -255,11 +289,12 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
     """`liedfl train`: data -> model -> fit (with checkpoints) -> checkpoint -> recovery ->
     rollout -> eval. `resume`: a checkpoint payload to continue from. Returns a summary."""
     from .data.files import complete_steps
-    from .data.scenes import get_dataset
+    from .data.scenes import dataset_steps, get_dataset
     from .evaluate import run_eval_from_objects
-    from .factory import build_model
+    from .factory import build_model, configure_runtime
     from .rollout import rollout_and_save
 
+    configure_runtime(cfg)  # threads, fused paths, compilation (cfg.runtime)
     out = Path(cfg.paths.output_dir)
     out.mkdir(parents=True, exist_ok=True)
     ckpt = out / "checkpoints" / "last.pt"
@@ -280,8 +315,19 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
         f"[bold]model[/] {type(model).__name__} on {dataset.group.name}, h={dataset.h}: "
         f"components {', '.join(comps)}; {n_params} trainable parameters"
     )
-    write_json(out / "components.json", {"model": type(model).__name__, "components": comps, "parameters": n_params})
+    for note in getattr(model, "notes", ()):  # e.g. what model.potential=auto chose and why
+        console.print(f"[bold]model[/] {note}", highlight=False)
+    write_json(
+        out / "components.json",
+        {
+            "model": type(model).__name__,
+            "components": comps,
+            "parameters": n_params,
+            "notes": list(getattr(model, "notes", ())),
+        },
+    )
     config = OmegaConf.to_container(cfg, resolve=True)
+    assert isinstance(config, dict)
     dataset_path = str(Path(data_path).resolve())
 
     def save(train_state: dict, timings: dict | None = None) -> None:
@@ -309,7 +355,7 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
                     model,
                     train_data,
                     cfg.train,
-                    int(cfg.dataset.train_steps),
+                    dataset_steps(cfg.dataset, dataset, "train_steps"),
                     seed=int(cfg.seed),
                     show_progress=cfg.ui.progress,
                     resume=resume,

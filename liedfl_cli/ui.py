@@ -137,6 +137,11 @@ def _cell_width(text: str) -> int:
     return max((cell_len(part) for part in str(text).splitlines()), default=0)
 
 
+def _cell_text(value, fmt) -> str:
+    """A table cell: strings as they are, anything else through io_utils.fmt."""
+    return value if isinstance(value, str) else fmt(value)
+
+
 def fit_columns(
     rows: list[dict], columns: list[str], headers: dict[str, str], width: int, priority: list[str] | None = None
 ) -> tuple[list[str], list[str]]:
@@ -146,7 +151,7 @@ def fit_columns(
     from .io_utils import fmt
 
     def need(c: str) -> int:
-        cells = [fmt(r.get(c)) if not isinstance(r.get(c), str) else r.get(c) for r in rows]
+        cells = [_cell_text(r.get(c), fmt) for r in rows]
         return max([_cell_width(headers.get(c, c)), *(_cell_width(x) for x in cells)]) + 3
 
     order = [c for c in (priority or columns) if c in columns]
@@ -184,10 +189,11 @@ def print_table(
     shown, left = fit_columns(rows, columns, headers, out.width, priority)
     table = Table(title=Text(title) if title else None, title_justify="left")
     for c in shown:
-        just = "left" if c == columns[0] else "right"
-        table.add_column(Text(headers.get(c, c)), no_wrap=True, overflow="ellipsis", justify=just)
+        table.add_column(
+            Text(headers.get(c, c)), no_wrap=True, overflow="ellipsis", justify="left" if c == columns[0] else "right"
+        )
     for r in rows:
-        table.add_row(*[Text(r.get(c) if isinstance(r.get(c), str) else fmt(r.get(c))) for c in shown])
+        table.add_row(*[Text(_cell_text(r.get(c), fmt)) for c in shown])
     out.print(table)
     if left:
         note = f"{len(left)} more column(s) ({', '.join(headers.get(c, c) for c in left)})"

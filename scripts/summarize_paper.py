@@ -90,6 +90,14 @@ def main(root: Path):
             + "\n"
         )
     e3 = rows(root / "exp3_manifold")
+    extra = root / "exp3_manifold_structured"
+    if (extra / "eval.csv").is_file():  # the structured model, beyond the paper
+        with open(extra / "eval.csv") as f:
+            r = next(csv.DictReader(f))
+        cfg = yaml.safe_load((extra / ".hydra" / "config.yaml").read_text())
+        r["model"] = "liedflnn, potential uniform_gravity (beyond the paper)"
+        r["epochs"] = cfg["train"]["epochs"]
+        e3.append(r)
     if e3:
         print("### Exp 3: staying on the manifold (heavy rigid body on SE(3), 200-step rollout)\n")
         body = [

@@ -13,10 +13,9 @@ from pathlib import Path
 import h5py
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
-from hydra.core.global_hydra import GlobalHydra
 from omegaconf import OmegaConf
 
+from helpers import SMOKE, compose_config
 from liedfl_cli.data.scenes import generate
 from liedfl_cli.errors import ConfigError
 from liedfl_cli.factory import build_model
@@ -37,20 +36,8 @@ F64 = torch.float64
 
 
 def _cfg(tmp, name, extra=()):
-    GlobalHydra.instance().clear()
-    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
-        return compose(
-            "train",
-            overrides=[
-                f"baseline={name}",
-                "budget=smoke",
-                "ui.progress=false",
-                "eval.plots=false",
-                f"paths.data_dir={tmp}/data",
-                f"paths.output_dir={tmp}/run_{name}",
-                *extra,
-            ],
-        )
+    paths = (f"paths.data_dir={tmp}/data", f"paths.output_dir={tmp}/run_{name}")
+    return compose_config("train", (f"baseline={name}", *SMOKE, *paths, *extra))
 
 
 def _scene(name="free_rigid_body", **kw):

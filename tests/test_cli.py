@@ -5,41 +5,22 @@ from __future__ import annotations
 
 import csv
 import math
-import os
 import shutil
 import subprocess
-import sys
 from pathlib import Path
 
 import h5py
 import pytest
-from hydra import compose, initialize_config_dir
-from hydra.core.global_hydra import GlobalHydra
 from omegaconf import OmegaConf
 
-from liedfl_cli.cli import CONF_DIR
+from helpers import compose_config, run_cli
 
 FAST = ["budget=smoke", "ui.progress=false"]
 PLOTS = ["error_vs_step", "drift_vs_step", "sphere", "predicted_vs_true"]
 
 
-def _liedfl_cmd() -> list[str]:
-    exe = shutil.which("liedfl", path=str(Path(sys.executable).parent)) or shutil.which("liedfl")
-    return [exe] if exe else [sys.executable, "-c", "from liedfl_cli.cli import main; main()"]
-
-
-def _env() -> dict:
-    env = {k: v for k, v in os.environ.items() if k not in ("LIEDFL_DATA_DIR", "HYDRA_FULL_ERROR")}
-    env.update(OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", MPLBACKEND="Agg", COLUMNS="200")
-    return env
-
-
 def liedfl(*args: str, cwd: Path, ok: bool = True) -> subprocess.CompletedProcess:
-    proc = subprocess.run([*_liedfl_cmd(), *args], cwd=cwd, env=_env(), capture_output=True, text=True, timeout=300)
-    if ok:
-        assert proc.returncode == 0, f"liedfl {' '.join(args)} -> {proc.returncode}\n{proc.stdout}\n{proc.stderr}"
-        assert "Traceback" not in proc.stderr, proc.stderr
-    return proc
+    return run_cli(*args, cwd=cwd, ok=ok)
 
 
 @pytest.fixture(scope="module")
@@ -110,9 +91,7 @@ def test_a_failed_rollout_leaves_no_folder(trained, monkeypatch):
         raise KeyboardInterrupt
 
     before = sorted(p.name for p in (trained / "rollouts").iterdir()) if (trained / "rollouts").exists() else None
-    GlobalHydra.instance().clear()
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        cfg = compose(config_name="rollout", overrides=[f"run={trained}", "steps=9", "ui.progress=false"])
+    cfg = compose_config("rollout", [f"run={trained}", "steps=9", "ui.progress=false"])
     monkeypatch.setattr(rollout_mod, "rollout_and_save", broken)
     with pytest.raises(KeyboardInterrupt):
         rollout_mod.run_rollout(cfg)
@@ -207,17 +186,15 @@ def test_run_train_in_process(tmp_path):
     from liedfl_cli.schema import validate
     from liedfl_cli.train import run_train
 
-    GlobalHydra.instance().clear()
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        cfg = compose(
-            config_name="train",
-            overrides=[
-                *FAST,
-                "eval.plots=false",
-                f"paths.output_dir={tmp_path / 'run'}",
-                f"paths.data_dir={tmp_path / 'data'}",
-            ],
-        )
+    cfg = compose_config(
+        "train",
+        [
+            *FAST,
+            "eval.plots=false",
+            f"paths.output_dir={tmp_path / 'run'}",
+            f"paths.data_dir={tmp_path / 'data'}",
+        ],
+    )
     validate(cfg)
     summary = run_train(cfg)
     run = tmp_path / "run"

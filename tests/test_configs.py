@@ -10,10 +10,9 @@ import shutil
 from pathlib import Path
 
 import pytest
-from hydra import compose, initialize_config_dir
-from hydra.core.global_hydra import GlobalHydra
 from omegaconf import OmegaConf
 
+from helpers import compose_config
 from liedfl_cli.cli import COMMANDS, CONF_DIR
 from liedfl_cli.errors import ConfigError
 from liedfl_cli.schema import validate
@@ -29,9 +28,7 @@ def _paths(tmp: Path) -> list[str]:
 
 
 def _compose(name: str, overrides: list[str], conf_dir: Path = CONF_DIR):
-    GlobalHydra.instance().clear()
-    with initialize_config_dir(config_dir=str(conf_dir), version_base="1.3"):
-        return compose(config_name=name, overrides=overrides)
+    return compose_config(name, overrides, conf_dir)
 
 
 def _check(cfg) -> None:
@@ -181,6 +178,6 @@ def test_model_configs_name_their_option_and_a_model_class():
 
 
 def test_dataset_options_match_registry():
-    from liedfl_cli.data.scenes import SCENES
+    from liedfl_cli.data.scenes import FILE_SCENE, SCENES
 
-    assert _options("dataset") == set(SCENES)
+    assert _options("dataset") == set(SCENES) | {FILE_SCENE}  # file: a dataset file, not a generator

@@ -2,6 +2,7 @@
 residual O(h^3), rollout O(h^2) at fixed final time (catches sign and convention errors)."""
 
 import pytest
+
 from consistency import residual_order, rollout_order
 
 
@@ -25,7 +26,6 @@ def test_wrong_physics_is_caught(change):
     """A flipped gravity sign, a missing damping force or swapped inertia axes leave a residual
     far above the O(h^3) level of the true scheme."""
     import consistency
-
     from liedfl_cli.lie import SO3
     from liedfl_cli.models.true_scheme import physics_model
 

@@ -3,37 +3,23 @@ exit, no Python traceback, and nothing half-written (no *.tmp* files, earlier ou
 
 from __future__ import annotations
 
-import os
 import shutil
 import subprocess
-import sys
 from pathlib import Path
 
 import h5py
 import numpy as np
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
-from hydra.core.global_hydra import GlobalHydra
 
-from liedfl_cli.cli import CONF_DIR, DIR_ARGS
+from helpers import compose_config, run_cli
+from liedfl_cli.cli import DIR_ARGS
 
 FAST = ["budget=smoke", "ui.progress=false", "eval.plots=false"]
 
 
-def _liedfl_cmd() -> list[str]:
-    exe = shutil.which("liedfl", path=str(Path(sys.executable).parent)) or shutil.which("liedfl")
-    return [exe] if exe else [sys.executable, "-c", "from liedfl_cli.cli import main; main()"]
-
-
-def _env() -> dict:
-    env = {k: v for k, v in os.environ.items() if k not in ("LIEDFL_DATA_DIR", "HYDRA_FULL_ERROR")}
-    env.update(OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", MPLBACKEND="Agg", COLUMNS="200")
-    return env
-
-
 def liedfl(*args: str, cwd: Path) -> subprocess.CompletedProcess:
-    return subprocess.run([*_liedfl_cmd(), *args], cwd=cwd, env=_env(), capture_output=True, text=True, timeout=300)
+    return run_cli(*args, cwd=cwd)
 
 
 def one_line_error(proc: subprocess.CompletedProcess, *needles: str) -> str:
@@ -65,12 +51,7 @@ def trained(tmp_path_factory) -> Path:
     from liedfl_cli.train import run_train
 
     root = tmp_path_factory.mktemp("errors_run")
-    GlobalHydra.instance().clear()
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        cfg = compose(
-            config_name="train",
-            overrides=[*FAST, f"paths.output_dir={root / 'run'}", f"paths.data_dir={root / 'data'}"],
-        )
+    cfg = compose_config("train", [*FAST, f"paths.output_dir={root / 'run'}", f"paths.data_dir={root / 'data'}"])
     run_train(cfg)
     return root / "run"
 

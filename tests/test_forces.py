@@ -153,7 +153,7 @@ def discrete_energy(model, traj: Pose) -> torch.Tensor:
     return kinetic.kinetic_lagrangian(G, G.increment(a, b), Jd, m, rho, h).detach() / h
 
 
-@pytest.mark.parametrize("damping", ["none", "rayleigh", "rayleigh_nonlinear"])
+@pytest.mark.parametrize("damping", ["none", "rayleigh", "rayleigh_nonlinear", "rayleigh_nonlinear_coupled"])
 def test_structured_damping_never_gains_discrete_energy(damping):
     """Free bodies SE(3) x SO(3) with the true kinetic Lagrangian of the two_body scene (V = 0).
 
@@ -170,10 +170,13 @@ def test_structured_damping_never_gains_discrete_energy(damping):
         f = RayleighForce(G, init_diag=0.05)
         randomise(f, 0.1, seed=1)
         model.forces.append(f)
-    elif damping == "rayleigh_nonlinear":
-        f = RayleighNonlinearForce(G, init_diag=0.05, width=32, depth=2)
-        with torch.no_grad():
-            f.net[-1].weight.mul_(10.0)  # D(g) varies by ~10x over the visited configurations
+    elif damping.startswith("rayleigh_nonlinear"):
+        coupling = "coupled" if damping.endswith("coupled") else "per_body"
+        f = RayleighNonlinearForce(G, init_diag=0.05, width=32, depth=2, coupling=coupling)
+        with torch.no_grad():  # D(g) varies by ~10x over the visited configurations
+            heads = [f.net[-1].weight] if coupling == "coupled" else [f.per_body.w_se3, f.per_body.w_so3]
+            for w in heads:
+                w.mul_(10.0)
         model.forces.append(f)
     g0 = random_pose(G, 4, 2)
     g1 = G.retract(g0, 0.05 * torch.randn(4, G.dim, generator=torch.Generator().manual_seed(3), dtype=torch.float64))

@@ -373,7 +373,7 @@ CASES: list[Case] = [
     Case("typo-initial", (T, *FAST, "+dataset.initial.omega_sd=1"), ("dataset.initial.omega_sd", "omega_std")),
     Case("typo-force-option", (T, *FAST, "+force.rayleigh.init=1"), ("force.rayleigh.init", "init_diag")),
     Case("force-unknown", (T, *FAST, "+force.magnet.k=1"), ("force.magnet",)),
-    Case("typo-baseline", (T, *FAST, "baseline=glnn_rk4", "+baseline.rtoll=1"), ("baseline.rtoll", "baseline.rtol")),
+    Case("typo-model-option", (T, *FAST, "baseline=glnn_rk4", "+model.rtoll=1"), ("model.rtoll", "model.rtol")),
     Case("typo-rollout", (T, *FAST, "+rollout.step=3"), ("rollout.step", "rollout.steps")),
     Case("typo-paths", (T, *FAST, "+paths.dta_dir=x"), ("paths.dta_dir", "paths.data_dir")),
     Case("typo-ui", (T, *FAST, "+ui.progres=false"), ("ui.progres", "ui.progress")),
@@ -408,7 +408,7 @@ CASES: list[Case] = [
     Case("rollout-steps-arg-zero", ("rollout", "run={run}", "steps=0"), ("steps=0",), setup=lambda c: c.run()),
     Case("rollout-steps-arg-text", ("rollout", "run={run}", "steps=abc"), ("steps", "abc"), setup=lambda c: c.run()),
     Case("rollout-steps-arg-negative", ("rollout", "run={run}", "steps=-3"), ("steps=-3",), setup=lambda c: c.run()),
-    Case("eval-typo", ("eval", "run={run}", "+stepz=3"), ("stepz", "steps"), setup=lambda c: c.run()),
+    Case("eval-typo", ("eval", "run={run}", "+rollot=x"), ("rollot", "rollout"), setup=lambda c: c.run()),
     # --- run folders and checkpoints
     Case(
         "ckpt-missing",

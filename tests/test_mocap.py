@@ -19,6 +19,7 @@ from liedfl_cli.data.mocap import (
     Z_UP,
     cmu_cartwheel,
     mocap_errors,
+    moving_joints,
     recording_discrepancy,
     skeleton_points,
 )
@@ -229,12 +230,38 @@ def test_recording_discrepancy_numbers(imported):
     ds, _ = imported
     d = recording_discrepancy(ds)
     assert d["root_rot"] == pytest.approx(1.535, abs=2e-3)
-    assert d["joint_rot"] == pytest.approx(0.338, abs=2e-3)
+    assert d["joint_rot"] == pytest.approx(0.413, abs=2e-3)  # over the 18 moving joints (paper: 0.416)
+    assert d["joint_rot_all"] == pytest.approx(0.338, abs=2e-3)  # over all 22 = 18/22 of it
+    assert d["joint_rot_all"] == pytest.approx(d["joint_rot"] * 18 / 22, rel=1e-12)
     assert d["root_pos"] == pytest.approx(6.645, abs=5e-3)  # from each start position
     assert d["root_pos_m"] == pytest.approx(d["root_pos"] * ASF_UNIT_M)
     raw = recording_discrepancy(ds, raw=True)
     assert abs(raw["joint_rot"] - d["joint_rot"]) < 5e-3
     assert recording_discrepancy(ds, relative_position=False)["root_pos"] == pytest.approx(28.17, abs=0.02)
+
+
+def test_moving_joints_are_derived_from_the_data(imported):
+    """Four joints of the CMU cartwheels never rotate; the mean joint error runs over the other 18."""
+    ds, _ = imported
+    moving = moving_joints(ds)
+    static = [n for j, n in enumerate(ds.body_names[1:]) if j not in moving]
+    assert len(moving) == 18 and static == ["LHipJoint", "RHipJoint", "LeftShoulder", "RightShoulder"]
+    # a joint that turns once, in one trajectory only, counts as moving
+    R = ds.R.copy()
+    j = ds.body_names.index("LHipJoint")
+    R[1, 7, j] = so3.exp(torch.tensor([0.0, 0.0, 1e-6], dtype=torch.float64)).numpy()
+    moved = type(ds)(R=R, p=ds.p, h=ds.h, scene=ds.scene, body_names=ds.body_names, body_kinds=ds.body_kinds)
+    assert len(moving_joints(moved)) == 19
+    # the mean over chosen joints, against a direct computation
+    g = torch.Generator().manual_seed(1)
+    Ra, Rb = so3.random((5, 4), generator=g), so3.random((5, 4), generator=g)
+    p = torch.zeros(5, 1, 3, dtype=torch.float64)
+    e = mocap_errors(Pose(Ra, p), Pose(Rb, p), joints=[0, 2])
+    d = so3.geodesic_distance(Ra, Rb)
+    torch.testing.assert_close(e["joint_rot"], d[:, [1, 3]].mean())
+    torch.testing.assert_close(e["joint_rot_all"], d[:, 1:].mean())
+    with pytest.raises(ValueError, match="subset"):
+        mocap_errors(Pose(Ra, p), Pose(Rb, p), joints=[3])
 
 
 def test_options_subsample_scale_crop_no_smoothing():

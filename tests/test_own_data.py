@@ -30,6 +30,7 @@ IMPORT = {
     "resample": False,
     "h": None,
     "smoothing": None,
+    "noise": {"rotation": 0.0, "position": 0.0},
     "length_scale": 1.0,
     "chunk_steps": None,
     "n_trajectories": None,
@@ -50,6 +51,8 @@ FILE = {
     "test_fraction": 0.2,
     "n_test": None,
     "seed": 0,
+    "noise": {"rotation": 0.0, "position": 0.0},
+    "smoothing": None,
 }
 
 
@@ -176,6 +179,24 @@ def test_the_cache_follows_the_files_content_not_its_name(tmp_path):
     with h5py.File(b, "a") as f:
         f.attrs["h"] = 0.1
     assert dataset_path({**FILE, "path": str(b)}, tmp_path) != pa
+
+
+def test_a_minimal_config_takes_the_shipped_defaults_and_noise_is_cached(tmp_path):
+    """`{"name": "file", "path": ...}` from Python is the shipped file.yaml; noise and smoothing (every
+    scene's options, data/transforms.py) apply to the kept part and are part of the cached copy."""
+    path = write_h5(tmp_path / "my.h5")
+    plain, p_plain = get_dataset({"name": "file", "path": str(path)}, tmp_path / "data")
+    assert p_plain == dataset_path({**FILE, "path": str(path)}, tmp_path / "data")
+    noisy_cfg = {**FILE, "path": str(path), "noise": {"rotation": 1e-3, "position": 0.0}}
+    noisy, p_noisy = get_dataset(noisy_cfg, tmp_path / "data")
+    assert p_noisy != p_plain and p_noisy.is_file()
+    np.testing.assert_array_equal(noisy.extras["R_clean"], plain.R)
+    assert 0 < np.abs(noisy.R - plain.R).max() < 1e-2
+    again = load_dataset(p_noisy)  # what a run records and reloads
+    np.testing.assert_array_equal(again.R, noisy.R)
+    assert again.params["noise"]["rotation"] == 1e-3
+    smooth, _ = get_dataset({**noisy_cfg, "smoothing": {"window": 5, "order": 2}}, tmp_path / "data")
+    assert smooth.params["smoothing"]["window"] == 5
 
 
 def test_null_steps_mean_all_steps(tmp_path):

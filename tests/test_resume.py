@@ -4,19 +4,17 @@ uninterrupted run for the same seed)."""
 from __future__ import annotations
 
 import csv
-import os
+import json
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
-from hydra.core.global_hydra import GlobalHydra
 
 import liedfl_cli.train as train_mod
+from helpers import SMOKE, cli_command, cli_env, compose_config
 from liedfl_cli.checkpoint import load_checkpoint
 from liedfl_cli.errors import CheckpointError, ConfigError
 from liedfl_cli.train import TrainingInterrupted, run_resume, run_train
@@ -25,23 +23,10 @@ CONF = str(Path(__file__).resolve().parents[1] / "liedfl_cli" / "conf")
 
 
 def _cfg(tmp: Path, run: str, extra=(), name="train"):
-    GlobalHydra.instance().clear()
-    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
-        if name == "resume":
-            return compose("resume", overrides=list(extra))
-        return compose(
-            "train",
-            overrides=[
-                "budget=smoke",
-                "ui.progress=false",
-                "eval.plots=false",
-                "train.epochs=6",
-                "train.checkpoint_every=2",
-                f"paths.data_dir={tmp}/data",
-                f"paths.output_dir={tmp}/{run}",
-                *extra,
-            ],
-        )
+    if name == "resume":
+        return compose_config("resume", extra)
+    paths = (f"paths.data_dir={tmp}/data", f"paths.output_dir={tmp}/{run}")
+    return compose_config("train", (*SMOKE, "train.epochs=6", "train.checkpoint_every=2", *paths, *extra))
 
 
 def _losses(run: Path) -> list[list[str]]:
@@ -129,14 +114,8 @@ def test_bad_checkpoint_every_is_a_config_error(tmp_path):
         run_train(_cfg(tmp_path, "run", ["train.checkpoint_every=0"]))
 
 
-def _liedfl() -> list[str]:
-    return [sys.executable, "-c", "from liedfl_cli.cli import main; main()"]
-
-
 def test_sigint_saves_a_checkpoint_and_says_how_to_resume(tmp_path):
     """The real handler in a real process: SIGINT mid-training -> exit 130, one line, resumable."""
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "COLUMNS": "200"}
-    env.pop("LIEDFL_DATA_DIR", None)
     run = tmp_path / "run"
     args = [
         "train",
@@ -146,7 +125,9 @@ def test_sigint_saves_a_checkpoint_and_says_how_to_resume(tmp_path):
         f"paths.data_dir={tmp_path}/data",
         f"hydra.run.dir={run}",
     ]
-    proc = subprocess.Popen([*_liedfl(), *args], cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc = subprocess.Popen(
+        [*cli_command(), *args], cwd=tmp_path, env=cli_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE
+    )
     deadline = time.time() + 120
     metrics = run / "train_metrics.csv"
     while time.time() < deadline and not (metrics.exists() and len(metrics.read_text().splitlines()) >= 3):
@@ -159,3 +140,9 @@ def test_sigint_saves_a_checkpoint_and_says_how_to_resume(tmp_path):
     assert len(errors) == 1 and "resume with: liedfl train resume=" in errors[0] and "Traceback" not in text
     ck = load_checkpoint(run / "checkpoints" / "last.pt")
     assert ck["epoch"] >= 2 and len(_losses(run)) == ck["epoch"]
+    assert json.loads((run / "status.json").read_text())["status"] == "interrupted"
+    # a resumed run that finishes says so in its status.json (a sweep's report then counts it as done)
+    resume = [*cli_command(), "train", f"resume={run}", f"epochs={ck['epoch'] + 1}", "ui.progress=false"]
+    done = subprocess.run(resume, cwd=tmp_path, env=cli_env(), capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert json.loads((run / "status.json").read_text())["status"] == "ok"

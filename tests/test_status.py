@@ -209,3 +209,50 @@ def test_an_interruption_with_a_message_is_one_line_and_recorded(tmp_path, monke
         "exit_code": 130,
         "error": line,
     }
+
+
+# ----------------------------------------------------------------------------- launchers
+def test_a_submitit_launcher_without_the_plugin_is_one_line(monkeypatch, capfd):
+    """`hydra/launcher=liedfl_local` names the plugin's class: without the `cluster` extra, one line naming
+    it, before the sweep folder exists (the plugin's own submitit_* configs are then Hydra's 'Could not
+    find' error, with the same hint)."""
+    import importlib.util
+
+    from omegaconf import OmegaConf
+
+    cfg = OmegaConf.create(
+        {
+            "hydra": {
+                "launcher": {"_target_": "hydra_plugins.hydra_submitit_launcher.submitit_launcher.LocalLauncher"},
+                "runtime": {"choices": {"hydra/launcher": "liedfl_local"}},
+            }
+        }
+    )
+    find_spec = importlib.util.find_spec
+    monkeypatch.setattr(
+        importlib.util, "find_spec", lambda name, *a: None if name == status.SUBMITIT_PLUGIN else find_spec(name, *a)
+    )
+    with pytest.raises(SystemExit) as e:
+        status.check_launcher(cfg)
+    assert e.value.code == 2
+    assert capfd.readouterr().err.strip() == (
+        'error: hydra/launcher=liedfl_local: hydra-submitit-launcher is not installed (pip install -e ".[cluster]")'
+    )
+    status.check_launcher(OmegaConf.create({"hydra": {"launcher": {"_target_": "x.JoblibLauncher"}}}))  # others: ok
+
+
+def test_a_missing_submitit_config_names_the_extra(capfd):
+    from hydra.errors import MissingConfigException
+
+    from liedfl_cli import cli
+
+    e = MissingConfigException(
+        "In 'hydra/config': Could not find 'hydra/launcher/submitit_local'\n\nAvailable options in 'hydra/launcher':"
+        "\n\tbasic\n\tjoblib\n\tliedfl_local",
+        missing_cfg_file="hydra/launcher/submitit_local",
+    )
+    with pytest.raises(SystemExit):
+        cli._hydra_failure("train", e)
+    err = capfd.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Could not find 'hydra/launcher/submitit_local'" in err
+    assert 'pip install -e ".[cluster]"' in err and "available: basic, joblib, liedfl_local" in err

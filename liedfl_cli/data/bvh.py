@@ -198,7 +198,8 @@ class _Tokens:
 
     def __init__(self, lines: list[str], start: int, source: str):
         self.lines, self.source = lines, source
-        self.line_no, self.items, self.pos = start, [], 0
+        self.line_no, self.pos = start, 0
+        self.items: list[str] = []
         self._fill()
 
     def _fill(self):
@@ -262,7 +263,7 @@ def _parse_channels(tok: _Tokens, joint: str) -> tuple[str, ...]:
         ) from None
     if not 0 <= n <= 6:
         raise DatasetError(f"{tok.source}: line {line}: joint {joint!r}: CHANNELS count {n} must be between 0 and 6")
-    chans = []
+    chans: list[str] = []
     for _ in range(n):
         line = tok.current_line
         c = tok.next(f"the channels of joint {joint!r}")
@@ -296,7 +297,7 @@ def parse_bvh(text: str, source: str = "<string>") -> BVH:
         raise DatasetError(f"{source}: line {first + 1}: expected 'HIERARCHY', found {lines[first].strip()[:40]!r}")
     tok = _Tokens(lines, first + 1, source)
     line = tok.current_line
-    kw = tok.next("'ROOT'")
+    kw: str | None = tok.next("'ROOT'")
     if kw != "ROOT":
         raise DatasetError(f"{source}: line {line}: expected 'ROOT' after HIERARCHY, found {kw!r}")
 

@@ -30,6 +30,8 @@ reader's options (`import_config`), documented in docs/data_format.md ("Importin
 
 from __future__ import annotations
 
+import copy
+import functools
 import hashlib
 import math
 import warnings
@@ -45,6 +47,7 @@ from ..lie import so3
 from .hdf5 import Dataset, load_dataset
 from .scene_common import config_hash, make_split
 from .smoothing import check_window, smooth_pose
+from .transforms import noise_spec, smoothing_spec
 
 SOURCE_SCENES = ("file", "import")
 """Scenes read from a user's file (their cache name also hashes the file's content)."""
@@ -60,9 +63,10 @@ COMMON_KEYS = (
     "n_test",
     "seed",
 )
-FILE_KEYS = (*COMMON_KEYS, "split")
+FILE_KEYS = (*COMMON_KEYS, "split", "noise", "smoothing")
 IMPORT_KEYS = (
     *COMMON_KEYS,
+    "noise",
     "rotation",
     "bodies",
     "time_column",
@@ -123,14 +127,28 @@ def _paths(c: dict) -> list[Path]:
     return out
 
 
+@functools.cache
+def _shipped_defaults(name: str) -> dict:
+    """The values of liedfl_cli/conf/dataset/<name>.yaml, without `defaults` and the required (???) keys."""
+    from omegaconf import OmegaConf
+
+    raw = OmegaConf.load(Path(__file__).resolve().parent.parent / "conf" / "dataset" / f"{name}.yaml")
+    out = OmegaConf.to_container(raw, resolve=True)
+    assert isinstance(out, dict)
+    return {k: v for k, v in out.items() if k != "defaults" and v != "???"}
+
+
 def check_source_config(c: dict) -> dict:
-    """Check a `file` / `import` dataset config (plain dict); returns it. ConfigError naming the key."""
+    """Check a `file` / `import` dataset config (plain dict); returns it, keys it leaves out taken from
+    the shipped conf/dataset/<name>.yaml (so `{"name": "file", "path": ...}` will do from Python).
+    ConfigError naming the key."""
     name = c.get("name")
     keys = FILE_KEYS if name == "file" else IMPORT_KEYS
     unknown = sorted(set(c) - set(keys) - {"defaults", "source_sha256"})
     if unknown:
         raise ConfigError(f"unknown config key 'dataset.{unknown[0]}' for scene '{name}' (allowed: {', '.join(keys)})")
-    missing = [k for k in keys if k not in c]
+    c = {**copy.deepcopy(_shipped_defaults(str(name))), **c}
+    missing = [k for k in keys if k not in c and k not in ("path", "rotation")]
     if missing:
         raise ConfigError(f"dataset config of scene '{name}' is missing {missing}")
     _int_or_null(c, "n_trajectories", 1)
@@ -147,8 +165,10 @@ def check_source_config(c: dict) -> dict:
     if name == "file":
         if c["split"] not in ("auto", "default"):
             raise ConfigError(f"dataset.split={c['split']!r}: choose auto (the file's split, if any) or default")
+        smoothing_spec(c.get("smoothing"))  # applied after the scene, like for every scene (transforms.py)
     else:
         _check_import_options(c)
+    noise_spec(c.get("noise"))
     _paths(c)
     return c
 
@@ -564,6 +584,7 @@ def import_recording(c: dict, progress: Callable[[float], None] | None = None) -
                 f"{path}: bodies {list(zip(names, kinds))} differ from those of {layout[2]} {list(zip(*layout[:2]))}"
             )
         tracks += ts
+    assert layout is not None  # _paths returns at least one file
     names, kinds, _ = layout
     scale_t, scale_p = float(c["time_scale"]), float(c["length_scale"])
     for tr in tracks:

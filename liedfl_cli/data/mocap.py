@@ -151,15 +151,28 @@ ATTRIBUTION = (
 
 
 # --------------------------------------------------------------------------- metrics
-def mocap_errors(pred: Pose, true: Pose, relative_position: bool = False) -> dict[str, torch.Tensor]:
+def moving_joints(ds: Dataset, tol: float = 1e-9) -> list[int]:
+    """Indices (0 = the first joint, i.e. body n_se3) of the joints that rotate somewhere in the data:
+    the geodesic distance of some sample from the joint's first sample exceeds `tol` (rad) in some
+    trajectory. In the CMU cartwheels LHipJoint, RHipJoint, LeftShoulder and RightShoulder have
+    constant BVH channels, so 18 of the 22 joints move."""
+    m = ds.n_se3
+    R = torch.as_tensor(ds.R[:, :, m:])  # (T, N+1, n, 3, 3)
+    d = so3.geodesic_distance(R, R[:, :1].expand_as(R))  # (T, N+1, n)
+    return [int(j) for j in torch.nonzero(d.amax((0, 1)) > tol).flatten()]
+
+
+def mocap_errors(pred: Pose, true: Pose, relative_position: bool = False, joints=None) -> dict[str, torch.Tensor]:
     """Errors of the paper's Table (Exp 4) between two pose tracks of SE(3)^m x SO(3)^n (m >= 1).
 
     pred, true: R (..., K, B, 3, 3), p (..., K, m, 3) with K time samples; body 0 is the root (SE(3)),
-    bodies m.. are the joints (SO(3)).  Returns tensors:
+    bodies m.. are the joints (SO(3)).  joints: indices of the joints (0 = body m) the mean joint error
+    runs over (None: all; evaluations pass `moving_joints`).  Returns tensors:
       root_rot   (...)       mean over time of the root rotation geodesic distance |log(R^_0^T R_0)| (rad)
-      joint_rot  (...)       mean over time and over the n joints of the joint geodesic distances (rad)
+      joint_rot  (...)       mean over time and over the selected joints of the joint geodesic distances (rad)
+      joint_rot_all (...)    the same over all n joints
       root_pos   (...)       mean over time of |p^_0 - p_0| (length unit of the data)
-      root_rot_t, joint_rot_t, root_pos_t   (..., K)   the same per time sample
+      root_rot_t, joint_rot_t, joint_rot_all_t, root_pos_t   (..., K)   the same per time sample
       joint_rot_per_joint    (..., n)       per joint, mean over time
     relative_position: measure each root position from the track's first sample (p_k - p_0).  Makes no
     difference for a rollout started from the true initial poses; for two different recordings (which
@@ -181,7 +194,13 @@ def mocap_errors(pred: Pose, true: Pose, relative_position: bool = False) -> dic
         )
     d = so3.geodesic_distance(R1, R2)  # (..., K, B)
     root_rot_t = d[..., 0]
-    joint_rot_t = d[..., m:].mean(-1)
+    dj = d[..., m:]
+    n = dj.shape[-1]
+    sel = list(range(n)) if joints is None else [int(j) for j in joints]
+    if not sel or min(sel) < 0 or max(sel) >= n:
+        raise ValueError(f"mocap_errors: joints {list(joints)} must be a non-empty subset of 0..{n - 1}")
+    joint_rot_t = dj[..., sel].mean(-1)
+    joint_all_t = dj.mean(-1)
     q1, q2 = p1[..., 0, :], p2[..., 0, :]  # (..., K, 3)
     if relative_position:
         q1, q2 = q1 - q1[..., :1, :], q2 - q2[..., :1, :]
@@ -189,31 +208,37 @@ def mocap_errors(pred: Pose, true: Pose, relative_position: bool = False) -> dic
     return {
         "root_rot": root_rot_t.mean(-1),
         "joint_rot": joint_rot_t.mean(-1),
+        "joint_rot_all": joint_all_t.mean(-1),
         "root_pos": root_pos_t.mean(-1),
         "root_rot_t": root_rot_t,
         "joint_rot_t": joint_rot_t,
+        "joint_rot_all_t": joint_all_t,
         "root_pos_t": root_pos_t,
-        "joint_rot_per_joint": d[..., m:].mean(-2),
+        "joint_rot_per_joint": dj.mean(-2),
     }
 
 
 def recording_discrepancy(
-    ds: Dataset, raw: bool = False, a: int = 0, b: int = 1, relative_position: bool = True
+    ds: Dataset, raw: bool = False, a: int = 0, b: int = 1, relative_position: bool = True, joints="moving"
 ) -> dict[str, float]:
     """`mocap_errors` between trajectories a and b of a mocap dataset (the reference scale of Exp 4).
 
     raw: use the unsmoothed extras `R_raw`/`p_raw` instead of R/p.  relative_position: see
-    `mocap_errors` (default True, the paper's convention).  Adds root_pos_m (metres) when the dataset
-    records its length unit in params["length_unit_m"].
+    `mocap_errors` (default True, the paper's convention).  joints: "moving" (`moving_joints(ds)`, the
+    default), None (all) or a list of joint indices; `joint_rot_all` is over all joints either way.
+    Adds root_pos_m (metres) when the dataset records its length unit in params["length_unit_m"].
     """
     R = ds.extras["R_raw"] if raw else ds.R
     p = ds.extras["p_raw"] if raw else ds.p
+    if isinstance(joints, str) and joints == "moving":
+        joints = moving_joints(ds)
     e = mocap_errors(
         Pose(torch.as_tensor(R[a]), torch.as_tensor(p[a])),
         Pose(torch.as_tensor(R[b]), torch.as_tensor(p[b])),
         relative_position,
+        joints=joints,
     )
-    out = {k: float(e[k]) for k in ("root_rot", "joint_rot", "root_pos")}
+    out = {k: float(e[k]) for k in ("root_rot", "joint_rot", "joint_rot_all", "root_pos")}
     unit = ds.params.get("length_unit_m")
     if unit is not None:
         out["root_pos_m"] = out["root_pos"] * float(unit)
@@ -265,7 +290,7 @@ def _sha256(path: Path) -> str:
 
 def _scene_config(c: dict) -> dict:
     """Check the mocap-specific keys; returns them with defaults filled in (ConfigError on problems)."""
-    allowed = set(SCENE_KEYS) | set(REQUIRED_KEYS) | {"defaults"}  # Hydra's defaults list, when the yaml is loaded
+    allowed = set(SCENE_KEYS) | set(REQUIRED_KEYS) | {"defaults", "noise"}  # defaults: Hydra's list, in the yaml
     unknown = sorted(set(c) - allowed)
     if unknown:
         raise ConfigError(
@@ -416,7 +441,10 @@ def cmu_cartwheel(cfg, progress: Callable[[float], None] | None = None) -> Datas
                 raise DatasetError(f"{path}: smoothing failed: {exc}") from None
         R, p = R[::sub], p[::sub]
         info["frames_available"] = int(R.shape[0])
-        Rs.append(R), ps.append(p), raws.append(raw), infos.append(info)
+        Rs.append(R)
+        ps.append(p)
+        raws.append(raw)
+        infos.append(info)
         sk = _skeleton(b, bodies, s["length_scale"])
         if skeleton is None:
             skeleton = sk
@@ -497,6 +525,7 @@ def cmu_cartwheel(cfg, progress: Callable[[float], None] | None = None) -> Datas
 
 __all__ = [
     "REAL_DATA_SCENES",
+    "moving_joints",
     "mocap_errors",
     "recording_discrepancy",
     "skeleton_points",

@@ -107,6 +107,7 @@ class RigidBodySO3:
     g: float = 0.0
     D: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
     tau_extra: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None
+    _Jinv: np.ndarray = field(init=False, repr=False)  # J^{-1}, set by __post_init__
 
     state_size = 12
 
@@ -190,6 +191,7 @@ class RigidBodySE3:
     g: float = 0.0
     D: np.ndarray = field(default_factory=lambda: np.zeros((6, 6)))
     wrench_extra: Callable | None = None
+    _Minv: np.ndarray = field(init=False, repr=False)  # inverse 6x6 mass matrix, set by __post_init__
 
     state_size = 18
 

@@ -50,6 +50,11 @@ class MultiBodySystem:
     D: np.ndarray | None = None
     interaction: dict | None = None
     wrench_extra: Callable | None = None  # (Pose numpy R, p, xi (T, dim)) -> (T, dim) extra covector
+    # derived in __post_init__ (not constructor arguments)
+    G: ProductGroup = field(init=False, repr=False)  # the group layout of `kinds`
+    _M: list[np.ndarray] = field(init=False, repr=False)  # mass matrix per body (6x6 SE(3), 3x3 SO(3))
+    _Minv: list[np.ndarray] = field(init=False, repr=False)  # their inverses
+    V: torch.nn.Module | None = field(init=False, repr=False)  # gravity + interaction potential, or None
 
     def __post_init__(self):
         kinds = tuple(self.kinds)
@@ -58,9 +63,9 @@ class MultiBodySystem:
         G = ProductGroup(kinds.count("se3"), kinds.count("so3"))
         B = G.n_bodies
         J = np.asarray(self.J, dtype=np.float64)
-        J = np.stack([_matrix(J[i], 3, "J") for i in range(B)]) if J.shape[0] == B else None
-        if J is None:
+        if J.shape[0] != B:
             raise ConfigError(f"physics.J needs one entry per body ({B})")
+        J = np.stack([_matrix(J[i], 3, "J") for i in range(B)])
         m = np.asarray(self.m, dtype=np.float64).reshape(B)
         rho = np.asarray(self.rho, dtype=np.float64).reshape(B, 3)
         D = np.zeros((G.dim, G.dim)) if self.D is None else _matrix(self.D, G.dim, "D")
@@ -83,7 +88,7 @@ class MultiBodySystem:
                 M.append(J[i])
         object.__setattr__(self, "_M", M)
         object.__setattr__(self, "_Minv", [np.linalg.inv(x) for x in M])
-        terms = []
+        terms: list[torch.nn.Module] = []
         if self.g != 0.0:
             terms.append(GravityPotential(G, m, rho, self.g))
         if self.interaction:
@@ -135,6 +140,7 @@ class MultiBodySystem:
 
     def external_covector(self, R, p, xi) -> np.ndarray:
         """Non-conservative wrench -D xi (+ wrench_extra), (..., dim)."""
+        assert self.D is not None  # __post_init__ replaces None by zeros
         out = -xi @ self.D.T
         if self.wrench_extra is not None:
             out = out + np.asarray(self.wrench_extra(R, p, xi), np.float64)
@@ -161,8 +167,8 @@ class MultiBodySystem:
         Y = y.reshape(-1, S)
         st = self.unpack(Y)
         R, p, xi = st["R"], st["p"], st["xi"]
-        w, v = self.G.split(torch.from_numpy(np.ascontiguousarray(xi)))
-        w, v = w.numpy(), v.numpy()
+        w_t, v_t = self.G.split(torch.from_numpy(np.ascontiguousarray(xi)))
+        w, v = w_t.numpy(), v_t.numpy()
         B, m = self.G.n_bodies, self.G.n_se3
         out = np.empty_like(Y)
         out[:, : 9 * B] = (R @ hat(w)).reshape(Y.shape[0], -1)
@@ -173,7 +179,7 @@ class MultiBodySystem:
     # ------------------------------------------------------------------ invariants
     def kinetic(self, xi) -> np.ndarray:
         """Sum over bodies of 1/2 xi_i . M_i xi_i, shape (...)."""
-        out = 0.0
+        out = np.zeros(np.shape(xi)[:-1])
         for i, s in enumerate(self.G.body_slices()):
             x = xi[..., s]
             out = out + 0.5 * np.einsum("...i,ij,...j->...", x, self._M[i], x)

@@ -71,10 +71,23 @@ def _canonical(x):
     raise ConfigError(f"dataset config value {x!r} of type {type(x).__name__} is not JSON-compatible")
 
 
+OPTIONAL_KEYS = ("noise", "smoothing")
+"""Keys every dataset config may have (data/transforms.py); when off (null, or a noise of zeros) they are
+left out of the hash, so datasets cached before they existed keep their names."""
+
+
+def _option_off(key: str, value) -> bool:
+    if value is None:
+        return True
+    if key == "noise" and isinstance(value, Mapping):
+        return all(isinstance(v, (int, float)) and not isinstance(v, bool) and v == 0 for v in value.values())
+    return False
+
+
 def generator_config(cfg) -> dict[str, Any]:
     """The part of the dataset config that determines the generated data (plus the generator version)."""
     c = to_dict(cfg)
-    out = {k: v for k, v in c.items() if k not in NON_GENERATOR_KEYS}
+    out = {k: v for k, v in c.items() if k not in NON_GENERATOR_KEYS and not (k in OPTIONAL_KEYS and _option_off(k, v))}
     out["generator_version"] = GENERATOR_VERSION
     return out
 
@@ -145,22 +158,35 @@ def vector(x, n: int, name: str) -> list[float]:
 
 
 def rigid_physics(c: dict, dim: int) -> dict:
-    """Validated `dataset.physics` of a single rigid body {J (3), m, rho (3), g, D (dim)} as plain floats."""
+    """Validated `dataset.physics` of a single rigid body {J (3), m, rho (3), g, D (dim diagonal or dim x dim)}
+    as plain floats."""
     ph = section(c, "physics", ("J", "m", "rho", "g", "D"))
-    for key, n in (("J", 3), ("rho", 3), ("D", dim)):
+    for key, n in (("J", 3), ("rho", 3)):
         if np.shape(ph[key]) != (n,):
             raise ConfigError(f"dataset.physics.{key} must be a list of {n} numbers, got {ph[key]!r}")
     J, D = np.asarray(ph["J"], float), np.asarray(ph["D"], float)
     if (J <= 0).any():
         raise ConfigError(f"dataset.physics.J must have positive diagonal entries, got {ph['J']}")
-    if (D < 0).any():
-        raise ConfigError(f"dataset.physics.D must be non-negative (positive semidefinite), got {ph['D']}")
+    if D.shape == (dim,):
+        if (D < 0).any():
+            raise ConfigError(f"dataset.physics.D must be non-negative (positive semidefinite), got {ph['D']}")
+        D_out = [float(x) for x in D]
+    elif D.shape == (dim, dim):  # a full damping matrix (symmetric positive semidefinite)
+        if not np.isfinite(D).all() or np.abs(D - D.T).max() > 1e-12 * max(1.0, np.abs(D).max()):
+            raise ConfigError(f"dataset.physics.D must be symmetric, got {ph['D']}")
+        if np.linalg.eigvalsh(D).min() < -1e-12 * max(1.0, np.abs(D).max()):
+            raise ConfigError(f"dataset.physics.D must be positive semidefinite, got {ph['D']}")
+        D_out = [[float(x) for x in row] for row in D]
+    else:
+        raise ConfigError(
+            f"dataset.physics.D must be a list of {dim} numbers (diagonal) or a {dim}x{dim} matrix, got {ph['D']!r}"
+        )
     return {
         "J": [float(x) for x in ph["J"]],
         "m": float(ph["m"]),
         "rho": [float(x) for x in ph["rho"]],
         "g": float(ph["g"]),
-        "D": [float(x) for x in ph["D"]],
+        "D": D_out,
     }
 
 
@@ -218,6 +244,7 @@ def simulation_info(sim) -> dict:
 __all__ = [
     "GENERATOR_VERSION",
     "NON_GENERATOR_KEYS",
+    "OPTIONAL_KEYS",
     "REQUIRED_KEYS",
     "to_dict",
     "generator_config",

@@ -1,13 +1,15 @@
 """The scene registry `SCENES` (name -> generator) and the dataset front door.
 
 Each generator takes a dataset config (omegaconf DictConfig or plain dict, the fields of
-conf/dataset/*.yaml; see `scene_common`) and returns a `Dataset`. The generators live beside this
-module (`scenes_rigid`: Exp 1-3, `scenes_multibody`: two bodies and PD control, `mocap`: the CMU
-recordings) and are listed here explicitly: adding a scene means one generator function and one
-line in `SCENES` (plus its conf/dataset/<name>.yaml). `get_dataset(cfg, data_dir)` caches the
-result as `<data_dir>/<name>-<hash>.h5`, keyed by the generator-relevant part of the config;
-train_steps / rollout_steps only tell the consumers how much of each trajectory to use, they do not
-change the data (nor the hash).
+liedfl_cli/conf/dataset/*.yaml; see `scene_common`) and returns a `Dataset`. The generators live
+beside this module (`scenes_rigid`: Exp 1-3, `scenes_multibody`: two bodies and PD control,
+`mocap`: the CMU recordings, `files`: the user's own data, `file` and `import`) and are listed here
+explicitly: adding a scene means one generator function and one line in `SCENES` (plus its
+conf/dataset/<name>.yaml). `get_dataset(cfg, data_dir)` caches the result as
+`<data_dir>/<name>-<hash>.h5`, keyed by the generator-relevant part of the config; train_steps /
+rollout_steps only tell the consumers how much of each trajectory to use, they do not change the
+data (nor the hash). A user's file also hashes its content. Every scene also takes `noise` and
+`smoothing` (`transforms`), applied after its generator.
 """
 
 from __future__ import annotations
@@ -17,9 +19,10 @@ from collections.abc import Callable
 from pathlib import Path
 
 from ..errors import DatasetError
+from . import transforms
 from .files import SOURCE_SCENES, check_source_config, file_digest, from_file, hashed_config, import_recording
 from .hdf5 import Dataset, load_dataset, save_dataset
-from .mocap import cmu_cartwheel
+from .mocap import REAL_DATA_SCENES, cmu_cartwheel
 from .scene_common import (
     GENERATOR_VERSION,
     REQUIRED_KEYS,
@@ -49,12 +52,20 @@ SCENES: dict[str, Generator] = {
 """Every scene a dataset config may name (`dataset.name`), with its generator `fn(cfg, progress=None)`."""
 
 
+FILE_SCENE = "file"
+"""`dataset=file dataset.path=<file.h5>`: a dataset file in liedfl's format (data/files.py)."""
+
+
 def _checked(cfg) -> dict:
     """The dataset config as a plain dict, its common fields checked and its scene registered."""
     c = to_dict(cfg)
     if c.get("name") in SOURCE_SCENES:  # the user's own file (data/files.py): its own keys
-        return check_source_config(c)
-    return check_config(c, SCENES)
+        c = check_source_config(c)
+    else:
+        c = check_config(c, SCENES)
+    transforms.noise_spec(c.get("noise"))
+    transforms.smoothing_spec(c.get("smoothing"))
+    return c
 
 
 def _hash(c: dict) -> str:
@@ -71,6 +82,22 @@ def _with_digest(c: dict) -> dict:
     return c
 
 
+def _generate(c: dict, progress=None) -> Dataset:
+    """The scene's generator, then the options of every scene (noise, smoothing: `transforms`). The
+    recordings (mocap, `import`) smooth during their import, before cropping."""
+    ds = SCENES[c["name"]](c, progress)
+    smoothing_done = c["name"] in REAL_DATA_SCENES or c["name"] == "import"
+    if c["name"] == FILE_SCENE:  # the noise stream follows the file's own seed
+        c = {**c, "seed": ds.seed}
+    return transforms.apply(ds, c, smoothing_done=smoothing_done)
+
+
+def dataset_steps(cfg, dataset, key: str) -> int:
+    """`dataset.train_steps` / `dataset.rollout_steps`, or the dataset's length where it is null."""
+    value = cfg.get(key) if cfg is not None else None
+    return int(dataset.n_steps) if value is None else int(value)
+
+
 def dataset_path(cfg, data_dir="outputs/data") -> Path:
     """`<data_dir>/<name>-<config_hash>.h5`."""
     c = _with_digest(_checked(cfg))
@@ -79,14 +106,14 @@ def dataset_path(cfg, data_dir="outputs/data") -> Path:
 
 def generate(cfg, progress: Callable[[float], None] | None = None) -> Dataset:
     """Generate the dataset described by `cfg` (no caching)."""
-    c = _checked(cfg)
-    return SCENES[c["name"]](c, progress)
+    return _generate(_with_digest(_checked(cfg)), progress)
 
 
 def get_dataset(cfg, data_dir="outputs/data", console=None) -> tuple[Dataset, Path]:
     """Load `<data_dir>/<name>-<hash>.h5` if present (validated), else generate, save and return it.
 
     console: optional rich Console for the progress display (default: a stderr console).
+    `dataset=file` / `dataset=import`: the user's file read (data/files.py) and cached like a scene.
     """
     c = _with_digest(_checked(cfg))
     path = dataset_path(c, data_dir)
@@ -120,7 +147,7 @@ def get_dataset(cfg, data_dir="outputs/data", console=None) -> tuple[Dataset, Pa
             else f"simulating {c['name']} ({c['n_trajectories']} trajectories x {c['steps']} steps)"
         )
         task = prog.add_task(what, total=t_end)
-        ds = SCENES[c["name"]](c, lambda tt: prog.update(task, completed=tt))
+        ds = _generate(c, lambda tt: prog.update(task, completed=tt))
     save_dataset(ds, path)
     console.print(
         f"[green]{'read' if c['name'] in SOURCE_SCENES else 'generated'}[/green] {c['name']}: "
@@ -132,6 +159,8 @@ def get_dataset(cfg, data_dir="outputs/data", console=None) -> tuple[Dataset, Pa
 
 __all__ = [
     "SCENES",
+    "FILE_SCENE",
+    "dataset_steps",
     "GENERATOR_VERSION",
     "REQUIRED_KEYS",
     "generator_config",

@@ -117,6 +117,7 @@ def two_body(cfg, progress: Callable[[float], None] | None = None) -> Dataset:
     v0 = float(ini["v_std"]) * rng.standard_normal((T, 1, 3))
     xi0 = system.G.join(torch.from_numpy(w0), torch.from_numpy(v0)).numpy()
     sim = simulate_multibody(system, R0, p0, xi0, sample_times(c), c["solver"], progress)
+    assert sim.p is not None  # simulate_multibody always returns positions
     xi = sim.w
     w, v = (a.numpy() for a in system.G.split(torch.from_numpy(xi)))
     F_ext = system.external_covector(sim.R, sim.p, xi)

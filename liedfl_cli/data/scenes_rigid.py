@@ -35,6 +35,7 @@ def _assemble(c: dict, sim: Simulation, body, kinds: list[str], split_seed, scen
     T = sim.R.shape[0]
     R = sim.R[:, :, None]
     if sim.p is not None:
+        assert sim.v is not None  # an SE(3) simulation has both positions and linear velocities
         p, v = sim.p[:, :, None], sim.v[:, :, None]
         tau_ext, f_ext = body.external_wrench(sim.R, sim.p, sim.w, sim.v)
         energy = body.energy(sim.R, sim.p, sim.w, sim.v)

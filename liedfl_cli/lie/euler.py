@@ -43,7 +43,7 @@ def to_matrix(q: torch.Tensor) -> torch.Tensor:
 
 
 def wrap(a: torch.Tensor) -> torch.Tensor:
-    """Angles to (-pi, pi]."""
+    """Angles to (-pi, pi], elementwise: a (...) -> (...) with wrap(a) = a mod 2 pi."""
     return torch.atan2(torch.sin(a), torch.cos(a))
 
 
@@ -71,7 +71,7 @@ def unwrap(q: torch.Tensor, dim: int = -2) -> torch.Tensor:
 
 
 def rate_matrix(q: torch.Tensor) -> torch.Tensor:
-    """E(q) (..., 3, 3) with body angular velocity w = E(q) (phi', theta', psi'); det E = cos theta."""
+    """q (..., 3) -> E(q) (..., 3, 3) with body angular velocity w = E(q) (phi', theta', psi'); det E = cos theta."""
     phi, theta = q[..., 0], q[..., 1]
     cf, sf, ct, st = torch.cos(phi), torch.sin(phi), torch.cos(theta), torch.sin(theta)
     o, i = torch.zeros_like(phi), torch.ones_like(phi)

@@ -7,6 +7,8 @@ skew-projection vee((A - A^T)/2) on general matrices.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
 
 from .series import _poly, cosc, sinc
@@ -29,13 +31,16 @@ def vee(A: torch.Tensor) -> torch.Tensor:
     )
 
 
-def identity(batch_shape=(), dtype=torch.float64, device=None) -> torch.Tensor:
+def identity(
+    batch_shape: Sequence[int] = (), dtype: torch.dtype = torch.float64, device: torch.device | None = None
+) -> torch.Tensor:
     """Identity rotations of shape (*batch_shape, 3, 3)."""
     return torch.eye(3, dtype=dtype, device=device).expand(*batch_shape, 3, 3).clone()
 
 
 def exp(w: torch.Tensor) -> torch.Tensor:
-    """(..., 3) -> (..., 3, 3): exp(hat(w)) by Rodrigues, Taylor branch for |w| small."""
+    """(..., 3) -> (..., 3, 3): exp(hat(w)) = I + sinc hat(w) + cosc hat(w)^2 (Rodrigues), Taylor
+    branch for |w| small; log(exp(w)) = w for |w| < pi."""
     t2 = (w * w).sum(-1)[..., None, None]
     W = hat(w)
     eye = torch.eye(3, dtype=w.dtype, device=w.device)
@@ -104,32 +109,32 @@ def log(R: torch.Tensor) -> torch.Tensor:
 
 
 def compose(R1: torch.Tensor, R2: torch.Tensor) -> torch.Tensor:
-    """R1 R2 (batched matmul)."""
+    """R1 R2 (batched matmul): (..., 3, 3), (..., 3, 3) -> (..., 3, 3) (leading shapes broadcast)."""
     return R1 @ R2
 
 
 def inverse(R: torch.Tensor) -> torch.Tensor:
-    """R^{-1} = R^T."""
+    """R^{-1} = R^T: (..., 3, 3) -> (..., 3, 3)."""
     return R.transpose(-1, -2)
 
 
 def act(R: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-    """(..., 3, 3), (..., 3) -> R x."""
+    """R x: R (..., 3, 3), x (..., 3) -> (..., 3) (leading shapes broadcast)."""
     return (R @ x[..., None])[..., 0]
 
 
 def adjoint(R: torch.Tensor) -> torch.Tensor:
-    """Ad_R = R on so(3) ~ R^3: R hat(w) R^T = hat(R w)."""
+    """Ad_R = R on so(3) ~ R^3, since R hat(w) R^T = hat(R w): (..., 3, 3) -> (..., 3, 3)."""
     return R
 
 
 def retract(R: torch.Tensor, eta: torch.Tensor) -> torch.Tensor:
-    """Left perturbation R exp(hat(eta))."""
+    """Left perturbation R exp(hat(eta)): R (..., 3, 3), eta (..., 3) -> (..., 3, 3)."""
     return R @ exp(eta)
 
 
 def geodesic_distance(R1: torch.Tensor, R2: torch.Tensor) -> torch.Tensor:
-    """|log(R1^T R2)| in radians, shape (...)."""
+    """|log(R1^T R2)| in radians, in [0, pi]: (..., 3, 3), (..., 3, 3) -> (...)."""
     return torch.linalg.vector_norm(log(R1.transpose(-1, -2) @ R2), dim=-1)
 
 
@@ -142,12 +147,14 @@ def project(M: torch.Tensor) -> torch.Tensor:
 
 
 def orthogonality_error(R: torch.Tensor) -> torch.Tensor:
-    """||R^T R - I||_F, shape (...)."""
+    """||R^T R - I||_F: (..., 3, 3) -> (...)."""
     eye = torch.eye(3, dtype=R.dtype, device=R.device)
     return torch.linalg.matrix_norm(R.transpose(-1, -2) @ R - eye)
 
 
-def random(batch_shape=(), generator: torch.Generator | None = None, dtype=torch.float64) -> torch.Tensor:
+def random(
+    batch_shape: Sequence[int] = (), generator: torch.Generator | None = None, dtype: torch.dtype = torch.float64
+) -> torch.Tensor:
     """Haar-uniform random rotations of shape (*batch_shape, 3, 3)."""
     q = torch.randn(*batch_shape, 4, generator=generator, dtype=dtype)
     return from_quaternion(q)

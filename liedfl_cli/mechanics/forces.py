@@ -10,18 +10,37 @@ import torch
 from torch import nn
 
 from ..lie import Pose, ProductGroup, so3
+from .damping import PerBodyDampingNet, PerBodySPSD, apply_blocks, block_diagonal
 from .mlp import MLP
 from .parameterizations import SPSDMatrix
 
+COUPLINGS = ("coupled", "per_body")
+"""How damping acts on a multibody system: one dim x dim matrix over all bodies (`coupled`) or one
+block per body (`per_body`, `mechanics.damping`). Identical for a single body."""
+
+
+def _coupling(value: str) -> str:
+    if value not in COUPLINGS:
+        raise ValueError(f"damping coupling must be one of {COUPLINGS}, got {value!r}")
+    return value
+
 
 class RayleighForce(nn.Module):
-    """F = -D xi~ with a constant SPSD D (dim x dim); D starts at init_diag * scale * I."""
+    """F = -D xi~ with a constant SPSD D (dim x dim); D starts at init_diag * scale * I.
+
+    coupling: "coupled" (default) one SPSD matrix over the whole tangent space; "per_body" one SPSD
+    block per body (block diagonal, `damping.PerBodySPSD`). `D()` is the (dim, dim) matrix either way.
+    """
 
     name = "rayleigh"
 
-    def __init__(self, G: ProductGroup, scale: float = 1.0, init_diag: float = 0.01):
+    def __init__(self, G: ProductGroup, scale: float = 1.0, init_diag: float = 0.01, coupling: str = "coupled"):
         super().__init__()
-        self.D = SPSDMatrix(G.dim, init_diag=init_diag * scale)
+        self.coupling = _coupling(coupling)
+        if self.coupling == "per_body" and G.n_bodies > 1:
+            self.D = PerBodySPSD(G, init_diag=init_diag * scale)
+        else:
+            self.D = SPSDMatrix(G.dim, init_diag=init_diag * scale)
 
     def forward(self, g: Pose, xi: torch.Tensor) -> torch.Tensor:
         return -(xi @ self.D().T)
@@ -31,7 +50,10 @@ class RayleighForce(nn.Module):
         return (-self.D()).expand(*xi.shape[:-1], xi.shape[-1], xi.shape[-1])
 
     def describe(self) -> str:
-        return f"rayleigh (D {self.D.dim}x{self.D.dim} SPSD)"
+        n = self.D.dim
+        if isinstance(self.D, PerBodySPSD):
+            return f"rayleigh (D {n}x{n} SPSD, per-body blocks)"
+        return f"rayleigh (D {n}x{n} SPSD)"
 
 
 def _mlp_desc(net: MLP) -> str:
@@ -39,26 +61,47 @@ def _mlp_desc(net: MLP) -> str:
 
 
 class RayleighNonlinearForce(nn.Module):
-    """F = -D(g) xi~ with D(g) = L(g) L(g)^T (SPSD for every g and every parameter value).
+    """F = -D(g) xi~ with D(g) SPSD for every g and every parameter value, starting near
+    init_diag * scale * I like `RayleighForce`.
 
-    L(g) is lower triangular, L = c (I + N(flatten(g))) with N a GELU MLP whose last layer
-    starts small, so D starts near c^2 I = init_diag * scale * I like `RayleighForce`.
+    coupling: "per_body" (default) D(g) = blockdiag(D_b(g_b)), D_b = L_b L_b^T with a shared trunk
+    and one head per body (`damping.PerBodyDampingNet`: each body's damping as that of a single
+    rigid body, the paper's multibody treatment); "coupled" one D(g) = L(g) L(g)^T over the whole
+    tangent space, L = c (I + N(flatten(g))) lower triangular with N a GELU MLP of every body's
+    configuration (dim (dim+1)/2 outputs: 2628 for Exp 4). For one body both are one MLP of its
+    configuration.
     """
 
     name = "rayleigh_nonlinear"
 
-    def __init__(self, G: ProductGroup, scale: float = 1.0, init_diag: float = 0.01, width: int = 64, depth: int = 3):
+    def __init__(
+        self,
+        G: ProductGroup,
+        scale: float = 1.0,
+        init_diag: float = 0.01,
+        width: int = 64,
+        depth: int = 3,
+        coupling: str = "per_body",
+    ):
         super().__init__()
         self.G, n = G, G.dim
+        self.coupling = _coupling(coupling)
+        c = float(init_diag * scale) ** 0.5
+        if self.coupling == "per_body":
+            self.per_body = PerBodyDampingNet(G, c, width, depth)
+            return
+        self.per_body = None
         rows, cols = torch.tril_indices(n, n)
         self.register_buffer("_rows", rows, persistent=False)
         self.register_buffer("_cols", cols, persistent=False)
         self.register_buffer("_eye_entries", (rows == cols).to(torch.float64), persistent=False)
-        self.register_buffer("c", torch.tensor(float(init_diag * scale) ** 0.5, dtype=torch.float64))
+        self.register_buffer("c", torch.tensor(c, dtype=torch.float64))
         self.net = MLP(9 * G.n_bodies + 3 * G.n_se3, len(rows), width, depth)
 
     def L(self, g: Pose) -> torch.Tensor:
-        """(..., dim, dim) lower-triangular factor."""
+        """(..., dim, dim) lower-triangular factor (block diagonal for per-body coupling)."""
+        if self.per_body is not None:
+            return block_diagonal(self.G, *self.per_body.factors(g))
         entries = self.c * (self._eye_entries + self.net(self.G.flatten(g)))
         n = self.G.dim
         L = entries.new_zeros(*entries.shape[:-1], n, n)
@@ -71,11 +114,15 @@ class RayleighNonlinearForce(nn.Module):
         A batched matmul need not round L L^T symmetrically (seen on AVX-512 kernels), so the
         product is averaged with its transpose: (a + b) / 2 is the same float either way round.
         """
+        if self.per_body is not None:
+            return block_diagonal(self.G, *self.per_body.blocks(g))
         L = self.L(g)
         M = L @ L.transpose(-1, -2)
         return 0.5 * (M + M.transpose(-1, -2))
 
     def forward(self, g: Pose, xi: torch.Tensor) -> torch.Tensor:
+        if self.per_body is not None:  # block by block, without the dim x dim matrix
+            return -apply_blocks(self.G, *self.per_body.blocks(g), xi)
         return -(self.D(g) @ xi[..., None])[..., 0]
 
     def jacobian_xi(self, g: Pose, xi: torch.Tensor) -> torch.Tensor:
@@ -83,6 +130,8 @@ class RayleighNonlinearForce(nn.Module):
         return -self.D(g)
 
     def describe(self) -> str:
+        if self.per_body is not None:
+            return f"rayleigh_nonlinear (D(g) = blockdiag L_b(g_b) L_b(g_b)^T, {self.per_body.describe()})"
         return f"rayleigh_nonlinear (D(g) = L L^T, L {_mlp_desc(self.net)})"
 
 

@@ -38,7 +38,6 @@ def kinetic_d1(G: ProductGroup, inc: Pose, Jd, mass, rho, h: float) -> torch.Ten
     W, z = inc.R, inc.p
     w = so3.vee(Jd @ W.transpose(-1, -2) - W @ Jd) / h
     m = G.n_se3
-    v = z[..., :0, :] if not m else None
     if m:
         eye = torch.eye(3, dtype=W.dtype, device=W.device)
         Wm = W[..., :m, :, :]
@@ -47,6 +46,8 @@ def kinetic_d1(G: ProductGroup, inc: Pose, Jd, mass, rho, h: float) -> torch.Ten
         scale = (mass / h)[..., None]
         w = torch.cat((w[..., :m, :] + scale * torch.cross(X, a, dim=-1), w[..., m:, :]), -2)
         v = -scale * X
+    else:
+        v = z[..., :0, :]
     return G.join(w, v)
 
 
@@ -55,7 +56,6 @@ def kinetic_d2(G: ProductGroup, inc: Pose, Jd, mass, rho, h: float) -> torch.Ten
     W, z = inc.R, inc.p
     w = so3.vee(Jd @ W - W.transpose(-1, -2) @ Jd) / h
     m = G.n_se3
-    v = z[..., :0, :] if not m else None
     if m:
         eye = torch.eye(3, dtype=W.dtype, device=W.device)
         Wm = W[..., :m, :, :]
@@ -65,6 +65,8 @@ def kinetic_d2(G: ProductGroup, inc: Pose, Jd, mass, rho, h: float) -> torch.Ten
         rho_b = rho.expand_as(WtX)
         w = torch.cat((w[..., :m, :] + scale * torch.cross(rho_b, WtX, dim=-1), w[..., m:, :]), -2)
         v = scale * WtX
+    else:
+        v = z[..., :0, :]
     return G.join(w, v)
 
 

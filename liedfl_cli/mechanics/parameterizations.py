@@ -3,7 +3,7 @@
 Inertia: J = R_theta diag(e^a+e^b, e^a+e^c, e^b+e^c) R_theta^T (SPD and obeys the triangle
 inequality of a physical body), J_d = tr(J)/2 I - J (the matrix-representation inertia of the
 discrete rigid-body Lagrangian). Damping: D = L L^T + diag(lambda^2) with L lower triangular
-(SPSD). Mass: m = exp(log_m) > 0.
+(SPSD), started with every entry receiving gradient. Mass: m = exp(log_m) > 0.
 """
 
 from __future__ import annotations
@@ -64,16 +64,28 @@ class Inertia(nn.Module):
 
 
 class SPSDMatrix(nn.Module):
-    """D = L L^T + diag(lambda^2), shape (dim, dim), SPSD for all parameters."""
+    """D = L L^T + diag(lambda^2), shape (dim, dim), SPSD for all parameters.
+
+    Initialisation (D = init_diag I): L = sqrt(init_diag / 2) I (+ jitter below the diagonal) and
+    lambda = sqrt(init_diag / 2) 1. Every parameter then receives gradient from the first step:
+    d(L L^T)/dL_ij = E_ij L^T + L E_ji = c (E_ij + E_ji) at L = c I, c != 0, so off-diagonal
+    damping can be learned. (With L = 0 the gradient of every L entry vanishes, L L^T is stuck at
+    0 and only diagonal damping is ever fitted; with lambda = 0 likewise for lambda.)
+    """
 
     def __init__(self, dim: int, init_diag: float = 0.1, jitter: float = 0.0, generator=None):
         super().__init__()
         self.dim = dim
-        self.register_buffer("_rows", torch.tril_indices(dim, dim)[0], persistent=False)
-        self.register_buffer("_cols", torch.tril_indices(dim, dim)[1], persistent=False)
-        n = dim * (dim + 1) // 2
-        self.L_entries = nn.Parameter(jitter * torch.randn(n, generator=generator, dtype=torch.float64))
-        self.lam = nn.Parameter(torch.full((dim,), math.sqrt(init_diag), dtype=torch.float64))
+        rows, cols = torch.tril_indices(dim, dim)
+        self.register_buffer("_rows", rows, persistent=False)
+        self.register_buffer("_cols", cols, persistent=False)
+        c = math.sqrt(0.5 * init_diag)
+        entries = c * (rows == cols).to(torch.float64)
+        if jitter:
+            off = (rows != cols).to(torch.float64)
+            entries = entries + jitter * c * off * torch.randn(len(rows), generator=generator, dtype=torch.float64)
+        self.L_entries = nn.Parameter(entries)
+        self.lam = nn.Parameter(torch.full((dim,), c, dtype=torch.float64))
 
     @property
     def L(self) -> torch.Tensor:
@@ -88,7 +100,9 @@ class SPSDMatrix(nn.Module):
 
     @torch.no_grad()
     def set_matrix(self, D: torch.Tensor) -> None:
-        D = D.to(self.L)
+        """Set parameters so that forward() == D (D SPSD): diagonal D in lambda (L = 0), else its
+        Cholesky factor in L (lambda = 0). Used for frozen, known damping."""
+        D = D.to(self.L_entries)
         if torch.count_nonzero(D - torch.diag(torch.diagonal(D))) == 0:
             self.L_entries.zero_()
             self.lam.copy_(torch.sqrt(torch.clamp(torch.diagonal(D), min=0.0)))

@@ -51,6 +51,95 @@ class GravityPotential(nn.Module):
         return "gravity"
 
 
+STANDARD_GRAVITY = 9.81
+"""Field strength used by `UniformGravityPotential` when the data declare gravity without a magnitude."""
+
+
+class UniformGravityPotential(nn.Module):
+    """Learnable potential of a uniform field: V(g) = sum_i m_i gamma.(p_i + R_i rho_i) over the SE(3)
+    bodies + sum_j gamma.(R_j c_j) over the SO(3) bodies (heavy bodies on a pivot at the origin),
+    gamma = g u with the field strength g (fixed) and the unit "up" direction u (e3 unless learned;
+    gravity acts along -u).
+
+    SE(3) bodies: m_i and rho_i are the kinetic term's mass and centre of mass (the same modules,
+    passed in and shared), so the potential adds no parameters for them and the mass cannot hide in
+    the potential. SO(3) bodies: only the first moment c_j = m_j rho_j enters (the pivot form
+    m g e3.R rho), so c_j is the parameter (3 per body, starting at 0). `learn_direction`: u = a/|a|
+    with a learned (starts at e3; 3 parameters).
+
+    As every part of L_d, V is only identified up to the common scale of (J_d, m, c, D): compare
+    m / tr J_d and c / tr J_d with the truth; rho and u are identified as they are.
+    """
+
+    def __init__(
+        self,
+        G: ProductGroup,
+        gravity: float = STANDARD_GRAVITY,
+        mass: nn.Module | None = None,
+        rho: torch.Tensor | None = None,
+        learn_direction: bool = False,
+    ):
+        super().__init__()
+        self.G = G
+        if G.n_se3 and (mass is None or rho is None):
+            raise ValueError("uniform_gravity on SE(3) bodies needs the kinetic term's mass and rho_COM")
+        self.register_buffer("gravity", torch.tensor(float(gravity), dtype=torch.float64))
+        if G.n_se3:
+            self.mass = mass  # shared modules: registered here too, counted once by parameters()
+            self.rho = rho
+        self.moment = nn.Parameter(torch.zeros(G.n_so3, 3, dtype=torch.float64)) if G.n_so3 else None
+        e3 = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+        if learn_direction:
+            self.direction_raw = nn.Parameter(e3)
+        else:
+            self.register_buffer("direction_raw", e3)
+        self.learn_direction = bool(learn_direction)
+
+    def direction(self) -> torch.Tensor:
+        """Unit up direction u (3,)."""
+        return self.direction_raw / torch.linalg.vector_norm(self.direction_raw)
+
+    def field(self) -> torch.Tensor:
+        """gamma = g u (3,)."""
+        return self.gravity * self.direction()
+
+    def first_moments(self) -> torch.Tensor:
+        """(B, 3): m_i rho_i of the SE(3) bodies, then c_j of the SO(3) bodies."""
+        parts = []
+        if self.G.n_se3:
+            parts.append(self.mass()[:, None] * self.rho)
+        if self.moment is not None:
+            parts.append(self.moment)
+        return torch.cat(parts, 0)
+
+    def forward(self, g: Pose) -> torch.Tensor:
+        gamma = self.field()
+        up = (g.R * gamma[:, None]).sum(-2)  # (..., B, 3): R^T gamma per body
+        V = (up * self.first_moments()).sum((-1, -2))  # sum_b gamma . R_b (m rho)_b
+        if self.G.n_se3:
+            V = V + (self.mass() * (g.p @ gamma)).sum(-1)
+        return V
+
+    def left_gradient(self, g: Pose) -> torch.Tensor:
+        """Closed form of dV(g exp(eta))/d eta at 0, (..., dim): per body the rotational part
+        (m rho) x (R^T gamma) and, for SE(3) bodies, the translational part m R^T gamma."""
+        gamma = self.field()
+        up = (g.R * gamma[:, None]).sum(-2)  # (..., B, 3)
+        w = torch.cross(self.first_moments().expand_as(up), up, dim=-1)
+        m = self.G.n_se3
+        v = self.mass()[:, None] * up[..., :m, :] if m else up[..., :0, :]
+        return self.G.join(w, v)
+
+    def describe(self) -> str:
+        parts = [f"uniform_gravity (g = {float(self.gravity):g}"]
+        if self.G.n_se3:
+            parts.append("m, rho_COM shared with the kinetic term")
+        if self.G.n_so3:
+            parts.append(f"m rho of {self.G.n_so3} pivot bod{'y' if self.G.n_so3 == 1 else 'ies'}")
+        parts.append("direction learned" if self.learn_direction else "along -e3")
+        return "; ".join(parts) + ")"
+
+
 # ----------------------------------------------------------------------------- interactions
 INTERACTIONS = ("spring", "relative_rotation", "relative_rotation_trace", "newton", "dipole")
 """Interaction potentials between two bodies (the paper's appendix list), `InteractionPotential.kind`."""

@@ -17,6 +17,7 @@ model with a partly known Lagrangian (`model.known`).
 from __future__ import annotations
 
 import torch
+from torch import nn
 
 from ..lie import ProductGroup, so3
 from .forces import PDControl
@@ -52,7 +53,7 @@ def body_parameters(G: ProductGroup, physics: dict):
 def true_potential(G: ProductGroup, physics: dict):
     """Gravity (+ interaction) potential of a scene as a module without parameters, or None."""
     _, masses, rhos, _ = body_parameters(G, physics)
-    terms = []
+    terms: list[nn.Module] = []
     gravity = float(physics.get("g", 0.0))
     if gravity != 0.0:
         terms.append(GravityPotential(G, masses, rhos, gravity))

@@ -59,6 +59,10 @@ def require_single_so3(G: ProductGroup, what: str) -> None:
 
 
 # ---------------------------------------------------------------------------- build context
+POTENTIAL_PARTS = ("mlp", "uniform_gravity")
+"""Potential parts a LieDFLNN can sum (`model.potential` is one of them, a list of them, none or auto)."""
+
+
 @dataclass(frozen=True)
 class BuildContext:
     """What a model needs to know about the scene and the run to be built.
@@ -67,6 +71,7 @@ class BuildContext:
     epsilon: regularity threshold (train.epsilon), also used for the initial scale.
     forces: the `force` group as {name: options} (empty: no learned force).
     physics: the scene's true parameters (a synthetic dataset's params["physics"]) or None.
+    metadata: the dataset's whole `params` (declarations such as params["gravity"]) or None.
     """
 
     group: ProductGroup
@@ -75,17 +80,81 @@ class BuildContext:
     epsilon: float = 10.0
     forces: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
     physics: Mapping[str, Any] | None = None
+    metadata: Mapping[str, Any] | None = None
+
+    # -------------------------------------------------------------- what the data declare
+    def declared_gravity(self) -> float | None:
+        """The field strength the data declare: params["physics"]["g"] (generated scenes) or
+        params["gravity"] (any file: the magnitude along -e3, 0 for none); None if undeclared."""
+        physics, meta = self.physics or {}, self.metadata or {}
+        value = physics.get("g") if "g" in physics else meta.get("gravity")
+        if value is None or isinstance(value, bool):
+            return 0.0 if value is False else None
+        try:
+            return float(value)
+        except (TypeError, ValueError):
+            raise ConfigError(f"dataset params: gravity={value!r} is not a number") from None
+
+    def declares_no_potential(self) -> bool:
+        """params["potential"] == "none": the data say there is no potential at all."""
+        return str((self.metadata or {}).get("potential", "")).lower() == "none"
+
+    def declares_interaction(self) -> bool:
+        return bool((self.physics or {}).get("interaction"))
 
     def scene_has_potential(self) -> bool:
-        """False only when the scene is known to have none: one body and gravity g = 0 (or data
-        declaring g = 0). Real recordings (no physics) may have one."""
-        physics = self.physics or {}
-        return not (self.group.n_bodies == 1 and "g" in physics and float(physics["g"]) == 0.0)
+        """False only when the data say there is none (see `resolve_potential_parts`)."""
+        return bool(self.resolve_potential_parts("auto")[0])
+
+    def resolve_potential_parts(self, choice: Any) -> tuple[tuple[str, ...], str]:
+        """`model.potential` -> (the potential parts to sum, why). `auto` reads the data:
+
+        - none for data declaring no potential (params["potential"] = "none"), for a free body (one
+          body, gravity declared 0) and for several bodies with gravity 0 and no declared interaction;
+        - uniform_gravity where the data declare gravity g > 0, plus an MLP for a declared interaction;
+        - an MLP otherwise (nothing declared: real recordings, a user's file without metadata).
+        Other choices: a part name, a list of them, or none.
+        """
+        if isinstance(choice, str):
+            if choice == "auto":
+                return self._auto_potential()
+            if choice == "none":
+                return (), "model.potential=none"
+            parts: tuple[str, ...] = (choice,)
+        elif isinstance(choice, (list, tuple)):
+            parts = tuple(str(c) for c in choice)
+        else:
+            raise ConfigError(f"model.potential={choice!r}: a name or a list of names")
+        bad = [p for p in parts if p not in POTENTIAL_PARTS]
+        if bad or not parts or len(set(parts)) != len(parts):
+            what = f"unknown part {bad[0]!r}" if bad else "empty or repeated parts"
+            raise ConfigError(
+                f"model.potential={choice!r}: {what}; choose auto, none, one of {', '.join(POTENTIAL_PARTS)} "
+                "or a list of them (e.g. [uniform_gravity,mlp])"
+            )
+        return parts, f"model.potential={list(parts) if len(parts) > 1 else parts[0]}"
+
+    def _auto_potential(self) -> tuple[tuple[str, ...], str]:
+        if self.declares_no_potential():
+            return (), "auto: none (the data declare no potential)"
+        g = self.declared_gravity()
+        inter = self.declares_interaction()
+        if g is None:
+            return ("mlp",), "auto: mlp (the data declare no gravity or potential, so a learned V(g))"
+        parts = (("uniform_gravity",) if g != 0.0 else ()) + (("mlp",) if inter else ())
+        why = [f"the data declare gravity g = {g:g}" if g != 0.0 else "the data declare g = 0"]
+        if inter:
+            why.append("and an interaction (learned by the MLP)")
+        if not parts:
+            what = "a free body" if self.group.n_bodies == 1 else "no interaction declared"
+            why.append(f"({what})")
+        return parts, f"auto: {'+'.join(parts) or 'none'} ({' '.join(why)})"
 
     def resolve_potential(self, choice: str) -> str:
-        """`auto` -> "none" when the scene has no potential, else "mlp"; other choices as given."""
+        """For models with only an MLP potential (the baselines): `auto` -> "none" where the data have
+        no potential (`resolve_potential_parts`), else "mlp"; mlp / none as given."""
         if choice not in ("auto", "mlp", "none"):
-            raise ConfigError(f"model.potential={choice!r}: choose one of auto, mlp, none")
+            raise ConfigError(f"model.potential={choice!r}: this model supports auto, mlp or none")
         if choice != "auto":
             return choice
         return "mlp" if self.scene_has_potential() else "none"

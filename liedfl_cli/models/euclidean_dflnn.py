@@ -30,11 +30,26 @@ from ..lie import Pose, ProductGroup, so3
 from ..mechanics.mlp import MLP
 from ..mechanics.parameterizations import Inertia, PositiveVector, SPSDMatrix
 from ..solvers.newton import NewtonProblem
-from .base import BuildContext, ImplicitModel, LossOptions, TripletBatch, config_options, initial_scale
+from .base import (
+    Batch,
+    BuildContext,
+    ImplicitModel,
+    LossOptions,
+    LossParts,
+    TripletBatch,
+    config_options,
+    initial_scale,
+)
 from .liedflnn import del_regularity_loss
+
+# rollout state: the pair (x_{k-1}, x_k), each (N, n)
+State = tuple[torch.Tensor, torch.Tensor]
 
 
 class EuclideanDFLNN(ImplicitModel):
+    """DEL model on the free coordinates x (..., n) of one body: the 9 entries of R, then p (n = 12
+    for SE(3), 9 for SO(3)), with learned J_d, m, rho (SE(3)), D (and V(x))."""
+
     window = "triplet"
 
     def __init__(
@@ -56,6 +71,8 @@ class EuclideanDFLNN(ImplicitModel):
         self.se3 = G.n_se3 == 1
         self.n = 12 if self.se3 else 9
         gen = torch.Generator().manual_seed(int(seed))
+        self.mass: PositiveVector | None  # SE(3) only
+        self.rho: nn.Parameter | None  # SE(3) only, (3,)
         # Mixed Hessian = -(1/h) K with K ~ s I_n when J_d = s I, m = s: n log(s/h) = epsilon.
         s = initial_scale(self.h, float(epsilon), self.n)
         self.inertia = Inertia(1, scale=2 * s, jitter=init_jitter, generator=gen)  # J = 2s I -> J_d = s I
@@ -82,6 +99,7 @@ class EuclideanDFLNN(ImplicitModel):
         return cls(ctx.group, ctx.h, epsilon=ctx.epsilon, seed=ctx.seed, **opt)
 
     def components(self) -> list[str]:
+        """["J_d", "m"?, "rho_COM"?, "D"?, "V:MLP(x)"?]."""
         out = ["J_d"] + (["m", "rho_COM"] if self.se3 else [])
         if self.damping is not None:
             out.append("D")
@@ -96,20 +114,24 @@ class EuclideanDFLNN(ImplicitModel):
         return torch.cat((g.R.reshape(*lead, 9), g.p.reshape(*lead, -1)), -1)
 
     def from_x(self, x: torch.Tensor) -> Pose:
+        """Inverse of `to_x`: x (..., n) -> Pose R (..., 1, 3, 3), p (..., m, 3) (R not orthogonalised)."""
         lead = x.shape[:-1]
         return Pose(x[..., :9].reshape(*lead, 1, 3, 3), x[..., 9:].reshape(*lead, self.G.n_se3, 3))
 
-    def _split(self, x):
+    def _split(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """x (..., n) -> (R (..., 3, 3), p (..., n - 9))."""
         return x[..., :9].reshape(*x.shape[:-1], 3, 3), x[..., 9:]
 
     # ------------------------------------------------------------------ discrete mechanics in x
     def lagrangian(self, x0: torch.Tensor, x1: torch.Tensor) -> torch.Tensor:
+        """L_d(x0, x1) = h [1/2 tr(Rd J_d Rd^T) + 1/2 m |pd + Rd rho|^2 - V(x0)]: x0, x1 (..., n) -> (...)."""
         R0, p0 = self._split(x0)
         R1, p1 = self._split(x1)
         Rd = (R1 - R0) / self.h
         Jd = self.inertia.Jd()[0]
         K = 0.5 * (Rd @ Jd * Rd).sum((-1, -2))  # 1/2 tr(Rd J_d Rd^T)
         if self.se3:
+            assert self.mass is not None and self.rho is not None
             u = (p1 - p0) / self.h + (Rd @ self.rho[:, None])[..., 0]
             K = K + 0.5 * self.mass()[0] * (u * u).sum(-1)
         L = K
@@ -145,6 +167,8 @@ class EuclideanDFLNN(ImplicitModel):
         return out[0], out[1]
 
     def residual(self, x_prev: torch.Tensor, x: torch.Tensor, x_next: torch.Tensor) -> torch.Tensor:
+        """r_k = d/dx_k [L_d(x_prev, x_k) + L_d(x_k, x_next)] + F^+(x_prev, x_k) + F^-(x_k, x_next):
+        x_prev, x, x_next (..., n) -> (..., n); differentiable w.r.t. x_prev, x_next and the parameters."""
         create = torch.is_grad_enabled()
         with torch.enable_grad():
             xk = x.detach().requires_grad_(True)
@@ -162,7 +186,10 @@ class EuclideanDFLNN(ImplicitModel):
         return torch.stack(rows, -2)
 
     # ------------------------------------------------------------------ training
-    def loss(self, batch: TripletBatch, opts: LossOptions):
+    def loss(self, batch: Batch, opts: LossOptions) -> tuple[torch.Tensor, LossParts]:
+        """w_DEL mean |r_k|^2 + w_reg mean penalty(log|det d^2 L_d/dx0 dx1|) over triplets of poses
+        R (N, 1, 3, 3), p (N, m, 3) (regularity pairs (P, ...)) -> (scalar (), {"del_loss", "reg_loss"} scalars ())."""
+        assert isinstance(batch, TripletBatch), "EuclideanDFLNN trains on triplets (window = 'triplet')"
         r = self.residual(*(self.to_x(g) for g in batch.poses()))
         logdet = None
         if batch.reg is not None and opts.w_reg > 0:
@@ -171,13 +198,16 @@ class EuclideanDFLNN(ImplicitModel):
         return del_regularity_loss(r, logdet, opts)
 
     # ------------------------------------------------------------------ implicit step (rollout)
-    def implicit_start(self, g0: Pose, g1: Pose):
+    def implicit_start(self, g0: Pose, g1: Pose) -> State:
+        """g0, g1 with R (N, 1, 3, 3), p (N, m, 3) -> (x0, x1), each (N, n)."""
         return self.to_x(g0), self.to_x(g1)
 
-    def implicit_problem(self, state) -> NewtonProblem:
+    def implicit_problem(self, state: State) -> NewtonProblem:
+        """r_k(x_{k-1}, x_k, y) = 0 for y = x_{k+1} (N, n), from 2 x_k - x_{k-1}."""
         a, b = state
         return NewtonProblem.euclidean(lambda y: self.residual(a, b, y), 2 * b - a)
 
-    def implicit_advance(self, state, x: torch.Tensor):
+    def implicit_advance(self, state: State, x: torch.Tensor) -> tuple[State, Pose]:
+        """Solution x = x_{k+1} (N, n) -> ((x_k, x_{k+1}), Pose R (N, 1, 3, 3), p (N, m, 3))."""
         x = x.detach()
         return (state[1], x), self.from_x(x)

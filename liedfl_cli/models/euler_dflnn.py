@@ -29,9 +29,11 @@ from ..mechanics.mlp import MLP
 from ..mechanics.parameterizations import Inertia, SPSDMatrix
 from ..solvers.newton import NewtonProblem
 from .base import (
+    Batch,
     BuildContext,
     ImplicitModel,
     LossOptions,
+    LossParts,
     TripletBatch,
     config_options,
     initial_scale,
@@ -42,11 +44,17 @@ from .liedflnn import del_regularity_loss
 
 
 def _shift_to_principal(q_ref: torch.Tensor) -> torch.Tensor:
-    """Multiple of 2 pi to subtract so that q_ref becomes principal (theta needs none)."""
+    """Multiple of 2 pi to subtract so that q_ref becomes principal (theta needs none): (..., 3) -> (..., 3)."""
     return q_ref - euler.wrap(q_ref)
 
 
+# rollout state: the pair (q_{k-1}, q_k), each (N, 3)
+State = tuple[torch.Tensor, torch.Tensor]
+
+
 class EulerDFLNN(ImplicitModel):
+    """DEL model in ZYX Euler angles q (..., 3) with M(q) = E^T J E, learned J, D (and V(q))."""
+
     window = "triplet"
 
     def __init__(
@@ -74,6 +82,7 @@ class EulerDFLNN(ImplicitModel):
 
     @classmethod
     def from_config(cls, ctx: BuildContext, **options) -> EulerDFLNN:
+        """Options of conf/model/euler_dflnn.yaml; `potential`/`damping: auto` follow the scene."""
         opt = config_options(cls, options, cls.OPTIONS)
         require_single_so3(ctx.group, "euler_dflnn")
         opt["potential"] = ctx.resolve_potential(opt.get("potential", "auto")) == "mlp"
@@ -81,6 +90,7 @@ class EulerDFLNN(ImplicitModel):
         return cls(ctx.group, ctx.h, epsilon=ctx.epsilon, seed=ctx.seed, **opt)
 
     def components(self) -> list[str]:
+        """["J (in M(q) = E^T J E)", "D"?, "V:MLP(q)"?]."""
         out = ["J (in M(q) = E^T J E)"]
         if self.damping is not None:
             out.append("D")
@@ -90,6 +100,10 @@ class EulerDFLNN(ImplicitModel):
 
     # ------------------------------------------------------------------ discrete mechanics in q
     def lagrangian(self, q0: torch.Tensor, q1: torch.Tensor) -> torch.Tensor:
+        """L_d(q0, q1) = h [1/2 w^T J w - V(qm)], w = E(qm) (q1 - q0)/h, qm = (q0 + q1)/2.
+
+        q0, q1 (..., 3) -> (...).
+        """
         qd = (q1 - q0) / self.h
         qm = 0.5 * (q0 + q1)
         w = (euler.rate_matrix(qm) @ qd[..., None])[..., 0]
@@ -100,7 +114,7 @@ class EulerDFLNN(ImplicitModel):
         return self.h * L
 
     def force(self, q0: torch.Tensor, q1: torch.Tensor) -> torch.Tensor:
-        """Generalised Rayleigh force Q = -E^T D E qdot at the midpoint, (..., 3)."""
+        """Generalised Rayleigh force Q = -E^T D E qdot at the midpoint: q0, q1 (..., 3) -> (..., 3)."""
         if self.damping is None:
             return torch.zeros_like(q0)
         E = euler.rate_matrix(0.5 * (q0 + q1))
@@ -108,7 +122,8 @@ class EulerDFLNN(ImplicitModel):
         return -(E.transpose(-1, -2) @ (self.damping() @ w))[..., 0]
 
     def residual(self, q_prev: torch.Tensor, q: torch.Tensor, q_next: torch.Tensor) -> torch.Tensor:
-        """Forced DEL residual r_k (..., 3); differentiable w.r.t. q_prev, q_next and the parameters."""
+        """Forced DEL residual r_k = D_2 L_d(q_prev, q) + D_1 L_d(q, q_next) + h/2 (Q(q_prev, q) + Q(q, q_next)):
+        q_prev, q, q_next (..., 3) -> (..., 3); differentiable w.r.t. q_prev, q_next and the parameters."""
         create = torch.is_grad_enabled()
         with torch.enable_grad():
             qk = q.detach().requires_grad_(True)
@@ -118,7 +133,7 @@ class EulerDFLNN(ImplicitModel):
         return r if create else r.detach()
 
     def mixed_hessian(self, q0: torch.Tensor, q1: torch.Tensor) -> torch.Tensor:
-        """d^2 L_d / dq0 dq1, (..., 3, 3) by autodiff."""
+        """d^2 L_d / dq0 dq1 by autodiff: q0, q1 (..., 3) -> (..., 3, 3)."""
         with torch.enable_grad():
             a, b = q0.detach().requires_grad_(True), q1.detach().requires_grad_(True)
             (g,) = torch.autograd.grad(self.lagrangian(a, b).sum(), a, create_graph=True)
@@ -128,7 +143,10 @@ class EulerDFLNN(ImplicitModel):
     # ------------------------------------------------------------------ data conversion
     @staticmethod
     def angles(*poses: Pose) -> list[torch.Tensor]:
-        """Consecutive poses -> ZYX angles unwrapped along the sequence around the middle pose."""
+        """Consecutive poses -> ZYX angles unwrapped along the sequence around the middle pose.
+
+        Each pose R (..., 1, 3, 3) -> one angle tensor q (..., 3) per pose; the middle one is principal.
+        """
         q = torch.stack([euler.from_matrix(g.R[..., 0, :, :]) for g in poses], -2)
         q = euler.unwrap(q, dim=-2)
         mid = q[..., len(poses) // 2, :]
@@ -136,7 +154,10 @@ class EulerDFLNN(ImplicitModel):
         return list(q.unbind(-2))
 
     # ------------------------------------------------------------------ training
-    def loss(self, batch: TripletBatch, opts: LossOptions):
+    def loss(self, batch: Batch, opts: LossOptions) -> tuple[torch.Tensor, LossParts]:
+        """w_DEL mean |r_k|^2 + w_reg mean penalty(log|det d^2 L_d/dq0 dq1|) over triplets R (N, 1, 3, 3)
+        (regularity pairs R (P, 1, 3, 3)) -> (scalar (), {"del_loss", "reg_loss"} scalars ())."""
+        assert isinstance(batch, TripletBatch), "EulerDFLNN trains on triplets (window = 'triplet')"
         q_prev, q, q_next = self.angles(*batch.poses())
         r = self.residual(q_prev, q, q_next)
         logdet = None
@@ -146,21 +167,25 @@ class EulerDFLNN(ImplicitModel):
         return del_regularity_loss(r, logdet, opts)
 
     # ------------------------------------------------------------------ implicit step (rollout)
-    def implicit_start(self, g0: Pose, g1: Pose):
-        return tuple(self.angles(g0, g1))
+    def implicit_start(self, g0: Pose, g1: Pose) -> State:
+        """g0, g1 with R (N, 1, 3, 3) -> (q0, q1), each (N, 3), unwrapped around q1."""
+        q0, q1 = self.angles(g0, g1)
+        return q0, q1
 
     @staticmethod
-    def _principal_pair(state):
+    def _principal_pair(state: State) -> State:
         """(q_{k-1}, q_k) shifted by the multiple of 2 pi that makes q_k principal."""
         q_prev, q = state
         shift = _shift_to_principal(q)
         return q_prev - shift, q - shift
 
-    def implicit_problem(self, state) -> NewtonProblem:
+    def implicit_problem(self, state: State) -> NewtonProblem:
+        """r_k(q_{k-1}, q_k, x) = 0 for x = q_{k+1} (N, 3), from 2 q_k - q_{k-1} (pair made principal)."""
         a, b = self._principal_pair(state)
         return NewtonProblem.euclidean(lambda x: self.residual(a, b, x), 2 * b - a)
 
-    def implicit_advance(self, state, x: torch.Tensor):
+    def implicit_advance(self, state: State, x: torch.Tensor) -> tuple[State, Pose]:
+        """Solution x = q_{k+1} (N, 3) -> ((q_k, q_{k+1}), Pose R (N, 1, 3, 3), p (N, 0, 3))."""
         _, b = self._principal_pair(state)
         q_next = x.detach()
         return (b, q_next), so3_pose(euler.to_matrix(q_next))

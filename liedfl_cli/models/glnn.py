@@ -34,12 +34,21 @@ from __future__ import annotations
 import torch
 
 from ..errors import ConfigError
-from ..lie import ProductGroup, so3
+from ..lie import Pose, ProductGroup, so3
 from ..mechanics.parameterizations import Inertia, SPSDMatrix
 from ..mechanics.potentials import MLPPotential
-from ..solvers.newton import damped_newton
+from ..solvers.newton import NewtonResult, damped_newton
 from ..solvers.options import SolverOptions
-from .base import Batch, BuildContext, ExplicitModel, LossOptions, config_options, require_single_so3, so3_pose
+from .base import (
+    Batch,
+    BuildContext,
+    ExplicitModel,
+    LossOptions,
+    LossParts,
+    config_options,
+    require_single_so3,
+    so3_pose,
+)
 
 INTEGRATORS = ("dopri5", "heun", "midpoint")
 # config options common to every integrator, and those of one integrator only
@@ -49,6 +58,11 @@ INTEGRATOR_OPTIONS = {
     "heun": (),
     "midpoint": ("train_newton_iters",),
 }
+
+# (J (3, 3), J^{-1} (3, 3), D (3, 3) or None): the learned parameters, evaluated once per loss/rollout
+Params = tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]
+# rollout state: (R (N, 3, 3), w (N, 3), Params)
+State = tuple[torch.Tensor, torch.Tensor, Params]
 
 
 class GLNN(ExplicitModel):
@@ -106,6 +120,7 @@ class GLNN(ExplicitModel):
         return cls(ctx.group, ctx.h, seed=ctx.seed, **opt)
 
     def components(self) -> list[str]:
+        """["J", "D"?, "V:MLPPotential"?, "integrator:<name>"]."""
         out = ["J"]
         if self.damping is not None:
             out.append("D")
@@ -114,13 +129,15 @@ class GLNN(ExplicitModel):
         return out + [f"integrator:{self.integrator}"]
 
     # ------------------------------------------------------------------ vector field
-    def _params(self):
+    def _params(self) -> Params:
         J = self.inertia.J()[0]
         D = self.damping() if self.damping is not None else None
         return J, torch.linalg.inv(J), D
 
     def potential_torque(self, R: torch.Tensor) -> torch.Tensor:
-        """tau_V = -d V(R exp(eta)) / d eta at 0, (..., 3); differentiable when grad mode is on."""
+        """tau_V = -d V(R exp(eta)) / d eta at 0: R (..., 3, 3) -> (..., 3); differentiable when grad
+        mode is on. Only for a model with a potential."""
+        assert self.potential is not None, "potential_torque needs a learned potential"
         create = torch.is_grad_enabled()
         with torch.enable_grad():
             eta = R.new_zeros(*R.shape[:-2], 3).requires_grad_(True)
@@ -128,8 +145,8 @@ class GLNN(ExplicitModel):
             (dV,) = torch.autograd.grad(V.sum(), eta, create_graph=create)
         return -dV
 
-    def accel(self, R: torch.Tensor, w: torch.Tensor, params) -> torch.Tensor:
-        """A(R, w) = J^{-1}(tau - w x J w), (..., 3)."""
+    def accel(self, R: torch.Tensor, w: torch.Tensor, params: Params) -> torch.Tensor:
+        """A(R, w) = J^{-1}(tau - w x J w), tau = -D w + tau_V(R): R (..., 3, 3), w (..., 3) -> (..., 3)."""
         J, Jinv, D = params
         tau = torch.cross(J @ w[..., None], w[..., None], dim=-2)[..., 0]  # (J w) x w
         if D is not None:
@@ -138,8 +155,8 @@ class GLNN(ExplicitModel):
             tau = tau + self.potential_torque(R)
         return tau @ Jinv.T
 
-    def accel_jacobian_w(self, w: torch.Tensor, params) -> torch.Tensor:
-        """dA/dw = J^{-1}(-D + hat(J w) - hat(w) J) (potential part omitted), (..., 3, 3)."""
+    def accel_jacobian_w(self, w: torch.Tensor, params: Params) -> torch.Tensor:
+        """dA/dw = J^{-1}(-D + hat(J w) - hat(w) J) (potential part omitted): w (..., 3) -> (..., 3, 3)."""
         J, Jinv, D = params
         M = so3.hat(w @ J.T) - so3.hat(w) @ J
         if D is not None:
@@ -147,18 +164,27 @@ class GLNN(ExplicitModel):
         return Jinv @ M
 
     # ------------------------------------------------------------------ integrators
-    def heun_step(self, R, w, params):
+    def heun_step(self, R: torch.Tensor, w: torch.Tensor, params: Params) -> tuple[torch.Tensor, torch.Tensor]:
+        """One Lie-Heun (RKMK2) step: R (..., 3, 3), w (..., 3) -> (R' (..., 3, 3), w' (..., 3)) with
+        w' = w + h/2 (A(R, w) + A(R exp(h w), w*)), w* = w + h A(R, w), R' = R exp(h (w + w*)/2)."""
         A1 = self.accel(R, w, params)
         w_star = w + self.h * A1
         A2 = self.accel(R @ so3.exp(self.h * w), w_star, params)
         return R @ so3.exp(0.5 * self.h * (w + w_star)), w + 0.5 * self.h * (A1 + A2)
 
-    def midpoint_residual(self, R, w, w_next, params):
+    def midpoint_residual(self, R: torch.Tensor, w: torch.Tensor, w_next: torch.Tensor, params: Params) -> torch.Tensor:
+        """w' - w - h A(R exp(h/2 wbar), wbar), wbar = (w + w')/2: R (..., 3, 3), w, w' (..., 3) -> (..., 3);
+        zero at the implicit Lie midpoint step."""
         wbar = 0.5 * (w + w_next)
         return w_next - w - self.h * self.accel(R @ so3.exp(0.5 * self.h * wbar), wbar, params)
 
-    def midpoint_step_train(self, R, w, params):
-        """Differentiable midpoint step: explicit Euler guess + `train_newton_iters` Newton steps."""
+    def midpoint_step_train(
+        self, R: torch.Tensor, w: torch.Tensor, params: Params
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Differentiable midpoint step: explicit Euler guess + `train_newton_iters` Newton steps.
+
+        R (..., 3, 3), w (..., 3) -> (R' = R exp(h (w + w')/2) (..., 3, 3), w' (..., 3)).
+        """
         w_next = w + self.h * self.accel(R, w, params)
         eye = torch.eye(3, dtype=w.dtype)
         for _ in range(self.train_newton_iters):
@@ -167,14 +193,20 @@ class GLNN(ExplicitModel):
             w_next = w_next - torch.linalg.solve(Jac, F[..., None])[..., 0]
         return R @ so3.exp(0.5 * self.h * (w + w_next)), w_next
 
-    def midpoint_step_solve(self, R, w, params, opts: SolverOptions):
-        """Rollout midpoint step by damped Newton (autodiff Jacobian) with convergence flags."""
+    def midpoint_step_solve(
+        self, R: torch.Tensor, w: torch.Tensor, params: Params, opts: SolverOptions
+    ) -> tuple[torch.Tensor, torch.Tensor, NewtonResult]:
+        """Rollout midpoint step by damped Newton (autodiff Jacobian) with convergence flags.
+
+        R (N, 3, 3), w (N, 3) -> (R' (N, 3, 3), w' (N, 3), the solver's result for w').
+        """
         guess = self.heun_step(R, w, params)[1]
         sol = damped_newton(lambda x: self.midpoint_residual(R, w, x, params), guess.detach(), opts)
         w_next = sol.x.detach()
         return R @ so3.exp(0.5 * self.h * (w + w_next)), w_next, sol
 
-    def _odeint(self, R0, w0, steps, params):
+    def _odeint(self, R0: torch.Tensor, w0: torch.Tensor, steps: int, params: Params) -> torch.Tensor:
+        """dopri5 on (R entries, w): R0 (N, 3, 3), w0 (N, 3) -> R (N, steps+1, 3, 3)."""
         from torchdiffeq import odeint
 
         n = R0.shape[0]
@@ -203,27 +235,34 @@ class GLNN(ExplicitModel):
         return torch.stack(Rs, 1)
 
     def initial_velocity(self, R0: torch.Tensor, R1: torch.Tensor) -> torch.Tensor:
-        """w0 = log(R0^T R1) / h (the paper's finite-difference estimate), (..., 3)."""
+        """w0 = log(R0^T R1) / h (the paper's finite-difference estimate): R0, R1 (..., 3, 3) -> (..., 3)."""
         return so3.log(R0.transpose(-1, -2) @ R1) / self.h
 
     # ------------------------------------------------------------------ training
-    def loss(self, batch: Batch, opts: LossOptions):
+    def loss(self, batch: Batch, opts: LossOptions) -> tuple[torch.Tensor, LossParts]:
         """Unroll from (R_0, w_0) over each window (a triplet is a length-2 window) -> (mean squared
-        error of the predicted R entries, {"mse": ...})."""
+        error of the predicted R entries, {"mse": ...}).
+
+        batch: windows R (N, L+1, 1, 3, 3) (`as_sequence`) -> (scalar (), {"mse": scalar ()}).
+        """
         R = batch.as_sequence().R[:, :, 0]
         pred = self.integrate_rotations(R[:, 0], self.initial_velocity(R[:, 0], R[:, 1]), R.shape[1] - 1)
         mse = ((pred[:, 1:] - R[:, 1:]) ** 2).mean()
         return mse, {"mse": mse}
 
     # ------------------------------------------------------------------ rollout (solvers.rollout_explicit)
-    def initial_state(self, g0, g1):
+    def initial_state(self, g0: Pose, g1: Pose) -> State:
+        """g0, g1 with R (N, 1, 3, 3) -> (R0 (N, 3, 3), w0 = log(R0^T R1)/h (N, 3), params)."""
         R0 = g0.R[:, 0]
         return R0, self.initial_velocity(R0, g1.R[:, 0]), self._params()
 
-    def state_pose(self, state):
+    def state_pose(self, state: State) -> Pose:
+        """State -> Pose R (N, 1, 3, 3), p (N, 0, 3)."""
         return so3_pose(state[0])
 
-    def step(self, state, opts: SolverOptions):
+    def step(self, state: State, opts: SolverOptions) -> tuple[State, NewtonResult | None]:
+        """One heun or midpoint step of length h: (R (N, 3, 3), w (N, 3), params) -> the same
+        shapes, plus the midpoint's Newton result (None for heun)."""
         R, w, params = state
         if self.integrator == "heun":
             R, w = self.heun_step(R, w, params)
@@ -231,6 +270,8 @@ class GLNN(ExplicitModel):
         R, w, sol = self.midpoint_step_solve(R, w, params, opts)
         return (R, w, params), sol
 
-    def integrate(self, state, steps: int):
+    def integrate(self, state: State, steps: int) -> Pose:
+        """dopri5 over the whole grid: state (R0 (N, 3, 3), w0 (N, 3), params) -> Pose R (N, steps+1, 1, 3, 3),
+        p (N, steps+1, 0, 3)."""
         R0, w0, params = state
         return so3_pose(self._odeint(R0, w0, steps, params))

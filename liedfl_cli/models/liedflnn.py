@@ -27,13 +27,36 @@ from ..lie import Pose, ProductGroup
 from ..mechanics import kinetic
 from ..mechanics.forces import build_forces, force_jacobian_xi
 from ..mechanics.parameterizations import Inertia, PositiveVector
-from ..mechanics.potentials import MLPPotential
+from ..mechanics.potentials import STANDARD_GRAVITY, MLPPotential, SumPotential, UniformGravityPotential
 from ..mechanics.scene_physics import body_parameters, true_potential
+from ..solvers import runtime
 from ..solvers.newton import NewtonProblem, jacobian
-from .base import BuildContext, ImplicitModel, LossOptions, TripletBatch, config_options, initial_scale
+from . import fused
+from .base import (
+    POTENTIAL_PARTS,
+    BuildContext,
+    ImplicitModel,
+    LossOptions,
+    TripletBatch,
+    config_options,
+    initial_scale,
+)
 
 RESIDUAL_MODES = ("fast", "generic")
 KNOWN_PARTS = ("inertia", "potential", "damping")
+
+
+def potential_parts(potential) -> tuple[str, ...]:
+    """ "none" / a part name / a list of part names (POTENTIAL_PARTS) -> the tuple of parts."""
+    if potential in (None, "none"):
+        return ()
+    parts = (potential,) if isinstance(potential, str) else tuple(potential)
+    bad = [p for p in parts if p not in POTENTIAL_PARTS]
+    if bad or len(set(parts)) != len(parts):
+        raise ValueError(
+            f"model.potential must be none, one of {POTENTIAL_PARTS} or a list of distinct ones, got {potential!r}"
+        )
+    return parts
 
 
 class LieDFLNN(ImplicitModel):
@@ -41,10 +64,13 @@ class LieDFLNN(ImplicitModel):
     triplets, rolled out by Newton on the DEL residual for each increment).
 
     Args:
-        G: group layout. h: time step. potential: "none" | "mlp". forces: names in FORCES, or
-        {name: options}. residual: "fast" (closed-form kinetic derivatives) or "generic"
-        (autodiff of L_d). epsilon: log-det regularity threshold, also used to pick the initial
-        scale. known / physics: parts set to the scene's true values and frozen.
+        G: group layout. h: time step.
+        potential: "none", a part of POTENTIAL_PARTS ("mlp", "uniform_gravity") or a list of them (summed).
+        forces: names in FORCES, or {name: options}.
+        residual: "fast" (closed-form kinetic derivatives) or "generic" (autodiff of L_d).
+        epsilon: log-det regularity threshold, also used to pick the initial scale.
+        known / physics: parts set to the scene's true values and frozen.
+        gravity: field strength of the uniform_gravity part; learn_gravity_direction: learn its direction too.
     """
 
     window = "triplet"
@@ -53,7 +79,7 @@ class LieDFLNN(ImplicitModel):
         self,
         G: ProductGroup,
         h: float,
-        potential: str = "none",
+        potential="none",
         forces=("rayleigh",),
         residual: str = "fast",
         mlp_width: int = 64,
@@ -63,6 +89,8 @@ class LieDFLNN(ImplicitModel):
         seed: int = 0,
         known=(),
         physics: dict | None = None,
+        gravity: float = STANDARD_GRAVITY,
+        learn_gravity_direction: bool = False,
     ):
         super().__init__()
         if residual not in RESIDUAL_MODES:
@@ -101,19 +129,26 @@ class LieDFLNN(ImplicitModel):
                 with torch.no_grad():
                     self.rho.copy_(rho_true[: G.n_se3])
                 self.rho.requires_grad_(False)
+        parts = potential_parts(potential)
         if "potential" in known:
-            if potential == "mlp":
+            if parts:
                 raise ValueError(
-                    "model.potential=mlp together with model.known=[potential]: choose one "
-                    "(the known potential replaces the network)"
+                    f"model.potential={potential} together with model.known=[potential]: choose one "
+                    "(the known potential replaces the learned one)"
                 )
             self.potential = true_potential(G, physics)  # None when the scene has no potential
-        elif potential == "none":
-            self.potential = None
-        elif potential == "mlp":
-            self.potential = MLPPotential(G, mlp_width, mlp_depth)
         else:
-            raise ValueError(f"model.potential must be 'none' or 'mlp', got {potential!r}")
+            terms = []
+            for part in parts:
+                if part == "mlp":
+                    terms.append(MLPPotential(G, mlp_width, mlp_depth))
+                else:  # uniform_gravity: shares m and rho_COM with the kinetic term
+                    terms.append(
+                        UniformGravityPotential(
+                            G, gravity=gravity, mass=self.mass, rho=self.rho, learn_direction=learn_gravity_direction
+                        )
+                    )
+            self.potential = None if not terms else terms[0] if len(terms) == 1 else SumPotential(terms)
         self.forces = nn.ModuleList(build_forces(G, forces, scale))
         if "damping" in known:
             ray = [f for f in self.forces if getattr(f, "name", None) == "rayleigh"]
@@ -122,29 +157,54 @@ class LieDFLNN(ImplicitModel):
             ray[0].D.set_matrix(D_true)
             ray[0].requires_grad_(False)
 
-    OPTIONS = ("potential", "residual", "mlp_width", "mlp_depth", "init_jitter", "known")
+    OPTIONS = (
+        "potential",
+        "residual",
+        "mlp_width",
+        "mlp_depth",
+        "init_jitter",
+        "known",
+        "gravity",
+        "learn_gravity_direction",
+    )
 
     @classmethod
     def from_config(cls, ctx: BuildContext, **options) -> LieDFLNN:
-        """`model.potential: auto` is no potential for a free body (or with a known potential)."""
+        """`model.potential: auto` reads the data (`BuildContext.resolve_potential_parts`); with a known
+        potential it is none. `model.gravity: auto` is the data's declared g (9.81 when undeclared or
+        0). What auto chose is kept in `notes` (printed by `liedfl train`)."""
         opt = config_options(cls, options, cls.OPTIONS)
         known = tuple(opt.pop("known", None) or ())
-        potential = opt.pop("potential", "auto")
-        potential = "none" if potential == "auto" and "potential" in known else ctx.resolve_potential(potential)
+        choice = opt.pop("potential", "auto")
+        if choice == "auto" and "potential" in known:
+            parts, why = (), "auto: none (model.known holds the true potential)"
+        else:
+            parts, why = ctx.resolve_potential_parts(choice)
+        gravity = opt.pop("gravity", "auto")
+        if gravity in (None, "auto"):
+            declared = ctx.declared_gravity()
+            gravity = declared if declared else STANDARD_GRAVITY
         try:
-            return cls(
+            gravity = float(gravity)
+        except (TypeError, ValueError):
+            raise ConfigError(f"model.gravity={gravity!r}: auto or a number") from None
+        try:
+            model = cls(
                 ctx.group,
                 ctx.h,
-                potential=potential,
+                potential=list(parts),
                 forces=dict(ctx.forces),
                 epsilon=ctx.epsilon,
                 seed=ctx.seed,
                 known=known,
                 physics=dict(ctx.physics) if known and ctx.physics else None,
+                gravity=gravity,
                 **opt,
             )
         except ValueError as e:  # bad model/force options: one clear config error
             raise ConfigError(str(e)) from None
+        model.notes = [f"potential: {why}"]
+        return model
 
     # ------------------------------------------------------------------ parameters
     def _params(self):
@@ -154,8 +214,22 @@ class LieDFLNN(ImplicitModel):
         empty = Jd.new_zeros(0)
         return Jd, empty, Jd.new_zeros(0, 3)
 
-    def loss(self, batch: TripletBatch, opts: LossOptions):
+    def _fused(self) -> bool:
+        """Whether the fused paths (`models.fused`) serve this model (`runtime.fused`, fast residual)."""
+        return self.residual_mode == "fast" and runtime.current().fused
+
+    def training_set(self, data: Pose, steps: int):
+        """Triplets as precomputed increments (`fused.IncrementSet`) on the fused path."""
+        if self._fused():
+            return fused.IncrementSet(self, data, steps)
+        return super().training_set(data, steps)
+
+    def loss(self, batch: TripletBatch | fused.IncrementBatch, opts: LossOptions):
         """w_DEL mean ||r||^2 + w_reg mean penalty(log|det H|) -> (loss, {"del_loss", "reg_loss"})."""
+        if isinstance(batch, fused.IncrementBatch):
+            if runtime.want_compile("train"):  # the whole loss, forward and backward, compiled
+                return runtime.compiled(fused_loss, "train_loss")(self, batch, opts)
+            return fused_loss(self, batch, opts)
         use_reg = batch.reg is not None and opts.w_reg > 0
         logdet = self.regularity_logdet(*batch.reg) if use_reg else None
         return del_regularity_loss(self.residual(*batch.poses()), logdet, opts)
@@ -167,11 +241,17 @@ class LieDFLNN(ImplicitModel):
         or ["J_d (known, frozen)", "V:gravity+interaction:spring (known, frozen)", ...].
         """
 
+        seen: set[int] = set()  # parameters shared between parts (uniform_gravity's m, rho) count once
+
         def tag(label: str, *modules) -> str:
             params = [
                 p for m in modules if m is not None for p in (m.parameters() if isinstance(m, nn.Module) else [m])
             ]
-            n = sum(p.numel() for p in params if p.requires_grad)
+            own = [p for p in params if id(p) not in seen]
+            seen.update(id(p) for p in params)
+            n = sum(p.numel() for p in own if p.requires_grad)
+            if params and not own:
+                return f"{label} (shared)"
             if params and n == 0 or not params:
                 return f"{label} (known, frozen)"
             return f"{label} ({n:,})"
@@ -259,13 +339,18 @@ class LieDFLNN(ImplicitModel):
 
     # ------------------------------------------------------------------ implicit step (rollout)
     def implicit_start(self, g0: Pose, g1: Pose):
-        """State (g_{k-1}, g_k, warm start = the last increment g_{k-1}^{-1} g_k)."""
+        """State (g_{k-1}, g_k, warm start = the last increment g_{k-1}^{-1} g_k); on the fused path
+        a `fused.RolloutState` that also carries the parameters derived once for the rollout."""
+        if self._fused():
+            return fused.rollout_start(self, g0, g1)
         return g0, g1, self.G.increment(g0, g1)
 
     def implicit_problem(self, state) -> NewtonProblem:
         """Solve the DEL residual for the increment W_k = g_k^{-1} g_{k+1}, updated by W exp(delta)
         (so it stays on the group), warm-started from W_{k-1}; the part of the residual fixed by
         (g_{k-1}, g_k) is computed once."""
+        if isinstance(state, fused.RolloutState):
+            return fused.rollout_problem(self, state)
         g_prev, g, inc = state
         G = self.G
         with torch.enable_grad():  # potential gradients and autodiff Jacobians need autograd
@@ -284,6 +369,8 @@ class LieDFLNN(ImplicitModel):
     def implicit_advance(self, state, x: Pose):
         # Newton-Schulz step on the increment: its retractions would otherwise accumulate
         # rounding drift off SO(3) across the warm-started steps (O(k eps) instead of O(sqrt(k) eps)).
+        if isinstance(state, fused.RolloutState):
+            return fused.rollout_advance(self, state, x)
         _, g, _ = state
         W = x.R.detach()
         W = 0.5 * W @ (3.0 * torch.eye(3, dtype=W.dtype) - W.transpose(-1, -2) @ W)
@@ -341,6 +428,15 @@ def regularity_penalty(logdet: torch.Tensor, epsilon: float, form: str = "relu")
         u = torch.exp(torch.clamp(logdet - epsilon, max=50.0))
         return torch.exp(-0.5 * (u - 1.0) ** 2) / math.sqrt(2 * math.pi)
     raise ValueError(f"train.reg_form must be 'relu' or 'gaussian', got {form!r}")
+
+
+def fused_loss(model: LieDFLNN, batch: fused.IncrementBatch, opts: LossOptions):
+    """`LieDFLNN.loss` of an `IncrementBatch`: the fused residual and regularity (what
+    `runtime.compile` compiles for training); SO(3)-only models whose trainable parts are J_d and
+    D take the hand-written gradient of `fused.rotational_loss`."""
+    if fused.rotational_only(model, batch) and not torch.compiler.is_compiling():
+        return fused.rotational_loss(model, batch, opts)
+    return del_regularity_loss(*fused.residual_and_logdet(model, batch, opts), opts)
 
 
 def del_regularity_loss(r: torch.Tensor, logdet: torch.Tensor | None, opts: LossOptions):

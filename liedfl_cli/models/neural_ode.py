@@ -18,12 +18,18 @@ import torch
 from ..errors import ConfigError
 from ..lie import Pose, ProductGroup
 from ..mechanics.mlp import MLP
-from .base import Batch, BuildContext, ExplicitModel, LossOptions, config_options
+from .base import Batch, BuildContext, ExplicitModel, LossOptions, LossParts, config_options
 
 ADAPTIVE_METHODS = ("dopri5", "dopri8", "bosh3", "fehlberg2", "adaptive_heun")
 
 
+# rollout state: (x (N, n), v (N, n))
+State = tuple[torch.Tensor, torch.Tensor]
+
+
 class NeuralODE(ExplicitModel):
+    """x'' = f_theta(x, v) on the raw entries x (..., n) of a pose, n = 9 B + 3 m."""
+
     adaptive = True  # torchdiffeq integrates the whole time grid (any method)
 
     def __init__(
@@ -47,22 +53,32 @@ class NeuralODE(ExplicitModel):
             torch.manual_seed(int(seed))
             self.field = MLP(2 * self.n, self.n, mlp_width, mlp_depth)
 
-    OPTIONS = ("window", "mlp_width", "mlp_depth", "method", "rtol", "atol", "max_num_steps")
+    OPTIONS = ("window", "mlp_width", "mlp_depth", "method", "rtol", "atol", "max_num_steps", "potential")
 
     @classmethod
     def from_config(cls, ctx: BuildContext, **options) -> NeuralODE:
+        """`potential` (set for every model of a sweep by the experiment files) may only be auto or mlp:
+        the vector field is one MLP, which holds any potential force implicitly."""
         opt = config_options(cls, options, cls.OPTIONS)
+        if opt.pop("potential", "auto") not in ("auto", "mlp"):
+            raise ConfigError(
+                "model=neural_ode: its vector field is one MLP (any potential is in it); "
+                "model.potential must be auto or mlp"
+            )
         if opt.get("window", "trajectory") not in ("triplet", "trajectory"):
             raise ConfigError(f"model.window={opt['window']!r}: choose one of triplet, trajectory")
         return cls(ctx.group, ctx.h, seed=ctx.seed, **opt)
 
     def components(self) -> list[str]:
+        """["f:MLP(2n->n)", "integrator:<method>"]."""
         return [f"f:MLP({2 * self.n}->{self.n})", f"integrator:{self.method}"]
 
     def to_x(self, g: Pose) -> torch.Tensor:
+        """Pose R (..., B, 3, 3), p (..., m, 3) -> x (..., n) (`ProductGroup.flatten`)."""
         return self.G.flatten(g)
 
     def from_x(self, x: torch.Tensor) -> Pose:
+        """Inverse of `to_x`: x (..., n) -> Pose R (..., B, 3, 3), p (..., m, 3) (R not orthogonalised)."""
         lead, B, m = x.shape[:-1], self.G.n_bodies, self.G.n_se3
         return Pose(x[..., : 9 * B].reshape(*lead, B, 3, 3), x[..., 9 * B :].reshape(*lead, m, 3))
 
@@ -82,21 +98,27 @@ class NeuralODE(ExplicitModel):
         )
         return ys[..., :n].transpose(0, 1)
 
-    def loss(self, batch: Batch, opts: LossOptions):
+    def loss(self, batch: Batch, opts: LossOptions) -> tuple[torch.Tensor, LossParts]:
         """Unroll each window from (x_0, (x_1 - x_0)/h) -> (mean squared error of the predicted
-        x_1..x_L, {"mse": ...}); a triplet is a length-2 window."""
+        x_1..x_L, {"mse": ...}); a triplet is a length-2 window.
+
+        batch: windows R (N, L+1, B, 3, 3), p (N, L+1, m, 3) (`as_sequence`) -> (scalar (), {"mse": scalar ()}).
+        """
         x = self.to_x(batch.as_sequence())
         pred = self.integrate_x(x[:, 0], (x[:, 1] - x[:, 0]) / self.h, x.shape[1] - 1)
         mse = ((pred[:, 1:] - x[:, 1:]) ** 2).mean()
         return mse, {"mse": mse}
 
     # ------------------------------------------------------------------ rollout (solvers.rollout_explicit)
-    def initial_state(self, g0: Pose, g1: Pose):
+    def initial_state(self, g0: Pose, g1: Pose) -> State:
+        """g0, g1 (leading shape (N,)) -> (x0 (N, n), v0 = (x1 - x0)/h (N, n))."""
         x0, x1 = self.to_x(g0), self.to_x(g1)
         return x0, (x1 - x0) / self.h
 
-    def state_pose(self, state):
+    def state_pose(self, state: State) -> Pose:
+        """(x (N, n), v) -> Pose R (N, B, 3, 3), p (N, m, 3)."""
         return self.from_x(state[0])
 
-    def integrate(self, state, steps: int) -> Pose:
+    def integrate(self, state: State, steps: int) -> Pose:
+        """(x0 (N, n), v0 (N, n)) -> Pose at t = 0, h, ..., steps h: R (N, steps+1, B, 3, 3), p (N, steps+1, m, 3)."""
         return self.from_x(self.integrate_x(state[0], state[1], steps))

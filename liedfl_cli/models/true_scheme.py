@@ -10,6 +10,7 @@ from __future__ import annotations
 import torch
 
 from ..lie import ProductGroup
+from ..mechanics.forces import RayleighForce
 from ..mechanics.scene_physics import body_parameters, true_control, true_potential
 from .liedflnn import LieDFLNN
 
@@ -17,7 +18,9 @@ from .liedflnn import LieDFLNN
 def physics_model(G: ProductGroup, h: float, physics: dict, residual: str = "fast") -> LieDFLNN:
     """LieDFLNN carrying the true parameters of `physics` (every part frozen).
 
-    Bodies share J/m/rho when a single value is given.
+    Bodies share J/m/rho when a single value is given. Parameters set: J (B, 3, 3), masses (m,)
+    and rho (m, 3) of the SE(3) bodies, D (dim, dim) when nonzero, plus the scene's potential and
+    control. Its DEL residual vanishes on exact trajectories up to O(h^3) per step.
     """
     J, masses, rhos, D = body_parameters(G, physics)
     forces = ["rayleigh"] if torch.count_nonzero(D) else []
@@ -28,7 +31,9 @@ def physics_model(G: ProductGroup, h: float, physics: dict, residual: str = "fas
         with torch.no_grad():
             model.rho.copy_(rhos[: G.n_se3])
     if forces:
-        model.forces[0].D.set_matrix(D)
+        rayleigh = model.forces[0]
+        assert isinstance(rayleigh, RayleighForce)  # forces == ["rayleigh"]
+        rayleigh.D.set_matrix(D)
     model.potential = true_potential(G, physics)
     ctrl = true_control(G, physics)
     if ctrl is not None:
@@ -38,7 +43,11 @@ def physics_model(G: ProductGroup, h: float, physics: dict, residual: str = "fas
 
 
 def true_model(dataset, residual: str = "fast") -> LieDFLNN | None:
-    """The true-parameter scheme of a synthetic dataset, or None for real recordings."""
+    """The true-parameter scheme of a synthetic dataset (`physics_model` of its params["physics"]
+    on the dataset's group and h), or None for real recordings.
+
+    `dataset`: a `data.hdf5.Dataset` (read through .params, .group, .h only; not imported here,
+    since models/ may not import data/)."""
     physics = (dataset.params or {}).get("physics")
     if not physics or "J" not in physics:
         return None

@@ -22,13 +22,18 @@ class NewtonProblem:
     """Find x with f(x) = 0 row by row, starting at x0.
 
     f(x) -> (T, n); jac(x) -> (T, n, n) = d f(retract(x, delta)) / d delta at 0;
-    retract(x, delta (T, n)) -> x' (x is a Pose of increments or a plain tensor).
+    retract(x, delta (T, n)) -> x' (x is a Pose of increments or a plain tensor);
+    iterate(x, r = f(x)) -> (delta, singular (T,) bool, x' = retract(x, delta), f(x')), optional:
+    one full Newton step computed in one go (a model's fused step); restrict(rows (k,) long) ->
+    the NewtonProblem of those rows (x0 and all per-row data indexed), optional.
     """
 
     f: Callable[[Any], torch.Tensor]
     jac: Callable[[Any], torch.Tensor]
     x0: Any
     retract: Callable[[Any, torch.Tensor], Any]
+    iterate: Callable[[Any, torch.Tensor], tuple] | None = None  # optional fused full Newton step
+    restrict: Callable[[torch.Tensor], NewtonProblem] | None = None  # optional: the problem of some rows
 
     @classmethod
     def euclidean(cls, f: Callable[[torch.Tensor], torch.Tensor], x0: torch.Tensor) -> NewtonProblem:
@@ -69,8 +74,161 @@ def select(mask: torch.Tensor, a, b):
     return torch.where(mask.reshape(-1, *([1] * (a.dim() - 1))), a, b)
 
 
-def newton_solve(f, jac, x0, retract, opts: SolverOptions | None = None) -> NewtonResult:
+def newton_solve(f, jac, x0, retract, opts: SolverOptions | None = None, iterate=None, restrict=None) -> NewtonResult:
     """Damped Newton with backtracking on ||f||_2 for a batch of T independent problems.
+
+    f(x) -> (T, n); jac(x) -> (T, n, n) = d f(retract(x, delta)) / d delta; retract(x, delta (T, n)).
+    A row converges when the full Newton step of a non-singular Jacobian has max norm <= tol
+    (the step is then applied, leaving an error ~ tol^2 by quadratic convergence). Rows with a
+    singular Jacobian take a least-squares step and cannot converge on that iteration; a
+    step that finds no decrease in ||f|| after `max_halvings` halvings is taken in full
+    (tol, max_iter, max_halvings from `opts`). `iterate(x, r)` -> (delta, singular, x', f(x')),
+    one full Newton step, may replace the composition of `jac`, an LU solve, `retract` and `f`;
+    `restrict(rows)` -> the `NewtonProblem` of some rows lets the last iterations run on the
+    few rows still iterating.
+
+    The loop reads one set of flags per iteration from the tensors (no per-row selects): when
+    every row's full step decreases ||f|| and no Jacobian is singular (the usual case) the step
+    is taken as is; otherwise the iteration is redone row by row as in `newton_solve_reference`,
+    with the same results, convergence flags and iteration counts (rows are independent, so
+    working on a subset changes nothing either).
+    """
+    opts = opts or SolverOptions()
+    problem = NewtonProblem(f, jac, x0, retract, iterate, restrict)
+    r = f(x0)
+    x, r, converged, iters = _newton_rows(problem, x0, r, torch.linalg.vector_norm(r, dim=-1), opts, opts.max_iter)
+    return NewtonResult(x, converged, iters, r.abs().amax(-1))
+
+
+COMPACT_MIN_ROWS = 64  # below this many rows a batch is not split further
+COMPACT_FRACTION = 0.25  # rows still iterating, as a fraction, below which only they are iterated
+
+
+def _newton_rows(problem: NewtonProblem, x, r, rn, opts: SolverOptions, max_iter: int):
+    """The loop of `newton_solve` from (x, r = f(x), rn = |r|) for `max_iter` iterations ->
+    (x, r, converged, iterations)."""
+    f, jac, retract = problem.f, problem.jac, problem.retract
+    iterate = problem.iterate
+    if iterate is None:
+
+        def iterate(x, r):
+            sol, info = torch.linalg.solve_ex(jac(x), r[..., None])
+            delta = -sol[..., 0]
+            cand = retract(x, delta)
+            return delta, info > 0, cand, f(cand)
+
+    tol = opts.tol
+    T = r.shape[0]
+    converged = torch.zeros(T, dtype=torch.bool, device=r.device)
+    iters = torch.zeros(T, dtype=torch.long, device=r.device)
+    any_converged = False
+    for it in range(max_iter):
+        if T == 0:
+            break
+        delta, singular, cand, rc = iterate(x, r)
+        rcn = torch.linalg.vector_norm(rc, dim=-1)
+        finite = torch.isfinite(rcn)
+        ok = finite & (rcn <= rn * (1 - 1e-4) + 1e-300)
+        full_step = delta.abs().amax(-1)  # not finite exactly where delta is not
+        irregular = singular | ~(ok & torch.isfinite(full_step))
+        new_converged = (full_step <= tol) & finite
+        if any_converged:  # rows that converged earlier take no part
+            active = ~converged
+            irregular = irregular & active
+            new_converged = converged | (active & new_converged)
+        else:
+            active = torch.ones_like(converged)
+        flags = torch.stack((irregular.any(), new_converged.sum())).tolist()
+        if flags[0]:  # a singular Jacobian or a step without decrease: redo row by row
+            x, r, rn, singular, full_step = _careful_iteration(f, jac, retract, x, r, rn, active, opts)
+            iters = iters + active.long()
+            converged = converged | (active & ~singular & (full_step <= tol) & torch.isfinite(rn))
+            n_converged = int(converged.sum())
+        else:
+            if any_converged:
+                x, r = select(active, cand, x), select(active, rc, r)
+                rn = torch.where(active, rcn, rn)
+                iters = iters + active.long()
+            else:
+                x, r, rn = cand, rc, rcn
+                iters = iters + 1
+            converged = new_converged
+            n_converged = int(flags[1])
+        any_converged = n_converged > 0
+        if n_converged == T:
+            break
+        left = max_iter - it - 1
+        if left and problem.restrict is not None and T >= COMPACT_MIN_ROWS and T - n_converged <= COMPACT_FRACTION * T:
+            rows = (~converged).nonzero()[:, 0]
+            sub = problem.restrict(rows)
+            xs, rs, cs, its = _newton_rows(sub, _take(x, rows), r[rows], rn[rows], opts, left)
+            x, r = _put(x, rows, xs), r.index_copy(0, rows, rs)
+            converged = converged.index_copy(0, rows, cs)
+            iters = iters.index_add(0, rows, its)
+            break
+    return x, r, converged, iters
+
+
+def _take(x, rows: torch.Tensor):
+    if isinstance(x, Pose):
+        return Pose(x.R.index_select(0, rows), x.p.index_select(0, rows))
+    return x.index_select(0, rows)
+
+
+def _put(x, rows: torch.Tensor, values):
+    if isinstance(x, Pose):
+        return Pose(x.R.index_copy(0, rows, values.R), x.p.index_copy(0, rows, values.p))
+    return x.index_copy(0, rows, values)
+
+
+def _careful_iteration(f, jac, retract, x, r, rn, active, opts: SolverOptions):
+    """One iteration of `newton_solve_reference` (least squares for singular rows, backtracking
+    per row): (x, r, rn, singular, full_step) with inactive rows unchanged."""
+    max_halvings = opts.max_halvings
+    T = r.shape[0]
+    J = jac(x)
+    sol, info = torch.linalg.solve_ex(J, r[..., None])
+    singular = info > 0
+    delta = -sol[..., 0]
+    if singular.any():
+        delta_ls = -torch.linalg.lstsq(J, r[..., None], driver="gelsd").solution[..., 0]
+        delta = torch.where(singular[:, None], delta_ls, delta)
+    bad = ~torch.isfinite(delta).all(-1)
+    singular = singular | bad
+    delta = torch.where(bad[:, None], torch.zeros_like(delta), delta)
+    full_step = delta.abs().amax(-1)
+    alpha = torch.ones(T, dtype=r.dtype, device=r.device)
+    accepted = ~active
+    new_x, new_r, new_rn = x, r, rn
+    for _h in range(max_halvings + 1):
+        cand = retract(x, alpha[:, None] * delta)
+        rc = f(cand)
+        rcn = torch.linalg.vector_norm(rc, dim=-1)
+        ok = (~accepted) & torch.isfinite(rcn) & (rcn <= rn * (1 - 1e-4 * alpha) + 1e-300)
+        new_x, new_r = select(ok, cand, new_x), select(ok, rc, new_r)
+        new_rn = torch.where(ok, rcn, new_rn)
+        accepted = accepted | ok
+        if accepted.all():
+            break
+        alpha = torch.where(accepted, alpha, 0.5 * alpha)
+    fallback = ~accepted
+    if fallback.any():
+        cand = retract(x, delta)
+        rc = f(cand)
+        rcn = torch.linalg.vector_norm(rc, dim=-1)
+        fin = fallback & torch.isfinite(rcn)
+        new_x, new_r = select(fin, cand, new_x), select(fin, rc, new_r)
+        new_rn = torch.where(fin, rcn, new_rn)
+    x, r = select(active, new_x, x), select(active, new_r, r)
+    rn = torch.where(active, new_rn, rn)
+    return x, r, rn, singular, full_step
+
+
+def newton_solve_reference(f, jac, x0, retract, opts: SolverOptions | None = None) -> NewtonResult:
+    """The original damped Newton loop (row-wise `select` and `.any()` in the loop), kept as the
+    reference of `newton_solve` for the tests and the benchmark's baseline; same contract.
+
+    Damped Newton with backtracking on ||f||_2 for a batch of T independent problems.
 
     f(x) -> (T, n); jac(x) -> (T, n, n) = d f(retract(x, delta)) / d delta; retract(x, delta (T, n)).
     A row converges when the full Newton step of a non-singular Jacobian has max norm <= tol
@@ -133,7 +291,12 @@ def newton_solve(f, jac, x0, retract, opts: SolverOptions | None = None) -> Newt
 
 def solve(problem: NewtonProblem, opts: SolverOptions | None = None) -> NewtonResult:
     """`newton_solve` of a `NewtonProblem`."""
-    return newton_solve(problem.f, problem.jac, problem.x0, problem.retract, opts)
+    return newton_solve(problem.f, problem.jac, problem.x0, problem.retract, opts, problem.iterate, problem.restrict)
+
+
+def solve_reference(problem: NewtonProblem, opts: SolverOptions | None = None) -> NewtonResult:
+    """`newton_solve_reference` of a `NewtonProblem` (its `iterate` is not used)."""
+    return newton_solve_reference(problem.f, problem.jac, problem.x0, problem.retract, opts)
 
 
 def damped_newton(f, xi0: torch.Tensor, opts: SolverOptions | None = None) -> NewtonResult:

@@ -21,7 +21,7 @@ class SolverOptions:
     max_halvings: int = 6
 
     @classmethod
-    def from_mapping(cls, values: Mapping[str, Any] | None) -> SolverOptions:
+    def from_mapping(cls, values: Mapping[str, Any] | SolverOptions | None) -> SolverOptions:
         """Options from a plain mapping (a resolved `solver` config); missing keys take defaults,
         unknown keys raise ValueError naming them."""
         if values is None:

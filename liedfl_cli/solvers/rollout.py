@@ -16,7 +16,8 @@ from typing import Any
 import torch
 
 from ..lie import Pose
-from .newton import NewtonResult, solve
+from . import runtime
+from .newton import NewtonResult, solve, solve_reference
 from .options import SolverOptions
 
 
@@ -64,11 +65,13 @@ def rollout_implicit(model: Any, g0: Pose, g1: Pose, steps: int, opts: SolverOpt
     """Roll an `ImplicitModel` forward: for k = 1..steps-1 solve the model's Newton problem
     for g_{k+1} given its state (built from g_{k-1}, g_k). `progress`: optional callable(k)."""
     t0 = time.perf_counter()
+    runtime.plan("rollout", g0.R.shape[0] * max(steps - 1, 0))
     state = model.implicit_start(g0, g1)
+    solver = solve if runtime.current().fused else solve_reference
     Rs, ps = [g0.R, g1.R], [g0.p, g1.p]
     conv, its, res = [], [], []
     for k in range(1, steps):
-        sol = solve(model.implicit_problem(state), opts)
+        sol = solver(model.implicit_problem(state), opts)
         state, g_next = model.implicit_advance(state, sol.x)
         Rs.append(g_next.R)
         ps.append(g_next.p)

@@ -1,0 +1,174 @@
+"""Process-wide execution settings of the numerical engine (`runtime` config section): threads,
+fused paths, compilation.
+
+    runtime.threads   auto | N   torch intra-op threads (auto: 1, measured fastest here; 1 per job
+                                 under the joblib launcher whatever N says)
+    runtime.fused     true | false   fused hot paths (false: the reference paths, for comparison)
+    runtime.compile   auto | true | false   torch.compile (CPU inductor) of the fused hot paths;
+                                 auto compiles only work large enough to repay the compilation
+                                 (docs/benchmarks.md); without a C++ compiler it falls back to
+                                 eager, saying so once.
+
+The models and solvers read `current()`; the pipeline calls `configure(cfg.runtime)` once per
+command (`factory.configure_runtime`, which knows about Hydra's launchers; this module does not).
+`using(...)` switches settings temporarily (tests, benchmarks).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import os
+import shutil
+import sys
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass, fields, replace
+from typing import Any
+
+import torch
+
+from ..errors import ConfigError
+
+COMPILE_CHOICES = ("auto", "true", "false")
+DEFAULT_THREADS = 1
+"""Threads for `runtime.threads: auto` (docs/benchmarks.md: on the 2-core machine one thread was
+as fast as two on an idle machine at the batch sizes used here and several times faster when
+other work shares the cores)."""
+
+COMPILE_MIN_WORK = {"rollout": 5.0e7, "train": 1.0e5}
+"""`compile: auto` compiles a hot path only for work large enough to repay the one-off compilation
+(tens of seconds on 2 cores, docs/benchmarks.md): a rollout of trajectories x steps row-steps, a
+training run of optimiser steps."""
+
+
+@dataclass(frozen=True)
+class RuntimeOptions:
+    threads: int | str = "auto"
+    fused: bool = True
+    compile: str = "auto"
+
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, Any] | None) -> RuntimeOptions:
+        if values is None:
+            return cls()
+        if isinstance(values, RuntimeOptions):
+            return values
+        names = {f.name for f in fields(cls)}
+        unknown = sorted(set(values) - names)
+        if unknown:
+            raise ConfigError(f"runtime: unknown key '{unknown[0]}'; expected some of {', '.join(sorted(names))}")
+        threads = values.get("threads", "auto")
+        if not (threads == "auto" or (isinstance(threads, int) and not isinstance(threads, bool) and threads >= 1)):
+            raise ConfigError(f"runtime.threads={threads!r}: choose auto or a positive integer")
+        comp = values.get("compile", "auto")
+        comp = {True: "true", False: "false"}.get(comp, comp) if isinstance(comp, bool) else str(comp)
+        if comp not in COMPILE_CHOICES:
+            raise ConfigError(f"runtime.compile={values.get('compile')!r}: choose one of {', '.join(COMPILE_CHOICES)}")
+        fused = values.get("fused", True)
+        if not isinstance(fused, bool):
+            raise ConfigError(f"runtime.fused={fused!r}: choose true or false")
+        return cls(threads=threads, fused=fused, compile=comp)
+
+
+_current = RuntimeOptions()
+
+
+def current() -> RuntimeOptions:
+    return _current
+
+
+def resolve_threads(threads: int | str, parallel_job: bool = False) -> int:
+    """Threads to use: a number as given (capped at the cores), auto -> DEFAULT_THREADS; 1 in a
+    parallel sweep job (the jobs already share the cores)."""
+    if parallel_job:
+        return 1
+    if threads == "auto":
+        return DEFAULT_THREADS
+    return max(1, min(int(threads), os.cpu_count() or 1))
+
+
+def configure(values: Mapping[str, Any] | None, parallel_job: bool = False) -> RuntimeOptions:
+    """Apply the `runtime` config section for this process; returns the options in force.
+    `parallel_job`: this process is one of several sweep jobs run side by side (joblib)."""
+    global _current
+    opts = RuntimeOptions.from_mapping(values)
+    torch.set_num_threads(resolve_threads(opts.threads, parallel_job))
+    _current = opts
+    return opts
+
+
+@contextlib.contextmanager
+def using(**changes: Any) -> Iterator[RuntimeOptions]:
+    """Temporarily replace some settings (threads are left as they are)."""
+    global _current
+    before = _current
+    _current = replace(before, **changes)
+    try:
+        yield _current
+    finally:
+        _current = before
+
+
+# ---------------------------------------------------------------------------- compilation
+@functools.lru_cache(maxsize=1)
+def compiler_available() -> bool:
+    """True when torch.compile's CPU backend can build code here (a C++ compiler on PATH)."""
+    cxx = os.environ.get("CXX")
+    if cxx and shutil.which(cxx):
+        return True
+    return any(shutil.which(c) for c in ("g++", "c++", "clang++"))
+
+
+_said_no_compiler = False
+
+
+def _say_once(message: str) -> None:
+    global _said_no_compiler
+    if not _said_no_compiler:
+        print(f"warning: {message}", file=sys.stderr, flush=True)
+        _said_no_compiler = True
+
+
+_planned: dict[str, float] = {}
+
+
+def plan(kind: str, work: float) -> None:
+    """Announce the size of the coming hot-path work ("rollout": row-steps, "train": optimiser
+    steps), which `compile: auto` weighs against the compilation time."""
+    _planned[kind] = float(work)
+
+
+def want_compile(kind: str) -> bool:
+    """Whether to compile the hot path `kind` ("rollout" | "train") under `runtime.compile`."""
+    opts = current()
+    if not opts.fused or opts.compile == "false":
+        return False
+    if opts.compile == "auto" and _planned.get(kind, 0.0) < COMPILE_MIN_WORK[kind]:
+        return False
+    if not compiler_available():
+        _say_once("runtime.compile: no C++ compiler found (g++/c++/clang++), running the fused paths uncompiled")
+        return False
+    return True
+
+
+_compiled: dict[Any, Callable] = {}
+
+
+def compiled(fn: Callable, key: Any = None) -> Callable:
+    """`torch.compile(fn)` (dynamic batch size), built once per key; falls back to `fn` with one
+    printed line when compilation fails (e.g. a broken toolchain)."""
+    key = key if key is not None else fn
+    if key in _compiled:
+        return _compiled[key]
+    compiled_fn = torch.compile(fn, dynamic=True)
+
+    def run(*args, **kwargs):
+        try:
+            return compiled_fn(*args, **kwargs)
+        except Exception as e:  # compilation needs a working toolchain; eager is always correct
+            _say_once(f"runtime.compile: compilation failed ({type(e).__name__}), running uncompiled")
+            _compiled[key] = fn
+            return fn(*args, **kwargs)
+
+    _compiled[key] = run
+    return run

@@ -1,0 +1,240 @@
+"""Speed benchmark of the fused engine against the reference (unfused) paths, in one run.
+
+    python scripts/bench.py --json FILE [--quick] [--threads N] [--no-compile] [--data-dir DIR]
+
+Every figure is measured twice in the same process, once on the fused paths (`runtime.fused`,
+the default) and once on the reference paths (`baseline_*` keys), alternately, each the best of a
+few repeats, so a speed-up is a ratio taken under the same load. Keys:
+
+  train_triplets_per_s          default `liedfl train` (free rigid body, batch 1024, SOAP)
+  exp3_s_per_epoch              Exp 3 LieDFLNN (heavy body on SE(3), MLP potential 32x3)
+  mocap_s_per_epoch             Exp 4 (mocap, SE(3) x SO(3)^22, SOAP, batch 63)
+  rollout_us_per_step_traj      {model: {batch: us}} for the free body with true parameters and
+                                the SE(3) LieDFLNN with an MLP potential 64x3, batches 1/10/1000/10000
+  compile_s                     first compilation of the Newton step (runtime.compile=true)
+  compiled_rollout_us_per_step_traj  the free body with the compiled step, batches 1000/10000
+  threads, load_avg             torch threads used; `os.getloadavg()` before and after
+  threads_compare               (--compare-threads) default-train s/epoch and free-body rollout
+                                us/step/trajectory with 1 and 2 threads
+  speedup                       every baseline / fused ratio
+  cpu_time                      the same figures in CPU time of this process (with one thread, what
+                                the wall time would be on an idle machine when others share the cores)
+
+--quick (< 3 minutes) runs fewer epochs and steps; datasets are generated (cached) on first use.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from hydra import compose, initialize_config_dir  # noqa: E402
+from hydra.core.global_hydra import GlobalHydra  # noqa: E402
+from omegaconf import OmegaConf  # noqa: E402
+
+from liedfl_cli.cli import CONF_DIR  # noqa: E402
+from liedfl_cli.data.scenes import get_dataset  # noqa: E402
+from liedfl_cli.factory import build_model  # noqa: E402
+from liedfl_cli.lie import SE3, SO3, Pose, so3  # noqa: E402
+from liedfl_cli.models.liedflnn import LieDFLNN  # noqa: E402
+from liedfl_cli.models.true_scheme import physics_model  # noqa: E402
+from liedfl_cli.solvers import runtime  # noqa: E402
+from liedfl_cli.train import fit  # noqa: E402
+
+PHYS = {"J": [1.521, 1.362, 1.211], "m": 0.5, "rho": [0.0, 0.5, 1.0]}
+BATCHES = (1, 10, 1000, 10000)
+CPU_US: list[float] = []  # CPU time of each `rollout_us` call, in call order
+
+
+def config(overrides: list[str], data_dir: str):
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        paths = [f"paths.data_dir={data_dir}", "paths.output_dir=/tmp/liedfl-bench"]
+        return compose("train", overrides=[*overrides, *paths])
+
+
+def epoch_seconds(overrides: list[str], epochs: int, repeats: int, data_dir: str) -> dict:
+    """Seconds per epoch of `fit` (best of `repeats`), fused and reference, and the sample count."""
+    cfg = config(overrides, data_dir)
+    ds, _ = get_dataset(cfg.dataset, data_dir)
+    data = ds.pose(ds.train_idx)
+    tcfg = OmegaConf.merge(cfg.train, {"epochs": epochs, "checkpoint_every": 10**9})
+    best = {True: float("inf"), False: float("inf")}
+    cpu = {True: float("inf"), False: float("inf")}
+    n = 0
+    for _ in range(repeats):
+        for fused in (True, False):
+            with runtime.using(fused=fused):
+                model = build_model(cfg, ds)
+                t, c = time.perf_counter(), time.process_time()
+                out = fit(model, data, tcfg, int(cfg.dataset.train_steps), show_progress=False, log_epochs=False)
+                best[fused] = min(best[fused], (time.perf_counter() - t) / epochs)
+                cpu[fused] = min(cpu[fused], (time.process_time() - c) / epochs)
+                n = out["n_samples"]
+    return {"fused": best[True], "reference": best[False], "n_samples": n, "cpu": cpu[True], "cpu_ref": cpu[False]}
+
+
+def start(G, n: int, h: float, seed: int = 0) -> tuple[Pose, Pose]:
+    gen = torch.Generator().manual_seed(seed)
+    g0 = Pose(
+        so3.exp(torch.randn(n, G.n_bodies, 3, generator=gen, dtype=torch.float64)),
+        torch.randn(n, G.n_se3, 3, generator=gen, dtype=torch.float64),
+    )
+    return g0, G.retract(g0, h * torch.randn(n, G.dim, generator=gen, dtype=torch.float64))
+
+
+def rollout_models():
+    free = physics_model(SO3, 0.1, {**PHYS, "g": 0.0, "D": [0.05] * 3})
+    torch.manual_seed(0)
+    se3 = LieDFLNN(SE3, 0.05, potential="mlp", forces=["rayleigh"], mlp_width=64, mlp_depth=3)
+    se3.requires_grad_(False)
+    return {"free_body_true": (free, SO3, 0.1), "se3_mlp": (se3, SE3, 0.05)}
+
+
+def rollout_us(model, G, h, n: int, budget: float, repeats: int, **settings) -> float:
+    """Microseconds per step per trajectory (best of `repeats`) of a rollout of about `budget` s;
+    the CPU time of the same rollouts goes to `CPU_US`."""
+    g0, g1 = start(G, n, h)
+    with runtime.using(**settings):
+        t = time.perf_counter()
+        model.rollout(g0, g1, 4)
+        per_step = (time.perf_counter() - t) / 3
+        steps = int(min(500, max(6, budget / max(per_step, 1e-6))))
+        best = best_cpu = float("inf")
+        for _ in range(repeats):
+            t, c = time.perf_counter(), time.process_time()
+            model.rollout(g0, g1, steps)
+            best = min(best, (time.perf_counter() - t) / (steps - 1))
+            best_cpu = min(best_cpu, (time.process_time() - c) / (steps - 1))
+    CPU_US.append(best_cpu / n * 1e6)
+    return best / n * 1e6
+
+
+def compare_threads(data_dir: str, quick: bool) -> dict:
+    """Default-train seconds per epoch and free-body rollout us/step/trajectory with 1 and 2 torch
+    threads, alternately in this process (fused paths)."""
+    before = torch.get_num_threads()
+    model, G, h = rollout_models()["free_body_true"]
+    out: dict = {}
+    try:
+        for threads in (1, 2, 1, 2):
+            torch.set_num_threads(threads)
+            key = str(threads)
+            r = epoch_seconds([], 5 if quick else 20, 1, data_dir)
+            figures = {"train_s_per_epoch": r["fused"]}
+            for n in (10, 1000, 10000):
+                figures[f"rollout_us_{n}"] = rollout_us(model, G, h, n, 0.3, 2, fused=True)
+            old = out.get(key)
+            out[key] = figures if old is None else {k: min(v, old[k]) for k, v in figures.items()}
+    finally:
+        torch.set_num_threads(before)
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--json", required=True, help="write the figures here")
+    ap.add_argument("--quick", action="store_true", help="fewer epochs and steps (< 3 minutes)")
+    ap.add_argument("--threads", default="auto", help="runtime.threads (auto = the engine's default)")
+    ap.add_argument("--no-compile", action="store_true", help="skip the compilation figures")
+    ap.add_argument("--compare-threads", action="store_true", help="also time 1 against 2 threads (fused paths)")
+    ap.add_argument("--data-dir", default=str(ROOT / "outputs" / "data"))
+    args = ap.parse_args()
+    threads = args.threads if args.threads == "auto" else int(args.threads)
+    runtime.configure({"threads": threads, "compile": "false"})
+    q = args.quick
+    out: dict = {
+        "torch": torch.__version__,
+        "machine": platform.processor() or platform.machine(),
+        "cpus": os.cpu_count(),
+        "threads": torch.get_num_threads(),
+        "quick": q,
+        "load_avg_start": list(os.getloadavg()),
+    }
+    t_all = time.perf_counter()
+
+    def log(msg: str) -> None:
+        print(f"[{time.perf_counter() - t_all:6.1f} s] {msg}", flush=True)
+
+    # training
+    r = epoch_seconds([], 10 if q else 50, 2 if q else 3, args.data_dir)
+    out["train_triplets_per_s"] = r["n_samples"] / r["fused"]
+    out["baseline_train_triplets_per_s"] = r["n_samples"] / r["reference"]
+    out["train_s_per_epoch"], out["baseline_train_s_per_epoch"] = r["fused"], r["reference"]
+    cpu: dict = {"train_s_per_epoch": r["cpu"], "baseline_train_s_per_epoch": r["cpu_ref"]}
+    ref_rate = out["baseline_train_triplets_per_s"]
+    log(f"default train: {out['train_triplets_per_s']:.0f} triplets/s (reference {ref_rate:.0f})")
+    r = epoch_seconds(["experiment=exp3_manifold", "baseline=none"], 2 if q else 5, 1 if q else 2, args.data_dir)
+    out["exp3_s_per_epoch"], out["baseline_exp3_s_per_epoch"] = r["fused"], r["reference"]
+    cpu["exp3_s_per_epoch"], cpu["baseline_exp3_s_per_epoch"] = r["cpu"], r["cpu_ref"]
+    log(f"exp3: {r['fused']:.3f} s/epoch (reference {r['reference']:.3f})")
+    r = epoch_seconds(["experiment=exp4_mocap"], 1 if q else 3, 1, args.data_dir)
+    out["mocap_s_per_epoch"], out["baseline_mocap_s_per_epoch"] = r["fused"], r["reference"]
+    cpu["mocap_s_per_epoch"], cpu["baseline_mocap_s_per_epoch"] = r["cpu"], r["cpu_ref"]
+    log(f"mocap: {r['fused']:.3f} s/epoch (reference {r['reference']:.3f})")
+
+    # rollouts
+    budget, repeats = (0.3, 2) if q else (1.0, 3)
+    fused: dict = {}
+    ref: dict = {}
+    cpu_fused: dict = {}
+    cpu_ref: dict = {}
+    for name, (model, G, h) in rollout_models().items():
+        fused[name], ref[name], cpu_fused[name], cpu_ref[name] = {}, {}, {}, {}
+        for n in BATCHES:
+            fused[name][str(n)] = rollout_us(model, G, h, n, budget, repeats, fused=True)
+            cpu_fused[name][str(n)] = CPU_US[-1]
+            ref[name][str(n)] = rollout_us(model, G, h, n, budget, repeats, fused=False)
+            cpu_ref[name][str(n)] = CPU_US[-1]
+            log(f"rollout {name} batch {n}: {fused[name][str(n)]:.2f} us/step/traj (reference {ref[name][str(n)]:.2f})")
+    out["rollout_us_per_step_traj"], out["baseline_rollout_us_per_step_traj"] = fused, ref
+    cpu["rollout_us_per_step_traj"], cpu["baseline_rollout_us_per_step_traj"] = cpu_fused, cpu_ref
+    out["cpu_time"] = cpu
+
+    # compilation
+    if not args.no_compile and runtime.compiler_available():
+        model, G, h = rollout_models()["free_body_true"]
+        g0, g1 = start(G, 8, h)
+        t = time.perf_counter()
+        with runtime.using(compile="true"):
+            model.rollout(g0, g1, 3)
+        out["compile_s"] = time.perf_counter() - t
+        out["compiled_rollout_us_per_step_traj"] = {
+            str(n): rollout_us(model, G, h, n, budget, repeats, compile="true") for n in (1000, 10000)
+        }
+        log(f"compile {out['compile_s']:.1f} s; compiled free body {out['compiled_rollout_us_per_step_traj']}")
+    else:
+        out["compile_s"] = None
+
+    if args.compare_threads:
+        out["threads_compare"] = compare_threads(args.data_dir, q)
+        log(f"threads: {out['threads_compare']}")
+
+    speed = {
+        "train": out["train_triplets_per_s"] / out["baseline_train_triplets_per_s"],
+        "exp3": out["baseline_exp3_s_per_epoch"] / out["exp3_s_per_epoch"],
+        "mocap": out["baseline_mocap_s_per_epoch"] / out["mocap_s_per_epoch"],
+    }
+    for name in fused:
+        for n in fused[name]:
+            speed[f"rollout_{name}_{n}"] = ref[name][n] / fused[name][n]
+    out["speedup"] = speed
+    out["load_avg_end"] = list(os.getloadavg())
+    out["load_avg"] = out["load_avg_start"][0]
+    out["seconds"] = time.perf_counter() - t_all
+    Path(args.json).write_text(json.dumps(out, indent=2) + "\n")
+    log(f"wrote {args.json}")
+
+
+if __name__ == "__main__":
+    main()

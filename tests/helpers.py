@@ -1,0 +1,46 @@
+"""Test helpers shared by the test modules (and by the fixtures of conftest.py): config
+composition, the `liedfl` command in a subprocess and its environment."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+from liedfl_cli.cli import CONF_DIR
+
+SMOKE = ("budget=smoke", "ui.progress=false", "eval.plots=false")
+
+
+def compose_config(name: str = "train", overrides=(), conf_dir: Path = CONF_DIR):
+    """The config conf/<name>.yaml composed with `overrides`, as the CLI composes it."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(conf_dir), version_base="1.3"):
+        return compose(config_name=name, overrides=list(overrides))
+
+
+def cli_command() -> list[str]:
+    exe = shutil.which("liedfl", path=str(Path(sys.executable).parent)) or shutil.which("liedfl")
+    return [exe] if exe else [sys.executable, "-c", "from liedfl_cli.cli import main; main()"]
+
+
+def cli_env() -> dict:
+    """The environment of a CLI subprocess: one thread, no user data dir, no full Hydra errors."""
+    env = {k: v for k, v in os.environ.items() if k not in ("LIEDFL_DATA_DIR", "HYDRA_FULL_ERROR")}
+    env.update(OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", MPLBACKEND="Agg", COLUMNS="200")
+    return env
+
+
+def run_cli(*args: str, cwd: Path, ok: bool = False, timeout: int = 300) -> subprocess.CompletedProcess:
+    """`liedfl *args` in a subprocess (cwd, `cli_env()`); ok=True asserts exit 0 and no traceback."""
+    proc = subprocess.run([*cli_command(), *args], cwd=cwd, env=cli_env(), capture_output=True, text=True,
+                          timeout=timeout)  # fmt: skip
+    if ok:
+        assert proc.returncode == 0, f"liedfl {' '.join(args)} -> {proc.returncode}\n{proc.stdout}\n{proc.stderr}"
+        assert "Traceback" not in proc.stderr, proc.stderr
+    return proc
