@@ -82,11 +82,15 @@ def mass_scan(run: Path, factors=(0.25, 0.5, 1.0, 2.0, 4.0)) -> list[float]:
 
 
 def read(run: Path) -> dict:
+    from liedfl_cli.recovery import parameter_recovery
+    from liedfl_cli.runs import load_run
+
     with open(run / "eval.csv") as f:
         ev = {r["model"]: r for r in csv.DictReader(f)}
+    _, model, ds, _ = load_run(run)
     return {
         "eval": ev,
-        "recovery": json.loads((run / "recovery.json").read_text()),
+        "recovery": parameter_recovery(model, ds),  # recomputed: the same numbers as recovery.json, every field
         "curves": json.loads((run / "eval_curves.json").read_text()),
         "h": 0.05,
     }

@@ -34,6 +34,8 @@ def sh(args: list[str]) -> None:
 def one(out: Path, sigma: float, smoothing: tuple[int, int] | None, epochs: int) -> dict:
     tag = f"sigma{sigma:g}_" + (f"sg{smoothing[0]}-{smoothing[1]}" if smoothing else "raw")
     run = out / "runs" / tag
+    if not (run / "recovery.json").is_file() and (run / "checkpoints" / "last.pt").is_file():
+        sh(["train", f"resume={run}", "ui.progress=false"])  # an interrupted run continues
     if not (run / "recovery.json").is_file():
         args = ["train", f"dataset.noise.rotation={sigma!r}", f"train.epochs={epochs}", "rollout.enabled=false"]
         if smoothing:

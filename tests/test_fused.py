@@ -40,6 +40,17 @@ MODELS = {
             mlp_width=8,
         ),
     ),
+    "se3xso3x2_coupled_nonlinear": (
+        THREE_BODY,
+        dict(
+            potential="mlp",
+            forces={"rayleigh_nonlinear": {"width": 8, "depth": 2, "coupling": "coupled"}},
+            mlp_width=8,
+        ),
+    ),
+    "se3xso3_per_body_rayleigh": (TWO_BODY, dict(potential="none", forces={"rayleigh": {"coupling": "per_body"}})),
+    "se3_uniform_gravity": (SE3, dict(potential="uniform_gravity", forces=["rayleigh"])),
+    "so3_uniform_gravity_and_mlp": (SO3, dict(potential=["uniform_gravity", "mlp"], forces=["rayleigh"], mlp_width=8)),
     "so3_control": (SO3, dict(potential="mlp", forces={"control": {"width": 8}}, mlp_width=8)),
     "so3_no_force": (SO3, dict(potential="none", forces=[])),
 }

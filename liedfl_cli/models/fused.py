@@ -300,12 +300,14 @@ def derive(model) -> Derived:
 SCALAR_DIM = 6  # SPSD matrices up to this size are built in Python scalars
 
 
-def spsd_matrix(module: SPSDMatrix) -> torch.Tensor:
+def spsd_matrix(module: nn.Module) -> torch.Tensor:
     """`SPSDMatrix()` (D = sym(L L^T) + diag(lambda^2)); small ones in Python scalars with a
     hand-written gradient (`_SPSDScalar`)."""
     if type(module) is SPSDMatrix and module.dim <= SCALAR_DIM and module.lam.device.type == "cpu":
         return _SPSDScalar.apply(module.L_entries, module.lam, module.dim)
-    return module()
+    out = module()
+    assert isinstance(out, torch.Tensor)
+    return out
 
 
 class _SPSDScalar(torch.autograd.Function):
@@ -438,6 +440,8 @@ def potential_covector(model, g: Pose, create_graph: bool = False) -> torch.Tens
         w = 2.0 * so3.vee(g.R.transpose(-1, -2) @ dR)
         v = (g.R[..., :m, :, :].transpose(-1, -2) @ dp[..., None])[..., 0]
         return -model.h * G.join(w, v)
+    if create_graph and not (g.R.requires_grad or g.p.requires_grad):  # data poses: leaves of the graph
+        g = Pose(g.R.detach().requires_grad_(True), g.p.detach().requires_grad_(True))
     return -model.h * left_gradient(V, G, g, create_graph=create_graph)
 
 
@@ -476,7 +480,7 @@ class IncrementSet(TripletSet):
         inc2 = G.increment(self.cur, self.nxt)
         xi1 = kinetic.velocity_estimate(G, inc1, h)
         xi2 = kinetic.velocity_estimate(G, inc2, h)
-        f: dict[str, torch.Tensor] = {"A": (inc1.R + inc2.R.transpose(-1, -2)).flatten(-2)}
+        f: dict[str, Any] = {"A": (inc1.R + inc2.R.transpose(-1, -2)).flatten(-2)}
         W2 = inc2.R.flatten(-2)
         if m:
             f["W1"] = inc1.R[:, :m]
@@ -515,7 +519,7 @@ class IncrementSet(TripletSet):
             reg_idx = torch.randint(0, self.n, (int(reg_points),), generator=generator)
             reg_W = self.reg_W.index_select(0, reg_idx)
             reg_ld = self.reg_logdetW.index_select(0, reg_idx) if self.reg_logdetW is not None else None
-        fields = {}
+        fields: dict[str, Any] = {}
         for k, v in self.fields.items():
             if k == "levels":
                 fields[k] = Pose(v.R.index_select(1, idx), v.p.index_select(1, idx))
@@ -574,9 +578,10 @@ def batch_forces(model, forces: list[nn.Module], f: dict) -> torch.Tensor:
 
 
 def force_value(force: nn.Module, g: Pose, xi: torch.Tensor) -> torch.Tensor:
-    """F(g, xi~); the configuration-dependent Rayleigh force D(g) xi~ = L (L^T xi~) as two
-    matrix-vector products instead of forming the dim x dim matrix L L^T per sample."""
-    if type(force) is RayleighNonlinearForce:
+    """F(g, xi~); the coupled configuration-dependent Rayleigh force D(g) xi~ = L (L^T xi~) as two
+    matrix-vector products instead of forming the dim x dim matrix L L^T per sample (the per-body
+    one applies its blocks itself)."""
+    if type(force) is RayleighNonlinearForce and getattr(force, "per_body", None) is None:
         L = force.L(g)
         return -(L @ (L.transpose(-1, -2) @ xi[..., None]))[..., 0]
     return force(g, xi)
@@ -751,7 +756,7 @@ def _block_index(G: ProductGroup) -> torch.Tensor:
 def rollout_maps(model) -> RolloutMaps:
     G, h = model.G, model.h
     P = derive(model)
-    P = Derived(*(None if t is None else t.detach() for t in (P.Jd, P.mass, P.rho, P.D)))
+    P = Derived(P.Jd.detach(), P.mass.detach(), P.rho.detach(), None if P.D is None else P.D.detach())
     m = G.n_se3
     d1, d2, hess = _d1_map(P.Jd, h), _d2_map(P.Jd, h), hessian_map(P.Jd, h)
     rho_map = se3_block = None
