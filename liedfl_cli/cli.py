@@ -1,6 +1,6 @@
 """`liedfl <command> [hydra overrides]`: a thin dispatcher over one @hydra.main per command.
 
-Hydra has no subcommands; the first word picks the primary config (conf/<command>.yaml) and
+Hydra has no subcommands; the first word picks the primary config (liedfl_cli/conf/<command>.yaml) and
 the plain function that does the work (`run_train`, ...), which tests call directly.
 """
 
@@ -14,7 +14,7 @@ from typing import NoReturn
 
 from .preflight import DIR_ARGS, classify, preflight, preflight_or_fail  # noqa: F401 (re-exported)
 
-CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
+CONF_DIR = Path(__file__).resolve().parent / "conf"
 COMMANDS = {
     "train": "train and evaluate a model (generates the dataset if needed)",
     "data": "only generate (or import) a dataset",
@@ -27,7 +27,39 @@ USAGE = (
     + ",".join(COMMANDS)
     + "} [key=value ...] [-m] [--cfg job] [--help]\n\n"
     + "\n".join(f"  {k:<8} {v}" for k, v in COMMANDS.items())
+    + "\n\n  liedfl <command> --help         the command's config groups and keys"
+    + '\n  liedfl --completion bash|zsh    shell completion: eval "$(liedfl --completion bash)" in ~/.bashrc'
 )
+COMPLETION = r"""# liedfl shell completion: commands, then config groups and keys through Hydra (liedfl <cmd> -sc).
+# bash: eval "$(liedfl --completion bash)" in ~/.bashrc; zsh: eval "$(liedfl --completion zsh)" in ~/.zshrc
+_liedfl_complete() {
+    local cur="${COMP_WORDS[COMP_CWORD]}"
+    if (( COMP_CWORD <= 1 )); then
+        COMPREPLY=($(compgen -W "COMMANDS --help --completion" -- "$cur"))
+        return
+    fi
+    local cmd="${COMP_WORDS[1]}"
+    case "$cmd" in
+        COMMANDS_CASE) ;;
+        *) return ;;
+    esac
+    local rest="${COMP_LINE#*${cmd}}"
+    local choices
+    choices=$(COMP_POINT=$COMP_POINT COMP_LINE="liedfl${rest}" liedfl "$cmd" -sc query=bash 2>/dev/null)
+    COMPREPLY=($(compgen -o nospace -o default -W "$choices" -- "$cur"))
+}
+COMP_WORDBREAKS=${COMP_WORDBREAKS//=}
+complete -o nospace -o default -F _liedfl_complete liedfl
+""".replace("COMMANDS_CASE", "|".join(COMMANDS)).replace("COMMANDS", " ".join(COMMANDS))
+
+
+def completion_script(shell: str) -> str:
+    """The completion script for `shell` (bash, or zsh through bashcompinit), registered for `liedfl`."""
+    if shell == "bash":
+        return COMPLETION
+    if shell == "zsh":
+        return "autoload -U +X compinit && compinit\nautoload -U +X bashcompinit && bashcompinit\n" + COMPLETION
+    raise ValueError(shell)
 
 
 def _dispatch(command: str, cfg):
@@ -98,7 +130,30 @@ def _record_failure(multirun: bool, status_dir, hydra_dir, message: str, code: i
             write_status(status_dir, status, code, error=message)
 
 
+def _log_file(command: str, cfg) -> Path | None:
+    """The run's `train.log`: `liedfl train` (the run folder, each job's in a sweep) and `liedfl train
+    resume=<run>` (appended to the resumed run's); None for the other commands."""
+    if command == "train":
+        _, status_dir, _ = _job_context(command, cfg)
+        return status_dir / "train.log" if status_dir is not None and status_dir.is_dir() else None
+    if command == "resume":
+        run = Path(str(cfg.get("resume") or ""))
+        return run / "train.log" if str(run) not in ("", ".", "???") and run.is_dir() else None
+    return None
+
+
 def _run(command: str, cfg):
+    """One job (`_run_job`), with everything it prints mirrored to the run's train.log."""
+    log = _log_file(command, cfg)
+    if log is None:
+        return _run_job(command, cfg)
+    from .ui import log_to
+
+    with log_to(log):
+        return _run_job(command, cfg)
+
+
+def _run_job(command: str, cfg):
     """One job: preflight, the command, status.json. In a multirun a failing job records its status
     and returns (the sweep goes on; `main` reports the count); in a single run it exits non-zero."""
     import time
@@ -176,15 +231,22 @@ def main() -> None:
     if not argv or argv[0] in ("-h", "--help", "help"):
         print(USAGE)
         raise SystemExit(0 if argv else 2)
+    if argv[0] == "--completion":
+        shell = argv[1] if len(argv) > 1 else "bash"
+        if shell not in ("bash", "zsh"):
+            print(f"error: --completion {shell}: choose bash or zsh", file=sys.stderr)
+            raise SystemExit(2)
+        print(completion_script(shell), end="")
+        raise SystemExit(0)
     command = argv[0]
     if command == "train" and any(a.startswith("resume=") for a in argv[1:]):
-        command = "resume"  # `liedfl train resume=<run dir>` has its own primary config (conf/resume.yaml)
+        command = "resume"  # `liedfl train resume=<run dir>` has its own primary config (liedfl_cli/conf/resume.yaml)
     if command not in COMMANDS and command != "resume":
         print(f"error: unknown command {command!r}\n\n{USAGE}", file=sys.stderr)
         raise SystemExit(2)
     if not (CONF_DIR / f"{command}.yaml").is_file():
         print(
-            f"error: config directory {CONF_DIR} not found; install liedfl with `pip install -e .` from a clone",
+            f"error: config directory {CONF_DIR} not found; reinstall liedfl (`pip install .`)",
             file=sys.stderr,
         )
         raise SystemExit(2)
@@ -201,7 +263,7 @@ def main() -> None:
     def _hydra_main(cfg):
         return _run(command, cfg)
 
-    sys.argv = [f"liedfl-{command}", *argv[1:]]
+    sys.argv = [f"liedfl-{command}", *argv[1:], *_help_overrides(command, argv[1:])]
     # Hydra prints its own errors over several lines and exits; with HYDRA_FULL_ERROR it raises them
     # instead, so that they can be reduced to one line here (the user's HYDRA_FULL_ERROR=1 keeps
     # Hydra's full text).
@@ -253,6 +315,17 @@ def _launcher_failure(e: Exception) -> str | None:
     lines = [ln.strip() for ln in str(e).splitlines() if ln.strip() and not set(ln.strip()) <= set("-=")]
     text = type(e).__name__ if not lines else lines[0] if len(lines) == 1 else f"{lines[0]} ... {lines[-1]}"
     return f"{type(e).__name__}: {text}" if not text.startswith(type(e).__name__) else text
+
+
+def _help_overrides(command: str, args: list[str]) -> list[str]:
+    """With --help: Hydra's help names the program `liedfl <command>` (not the entry point's name)."""
+    if not any(a in ("--help", "-h") for a in args):
+        return []
+    what = COMMANDS.get(command, "continue an interrupted run: liedfl train resume=<run dir>")
+    return [
+        f"hydra.help.app_name='liedfl {command}'",
+        f"hydra.help.header='liedfl {command}: {what}. Usage: liedfl {command} [key=value ...] [-m] [--cfg job]'",
+    ]
 
 
 def _check_flags(command: str, args: list[str]) -> None:

@@ -23,6 +23,10 @@ class ConfigError(LiedflError, ValueError):
     """A configuration value is missing, of the wrong type or out of range."""
 
 
+class InputError(LiedflError, ValueError):
+    """An argument of the Python API (`liedfl_cli.api`) has the wrong type, dtype, shape or group."""
+
+
 class SimulationError(LiedflError, RuntimeError):
     """Ground-truth integration failed (solver failure or too much drift off SO(3))."""
 
@@ -40,6 +44,7 @@ __all__ = [
     "DatasetError",
     "CheckpointError",
     "ConfigError",
+    "InputError",
     "SimulationError",
     "LiedflWarning",
     "DataWarning",

@@ -11,15 +11,14 @@ import json
 from pathlib import Path
 
 from omegaconf import DictConfig
-from rich.table import Table
 
 from . import plots
 from .errors import ConfigError
-from .io_utils import fmt, markdown_table, write_csv, write_json, write_text
+from .io_utils import markdown_table, write_csv, write_json, write_text
 from .lie import Pose
 from .metrics import drift_metrics, error_metrics
 from .rollout_file import FILE_NAME, RolloutFile, load_rollout
-from .ui import console
+from .ui import console, print_table
 
 SHORT = {
     "rel_rot_error_mean": "rel err",
@@ -67,10 +66,14 @@ _ROW_ORDER = (
 """Order of the metric fields in a row (eval.csv's column order)."""
 
 
-def _rows(rf: RolloutFile, truth: Pose, timings: dict | None) -> tuple[list[dict], dict]:
+def _rows(
+    rf: RolloutFile, truth: Pose, timings: dict | None, names: dict[str, str] | None = None
+) -> tuple[list[dict], dict]:
     """One row per rolled-out model: errors over the steps with ground truth (truth's length), drift,
-    non-finite step and Newton statistics over the whole rollout; per-step curves of each."""
+    non-finite step and Newton statistics over the whole rollout; per-step curves of each.
+    `model` is the rollout entry (`model`, `true_scheme`), `name` what it is (`liedflnn`, `true scheme`)."""
     rows, curves = [], {}
+    names = names or plots.display_names(rf.models)
     for name, ro in rf.models.items():
         pred = ro.pose
         n = min(ro.steps, truth.R.shape[1] - 1)
@@ -79,7 +82,7 @@ def _rows(rf: RolloutFile, truth: Pose, timings: dict | None) -> tuple[list[dict
         drift = drift_metrics(pred)
         curves[name] = {**err["curves"], **drift["curves"]}
         scalars = {**err["scalars"], **drift["scalars"]}
-        row = {"model": name, **{k: scalars[k] for k in _ROW_ORDER if k in scalars}}
+        row = {"model": name, "name": names.get(name, name), **{k: scalars[k] for k in _ROW_ORDER if k in scalars}}
         row["newton_failures"] = ro.n_failed
         row["first_failure_step"] = ro.first_failure
         row["mean_newton_iterations"] = ro.mean_iterations
@@ -89,8 +92,50 @@ def _rows(rf: RolloutFile, truth: Pose, timings: dict | None) -> tuple[list[dict
             row.update({k: timings.get(k) for k in ("train_seconds", "seconds_per_epoch", "parameters")})
         row["error_steps"] = n
         row["rollout_steps"] = ro.steps
+        row["rollout_trajectories"] = int(ro.R.shape[0])
         rows.append(row)
     return rows, curves
+
+
+TABLE_PRIORITY = [
+    "model",
+    "rel_rot_error_mean",
+    "geodesic_error_mean",
+    "position_error_mean",
+    "max_orth_drift",
+    "newton_failures",
+    "rollout_s_per_step",
+    "rel_rot_error_final",
+    "max_det_drift",
+    "mean_newton_iterations",
+    "first_failure_step",
+    "nonfinite_step",
+    "train_seconds",
+    "seconds_per_epoch",
+    "parameters",
+]
+"""Which columns of the evaluation table a narrow terminal shows first (eval.md has all of them)."""
+
+
+def print_eval_table(rows: list[dict], cols: list[str], title: str, out=None) -> list[str]:
+    """The evaluation table on the console: rows named by the model (`liedflnn`, `true scheme`), as many
+    columns as fit the terminal (TABLE_PRIORITY order; the others are named below it and are in
+    eval.md); a number is never broken across lines. Returns the columns shown."""
+    shown_rows = [{**r, "model": r.get("name", r["model"])} for r in rows]
+    headers = {c: SHORT.get(c, c) for c in cols}
+    return print_table(shown_rows, cols, headers, title=title, priority=TABLE_PRIORITY, where="eval.md", out=out)
+
+
+def length_unit(dataset) -> str | None:
+    """The unit of the dataset's positions: metres unless it records another (mocap: CMU ASF units)."""
+    from .data.mocap import ASF_UNIT_M
+
+    unit = (dataset.params or {}).get("length_unit_m")
+    if unit is None or abs(float(unit) - 1.0) < 1e-9:
+        return "m"
+    if abs(float(unit) / ASF_UNIT_M - 1.0) < 1e-4:
+        return "CMU ASF units"
+    return f"units of {float(unit):.4g} m"
 
 
 def span_note(rf: RolloutFile, dataset) -> str:
@@ -116,18 +161,23 @@ def rollout_path_arg(value, run_dir) -> Path:
 
 
 def run_eval_from_objects(
-    cfg: DictConfig, dataset, run_dir, timings: dict | None = None, rollout_path=None
+    cfg: DictConfig, dataset, run_dir, timings: dict | None = None, rollout_path=None, model_name: str | None = None
 ) -> list[dict]:
     """Evaluate a rollout file against `dataset`: eval.csv, eval.md, eval_curves.json and plots/ next to
     the file. rollout_path: default `<run_dir>/rollout.h5`. The run's parameter recovery (recovery.json)
-    goes into eval.md of any rollout of the run, the loss curve only into the run's own plots."""
+    goes into eval.md of any rollout of the run, the loss curve only into the run's own plots.
+    model_name: what the `model` entry is (default: `cfg.model.name`)."""
     run_dir = Path(run_dir)
     path = Path(rollout_path) if rollout_path is not None else run_dir / FILE_NAME
     out = path.parent
     rf = load_rollout(path, dataset)
     idx = rf.traj_index
     truth = dataset.pose(idx)
-    rows, curves = _rows(rf, truth, timings)
+    from omegaconf import OmegaConf
+
+    model_name = model_name or OmegaConf.select(cfg, "model.name", default=None)
+    names = plots.display_names(rf.models, model_name)
+    rows, curves = _rows(rf, truth, timings, names)
     own = out.resolve() == run_dir.resolve()
     recovery_path = run_dir / "recovery.json"
     write_csv(out / "eval.csv", rows)
@@ -140,17 +190,12 @@ def run_eval_from_objects(
     if not own:
         md += f"Rollout file: `{path}` (run `{run_dir}`)\n\n"
     md += f"Spans: {note}.\n\n"
-    md += markdown_table(rows, cols)
+    md += markdown_table([{**r, "model": r["name"]} for r in rows], cols)
     if recovery_path.is_file():
         rec = json.loads(recovery_path.read_text())
         md += "\n## Parameter recovery (normalised by tr J_d)\n\n" + markdown_table([rec], list(rec))
     write_text(out / "eval.md", md)
     write_json(out / "eval_curves.json", {k: {kk: vv.tolist() for kk, vv in v.items()} for k, v in curves.items()})
-    table = Table(title=f"{dataset.scene}: test rollout ({len(idx)} x {rf.steps} steps)")
-    for c in cols:
-        table.add_column(SHORT.get(c, c), overflow="fold")
-    for r in rows:
-        table.add_row(*[fmt(r.get(c)) for c in cols])
     console.print(
         "columns: rel err = mean ||R^-R||_F/||R||_F over steps; geo err = mean geodesic error (rad); "
         f"drifts are maxima; {note}; full names in eval.md",
@@ -161,19 +206,22 @@ def run_eval_from_objects(
             f"[yellow]note:[/] the rollout ({rf.steps} steps) is longer than the dataset ({dataset.n_steps} steps): "
             "errors cover the steps with ground truth only"
         )
-    console.print(table)
+    print_eval_table(rows, cols, f"{dataset.scene}: test rollout ({len(idx)} x {rf.steps} steps)")
     if cfg.eval.plots:
         h = dataset.h
         pdir = out / "plots"
-        plots.error_vs_step(curves, h, pdir / "error_vs_step.png")
-        plots.drift_vs_step(curves, h, pdir / "drift_vs_step.png")
+        unit = length_unit(dataset)
+        plots.error_vs_step(curves, h, pdir / "error_vs_step.png", names, length_unit=unit)
+        plots.drift_vs_step(curves, h, pdir / "drift_vs_step.png", names)
         preds = {k: v.pose for k, v in rf.models.items()}
-        plots.sphere(truth.R.numpy(), {k: v.R.numpy() for k, v in preds.items()}, pdir / "sphere.png")
+        plots.sphere(truth.R.numpy(), {k: v.R.numpy() for k, v in preds.items()}, pdir / "sphere.png", names=names)
         plots.predicted_vs_true(
             plots.ArrayPose(truth.R.numpy(), truth.p.numpy()),
             {k: plots.ArrayPose(v.R.numpy(), v.p.numpy()) for k, v in preds.items()},
             h,
             pdir / "predicted_vs_true.png",
+            names=names,
+            length_unit=unit,
         )
         hist = run_dir / "train_metrics.csv"
         if own and hist.is_file():
@@ -201,7 +249,14 @@ def run_eval(cfg: DictConfig) -> list[dict]:
     path = rollout_path_arg(cfg.get("rollout"), run_dir)
     dataset, run_cfg = rollout_dataset(path, model, dataset, run_cfg, run_dir, cfg.paths.data_dir)
     timings = load_checkpoint(Path(run_dir) / "checkpoints" / "last.pt").get("timings")
-    rows = run_eval_from_objects(cfg, dataset, run_dir, timings, rollout_path=path)
+    rows = run_eval_from_objects(
+        cfg,
+        dataset,
+        run_dir,
+        timings,
+        rollout_path=path,
+        model_name=OmegaConf.select(run_cfg, "model.name", default=None),
+    )
     run_extra_evals(
         OmegaConf.merge(run_cfg, {"eval": cfg.eval, "ui": cfg.ui}), model, dataset, run_dir, rollout_path=path
     )

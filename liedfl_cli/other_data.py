@@ -92,17 +92,17 @@ def load_source(folder) -> dict | None:
 
 def rollout_dataset(path: Path, model, dataset, run_cfg, run_dir, data_dir):
     """(dataset, config) a rollout file belongs to: the run's own, or the one named by the `source.json`
-    next to it, regenerated or re-read from its config (a `dataset=file` with noise or smoothing is
-    re-read and re-processed) or read from the recorded file."""
+    next to it: the recorded (cached) dataset file, or, where it is gone, the dataset regenerated or
+    re-read from its config."""
     from .data.hdf5 import load_dataset
-    from .data.scenes import FILE_SCENE, get_dataset
+    from .data.scenes import get_dataset
 
     src = load_source(path.parent)
     if src is None:
         return dataset, run_cfg
     ds_cfg = OmegaConf.create(src.get("dataset_config") or {})
     ds_path = Path(src["dataset_path"])
-    if ds_cfg.get("name") != FILE_SCENE and ds_path.is_file():
+    if ds_path.is_file():
         other = load_dataset(ds_path)
     else:
         other, _ = get_dataset(ds_cfg, data_dir)

@@ -1,15 +1,28 @@
 """`liedfl report sweep=<multirun dir>`: one table and the paper-style figures over a sweep.
 
-Reads every run directory below `sweep` (any folder holding `.hydra/config.yaml` and `eval.csv`),
-and writes `report.csv`, `report.md` and `plots/*.png` into the sweep directory:
-error vs training length, drift vs step, predicted trajectories on the sphere per model, and
-an error-against-speed scatter (one point per run).
+Reads every run directory below `sweep` (any folder holding `.hydra/config.yaml` and `eval.csv`) and
+writes into the sweep directory:
+
+- `report.csv`: one row per run, every column;
+- `report.md`: one summary line per model and setting (the overrides that differ between runs, the
+  seed aside) with mean ± std over its seeds, then the runs with only the columns that vary (the
+  constant ones are listed once above the tables), then the failed runs;
+- `plots/error_vs_speed.png`: error against speed, one point per model and setting (mean ± std over
+  seeds as error bars, labelled), the Pareto front drawn; two panels, training time and rollout time
+  per step per trajectory;
+- `plots/error_vs_time.png`: rollout error and manifold drift against time, one line per model and
+  setting (mean over seeds, ± std band), as in the paper's Exp 1 and Exp 3 panels;
+- `plots/error_vs_training_length.png`: error against the training trajectory length, only when the
+  sweep ran several lengths;
+- `plots/sphere_per_model.png`: the first test trajectory's body axis on the unit sphere, truth and
+  prediction, one panel per model.
 """
 
 from __future__ import annotations
 
 import csv
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -18,24 +31,57 @@ from omegaconf import DictConfig
 
 from .errors import ConfigError, DatasetError, LiedflError
 from .evaluate import DRIFT_COLUMNS, ERROR_COLUMNS
-from .io_utils import markdown_table, write_csv, write_text
+from .io_utils import fmt, markdown_table, write_csv, write_text
 from .rollout_file import FILE_NAME, read_rollout
-from .ui import console
+from .ui import console, print_table
 
 COLUMNS = [
     "run",
     "model",
     "dataset",
     "train_steps",
+    "seed",
     "setting",
     "parameters",
     "train_seconds",
     "seconds_per_epoch",
     "rollout_s_per_step",
+    "rollout_trajectories",
+    "rollout_s_per_step_per_trajectory",
     *ERROR_COLUMNS,
     *DRIFT_COLUMNS,
     "newton_failures",
 ]
+METRICS = [
+    "rel_rot_error_mean",
+    "geodesic_error_mean",
+    "position_error_mean",
+    "max_orth_drift",
+    "newton_failures",
+    "train_seconds",
+    "rollout_s_per_step_per_trajectory",
+]
+"""The columns of the summary (mean ± std over seeds)."""
+HEADERS = {
+    "rel_rot_error_mean": "rel. rotation error",
+    "rel_rot_error_final": "rel. rotation error (end)",
+    "geodesic_error_mean": "geodesic error [rad]",
+    "position_error_mean": "position error",
+    "max_orth_drift": "max orth. drift",
+    "max_det_drift": "max det. drift",
+    "newton_failures": "Newton failures",
+    "train_seconds": "training [s]",
+    "seconds_per_epoch": "s/epoch",
+    "rollout_s_per_step": "rollout [s/step]",
+    "rollout_s_per_step_per_trajectory": "rollout [s/step/traj.]",
+    "rollout_trajectories": "rollout traj.",
+    "train_steps": "train steps",
+    "parameters": "parameters",
+}
+ERROR = "rel_rot_error_mean"
+ERROR_LABEL = "mean relative rotation error ‖R̂ − R‖_F/‖R‖_F [dimensionless]"
+NOT_SETTINGS = ("seed", "baseline", "model")
+"""Override keys that do not make a setting (the model has its own column; seeds are averaged)."""
 
 
 def model_name(cfg: dict) -> str:
@@ -77,6 +123,15 @@ def _number(path: Path, key: str, v):
         raise DatasetError(f"{path}: column '{key}' holds {v!r}, not a number") from None
 
 
+def _overrides(items) -> dict[str, str]:
+    out = {}
+    for s in items or []:
+        key, sep, value = str(s).partition("=")
+        if sep:
+            out[key.lstrip("+~")] = value
+    return out
+
+
 def collect(sweep: Path) -> list[dict]:
     rows = []
     for run in find_runs(sweep):
@@ -91,119 +146,408 @@ def collect(sweep: Path) -> list[dict]:
         if "model" not in evals:
             continue
         e = evals["model"]
+        summary = _read(run / "summary.json", "json") if (run / "summary.json").is_file() else {}
+        steps = cfg["dataset"].get("train_steps")
+        if steps is None:  # a file / import scene: "all the steps", recorded by the run
+            steps = (summary.get("dataset") or {}).get("train_steps")
         row = {
             "run": str(run.relative_to(sweep)),
             "model": model_name(cfg),
             "dataset": cfg["dataset"]["name"],
-            "train_steps": int(cfg["dataset"]["train_steps"]),
-            "setting": " ".join(overrides),
+            "train_steps": int(steps) if steps is not None else None,
+            "seed": cfg.get("seed"),
+            "setting": " ".join(f"{k}={v}" for k, v in _overrides(overrides).items() if k != "seed"),
         }
-        for k in COLUMNS[5:]:
+        for k in COLUMNS[6:]:
             row[k] = _number(run / "eval.csv", k, e.get(k))
-        summary = run / "summary.json"
-        if summary.is_file():
-            t = _read(summary, "json").get("timings", {})
-            t = t if isinstance(t, dict) else {}
-            row.update({k: t.get(k) for k in ("parameters", "train_seconds", "seconds_per_epoch")})
+        t = summary.get("timings", {})
+        t = t if isinstance(t, dict) else {}
+        row.update({k: t.get(k) for k in ("parameters", "train_seconds", "seconds_per_epoch") if t.get(k) is not None})
+        if row.get("rollout_trajectories") is None:  # eval.csv of an older liedfl: count them in the file
+            row["rollout_trajectories"] = _rollout_trajectories(run / FILE_NAME)
+        sps, n = row.get("rollout_s_per_step"), row.get("rollout_trajectories")
+        row["rollout_s_per_step_per_trajectory"] = sps / n if sps is not None and n else None
         rows.append(row)
     return rows
 
 
+def _rollout_trajectories(path: Path) -> int | None:
+    try:
+        return len(read_rollout(path).traj_index)
+    except LiedflError:
+        return None
+
+
+# ----------------------------------------------------------------------------- grouping
+def varying_settings(rows: list[dict]) -> list[str]:
+    """Override keys whose value differs between runs (seed, baseline and model aside)."""
+    settings = [_overrides(r["setting"].split()) for r in rows]
+    keys = list(dict.fromkeys(k for s in settings for k in s))
+    return [k for k in keys if k not in NOT_SETTINGS and len({s.get(k) for s in settings}) > 1]
+
+
+def _label(row: dict, keys: list[str]) -> str:
+    s = _overrides(row["setting"].split())
+    return " ".join([row["model"], *(f"{k.rsplit('.', 1)[-1]}={s[k]}" for k in keys if k in s)])
+
+
+def groups(rows: list[dict], keys: list[str]) -> dict[str, list[dict]]:
+    """{label: runs} for each model and setting (`keys`: the override keys that make a setting)."""
+    out: dict[str, list[dict]] = {}
+    for r in rows:
+        out.setdefault(_label(r, keys), []).append(r)
+    return out
+
+
+def mean_std(values) -> tuple[float | None, float | None, int]:
+    """(mean, sample standard deviation (0 for one value), n) of the finite values; (None, None, 0) if none."""
+    v = [float(x) for x in values if x is not None and math.isfinite(float(x))]
+    if not v:
+        return None, None, 0
+    return float(np.mean(v)), float(np.std(v, ddof=1)) if len(v) > 1 else 0.0, len(v)
+
+
+def summarize(rows: list[dict], keys: list[str]) -> list[dict]:
+    """One row per model and setting: for each metric, mean and std over its seeds."""
+    out = []
+    for label, runs in groups(rows, keys).items():
+        s = {"label": label, "model": runs[0]["model"], "seeds": len(runs), "runs": runs}
+        for m in METRICS:
+            s[m] = mean_std(r.get(m) for r in runs)
+        out.append(s)
+    return out
+
+
+def pm(stat) -> str:
+    mean, std, n = stat
+    if mean is None:
+        return "–"
+    return fmt(mean) if n < 2 else f"{fmt(mean)} ± {fmt(std)}"
+
+
+# ----------------------------------------------------------------------------- figures
+def pareto_front(points: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    """The points no other point beats in both coordinates (smaller is better), sorted by x."""
+    front, best = [], math.inf
+    for x, y in sorted(points):
+        if y < best:
+            front.append((x, y))
+            best = y
+    return front
+
+
+def _label_points(ax, pts: list[tuple[float, float, str]], fontsize: float = 7) -> None:
+    """Label each point next to it, at the first of a few offsets (right above, right below, further up
+    or down, left) where the label does not cover one placed before (boxes estimated from the text)."""
+    ax.figure.canvas.draw()  # final limits and transforms
+    to_px, dpi = ax.transData.transform, ax.figure.dpi / 72.0
+    placed: list[tuple[float, float, float, float]] = []
+    for x, y, label in sorted(pts):
+        px, py = to_px((x, y))
+        w, hgt = 0.55 * fontsize * len(label) * dpi, 1.3 * fontsize * dpi
+        for dx, dy in ((5, 4), (5, -12), (5, 14), (5, -22), (5, 24), (-5 - w / dpi, 4), (-5 - w / dpi, -12)):
+            x0, y0 = px + dx * dpi, py + dy * dpi
+            box = (x0, y0, x0 + w, y0 + hgt)
+            if not any(box[0] < b[2] and b[0] < box[2] and box[1] < b[3] and b[1] < box[3] for b in placed):
+                break
+        placed.append(box)
+        ax.annotate(label, (x, y), textcoords="offset points", xytext=(dx, dy), fontsize=fontsize)
+
+
+def _plain_log_ticks(ax) -> None:
+    """Log-axis tick labels as plain numbers (0.5, 1, 2, 5, ...; 1e-05 when small), labelling the 2s and
+    5s between decades only when the axis spans less than two decades (else they would overlap)."""
+    import math
+
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
+    plain = FuncFormatter(lambda v, _: f"{v:g}")
+    for axis, (lo, hi) in ((ax.xaxis, ax.get_xlim()), (ax.yaxis, ax.get_ylim())):
+        if axis.get_scale() != "log" or lo <= 0:
+            continue
+        axis.set_major_formatter(plain)
+        axis.set_minor_locator(LogLocator(subs=(2.0, 5.0)))
+        axis.set_minor_formatter(plain if math.log10(hi / lo) < 2 else NullFormatter())
+
+
+def _colors(models: list[str]):
+    from .plots import plt
+
+    return {m: plt.get_cmap("tab10")(i % 10) for i, m in enumerate(models)}
+
+
+def plot_error_vs_speed(summary: list[dict], path: Path) -> bool:
+    from .plots import plt, save_figure
+
+    axes_spec = [
+        ("train_seconds", "training time [s]"),
+        ("rollout_s_per_step_per_trajectory", "rollout time per step per trajectory [s]"),
+    ]
+    if not any(s[ERROR][0] is not None and s[k][0] for s in summary for k, _ in axes_spec):
+        return False
+    colors = _colors(sorted({s["model"] for s in summary}))
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.4))
+    for ax, (key, xlabel) in zip(axes, axes_spec):
+        pts, shown = [], set()
+        for s in summary:
+            (x, dx, _), (y, dy, _) = s[key], s[ERROR]
+            if x is None or y is None or x <= 0 or y <= 0:
+                continue
+            m = s["model"]
+            ax.errorbar(x, y, xerr=dx or None, yerr=dy or None, fmt="o", color=colors[m], capsize=3, ms=5,
+                        label=m if m not in shown else None, zorder=3)  # fmt: skip
+            shown.add(m)
+            pts.append((x, y, s["label"]))
+        front = pareto_front([(x, y) for x, y, _ in pts])
+        if front:
+            fx, fy = zip(*front)
+            ax.step(fx, fy, where="post", color="black", ls="--", lw=1.2, label="Pareto front", zorder=2)
+            ax.plot(fx, fy, "o", ms=10, mfc="none", mec="black", zorder=4)
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel(ERROR_LABEL, fontsize=8)
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=7)
+        _plain_log_ticks(ax)
+        _label_points(ax, pts)
+    n_max = max(s[ERROR][2] for s in summary)
+    fig.suptitle(
+        "error against speed: one point per model and setting"
+        + (f", mean ± std over up to {n_max} seeds" if n_max > 1 else "")
+        + " (lower left is better)",
+        fontsize=10,
+    )
+    fig.tight_layout()
+    save_figure(fig, path)
+    return True
+
+
 def _curves(sweep: Path, row: dict) -> dict:
     path = sweep / row["run"] / "eval_curves.json"
-    return json.loads(path.read_text()).get("model", {}) if path.is_file() else {}
-
-
-def _first_axes(path: Path) -> dict:
-    """{name: R e3 of body 0 along the first trajectory (S+1, 3)} from a run's rollout file; {} (with a
-    warning) when it is missing or unreadable: the report's table does not depend on it."""
-    if not path.is_file():
+    try:
+        return json.loads(path.read_text()) if path.is_file() else {}
+    except (json.JSONDecodeError, UnicodeDecodeError):
         return {}
+
+
+def _h(sweep: Path, row: dict) -> float | None:
+    """The run's time step: from its config, else from its rollout file."""
+    try:
+        h = yaml.safe_load((sweep / row["run"] / ".hydra" / "config.yaml").read_text())["dataset"].get("h")
+        if isinstance(h, (int, float)) and h > 0:
+            return float(h)
+        return float(read_rollout(sweep / row["run"] / FILE_NAME).h)
+    except (LiedflError, OSError, KeyError, TypeError, yaml.YAMLError):
+        return None
+
+
+def plot_error_vs_time(sweep: Path, summary: list[dict], path: Path) -> bool:
+    from .plots import plt, save_figure
+
+    panels = [
+        ("rel_rot_error", "relative rotation error [dimensionless]"),
+        ("orth_drift", "‖RᵀR − I‖_F [dimensionless]"),
+    ]
+    colors = _colors(sorted({s["model"] for s in summary}))
+    styles = ["-", "--", ":", "-."]
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.0))
+    drawn, reference = False, None
+    per_model: dict[str, int] = {}
+    for s in summary:
+        curves = [_curves(sweep, r) for r in s["runs"]]
+        h = _h(sweep, s["runs"][0])
+        if h is None:
+            continue
+        k = per_model.setdefault(s["model"], 0)
+        per_model[s["model"]] += 1
+        if reference is None:
+            reference = next((c["true_scheme"] for c in curves if "true_scheme" in c), None), h
+        for ax, (key, _) in zip(axes, panels):
+            ys = [np.asarray(c.get("model", {}).get(key, []), dtype=np.float64) for c in curves]
+            ys = [y for y in ys if y.size]
+            if not ys:
+                continue
+            n = min(len(y) for y in ys)
+            Y = np.stack([y[:n] for y in ys])
+            t = h * np.arange(n)
+            start = 2 if key != "orth_drift" else 0  # errors: samples 0, 1 are the given pair
+            mean = Y.mean(0)
+            mean[~(mean > 0)] = np.nan
+            line = ax.plot(t[start:], mean[start:], styles[k % 4], color=colors[s["model"]], lw=1.2, label=s["label"])
+            if len(ys) > 1:
+                lo, hi = (Y.mean(0) - Y.std(0, ddof=1)), (Y.mean(0) + Y.std(0, ddof=1))
+                lo = np.where(lo > 0, lo, np.nan)
+                ax.fill_between(t[start:], lo[start:], hi[start:], color=line[0].get_color(), alpha=0.15, lw=0)
+            drawn = True
+    if not drawn:
+        plt.close(fig)
+        return False
+    ref, h = reference if reference else (None, None)
+    for ax, (key, ylabel) in zip(axes, panels):
+        if ref and h is not None and key in ref:
+            y = np.asarray(ref[key], dtype=np.float64)
+            y[~(y > 0)] = np.nan
+            start = 2 if key != "orth_drift" else 0
+            ax.plot(h * np.arange(len(y))[start:], y[start:], color="0.5", lw=1, ls=":", label="true scheme")
+        ax.set_yscale("log")
+        ax.set_xlabel("time [s]")
+        ax.set_ylabel(ylabel)
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=7)
+    axes[0].set_title("rollout error (mean over test trajectories)", fontsize=10)
+    axes[1].set_title("manifold drift (max over trajectories and bodies)", fontsize=10)
+    fig.tight_layout()
+    save_figure(fig, path)
+    return True
+
+
+def plot_error_vs_training_length(rows: list[dict], keys: list[str], path: Path) -> bool:
+    lengths = sorted({r["train_steps"] for r in rows if r["train_steps"] is not None})
+    if len(lengths) < 2:
+        return False
+    from .plots import plt, save_figure
+
+    other = [k for k in keys if k != "dataset.train_steps"]
+    colors = _colors(sorted({r["model"] for r in rows}))
+    fig, ax = plt.subplots(figsize=(5.5, 4))
+    for label, runs in groups(rows, other).items():
+        xs, ys, es = [], [], []
+        for L in lengths:
+            mean, std, n = mean_std(r[ERROR] for r in runs if r["train_steps"] == L)
+            if mean is not None and mean > 0:
+                xs.append(L)
+                ys.append(mean)
+                es.append(std if std is not None and n > 1 else 0.0)
+        if xs:
+            ax.errorbar(xs, ys, yerr=es, fmt="o-", color=colors[runs[0]["model"]], capsize=3, label=label)
+    ax.set_yscale("log")
+    ax.set_xticks(lengths)
+    ax.set_xlabel("training trajectory length [steps]")
+    ax.set_ylabel(ERROR_LABEL, fontsize=8)
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=7)
+    ax.set_title("error against training length (mean ± std over seeds)", fontsize=10)
+    _plain_log_ticks(ax)
+    save_figure(fig, path)
+    return True
+
+
+def _sphere_tracks(run: Path) -> tuple[dict, np.ndarray | None]:
+    """({entry: R e3 of body 0 along the first rollout trajectory}, truth or None) of a run; ({}, None)
+    with a warning when its files are missing or unreadable (the report does not depend on them)."""
+    path = run / FILE_NAME
+    if not path.is_file():
+        return {}, None
     try:
         rf = read_rollout(path)
     except LiedflError as e:
         console.print(f"[yellow]warning:[/] {e}; its sphere panel is left empty")
-        return {}
-    return {name: e.R[0, :, 0, :, 2] for name, e in rf.models.items()}
+        return {}, None
+    tracks = {name: e.R[0, :, 0, :, 2] for name, e in rf.models.items()}
+    truth = None
+    try:
+        from .data.hdf5 import load_dataset
+
+        ds_path = _read(run / "summary.json", "json").get("dataset_path") if (run / "summary.json").is_file() else None
+        if ds_path and Path(ds_path).is_file():
+            ds = load_dataset(ds_path)
+            n = min(ds.n_steps, rf.steps) + 1
+            truth = ds.R[int(rf.traj_index[0]), :n, 0, :, 2]
+    except LiedflError:
+        truth = None
+    return tracks, truth
 
 
-def make_plots(sweep: Path, rows: list[dict]) -> list[Path]:
-    from .plots import draw_unit_sphere, plt, save_figure
+def plot_sphere_per_model(sweep: Path, rows: list[dict], path: Path) -> bool:
+    from .plots import _on_sphere, draw_unit_sphere, plt, save_figure
 
-    out = []
-    pdir = sweep / "plots"
     models = sorted({r["model"] for r in rows})
-    colors = {m: plt.get_cmap("tab10")(i % 10) for i, m in enumerate(models)}
-
-    # error vs training length (mean over runs of the same model and length)
-    fig, ax = plt.subplots(figsize=(5, 3.6))
-    for m in models:
-        pts: dict = {}
-        for r in rows:
-            if r["model"] == m and r["rel_rot_error_mean"] is not None:
-                pts.setdefault(r["train_steps"], []).append(r["rel_rot_error_mean"])
-        xs = sorted(pts)
-        ax.semilogy(xs, [np.mean(pts[x]) for x in xs], "o-", label=m, color=colors[m])
-    ax.set_xlabel("training trajectory length (steps)")
-    ax.set_ylabel("mean relative rotation error")
-    ax.legend(fontsize=8)
-    ax.grid(alpha=0.3)
-    save_figure(fig, pdir / "error_vs_training_length.png")
-    out.append(pdir / "error_vs_training_length.png")
-
-    # drift vs step, first run of each model
-    fig, axes = plt.subplots(1, 2, figsize=(9, 3.4))
-    for m in models:
-        r = next(r for r in rows if r["model"] == m)
-        c = _curves(sweep, r)
-        for ax, key in zip(axes, ("orth_drift", "det_drift")):
-            if key in c:
-                y = np.asarray(c[key])
-                ax.semilogy(np.arange(len(y)), np.maximum(y, 1e-18), label=m, color=colors[m])
-    axes[0].set_title("||R^T R - I||_F")
-    axes[1].set_title("|det R - 1|")
-    for ax in axes:
-        ax.set_xlabel("step")
-        ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=8)
-    save_figure(fig, pdir / "drift_vs_step.png")
-    out.append(pdir / "drift_vs_step.png")
-
-    # predicted trajectories on the sphere, one panel per model (first test trajectory)
-    fig = plt.figure(figsize=(3.2 * len(models), 3.4))
+    colors = _colors(models)
+    fig = plt.figure(figsize=(3.6 * len(models), 3.9))
     for i, m in enumerate(models):
         r = next(r for r in rows if r["model"] == m)
         ax = fig.add_subplot(1, len(models), i + 1, projection="3d")
         draw_unit_sphere(ax)
-        axes_e3 = _first_axes(sweep / r["run"] / FILE_NAME)
-        if "true_scheme" in axes_e3:
-            ax.plot(*axes_e3["true_scheme"].T, color="0.6", lw=0.8, label="true scheme")
-        if "model" in axes_e3:
-            ax.plot(*axes_e3["model"].T, color=colors[m], lw=1.0, label=m)
-        ax.set_title(m, fontsize=9)
-    save_figure(fig, pdir / "sphere_per_model.png")
-    out.append(pdir / "sphere_per_model.png")
+        tracks, truth = _sphere_tracks(sweep / r["run"])
+        if truth is not None:
+            ax.plot(*_on_sphere(truth).T, color="black", lw=1.2, label="truth")
+        if "true_scheme" in tracks:
+            ax.plot(*_on_sphere(tracks["true_scheme"]).T, color="0.6", lw=0.8, ls=":", label="true scheme")
+        if "model" in tracks:
+            ax.plot(*_on_sphere(tracks["model"]).T, "--", color=colors[m], lw=1.0, label=m)
+        ax.set_title(f"{m} (run {r['run']}): body axis R e3", fontsize=9)
+        ax.legend(fontsize=7, loc="upper left")
+    fig.suptitle("first test trajectory of each model's first run on the unit sphere", fontsize=9)
+    save_figure(fig, path)
+    return True
 
-    # error against speed
-    fig, axes = plt.subplots(1, 2, figsize=(9.5, 3.6))
-    for ax, key, label in zip(
-        axes, ("train_seconds", "rollout_s_per_step"), ("training wall time (s)", "rollout time per step (s)")
+
+def make_plots(sweep: Path, rows: list[dict]) -> list[Path]:
+    pdir = sweep / "plots"
+    keys = varying_settings(rows)
+    summary = summarize(rows, keys)
+    out = []
+    for name, make in (
+        ("error_vs_speed", lambda p: plot_error_vs_speed(summary, p)),
+        ("error_vs_time", lambda p: plot_error_vs_time(sweep, summary, p)),
+        ("error_vs_training_length", lambda p: plot_error_vs_training_length(rows, keys, p)),
+        ("sphere_per_model", lambda p: plot_sphere_per_model(sweep, rows, p)),
     ):
-        for m in models:
-            speed_error = [
-                (r[key], r["rel_rot_error_mean"])
-                for r in rows
-                if r["model"] == m and r.get(key) and r["rel_rot_error_mean"]
-            ]
-            if speed_error:
-                ax.loglog(*zip(*speed_error), "o", label=m, color=colors[m])
-        ax.set_xlabel(label)
-        ax.set_ylabel("mean relative rotation error")
-        ax.grid(alpha=0.3, which="both")
-    axes[0].legend(fontsize=8)
-    save_figure(fig, pdir / "error_vs_speed.png")
-    out.append(pdir / "error_vs_speed.png")
+        path = pdir / f"{name}.png"
+        if make(path):
+            out.append(path)
     return out
+
+
+# ----------------------------------------------------------------------------- tables
+def report_markdown(sweep: Path, rows: list[dict], failed: list[tuple[str, str]]) -> str:
+    keys = varying_settings(rows)
+    summary = summarize(rows, keys)
+    md = f"# Report: {sweep}\n\n{len(rows)} runs" + (f", {len(failed)} failed" if failed else "") + ".\n\n"
+    if rows:
+        n_models = len({r["model"] for r in rows})
+        md += f"{n_models} model(s), {len(summary)} model/setting combination(s).\n\n"
+        constant = {
+            c: rows[0].get(c)
+            for c in ("dataset", "train_steps", "parameters")
+            if len({str(r.get(c)) for r in rows}) == 1 and rows[0].get(c) is not None
+        }
+        common = {
+            k: v for k, v in _overrides(rows[0]["setting"].split()).items() if k not in keys and k not in NOT_SETTINGS
+        }
+        if constant or common:
+            md += (
+                "Same in every run: "
+                + ", ".join(
+                    [*(f"{c} {fmt(v)}" for c, v in constant.items()), *(f"`{k}={v}`" for k, v in common.items())]
+                )
+                + ".\n\n"
+            )
+        metrics = [m for m in METRICS if any(s[m][0] is not None for s in summary)]
+        md += "## Summary: one line per model and setting, mean ± std over seeds\n\n"
+        srows = [
+            {"model / setting": s["label"], "seeds": s["seeds"], **{HEADERS[m]: pm(s[m]) for m in metrics}}
+            for s in summary
+        ]
+        md += markdown_table(srows, ["model / setting", "seeds", *(HEADERS[m] for m in metrics)])
+        md += (
+            "\nrel. rotation error: mean over the steps with ground truth of ‖R̂ − R‖_F/‖R‖_F; geodesic error: mean "
+            "|log(R̂ᵀR)|; orth. drift: largest ‖RᵀR − I‖_F over the rollout; rollout [s/step/traj.]: wall time per "
+            "step divided by the trajectories rolled out together.\n\n"
+        )
+        # the runs: the settings that differ (one column per override key; model and train_steps have their
+        # own) and the numbers that differ
+        own = ("dataset.train_steps", "baseline", "model")
+        extra = [k for k in keys if k not in own]
+        runs = [{**r, **{k: _overrides(r["setting"].split()).get(k) for k in extra}} for r in rows]
+        varying = [c for c in COLUMNS if c == "run" or len({str(r.get(c)) for r in rows}) > 1]
+        varying = [c for c in varying if c != "setting" and any(r.get(c) not in (None, "") for r in rows)]
+        varying[1:1] = extra
+        md += "## Runs (the columns that differ between runs)\n\n" + markdown_table(runs, varying)
+    if failed:
+        md += "\n## Failed runs\n\n" + markdown_table([{"run": d, "error": e} for d, e in failed], ["run", "error"])
+    return md
 
 
 def run_report(cfg: DictConfig) -> dict:
@@ -218,41 +562,27 @@ def run_report(cfg: DictConfig) -> dict:
     failed = [(str(d.relative_to(sweep)), err) for d, err in failed_runs(sweep)]
     if not rows and not failed:
         raise ConfigError(f"sweep={sweep}: no finished runs found (folders with .hydra/config.yaml and eval.csv)")
-    rows.sort(key=lambda r: (r["dataset"], r["model"], r["train_steps"], r["run"]))
+    rows.sort(key=lambda r: (r["dataset"], r["model"], r["train_steps"] or 0, r["run"]))
     if rows:
         write_csv(sweep / "report.csv", rows)
-    cols = [c for c in COLUMNS if any(r.get(c) not in (None, "") for r in rows)]
-    md = f"# Report: {sweep}\n\n{len(rows)} runs" + (f", {len(failed)} failed" if failed else "") + ".\n\n"
-    md += markdown_table(rows, cols) if rows else ""
-    if failed:
-        md += "\n## Failed runs\n\n" + markdown_table([{"run": d, "error": e} for d, e in failed], ["run", "error"])
-    write_text(sweep / "report.md", md)
+    write_text(sweep / "report.md", report_markdown(sweep, rows, failed))
     plots = make_plots(sweep, rows) if cfg.plots and rows else []
-    from rich.table import Table
-
-    from .io_utils import fmt
-
-    table = Table(title=f"{len(rows)} runs in {sweep}")
-    short = [
-        "model",
-        "dataset",
-        "train_steps",
-        "rel_rot_error_mean",
-        "max_orth_drift",
-        "newton_failures",
-        "train_seconds",
-        "rollout_s_per_step",
-    ]
-    for c in short:
-        table.add_column(c.replace("_", " "))
-    for r in rows:
-        table.add_row(*[fmt(r.get(c)) for c in short])
     if rows:
-        console.print(table)
+        keys = varying_settings(rows)
+        summary = summarize(rows, keys)
+        metrics = [m for m in METRICS if any(s[m][0] is not None for s in summary)]
+        table_rows = [{"label": s["label"], "seeds": s["seeds"], **{m: pm(s[m]) for m in metrics}} for s in summary]
+        print_table(
+            table_rows,
+            ["label", "seeds", *metrics],
+            {"label": "model / setting", "seeds": "seeds", **{m: HEADERS[m] for m in metrics}},
+            title=f"{len(rows)} runs in {sweep}: mean ± std over seeds",
+            where="report.md",
+        )
     if failed:
         console.print(f"[bold red]failed runs[/] ({len(failed)}):", highlight=False)
         for d, e in failed:
             console.print(f"  {d}: {e}", highlight=False, markup=False, soft_wrap=True)
     written = f"{sweep / 'report.md'}" + (f" and {sweep / 'report.csv'}" if rows else "")
-    console.print(f"report written to {written}; plots: {len(plots)}")
+    console.print(f"report written to {written}; plots: {len(plots)}", soft_wrap=True)
     return {"rows": rows, "plots": [str(p) for p in plots], "failed": failed}

@@ -85,7 +85,8 @@ def rollout_and_save(cfg: DictConfig, model, dataset, path, steps=None) -> dict:
     for name, m in runs.items():
         was_training = m.training
         m.eval()
-        ro = _roll(m, truth, steps, solver_options(cfg.solver), name, cfg.ui.progress)
+        label = (getattr(m, "name", "") or name) if name == "model" else name.replace("_", " ")  # liedflnn, true scheme
+        ro = _roll(m, truth, steps, solver_options(cfg.solver), label, cfg.ui.progress)
         m.train(was_training)
         rollouts[name] = ro
     written = write_rollout(path, steps=steps, h=dataset.h, scene=dataset.scene, traj_index=idx, rollouts=rollouts)

@@ -32,7 +32,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from .errors import ConfigError
 
-CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
+CONF_DIR = Path(__file__).resolve().parent / "conf"  # the configs ship inside the package
 
 
 @dataclass
@@ -367,10 +367,6 @@ def _check_dataset_keys(cfg) -> None:
     ref = _reference("dataset", name)
     if ref is None:  # a scene registered by user code: its generator checks its keys
         return
-    if name == "file" and isinstance(ref, dict):  # budget files set generator sizes on every dataset
-        from .data.scenes import FILE_IGNORED_KEYS
-
-        ref = {**ref, **{k: None for k in FILE_IGNORED_KEYS}}
     _check_reference_keys(ds, ref, "dataset", f" for scene '{name}'")
 
 
@@ -489,7 +485,7 @@ def _check_values(cfg, command: str) -> None:
 def _check_split_sizes(cfg, d: dict) -> None:
     """Generated scenes split by `n_test` / `test_fraction` (scenes.make_split): the train split must
     not be empty, nor the test split when the run rolls out."""
-    if "split" in d:  # imported recordings choose their split themselves (data/mocap.py)
+    if "split" in d or d.get("name") in ("file", "import"):  # recordings and files: data/mocap.py, data/files.py
         return
     T = int(d["n_trajectories"])
     k = int(d["n_test"]) if d.get("n_test") is not None else int(round(float(d["test_fraction"]) * T))
@@ -508,10 +504,8 @@ def _check_split_sizes(cfg, d: dict) -> None:
 def _check_dataset_values(cfg, command: str) -> None:
     if not isinstance(cfg.get("dataset"), DictConfig):
         return
-    from .data.scenes import _checked, is_file_config
+    from .data.scenes import _checked
 
-    if is_file_config(cfg.dataset):  # a user's file: its keys are checked when it is read
-        return
     d = _checked(_plain(cfg.dataset, "dataset"))
     if command == "train":
         _check_split_sizes(cfg, d)

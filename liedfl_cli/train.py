@@ -31,7 +31,7 @@ from .factory import loss_options
 from .io_utils import write_json
 from .lie import Pose
 from .solvers import runtime
-from .ui import console, progress_bar
+from .ui import console, err_console, progress_bar
 
 AUTO_CHECKPOINT_SECONDS = 60.0  # `checkpoint_every: auto` loses at most about this much work
 
@@ -288,6 +288,7 @@ def count_parameters(model) -> int:
 def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
     """`liedfl train`: data -> model -> fit (with checkpoints) -> checkpoint -> recovery ->
     rollout -> eval. `resume`: a checkpoint payload to continue from. Returns a summary."""
+    from .data.files import complete_steps
     from .data.scenes import dataset_steps, get_dataset
     from .evaluate import run_eval_from_objects
     from .factory import build_model, configure_runtime, data_pose
@@ -298,7 +299,13 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     ckpt = out / "checkpoints" / "last.pt"
     torch.manual_seed(int(cfg.seed))
-    dataset, data_path = get_dataset(cfg.dataset, cfg.paths.data_dir)
+    dataset, data_path = get_dataset(cfg.dataset, cfg.paths.data_dir, console=err_console)
+    complete_steps(cfg.dataset, dataset)  # a file's null train_steps / rollout_steps: all its steps
+    if cfg.rollout.enabled and len(dataset.test_idx) == 0:  # fail now, not after training
+        raise ConfigError(
+            f"{data_path}: the dataset's test split is empty, so there is nothing to roll out after training; "
+            "give it test trajectories (dataset=file: dataset.split=default) or set rollout.enabled=false"
+        )
     model = build_model(cfg, dataset)  # on the runtime's device, in its dtype
     if resume is not None:
         load_state(ckpt, model, resume)
@@ -376,6 +383,16 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
     summary = {
         "run_dir": str(out),
         "dataset_path": dataset_path,
+        "dataset": {
+            "scene": dataset.scene,
+            "group": dataset.group.name,
+            "h": dataset.h,
+            "trajectories": dataset.n_trajectories,
+            "steps": dataset.n_steps,
+            "train_steps": int(cfg.dataset.train_steps),
+            "train": len(dataset.train_idx),
+            "test": len(dataset.test_idx),
+        },
         "timings": timings,
         "final_loss": result["history"][-1]["loss"],
         "data_step_rotation": step_rotation_summary(dataset),

@@ -1,36 +1,127 @@
-"""Console output: one rich console, progress bars that degrade to nothing when disabled."""
+"""Console output: one rich console, progress bars that degrade to one line per phase when disabled,
+tables that fit the terminal, and the run log (`train.log`) that mirrors everything printed."""
 
 from __future__ import annotations
 
 import contextlib
+import math
+import os
 import sys
+import time
+from pathlib import Path
 
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    ProgressColumn,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
+from rich.text import Text
+
+
+class _Log:
+    """The log file every console line is also written to (None: no log)."""
+
+    console: Console | None = None
+
+
+class MirroredConsole(Console):
+    """A rich Console whose `print` also goes to the run log (`log_to`) as plain text."""
+
+    def print(self, *objects, **kwargs) -> None:
+        super().print(*objects, **kwargs)
+        log = _Log.console
+        if log is not None and log is not self:
+            log.width = self.width  # the same layout as on the terminal (tables are fitted to it)
+            log.print(*objects, **kwargs)
+
 
 # Logs and CI are not terminals: give tables room instead of rich's 80-column default.
-console = Console(width=None if sys.stdout.isatty() else 160)
-err_console = Console(stderr=True, width=None if sys.stderr.isatty() else 160)
+console = MirroredConsole(width=None if sys.stdout.isatty() or "COLUMNS" in os.environ else 160)
+err_console = MirroredConsole(stderr=True, width=None if sys.stderr.isatty() or "COLUMNS" in os.environ else 160)
 
 
-class _NullBar:
-    def add_task(self, *a, **k):
-        return 0
+@contextlib.contextmanager
+def log_to(path, mode: str = "a"):
+    """Mirror everything `console` and `err_console` print (messages, tables, warnings, the error
+    line) to `path` as plain text while the block runs. Progress bars are not logged; with
+    `ui.progress=false` each phase leaves one line (see `progress_bar`), which is."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, mode, encoding="utf-8") as f:
+        previous = _Log.console
+        _Log.console = Console(
+            file=f, width=console.width, color_system=None, force_terminal=False, highlight=False, emoji=False
+        )
+        try:
+            yield path
+        finally:
+            _Log.console = previous
 
-    def update(self, *a, **k):
-        pass
+
+class _LossColumn(ProgressColumn):
+    """`loss 1.234e-02` while a task reports a finite loss (training); nothing otherwise (rollouts)."""
+
+    def render(self, task) -> Text:
+        loss = task.fields.get("loss")
+        if isinstance(loss, (int, float)) and math.isfinite(loss):
+            return Text(f"loss {loss:.3e}")
+        return Text("")
+
+
+class _PhaseLines:
+    """The progress display with `ui.progress=false`: nothing while a phase runs, then one line
+    `<description>: <done>/<total> in <seconds> s` (with the last loss, if any) when it ends."""
+
+    def __init__(self) -> None:
+        self.tasks: dict[int, dict] = {}
+
+    def add_task(self, description: str = "", total=None, completed=0, **fields):
+        i = len(self.tasks)
+        self.tasks[i] = {"description": description, "total": total, "completed": completed, "fields": fields,
+                         "start": time.perf_counter()}  # fmt: skip
+        return i
+
+    def update(self, task=None, *, completed=None, advance=None, **fields):
+        t = self.tasks.get(task)
+        if t is None:
+            return
+        if completed is not None:
+            t["completed"] = completed
+        if advance is not None:
+            t["completed"] += advance
+        t["fields"].update(fields)
+
+    def finish(self) -> None:
+        for t in self.tasks.values():
+            line = f"{t['description']}: {t['completed']}"
+            if t["total"] is not None:
+                line += f"/{t['total']}"
+            line += f" in {time.perf_counter() - t['start']:.1f} s"
+            loss = t["fields"].get("loss")
+            if isinstance(loss, (int, float)) and math.isfinite(loss):
+                line += f", loss {loss:.3e}"
+            console.print(line, highlight=False, markup=False, soft_wrap=True)
 
 
 @contextlib.contextmanager
 def progress_bar(enabled: bool = True):
+    """A rich progress display (`bar.add_task(description, total=..., loss=...)`, `bar.update(...)`);
+    when disabled, one line per task once the block has finished without an error."""
     if not enabled:
-        yield _NullBar()
+        lines = _PhaseLines()
+        yield lines
+        lines.finish()
         return
     with Progress(
         TextColumn("[bold]{task.description}"),
         BarColumn(),
         MofNCompleteColumn(),
-        TextColumn("loss {task.fields[loss]:.3e}"),
+        _LossColumn(),
         TimeElapsedColumn(),
         TimeRemainingColumn(),
         console=console,
@@ -39,6 +130,79 @@ def progress_bar(enabled: bool = True):
         yield bar
 
 
+# ----------------------------------------------------------------------------- tables
+def _cell_width(text: str) -> int:
+    from rich.cells import cell_len
+
+    return max((cell_len(part) for part in str(text).splitlines()), default=0)
+
+
+def _cell_text(value, fmt) -> str:
+    """A table cell: strings as they are, anything else through io_utils.fmt."""
+    return value if isinstance(value, str) else fmt(value)
+
+
+def fit_columns(
+    rows: list[dict], columns: list[str], headers: dict[str, str], width: int, priority: list[str] | None = None
+) -> tuple[list[str], list[str]]:
+    """(shown, left out): the columns of a table that fit in `width` terminal columns without
+    breaking a cell, taken in `priority` order (default: `columns`), shown in `columns` order.
+    The first column is always shown. A rich table with edges takes 1 + sum(width + 3) columns."""
+    from .io_utils import fmt
+
+    def need(c: str) -> int:
+        cells = [_cell_text(r.get(c), fmt) for r in rows]
+        return max([_cell_width(headers.get(c, c)), *(_cell_width(x) for x in cells)]) + 3
+
+    order = [c for c in (priority or columns) if c in columns]
+    order += [c for c in columns if c not in order]
+    first = columns[0]
+    shown, used = {first}, 1 + need(first)
+    for c in order:
+        if c in shown:
+            continue
+        w = need(c)
+        if used + w <= width:
+            shown.add(c)
+            used += w
+    return [c for c in columns if c in shown], [c for c in columns if c not in shown]
+
+
+def print_table(
+    rows: list[dict],
+    columns: list[str],
+    headers: dict[str, str],
+    title: str | None = None,
+    priority: list[str] | None = None,
+    where: str | None = None,
+    out: Console | None = None,
+) -> list[str]:
+    """Print `rows` as a table that fits the console's width: columns in `priority` order as long as
+    they fit, numbers never broken; a line names the columns left out (all are in `where`). Returns
+    the columns shown."""
+    from rich.table import Table
+    from rich.text import Text
+
+    from .io_utils import fmt
+
+    out = out or console
+    shown, left = fit_columns(rows, columns, headers, out.width, priority)
+    table = Table(title=Text(title) if title else None, title_justify="left")
+    for c in shown:
+        table.add_column(
+            Text(headers.get(c, c)), no_wrap=True, overflow="ellipsis", justify="left" if c == columns[0] else "right"
+        )
+    for r in rows:
+        table.add_row(*[Text(_cell_text(r.get(c), fmt)) for c in shown])
+    out.print(table)
+    if left:
+        note = f"{len(left)} more column(s) ({', '.join(headers.get(c, c) for c in left)})"
+        note += (f" in {where}" if where else "") + "; a wider terminal shows more"
+        out.print(note, style="dim", highlight=False, markup=False)
+    return shown
+
+
+# ----------------------------------------------------------------------------- one-line messages
 def error_line(message: str) -> None:
     """Print `error: <message>` on one stderr line.
 

@@ -42,6 +42,7 @@ from hydra import compose, initialize_config_dir  # noqa: E402
 from hydra.core.global_hydra import GlobalHydra  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
+from liedfl_cli.cli import CONF_DIR  # noqa: E402
 from liedfl_cli.data.scenes import get_dataset  # noqa: E402
 from liedfl_cli.factory import build_model  # noqa: E402
 from liedfl_cli.lie import SE3, SO3, Pose, so3  # noqa: E402
@@ -57,7 +58,7 @@ CPU_US: list[float] = []  # CPU time of each `rollout_us` call, in call order
 
 def config(overrides: list[str], data_dir: str):
     GlobalHydra.instance().clear()
-    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         paths = [f"paths.data_dir={data_dir}", "paths.output_dir=/tmp/liedfl-bench"]
         return compose("train", overrides=[*overrides, *paths])
 

@@ -22,6 +22,7 @@ from pathlib import Path
 import torch
 from omegaconf import OmegaConf
 
+from liedfl_cli.cli import CONF_DIR
 from liedfl_cli.data.scenes import get_dataset
 from liedfl_cli.models.liedflnn import LieDFLNN
 from liedfl_cli.recovery import parameter_recovery
@@ -39,7 +40,7 @@ def train(ds, start: str, epochs: int) -> dict:
             d0 = float(D().diagonal()[0])
             D.L_entries.zero_()
             D.lam.fill_(d0**0.5)
-    cfg = OmegaConf.load(ROOT / "conf" / "train.yaml").train
+    cfg = OmegaConf.load(CONF_DIR / "train.yaml").train
     cfg.epochs = epochs
     curve = []
 
@@ -66,7 +67,7 @@ def main() -> None:
     ap.add_argument("--figure", type=Path, default=ROOT / "docs" / "img" / "damping_recovery.png")
     ap.add_argument("--data-dir", default="outputs/data")
     args = ap.parse_args()
-    c = OmegaConf.load(ROOT / "conf" / "dataset" / "free_rigid_body.yaml")
+    c = OmegaConf.load(CONF_DIR / "dataset" / "free_rigid_body.yaml")
     c.pop("defaults")
     c.physics.D = D_TRUE
     ds, _ = get_dataset(c, args.data_dir)

@@ -38,6 +38,7 @@ sys.path.insert(0, str(ROOT))
 from hydra import compose, initialize_config_dir  # noqa: E402
 from hydra.core.global_hydra import GlobalHydra  # noqa: E402
 
+from liedfl_cli.cli import CONF_DIR  # noqa: E402
 from liedfl_cli.data.scenes import get_dataset  # noqa: E402
 from liedfl_cli.lie import tolerances  # noqa: E402
 from liedfl_cli.metrics import orthogonality_drift, relative_rotation_error  # noqa: E402
@@ -58,7 +59,7 @@ def pose_projection(on: bool):
 
 def dataset(steps: int, data_dir: str):
     GlobalHydra.instance().clear()
-    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose("train", [f"dataset.steps={steps}", f"dataset.rollout_steps={steps}"])
     return get_dataset(cfg.dataset, data_dir)[0]
 

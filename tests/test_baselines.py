@@ -28,7 +28,7 @@ from liedfl_cli.models.true_scheme import physics_model
 from liedfl_cli.solvers.rollout import Rollout
 from liedfl_cli.train import fit, run_train
 
-CONF = str(Path(__file__).resolve().parents[1] / "conf")
+CONF = str(Path(__file__).resolve().parents[1] / "liedfl_cli" / "conf")
 NAMES = ["glnn_rk4", "glnn_lie_midpoint", "glnn_lie_heun", "euler_dflnn", "euclidean_dflnn", "neural_ode"]
 J_TRUE = torch.diag(torch.tensor([1.521, 1.362, 1.211], dtype=torch.float64))
 D_TRUE = 0.05 * torch.eye(3, dtype=torch.float64)

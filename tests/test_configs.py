@@ -1,6 +1,6 @@
 """Every config composes and passes the schema; group options match the registries in code.
 
-Configs are discovered from conf/ at test time, so files added later (new datasets, forces,
+Configs are discovered from liedfl_cli/conf/ at test time, so files added later (new datasets, forces,
 baselines, experiments) are covered without editing this file.
 """
 
@@ -41,7 +41,7 @@ def _check(cfg) -> None:
 def test_discovery_finds_the_configs():
     assert set(COMMANDS) <= set(PRIMARY), f"a command has no primary config: {set(COMMANDS) - set(PRIMARY)}"
     for g in ("dataset", "model", "force", "baseline", "solver", "budget", "experiment"):
-        assert g in GROUPS, f"conf/{g}/ is missing"
+        assert g in GROUPS, f"liedfl_cli/conf/{g}/ is missing"
     assert GROUP_OPTIONS
 
 
@@ -52,7 +52,7 @@ def test_primary_config_composes(name, tmp_path):
     # mandatory command-line values (run=???, ...) get a dummy; paths only where the config has them
     overrides = [f"{k}=x" for k in bare if OmegaConf.is_missing(bare, k)]
     if name in NEEDS_RUN:
-        assert "run=x" in overrides, f"conf/{name}.yaml should require run=<run dir>"
+        assert "run=x" in overrides, f"liedfl_cli/conf/{name}.yaml should require run=<run dir>"
     if "paths" in bare:
         overrides += _paths(tmp_path)
     cfg = _compose(name, overrides)
@@ -60,17 +60,29 @@ def test_primary_config_composes(name, tmp_path):
     assert cfg.task_name == name
 
 
+def _own_data(group: str, option: str, tmp: Path) -> list[str]:
+    """The file a scene that reads the user's data needs (dataset=file, dataset=import)."""
+    from own_data import write_csv, write_h5
+
+    if group != "dataset" or option not in ("file", "import"):
+        return []
+    if option == "file":
+        return [f"dataset.path={write_h5(tmp / 'my.h5')}"]
+    return [f"dataset.path={write_csv(tmp / 'log.csv')[0]}", "dataset.rotation=wxyz"]
+
+
 @pytest.mark.parametrize("group,option", GROUP_OPTIONS, ids=[f"{g}={o}" for g, o in GROUP_OPTIONS])
 def test_train_composes_with_every_group_option(group, option, tmp_path):
-    cfg = _compose("train", _paths(tmp_path) + [f"{group}={option}"])
+    own = _own_data(group, option, tmp_path)
+    cfg = _compose("train", _paths(tmp_path) + [f"{group}={option}", *own])
     _check(cfg)
     if group in ("dataset", "model"):  # the option name is the `name` field the code dispatches on
-        assert cfg[group].name == option, f"conf/{group}/{option}.yaml has name={cfg[group].name!r}"
+        assert cfg[group].name == option, f"liedfl_cli/conf/{group}/{option}.yaml has name={cfg[group].name!r}"
     if group == "baseline":  # a baseline option only selects the model of the same name
         assert cfg.model.name == ("liedflnn" if option == "none" else option)
     # and the same option with the smoke budget (what CI and the CLI tests use)
     if group != "budget":
-        _check(_compose("train", _paths(tmp_path) + [f"{group}={option}", "budget=smoke"]))
+        _check(_compose("train", _paths(tmp_path) + [f"{group}={option}", *own, "budget=smoke"]))
 
 
 def test_experiment_and_budget_files_are_global():
@@ -151,8 +163,8 @@ def test_force_options_match_registry():
 
 
 def test_model_configs_name_their_option_and_a_model_class():
-    """conf/model/<name>.yaml has name: <name> and a _target_ that is a Model of this package;
-    each baseline=<name> selects exactly conf/model/<name>.yaml (none selects liedflnn)."""
+    """liedfl_cli/conf/model/<name>.yaml has name: <name> and a _target_ that is a Model of this package;
+    each baseline=<name> selects exactly liedfl_cli/conf/model/<name>.yaml (none selects liedflnn)."""
     from liedfl_cli.factory import model_class
 
     for name in _options("model"):

@@ -25,7 +25,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def pd_config(**over) -> dict:
-    c = OmegaConf.to_container(OmegaConf.load(ROOT / "conf" / "dataset" / "pd_control.yaml"))
+    c = OmegaConf.to_container(OmegaConf.load(ROOT / "liedfl_cli" / "conf" / "dataset" / "pd_control.yaml"))
     c.pop("defaults", None)
     c.update(n_trajectories=2, steps=40, train_steps=40, rollout_steps=40, n_test=1)
     c.update(over)
@@ -169,7 +169,7 @@ def test_torque_evaluation_of_the_true_law(pd_data, tmp_path):
 def test_exp5_smoke_run_end_to_end(tmp_path):
     from liedfl_cli.train import run_train
 
-    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+    with initialize_config_dir(config_dir=str(ROOT / "liedfl_cli" / "conf"), version_base="1.3"):
         cfg = compose(
             config_name="train",
             overrides=[

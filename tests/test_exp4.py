@@ -138,7 +138,7 @@ def test_cap_trajectories_is_opt_in():
     from liedfl_cli.data.mocap import cmu_cartwheel
     from liedfl_cli.errors import ConfigError
 
-    c = OmegaConf.to_container(OmegaConf.load(ROOT / "conf" / "dataset" / "cmu_cartwheel.yaml"))
+    c = OmegaConf.to_container(OmegaConf.load(ROOT / "liedfl_cli" / "conf" / "dataset" / "cmu_cartwheel.yaml"))
     c.pop("defaults", None)
     c.update(steps=5, train_steps=5, rollout_steps=5, n_trajectories=6)
     with pytest.raises(ConfigError, match="must equal the number of dataset.files"):

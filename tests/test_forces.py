@@ -46,10 +46,10 @@ def randomise(module, scale=0.5, seed=0):
 
 # ------------------------------------------------------------------ structure
 def test_registry_keys_are_the_config_option_names():
-    confs = {p.stem for p in (ROOT / "conf" / "force").glob("*.yaml")} - {"none"}
+    confs = {p.stem for p in (ROOT / "liedfl_cli" / "conf" / "force").glob("*.yaml")} - {"none"}
     assert confs == set(FORCES)
     for name in FORCES:
-        first = (ROOT / "conf" / "force" / f"{name}.yaml").read_text().splitlines()[0]
+        first = (ROOT / "liedfl_cli" / "conf" / "force" / f"{name}.yaml").read_text().splitlines()[0]
         assert first == f"# @package force.{name}"
 
 
@@ -115,7 +115,7 @@ def test_hydra_force_list_composes_a_sum(tmp_path):
     from liedfl_cli.data import generate
     from liedfl_cli.factory import build_model
 
-    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+    with initialize_config_dir(config_dir=str(ROOT / "liedfl_cli" / "conf"), version_base="1.3"):
         cfg = compose(
             config_name="train",
             overrides=[

@@ -28,7 +28,7 @@ from liedfl_cli.lie import so3
 from liedfl_cli.lie.product import Pose
 
 ROOT = Path(__file__).resolve().parents[1]
-CONF = ROOT / "conf" / "dataset" / "cmu_cartwheel.yaml"
+CONF = ROOT / "liedfl_cli" / "conf" / "dataset" / "cmu_cartwheel.yaml"
 
 
 def cfg(**over) -> dict:

@@ -18,7 +18,7 @@ from liedfl_cli.mechanics.potentials import INTERACTIONS, InteractionPotential
 from liedfl_cli.models.true_scheme import physics_model, true_model
 from liedfl_cli.solvers.options import SolverOptions
 
-CONF = Path(__file__).resolve().parents[1] / "conf" / "dataset"
+CONF = Path(__file__).resolve().parents[1] / "liedfl_cli" / "conf" / "dataset"
 G = ProductGroup(1, 1)
 TIGHT = {"method": "DOP853", "rtol": 1e-12, "atol": 1e-12}
 J2 = [[1.521, 1.362, 1.211], [0.9, 0.8, 0.6]]

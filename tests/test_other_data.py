@@ -126,7 +126,9 @@ def test_a_users_file_trains_and_rolls_out(run, tmp_path):
     path = save_dataset(src, tmp_path / "mine.h5")
     out = _rollout(run_dir, data_dir, "dataset=file", f"dataset.path={path}", "steps=10")
     assert Path(out["dir"]).name.endswith("_my_recordings_steps10")
-    assert json.loads((Path(out["dir"]) / "source.json").read_text())["dataset_path"] == str(path.resolve())
+    recorded = Path(json.loads((Path(out["dir"]) / "source.json").read_text())["dataset_path"])
+    assert recorded.parent == data_dir.resolve() and recorded.name.startswith("file-")  # the cached copy
+    assert load_dataset(recorded).params["source"]["file"] == str(path)  # of the user's file
     from liedfl_cli.train import run_train
 
     cfg = _compose(
@@ -139,7 +141,7 @@ def test_a_users_file_trains_and_rolls_out(run, tmp_path):
     assert summary["rollout"]["model"]["n_failed"] == 0
     with pytest.raises(ConfigError, match="dataset.path"):
         get_dataset(OmegaConf.create({"name": "file", "path": "???"}), data_dir)
-    with pytest.raises(ConfigError, match="unknown key"):
+    with pytest.raises(ConfigError, match="unknown config key 'dataset.omega'"):
         get_dataset(OmegaConf.create({"name": "file", "path": str(path), "omega": 1}), data_dir)
 
 

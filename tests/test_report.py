@@ -24,7 +24,7 @@ def test_report_over_small_sweep(tmp_path):
     assert len(rows) == 4
     assert sorted(int(r["train_steps"]) for r in rows) == [4, 4, 8, 8]
     assert all(float(r["rel_rot_error_mean"]) > 0 and r["model"] == "liedflnn" for r in rows)
-    for name in ("error_vs_training_length", "drift_vs_step", "sphere_per_model", "error_vs_speed"):
+    for name in ("error_vs_training_length", "error_vs_time", "sphere_per_model", "error_vs_speed"):
         assert (sweeps[0] / "plots" / f"{name}.png").stat().st_size > 1000
     assert "4 runs" in (sweeps[0] / "report.md").read_text()
 

@@ -19,7 +19,7 @@ from liedfl_cli.checkpoint import load_checkpoint
 from liedfl_cli.errors import CheckpointError, ConfigError
 from liedfl_cli.train import TrainingInterrupted, run_resume, run_train
 
-CONF = str(Path(__file__).resolve().parents[1] / "conf")
+CONF = str(Path(__file__).resolve().parents[1] / "liedfl_cli" / "conf")
 
 
 def _cfg(tmp: Path, run: str, extra=(), name="train"):

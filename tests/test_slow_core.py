@@ -8,7 +8,7 @@ from hydra import compose, initialize_config_dir
 
 from liedfl_cli.train import run_train
 
-CONF = str(Path(__file__).resolve().parents[1] / "conf")
+CONF = str(Path(__file__).resolve().parents[1] / "liedfl_cli" / "conf")
 pytestmark = pytest.mark.slow
 
 

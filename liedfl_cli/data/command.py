@@ -4,15 +4,27 @@ from __future__ import annotations
 
 from omegaconf import DictConfig
 
-from ..ui import console
+from ..ui import console, err_console
 
 
 def run_data(cfg: DictConfig):
     from .scenes import get_dataset
 
-    ds, path = get_dataset(cfg.dataset, cfg.paths.data_dir)
+    ds, path = get_dataset(cfg.dataset, cfg.paths.data_dir, console=err_console)
+    split = (ds.params or {}).get("split_source")
     console.print(
         f"[bold]{cfg.dataset.name}[/]: {ds.n_trajectories} trajectories x {ds.n_steps} steps on "
-        f"{ds.group.name}, h={ds.h} (train {len(ds.train_idx)}, test {len(ds.test_idx)}) -> {path}"
+        f"{ds.group.name}, h={ds.h} (train {len(ds.train_idx)}, test {len(ds.test_idx)}"
+        + (f", {split}" if split else "")
+        + f") -> {path}",
+        soft_wrap=True,
     )
+    if cfg.dataset.name == "import":
+        console.print(
+            f"train on it: liedfl train dataset=file dataset.path={path}  (or liedfl train with the same "
+            "dataset options)",
+            highlight=False,
+            markup=False,
+            soft_wrap=True,
+        )
     return path

@@ -1,14 +1,15 @@
 """The scene registry `SCENES` (name -> generator) and the dataset front door.
 
 Each generator takes a dataset config (omegaconf DictConfig or plain dict, the fields of
-conf/dataset/*.yaml; see `scene_common`) and returns a `Dataset`. The generators live beside this
-module (`scenes_rigid`: Exp 1-3, `scenes_multibody`: two bodies and PD control, `mocap`: the CMU
-recordings) and are listed here explicitly: adding a scene means one generator function and one
-line in `SCENES` (plus its conf/dataset/<name>.yaml). `get_dataset(cfg, data_dir)` caches the
-result as `<data_dir>/<name>-<hash>.h5`, keyed by the generator-relevant part of the config;
-train_steps / rollout_steps only tell the consumers how much of each trajectory to use, they do not
-change the data (nor the hash). Every scene also takes `noise` and `smoothing` (`transforms`), applied
-after its generator.
+liedfl_cli/conf/dataset/*.yaml; see `scene_common`) and returns a `Dataset`. The generators live
+beside this module (`scenes_rigid`: Exp 1-3, `scenes_multibody`: two bodies and PD control,
+`mocap`: the CMU recordings, `files`: the user's own data, `file` and `import`) and are listed here
+explicitly: adding a scene means one generator function and one line in `SCENES` (plus its
+conf/dataset/<name>.yaml). `get_dataset(cfg, data_dir)` caches the result as
+`<data_dir>/<name>-<hash>.h5`, keyed by the generator-relevant part of the config; train_steps /
+rollout_steps only tell the consumers how much of each trajectory to use, they do not change the
+data (nor the hash). A user's file also hashes its content. Every scene also takes `noise` and
+`smoothing` (`transforms`), applied after its generator.
 """
 
 from __future__ import annotations
@@ -17,8 +18,9 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from ..errors import ConfigError, DatasetError
+from ..errors import DatasetError
 from . import transforms
+from .files import SOURCE_SCENES, check_source_config, file_digest, from_file, hashed_config, import_recording
 from .hdf5 import Dataset, load_dataset, save_dataset
 from .mocap import REAL_DATA_SCENES, cmu_cartwheel
 from .scene_common import (
@@ -44,61 +46,50 @@ SCENES: dict[str, Generator] = {
     "two_body": two_body,
     "pd_control": pd_control,
     "cmu_cartwheel": cmu_cartwheel,
+    "file": from_file,
+    "import": import_recording,
 }
 """Every scene a dataset config may name (`dataset.name`), with its generator `fn(cfg, progress=None)`."""
 
 
+FILE_SCENE = "file"
+"""`dataset=file dataset.path=<file.h5>`: a dataset file in liedfl's format (data/files.py)."""
+
+
 def _checked(cfg) -> dict:
     """The dataset config as a plain dict, its common fields checked and its scene registered."""
-    c = check_config(to_dict(cfg), SCENES)
+    c = to_dict(cfg)
+    if c.get("name") in SOURCE_SCENES:  # the user's own file (data/files.py): its own keys
+        c = check_source_config(c)
+    else:
+        c = check_config(c, SCENES)
     transforms.noise_spec(c.get("noise"))
     transforms.smoothing_spec(c.get("smoothing"))
     return c
 
 
+def _hash(c: dict) -> str:
+    """The cache hash of a checked config; a user's file also hashes its content (files.hashed_config)."""
+    return config_hash(hashed_config(c) if c["name"] in SOURCE_SCENES else c)
+
+
+def _with_digest(c: dict) -> dict:
+    """A source scene's config with the SHA-256 of its file(s), computed once (generator and cache name)."""
+    if c["name"] in SOURCE_SCENES and not c.get("source_sha256"):
+        from .files import _paths
+
+        c = {**c, "source_sha256": file_digest(_paths(c))}
+    return c
+
+
 def _generate(c: dict, progress=None) -> Dataset:
-    """The scene's generator, then the options of every scene (noise, smoothing: `transforms`)."""
+    """The scene's generator, then the options of every scene (noise, smoothing: `transforms`). The
+    recordings (mocap, `import`) smooth during their import, before cropping."""
     ds = SCENES[c["name"]](c, progress)
-    return transforms.apply(ds, c, smoothing_done=c["name"] in REAL_DATA_SCENES)
-
-
-FILE_SCENE = "file"
-"""`dataset=file dataset.path=<file.h5>`: a dataset file read as it is (conf/dataset/file.yaml)."""
-
-
-FILE_IGNORED_KEYS = ("n_trajectories", "steps", "n_test")
-"""Generator keys that budget files (conf/budget/smoke.yaml) set on every dataset: a file has its own
-trajectories and length, so they are accepted and ignored."""
-
-
-def is_file_config(cfg) -> bool:
-    """Whether a dataset config names a file (`name: file`)."""
-    get = getattr(cfg, "get", None)
-    return callable(get) and get("name") == FILE_SCENE
-
-
-def load_file(cfg) -> tuple[Dataset, Path]:
-    """The dataset of `dataset=file`: `path` read and validated (`load_dataset`), then its `noise` and
-    `smoothing` options applied in memory (the file is not copied into the cache)."""
-    c = to_dict(cfg)
-    allowed = {"name", "path", "train_steps", "rollout_steps", *transforms.OPTION_KEYS, "defaults"}
-    allowed |= set(FILE_IGNORED_KEYS)
-    unknown = sorted(set(c) - allowed)
-    if unknown:
-        keys = sorted(allowed - {"defaults", *FILE_IGNORED_KEYS})
-        raise ConfigError(f"dataset=file: unknown key(s) {unknown} (allowed: {keys})")
-    path = c.get("path")
-    if not isinstance(path, str) or not path or path == "???":
-        raise ConfigError("dataset=file needs dataset.path=<a liedfl HDF5 dataset file>")
-    for key in ("train_steps", "rollout_steps"):
-        v = c.get(key)
-        if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
-            raise ConfigError(f"dataset.{key}={v!r}: null (the whole file) or a positive integer")
-    transforms.noise_spec(c.get("noise"))
-    transforms.smoothing_spec(c.get("smoothing"))
-    ds = load_dataset(Path(path).expanduser())
-    ds = transforms.apply(ds, {**c, "seed": ds.seed})
-    return ds, Path(path)
+    smoothing_done = c["name"] in REAL_DATA_SCENES or c["name"] == "import"
+    if c["name"] == FILE_SCENE:  # the noise stream follows the file's own seed
+        c = {**c, "seed": ds.seed}
+    return transforms.apply(ds, c, smoothing_done=smoothing_done)
 
 
 def dataset_steps(cfg, dataset, key: str) -> int:
@@ -109,34 +100,30 @@ def dataset_steps(cfg, dataset, key: str) -> int:
 
 def dataset_path(cfg, data_dir="outputs/data") -> Path:
     """`<data_dir>/<name>-<config_hash>.h5`."""
-    return Path(data_dir) / f"{_checked(cfg)['name']}-{config_hash(cfg)}.h5"
+    c = _with_digest(_checked(cfg))
+    return Path(data_dir) / f"{c['name']}-{_hash(c)}.h5"
 
 
 def generate(cfg, progress: Callable[[float], None] | None = None) -> Dataset:
     """Generate the dataset described by `cfg` (no caching)."""
-    if is_file_config(cfg):
-        return load_file(cfg)[0]
-    c = _checked(cfg)
-    return _generate(c, progress)
+    return _generate(_with_digest(_checked(cfg)), progress)
 
 
 def get_dataset(cfg, data_dir="outputs/data", console=None) -> tuple[Dataset, Path]:
     """Load `<data_dir>/<name>-<hash>.h5` if present (validated), else generate, save and return it.
 
     console: optional rich Console for the progress display (default: a stderr console).
-    `dataset=file`: the named file itself (`load_file`).
+    `dataset=file` / `dataset=import`: the user's file read (data/files.py) and cached like a scene.
     """
-    if is_file_config(cfg):
-        return load_file(cfg)
-    c = _checked(cfg)
+    c = _with_digest(_checked(cfg))
     path = dataset_path(c, data_dir)
     if path.exists():
         ds = load_dataset(path)
         stored = ds.params.get("config_hash")
-        if stored is not None and stored != config_hash(c):
+        if stored is not None and stored != _hash(c):
             raise DatasetError(
                 f"{path}: attribute 'params' holds config_hash {stored!r} but the file name says "
-                f"{config_hash(c)!r}; delete the file to regenerate it"
+                f"{_hash(c)!r}; delete the file to regenerate it"
             )
         return ds, path
 
@@ -144,7 +131,7 @@ def get_dataset(cfg, data_dir="outputs/data", console=None) -> tuple[Dataset, Pa
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     console = console or Console(stderr=True)
-    t_end = float(c["h"]) * int(c["steps"])
+    t_end = float(c["h"]) * int(c["steps"]) if c["name"] not in SOURCE_SCENES else 1.0
     start = time.perf_counter()
     with Progress(
         TextColumn("[bold]{task.description}"),
@@ -154,14 +141,17 @@ def get_dataset(cfg, data_dir="outputs/data", console=None) -> tuple[Dataset, Pa
         console=console,
         transient=True,
     ) as prog:
-        task = prog.add_task(
-            f"simulating {c['name']} ({c['n_trajectories']} trajectories x {c['steps']} steps)", total=t_end
+        what = (
+            f"reading {c['path']}"
+            if c["name"] in SOURCE_SCENES
+            else f"simulating {c['name']} ({c['n_trajectories']} trajectories x {c['steps']} steps)"
         )
+        task = prog.add_task(what, total=t_end)
         ds = _generate(c, lambda tt: prog.update(task, completed=tt))
     save_dataset(ds, path)
     console.print(
-        f"[green]generated[/green] {c['name']}: {ds.n_trajectories} trajectories x {ds.n_steps} steps "
-        f"in {time.perf_counter() - start:.1f} s -> {path}",
+        f"[green]{'read' if c['name'] in SOURCE_SCENES else 'generated'}[/green] {c['name']}: "
+        f"{ds.n_trajectories} trajectories x {ds.n_steps} steps in {time.perf_counter() - start:.1f} s -> {path}",
         soft_wrap=True,
     )
     return ds, path
@@ -170,7 +160,6 @@ def get_dataset(cfg, data_dir="outputs/data", console=None) -> tuple[Dataset, Pa
 __all__ = [
     "SCENES",
     "FILE_SCENE",
-    "load_file",
     "dataset_steps",
     "GENERATOR_VERSION",
     "REQUIRED_KEYS",

@@ -494,6 +494,7 @@ def plot_errors(err: dict, disc: dict | None, idx, dataset, asf: float, path: Pa
             )
         ax.set_title(LABELS[k])
         ax.set_xlabel("time [s]")
+        ax.set_ylabel(LABELS[k])
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8)
     fig.suptitle("Exp 4: per-timestep reproduction error (rollout from the true first pair)")
@@ -532,7 +533,7 @@ def plot_skeletons(tR, tp, pR, pp, skeleton: dict, h: float, i: int, path: Path,
         ax.set_xticklabels([]), ax.set_yticklabels([]), ax.set_zticklabels([])
         if c == 0:
             ax.legend(fontsize=7, loc="upper left")
-    fig.suptitle(f"Sequence {i + 1}: skeleton at uniform intervals (truth vs prediction)")
+    fig.suptitle(f"Sequence {i + 1}: skeleton at uniform intervals (truth vs prediction; world frame, z up)")
     save_figure(fig, path)
 
 
@@ -560,6 +561,9 @@ def plot_root_trajectory(tR, tp, pR, pp, idx, dataset, path: Path, n_frames: int
                     ax.plot(*seg.T, style, color=ac, linewidth=0.9, alpha=0.8)
         _limits(ax, pts)
         ax.set_title(f"Sequence {i + 1} ({_sequence_name(dataset, i)}): root in SE(3)")
+        unit = "ASF units" if abs(_asf_per_unit(dataset) - 1.0) < 1e-4 else f"x {dataset.params['length_unit_m']:.4g} m"
+        for setter, name in ((ax.set_xlabel, "x"), (ax.set_ylabel, "y"), (ax.set_zlabel, "z")):
+            setter(f"{name} [{unit}]", fontsize=8)
         ax.legend(fontsize=8, loc="upper left")
     save_figure(fig, path)
 
