@@ -96,6 +96,12 @@ def read(run: Path) -> dict:
     }
 
 
+YLABELS = {
+    "rel_rot_error": "rel. rotation error [dimensionless]",
+    "position_error": "position error [m]",
+}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--epochs", type=int, default=5000)
@@ -151,6 +157,7 @@ def main() -> None:
             t = np.arange(len(c)) * 0.05
             ax.semilogy(t[2:], c[2:], color="0.4", alpha=0.7, label="MLP potential (paper's model), Exp 3 scene")
         ax.set_xlabel("time [s]")
+        ax.set_ylabel(YLABELS[key])
         ax.set_title("mean " + key.replace("_", " ") + " over 51 test trajectories", fontsize=10)
         ax.grid(alpha=0.3, which="both")
     axes[0].legend(fontsize=7)
@@ -158,6 +165,7 @@ def main() -> None:
         axes[2].semilogy(factors, v, "o-", label=SCENES[k][0])
     axes[2].set_xscale("log", base=2)
     axes[2].set_xlabel("mass multiplied by f (J_d, rho, D true)")
+    axes[2].set_ylabel("DEL loss (mean squared residual)")
     axes[2].set_title("DEL loss of the true scheme: is m identifiable?", fontsize=10)
     axes[2].grid(alpha=0.3, which="both")
     axes[2].legend(fontsize=7)
