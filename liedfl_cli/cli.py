@@ -330,7 +330,8 @@ def _help_overrides(command: str, args: list[str]) -> list[str]:
 
 def _check_flags(command: str, args: list[str]) -> None:
     """Hydra's command-line parser, with its errors (an unknown flag, a flag without its value) as
-    one line instead of argparse's usage block."""
+    one line instead of argparse's usage block; so is Hydra's refusal of two modes at once (e.g.
+    `-m ... --cfg job`: Hydra either runs a sweep or prints one composed config)."""
     if "--version" in args:
         return
     try:
@@ -344,7 +345,25 @@ def _check_flags(command: str, args: list[str]) -> None:
         raise SystemExit(2)
 
     parser.error = error  # type: ignore[method-assign]  # replaces Hydra's parser's method on purpose
-    parser.parse_args(args)
+    parsed = parser.parse_args(args)
+    modes = [
+        name
+        for name, on in (
+            ("-m/--multirun", parsed.multirun),
+            ("-r/--run", parsed.run),
+            (f"--cfg {parsed.cfg}", parsed.cfg is not None),
+            ("--info", parsed.info is not None),
+            ("--shell-completion", parsed.shell_completion),
+        )
+        if on
+    ]
+    if len(modes) > 1 and not (parsed.help or parsed.hydra_help):
+        print(
+            f"error: {' and '.join(modes)} cannot be combined (Hydra runs one of them); to see a job's"
+            f" composed config, give one value per swept key without -m: liedfl {command} --cfg job key=value ...",
+            file=sys.stderr,
+        )
+        raise SystemExit(2)
 
 
 def _one_line_warnings() -> None:

@@ -13,6 +13,7 @@ then evaluates against."""
 from __future__ import annotations
 
 import contextlib
+import math
 import shutil
 from datetime import datetime
 from pathlib import Path
@@ -29,8 +30,25 @@ from .solvers.rollout import Rollout
 from .ui import console, progress_bar
 
 
+def warn_stiff_damping(model, label: str) -> float | None:
+    """One warning line when `model`'s constant damping is so stiff that the scheme reverses the
+    velocity every step (h lambda_max(M^-1 D) > 2, `models.stiffness`); returns that figure."""
+    from .models.stiffness import STIFF_DAMPING, damping_stiffness, step_factor
+
+    stiffness = damping_stiffness(model)
+    if stiffness is not None and stiffness > STIFF_DAMPING:
+        console.print(
+            f"[bold yellow]warning:[/] {label}: stiff damping, h*lambda_max(M^-1 D) = {stiffness:.3g} > "
+            f"{STIFF_DAMPING:g}: velocity x {step_factor(stiffness):+.3f} per step, its sign flips every step "
+            f"(exact: x {math.exp(-stiffness):.2g}); Newton still converges (docs/math.md, 'Stiff damping')",
+            soft_wrap=True,
+        )
+    return stiffness
+
+
 def _roll(model, truth: Pose, steps: int, solver: SolverOptions, label: str, show: bool) -> Rollout:
     g0, g1 = truth.index((slice(None), 0)), truth.index((slice(None), 1))
+    warn_stiff_damping(model, label)
     with progress_bar(show) as bar:
         task = bar.add_task(f"rollout {label}", total=max(steps - 1, 0), loss=float("nan"))
         ro = model.rollout(g0, g1, steps, solver, progress=lambda k: bar.update(task, completed=k))

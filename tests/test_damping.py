@@ -191,3 +191,59 @@ def test_exp4_parameter_counts():
     assert count_parameters(a.forces[0]) == 27 + 22 * 9  # constant blocks 6x6 and 3x3
     assert count_parameters(a.forces[1]) == 7_577  # shared trunk 2,528 + heads 693 + 22 * 198
     assert count_parameters(b.forces[0]) == 95_588
+
+
+# ----------------------------------------------------------------------------- stiff damping
+J_FREE = [1.521, 1.362, 1.211]  # the free_rigid_body scene's inertia
+
+
+def _free_body(h: float, D: list[float]) -> LieDFLNN:
+    from liedfl_cli.models.true_scheme import physics_model
+
+    return physics_model(ProductGroup(0, 1), h, {"J": J_FREE, "m": 0.5, "rho": [0.0, 0.0, 0.0], "g": 0.0, "D": D})
+
+
+def _free_start(h: float, n: int = 4):
+    G = ProductGroup(0, 1)
+    g0 = random_pose(G, n, seed=3)
+    gen = torch.Generator().manual_seed(4)
+    return g0, G.retract(g0, h * torch.randn(n, 3, generator=gen, dtype=torch.float64))
+
+
+def test_stiff_damping_reverses_the_spin_every_step_while_newton_converges():
+    """D = 100 J at h = 0.1: h lambda(M^-1 D) = 10 on every axis. The trapezoidal forcing multiplies
+    the angular velocity by (1 - 5)/(1 + 5) = -2/3 per step (the body's exp(-10) = 4.5e-5): the spin
+    reverses at every step and Newton reports every step converged."""
+    from liedfl_cli.models.stiffness import damping_stiffness, step_factor
+
+    h = 0.1
+    model = _free_body(h, [100.0 * j for j in J_FREE])
+    stiffness = damping_stiffness(model)
+    assert stiffness is not None and abs(stiffness - 10.0) <= 1e-12 * 10.0
+    g0, g1 = _free_start(h)
+    ro = model.rollout(g0, g1, 20)
+    assert ro.n_failed == 0
+    R = ro.pose.R[:, :, 0]
+    w = so3.log(R[:, :-1].transpose(-1, -2) @ R[:, 1:]) / h  # body angular velocity of each step
+    assert ((w[:, 1:] * w[:, :-1]).sum(-1) < 0).all()  # reversed at every step
+    ratio = w[:, 1:].norm(dim=-1) / w[:, :-1].norm(dim=-1)
+    assert float((ratio - abs(step_factor(10.0))).abs().max()) <= 0.01 * 2 / 3
+    # the default scene's damping (D = 0.05) is far from stiff
+    default = damping_stiffness(_free_body(h, [0.05] * 3))
+    assert default is not None and abs(default - h * 0.05 / min(J_FREE)) <= 1e-12 * default
+
+
+def test_rollout_warns_about_stiff_damping_and_not_on_the_default_scene(capsys):
+    from liedfl_cli.rollout import _roll
+    from liedfl_cli.solvers.options import SolverOptions
+
+    h = 0.1
+    g0, g1 = _free_start(h, 2)
+    truth = Pose(torch.stack((g0.R, g1.R), 1), torch.stack((g0.p, g1.p), 1))
+    _roll(_free_body(h, [100.0 * j for j in J_FREE]), truth, 5, SolverOptions(), "true_scheme", False)
+    lines = [x for x in capsys.readouterr().out.splitlines() if "stiff damping" in x]
+    assert len(lines) == 1 and "= 10 > 2" in lines[0] and "-0.667" in lines[0], lines
+    learned = LieDFLNN(ProductGroup(0, 1), h, potential="none", forces=["rayleigh"], seed=0)  # the default start
+    for model in (_free_body(h, [0.05] * 3), learned):
+        _roll(model, truth, 5, SolverOptions(), "model", False)
+        assert "stiff damping" not in capsys.readouterr().out

@@ -16,9 +16,10 @@ from omegaconf import OmegaConf
 from liedfl_cli.cli import CONF_DIR
 from liedfl_cli.errors import ConfigError
 from liedfl_cli.lie import SE3, SO3, Pose, ProductGroup, so3
+from liedfl_cli.mechanics import kinetic
 from liedfl_cli.models import fused
 from liedfl_cli.models.base import LossOptions
-from liedfl_cli.models.liedflnn import LieDFLNN
+from liedfl_cli.models.liedflnn import LieDFLNN, regularity_penalty
 from liedfl_cli.models.true_scheme import physics_model
 from liedfl_cli.solvers import runtime
 from liedfl_cli.solvers.newton import NewtonProblem, newton_solve, newton_solve_reference, solve, solve_reference
@@ -76,14 +77,14 @@ def rel(a: torch.Tensor, b: torch.Tensor) -> float:
     return float((a - b).abs().max() / b.abs().max().clamp_min(1e-300))
 
 
-def both_batches(model, data: Pose, steps: int = 10):
+def both_batches(model, data: Pose, steps: int = 10, reg_points: int = 10):
     with runtime.using(fused=False):
         ref_set = model.training_set(data, steps)
     fused_set = model.training_set(data, steps)
     assert isinstance(fused_set, fused.IncrementSet) and not isinstance(ref_set, fused.IncrementSet)
     idx = torch.randperm(ref_set.n, generator=torch.Generator().manual_seed(3))
-    ref = ref_set.batch(idx, torch.Generator().manual_seed(1), 10)
-    fus = fused_set.batch(idx, torch.Generator().manual_seed(1), 10)
+    ref = ref_set.batch(idx, torch.Generator().manual_seed(1), reg_points)
+    fus = fused_set.batch(idx, torch.Generator().manual_seed(1), reg_points)
     return ref, fus
 
 
@@ -110,6 +111,70 @@ def test_fused_residual_regularity_and_loss_equal_the_reference(name):
         a = torch.zeros(()) if a is None else a
         b = torch.zeros(()) if b is None else b
         assert float((a - b).abs().max()) <= 1e-10 * scale
+
+
+def big_step_trajectories(G: ProductGroup, T: int = 8, N: int = 6, seed: int = 0) -> Pose:
+    """Trajectories (T, N+1, ...) turning by 0.5 to 3 rad per step (one angle per trajectory) about
+    a random axis per body: the larger increments turn the orientation of some mixed-Hessian
+    blocks (det(-H_b) < 0)."""
+    gen = torch.Generator().manual_seed(seed)
+    axis = torch.randn(T, 1, G.n_bodies, 3, generator=gen, dtype=torch.float64)
+    angle = torch.linspace(0.5, 3.0, T, dtype=torch.float64)[:, None, None, None]
+    axis = angle * axis / axis.norm(dim=-1, keepdim=True)
+    k = torch.arange(N + 1, dtype=torch.float64)[None, :, None, None]
+    R0 = so3.exp(torch.randn(T, 1, G.n_bodies, 3, generator=gen, dtype=torch.float64))
+    p0 = torch.randn(T, 1, G.n_se3, 3, generator=gen, dtype=torch.float64)
+    v = 0.1 * torch.randn(T, 1, G.n_se3, 3, generator=gen, dtype=torch.float64)
+    return Pose(R0 @ so3.exp(k * axis), p0 + k * v)
+
+
+def block_orientations(model: LieDFLNN, g: Pose, g_next: Pose) -> torch.Tensor:
+    """sign det(-H_b) of each body's mixed-Hessian block (+1: the normal orientation), (..., B)."""
+    Jd, m, rho = model._params()
+    blocks = kinetic.mixed_hessian_blocks(model.G, model.G.increment(g, g_next), Jd, m, rho, model.h)
+    return torch.stack([torch.linalg.slogdet(-b).sign for b in blocks], -1)
+
+
+@pytest.mark.parametrize("name", ["free_so3_rayleigh", "se3xso3_mlp", "se3_mlp_rayleigh"])
+def test_wrong_orientation_of_the_mixed_hessian_is_penalised_alike_in_both_paths(name):
+    """A block with det(-H_b) <= 0 is penalised however large |det H_b| is (log|det| alone does
+    not see the sign), and the fused loss (the hand-written gradient for free_so3_rayleigh) equals
+    the reference loss and gradients to rounding."""
+    model = make(name)
+    ref, fus = both_batches(model, big_step_trajectories(model.G), steps=6, reg_points=24)
+    orientation = block_orientations(model, *ref.reg)
+    assert (orientation < 0).any() and (orientation > 0).any()  # the case this test is about
+    opts = LossOptions(epsilon=-50.0)  # every block's |det H_b| is far above e^epsilon
+    assert float(model.regularity_logdet(*ref.reg).min()) > opts.epsilon + 10
+    params = [p for p in model.parameters() if p.requires_grad]
+    loss_ref, parts_ref = model.loss(ref, opts)
+    loss_fus, parts_fus = model.loss(fus, opts)
+    assert float(parts_ref["reg_loss"]) >= float((orientation < 0).double().mean())  # >= 1 per wrong block
+    assert abs(float(parts_fus["reg_loss"] - parts_ref["reg_loss"])) <= 1e-12 * float(parts_ref["reg_loss"])
+    assert abs(float(loss_fus - loss_ref)) <= 1e-12 * abs(float(loss_ref))
+    g_ref = torch.autograd.grad(loss_ref, params, allow_unused=True)
+    g_fus = torch.autograd.grad(loss_fus, params, allow_unused=True)
+    scale = max(float(g.abs().max()) for g in g_ref if g is not None)
+    assert scale > 0
+    for a, b in zip(g_fus, g_ref):
+        a = torch.zeros(()) if a is None else a
+        b = torch.zeros(()) if b is None else b
+        assert float((a - b).abs().max()) <= 1e-10 * scale
+
+
+@pytest.mark.parametrize("form", ["relu", "gaussian"])
+def test_normally_oriented_blocks_keep_the_log_abs_det_penalty_exactly(form):
+    """Where every block has det(-H_b) > 0 (all the shipped scenes) the regularity loss is the
+    penalty of log|det H_b|, bit for bit, on both paths."""
+    model = make("se3xso3_mlp")
+    ref, fus = both_batches(model, trajectories(model.G))
+    assert (block_orientations(model, *ref.reg) > 0).all()
+    opts = LossOptions(epsilon=30.0, reg_form=form)  # the penalty is active
+    expected = regularity_penalty(model.regularity_logdet(*ref.reg), opts.epsilon, form).mean()
+    assert float(expected.detach()) > 0
+    assert torch.equal(model.loss(ref, opts)[1]["reg_loss"], expected)
+    _, ld_fus = fused.residual_and_logdet(model, fus, opts)
+    assert torch.equal(model.loss(fus, opts)[1]["reg_loss"], regularity_penalty(ld_fus, opts.epsilon, form).mean())
 
 
 def test_known_parts_are_evaluated_once_at_load_and_still_equal():

@@ -395,6 +395,8 @@ CASES: list[Case] = [
     Case("hydra-delete-missing", (T, "~nosuchkey"), ("nosuchkey",)),
     Case("unknown-flag", (T, "--epochs", "3"), ("unrecognized arguments: --epochs",)),
     Case("flag-without-value", (T, "--cfg"), ("--cfg",)),
+    Case("multirun-with-cfg", (T, "-m", *FAST, "train.epochs=1,2", "--cfg", "job"), ("--cfg", "-m", "one value")),
+    Case("multirun-with-info", (T, "--multirun", "--info"), ("--info", "--multirun")),
     # --- rollout / eval / report arguments
     Case("eval-run-missing", ("eval", "run={tmp}/nope"), ("run=", "no such run directory")),
     Case("eval-run-not-given", ("eval",), ("run=<run dir> is required",)),

@@ -4,6 +4,7 @@ import torch
 
 from liedfl_cli.lie import SE3, SO3, Pose, so3
 from liedfl_cli.models.true_scheme import physics_model
+from liedfl_cli.solvers import newton, runtime
 from liedfl_cli.solvers.newton import damped_newton, jacobian
 from liedfl_cli.solvers.options import SolverOptions
 
@@ -94,3 +95,70 @@ def test_se3_rollout_stays_on_group():
     ro = model.rollout(g0, g1, 200)
     assert ro.converged.all()
     assert so3.orthogonality_error(ro.pose.R).max() < 1e-12
+
+
+# ----------------------------------------------------------------------------- the rounding floor
+FREE = {**PHYS, "g": 0.0, "D": [0.05] * 3}  # the free_rigid_body scene's physics (Exp 2)
+
+
+def _rollouts(model, g0, g1, steps, opts):
+    """(fused, reference) rollouts of the same model."""
+    with runtime.using(fused=False):
+        ref = model.rollout(g0, g1, steps, opts)
+    return model.rollout(g0, g1, steps, opts), ref
+
+
+def _se3_start(n=2, seed=1):
+    gen = torch.Generator().manual_seed(seed)
+    g0 = Pose(
+        so3.exp(torch.randn(n, 1, 3, generator=gen, dtype=torch.float64)),
+        torch.randn(n, 1, 3, generator=gen, dtype=torch.float64),
+    )
+    return g0, SE3.retract(g0, 0.1 * torch.randn(n, 6, generator=gen, dtype=torch.float64))
+
+
+def test_a_tolerance_below_rounding_converges_at_the_rounding_floor():
+    """A Newton step cannot get below the rounding of its unknown: with tol = 0 (or any tol under
+    16 eps) a free-body rollout converged on about 1/3 (fused) or none (reference) of its steps
+    before the floor; now every step converges, on both paths, SO(3) and SE(3)."""
+    cases = [
+        (physics_model(SO3, 0.1, FREE), _so3_start(2)),
+        (physics_model(SE3, 0.1, {**FREE, "D": [0.05] * 6}), _se3_start()),
+    ]
+    for model, (g0, g1) in cases:
+        for tol in (0.0, 1e-17):
+            for ro in _rollouts(model, g0, g1, 150, SolverOptions(tol=tol)):
+                assert ro.n_failed == 0, (model.G.name, tol, ro.n_failed)
+                assert float(ro.iterations.double().mean()) < 5  # 3.5-3.7 here: a step or two past 1e-12
+
+
+def test_the_floor_leaves_flags_and_iteration_counts_as_they_were(monkeypatch):
+    """Wherever tol is above the rounding floor (the default 1e-5, and 1e-12) the convergence flags,
+    iteration counts and poses are those of the plain `step <= tol` test, bit for bit."""
+    model = physics_model(SO3, 0.1, FREE)
+    so3_start = _so3_start(3)
+    se3 = physics_model(SE3, 0.1, {**FREE, "g": 9.81, "D": [0.05] * 6})
+    for tol in (SolverOptions().tol, 1e-12):
+        for m, (g0, g1) in ((model, so3_start), (se3, _se3_start(3))):
+            opts = SolverOptions(tol=tol)
+            now = _rollouts(m, g0, g1, 100, opts)
+            with monkeypatch.context() as mp:
+                mp.setattr(newton, "ROUNDING_ULPS", 0.0)
+                plain = _rollouts(m, g0, g1, 100, opts)
+            for a, b in zip(now, plain):
+                assert torch.equal(a.converged, b.converged) and torch.equal(a.iterations, b.iterations)
+                assert torch.equal(a.pose.R, b.pose.R) and torch.equal(a.pose.p, b.pose.p)
+
+
+def test_step_tolerance_is_relative_to_the_unknown():
+    eps = torch.finfo(torch.float64).eps
+    floor = newton.ROUNDING_ULPS * eps
+    rot = Pose(torch.eye(3, dtype=torch.float64).expand(4, 1, 3, 3), torch.zeros(4, 0, 3, dtype=torch.float64))
+    assert newton.step_tolerance(rot, 1e-5) == 1e-5 and newton.step_tolerance(rot, 0.0) == floor
+    x = torch.tensor([[0.5, -2.0], [1e6, 3.0]], dtype=torch.float64)
+    torch.testing.assert_close(newton.step_tolerance(x, 0.0), torch.tensor([floor, 1e6 * floor], dtype=torch.float64))
+    torch.testing.assert_close(
+        newton.step_tolerance(x, 1e-5), torch.tensor([1e-5, 1e-5], dtype=torch.float64), rtol=0, atol=0
+    )
+    se3 = Pose(rot.R, torch.tensor([[[1e3, 0.0, 0.0]]] * 4, dtype=torch.float64))
+    torch.testing.assert_close(newton.step_tolerance(se3, 1e-14), torch.full((4,), 1e3 * floor, dtype=torch.float64))

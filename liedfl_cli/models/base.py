@@ -195,6 +195,19 @@ class LossOptions:
         )
 
 
+def oriented_logdet(logabsdet: torch.Tensor, orientation: torch.Tensor | None, epsilon: float) -> torch.Tensor:
+    """The log-det the regularity penalty sees, per body block: log|det H_b| where the block has
+    its normal orientation (`orientation` = sign det(-H_b) > 0; -H_b is the body's mass matrix
+    over h at small increments), and epsilon - 1 - |log|det H_b| - epsilon| where it does not
+    (det(-H_b) <= 0), so a block of the wrong orientation is penalised however large |det H_b| is:
+    at least as much as a right one 1 below the threshold. Finite wherever |det H_b| > 0 and equal
+    to `logabsdet` (the same tensor values, the same gradient) on normally oriented blocks.
+    `orientation` None: no sign information (`logabsdet` as is)."""
+    if orientation is None:
+        return logabsdet
+    return torch.where(orientation > 0, logabsdet, epsilon - 1.0 - (logabsdet - epsilon).abs())
+
+
 LossParts = dict[str, torch.Tensor]
 
 

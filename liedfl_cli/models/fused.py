@@ -40,7 +40,7 @@ from ..mechanics.parameterizations import Inertia, SPSDMatrix
 from ..mechanics.potentials import MLPPotential, left_gradient
 from ..solvers import runtime
 from ..solvers.newton import NewtonProblem
-from .base import TripletSet
+from .base import TripletSet, oriented_logdet
 
 AFFINE_FORCES = (RayleighNonlinearForce, PDControl)
 """Forces known to be affine in the velocity estimate: F(g, xi) = F(g, 0) + dF/dxi(g) xi."""
@@ -601,28 +601,39 @@ def force_value(force: nn.Module, g: Pose, xi: torch.Tensor) -> torch.Tensor:
 
 
 def regularity_logdet(model, batch: IncrementBatch, P: Derived, hess_map: torch.Tensor) -> torch.Tensor:
-    """log|det| of each body's mixed-Hessian block at the regularity pairs, shape (P, B).
+    """log|det| of each body's mixed-Hessian block at the regularity pairs, shape (P, B)."""
+    return regularity_slogdet(model, batch, P, hess_map)[0]
+
+
+def regularity_slogdet(
+    model, batch: IncrementBatch, P: Derived, hess_map: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(log|det H_b|, sign det(-H_b)) of each body's mixed-Hessian block at the regularity pairs,
+    both (P, B) (`LieDFLNN.regularity_slogdet`).
 
     SE(3) blocks [[H + s P W P, -s P W], [s W P, -s W]] (s = m/h) have the Schur complement H, so
-    log|det| = log|det H| + 3 log s + log|det W|."""
+    log|det| = log|det H| + 3 log s + log|det W| and det(-block) = -s^3 det W det H: with W a
+    rotation, sign det(-H_b) = -sign det H for SE(3) and SO(3) bodies alike."""
     assert batch.reg_W is not None
     Hflat = _apply_map(batch.reg_W, hess_map)
-    logdet = torch.linalg.slogdet(Hflat.unflatten(-1, (3, 3))).logabsdet
+    sl = torch.linalg.slogdet(Hflat.unflatten(-1, (3, 3)))
+    logdet = sl.logabsdet
     m = model.G.n_se3
     if m:
         assert batch.reg_logdetW is not None
         se = logdet[..., :m] + 3.0 * torch.log(P.mass / model.h) + batch.reg_logdetW
         logdet = torch.cat((se, logdet[..., m:]), -1)
-    return logdet
+    return logdet, -sl.sign
 
 
 def residual_and_logdet(model, batch: IncrementBatch, opts) -> tuple[torch.Tensor, torch.Tensor | None]:
     """(residual (N, dim), regularity log|det| (P, B) or None) of a batch, with the derived
-    parameters built once (`LieDFLNN.loss` turns them into the loss)."""
+    parameters built once (`LieDFLNN.loss` turns them into the loss); blocks of the wrong
+    orientation carry `base.oriented_logdet`'s value."""
     P = derive(model)
     kin_map, hess_map = training_maps(P.Jd, model.h)
     use_reg = batch.reg_W is not None and opts.w_reg > 0
-    logdet = regularity_logdet(model, batch, P, hess_map) if use_reg else None
+    logdet = oriented_logdet(*regularity_slogdet(model, batch, P, hess_map), opts.epsilon) if use_reg else None
     return training_residual(model, batch, P, kin_map), logdet
 
 
@@ -660,6 +671,14 @@ def _penalty_and_slope(logdet: torch.Tensor, epsilon: float, form: str) -> tuple
     raise ValueError(f"train.reg_form must be 'relu' or 'gaussian', got {form!r}")
 
 
+def _oriented_penalty_and_slope(sl, epsilon: float, form: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """The penalty of `base.oriented_logdet` of SO(3) blocks (sign det(-H) = -sign det H) from
+    their `slogdet` and its derivative with respect to log|det H| (unchanged where det(-H) > 0)."""
+    right = sl.sign < 0
+    pen, slope = _penalty_and_slope(oriented_logdet(sl.logabsdet, -sl.sign, epsilon), epsilon, form)
+    return pen, torch.where(right, slope, -torch.sign(sl.logabsdet - epsilon) * slope)
+
+
 class _RotationalLoss(torch.autograd.Function):
     """(loss, del_loss, reg_loss) of `rotational_loss` from J_d.flatten() (B, 9) and D (dim, dim):
 
@@ -685,7 +704,7 @@ class _RotationalLoss(torch.autograd.Function):
         H = slope = None
         if reg_W is not None:
             H = _apply_map(reg_W, maps[:, 27:].unflatten(-1, (9, 9))).unflatten(-1, (3, 3))
-            pen, slope = _penalty_and_slope(torch.linalg.slogdet(H).logabsdet, epsilon, form)
+            pen, slope = _oriented_penalty_and_slope(torch.linalg.slogdet(H), epsilon, form)
             reg_loss = pen.mean()
         ctx.save_for_backward(r, A, s, reg_W, H, slope, C)
         ctx.settings = (h, w_del, w_reg, B, D is not None)

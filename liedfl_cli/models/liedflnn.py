@@ -43,6 +43,7 @@ from .base import (
     TripletBatch,
     config_options,
     initial_scale,
+    oriented_logdet,
 )
 
 RESIDUAL_MODES = ("fast", "generic")
@@ -245,7 +246,9 @@ class LieDFLNN(ImplicitModel):
                 return runtime.compiled(fused_loss, "train_loss")(self, batch, opts)
             return fused_loss(self, batch, opts)
         assert isinstance(batch, TripletBatch), "LieDFLNN trains on triplets (window = 'triplet')"
-        logdet = self.regularity_logdet(*batch.reg) if batch.reg is not None and opts.w_reg > 0 else None
+        logdet = None
+        if batch.reg is not None and opts.w_reg > 0:
+            logdet = oriented_logdet(*self.regularity_slogdet(*batch.reg), opts.epsilon)
         return del_regularity_loss(self.residual(*batch.poses()), logdet, opts)
 
     def components(self) -> list[str]:
@@ -424,13 +427,20 @@ class LieDFLNN(ImplicitModel):
 
     def regularity_logdet(self, g: Pose, g_next: Pose) -> torch.Tensor:
         """log|det| of each body's diagonal block of the mixed Hessian, shape (..., B)."""
+        return self.regularity_slogdet(g, g_next)[0]
+
+    def regularity_slogdet(self, g: Pose, g_next: Pose) -> tuple[torch.Tensor, torch.Tensor]:
+        """(log|det H_b|, sign det(-H_b)) of each body's diagonal block H_b of the mixed Hessian,
+        both (..., B); sign det(-H_b) = +1 is the normal orientation (`base.oriented_logdet`)."""
         if self.residual_mode == "generic":
             H = self.mixed_hessian_autodiff(g, g_next)
             blocks = [H[..., s, s] for s in self.G.body_slices()]
         else:
             Jd, m, rho = self._params()
             blocks = kinetic.mixed_hessian_blocks(self.G, self.G.increment(g, g_next), Jd, m, rho, self.h)
-        return torch.stack([torch.linalg.slogdet(b).logabsdet for b in blocks], -1)
+        sl = [torch.linalg.slogdet(b) for b in blocks]
+        sign = [s.sign if b.shape[-1] % 2 == 0 else -s.sign for s, b in zip(sl, blocks)]  # det(-H) = (-1)^n det H
+        return torch.stack([s.logabsdet for s in sl], -1), torch.stack(sign, -1)
 
 
 def regularity_penalty(logdet: torch.Tensor, epsilon: float, form: str = "relu") -> torch.Tensor:

@@ -74,12 +74,30 @@ def select(mask: torch.Tensor, a, b):
     return torch.where(mask.reshape(-1, *([1] * (a.dim() - 1))), a, b)
 
 
+ROUNDING_ULPS = 16.0
+"""Rounding floor of the convergence test, in units of the float's eps times the unknown's magnitude."""
+
+
+def step_tolerance(x, tol: float):
+    """The largest full Newton step (max-norm) with which a row at x converges: max(tol,
+    ROUNDING_ULPS eps max(1, |x|_max)) (`SolverOptions`): a float for rotation increments, else a
+    (T,) tensor, equal to tol wherever tol is above the floor. |x|_max: the largest entry of a
+    plain unknown (T, n), or of a Pose's translations (rotation entries are at most 1)."""
+    v = x.p if isinstance(x, Pose) else x
+    floor = ROUNDING_ULPS * torch.finfo(v.dtype).eps
+    if v.numel() == 0 or v.dim() < 2:
+        return max(tol, floor)
+    scale = v.detach().abs().flatten(1).amax(-1)
+    return torch.clamp(floor * torch.clamp(scale, min=1.0), min=tol)
+
+
 def newton_solve(f, jac, x0, retract, opts: SolverOptions | None = None, iterate=None, restrict=None) -> NewtonResult:
     """Damped Newton with backtracking on ||f||_2 for a batch of T independent problems.
 
     f(x) -> (T, n); jac(x) -> (T, n, n) = d f(retract(x, delta)) / d delta; retract(x, delta (T, n)).
-    A row converges when the full Newton step of a non-singular Jacobian has max norm <= tol
-    (the step is then applied, leaving an error ~ tol^2 by quadratic convergence). Rows with a
+    A row converges when the full Newton step of a non-singular Jacobian has max norm <= tol, or
+    <= its rounding floor where that is larger (`step_tolerance`; the step is then applied,
+    leaving an error ~ tol^2 by quadratic convergence). Rows with a
     singular Jacobian take a least-squares step and cannot converge on that iteration; a
     step that finds no decrease in ||f|| after `max_halvings` halvings is taken in full
     (tol, max_iter, max_halvings from `opts`). `iterate(x, r)` -> (delta, singular, x', f(x')),
@@ -125,13 +143,14 @@ def _newton_rows(problem: NewtonProblem, x, r, rn, opts: SolverOptions, max_iter
     for it in range(max_iter):
         if T == 0:
             break
+        step_tol = step_tolerance(x, tol)
         delta, singular, cand, rc = iterate(x, r)
         rcn = torch.linalg.vector_norm(rc, dim=-1)
         finite = torch.isfinite(rcn)
         ok = finite & (rcn <= rn * (1 - 1e-4) + 1e-300)
         full_step = delta.abs().amax(-1)  # not finite exactly where delta is not
         irregular = singular | ~(ok & torch.isfinite(full_step))
-        new_converged = (full_step <= tol) & finite
+        new_converged = (full_step <= step_tol) & finite
         if any_converged:  # rows that converged earlier take no part
             active = ~converged
             irregular = irregular & active
@@ -142,7 +161,7 @@ def _newton_rows(problem: NewtonProblem, x, r, rn, opts: SolverOptions, max_iter
         if flags[0]:  # a singular Jacobian or a step without decrease: redo row by row
             x, r, rn, singular, full_step = _careful_iteration(f, jac, retract, x, r, rn, active, opts)
             iters = iters + active.long()
-            converged = converged | (active & ~singular & (full_step <= tol) & torch.isfinite(rn))
+            converged = converged | (active & ~singular & (full_step <= step_tol) & torch.isfinite(rn))
             n_converged = int(converged.sum())
         else:
             if any_converged:
@@ -231,8 +250,9 @@ def newton_solve_reference(f, jac, x0, retract, opts: SolverOptions | None = Non
     Damped Newton with backtracking on ||f||_2 for a batch of T independent problems.
 
     f(x) -> (T, n); jac(x) -> (T, n, n) = d f(retract(x, delta)) / d delta; retract(x, delta (T, n)).
-    A row converges when the full Newton step of a non-singular Jacobian has max norm <= tol
-    (the step is then applied, leaving an error ~ tol^2 by quadratic convergence). Rows with a
+    A row converges when the full Newton step of a non-singular Jacobian has max norm <= tol, or
+    <= its rounding floor where that is larger (`step_tolerance`; the step is then applied,
+    leaving an error ~ tol^2 by quadratic convergence). Rows with a
     singular Jacobian take a least-squares step and cannot converge on that iteration; a
     step that finds no decrease in ||f|| after `max_halvings` halvings is taken in full
     (tol, max_iter, max_halvings from `opts`).
@@ -249,6 +269,7 @@ def newton_solve_reference(f, jac, x0, retract, opts: SolverOptions | None = Non
         active = ~converged
         if not active.any():
             break
+        step_tol = step_tolerance(x, tol)
         J = jac(x)
         sol, info = torch.linalg.solve_ex(J, r[..., None])
         singular = info > 0
@@ -285,7 +306,7 @@ def newton_solve_reference(f, jac, x0, retract, opts: SolverOptions | None = Non
         x, r = select(active, new_x, x), select(active, new_r, r)
         rn = torch.where(active, new_rn, rn)
         iters = iters + active.long()
-        converged = converged | (active & ~singular & (full_step <= tol) & torch.isfinite(rn))
+        converged = converged | (active & ~singular & (full_step <= step_tol) & torch.isfinite(rn))
     return NewtonResult(x, converged, iters, r.abs().amax(-1))
 
 
