@@ -368,13 +368,15 @@ def hessian_map(Jd: torch.Tensor, h: float) -> torch.Tensor:
 _CONTRACTIONS: dict[tuple, torch.Tensor] = {}
 
 
-def _map_contraction(dtype: torch.dtype, h: float) -> torch.Tensor:
+def _map_contraction(dtype: torch.dtype, h: float, device: torch.device | None = None) -> torch.Tensor:
     """(9, 27 + 81): J_d.flatten() @ C = (kinetic_residual_map, hessian_map) flattened; both maps
-    are linear in J_d, so C is built once (per dtype and h) from the 9 basis matrices."""
-    key = (dtype, h)
+    are linear in J_d, so C is built once (per dtype, h and device: no copy per step) from the 9
+    basis matrices."""
+    key = (dtype, h, device)
     if key not in _CONTRACTIONS:
         E = _basis(dtype)
-        _CONTRACTIONS[key] = torch.cat((kinetic_residual_map(E, h).flatten(-2), hessian_map(E, h).flatten(-2)), -1)
+        C = torch.cat((kinetic_residual_map(E, h).flatten(-2), hessian_map(E, h).flatten(-2)), -1)
+        _CONTRACTIONS[key] = C if device is None else C.to(device)
     return _CONTRACTIONS[key]
 
 
@@ -384,12 +386,12 @@ def warm_caches(dtype: torch.dtype, device: torch.device, h: float) -> None:
     outlive it, e.g. the Exp 4 loss: InternalTorchDynamoError)."""
     _constants(dtype, device)
     _constants(dtype, None)
-    _map_contraction(dtype, float(h))
+    _map_contraction(dtype, float(h), device)
 
 
 def training_maps(Jd: torch.Tensor, h: float) -> tuple[torch.Tensor, torch.Tensor]:
     """(kinetic_residual_map (B, 9, 3), hessian_map (B, 9, 9)) of J_d (B, 3, 3) in one product."""
-    maps = Jd.flatten(-2) @ _map_contraction(Jd.dtype, float(h)).to(Jd.device)
+    maps = Jd.flatten(-2) @ _map_contraction(Jd.dtype, float(h), Jd.device)
     return maps[..., :27].unflatten(-1, (9, 3)), maps[..., 27:].unflatten(-1, (9, 9))
 
 
@@ -651,7 +653,7 @@ def rotational_loss(model, batch: IncrementBatch, opts) -> tuple[torch.Tensor, d
     reg = batch.reg_W if batch.reg_W is not None and opts.w_reg > 0 else None
     static = batch.fields.get("static")
     s = batch.fields.get("s")
-    C = _map_contraction(P.Jd.dtype, float(model.h)).to(P.Jd.device)
+    C = _map_contraction(P.Jd.dtype, float(model.h), P.Jd.device)
     settings = (float(model.h), float(opts.w_del), float(opts.w_reg), float(opts.epsilon), str(opts.reg_form))
     A = batch.fields["A"]
     loss, del_loss, reg_loss = _RotationalLoss.apply(P.Jd.flatten(-2), P.D, A, s, static, reg, C, settings)
