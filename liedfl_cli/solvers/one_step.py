@@ -1,0 +1,76 @@
+"""Teacher-forced one-step predictions and the constant-velocity reference.
+
+A one-step prediction predicts g_{k+1} from the *true* pair (g_{k-1}, g_k) for every interior k of
+every trajectory; it measures what a model learned about one step without the compounding of a
+rollout. The constant-velocity guess g_{k+1} = g_k exp(log(g_{k-1}^{-1} g_k)) (the last increment
+repeated) is the reference every learned model must beat: a model no better than it has learned
+nothing about the dynamics. It is written with exp(log(.)) so a long constant-velocity rollout stays
+on the group to rounding error (composing the raw increment matrices drifts off SO(3)).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+
+from ..lie import Pose, ProductGroup
+from .options import SolverOptions
+
+
+def constant_velocity_step(G: ProductGroup, g_prev: Pose, g: Pose) -> Pose:
+    """g exp(log(g_prev^{-1} g)): Pose (..., B, 3, 3), (..., m, 3) twice -> the guess for the next pose."""
+    return G.retract(g, G.log(G.increment(g_prev, g)))
+
+
+def constant_velocity_rollout(G: ProductGroup, g0: Pose, g1: Pose, steps: int) -> Pose:
+    """The constant-velocity rollout from (g0, g1): R (T, S+1, B, 3, 3), p (T, S+1, m, 3) starting
+    with g0, g1, then g_{k+1} = g_k exp(xi) with xi = log(g0^{-1} g1) for every k (S = steps)."""
+    xi = G.log(G.increment(g0, g1))
+    Rs, ps = [g0.R, g1.R], [g0.p, g1.p]
+    g = g1
+    for _ in range(1, steps):
+        g = G.retract(g, xi)
+        Rs.append(g.R)
+        ps.append(g.p)
+    return Pose(torch.stack(Rs, 1), torch.stack(ps, 1))
+
+
+def _pairs(truth: Pose) -> tuple[Pose, Pose, tuple[int, int]]:
+    """(g_{k-1}, g_k) for k = 1..N-1 of truth R (T, N+1, B, 3, 3), flattened to (T (N-1), ...)."""
+    T, n1 = truth.R.shape[:2]
+    if n1 < 3:
+        raise ValueError(f"one-step predictions need trajectories of at least 3 poses, got {n1}")
+    prev = truth.index((slice(None), slice(0, n1 - 2)))
+    cur = truth.index((slice(None), slice(1, n1 - 1)))
+    flat = lambda g: Pose(g.R.reshape(-1, *g.R.shape[2:]), g.p.reshape(-1, *g.p.shape[2:]))
+    return flat(prev), flat(cur), (T, n1 - 2)
+
+
+def constant_velocity_one_step(G: ProductGroup, truth: Pose) -> Pose:
+    """Constant-velocity guesses of g_2..g_N from the true pairs: R (T, N-1, B, 3, 3), p (T, N-1, m, 3)."""
+    g_prev, g, (T, n) = _pairs(truth)
+    out = constant_velocity_step(G, g_prev, g)
+    return Pose(out.R.reshape(T, n, *out.R.shape[1:]), out.p.reshape(T, n, *out.p.shape[1:]))
+
+
+@torch.no_grad()
+def one_step_predictions(
+    model: Any, truth: Pose, opts: SolverOptions | None = None, chunk: int = 65536
+) -> tuple[Pose, torch.Tensor]:
+    """The model's teacher-forced predictions of g_2..g_N from the true pairs (g_{k-1}, g_k).
+
+    truth: R (T, N+1, B, 3, 3), p (T, N+1, m, 3). Every pair is one trajectory of a two-step
+    `model.rollout` (any model: implicit, explicit or adaptive), batched `chunk` pairs at a time.
+    Returns (Pose R (T, N-1, B, 3, 3), p (T, N-1, m, 3), converged (T, N-1) bool).
+    """
+    g_prev, g, (T, n) = _pairs(truth)
+    Rs, ps, conv = [], [], []
+    for a in range(0, T * n, chunk):
+        sl = slice(a, min(a + chunk, T * n))
+        ro = model.rollout(g_prev.index(sl), g.index(sl), 2, opts or SolverOptions())
+        Rs.append(ro.pose.R[:, 2])
+        ps.append(ro.pose.p[:, 2])
+        conv.append(ro.converged[:, 0] if ro.converged.shape[1] else torch.ones_like(ro.pose.R[:, 0, 0, 0, 0]).bool())
+    R, p, c = torch.cat(Rs), torch.cat(ps), torch.cat(conv)
+    return Pose(R.reshape(T, n, *R.shape[1:]), p.reshape(T, n, *p.shape[1:])), c.reshape(T, n)
