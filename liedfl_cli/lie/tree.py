@@ -1,0 +1,163 @@
+"""Kinematic trees: the coordinates of an articulated body and their forward kinematics.
+
+A tree of B bodies is described by `parents` (one int per body, -1 for the root, which is body 0;
+every parent comes before its children), `offsets` (B, 3): the origin of body b -- its joint --
+in its parent's frame (the root's row is the pivot of an SO(3) root in the world, zeros for an
+SE(3) root), and `rotations`: how the coordinates store a body's attitude,
+
+    "world":  R[..., b] is body b's world attitude (x_world = R x_body);
+    "parent": R[..., b] is its attitude relative to its parent, R_parent^T R_b (the BVH convention).
+
+The coordinates are a Pose of the product group SE(3) x SO(3)^(B-1) (free-floating root) or
+SO(3)^B (root pinned at offsets[0]). Forward kinematics gives every body's world SE(3) pose:
+    Rw_b = R_b (world) or Rw_parent R_b (parent);  pw_b = pw_parent + Rw_parent o_b.
+
+`fk_jacobian` is the left-trivialised Jacobian of forward kinematics: a perturbation g exp(eta) of
+the coordinates moves body b's world pose to (Rw_b exp(dw_b), pw_b + Rw_b dv_b) + O(|eta|^2) with
+(dw_b, dv_b) = A_b eta. In world-frame terms, with theta_b = Rw_b dw_b and P_b = Rw_b dv_b:
+    theta_b = [theta_parent, parent rotations only] + Rw_b eta_b,
+    P_b     = P_parent - hat(pw_b - pw_parent) theta_parent,   P_root = R_root eta_root,v (SE(3) root).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from functools import cached_property
+
+import torch
+
+from . import so3
+from .product import Pose, ProductGroup
+
+ROTATIONS = ("world", "parent")
+
+
+@dataclass(frozen=True)
+class Tree:
+    """A kinematic tree (holds no tensors): parents (B,), offsets (B, 3) as nested tuples, rotations."""
+
+    parents: tuple[int, ...]
+    offsets: tuple[tuple[float, float, float], ...]
+    rotations: str = "world"
+    free_root: bool = True
+
+    def __post_init__(self):
+        B = len(self.parents)
+        if B == 0:
+            raise ValueError("a tree needs at least one body")
+        if self.parents[0] != -1:
+            raise ValueError(f"parents[0] must be -1 (body 0 is the root), got {self.parents[0]}")
+        for b, p in enumerate(self.parents[1:], start=1):
+            if not (isinstance(p, int) and 0 <= p < b):
+                raise ValueError(f"parents[{b}] = {p!r}: every parent must be an earlier body (0..{b - 1})")
+        if len(self.offsets) != B or any(len(o) != 3 for o in self.offsets):
+            raise ValueError(f"offsets must have shape ({B}, 3)")
+        if self.rotations not in ROTATIONS:
+            raise ValueError(f"rotations must be one of {ROTATIONS}, got {self.rotations!r}")
+
+    @classmethod
+    def from_lists(cls, parents: Sequence[int], offsets, rotations: str = "world", free_root: bool = True) -> Tree:
+        """From plain lists or arrays: parents (B,), offsets (B, 3)."""
+        return cls(
+            tuple(int(p) for p in parents),
+            tuple(tuple(float(x) for x in o) for o in offsets),  # type: ignore[misc]
+            str(rotations),
+            bool(free_root),
+        )
+
+    @property
+    def n_bodies(self) -> int:
+        return len(self.parents)
+
+    @property
+    def group(self) -> ProductGroup:
+        """The coordinates' group: SE(3) x SO(3)^(B-1) for a free root, SO(3)^B for a pinned one."""
+        return ProductGroup(1, self.n_bodies - 1) if self.free_root else ProductGroup(0, self.n_bodies)
+
+    @cached_property
+    def levels(self) -> list[list[int]]:
+        """Bodies grouped by depth (root first): level d holds every body with d ancestors."""
+        depth = [0] * self.n_bodies
+        for b in range(1, self.n_bodies):
+            depth[b] = depth[self.parents[b]] + 1
+        out: list[list[int]] = [[] for _ in range(max(depth) + 1)]
+        for b, d in enumerate(depth):
+            out[d].append(b)
+        return out
+
+    def offsets_tensor(self, like: torch.Tensor) -> torch.Tensor:
+        """offsets as a (B, 3) tensor of `like`'s dtype and device."""
+        return torch.tensor(self.offsets, dtype=like.dtype, device=like.device)
+
+
+def forward_kinematics(tree: Tree, g: Pose) -> Pose:
+    """World SE(3) pose of every body: coordinates Pose (R (..., B, 3, 3), p (..., m, 3)) with
+    m = 1 (free root) or 0 (pinned root) -> Pose (Rw (..., B, 3, 3), pw (..., B, 3))."""
+    o = tree.offsets_tensor(g.R)
+    lead = g.R.shape[:-3]
+    Rw: list[torch.Tensor | None] = [None] * tree.n_bodies
+    pw: list[torch.Tensor | None] = [None] * tree.n_bodies
+    Rw[0] = g.R[..., 0, :, :]
+    pw[0] = g.p[..., 0, :] if tree.free_root else o[0].expand(*lead, 3)
+    for level in tree.levels[1:]:
+        par = [tree.parents[b] for b in level]
+        Rp = torch.stack([Rw[q] for q in par], -3)  # type: ignore[misc]
+        pp = torch.stack([pw[q] for q in par], -2)  # type: ignore[misc]
+        Rb = g.R[..., level, :, :]
+        Rwb = Rp @ Rb if tree.rotations == "parent" else Rb
+        pwb = pp + so3.act(Rp, o[level])
+        for i, b in enumerate(level):
+            Rw[b], pw[b] = Rwb[..., i, :, :], pwb[..., i, :]
+    return Pose(torch.stack(Rw, -3), torch.stack(pw, -2))  # type: ignore[arg-type]
+
+
+def coordinates(tree: Tree, world: Pose) -> Pose:
+    """Inverse of `forward_kinematics` on its image: world poses (Rw (..., B, 3, 3), pw (..., B, 3))
+    -> the tree's coordinates (R (..., B, 3, 3), p (..., m, 3)). Positions of non-root bodies are
+    implied by the joints and are not read."""
+    Rw = world.R
+    if tree.rotations == "parent":
+        par = [max(q, 0) for q in tree.parents]
+        Rp = Rw[..., par, :, :]
+        R = torch.cat((Rw[..., :1, :, :], Rp[..., 1:, :, :].transpose(-1, -2) @ Rw[..., 1:, :, :]), -3)
+    else:
+        R = Rw
+    p = world.p[..., :1, :] if tree.free_root else world.p[..., :0, :]
+    return Pose(R, p)
+
+
+def fk_jacobian(tree: Tree, g: Pose, world: Pose | None = None) -> torch.Tensor:
+    """Left-trivialised Jacobian A of forward kinematics, shape (..., B, 6, dim):
+    body b's world pose moves by (dw_b, dv_b) = A[..., b, :, :] eta under g exp(eta)
+    (dim = the coordinates' tangent dimension, `tree.group.dim`). `world`: FK(g) if already known."""
+    G = tree.group
+    world = forward_kinematics(tree, g) if world is None else world
+    Rw, pw = world.R, world.p
+    lead = Rw.shape[:-3]
+    B, dim = tree.n_bodies, G.dim
+    slices = G.body_slices()
+    theta: list[torch.Tensor | None] = [None] * B  # world-frame rotation rows (..., 3, dim)
+    P: list[torch.Tensor | None] = [None] * B  # world-frame position rows (..., 3, dim)
+
+    def own_rotation(b: int) -> torch.Tensor:
+        t = Rw.new_zeros(*lead, 3, dim)
+        s = slices[b].start
+        t[..., :, s : s + 3] = Rw[..., b, :, :]
+        return t
+
+    theta[0] = own_rotation(0)
+    P[0] = Rw.new_zeros(*lead, 3, dim)
+    if tree.free_root:
+        P[0][..., :, 3:6] = Rw[..., 0, :, :]
+    for b in range(1, B):
+        q = tree.parents[b]
+        tq, Pq = theta[q], P[q]
+        assert tq is not None and Pq is not None
+        own = own_rotation(b)
+        theta[b] = tq + own if tree.rotations == "parent" else own
+        P[b] = Pq - so3.hat(pw[..., b, :] - pw[..., q, :]) @ tq
+    Th = torch.stack(theta, -3)  # type: ignore[arg-type]
+    Pt = torch.stack(P, -3)  # type: ignore[arg-type]
+    RwT = Rw.transpose(-1, -2)
+    return torch.cat((RwT @ Th, RwT @ Pt), -2)
