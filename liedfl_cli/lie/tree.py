@@ -147,9 +147,10 @@ def fk_jacobian(tree: Tree, g: Pose, world: Pose | None = None) -> torch.Tensor:
         return t
 
     theta[0] = own_rotation(0)
-    P[0] = Rw.new_zeros(*lead, 3, dim)
+    P0 = Rw.new_zeros(*lead, 3, dim)
     if tree.free_root:
-        P[0][..., :, 3:6] = Rw[..., 0, :, :]
+        P0[..., :, 3:6] = Rw[..., 0, :, :]
+    P[0] = P0
     for b in range(1, B):
         q = tree.parents[b]
         tq, Pq = theta[q], P[q]
