@@ -96,6 +96,7 @@ class ModelSchema:
     name: str = "liedflnn"
     potential: Any = "auto"  # auto | none | mlp | uniform_gravity | a list of mlp, uniform_gravity
     residual: str = "fast"
+    kinetic: str = "per_body"  # per_body (the paper's) | articulated (a kinematic tree's Lagrangian)
     mlp_width: int = 64
     mlp_depth: int = 3
     init_jitter: float = 0.1
@@ -134,6 +135,7 @@ CHOICES = {
     ("train", "optimizer", "schedule"): ("constant", "cosine"),
     ("model", "potential"): ("auto", "mlp", "none", "uniform_gravity"),  # or a list of mlp, uniform_gravity
     ("model", "residual"): ("fast", "generic"),
+    ("model", "kinetic"): ("per_body", "articulated"),
     ("runtime", "device"): ("cpu", "cuda", "auto"),
     ("runtime", "dtype"): ("float64", "float32"),
 }

@@ -47,6 +47,7 @@ from .base import (
 )
 
 RESIDUAL_MODES = ("fast", "generic")
+KINETIC_KINDS = ("per_body", "articulated")
 KNOWN_PARTS = ("inertia", "potential", "damping")
 
 
@@ -171,6 +172,7 @@ class LieDFLNN(ImplicitModel):
     OPTIONS = (
         "potential",
         "residual",
+        "kinetic",
         "mlp_width",
         "mlp_depth",
         "init_jitter",
@@ -180,11 +182,15 @@ class LieDFLNN(ImplicitModel):
     )
 
     @classmethod
-    def from_config(cls, ctx: BuildContext, **options) -> LieDFLNN:
+    def from_config(cls, ctx: BuildContext, **options) -> ImplicitModel:
         """`model.potential: auto` reads the data (`BuildContext.resolve_potential_parts`); with a known
         potential it is none. `model.gravity: auto` is the data's declared g (9.81 when undeclared or
-        0). What auto chose is kept in `notes` (printed by `liedfl train`)."""
+        0). What auto chose is kept in `notes` (printed by `liedfl train`). `model.kinetic:
+        articulated` builds the kinematic-tree model (`models.articulated`) from the data's tree."""
         opt = config_options(cls, options, cls.OPTIONS)
+        kinetic_kind = opt.pop("kinetic", "per_body")
+        if kinetic_kind not in KINETIC_KINDS:
+            raise ConfigError(f"model.kinetic={kinetic_kind!r}: choose one of {', '.join(KINETIC_KINDS)}")
         known = tuple(opt.pop("known", None) or ())
         choice = opt.pop("potential", "auto")
         parts: tuple[str, ...]
@@ -200,6 +206,10 @@ class LieDFLNN(ImplicitModel):
             gravity = float(gravity)
         except (TypeError, ValueError):
             raise ConfigError(f"model.gravity={gravity!r}: auto or a number") from None
+        if kinetic_kind == "articulated":
+            from .articulated import build_articulated
+
+            return build_articulated(ctx, parts, {**opt, "known": known, "gravity": gravity}, why)
         try:
             model = cls(
                 ctx.group,

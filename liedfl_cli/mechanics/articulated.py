@@ -1,0 +1,96 @@
+"""The articulated discrete Lagrangian of a kinematic tree, and joint-space forces.
+
+Coordinates g: the tree's product group (free root SE(3) x SO(3)^(B-1), or SO(3)^B on a pinned
+root; `lie.tree`). Forward kinematics gives each body's world SE(3) pose FK_b(g), and
+
+    L_d(g_k, g_{k+1}) = sum_b K_b(FK_b(g_k)^{-1} FK_b(g_{k+1}); m_b, rho_b, J_b) - h V(g_k)
+
+with K_b the rigid-body SE(3) kinetic term of `mechanics.kinetic` (J_b about the centre of mass
+rho_b, in the body frame whose origin is the body's joint). The mass matrix then couples bodies
+through the joints: a link's centre-of-mass velocity depends on every parent's motion.
+
+Because FK does not depend on parameters, every derivative of L_d in the coordinates is the
+world-frame derivative mapped by the FK Jacobian A (`lie.tree.fk_jacobian`, (..., B, 6, dim)):
+    D1/D2 L_d = A(g_k)^T [world covectors of K_b],     d/d delta D1 L_d(g_k, g_k W exp delta)
+              = A(g_k)^T blockdiag(H_b) A(g_{k+1}),
+with H_b the closed-form mixed Hessian blocks of `kinetic.mixed_hessian_blocks`. These are exact
+(first derivatives of FK only: the mixed derivative of K(phi(a), psi(b)) needs none of phi's or
+psi's second derivatives); tests compare them with autodiff of L_d through FK.
+
+Joint space: forces act on the tree's natural velocities nu = C(g) xi~ -- the root's body twist and
+each joint's relative angular velocity w_b - R_b^T R_parent w_parent (child frame). With rotations
+stored relative to the parent, C = I; with world rotations C couples each body to its parent. A
+force F(g, nu) enters the coordinates as C^T F (virtual work), so damping on the joints is a
+`rayleigh` force in joint space.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from ..lie import Pose, ProductGroup
+from ..lie.tree import Tree, fk_jacobian, forward_kinematics
+from . import kinetic
+
+
+def world_group(tree: Tree) -> ProductGroup:
+    """SE(3)^B: every body of the tree as a free rigid body (the layout of FK's world poses)."""
+    return ProductGroup(tree.n_bodies, 0)
+
+
+def world_poses(tree: Tree, g: Pose) -> Pose:
+    """FK as a Pose of SE(3)^B: R (..., B, 3, 3), p (..., B, 3)."""
+    return forward_kinematics(tree, g)
+
+
+def to_coordinates(A: torch.Tensor, c_world: torch.Tensor) -> torch.Tensor:
+    """A^T c: world covectors c (..., 6B) in SE(3)^B layout (w_1, v_1, ...) -> coordinates (..., dim)."""
+    B = A.shape[-3]
+    c = c_world.reshape(*c_world.shape[:-1], B, 6)
+    return torch.einsum("...bkd,...bk->...d", A, c)
+
+
+def kinetic_covectors(
+    tree: Tree, inc_prev: Pose, inc_next: Pose, Jd, mass, rho, h: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """World covectors (D2 K(inc_prev), D1 K(inc_next)), each (..., 6B): world increments of
+    SE(3)^B (W (..., B, 3, 3), z (..., B, 3)); Jd (B, 3, 3), mass (B,), rho (B, 3)."""
+    Gw = world_group(tree)
+    return (
+        kinetic.kinetic_d2(Gw, inc_prev, Jd, mass, rho, h),
+        kinetic.kinetic_d1(Gw, inc_next, Jd, mass, rho, h),
+    )
+
+
+def newton_jacobian(A_k: torch.Tensor, inc_next: Pose, A_next: torch.Tensor, Jd, mass, rho, h: float, tree: Tree):
+    """d [A_k^T D1 K(FK(g_k)^{-1} FK(g_k W exp delta))] / d delta = A_k^T blockdiag(H_b) A_next, (..., dim, dim)."""
+    Gw = world_group(tree)
+    H = torch.stack(kinetic.mixed_hessian_blocks(Gw, inc_next, Jd, mass, rho, h), -3)  # (..., B, 6, 6)
+    return torch.einsum("...bkd,...bkl,...ble->...de", A_k, H, A_next)
+
+
+def mixed_hessian_blocks(tree: Tree, inc: Pose, Jd, mass, rho, h: float) -> torch.Tensor:
+    """Each body's world SE(3) block of the mixed Hessian, (..., B, 6, 6) (the regularity term's blocks)."""
+    return torch.stack(kinetic.mixed_hessian_blocks(world_group(tree), inc, Jd, mass, rho, h), -3)
+
+
+def joint_velocity_map(tree: Tree, g: Pose) -> torch.Tensor | None:
+    """C(g) (..., dim, dim) with nu = C xi: the root's twist and each joint's relative angular
+    velocity w_b - R_b^T R_parent w_parent (child frame); None when C = I (parent-relative rotations)."""
+    if tree.rotations == "parent":
+        return None
+    G = tree.group
+    lead = g.R.shape[:-3]
+    C = torch.eye(G.dim, dtype=g.R.dtype, device=g.R.device).expand(*lead, G.dim, G.dim).clone()
+    sl = G.body_slices()
+    for b in range(1, tree.n_bodies):
+        q = tree.parents[b]
+        rel = g.R[..., b, :, :].transpose(-1, -2) @ g.R[..., q, :, :]
+        C[..., sl[b].start : sl[b].start + 3, sl[q].start : sl[q].start + 3] = -rel
+    return C
+
+
+def fk_and_jacobian(tree: Tree, g: Pose) -> tuple[Pose, torch.Tensor]:
+    """(FK(g) as SE(3)^B poses, A(g) (..., B, 6, dim))."""
+    world = forward_kinematics(tree, g)
+    return world, fk_jacobian(tree, g, world)

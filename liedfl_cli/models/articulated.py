@@ -1,0 +1,542 @@
+"""Articulated LieDFLNN: a learned discrete Lagrangian on a kinematic tree (`model.kinetic=articulated`).
+
+Beyond the paper. The paper's multibody model gives each body its own kinetic term in its own
+coordinates, which is exact for bodies that interact at a distance and wrong for bodies joined by
+joints: a link's centre-of-mass velocity depends on every parent's motion, and forces (which enter
+the DEL equation at two time levels) cannot supply that acceleration coupling. Here
+
+    L_d(g_k, g_{k+1}) = sum_b K_b(FK_b(g_k)^{-1} FK_b(g_{k+1}); m_b, rho_b, J_b) - h V(g_k)
+
+over every body's world pose from forward kinematics of the data's tree (`lie.tree`), learned
+m_b > 0, centre of mass rho_b (body frame, from the joint) and physical inertia J_b about it;
+V = uniform gravity sum_b m_b g e3.c_b (sharing m_b, rho_b) and/or an MLP of the coordinates;
+forces act in joint space (the root's twist and each joint's relative angular velocity;
+`mechanics.articulated`), so `force=rayleigh` is joint (+ root) damping.
+
+residual_k = A(g_k)^T [D2 K(k-1, k) + D1 K(k, k+1) - h dV_world] - h dV_coord
+             + (h/2) [C^T F(g_{k-1}, nu_{k-1}) + C^T F(g_k, nu_k)].
+`residual="generic"` computes the same residual by autodiff of L_d through FK (the reference; the
+fast path is tested against it). The regularity term penalises each body's world SE(3) block of the
+mixed Hessian (as the per-body model does for its SE(3) bodies): the coordinates' mixed Hessian is
+A_k^T blockdiag(H_b) A_{k+1}, regular when the blocks are and A has full rank.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch import nn
+from torch.func import grad
+
+from ..errors import ConfigError
+from ..lie import Pose, so3
+from ..lie.tree import Tree
+from ..mechanics import articulated as art
+from ..mechanics import kinetic
+from ..mechanics.forces import RayleighForce, build_forces, force_jacobian_xi
+from ..mechanics.parameterizations import Inertia, PositiveVector
+from ..mechanics.potentials import STANDARD_GRAVITY, GravityPotential, MLPPotential, UniformGravityPotential
+from ..solvers.newton import NewtonProblem, jacobian
+from .base import Batch, ImplicitModel, LossOptions, TripletBatch, TripletSet, initial_scale, oriented_logdet
+
+RESIDUAL_MODES = ("fast", "generic")
+KNOWN_PARTS = ("inertia", "potential", "damping")
+
+
+def articulated_parameters(physics: dict, n_bodies: int) -> dict[str, torch.Tensor]:
+    """The declared truth of an articulated scene (params["physics"] with kind "articulated"):
+    {"mass": (B,), "rho": (B, 3), "J": (B, 3, 3), "joint_damping": (B-1,), "root_damping": ()}."""
+    bodies = physics.get("bodies")
+    if not isinstance(bodies, list) or len(bodies) != n_bodies:
+        raise ValueError(f"physics.bodies must list {n_bodies} bodies (mass, com, inertia)")
+    f64 = lambda x: torch.as_tensor(x, dtype=torch.float64)
+    mass = f64([float(b["mass"]) for b in bodies])
+    rho = f64([b["com"] for b in bodies]).reshape(n_bodies, 3)
+    J = f64([b["inertia"] for b in bodies]).reshape(n_bodies, 3, 3)
+    jd = physics.get("joint_damping") or [0.0] * (n_bodies - 1)
+    if len(jd) != n_bodies - 1:
+        raise ValueError(f"physics.joint_damping must have {n_bodies - 1} entries (one per joint)")
+    return {
+        "mass": mass,
+        "rho": rho,
+        "J": J,
+        "joint_damping": f64([float(d) for d in jd]),
+        "root_damping": f64(float(physics.get("root_damping") or 0.0)),
+        "g": f64(float(physics.get("g") or 0.0)),
+    }
+
+
+def joint_damping_matrix(tree: Tree, truth: dict[str, torch.Tensor]) -> torch.Tensor:
+    """Block-diagonal joint-space damping (dim, dim): root_damping I on the root, d_b I per joint."""
+    G = tree.group
+    diag = torch.zeros(G.dim, dtype=torch.float64)
+    sl = G.body_slices()
+    diag[sl[0]] = truth["root_damping"]
+    for b in range(1, tree.n_bodies):
+        diag[sl[b]] = truth["joint_damping"][b - 1]
+    return torch.diag(diag)
+
+
+# ---------------------------------------------------------------------------- training samples
+@dataclass
+class ArticulatedBatch:
+    """Triplets with forward kinematics done once: coordinate poses prev/cur (for forces and MLP
+    potentials), world increments inc_prev = FK(g_{k-1})^-1 FK(g_k), inc_next = FK(g_k)^-1 FK(g_{k+1})
+    (SE(3)^B), world poses of g_k, A_k (N, B, 6, dim), coordinate increments of both intervals, and
+    `reg`: world increments of the regularity pairs."""
+
+    prev: Pose
+    cur: Pose
+    world_cur: Pose
+    inc_prev: Pose
+    inc_next: Pose
+    A: torch.Tensor
+    cinc_prev: Pose
+    cinc_next: Pose
+    reg: Pose | None = None
+
+
+class ArticulatedTriplets(TripletSet):
+    """`TripletSet` plus what every epoch would otherwise recompute: FK, world increments, A."""
+
+    def __init__(self, model: ArticulatedLieDFLNN, data: Pose, steps: int):
+        super().__init__(data, steps)
+        tree, G = model.tree, model.G
+        Gw = art.world_group(tree)
+        with torch.no_grad():
+            w_prev = art.world_poses(tree, self.prev)
+            w_cur, self.A = art.fk_and_jacobian(tree, self.cur)
+            w_next = art.world_poses(tree, self.nxt)
+            self.world_cur = w_cur
+            self.inc_prev = Gw.increment(w_prev, w_cur)
+            self.inc_next = Gw.increment(w_cur, w_next)
+            self.cinc_prev = G.increment(self.prev, self.cur)
+            self.cinc_next = G.increment(self.cur, self.nxt)
+
+    def batch(self, idx: torch.Tensor, generator: torch.Generator, reg_points: int) -> ArticulatedBatch:  # type: ignore[override]
+        reg = None
+        if reg_points > 0:
+            reg_idx = torch.randint(0, self.n, (int(reg_points),), generator=generator).to(self.cur.R.device)
+            reg = self.inc_next.index(reg_idx)
+        i = idx.to(self.cur.R.device)
+        return ArticulatedBatch(
+            self.prev.index(i),
+            self.cur.index(i),
+            self.world_cur.index(i),
+            self.inc_prev.index(i),
+            self.inc_next.index(i),
+            self.A[i],
+            self.cinc_prev.index(i),
+            self.cinc_next.index(i),
+            reg,
+        )
+
+
+@dataclass
+class ArticulatedState:
+    """Rollout state: g_{k-1}, g_k, the warm start (last coordinate increment), FK(g_k), A(g_k)."""
+
+    g_prev: Pose
+    g: Pose
+    inc: Pose
+    world: Pose
+    A: torch.Tensor
+
+
+class ArticulatedLieDFLNN(ImplicitModel):
+    """Learned forced discrete mechanics of a kinematic tree (an `ImplicitModel` on the tree's
+    coordinates; see the module docstring).
+
+    Args:
+        tree: the data's kinematic tree. h: time step.
+        potential: parts among "mlp" (of the coordinates), "uniform_gravity" (on FK's world poses).
+        forces: force names or {name: options}, applied in joint space.
+        residual: "fast" (closed forms through the FK Jacobian) or "generic" (autodiff through FK).
+        known / physics: parts set to the declared truth (params["physics"], kind "articulated") and frozen.
+    """
+
+    window = "triplet"
+    notes: list[str]
+
+    def __init__(
+        self,
+        tree: Tree,
+        h: float,
+        potential=(),
+        forces=("rayleigh",),
+        residual: str = "fast",
+        mlp_width: int = 64,
+        mlp_depth: int = 3,
+        epsilon: float = 10.0,
+        init_jitter: float = 0.1,
+        seed: int = 0,
+        known=(),
+        physics: dict | None = None,
+        gravity: float = STANDARD_GRAVITY,
+        learn_gravity_direction: bool = False,
+    ):
+        super().__init__()
+        if residual not in RESIDUAL_MODES:
+            raise ValueError(f"model.residual must be one of {RESIDUAL_MODES}, got {residual!r}")
+        known = tuple(known or ())
+        bad = [k for k in known if k not in KNOWN_PARTS]
+        if bad:
+            raise ValueError(f"model.known: unknown part(s) {bad}; choose from {list(KNOWN_PARTS)}")
+        if known and not physics:
+            raise ValueError(f"model.known={list(known)} needs the data's declared physics (params['physics'])")
+        self.tree, self.G, self.h, self.residual_mode = tree, tree.group, float(h), residual
+        self.known = known
+        B = tree.n_bodies
+        gen = torch.Generator().manual_seed(seed)
+        scale = initial_scale(h, epsilon, 6)  # each body's world SE(3) block starts at the threshold
+        self.inertia = Inertia(B, scale=scale, jitter=init_jitter, generator=gen)
+        self.mass = PositiveVector(B, init=scale)
+        self.rho = nn.Parameter(init_jitter * torch.randn(B, 3, generator=gen, dtype=torch.float64))
+        truth = articulated_parameters(physics, B) if known and physics else None
+        if truth is not None and "inertia" in known:
+            self.inertia.set_J(truth["J"])
+            self.mass.set_value(truth["mass"])
+            with torch.no_grad():
+                self.rho.copy_(truth["rho"])
+            for p in (self.inertia, self.mass):
+                p.requires_grad_(False)
+            self.rho.requires_grad_(False)
+            scale = float(truth["J"].diagonal(dim1=-2, dim2=-1).mean())
+        parts = tuple(potential or ())
+        Gw = art.world_group(tree)
+        self.potential_world: nn.Module | None = None
+        self.potential_coord: MLPPotential | None = None
+        if truth is not None and "potential" in known:
+            if parts:
+                raise ValueError("model.potential together with model.known=[potential]: choose one")
+            g_true = float(truth["g"])
+            if g_true:
+                self.potential_world = GravityPotential(Gw, truth["mass"], truth["rho"], g_true)
+        else:
+            for part in parts:
+                if part == "mlp":
+                    self.potential_coord = MLPPotential(self.G, mlp_width, mlp_depth)
+                elif part == "uniform_gravity":
+                    self.potential_world = UniformGravityPotential(
+                        Gw, gravity=gravity, mass=self.mass, rho=self.rho, learn_direction=learn_gravity_direction
+                    )
+                else:
+                    raise ValueError(f"model.potential: unknown part {part!r}")
+        self.forces = nn.ModuleList(build_forces(self.G, forces, scale))
+        if truth is not None and "damping" in known:
+            ray = [f for f in self.forces if getattr(f, "name", None) == "rayleigh"]
+            if not ray:
+                raise ValueError("model.known=[damping] needs the rayleigh force (joint damping)")
+            assert isinstance(ray[0], RayleighForce)
+            ray[0].D.set_matrix(joint_damping_matrix(tree, truth))
+            ray[0].requires_grad_(False)
+
+    # ------------------------------------------------------------------ config
+    @classmethod
+    def from_config(cls, ctx, **options: Any) -> ArticulatedLieDFLNN:  # built by LieDFLNN.from_config
+        raise NotImplementedError("build through LieDFLNN.from_config with model.kinetic=articulated")
+
+    def components(self) -> list[str]:
+        seen: set[int] = set()
+
+        def tag(label: str, *modules) -> str:
+            params = [
+                p for m in modules if m is not None for p in (m.parameters() if isinstance(m, nn.Module) else [m])
+            ]
+            own = [p for p in params if id(p) not in seen]
+            seen.update(id(p) for p in params)
+            n = sum(p.numel() for p in own if p.requires_grad)
+            if params and not own:
+                return f"{label} (shared)"
+            return f"{label} ({n:,})" if n else f"{label} (known, frozen)"
+
+        out = [
+            f"tree ({self.tree.n_bodies} bodies, {self.tree.rotations} rotations, "
+            f"{'free' if self.tree.free_root else 'pinned'} root)",
+            tag("J_b", self.inertia),
+            tag("m_b", self.mass),
+            tag("rho_b", self.rho),
+        ]
+        for V in (self.potential_world, self.potential_coord):
+            if V is not None:
+                describe = getattr(V, "describe", None)
+                desc = describe() if callable(describe) else type(V).__name__
+                out.append(tag(f"V:{desc}", V))
+        for f in self.forces:
+            describe = getattr(f, "describe", None)
+            desc = describe() if describe is not None else getattr(f, "name", type(f).__name__)
+            out.append(tag(f"F:{desc} in joint space", f))
+        return out
+
+    # ------------------------------------------------------------------ pieces
+    def _params(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        return self.inertia.Jd(), self.mass(), self.rho
+
+    def potential(self, g: Pose) -> torch.Tensor:
+        """V(g), shape (...)."""
+        V = g.R.new_zeros(g.R.shape[:-3])
+        if self.potential_world is not None:
+            V = V + self.potential_world(art.world_poses(self.tree, g))
+        if self.potential_coord is not None:
+            V = V + self.potential_coord(g)
+        return V
+
+    def lagrangian(self, g: Pose, g_next: Pose) -> torch.Tensor:
+        """L_d(g, g_next) through forward kinematics, shape (...)."""
+        Gw = art.world_group(self.tree)
+        inc = Gw.increment(art.world_poses(self.tree, g), art.world_poses(self.tree, g_next))
+        Jd, m, rho = self._params()
+        return kinetic.kinetic_lagrangian(Gw, inc, Jd, m, rho, self.h) - self.h * self.potential(g)
+
+    def _joint_force(self, g: Pose, xi: torch.Tensor) -> torch.Tensor:
+        """C(g)^T sum_f F(g, C(g) xi): forces in joint space as coordinate covectors, (..., dim)."""
+        C = art.joint_velocity_map(self.tree, g)
+        nu = xi if C is None else (C @ xi[..., None])[..., 0]
+        F = torch.zeros_like(nu)
+        for f in self.forces:
+            F = F + f(g, nu)
+        return F if C is None else (C.transpose(-1, -2) @ F[..., None])[..., 0]
+
+    def half_force(self, g: Pose, g_next: Pose, inc: Pose | None = None) -> torch.Tensor:
+        """(h/2) joint-space forces at (g, xi~(g, g_next)), (..., dim)."""
+        inc = self.G.increment(g, g_next) if inc is None else inc
+        xi = kinetic.velocity_estimate(self.G, inc, self.h)
+        if not len(self.forces):
+            return torch.zeros_like(xi)
+        return 0.5 * self.h * self._joint_force(g, xi)
+
+    def potential_covector(self, g: Pose, world: Pose, A: torch.Tensor) -> torch.Tensor:
+        """-h dV(g exp(eta))/d eta at 0, (..., dim): world potentials through A^T, coordinate ones directly."""
+        out = g.R.new_zeros(*g.R.shape[:-3], self.G.dim)
+        Vw = self.potential_world
+        if Vw is not None:
+            Gw = art.world_group(self.tree)
+            if isinstance(Vw, UniformGravityPotential):
+                dw = Vw.left_gradient(world)
+            else:
+                eta = world.R.new_zeros(*world.R.shape[:-3], Gw.dim)
+                dw = grad(lambda e: Vw(Gw.perturb(world, e)).sum())(eta)
+            out = out - self.h * art.to_coordinates(A, dw)
+        Vc = self.potential_coord
+        if Vc is not None:
+            eta = g.R.new_zeros(*g.R.shape[:-3], self.G.dim)
+            out = out - self.h * grad(lambda e: Vc(self.G.perturb(g, e)).sum())(eta)
+        return out
+
+    # ------------------------------------------------------------------ residual
+    def _generic_d(self, which: int, a: Pose, b: Pose) -> torch.Tensor:
+        """Autodiff of L_d(a, b) under the left perturbation of argument `which` (1 or 2)."""
+        x = b if which == 2 else a
+        eta = x.R.new_zeros(*x.R.shape[:-3], self.G.dim)
+        if which == 2:
+            return grad(lambda e: self.lagrangian(a, self.G.perturb(b, e)).sum())(eta)
+        return grad(lambda e: self.lagrangian(self.G.perturb(a, e), b).sum())(eta)
+
+    def residual_const(self, g_prev: Pose, g: Pose) -> torch.Tensor:
+        """D2 L_d(g_prev, g) + F^+ (+ the potential, fast path): the part fixed by (g_prev, g)."""
+        if self.residual_mode == "generic":
+            return self._generic_d(2, g_prev, g) + self.half_force(g_prev, g)
+        Gw = art.world_group(self.tree)
+        world, A = art.fk_and_jacobian(self.tree, g)
+        inc_w = Gw.increment(art.world_poses(self.tree, g_prev), world)
+        Jd, m, rho = self._params()
+        d2 = kinetic.kinetic_d2(Gw, inc_w, Jd, m, rho, self.h)
+        return art.to_coordinates(A, d2) + self.potential_covector(g, world, A) + self.half_force(g_prev, g)
+
+    def residual_var(self, g: Pose, g_next: Pose) -> torch.Tensor:
+        """D1 L_d(g, g_next) + F^- (the part depending on g_next)."""
+        if self.residual_mode == "generic":
+            return self._generic_d(1, g, g_next) + self.half_force(g, g_next)
+        Gw = art.world_group(self.tree)
+        world, A = art.fk_and_jacobian(self.tree, g)
+        inc_w = Gw.increment(world, art.world_poses(self.tree, g_next))
+        Jd, m, rho = self._params()
+        d1 = kinetic.kinetic_d1(Gw, inc_w, Jd, m, rho, self.h)
+        return art.to_coordinates(A, d1) + self.half_force(g, g_next)
+
+    def residual(self, g_prev: Pose, g: Pose, g_next: Pose) -> torch.Tensor:
+        """Forced DEL residual at g in the tree's coordinates, (..., dim)."""
+        return self.residual_const(g_prev, g) + self.residual_var(g, g_next)
+
+    def _force_jacobian(self, g: Pose, inc: Pose) -> torch.Tensor | None:
+        """(h/2) C^T dF/dnu C dxi~/ddelta of the forces at (g, inc exp(delta)), (..., dim, dim)."""
+        if not len(self.forces):
+            return None
+        G = self.G
+        xi = kinetic.velocity_estimate(G, inc, self.h)
+        dxi = kinetic.velocity_estimate_jacobian(G, inc, self.h)
+        C = art.joint_velocity_map(self.tree, g)
+        nu = xi if C is None else (C @ xi[..., None])[..., 0]
+        dF = sum(force_jacobian_xi(f, g, nu) for f in self.forces)
+        assert isinstance(dF, torch.Tensor)
+        if C is not None:
+            dF = C.transpose(-1, -2) @ dF @ C
+        return 0.5 * self.h * (dF @ dxi)
+
+    def jacobian_var(self, g: Pose, inc: Pose) -> torch.Tensor:
+        """d residual_var(g, g inc exp(delta)) / d delta at 0, (..., dim, dim): A_k^T blockdiag(H_b) A_{k+1}
+        plus the forces (fast), or autodiff (generic)."""
+        G = self.G
+        if self.residual_mode == "generic":
+            zero = inc.R.new_zeros(*inc.R.shape[:-3], G.dim)
+            return jacobian(lambda d: self.residual_var(g, G.compose(g, G.retract(inc, d))), zero)
+        Gw = art.world_group(self.tree)
+        world, A = art.fk_and_jacobian(self.tree, g)
+        w_next, A_next = art.fk_and_jacobian(self.tree, G.compose(g, inc))
+        Jd, m, rho = self._params()
+        J = art.newton_jacobian(A, Gw.increment(world, w_next), A_next, Jd, m, rho, self.h, self.tree)
+        Jf = self._force_jacobian(g, inc)
+        return J if Jf is None else J + Jf
+
+    # ------------------------------------------------------------------ training
+    def training_set(self, data: Pose, steps: int):
+        if self.residual_mode == "fast":
+            return ArticulatedTriplets(self, data, steps)
+        return super().training_set(data, steps)
+
+    def regularity_slogdet(self, inc_world: Pose) -> tuple[torch.Tensor, torch.Tensor]:
+        """(log|det H_b|, sign det(-H_b)) of each body's world SE(3) block of the mixed Hessian, (..., B)."""
+        Jd, m, rho = self._params()
+        H = art.mixed_hessian_blocks(self.tree, inc_world, Jd, m, rho, self.h)
+        sl = torch.linalg.slogdet(H)
+        return sl.logabsdet, sl.sign  # 6 x 6 blocks: det(-H) = det H
+
+    def loss(self, batch: Batch | ArticulatedBatch, opts: LossOptions):
+        """w_DEL mean ||r||^2 + w_reg mean penalty(log|det H_b|) -> (loss, {"del_loss", "reg_loss"})."""
+        from .liedflnn import del_regularity_loss
+
+        if isinstance(batch, ArticulatedBatch):
+            r = self._batch_residual(batch)
+            reg = batch.reg
+        else:
+            assert isinstance(batch, TripletBatch), "the articulated model trains on triplets"
+            r = self.residual(*batch.poses())
+            reg = None
+            if batch.reg is not None:
+                Gw = art.world_group(self.tree)
+                reg = Gw.increment(art.world_poses(self.tree, batch.reg[0]), art.world_poses(self.tree, batch.reg[1]))
+        logdet = None
+        if reg is not None and opts.w_reg > 0:
+            logdet = oriented_logdet(*self.regularity_slogdet(reg), opts.epsilon)
+        return del_regularity_loss(r, logdet, opts)
+
+    def _batch_residual(self, b: ArticulatedBatch) -> torch.Tensor:
+        Gw = art.world_group(self.tree)
+        Jd, m, rho = self._params()
+        c = kinetic.kinetic_d2(Gw, b.inc_prev, Jd, m, rho, self.h) + kinetic.kinetic_d1(
+            Gw, b.inc_next, Jd, m, rho, self.h
+        )
+        r = art.to_coordinates(b.A, c) + self.potential_covector(b.cur, b.world_cur, b.A)
+        if len(self.forces):
+            r = r + 0.5 * self.h * (
+                self._joint_force(b.prev, kinetic.velocity_estimate(self.G, b.cinc_prev, self.h))
+                + self._joint_force(b.cur, kinetic.velocity_estimate(self.G, b.cinc_next, self.h))
+            )
+        return r
+
+    # ------------------------------------------------------------------ rollout
+    def implicit_start(self, g0: Pose, g1: Pose) -> ArticulatedState:
+        world, A = art.fk_and_jacobian(self.tree, g1)
+        return ArticulatedState(g0, g1, self.G.increment(g0, g1), world, A)
+
+    def implicit_problem(self, state: ArticulatedState) -> NewtonProblem:
+        """Solve the DEL residual for the coordinate increment W_k (updated by W exp(delta))."""
+        G, Gw, tree = self.G, art.world_group(self.tree), self.tree
+        g, world, A = state.g, state.world, state.A
+        with torch.enable_grad():
+            if self.residual_mode == "generic":
+                const = self.residual_const(state.g_prev, g).detach()
+            else:
+                Jd, m, rho = self._params()
+                inc_w = Gw.increment(art.world_poses(tree, state.g_prev), world)
+                const = (
+                    art.to_coordinates(A, kinetic.kinetic_d2(Gw, inc_w, Jd, m, rho, self.h))
+                    + self.potential_covector(g, world, A)
+                    + self.half_force(state.g_prev, g)
+                ).detach()
+
+        if self.residual_mode == "generic":
+
+            def f(x: Pose) -> torch.Tensor:
+                with torch.enable_grad():
+                    return const + self.residual_var(g, G.compose(g, x))
+
+            def jac(x: Pose) -> torch.Tensor:
+                with torch.enable_grad():
+                    return self.jacobian_var(g, x)
+
+            return NewtonProblem(f, jac, state.inc, G.retract)
+
+        with torch.no_grad():
+            Jd, m, rho = (t.detach() for t in self._params())
+
+        def f_fast(x: Pose) -> torch.Tensor:
+            inc_w = Gw.increment(world, art.world_poses(tree, G.compose(g, x)))
+            d1 = kinetic.kinetic_d1(Gw, inc_w, Jd, m, rho, self.h)
+            with torch.enable_grad():
+                F = self.half_force(g, g, inc=x).detach()
+            return const + art.to_coordinates(A, d1) + F
+
+        def jac_fast(x: Pose) -> torch.Tensor:
+            w_next, A_next = art.fk_and_jacobian(tree, G.compose(g, x))
+            J = art.newton_jacobian(A, Gw.increment(world, w_next), A_next, Jd, m, rho, self.h, tree)
+            with torch.enable_grad():
+                Jf = self._force_jacobian(g, x)
+            return J if Jf is None else J + Jf.detach()
+
+        return NewtonProblem(f_fast, jac_fast, state.inc, G.retract)
+
+    def implicit_advance(self, state: ArticulatedState, x: Pose) -> tuple[ArticulatedState, Pose]:
+        W = x.R.detach()
+        W = 0.5 * W @ (3.0 * torch.eye(3, dtype=W.dtype, device=W.device) - W.transpose(-1, -2) @ W)
+        inc = Pose(W, x.p.detach())
+        g_next = self.G.compose(state.g, inc)
+        if W.dtype != torch.float64:
+            g_next = Pose(so3.orthonormalize(g_next.R), g_next.p)
+        world, A = art.fk_and_jacobian(self.tree, g_next)
+        return ArticulatedState(state.g, g_next, inc, world, A), g_next
+
+
+def build_articulated(ctx, parts: tuple[str, ...], opt: dict, why: str) -> ArticulatedLieDFLNN:
+    """`LieDFLNN.from_config` with `kinetic: articulated`: the tree comes from the data (`ctx.tree`)."""
+    tree = getattr(ctx, "tree", None)
+    if tree is None:
+        raise ConfigError(
+            "model.kinetic=articulated needs a kinematic tree in the data (attributes 'parents', "
+            "'rotations' and dataset 'joint_offsets'; docs/data_format.md); this dataset has none"
+        )
+    if tree.group != ctx.group:
+        raise ConfigError(f"the data's tree is on {tree.group.name} but the dataset's group is {ctx.group.name}")
+    known = tuple(opt.pop("known", ()) or ())
+    physics = dict(ctx.physics) if known and ctx.physics else None
+    try:
+        model = ArticulatedLieDFLNN(
+            tree,
+            ctx.h,
+            potential=parts,
+            forces=dict(ctx.forces),
+            epsilon=ctx.epsilon,
+            seed=ctx.seed,
+            known=known,
+            physics=physics,
+            **opt,
+        )
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+    model.notes = [f"potential: {why}", f"kinetic: articulated ({model.components()[0]})"]
+    return model
+
+
+def articulated_true_model(tree: Tree, h: float, physics: dict, residual: str = "fast") -> ArticulatedLieDFLNN:
+    """The articulated scheme with the declared truth (every part known and frozen)."""
+    truth = articulated_parameters(physics, tree.n_bodies)
+    damped = bool(torch.count_nonzero(joint_damping_matrix(tree, truth)))
+    forces = {"rayleigh": {"coupling": "per_body"}} if damped else {}
+    known = ("inertia", "potential", "damping") if damped else ("inertia", "potential")
+    model = ArticulatedLieDFLNN(
+        tree, h, forces=forces, residual=residual, init_jitter=0.0, known=known, physics=physics
+    )
+    model.requires_grad_(False)
+    return model
