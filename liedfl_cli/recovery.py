@@ -7,6 +7,7 @@ import copy
 
 import torch
 
+from .models.articulated import ArticulatedLieDFLNN
 from .models.liedflnn import LieDFLNN
 from .models.true_scheme import true_model
 
@@ -27,7 +28,9 @@ def parameter_recovery(model, dataset) -> dict | None:
     it is. Errors are max |entry difference| / max |true entry| over the compared arrays.
     """
     ref = true_model(dataset)
-    if ref is None or not isinstance(model, LieDFLNN):
+    if ref is not None and isinstance(model, ArticulatedLieDFLNN) and isinstance(ref, ArticulatedLieDFLNN):
+        return articulated_recovery(model, ref)
+    if ref is None or not isinstance(model, LieDFLNN) or not isinstance(ref, LieDFLNN):
         return None
     p = next(model.parameters(), None)
     if p is not None and (p.device.type != "cpu" or p.dtype != torch.float64):  # compared on the CPU in float64
@@ -74,3 +77,59 @@ def _uniform_gravity(model):
     V = getattr(model, "potential", None)
     terms = list(V.terms) if isinstance(V, SumPotential) else [V]
     return next((t for t in terms if isinstance(t, UniformGravityPotential)), None)
+
+
+def articulated_recovery(model: ArticulatedLieDFLNN, ref: ArticulatedLieDFLNN) -> dict:
+    """Per-body recovery of an articulated model: m_b, J_b (over the common scale, the total mass
+    sum_b m_b of each side), rho_b as lengths, joint damping over the same scale. Each body's figures
+    and the worst over bodies; errors are |learned - true| / max |true| per body."""
+    if next(model.parameters()).dtype != torch.float64 or next(model.parameters()).device.type != "cpu":
+        model = copy.deepcopy(model).to(device="cpu", dtype=torch.float64)
+    with torch.no_grad():
+        m, m_true = model.mass(), ref.mass()
+        s, s_true = m.sum(), m_true.sum()
+        J, J_true = model.inertia.J() / s, ref.inertia.J() / s_true
+        rel = lambda a, b: float((a - b).abs().max() / b.abs().max().clamp_min(1e-300))
+        bodies: list[dict[str, float | list[float]]] = []
+        for b in range(model.tree.n_bodies):
+            bodies.append(
+                {
+                    "mass_fraction_learned": float(m[b] / s),
+                    "mass_fraction_true": float(m_true[b] / s_true),
+                    "mass_fraction_rel_error": rel(m[b] / s, m_true[b] / s_true),
+                    "com_learned": model.rho[b].tolist(),
+                    "com_true": ref.rho[b].tolist(),
+                    "com_abs_error": float((model.rho[b] - ref.rho[b]).norm()),
+                    "inertia_over_total_mass_rel_error": rel(J[b], J_true[b]),
+                }
+            )
+        out: dict = {
+            "kinetic": "articulated",
+            "scale_learned_over_true": float(s / s_true),
+            "mass_fraction_max_rel_error": max(_floats(bodies, "mass_fraction_rel_error")),
+            "com_max_abs_error": max(_floats(bodies, "com_abs_error")),
+            "inertia_max_rel_error": max(_floats(bodies, "inertia_over_total_mass_rel_error")),
+            "bodies": bodies,
+        }
+        f, f_true = _rayleigh(model), _rayleigh(ref)
+        if f is not None and f_true is not None:
+            D, D_true = f.D() / s, f_true.D() / s_true
+            sl = model.G.body_slices()
+            joints = [
+                {
+                    "body": b,
+                    "learned": float(D[sl[b], sl[b]].diagonal().mean()),
+                    "true": float(D_true[sl[b], sl[b]].diagonal().mean()),
+                }
+                for b in range(1, model.tree.n_bodies)
+            ]
+            out["joint_damping_over_total_mass"] = joints
+            out["joint_damping_max_rel_error"] = max(
+                abs(j["learned"] - j["true"]) / max(abs(j["true"]), 1e-300) for j in joints
+            )
+            out["damping_matrix_rel_error"] = rel(D, D_true)
+    return out
+
+
+def _floats(rows: list[dict], key: str) -> list[float]:
+    return [float(r[key]) for r in rows]

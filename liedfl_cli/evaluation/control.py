@@ -69,6 +69,7 @@ def evaluate_control(cfg, model, dataset, run_dir, rollout_path=None) -> dict | 
 
     rollout_path: the rollout file drawn in the plot (default `<run_dir>/rollout.h5`; the plot goes
     without it when it does not exist); the files go next to it."""
+    from ..models.liedflnn import LieDFLNN
     from ..models.true_scheme import true_model
 
     if not hasattr(model, "forces") or not len(model.forces):
@@ -96,7 +97,7 @@ def evaluate_control(cfg, model, dataset, run_dir, rollout_path=None) -> dict | 
             "rel_error_max": err["rel_error_max"],
             "rel_error_aggregate": err["rel_error_aggregate"],
         }
-        if ref is not None and len(ref.forces):
+        if isinstance(ref, LieDFLNN) and len(ref.forces):
             law = force_torques(ref, traj, h)
             e2 = torque_errors(learned, law)
             row.update(

@@ -12,6 +12,7 @@ import torch
 from ..lie import ProductGroup
 from ..mechanics.forces import RayleighForce
 from ..mechanics.scene_physics import body_parameters, true_control, true_potential
+from .base import ImplicitModel
 from .liedflnn import LieDFLNN
 
 
@@ -43,13 +44,23 @@ def physics_model(G: ProductGroup, h: float, physics: dict, residual: str = "fas
     return model
 
 
-def true_model(dataset, residual: str = "fast") -> LieDFLNN | None:
+def true_model(dataset, residual: str = "fast") -> ImplicitModel | None:
     """The true-parameter scheme of a synthetic dataset (`physics_model` of its params["physics"]
-    on the dataset's group and h), or None for real recordings.
+    on the dataset's group and h; for articulated physics declared with the data's kinematic tree,
+    `articulated_true_model`), or None for real recordings.
 
-    `dataset`: a `data.hdf5.Dataset` (read through .params, .group, .h only; not imported here,
-    since models/ may not import data/)."""
+    `dataset`: a `data.hdf5.Dataset` (read through .params, .group, .h, .tree only; not imported
+    here, since models/ may not import data/)."""
     physics = (dataset.params or {}).get("physics")
-    if not physics or "J" not in physics:
+    if not physics:
+        return None
+    tree = getattr(dataset, "tree", None)
+    if physics.get("kind") == "articulated":
+        if tree is None:
+            return None
+        from .articulated import articulated_true_model
+
+        return articulated_true_model(tree, dataset.h, physics, residual)
+    if "J" not in physics:
         return None
     return physics_model(dataset.group, dataset.h, physics, residual)
