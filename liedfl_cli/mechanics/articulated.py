@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import torch
 
-from ..lie import Pose, ProductGroup
+from ..lie import Pose, ProductGroup, so3
 from ..lie.tree import Tree, fk_jacobian, forward_kinematics
 from . import kinetic
 
@@ -62,16 +62,26 @@ def kinetic_covectors(
     )
 
 
-def newton_jacobian(A_k: torch.Tensor, inc_next: Pose, A_next: torch.Tensor, Jd, mass, rho, h: float, tree: Tree):
+def newton_jacobian(A_k: torch.Tensor, inc_next: Pose, A_next: torch.Tensor, Jd, mass, rho, h: float) -> torch.Tensor:
     """d [A_k^T D1 K(FK(g_k)^{-1} FK(g_k W exp delta))] / d delta = A_k^T blockdiag(H_b) A_next, (..., dim, dim)."""
-    Gw = world_group(tree)
-    H = torch.stack(kinetic.mixed_hessian_blocks(Gw, inc_next, Jd, mass, rho, h), -3)  # (..., B, 6, 6)
+    H = mixed_hessian_blocks(inc_next, Jd, mass, rho, h)  # (..., B, 6, 6)
     return torch.einsum("...bkd,...bkl,...ble->...de", A_k, H, A_next)
 
 
-def mixed_hessian_blocks(tree: Tree, inc: Pose, Jd, mass, rho, h: float) -> torch.Tensor:
-    """Each body's world SE(3) block of the mixed Hessian, (..., B, 6, 6) (the regularity term's blocks)."""
-    return torch.stack(kinetic.mixed_hessian_blocks(world_group(tree), inc, Jd, mass, rho, h), -3)
+def mixed_hessian_blocks(inc: Pose, Jd, mass, rho, h: float) -> torch.Tensor:
+    """Each body's world SE(3) block of the mixed Hessian, (..., B, 6, 6), all bodies at once: the
+    closed form of `kinetic.mixed_hessian_blocks` for SE(3)^B, rows (a_w, a_v), columns (b_w, b_v):
+    [[H_rot + s P W P, -s P W], [s W P, -s W]] with H_rot,ij = tr(hat(e_i) W hat(e_j) J_d) / h,
+    P = hat(rho), s = m / h. W (..., B, 3, 3); Jd (B, 3, 3), mass (B,), rho (B, 3)."""
+    W = inc.R
+    E = so3.hat(torch.eye(3, dtype=W.dtype, device=W.device))
+    Hrot = torch.einsum("iab,...kbc,jcd,kda->...kij", E, W, E, Jd) / h
+    P = so3.hat(rho)
+    s = (mass / h)[:, None, None]
+    PW = P @ W
+    top = torch.cat((Hrot + s * (PW @ P), -s * PW), -1)
+    bottom = torch.cat((s * (W @ P), -s * W), -1)
+    return torch.cat((top, bottom), -2)
 
 
 def joint_velocity_map(tree: Tree, g: Pose) -> torch.Tensor | None:

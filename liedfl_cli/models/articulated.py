@@ -386,7 +386,7 @@ class ArticulatedLieDFLNN(ImplicitModel):
         world, A = art.fk_and_jacobian(self.tree, g)
         w_next, A_next = art.fk_and_jacobian(self.tree, G.compose(g, inc))
         Jd, m, rho = self._params()
-        J = art.newton_jacobian(A, Gw.increment(world, w_next), A_next, Jd, m, rho, self.h, self.tree)
+        J = art.newton_jacobian(A, Gw.increment(world, w_next), A_next, Jd, m, rho, self.h)
         Jf = self._force_jacobian(g, inc)
         return J if Jf is None else J + Jf
 
@@ -399,7 +399,7 @@ class ArticulatedLieDFLNN(ImplicitModel):
     def regularity_slogdet(self, inc_world: Pose) -> tuple[torch.Tensor, torch.Tensor]:
         """(log|det H_b|, sign det(-H_b)) of each body's world SE(3) block of the mixed Hessian, (..., B)."""
         Jd, m, rho = self._params()
-        H = art.mixed_hessian_blocks(self.tree, inc_world, Jd, m, rho, self.h)
+        H = art.mixed_hessian_blocks(inc_world, Jd, m, rho, self.h)
         sl = torch.linalg.slogdet(H)
         return sl.logabsdet, sl.sign  # 6 x 6 blocks: det(-H) = det H
 
@@ -481,7 +481,7 @@ class ArticulatedLieDFLNN(ImplicitModel):
 
         def jac_fast(x: Pose) -> torch.Tensor:
             w_next, A_next = art.fk_and_jacobian(tree, G.compose(g, x))
-            J = art.newton_jacobian(A, Gw.increment(world, w_next), A_next, Jd, m, rho, self.h, tree)
+            J = art.newton_jacobian(A, Gw.increment(world, w_next), A_next, Jd, m, rho, self.h)
             with torch.enable_grad():
                 Jf = self._force_jacobian(g, x)
             return J if Jf is None else J + Jf.detach()
