@@ -17,11 +17,13 @@ with H_b the closed-form mixed Hessian blocks of `kinetic.mixed_hessian_blocks`.
 (first derivatives of FK only: the mixed derivative of K(phi(a), psi(b)) needs none of phi's or
 psi's second derivatives); tests compare them with autodiff of L_d through FK.
 
-Joint space: forces act on the tree's natural velocities nu = C(g) xi~ -- the root's body twist and
-each joint's relative angular velocity w_b - R_b^T R_parent w_parent (child frame). With rotations
-stored relative to the parent, C = I; with world rotations C couples each body to its parent. A
-force F(g, nu) enters the coordinates as C^T F (virtual work), so damping on the joints is a
-`rayleigh` force in joint space.
+Joint space: forces act on the joints' own coordinates q = `joint_coordinates(g)` (the root's pose and
+each joint's rotation relative to its parent) and their velocity estimate nu~ from the increments of q,
+so damping on the joints is a `rayleigh` force in joint space. A joint-space covector tau enters the
+residual at g_k as C(g_k)^T tau, with C the left-trivialised Jacobian of g -> q (`joint_velocity_map`:
+the identity for parent-relative rotations; with world rotations it couples each body to its parent),
+evaluated where the variation acts (g_k for both F^+_{k-1} and F^-_k): mapping F^+_{k-1} with
+C(g_{k-1}) instead would cost an order of accuracy.
 """
 
 from __future__ import annotations
@@ -98,6 +100,17 @@ def joint_velocity_map(tree: Tree, g: Pose) -> torch.Tensor | None:
         rel = g.R[..., b, :, :].transpose(-1, -2) @ g.R[..., q, :, :]
         C[..., sl[b].start : sl[b].start + 3, sl[q].start : sl[q].start + 3] = -rel
     return C
+
+
+def joint_coordinates(tree: Tree, g: Pose) -> Pose:
+    """The tree's coordinates with parent-relative rotations (R_parent^T R_b; the root as it is):
+    the joints' own configuration, on which forces act. Identity for `rotations="parent"`."""
+    if tree.rotations == "parent":
+        return g
+    par = [max(q, 0) for q in tree.parents]
+    Rp = g.R[..., par, :, :]
+    R = torch.cat((g.R[..., :1, :, :], Rp[..., 1:, :, :].transpose(-1, -2) @ g.R[..., 1:, :, :]), -3)
+    return Pose(R, g.p)
 
 
 def fk_and_jacobian(tree: Tree, g: Pose) -> tuple[Pose, torch.Tensor]:

@@ -84,8 +84,9 @@ def joint_damping_matrix(tree: Tree, truth: dict[str, torch.Tensor]) -> torch.Te
 class ArticulatedBatch:
     """Triplets with forward kinematics done once: coordinate poses prev/cur (for forces and MLP
     potentials), world increments inc_prev = FK(g_{k-1})^-1 FK(g_k), inc_next = FK(g_k)^-1 FK(g_{k+1})
-    (SE(3)^B), world poses of g_k, A_k (N, B, 6, dim), coordinate increments of both intervals, and
-    `reg`: world increments of the regularity pairs."""
+    (SE(3)^B), world poses of g_k, A_k (N, B, 6, dim), the joint coordinates q of g_{k-1} and g_k,
+    the joint-velocity estimates of both intervals (N, dim), C(g_k) (N, dim, dim; None for
+    parent-relative rotations), and `reg`: world increments of the regularity pairs."""
 
     prev: Pose
     cur: Pose
@@ -93,8 +94,11 @@ class ArticulatedBatch:
     inc_prev: Pose
     inc_next: Pose
     A: torch.Tensor
-    cinc_prev: Pose
-    cinc_next: Pose
+    q_prev: Pose
+    q_cur: Pose
+    nu_prev: torch.Tensor
+    nu_next: torch.Tensor
+    C: torch.Tensor | None
     reg: Pose | None = None
 
 
@@ -112,8 +116,11 @@ class ArticulatedTriplets(TripletSet):
             self.world_cur = w_cur
             self.inc_prev = Gw.increment(w_prev, w_cur)
             self.inc_next = Gw.increment(w_cur, w_next)
-            self.cinc_prev = G.increment(self.prev, self.cur)
-            self.cinc_next = G.increment(self.cur, self.nxt)
+            q_prev, q_cur, q_next = (art.joint_coordinates(tree, x) for x in (self.prev, self.cur, self.nxt))
+            self.q_prev, self.q_cur = q_prev, q_cur
+            self.nu_prev = kinetic.velocity_estimate(G, G.increment(q_prev, q_cur), model.h)
+            self.nu_next = kinetic.velocity_estimate(G, G.increment(q_cur, q_next), model.h)
+            self.C = art.joint_velocity_map(tree, self.cur)
 
     def batch(self, idx: torch.Tensor, generator: torch.Generator, reg_points: int) -> ArticulatedBatch:  # type: ignore[override]
         reg = None
@@ -128,8 +135,11 @@ class ArticulatedTriplets(TripletSet):
             self.inc_prev.index(i),
             self.inc_next.index(i),
             self.A[i],
-            self.cinc_prev.index(i),
-            self.cinc_next.index(i),
+            self.q_prev.index(i),
+            self.q_cur.index(i),
+            self.nu_prev[i],
+            self.nu_next[i],
+            None if self.C is None else self.C[i],
             reg,
         )
 
@@ -290,22 +300,26 @@ class ArticulatedLieDFLNN(ImplicitModel):
         Jd, m, rho = self._params()
         return kinetic.kinetic_lagrangian(Gw, inc, Jd, m, rho, self.h) - self.h * self.potential(g)
 
-    def _joint_force(self, g: Pose, xi: torch.Tensor) -> torch.Tensor:
-        """C(g)^T sum_f F(g, C(g) xi): forces in joint space as coordinate covectors, (..., dim)."""
-        C = art.joint_velocity_map(self.tree, g)
-        nu = xi if C is None else (C @ xi[..., None])[..., 0]
+    def joint_torque(self, g: Pose, g_next: Pose) -> torch.Tensor:
+        """sum_f F(q, nu~) of the interval (g, g_next) in joint space, (..., dim): q = the joint
+        coordinates of g, nu~ the velocity estimate of the joint-coordinate increment."""
+        q, q_next = art.joint_coordinates(self.tree, g), art.joint_coordinates(self.tree, g_next)
+        nu = kinetic.velocity_estimate(self.G, self.G.increment(q, q_next), self.h)
         F = torch.zeros_like(nu)
         for f in self.forces:
-            F = F + f(g, nu)
-        return F if C is None else (C.transpose(-1, -2) @ F[..., None])[..., 0]
+            F = F + f(q, nu)
+        return F
 
-    def half_force(self, g: Pose, g_next: Pose, inc: Pose | None = None) -> torch.Tensor:
-        """(h/2) joint-space forces at (g, xi~(g, g_next)), (..., dim)."""
-        inc = self.G.increment(g, g_next) if inc is None else inc
-        xi = kinetic.velocity_estimate(self.G, inc, self.h)
+    def at(self, g: Pose, tau: torch.Tensor) -> torch.Tensor:
+        """C(g)^T tau: a joint-space covector as a covector of the coordinates at g, (..., dim)."""
+        C = art.joint_velocity_map(self.tree, g)
+        return tau if C is None else (C.transpose(-1, -2) @ tau[..., None])[..., 0]
+
+    def half_force(self, g_from: Pose, g_to: Pose, at: Pose) -> torch.Tensor:
+        """(h/2) C(at)^T F of the interval (g_from, g_to), (..., dim); zeros without forces."""
         if not len(self.forces):
-            return torch.zeros_like(xi)
-        return 0.5 * self.h * self._joint_force(g, xi)
+            return at.R.new_zeros(*at.R.shape[:-3], self.G.dim)
+        return 0.5 * self.h * self.at(at, self.joint_torque(g_from, g_to))
 
     def potential_covector(self, g: Pose, world: Pose, A: torch.Tensor) -> torch.Tensor:
         """-h dV(g exp(eta))/d eta at 0, (..., dim): world potentials through A^T, coordinate ones directly."""
@@ -337,43 +351,50 @@ class ArticulatedLieDFLNN(ImplicitModel):
     def residual_const(self, g_prev: Pose, g: Pose) -> torch.Tensor:
         """D2 L_d(g_prev, g) + F^+ (+ the potential, fast path): the part fixed by (g_prev, g)."""
         if self.residual_mode == "generic":
-            return self._generic_d(2, g_prev, g) + self.half_force(g_prev, g)
+            return self._generic_d(2, g_prev, g) + self.half_force(g_prev, g, at=g)
         Gw = art.world_group(self.tree)
         world, A = art.fk_and_jacobian(self.tree, g)
         inc_w = Gw.increment(art.world_poses(self.tree, g_prev), world)
         Jd, m, rho = self._params()
         d2 = kinetic.kinetic_d2(Gw, inc_w, Jd, m, rho, self.h)
-        return art.to_coordinates(A, d2) + self.potential_covector(g, world, A) + self.half_force(g_prev, g)
+        return art.to_coordinates(A, d2) + self.potential_covector(g, world, A) + self.half_force(g_prev, g, at=g)
 
     def residual_var(self, g: Pose, g_next: Pose) -> torch.Tensor:
         """D1 L_d(g, g_next) + F^- (the part depending on g_next)."""
         if self.residual_mode == "generic":
-            return self._generic_d(1, g, g_next) + self.half_force(g, g_next)
+            return self._generic_d(1, g, g_next) + self.half_force(g, g_next, at=g)
         Gw = art.world_group(self.tree)
         world, A = art.fk_and_jacobian(self.tree, g)
         inc_w = Gw.increment(world, art.world_poses(self.tree, g_next))
         Jd, m, rho = self._params()
         d1 = kinetic.kinetic_d1(Gw, inc_w, Jd, m, rho, self.h)
-        return art.to_coordinates(A, d1) + self.half_force(g, g_next)
+        return art.to_coordinates(A, d1) + self.half_force(g, g_next, at=g)
 
     def residual(self, g_prev: Pose, g: Pose, g_next: Pose) -> torch.Tensor:
         """Forced DEL residual at g in the tree's coordinates, (..., dim)."""
         return self.residual_const(g_prev, g) + self.residual_var(g, g_next)
 
     def _force_jacobian(self, g: Pose, inc: Pose) -> torch.Tensor | None:
-        """(h/2) C^T dF/dnu C dxi~/ddelta of the forces at (g, inc exp(delta)), (..., dim, dim)."""
+        """d/d delta of (h/2) C(g)^T F(q, nu~(q, q_next)) with g_next = g inc exp(delta), (..., dim, dim):
+        (h/2) C(g)^T dF/dnu dnu~/d delta_q C(g_next) (delta_q = C(g_next) delta moves the joint coordinates)."""
         if not len(self.forces):
             return None
         G = self.G
-        xi = kinetic.velocity_estimate(G, inc, self.h)
-        dxi = kinetic.velocity_estimate_jacobian(G, inc, self.h)
-        C = art.joint_velocity_map(self.tree, g)
-        nu = xi if C is None else (C @ xi[..., None])[..., 0]
-        dF = sum(force_jacobian_xi(f, g, nu) for f in self.forces)
+        g_next = G.compose(g, inc)
+        q, q_next = art.joint_coordinates(self.tree, g), art.joint_coordinates(self.tree, g_next)
+        inc_q = G.increment(q, q_next)
+        nu = kinetic.velocity_estimate(G, inc_q, self.h)
+        dnu = kinetic.velocity_estimate_jacobian(G, inc_q, self.h)
+        dF = sum(force_jacobian_xi(f, q, nu) for f in self.forces)
         assert isinstance(dF, torch.Tensor)
+        J = dF @ dnu
+        C_next = art.joint_velocity_map(self.tree, g_next)
+        if C_next is not None:
+            J = J @ C_next
+        C = art.joint_velocity_map(self.tree, g)
         if C is not None:
-            dF = C.transpose(-1, -2) @ dF @ C
-        return 0.5 * self.h * (dF @ dxi)
+            J = C.transpose(-1, -2) @ J
+        return 0.5 * self.h * J
 
     def jacobian_var(self, g: Pose, inc: Pose) -> torch.Tensor:
         """d residual_var(g, g inc exp(delta)) / d delta at 0, (..., dim, dim): A_k^T blockdiag(H_b) A_{k+1}
@@ -430,11 +451,15 @@ class ArticulatedLieDFLNN(ImplicitModel):
         )
         r = art.to_coordinates(b.A, c) + self.potential_covector(b.cur, b.world_cur, b.A)
         if len(self.forces):
-            r = r + 0.5 * self.h * (
-                self._joint_force(b.prev, kinetic.velocity_estimate(self.G, b.cinc_prev, self.h))
-                + self._joint_force(b.cur, kinetic.velocity_estimate(self.G, b.cinc_next, self.h))
-            )
+            r = r + 0.5 * self.h * self._batch_torques(b)
         return r
+
+    def _batch_torques(self, b: ArticulatedBatch) -> torch.Tensor:
+        """C(g_k)^T [F(q_{k-1}, nu~_{k-1}) + F(q_k, nu~_k)] from the precomputed joint coordinates."""
+        F = torch.zeros_like(b.nu_prev)
+        for f in self.forces:
+            F = F + f(b.q_prev, b.nu_prev) + f(b.q_cur, b.nu_next)
+        return F if b.C is None else (b.C.transpose(-1, -2) @ F[..., None])[..., 0]
 
     # ------------------------------------------------------------------ rollout
     def implicit_start(self, g0: Pose, g1: Pose) -> ArticulatedState:
@@ -454,7 +479,7 @@ class ArticulatedLieDFLNN(ImplicitModel):
                 const = (
                     art.to_coordinates(A, kinetic.kinetic_d2(Gw, inc_w, Jd, m, rho, self.h))
                     + self.potential_covector(g, world, A)
-                    + self.half_force(state.g_prev, g)
+                    + self.half_force(state.g_prev, g, at=g)
                 ).detach()
 
         if self.residual_mode == "generic":
@@ -476,7 +501,7 @@ class ArticulatedLieDFLNN(ImplicitModel):
             inc_w = Gw.increment(world, art.world_poses(tree, G.compose(g, x)))
             d1 = kinetic.kinetic_d1(Gw, inc_w, Jd, m, rho, self.h)
             with torch.enable_grad():
-                F = self.half_force(g, g, inc=x).detach()
+                F = self.half_force(g, G.compose(g, x), at=g).detach()
             return const + art.to_coordinates(A, d1) + F
 
         def jac_fast(x: Pose) -> torch.Tensor:
