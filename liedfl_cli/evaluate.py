@@ -132,6 +132,9 @@ def _rows(
             cv = constant_velocity_one_step(group, truth.index((slice(None), slice(0, n + 1))))
             row.update(one_step_metrics(cv, target))
         row.update(dict.fromkeys(CV_COLUMNS))
+        row.update(
+            dict.fromkeys(("newton_failures", "first_failure_step", "mean_newton_iterations", "rollout_s_per_step"))
+        )
         row.update({"error_steps": n, "rollout_steps": rf.steps, "rollout_trajectories": int(truth.R.shape[0])})
         rows.append(row)
         for r in rows:

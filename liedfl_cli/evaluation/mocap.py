@@ -202,11 +202,9 @@ def _solver(cfg) -> SolverOptions:
     from omegaconf import OmegaConf
 
     section = cfg.get("solver") if hasattr(cfg, "get") else None
-    if section is None:
-        return SolverOptions()
-    return SolverOptions.from_mapping(
-        OmegaConf.to_container(section, resolve=True) if OmegaConf.is_config(section) else section
-    )
+    if OmegaConf.is_config(section):
+        section = OmegaConf.to_container(section, resolve=True)
+    return SolverOptions.from_mapping(section if isinstance(section, (dict, SolverOptions)) else None)
 
 
 def constant_velocity_errors(dataset, tR, tp, joints=None) -> dict:
