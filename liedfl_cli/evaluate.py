@@ -2,12 +2,20 @@
 
 Errors against ground truth cover the steps the dataset has; drift, the first non-finite step and the
 Newton statistics cover the whole rollout (a rollout may be longer than the dataset); eval.md and the
-printed table say which span each column covers."""
+printed table say which span each column covers.
+
+Every evaluation has a `constant_velocity` row, computed here from the data alone: the rollout
+g_{k+1} = g_k exp(log(g_{k-1}^{-1} g_k)) from the same first pair over the same span, and the same guess
+teacher-forced from every true pair (`solvers.one_step`). A model that does not beat constant velocity
+has learned nothing. Every row has teacher-forced one-step errors (from the rollout file's optional
+`<model>/one_step/` predictions; blank for files written without them) and its ratios to the
+constant-velocity row (`one_step_vs_cv`, `rollout_vs_cv`)."""
 
 from __future__ import annotations
 
 import csv
 import json
+import math
 from pathlib import Path
 
 from omegaconf import DictConfig
@@ -15,8 +23,8 @@ from omegaconf import DictConfig
 from . import plots
 from .errors import ConfigError
 from .io_utils import markdown_table, write_csv, write_json, write_text
-from .lie import Pose
-from .metrics import drift_metrics, error_metrics
+from .lie import Pose, ProductGroup
+from .metrics import drift_metrics, error_metrics, one_step_metrics
 from .rollout_file import FILE_NAME, RolloutFile, load_rollout
 from .ui import console, print_table
 
@@ -35,14 +43,26 @@ SHORT = {
     "train_seconds": "train s",
     "seconds_per_epoch": "s/epoch",
     "parameters": "params",
+    "one_step_rot_error_mean": "1-step rot",
+    "one_step_pos_error_mean": "1-step pos",
+    "one_step_vs_cv": "1-step/CV",
+    "rollout_vs_cv": "geo/CV",
 }
 ERROR_COLUMNS = ["rel_rot_error_mean", "rel_rot_error_final", "geodesic_error_mean", "position_error_mean"]
 """Columns computed against ground truth: over the steps the dataset has."""
+ONE_STEP_COLUMNS = ["one_step_rot_error_mean", "one_step_pos_error_mean"]
+"""Teacher-forced one-step errors (each g_{k+1} from the true (g_{k-1}, g_k)), over the steps with ground truth."""
+CV_COLUMNS = ["one_step_vs_cv", "rollout_vs_cv"]
+"""Ratios to the constant-velocity row: one_step_rot_error_mean and geodesic_error_mean (< 1: better than CV)."""
+CONSTANT_VELOCITY = "constant_velocity"
+"""The row (and curve) of the constant-velocity reference, computed from the data in every evaluation."""
 DRIFT_COLUMNS = ["max_orth_drift", "max_det_drift"]
 """Distance from the group: over the whole rollout (as are the non-finite step and the Newton columns)."""
 COLUMNS = [
     "model",
     *ERROR_COLUMNS,
+    *ONE_STEP_COLUMNS,
+    *CV_COLUMNS,
     *DRIFT_COLUMNS,
     "nonfinite_step",
     "newton_failures",
@@ -67,22 +87,29 @@ _ROW_ORDER = (
 
 
 def _rows(
-    rf: RolloutFile, truth: Pose, timings: dict | None, names: dict[str, str] | None = None
+    rf: RolloutFile,
+    truth: Pose,
+    timings: dict | None,
+    names: dict[str, str] | None = None,
+    group: ProductGroup | None = None,
 ) -> tuple[list[dict], dict]:
-    """One row per rolled-out model: errors over the steps with ground truth (truth's length), drift,
-    non-finite step and Newton statistics over the whole rollout; per-step curves of each.
-    `model` is the rollout entry (`model`, `true_scheme`), `name` what it is (`liedflnn`, `true scheme`)."""
+    """One row per rolled-out model, then the constant-velocity row (when `group` is given): errors and
+    one-step errors over the steps with ground truth (truth's length), drift, non-finite step and
+    Newton statistics over the whole rollout; per-step curves of each; ratios to constant velocity.
+    `model` is the rollout entry (`model`, `true_scheme`, `constant_velocity`), `name` what it is
+    (`liedflnn`, `true scheme`, `constant velocity`)."""
     rows, curves = [], {}
-    names = names or plots.display_names(rf.models)
+    names = names or plots.display_names([*rf.models, CONSTANT_VELOCITY])
+    n = min(rf.steps, truth.R.shape[1] - 1)
+    target = truth.index((slice(None), slice(2, n + 1)))  # what the one-step predictions predict
     for name, ro in rf.models.items():
-        pred = ro.pose
-        n = min(ro.steps, truth.R.shape[1] - 1)
-        span = (slice(None), slice(0, n + 1))
-        err = error_metrics(pred.index(span), truth.index(span))
-        drift = drift_metrics(pred)
-        curves[name] = {**err["curves"], **drift["curves"]}
-        scalars = {**err["scalars"], **drift["scalars"]}
-        row = {"model": name, "name": names.get(name, name), **{k: scalars[k] for k in _ROW_ORDER if k in scalars}}
+        row, curves[name] = _errors(name, names, ro.pose, truth, n)
+        if ro.one_step is not None:
+            row.update(one_step_metrics(ro.one_step.pose, target))
+            row["one_step_newton_failures"] = ro.one_step.n_failed
+        else:
+            row.update({k: None for k in ONE_STEP_COLUMNS if k != "one_step_pos_error_mean" or truth.p.shape[-2]})
+        row.update(dict.fromkeys(CV_COLUMNS))  # filled below, once the constant-velocity row exists
         row["newton_failures"] = ro.n_failed
         row["first_failure_step"] = ro.first_failure
         row["mean_newton_iterations"] = ro.mean_iterations
@@ -94,7 +121,43 @@ def _rows(
         row["rollout_steps"] = ro.steps
         row["rollout_trajectories"] = int(ro.R.shape[0])
         rows.append(row)
+    if group is not None:
+        from .solvers.one_step import constant_velocity_one_step, constant_velocity_rollout
+
+        g0, g1 = truth.index((slice(None), 0)), truth.index((slice(None), 1))
+        row, curves[CONSTANT_VELOCITY] = _errors(
+            CONSTANT_VELOCITY, names, constant_velocity_rollout(group, g0, g1, rf.steps), truth, n
+        )
+        if n >= 2:
+            cv = constant_velocity_one_step(group, truth.index((slice(None), slice(0, n + 1))))
+            row.update(one_step_metrics(cv, target))
+        row.update(dict.fromkeys(CV_COLUMNS))
+        row.update(
+            dict.fromkeys(("newton_failures", "first_failure_step", "mean_newton_iterations", "rollout_s_per_step"))
+        )
+        row.update({"error_steps": n, "rollout_steps": rf.steps, "rollout_trajectories": int(truth.R.shape[0])})
+        rows.append(row)
+        for r in rows:
+            r["one_step_vs_cv"] = _ratio(r.get("one_step_rot_error_mean"), row.get("one_step_rot_error_mean"))
+            r["rollout_vs_cv"] = _ratio(r.get("geodesic_error_mean"), row.get("geodesic_error_mean"))
     return rows, curves
+
+
+def _errors(name: str, names: dict[str, str], pred: Pose, truth: Pose, n: int) -> tuple[dict, dict]:
+    """(row with the error, drift and non-finite columns, curves) of one predicted rollout."""
+    span = (slice(None), slice(0, n + 1))
+    err = error_metrics(pred.index(span), truth.index(span))
+    drift = drift_metrics(pred)
+    scalars = {**err["scalars"], **drift["scalars"]}
+    row = {"model": name, "name": names.get(name, name), **{k: scalars[k] for k in _ROW_ORDER if k in scalars}}
+    return row, {**err["curves"], **drift["curves"]}
+
+
+def _ratio(a, b) -> float | None:
+    """a / b for the vs-CV columns: None when either is missing, NaN when b is 0 or not finite."""
+    if a is None or b is None:
+        return None
+    return float(a) / float(b) if b > 0 and math.isfinite(b) else float("nan")
 
 
 TABLE_PRIORITY = [
@@ -102,6 +165,9 @@ TABLE_PRIORITY = [
     "rel_rot_error_mean",
     "geodesic_error_mean",
     "position_error_mean",
+    "one_step_vs_cv",
+    "rollout_vs_cv",
+    "one_step_rot_error_mean",
     "max_orth_drift",
     "newton_failures",
     "rollout_s_per_step",
@@ -110,6 +176,7 @@ TABLE_PRIORITY = [
     "mean_newton_iterations",
     "first_failure_step",
     "nonfinite_step",
+    "one_step_pos_error_mean",
     "train_seconds",
     "seconds_per_epoch",
     "parameters",
@@ -144,6 +211,7 @@ def span_note(rf: RolloutFile, dataset) -> str:
     return (
         f"errors (rel err, rel err end, geo err, pos err) over steps 0..{n}"
         + (f" (the dataset ends at step {dataset.n_steps})" if n < rf.steps else "")
+        + f"; one-step errors (1-step rot, 1-step pos) over the teacher-forced predictions of steps 2..{n}"
         + f"; drift, non-finite and Newton columns over the whole rollout, steps 0..{rf.steps}"
     )
 
@@ -176,8 +244,8 @@ def run_eval_from_objects(
     from omegaconf import OmegaConf
 
     model_name = model_name or OmegaConf.select(cfg, "model.name", default=None)
-    names = plots.display_names(rf.models, model_name)
-    rows, curves = _rows(rf, truth, timings, names)
+    names = plots.display_names([*rf.models, CONSTANT_VELOCITY], model_name)
+    rows, curves = _rows(rf, truth, timings, names, group=dataset.group)
     own = out.resolve() == run_dir.resolve()
     recovery_path = run_dir / "recovery.json"
     write_csv(out / "eval.csv", rows)
@@ -190,6 +258,19 @@ def run_eval_from_objects(
     if not own:
         md += f"Rollout file: `{path}` (run `{run_dir}`)\n\n"
     md += f"Spans: {note}.\n\n"
+    md += (
+        "`constant velocity`: g_{k+1} = g_k exp(log(g_{k-1}^-1 g_k)), the last increment repeated, rolled out from "
+        "the same first pair and teacher-forced from every true pair (computed from the data). A model that "
+        "does not beat it has learned nothing. `one_step_*`: teacher-forced one-step errors (g_{k+1} from the "
+        "true (g_{k-1}, g_k); rotation geodesic in rad); `one_step_vs_cv`, `rollout_vs_cv`: the row's "
+        "one_step_rot_error_mean and geodesic_error_mean over constant velocity's (< 1: better than it)"
+        + (
+            "; one-step columns are blank for rollout files written without one-step predictions"
+            if any(e.one_step is None for e in rf.models.values())
+            else ""
+        )
+        + ".\n\n"
+    )
     md += markdown_table([{**r, "model": r["name"]} for r in rows], cols)
     if recovery_path.is_file():
         rec = json.loads(recovery_path.read_text())
@@ -198,6 +279,8 @@ def run_eval_from_objects(
     write_json(out / "eval_curves.json", {k: {kk: vv.tolist() for kk, vv in v.items()} for k, v in curves.items()})
     console.print(
         "columns: rel err = mean ||R^-R||_F/||R||_F over steps; geo err = mean geodesic error (rad); "
+        "1-step = teacher-forced one-step error (each step from the true previous pair); "
+        "1-step/CV, geo/CV = ratio to the constant-velocity row (< 1: better than repeating the last increment); "
         f"drifts are maxima; {note}; full names in eval.md",
         style="dim",
     )
@@ -212,7 +295,9 @@ def run_eval_from_objects(
         pdir = out / "plots"
         unit = length_unit(dataset)
         plots.error_vs_step(curves, h, pdir / "error_vs_step.png", names, length_unit=unit)
-        plots.drift_vs_step(curves, h, pdir / "drift_vs_step.png", names)
+        plots.drift_vs_step(
+            {k: v for k, v in curves.items() if k != CONSTANT_VELOCITY}, h, pdir / "drift_vs_step.png", names
+        )
         preds = {k: v.pose for k, v in rf.models.items()}
         plots.sphere(truth.R.numpy(), {k: v.R.numpy() for k, v in preds.items()}, pdir / "sphere.png", names=names)
         plots.predicted_vs_true(

@@ -61,6 +61,18 @@ def error_metrics(pred: Pose, true: Pose) -> dict:
     return {"curves": _numpy(curves), "scalars": {k: float(v) for k, v in scalars.items()}}
 
 
+def one_step_metrics(pred: Pose, true: Pose) -> dict:
+    """Teacher-forced one-step errors: the geodesic rotation error (rad) and, with SE(3) bodies, the
+    position error, each the mean over bodies, predicted samples and trajectories.
+
+    pred, true: R (T, K, B, 3, 3), p (T, K, m, 3): the K one-step predictions and the true poses they predict.
+    """
+    out = {"one_step_rot_error_mean": float(geodesic_error(torch.nan_to_num(pred.R), true.R).mean())}
+    if pred.p.shape[-2] > 0:
+        out["one_step_pos_error_mean"] = float(position_error(pred.p, true.p).mean())
+    return out
+
+
 def drift_metrics(pred: Pose) -> dict:
     """Distance from the group, over the whole rollout: per-step curves (numpy, shape (S+1,), mean over
     trajectories of the maximum over bodies), the maxima, and the first step holding a non-finite

@@ -27,9 +27,11 @@ class ArrayPose(NamedTuple):
     p: np.ndarray
 
 
-COLORS = {"truth": "black", "model": "tab:blue", "true_scheme": "tab:orange"}
+COLORS = {"truth": "black", "model": "tab:blue", "true_scheme": "tab:orange", "constant_velocity": "0.35"}
 TRUE_SCHEME = "true scheme"
 """Display name of the rollout entry `true_scheme` (the scene's true-parameter discrete scheme)."""
+CONSTANT_VELOCITY = "constant velocity"
+"""Display name of the evaluation's `constant_velocity` reference (the last increment repeated); drawn dashed."""
 DIMENSIONLESS = "dimensionless"
 ERROR_LABELS = {  # key: (title, axis label, unit; None: the data's length unit)
     "rel_rot_error": ("relative rotation error ‖R̂ − R‖_F / ‖R‖_F", "relative rotation error", DIMENSIONLESS),
@@ -46,6 +48,8 @@ def display_names(entries, model_name: str | None = None) -> dict[str, str]:
             out[e] = model_name or "model"
         elif e == "true_scheme":
             out[e] = TRUE_SCHEME
+        elif e == "constant_velocity":
+            out[e] = CONSTANT_VELOCITY
         else:
             out[e] = str(e)
     return out
@@ -89,8 +93,9 @@ def length_label(unit: str | None) -> str:
 def error_vs_step(
     curves: dict[str, dict], h: float, path: Path, names: dict[str, str] | None = None, length_unit: str | None = "m"
 ) -> None:
-    """Errors against time, one panel per error, one line per model (log scale). Samples 0 and 1 are
-    the given initial pair (zero error): the lines start at the first prediction."""
+    """Errors against time, one panel per error, one line per model (log scale); the constant-velocity
+    reference dashed. Samples 0 and 1 are the given initial pair (zero error): the lines start at the
+    first prediction."""
     names = names or display_names(curves)
     keys = [k for k in ERROR_LABELS if any(k in c for c in curves.values())]
     fig, axes = plt.subplots(1, len(keys), figsize=(4.5 * len(keys), 3.4), squeeze=False)
@@ -99,7 +104,13 @@ def error_vs_step(
         for name, c in curves.items():
             if key in c:
                 y = np.asarray(c[key], dtype=np.float64)
-                ax.semilogy(np.arange(2, len(y)) * h, _positive(y[2:]), label=names.get(name, name), color=_color(name))
+                ax.semilogy(
+                    np.arange(2, len(y)) * h,
+                    _positive(y[2:]),
+                    "--" if name == "constant_velocity" else "-",
+                    label=names.get(name, name),
+                    color=_color(name),
+                )
         ax.set_xlabel("time [s]")
         ax.set_ylabel(f"{label} [{unit}]" if unit else f"{label} {length_label(length_unit)}")
         ax.set_title(title, fontsize=10)

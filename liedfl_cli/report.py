@@ -11,7 +11,8 @@ writes into the sweep directory:
   seeds as error bars, labelled), the Pareto front drawn; two panels, training time and rollout time
   per step per trajectory;
 - `plots/error_vs_time.png`: rollout error and manifold drift against time, one line per model and
-  setting (mean over seeds, ± std band), as in the paper's Exp 1 and Exp 3 panels;
+  setting (mean over seeds, ± std band), as in the paper's Exp 1 and Exp 3 panels, with the true
+  scheme (dotted) and constant velocity (dashed, error panel) of the first run that has them;
 - `plots/error_vs_training_length.png`: error against the training trajectory length, only when the
   sweep ran several lengths;
 - `plots/sphere_per_model.png`: the first test trajectory's body axis on the unit sphere, truth and
@@ -30,7 +31,7 @@ import yaml
 from omegaconf import DictConfig
 
 from .errors import ConfigError, DatasetError, LiedflError
-from .evaluate import DRIFT_COLUMNS, ERROR_COLUMNS
+from .evaluate import CV_COLUMNS, DRIFT_COLUMNS, ERROR_COLUMNS, ONE_STEP_COLUMNS
 from .io_utils import fmt, markdown_table, write_csv, write_text
 from .rollout_file import FILE_NAME, read_rollout
 from .ui import console, print_table
@@ -49,6 +50,8 @@ COLUMNS = [
     "rollout_trajectories",
     "rollout_s_per_step_per_trajectory",
     *ERROR_COLUMNS,
+    *ONE_STEP_COLUMNS,
+    *CV_COLUMNS,
     *DRIFT_COLUMNS,
     "newton_failures",
 ]
@@ -56,6 +59,8 @@ METRICS = [
     "rel_rot_error_mean",
     "geodesic_error_mean",
     "position_error_mean",
+    "one_step_vs_cv",
+    "rollout_vs_cv",
     "max_orth_drift",
     "newton_failures",
     "train_seconds",
@@ -67,6 +72,10 @@ HEADERS = {
     "rel_rot_error_final": "rel. rotation error (end)",
     "geodesic_error_mean": "geodesic error [rad]",
     "position_error_mean": "position error",
+    "one_step_rot_error_mean": "one-step rot. error [rad]",
+    "one_step_pos_error_mean": "one-step pos. error",
+    "one_step_vs_cv": "one-step / const. vel.",
+    "rollout_vs_cv": "geodesic / const. vel.",
     "max_orth_drift": "max orth. drift",
     "max_det_drift": "max det. drift",
     "newton_failures": "Newton failures",
@@ -352,7 +361,7 @@ def plot_error_vs_time(sweep: Path, summary: list[dict], path: Path) -> bool:
     colors = _colors(sorted({s["model"] for s in summary}))
     styles = ["-", "--", ":", "-."]
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.0))
-    drawn, reference = False, None
+    drawn, reference, cv_reference = False, None, None
     per_model: dict[str, int] = {}
     for s in summary:
         curves = [_curves(sweep, r) for r in s["runs"]]
@@ -363,6 +372,8 @@ def plot_error_vs_time(sweep: Path, summary: list[dict], path: Path) -> bool:
         per_model[s["model"]] += 1
         if reference is None:
             reference = next((c["true_scheme"] for c in curves if "true_scheme" in c), None), h
+        if cv_reference is None:
+            cv_reference = next((c["constant_velocity"] for c in curves if "constant_velocity" in c), None), h
         for ax, (key, _) in zip(axes, panels):
             ys = [np.asarray(c.get("model", {}).get(key, []), dtype=np.float64) for c in curves]
             ys = [y for y in ys if y.size]
@@ -390,6 +401,11 @@ def plot_error_vs_time(sweep: Path, summary: list[dict], path: Path) -> bool:
             y[~(y > 0)] = np.nan
             start = 2 if key != "orth_drift" else 0
             ax.plot(h * np.arange(len(y))[start:], y[start:], color="0.5", lw=1, ls=":", label="true scheme")
+        cv, h_cv = cv_reference if cv_reference else (None, None)
+        if cv and h_cv is not None and key in cv and key != "orth_drift":  # an error reference, not a drift one
+            y = np.asarray(cv[key], dtype=np.float64)
+            y[~(y > 0)] = np.nan
+            ax.plot(h_cv * np.arange(len(y))[2:], y[2:], color="0.3", lw=1, ls="--", label="constant velocity")
         ax.set_yscale("log")
         ax.set_xlabel("time [s]")
         ax.set_ylabel(ylabel)
@@ -534,7 +550,10 @@ def report_markdown(sweep: Path, rows: list[dict], failed: list[tuple[str, str]]
         md += (
             "\nrel. rotation error: mean over the steps with ground truth of ‖R̂ − R‖_F/‖R‖_F; geodesic error: mean "
             "|log(R̂ᵀR)|; orth. drift: largest ‖RᵀR − I‖_F over the rollout; rollout [s/step/traj.]: wall time per "
-            "step divided by the trajectories rolled out together.\n\n"
+            "step divided by the trajectories rolled out together; one-step / const. vel. and geodesic / const. "
+            "vel.: the teacher-forced one-step and the rollout geodesic error over those of constant velocity "
+            "(the last increment repeated) on the same test data (< 1: better than constant velocity; a model "
+            "that does not beat it has learned nothing; '–': eval.csv written without them).\n\n"
         )
         # the runs: the settings that differ (one column per override key; model and train_steps have their
         # own) and the numbers that differ

@@ -15,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import math
 import shutil
+import time
 from datetime import datetime
 from pathlib import Path
 
@@ -24,7 +25,7 @@ from omegaconf import DictConfig, OmegaConf
 from .errors import ConfigError, DatasetError
 from .factory import solver_options
 from .lie import Pose
-from .rollout_file import write_rollout
+from .rollout_file import OneStep, RolloutEntry, write_rollout
 from .solvers.options import SolverOptions
 from .solvers.rollout import Rollout
 from .ui import console, progress_bar
@@ -58,6 +59,20 @@ def _roll(model, truth: Pose, steps: int, solver: SolverOptions, label: str, sho
             f"first at step {ro.first_failure()} (flagged in rollout.h5, counted in the eval table)"
         )
     return ro
+
+
+def one_step(model, truth: Pose, steps: int, solver: SolverOptions) -> OneStep | None:
+    """The model's teacher-forced one-step predictions of samples 2..n (n = min(steps, the data's steps)),
+    each from the true pair (g_{k-1}, g_k): one batched two-step rollout over all pairs
+    (`solvers.one_step.one_step_predictions`), timed. None when the data has fewer than 3 poses."""
+    from .solvers.one_step import one_step_predictions
+
+    n = min(steps, truth.R.shape[1] - 1)
+    if n < 2:
+        return None
+    t0 = time.perf_counter()
+    pose, converged = one_step_predictions(model, truth.index((slice(None), slice(0, n + 1))), solver)
+    return OneStep.from_predictions(pose, converged, time.perf_counter() - t0)
 
 
 def test_trajectories(dataset, max_trajectories) -> tuple[np.ndarray, Pose]:
@@ -105,11 +120,21 @@ def rollout_and_save(cfg: DictConfig, model, dataset, path, steps=None) -> dict:
         m.eval()
         label = (getattr(m, "name", "") or name) if name == "model" else name.replace("_", " ")  # liedflnn, true scheme
         ro = _roll(m, truth, steps, solver_options(cfg.solver), label, cfg.ui.progress)
+        entry = RolloutEntry.from_rollout(ro)
+        entry.one_step = one_step(m, truth, steps, solver_options(cfg.solver))
         m.train(was_training)
-        rollouts[name] = ro
+        rollouts[name] = entry
     written = write_rollout(path, steps=steps, h=dataset.h, scene=dataset.scene, traj_index=idx, rollouts=rollouts)
     results = {name: entry.summary() for name, entry in written.models.items()}
-    console.print(f"rollout of {len(idx)} test trajectories x {steps} steps written to {path}")
+    for name, entry in written.models.items():
+        if entry.one_step is not None:
+            results[name]["one_step_seconds"] = float(entry.one_step.attrs["seconds"])
+    one = {k: e.one_step for k, e in written.models.items() if e.one_step is not None}
+    note = "; teacher-forced one-step predictions of {} pairs in {}".format(
+        next(iter(one.values())).attrs["n_pairs"],
+        ", ".join(f"{o.attrs['seconds']:.3g} s ({k})" for k, o in one.items()),
+    )
+    console.print(f"rollout of {len(idx)} test trajectories x {steps} steps written to {path}" + (note if one else ""))
     return results
 
 

@@ -15,6 +15,10 @@ Format (docs/data_format.md, section "rollout.h5"):
     residual_norm  (T, S-1) float64 (optional on reading)
     attributes     seconds, seconds_per_step, n_failed, first_failure (the first sample index whose
                    solve did not converge in some trajectory, -1 for none), n_trajectories
+    one_step/      optional (files written before it have none): teacher-forced one-step predictions
+                   of samples 2..n (n = min(S, N), N the dataset's steps), each from the TRUE pair
+                   (g_{k-1}, g_k): R (T, n-1, B, 3, 3), p (T, n-1, m, 3), converged (T, n-1) bool;
+                   attributes seconds, n_pairs
 
 `write_rollout` writes a file atomically, `read_rollout` reads one and checks it is self-consistent,
 `validate_rollout` checks it against the dataset it claims to roll out, and `load_rollout` does both.
@@ -42,6 +46,33 @@ REQUIRED = ("R", "p", "converged", "iterations")
 
 
 @dataclass
+class OneStep:
+    """Teacher-forced one-step predictions of samples 2..n, each from the true pair (g_{k-1}, g_k)."""
+
+    R: np.ndarray  # (T, n-1, B, 3, 3) float64
+    p: np.ndarray  # (T, n-1, m, 3) float64
+    converged: np.ndarray  # (T, n-1) bool
+    attrs: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def pose(self) -> Pose:
+        return Pose(torch.from_numpy(self.R), torch.from_numpy(self.p))
+
+    @property
+    def n_failed(self) -> int:
+        return int((~self.converged).sum())
+
+    @classmethod
+    def from_predictions(cls, pose: Pose, converged: torch.Tensor, seconds: float) -> OneStep:
+        """From `solvers.one_step.one_step_predictions`' output (any device and dtype; stored as CPU float64)."""
+        f64 = lambda t: t.detach().to(device="cpu", dtype=torch.float64).numpy()
+        conv = converged.detach().cpu().numpy().astype(bool)
+        return cls(
+            R=f64(pose.R), p=f64(pose.p), converged=conv, attrs={"seconds": float(seconds), "n_pairs": int(conv.size)}
+        )
+
+
+@dataclass
 class RolloutEntry:
     """One rolled-out model: poses and per-step Newton diagnostics (numpy arrays)."""
 
@@ -51,6 +82,7 @@ class RolloutEntry:
     iterations: np.ndarray  # (T, S-1) int
     residual_norm: np.ndarray | None = None  # (T, S-1) float64
     attrs: dict[str, Any] = field(default_factory=dict)
+    one_step: OneStep | None = None  # optional: teacher-forced one-step predictions
 
     @property
     def steps(self) -> int:
@@ -198,9 +230,26 @@ def _check(rf: RolloutFile) -> RolloutFile:
                 raise DatasetError(
                     f"{path}: dataset '{name}/{key}' has shape {arr.shape}; need (T, S-1) = {(T, S - 1)}"
                 )
+        if e.one_step is not None:
+            _check_one_step(path, name, e.one_step, T, S, B, m)
     if rf.group is not None and layout is not None and rf.group != _group_name(*layout[:2]):
         raise DatasetError(f"{path}: attribute 'group' = {rf.group!r} but the poses are on {_group_name(*layout[:2])}")
     return rf
+
+
+def _check_one_step(path: Path, name: str, o: OneStep, T: int, S: int, B: int, m: int) -> None:
+    """Shapes of `<name>/one_step/`: R (T, K, B, 3, 3), p (T, K, m, 3), converged (T, K), 1 <= K <= S-1."""
+    K = int(o.R.shape[1]) if o.R.ndim >= 2 else -1
+    for key, arr, need, dims in (
+        ("R", o.R, (T, K, B, 3, 3), "(T, K, B, 3, 3)"),
+        ("p", o.p, (T, K, m, 3), "(T, K, m, 3)"),
+        ("converged", o.converged, (T, K), "(T, K)"),
+    ):
+        if arr.shape != need or not 1 <= K <= S - 1:
+            raise DatasetError(
+                f"{path}: dataset '{name}/one_step/{key}' has shape {arr.shape}; need {dims} = {need} with "
+                f"T = {T} trajectories, {B} bodies ({m} on SE(3)) and 1 <= K <= S-1 = {S - 1} one-step predictions"
+            )
 
 
 def validate_rollout(rf: RolloutFile, dataset) -> RolloutFile:
@@ -228,6 +277,13 @@ def validate_rollout(rf: RolloutFile, dataset) -> RolloutFile:
         else:
             why = f"it is not in the dataset's test split ({len(test)} trajectories: {_short(sorted(test))})"
         raise DatasetError(f"{path}: dataset 'traj_index' holds trajectory {i} at index {j}, but {why}")
+    n = min(rf.steps, int(dataset.n_steps))
+    for name, e in rf.models.items():
+        if e.one_step is not None and e.one_step.R.shape[1] != n - 1:
+            raise DatasetError(
+                f"{path}: dataset '{name}/one_step/R' holds {e.one_step.R.shape[1]} one-step predictions per "
+                f"trajectory; need min(steps, dataset steps) - 1 = {n - 1} (samples 2..{n})"
+            )
     return rf
 
 
@@ -291,6 +347,7 @@ def read_rollout(path) -> RolloutFile:
                     iterations=_array(g, "iterations", name, path, "int"),
                     residual_norm=_array(g, "residual_norm", name, path, "float") if "residual_norm" in g else None,
                     attrs={k: _plain(v) for k, v in g.attrs.items()},
+                    one_step=_read_one_step(g, name, path) if "one_step" in g else None,
                 )
             attrs = {k: _plain(v) for k, v in f.attrs.items()}
     except DatasetError:
@@ -313,6 +370,24 @@ def read_rollout(path) -> RolloutFile:
         attrs=attrs,
     )
     return _check(rf)
+
+
+def _read_one_step(g, name: str, path: Path) -> OneStep:
+    import h5py
+
+    o = g["one_step"]
+    if not isinstance(o, h5py.Group):
+        raise DatasetError(f"{path}: '{name}/one_step' is not a group")
+    missing = [k for k in ("R", "p", "converged") if k not in o]
+    if missing:
+        raise DatasetError(f"{path}: group '{name}/one_step' lacks dataset '{missing[0]}'")
+    where = f"{name}/one_step"
+    return OneStep(
+        R=_array(o, "R", where, path, "float"),
+        p=_array(o, "p", where, path, "float"),
+        converged=_array(o, "converged", where, path, "bool"),
+        attrs={k: _plain(v) for k, v in o.attrs.items()},
+    )
 
 
 def _plain(v):
@@ -356,12 +431,19 @@ def write_rollout(path, *, steps: int, h: float, scene: str, traj_index, rollout
             if e.residual_norm is not None:
                 g.create_dataset("residual_norm", data=e.residual_norm)
             g.attrs.update(e.attrs)
+            if e.one_step is not None:
+                o = g.create_group("one_step")
+                o.create_dataset("R", data=e.one_step.R)
+                o.create_dataset("p", data=e.one_step.p)
+                o.create_dataset("converged", data=e.one_step.converged)
+                o.attrs.update(e.one_step.attrs)
     rf.attrs = {"steps": rf.steps, "h": rf.h, "dataset_scene": rf.scene, "group": rf.group}
     return rf
 
 
 __all__ = [
     "FILE_NAME",
+    "OneStep",
     "RolloutEntry",
     "RolloutFile",
     "read_rollout",

@@ -282,3 +282,195 @@ def test_scene_evaluations_are_one_explicit_registry():
     assert {"cmu_cartwheel": evaluate_mocap, "pd_control": evaluate_control} == SCENE_EVALS
     assert set(SCENE_EVALS) <= set(SCENES)
     assert run_extra_evals(CFG, None, tiny_dataset(), Path("unused")) is None  # no evaluation for this scene
+
+
+# ----------------------------------------------------------------------------- constant velocity, one-step
+def _cv_by_hand(R: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Constant-velocity guesses of samples 2..N written out with matrices, not liedfl's group code:
+    g_{k+1} = g_k (g_{k-1}^-1 g_k), i.e. R_k R_{k-1}^T R_k and p_k + R_k R_{k-1}^T (p_k - p_{k-1}) (SE(3)
+    bodies first; exp(log(X)) = X for the small increments of these tracks)."""
+    Rp, Rc = R[:, :-2], R[:, 1:-1]
+    Rt = np.swapaxes(Rp, -1, -2)
+    R_next = Rc @ Rt @ Rc
+    m = p.shape[-2]
+    dp = p[:, 1:-1] - p[:, :-2]
+    p_next = p[:, 1:-1] + np.einsum("tkbij,tkbjl,tkbl->tkbi", Rc[:, :, :m], Rt[:, :, :m], dp)
+    return R_next, p_next
+
+
+def test_constant_velocity_row_has_finite_errors_and_no_newton_columns(tmp_path):
+    ds = tiny_dataset(n_se3=1)
+    perfect(ds, tmp_path / "rollout.h5")
+    rows = {r["model"]: r for r in run_eval_from_objects(CFG, ds, tmp_path)}
+    assert list(rows) == ["model", "constant_velocity"]
+    cv = rows["constant_velocity"]
+    assert cv["name"] == "constant velocity"
+    for k in ("rel_rot_error_mean", "geodesic_error_mean", "position_error_mean", "max_orth_drift"):
+        assert np.isfinite(cv[k]) and cv[k] >= 0, k
+    for k in ("one_step_rot_error_mean", "one_step_pos_error_mean", "geodesic_error_mean"):
+        assert cv[k] > 1e-3, k  # random-ish tracks: constant velocity is far from exact
+    assert cv["max_orth_drift"] < 1e-13  # exp(log(.)) keeps it on the group
+    assert (
+        cv["newton_failures"] is None and cv["mean_newton_iterations"] is None and cv.get("rollout_s_per_step") is None
+    )
+    assert cv["one_step_vs_cv"] == 1.0 and cv["rollout_vs_cv"] == 1.0
+    assert rows["model"]["rollout_vs_cv"] < 1e-12  # the perfect model
+    with open(tmp_path / "eval.csv") as f:
+        csv_rows = {r["model"]: r for r in csv.DictReader(f)}
+    assert (
+        csv_rows["constant_velocity"]["newton_failures"] == ""
+        and float(csv_rows["constant_velocity"]["rel_rot_error_mean"]) > 0
+    )
+    assert "| constant velocity |" in (tmp_path / "eval.md").read_text()
+
+
+def test_constant_velocity_one_step_error_matches_an_independent_computation(tmp_path):
+    from scipy.spatial.transform import Rotation
+
+    ds = tiny_dataset(n_se3=1)
+    perfect(ds, tmp_path / "rollout.h5")
+    cv = next(r for r in run_eval_from_objects(CFG, ds, tmp_path) if r["model"] == "constant_velocity")
+    R, p = ds.R[TEST], ds.p[TEST]
+    R_next, p_next = _cv_by_hand(R, p)
+    rel = np.swapaxes(R_next, -1, -2) @ R[:, 2:]
+    geo = Rotation.from_matrix(rel.reshape(-1, 3, 3)).magnitude()
+    pos = np.linalg.norm(p_next - p[:, 2:], axis=-1)
+    assert cv["one_step_rot_error_mean"] == pytest.approx(geo.mean(), rel=1e-10, abs=1e-14)
+    assert cv["one_step_pos_error_mean"] == pytest.approx(pos.mean(), rel=1e-10, abs=1e-14)
+
+
+def test_constant_velocity_is_exact_for_a_uniform_motion(tmp_path):
+    """g_k = g_0 X^k (a body turning at constant angular velocity, a screw motion on SE(3)): the constant-
+    velocity rollout and its one-step guesses reproduce it to rounding error."""
+    from scipy.spatial.transform import Rotation
+
+    T, S = 4, 30
+    rng = np.random.default_rng(1)
+    X = np.eye(4)
+    X[:3, :3] = Rotation.from_rotvec([0.05, -0.11, 0.07]).as_matrix()
+    X[:3, 3] = [0.02, 0.01, -0.03]
+    W = Rotation.from_rotvec([-0.08, 0.03, 0.12]).as_matrix()  # the SO(3) body's constant increment
+    R = np.empty((T, S + 1, 2, 3, 3))
+    p = np.empty((T, S + 1, 1, 3))
+    for t in range(T):
+        g = np.eye(4)
+        g[:3, :3] = Rotation.random(random_state=t).as_matrix()
+        g[:3, 3] = rng.standard_normal(3)
+        Q = Rotation.random(random_state=10 + t).as_matrix()
+        for k in range(S + 1):
+            gk = g @ np.linalg.matrix_power(X, k)
+            R[t, k, 0], p[t, k, 0] = gk[:3, :3], gk[:3, 3]
+            R[t, k, 1] = Q @ np.linalg.matrix_power(W, k)
+    ds = Dataset(
+        R=R, p=p, h=0.1, scene="free_rigid_body", body_names=["a", "b"], body_kinds=["se3", "so3"],
+        split={"train": [0, 3], "test": TEST},
+    )  # fmt: skip
+    perfect(ds, tmp_path / "rollout.h5")
+    cv = next(r for r in run_eval_from_objects(CFG, ds, tmp_path) if r["model"] == "constant_velocity")
+    for k in ("geodesic_error_mean", "position_error_mean", "one_step_rot_error_mean", "one_step_pos_error_mean"):
+        assert cv[k] < 1e-12, (k, cv[k])
+
+
+def _one_step_entry(ds: Dataset, idx=TEST) -> RolloutEntry:
+    """A perfect rollout entry whose one-step predictions are the true samples 2..N."""
+    from liedfl_cli.rollout_file import OneStep
+
+    e = entry(ds.R[idx], ds.p[idx])
+    K = ds.n_steps - 1
+    e.one_step = OneStep(
+        R=ds.R[idx][:, 2:].copy(),
+        p=ds.p[idx][:, 2:].copy(),
+        converged=np.ones((len(idx), K), bool),
+        attrs={"seconds": 0.1, "n_pairs": len(idx) * K},
+    )
+    return e
+
+
+def test_one_step_predictions_round_trip_and_give_the_one_step_columns(tmp_path):
+    ds = tiny_dataset(n_se3=1)
+    path = tmp_path / "rollout.h5"
+    write_rollout(path, steps=N, h=ds.h, scene=ds.scene, traj_index=TEST, rollouts={"model": _one_step_entry(ds)})
+    with h5py.File(path) as f:
+        assert f["model/one_step/R"].shape == (2, N - 1, 2, 3, 3) and f["model/one_step/converged"].dtype == bool
+    rf = load_rollout(path, ds)
+    assert rf.model.one_step is not None and rf.model.one_step.attrs["n_pairs"] == 2 * (N - 1)
+    np.testing.assert_array_equal(rf.model.one_step.p, ds.p[TEST][:, 2:])
+    rows = {r["model"]: r for r in run_eval_from_objects(CFG, ds, tmp_path)}
+    m = rows["model"]
+    assert m["one_step_rot_error_mean"] < 1e-7 and m["one_step_pos_error_mean"] == 0.0  # the true samples
+    assert m["one_step_vs_cv"] == pytest.approx(
+        m["one_step_rot_error_mean"] / rows["constant_velocity"]["one_step_rot_error_mean"]
+    )
+    assert m["one_step_newton_failures"] == 0
+
+
+def test_an_old_rollout_file_without_one_step_data_still_evaluates(tmp_path):
+    """Files written before one-step predictions were stored: the model's one-step columns are blank, the
+    constant-velocity row (data only) is complete."""
+    ds = tiny_dataset(n_se3=1)
+    path = perfect(ds, tmp_path / "rollout.h5")
+    with h5py.File(path) as f:
+        assert "one_step" not in f["model"]
+    rows = {r["model"]: r for r in run_eval_from_objects(OmegaConf.create({"eval": {"plots": True}}), ds, tmp_path)}
+    m, cv = rows["model"], rows["constant_velocity"]
+    assert m["one_step_rot_error_mean"] is None and m["one_step_pos_error_mean"] is None and m["one_step_vs_cv"] is None
+    assert m["rollout_vs_cv"] < 1e-12 and np.isfinite(cv["one_step_rot_error_mean"])
+    with open(tmp_path / "eval.csv") as f:
+        assert next(csv.DictReader(f))["one_step_rot_error_mean"] == ""
+    assert "blank for rollout files written without one-step predictions" in (tmp_path / "eval.md").read_text()
+    curves = json.loads((tmp_path / "eval_curves.json").read_text())
+    assert len(curves["constant_velocity"]["geodesic_error"]) == N + 1
+    assert (tmp_path / "plots" / "error_vs_step.png").stat().st_size > 1000
+
+
+def _reshape_one_step(key, fn):
+    def edit(path):
+        with h5py.File(path, "r+") as f:
+            a = fn(f[f"model/one_step/{key}"][...])
+            del f[f"model/one_step/{key}"]
+            f[f"model/one_step/{key}"] = a
+
+    return edit
+
+
+BAD_ONE_STEP = {
+    "R_fewer_predictions_than_p": (_reshape_one_step("R", lambda a: a[:, 1:]), "'model/one_step/p'"),
+    "R_wrong_rank": (_reshape_one_step("R", lambda a: a[:, :, 0]), "'model/one_step/R'"),
+    "p_wrong_bodies": (_reshape_one_step("p", lambda a: np.concatenate([a, a], axis=2)), "'model/one_step/p'"),
+    "converged_wrong_shape": (_reshape_one_step("converged", lambda a: a[:1]), "'model/one_step/converged'"),
+    "too_many_predictions": (
+        lambda path: [
+            _reshape_one_step(k, lambda a: np.concatenate([a, a[:, :2]], axis=1))(path) for k in ("R", "p", "converged")
+        ],
+        "'model/one_step/R'",
+    ),
+    "missing_p": (lambda path: _drop(path, "model/one_step/p"), "'model/one_step' lacks dataset 'p'"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_ONE_STEP))
+def test_a_wrong_one_step_dataset_is_one_line_naming_the_field(case, tmp_path):
+    ds = tiny_dataset(n_se3=1)
+    path = tmp_path / "rollout.h5"
+    write_rollout(path, steps=N, h=ds.h, scene=ds.scene, traj_index=TEST, rollouts={"model": _one_step_entry(ds)})
+    edit, needle = BAD_ONE_STEP[case]
+    edit(path)
+    with pytest.raises(DatasetError) as e:
+        load_rollout(path, ds)
+    msg = str(e.value)
+    assert "\n" not in msg and msg.startswith(f"{path}: ") and needle in msg, msg
+
+
+def test_one_step_predictions_must_cover_the_steps_with_ground_truth(tmp_path):
+    """validate_rollout: K = min(steps, dataset steps) - 1 one-step predictions per trajectory."""
+    ds = tiny_dataset(n_se3=1)
+    path = tmp_path / "rollout.h5"
+    e = _one_step_entry(ds)
+    e.one_step.R, e.one_step.p, e.one_step.converged = (
+        e.one_step.R[:, :-1],
+        e.one_step.p[:, :-1],
+        e.one_step.converged[:, :-1],
+    )
+    write_rollout(path, steps=N, h=ds.h, scene=ds.scene, traj_index=TEST, rollouts={"model": e})  # self-consistent
+    with pytest.raises(DatasetError, match=r"'model/one_step/R' holds 4 one-step predictions .* need .* = 5"):
+        load_rollout(path, ds)

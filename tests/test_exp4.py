@@ -8,6 +8,7 @@ import json
 import math
 from pathlib import Path
 
+import h5py
 import numpy as np
 import pytest
 import torch
@@ -85,11 +86,17 @@ def test_exp4_smoke_run_end_to_end(smoke_run):
         assert (run / name).is_file(), name
     with open(run / "mocap_eval.csv") as f:
         rows = list(csv.DictReader(f))
-    assert [r["row"].split(" (")[0] for r in rows] == ["Sequence 1", "Sequence 2", "Ground truth discrepancy"]
+    assert [r["row"].split(" (")[0] for r in rows] == [
+        "Sequence 1",
+        "Sequence 2",
+        "Constant velocity, sequence 1",
+        "Constant velocity, sequence 2",
+        "Ground truth discrepancy",
+    ]
     for r in rows:
-        for k in ("root_rot", "joint_rot", "root_pos_asf", "root_pos_m", "root_rot_paper", "root_pos_paper_asf"):
+        for k in ("root_rot", "joint_rot", "root_pos_asf", "root_pos_m"):
             assert math.isfinite(float(r[k])), (r["row"], k, r[k])
-    assert [float(r["root_rot_paper"]) for r in rows] == [0.193, 0.188, 0.373]
+    assert [r["root_rot_paper"] for r in rows] == ["0.193", "0.188", "", "", "0.373"]
     from liedfl_cli.data.mocap import ASF_UNIT_M
 
     for r in rows:
@@ -105,6 +112,16 @@ def test_exp4_smoke_run_end_to_end(smoke_run):
     assert len(ev["moving_joints"]) + len(ev["static_joints"]) == 22
     assert ev["one_step"]["solves"] == 2 * 11 and set(ev["below_discrepancy_until_s"]) == {"49_06", "49_07"}
     assert all(math.isfinite(v) for v in ev["one_step"]["model_joint_rot"].values())
+    assert ev["one_step"]["from_rollout_file"] is True  # the model's one-step predictions stored at rollout time
+    with h5py.File(run / "rollout.h5") as f:
+        assert f["model/one_step/R"].shape == (2, 11, 23, 3, 3) and f["model/one_step/p"].shape == (2, 11, 1, 3)
+    # the constant-velocity rollout of the mocap rows is the general evaluation's constant_velocity row
+    with open(run / "eval.csv") as f:
+        cv = next(r for r in csv.DictReader(f) if r["model"] == "constant_velocity")
+    seq_cv = [r for r in rows if r["row"].startswith("Constant velocity")]
+    # eval.csv averages samples 0..12 (0 and 1 exact), the mocap table the predicted samples 2..12
+    mocap_mean = np.mean([float(r["root_pos_asf"]) for r in seq_cv]) * 11 / 13 / ev["asf_units_per_stored_unit"]
+    assert float(cv["position_error_mean"]) == pytest.approx(mocap_mean, rel=1e-9) and mocap_mean > 0
     for name in PLOTS:
         path = run / "plots" / name
         assert path.is_file() and path.stat().st_size > 5000, name

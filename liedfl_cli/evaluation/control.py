@@ -29,7 +29,7 @@ from ..io_utils import markdown_table, write_json, write_text
 from ..lie import Pose
 from ..mechanics.kinetic import velocity_estimate
 from ..models.base import tensor_placement
-from ..plots import COLORS, draw_unit_sphere, plt, save_figure
+from ..plots import COLORS, display_names, draw_unit_sphere, plt, save_figure
 from ..rollout_file import FILE_NAME, load_rollout
 from ..ui import console
 
@@ -134,12 +134,18 @@ def evaluate_control(cfg, model, dataset, run_dir, rollout_path=None) -> dict | 
 
 def _rollout_R(path: Path, dataset) -> dict:
     """{name: R (S+1, B, 3, 3)} of the first rolled-out trajectory (truth included, over the steps it
-    has), from a rollout file ({} when there is none)."""
+    has, and the constant-velocity rollout from its true first pair), from a rollout file ({} when
+    there is none)."""
     if not path.is_file():
         return {}
+    from ..solvers.one_step import constant_velocity_rollout
+
     rf = load_rollout(path, dataset)
     i = int(rf.traj_index[0])
     out = {name: e.R[0] for name, e in rf.models.items()}
+    truth = dataset.pose([i])
+    first = (truth.index((slice(None), 0)), truth.index((slice(None), 1)))
+    out["constant_velocity"] = constant_velocity_rollout(dataset.group, *first, rf.steps).R[0].numpy()
     out["truth"] = dataset.R[i, : rf.steps + 1]
     out["_index"] = i
     return out
@@ -169,12 +175,19 @@ def plot_torque(curve: dict, h: float, rollouts: dict, path: Path, split: str) -
     ax.grid(alpha=0.3)
     rollouts = dict(rollouts)
     index = rollouts.pop("_index", None)
+    labels = {**display_names([k for k in rollouts if k != "truth"]), "truth": "truth"}
     if rollouts:
         ax3 = fig.add_subplot(2, 3, 5, projection="3d")
         draw_unit_sphere(ax3)
         for name, R in rollouts.items():
+            if name == "constant_velocity":
+                continue  # an error reference, drawn in the error panel only
             ax3.plot(
-                *R[:, 0, :, 2].T, "-" if name == "truth" else "--", color=COLORS.get(name), linewidth=1.0, label=name
+                *R[:, 0, :, 2].T,
+                "-" if name == "truth" else "--",
+                color=COLORS.get(name),
+                linewidth=1.0,
+                label=labels.get(name, name),
             )
         ax3.legend(loc="upper left", fontsize=8)
         ax3.set_title(f"rollout: body axis R e3 (trajectory {index})")
@@ -185,7 +198,13 @@ def plot_torque(curve: dict, h: float, rollouts: dict, path: Path, split: str) -
                 continue
             S = min(len(R), len(truth))
             err = np.linalg.norm(R[:S] - truth[:S], axis=(-2, -1)).mean(-1) / np.sqrt(3.0)
-            ax.semilogy(np.arange(S) * h, np.maximum(err, 1e-17), color=COLORS.get(name), label=name)
+            ax.semilogy(
+                np.arange(S) * h,
+                np.maximum(err, 1e-17),
+                "--" if name == "constant_velocity" else "-",
+                color=COLORS.get(name),
+                label=labels.get(name, name),
+            )
         ax.set_title("rollout relative rotation error ||R^ - R||_F / ||R||_F")
         ax.set_xlabel("time [s]")
         ax.set_ylabel("relative rotation error [dimensionless]")

@@ -24,16 +24,20 @@ by `rollout_file.load_rollout`) and the dataset:
                  The verdict is given only when the rollout covers the whole recording (every recorded
                  step); a shorter rollout (a smoke run, `steps=` below the recording) says so instead.
   Newton         the rollout's non-converged implicit steps (`model/converged` of the rollout file).
+  constant vel.  the same three errors of the constant-velocity rollout g_{k+1} = g_k exp(log(g_{k-1}^-1 g_k))
+                 from each sequence's true first pair over the same samples (rows "Constant velocity,
+                 sequence i"; no verdict for them): a model that does not beat it has learned nothing.
   diagnostics    per sequence and metric, the time until the per-timestep error first exceeds the
                  per-timestep discrepancy; and teacher-forced one-step errors (g_{k+1} from the true
-                 (g_{k-1}, g_k), one batched Newton solve) next to constant-velocity extrapolation,
-                 which separate the model's local error from the compounding of the rollout.
+                 (g_{k-1}, g_k); the rollout file's `model/one_step` predictions, else one batched
+                 two-step rollout here) next to constant velocity's, which separate the model's local
+                 error from the compounding of the rollout.
 
 Files, next to the rollout file: mocap_eval.csv, mocap_eval.md, mocap_eval.json and, with eval.plots,
 plots/mocap_errors.png
-(per-timestep errors, discrepancy in grey), plots/mocap_skeleton_seq<i>.png (skeletons at uniform
-intervals by forward kinematics from the BVH offsets in params.skeleton: truth green/red, prediction
-blue), plots/mocap_root_trajectory.png (root path and frames in 3-D) and
+(per-timestep errors, discrepancy in grey, constant velocity dashed), plots/mocap_skeleton_seq<i>.png
+(skeletons at uniform intervals by forward kinematics from the BVH offsets in params.skeleton: truth
+green/red, prediction blue), plots/mocap_root_trajectory.png (root path and frames in 3-D) and
 plots/mocap_joint_axes_seq<i>.png (bone directions of selected joints on the unit sphere).
 """
 
@@ -54,6 +58,7 @@ from ..lie import Pose
 from ..models.base import tensor_placement
 from ..plots import draw_unit_sphere, plt, save_figure
 from ..rollout_file import FILE_NAME, RolloutEntry, load_rollout
+from ..solvers.options import SolverOptions
 from ..ui import console
 
 PAPER: dict[str, Any] = {
@@ -72,6 +77,8 @@ LABELS = {
     "root_pos": "root pos. [ASF units]",
 }
 SEQ_COLORS = ("tab:green", "tab:red")
+CV_COLORS = ("#0b4d1a", "#7a0000")
+"""Constant velocity of sequence 1, 2: darker than SEQ_COLORS and dashed, visible on top of a model curve."""
 PRED_COLOR = "tab:blue"
 AXIS_JOINTS = ("LeftUpLeg", "RightUpLeg", "LeftArm", "RightArm", "LeftLeg", "RightLeg")
 """Joints whose bone direction (R_j times the unit offset of its child) is drawn on the sphere."""
@@ -147,53 +154,92 @@ def below_until(err: dict, disc: dict | None, h: float) -> list[dict]:
 
 
 @torch.no_grad()
-def one_step_errors(model, truth_R, truth_p, solver, joints=None) -> dict | None:
+def one_step_errors(model, truth_R, truth_p, solver, joints=None, stored=None, group=None) -> dict | None:
     """Teacher-forced one-step predictions: g_{k+1} from the true (g_{k-1}, g_k) for every k, batched.
 
     Separates the model's local error from the compounding of the rollout. Returns per-sequence means
-    of the three errors for the model and for constant-velocity extrapolation g_k (g_{k-1}^-1 g_k)
-    (the zero-force free-flight guess), and the Newton convergence count. None for models without
-    a `rollout(g0, g1, steps, solver)` method.
+    of the three errors for the model and for constant velocity g_k exp(log(g_{k-1}^-1 g_k))
+    (`solvers.one_step.constant_velocity_one_step`, the last increment repeated), and the Newton
+    convergence count. `stored`: the rollout file's `model/one_step` predictions (`rollout_file.OneStep`)
+    of the same samples, used when present; otherwise the model predicts them here
+    (`solvers.one_step.one_step_predictions`). "model" is None (and the counts 0) for a model without
+    a `rollout(g0, g1, steps, solver)` method when nothing is stored. `group`: the data's group
+    (default the model's). None for fewer than 3 poses.
     """
-    if not hasattr(model, "rollout") or not hasattr(model, "G"):
+    from ..solvers.one_step import constant_velocity_one_step, one_step_predictions
+
+    truth = Pose(torch.as_tensor(truth_R), torch.as_tensor(truth_p))
+    T, K = truth.R.shape[0], truth.R.shape[1] - 2
+    G = group if group is not None else getattr(model, "G", None)
+    if K < 1 or G is None:
         return None
-    on = tensor_placement(model)  # the model's device and dtype; errors in float64 on the CPU
-    R, p = torch.as_tensor(truth_R).to(**on), torch.as_tensor(truth_p).to(**on)
-    T, K = R.shape[0], R.shape[1] - 2
-    if K < 1:
-        return None
-    flat = lambda a, b: Pose(R[:, a : R.shape[1] - 2 + a].flatten(0, 1), p[:, a : p.shape[1] - 2 + a].flatten(0, 1))
-    g0, g1, g2 = flat(0, 0), flat(1, 1), flat(2, 2)
-    was_training = model.training
-    model.eval()
-    try:
-        ro = model.rollout(g0, g1, 2, solver)
-    finally:
-        model.train(was_training)
-    pred = ro.pose.index((slice(None), 2))
-    cv = model.G.compose(g1, model.G.increment(g0, g1))
-    f64 = lambda g: g.to(device="cpu", dtype=torch.float64)
-    pred, cv, g2 = f64(pred), f64(cv), f64(g2)
-    unflat = lambda g: Pose(g.R.reshape(T, K, *g.R.shape[1:]), g.p.reshape(T, K, *g.p.shape[1:]))
-    true = unflat(g2)
-    em, ec = mocap_errors(unflat(pred), true, joints=joints), mocap_errors(unflat(cv), true, joints=joints)
+    true = truth.index((slice(None), slice(2, None)))
+    pred, conv = None, None
+    if stored is not None and stored.R.shape[:2] == (T, K):
+        pred, conv = stored.pose, torch.from_numpy(stored.converged)
+    elif hasattr(model, "rollout") and hasattr(model, "G"):
+        was_training = model.training
+        model.eval()
+        try:
+            pred, conv = one_step_predictions(model, truth.to(**tensor_placement(model)), solver)
+        finally:
+            model.train(was_training)
+        pred = pred.to(device="cpu", dtype=torch.float64)
+    cv = constant_velocity_one_step(G, truth)
+    ec = mocap_errors(cv, true, joints=joints)
+    em = mocap_errors(pred, true, joints=joints) if pred is not None else None
     return {
-        "model": {k: em[k].numpy() for k in METRICS},
+        "model": None if em is None else {k: em[k].numpy() for k in METRICS},
         "const_velocity": {k: ec[k].numpy() for k in METRICS},
-        "converged": int(ro.converged.sum()),
-        "solves": int(ro.converged.numel()),
+        "converged": 0 if conv is None else int(conv.sum()),
+        "solves": 0 if conv is None else int(conv.numel()),
+        "from_rollout_file": stored is not None and pred is not None and stored.R.shape[:2] == (T, K),
     }
+
+
+def _solver(cfg) -> SolverOptions:
+    """The `solver` section of a run's config as SolverOptions (defaults without one)."""
+    from omegaconf import OmegaConf
+
+    section = cfg.get("solver") if hasattr(cfg, "get") else None
+    if OmegaConf.is_config(section):
+        section = OmegaConf.to_container(section, resolve=True)
+    return SolverOptions.from_mapping(section if isinstance(section, (dict, SolverOptions)) else None)
+
+
+def constant_velocity_errors(dataset, tR, tp, joints=None) -> dict:
+    """`sequence_errors` of the constant-velocity rollout (`solvers.one_step.constant_velocity_rollout`)
+    from each sequence's true first pair over the same samples as the truth tR (T, S+1, B, 3, 3)."""
+    from ..solvers.one_step import constant_velocity_rollout
+
+    truth = Pose(torch.as_tensor(tR), torch.as_tensor(tp))
+    S = truth.R.shape[1] - 1
+    cv = constant_velocity_rollout(dataset.group, truth.index((slice(None), 0)), truth.index((slice(None), 1)), S)
+    return sequence_errors(cv.R.numpy(), cv.p.numpy(), tR, tp, joints=joints)
 
 
 def _finite(x) -> bool:
     return x is not None and isinstance(x, (int, float)) and math.isfinite(x)
 
 
+CV_ROW = "Constant velocity, sequence"
+"""Start of the constant-velocity rows' names (they are no predictions: verdicts skip them)."""
+
+
 def build_rows(
-    err: dict, disc: dict | None, idx: np.ndarray, dataset, ro: RolloutEntry, asf: float, unit_m: float, steps: int
+    err: dict,
+    disc: dict | None,
+    idx: np.ndarray,
+    dataset,
+    ro: RolloutEntry,
+    asf: float,
+    unit_m: float,
+    steps: int,
+    cv: dict | None = None,
 ) -> list[dict]:
     """Table rows: one per rolled-out sequence (errors over `steps` steps, Newton failures over the whole
-    rollout), then the ground-truth discrepancy."""
+    rollout), then, with `cv` (`constant_velocity_errors`), the constant-velocity rollout of each sequence,
+    then the ground-truth discrepancy."""
     rows = []
     for n, i in enumerate(idx):
         paper = PAPER["sequences"][i] if i < len(PAPER["sequences"]) else {}
@@ -216,6 +262,20 @@ def build_rows(
                 ours = row[key]
                 row[f"{k}_below_discrepancy"] = bool(_finite(ours) and ours < disc[k] * (asf if k == "root_pos" else 1))
         rows.append(row)
+    for n, i in enumerate(idx if cv is not None else []):
+        assert cv is not None
+        rows.append(
+            {
+                "row": f"{CV_ROW} {i + 1} ({_sequence_name(dataset, i)})",
+                "steps": steps,
+                "root_rot": float(cv["root_rot"][n]),
+                "joint_rot": float(cv["joint_rot"][n]),
+                "joint_rot_all": float(cv["joint_rot_all"][n]),
+                "root_pos_asf": float(cv["root_pos"][n]) * asf,
+                "root_pos_m": float(cv["root_pos"][n]) * unit_m,
+                "newton_failures": None,
+            }
+        )
     if disc is not None:
         p = PAPER["discrepancy"]
         rows.append(
@@ -281,16 +341,25 @@ def evaluate_mocap(cfg, model, dataset, run_dir, rollout_path=None) -> dict:
     pR, pp = ro.R[:, : n_err + 1], ro.p[:, : n_err + 1]
     joints = moving_joints(dataset)
     err = sequence_errors(pR, pp, tR, tp, joints=joints)
+    cv_err = constant_velocity_errors(dataset, tR, tp, joints=joints)
     disc = discrepancy(dataset, joints=joints)
     full = n_err >= recording_steps(dataset)
     asf = _asf_per_unit(dataset)
     unit_m = float(dataset.params.get("length_unit_m", float("nan")))
-    rows = build_rows(err, disc, idx, dataset, ro, asf, unit_m, n_err)
+    rows = build_rows(err, disc, idx, dataset, ro, asf, unit_m, n_err, cv=cv_err)
     ver = verdict(rows, disc, asf, full=full)
     n_fail, first_fail = ro.n_failed, ro.first_failure
     nonfinite = [int(i) for n, i in enumerate(idx) if not (np.isfinite(ro.R[n]).all() and np.isfinite(ro.p[n]).all())]
     until = below_until(err, disc, dataset.h)
-    onestep = one_step_errors(model, tR, tp, cfg.get("solver") if hasattr(cfg, "get") else None, joints=joints)
+    onestep = one_step_errors(
+        model,
+        tR,
+        tp,
+        _solver(cfg),
+        joints=joints,
+        stored=ro.one_step,
+        group=dataset.group,
+    )
     per_joint = {
         name: float(v)
         for name, v in zip(dataset.body_names[dataset.n_se3 :], np.nanmean(err["joint_rot_per_joint"], 0))
@@ -343,8 +412,10 @@ def evaluate_mocap(cfg, model, dataset, run_dir, rollout_path=None) -> dict:
                     for n, i in enumerate(idx)
                 }
                 for who in ("model", "const_velocity")
+                if onestep[who] is not None
                 for k in METRICS
             },
+            "from_rollout_file": onestep["from_rollout_file"],
         },
         "discrepancy_common_frames": int(dataset.n_steps) + 1,
         "length_unit_m": unit_m,
@@ -393,8 +464,15 @@ def evaluate_mocap(cfg, model, dataset, run_dir, rollout_path=None) -> dict:
     if onestep is not None:
         md += (
             "\n## One-step (teacher-forced) errors: g_{k+1} from the true (g_{k-1}, g_k), mean over k\n\n"
-            "`const_velocity`: g_k (g_{k-1}^-1 g_k), the free-flight guess; a trained model should beat it "
-            f"clearly. Newton converged on {onestep['converged']} of {onestep['solves']} solves.\n\n"
+            "`const_velocity`: g_k exp(log(g_{k-1}^-1 g_k)), the last increment repeated; a model that does not "
+            "beat it has learned nothing. "
+            + (
+                f"Newton converged on {onestep['converged']} of {onestep['solves']} solves"
+                + (" (predictions stored in the rollout file)" if onestep["from_rollout_file"] else "")
+                + ".\n\n"
+                if onestep["model"] is not None
+                else "The model's one-step predictions are not available.\n\n"
+            )
         )
         orows = [
             {
@@ -404,6 +482,7 @@ def evaluate_mocap(cfg, model, dataset, run_dir, rollout_path=None) -> dict:
             }
             for n, i in enumerate(idx)
             for who in ("model", "const_velocity")
+            if onestep[who] is not None
         ]
         md += markdown_table(orows, list(orows[0]))
     md += "\n\n## Mean joint rotation error per joint (rad, mean over the rolled-out sequences)\n\n"
@@ -430,13 +509,13 @@ def evaluate_mocap(cfg, model, dataset, run_dir, rollout_path=None) -> dict:
         table.add_row(
             r["row"],
             fmt(r["root_rot"]),
-            fmt(r["root_rot_paper"]),
+            fmt(r.get("root_rot_paper")),
             fmt(r["joint_rot"]),
-            fmt(r["joint_rot_paper"]),
+            fmt(r.get("joint_rot_paper")),
             fmt(r.get("joint_rot_all")),
             fmt(r["root_pos_asf"]),
             fmt(r["root_pos_m"]),
-            fmt(r["root_pos_paper_asf"]),
+            fmt(r.get("root_pos_paper_asf")),
             fmt(r["newton_failures"]),
         )
     console.print(table)
@@ -444,9 +523,9 @@ def evaluate_mocap(cfg, model, dataset, run_dir, rollout_path=None) -> dict:
     if onestep is not None:
         m, c = onestep["model"], onestep["const_velocity"]
         extra.append(
-            "one-step (teacher-forced) mean joint rot. error: model "
-            + ", ".join(f"{float(v):.3e}" for v in m["joint_rot"])
-            + " vs constant velocity "
+            "one-step (teacher-forced) mean joint rot. error: "
+            + ("model " + ", ".join(f"{float(v):.3e}" for v in m["joint_rot"]) + " vs " if m is not None else "")
+            + "constant velocity "
             + ", ".join(f"{float(v):.3e}" for v in c["joint_rot"])
             + " rad (per sequence)"
         )
@@ -455,7 +534,7 @@ def evaluate_mocap(cfg, model, dataset, run_dir, rollout_path=None) -> dict:
 
     if cfg.eval.plots:
         pdir = out_dir / "plots"
-        plot_errors(err, disc, idx, dataset, asf, pdir / "mocap_errors.png")
+        plot_errors(err, disc, idx, dataset, asf, pdir / "mocap_errors.png", cv=cv_err)
         for n, i in enumerate(idx):
             sk = _skeleton_for(dataset, i)
             plot_skeletons(tR[n], tp[n], pR[n], pp[n], sk, dataset.h, i, pdir / f"mocap_skeleton_seq{i + 1}.png")
@@ -473,8 +552,9 @@ def _skeleton_for(dataset, i: int) -> dict:
     return sk
 
 
-def plot_errors(err: dict, disc: dict | None, idx, dataset, asf: float, path: Path) -> None:
-    """Per-timestep errors of each sequence (3 panels) with the ground-truth discrepancy in grey."""
+def plot_errors(err: dict, disc: dict | None, idx, dataset, asf: float, path: Path, cv: dict | None = None) -> None:
+    """Per-timestep errors of each sequence (3 panels) with the ground-truth discrepancy in grey and,
+    with `cv` (`constant_velocity_errors`), the constant-velocity rollout of each sequence dashed."""
 
     h = dataset.h
     fig, axes = plt.subplots(1, 3, figsize=(14, 3.6))
@@ -483,7 +563,7 @@ def plot_errors(err: dict, disc: dict | None, idx, dataset, asf: float, path: Pa
         # a diverged root position (many orders above the discrepancy) on a linear axis would
         # flatten everything else to 0: that panel goes to a log axis
         if k == "root_pos" and disc is not None:
-            errs = np.concatenate([np.asarray(e)[2:] for e in err[k + "_t"]])
+            errs = np.concatenate([np.asarray(e)[2:] for d in (err, cv or {}) for e in d.get(k + "_t", [])])
             top = np.max(errs[np.isfinite(errs)], initial=0.0)
             if top > 1e3 * np.max(disc[k + "_t"]) > 0:
                 ax.set_yscale("log")
@@ -499,12 +579,27 @@ def plot_errors(err: dict, disc: dict | None, idx, dataset, asf: float, path: Pa
                 color=SEQ_COLORS[i % 2] if i < 2 else None,
                 label=f"sequence {i + 1} ({_sequence_name(dataset, i)})",
             )
+            if cv is not None:
+                y = cv[k + "_t"][n] * scale
+                ax.plot(
+                    np.arange(2, len(y)) * h,
+                    y[2:],
+                    "--",
+                    color=CV_COLORS[i % 2] if i < 2 else None,
+                    linewidth=1.2,
+                    zorder=3,
+                    label=f"constant velocity, sequence {i + 1}",
+                )
         ax.set_title(LABELS[k])
         ax.set_xlabel("time [s]")
         ax.set_ylabel(LABELS[k])
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8)
-    fig.suptitle("Exp 4: per-timestep reproduction error (rollout from the true first pair)")
+    fig.suptitle(
+        "Exp 4: per-timestep reproduction error (rollout from the true first pair"
+        + ("; dashed: constant velocity from the same pair)" if cv is not None else ")"),
+        y=1.02,
+    )
     save_figure(fig, path)
 
 
@@ -618,6 +713,7 @@ __all__ = [
     "verdict",
     "below_until",
     "one_step_errors",
+    "constant_velocity_errors",
     "plot_errors",
     "plot_skeletons",
     "plot_root_trajectory",
