@@ -321,3 +321,26 @@ def test_pinned_root_sits_at_its_offset():
     assert ds.tree is not None and not ds.tree.free_root
     np.testing.assert_allclose(ds.extras["body_p_world"][:, :, 0], np.broadcast_to(ds.tree.offsets[0], (2, 21, 3)))
     assert math.isclose(float(np.abs(fk(ds).p[:, :, 0].numpy() - np.asarray(ds.tree.offsets[0])).max()), 0.0)
+
+
+def test_rolling_a_tree_model_out_on_other_data_needs_the_same_tree():
+    from types import SimpleNamespace
+
+    from liedfl_cli.errors import ConfigError
+    from liedfl_cli.lie.product import ProductGroup
+    from liedfl_cli.other_data import check_model_fits_data
+
+    ds = tree_dataset()
+    assert ds.tree is not None
+    model = SimpleNamespace(G=ProductGroup(1, 2), h=0.1, tree=ds.tree)
+    check_model_fits_data(model, ds, "run")
+    check_model_fits_data(SimpleNamespace(G=ProductGroup(1, 2), h=0.1), ds, "run")  # a model without a tree
+    other = tree_dataset(rotations="world")
+    with pytest.raises(ConfigError, match="other rotations"):
+        check_model_fits_data(model, other, "run")
+    other.tree = Tree.from_lists(ds.tree.parents, np.zeros((3, 3)), "parent")
+    with pytest.raises(ConfigError, match="other offsets"):
+        check_model_fits_data(model, other, "run")
+    other.tree = None
+    with pytest.raises(ConfigError, match="has none"):
+        check_model_fits_data(model, other, "run")
