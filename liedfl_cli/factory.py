@@ -66,6 +66,7 @@ def build_context(cfg: DictConfig, dataset) -> BuildContext:
         forces=forces or {},
         physics=(dataset.params or {}).get("physics"),
         metadata=dataset.params or {},
+        tree=getattr(dataset, "tree", None),
     )
 
 

@@ -35,6 +35,26 @@ def check_model_fits_data(model, dataset, run_dir) -> None:
     err = _h_error(model, run_dir, dataset.scene, dataset.h)
     if err is not None:
         raise err
+    err = _tree_error(model, run_dir, dataset.scene, getattr(dataset, "tree", None))
+    if err is not None:
+        raise err
+
+
+def _tree_error(model, run_dir, scene: str, tree) -> ConfigError | None:
+    """A model built on a kinematic tree (`model.tree`, e.g. model.kinetic=articulated) runs forward
+    kinematics with that tree: the data must have the same one (parents, joint offsets, rotations, root)."""
+    own = getattr(model, "tree", None)
+    if own is None or own == tree:
+        return None
+    if tree is None:
+        return ConfigError(f"run={run_dir} models a kinematic tree but dataset '{scene}' has none (no 'parents')")
+    for field in ("parents", "rotations", "free_root", "offsets"):
+        if getattr(own, field) != getattr(tree, field):
+            return ConfigError(
+                f"run={run_dir} was trained on a kinematic tree with other {field} than dataset '{scene}' "
+                f"({getattr(own, field)} vs {getattr(tree, field)}): the model's tree must be the data's"
+            )
+    return None
 
 
 def _h_error(model, run_dir, scene: str, h: float) -> ConfigError | None:

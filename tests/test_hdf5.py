@@ -30,6 +30,7 @@ from liedfl_cli.data.files import SOURCE_SCENES
 from liedfl_cli.data.mocap import REAL_DATA_SCENES
 from liedfl_cli.lie import so3
 from liedfl_cli.lie.product import ProductGroup
+from liedfl_cli.lie.tree import Tree
 
 CONF = Path(__file__).resolve().parents[1] / "liedfl_cli" / "conf" / "dataset"
 
@@ -102,6 +103,7 @@ def assert_same(a: Dataset, b: Dataset):
     assert a.split.keys() == b.split.keys()
     for k in a.split:
         np.testing.assert_array_equal(a.split[k], b.split[k])
+    assert a.tree == b.tree
     assert a.extras.keys() == b.extras.keys()
     for k in a.extras:
         np.testing.assert_array_equal(a.extras[k], b.extras[k])
@@ -120,6 +122,20 @@ def test_round_trip_multibody_exact(saved):
         assert f.attrs["format_version"] == 1 and f.attrs["n_se3"] == 1 and f.attrs["n_so3"] == 2
         assert json.loads(f.attrs["body_kinds"]) == ["se3", "so3", "so3"]
         assert {"liedfl_version", "created", "params", "seed", "scene", "h"} <= set(f.attrs)
+
+
+@pytest.mark.parametrize("rotations", ["world", "parent"])
+def test_round_trip_with_tree_exact(tmp_path, rotations):
+    """The optional tree fields (attributes parents, rotations; dataset joint_offsets) round-trip."""
+    ds = multibody()
+    ds.tree = Tree.from_lists([-1, 0, 0], [[0, 0, 0], [0.1, 0.2, 0.3], [-0.5, 0.0, 0.25]], rotations, free_root=True)
+    path = save_dataset(ds, tmp_path / "tree.h5")
+    back = load_dataset(path)
+    assert_same(ds, back)
+    assert back.tree is not None and back.tree.offsets[2] == (-0.5, 0.0, 0.25)
+    with h5py.File(path) as f:
+        assert json.loads(f.attrs["parents"]) == [-1, 0, 0] and f.attrs["rotations"] == rotations
+    assert load_dataset(save_dataset(multibody(), tmp_path / "plain.h5")).tree is None
 
 
 @pytest.mark.parametrize("name", SIMULATED)

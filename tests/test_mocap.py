@@ -26,6 +26,7 @@ from liedfl_cli.data.mocap import (
 from liedfl_cli.data.smoothing import check_window, savgol_positions, savgol_rotations, savgol_table, smooth_pose
 from liedfl_cli.lie import so3
 from liedfl_cli.lie.product import Pose
+from liedfl_cli.lie.tree import forward_kinematics
 
 ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "liedfl_cli" / "conf" / "dataset" / "cmu_cartwheel.yaml"
@@ -223,6 +224,33 @@ def test_skeleton_points_reproduce_forward_kinematics(imported):
     toe = b.names.index("LeftToeBase")  # dropped joint, kept as a drawing point
     k = 23 + [p for p, _ in ds.params["skeleton"]["points"]].index(ds.body_names.index("LeftFoot"))
     np.testing.assert_allclose(pts[:, k], pw[1:6, toe] @ Z_UP.T, atol=1e-10)
+
+
+@pytest.mark.parametrize("length_scale", [1.0, ASF_UNIT_M])
+def test_the_tree_reproduces_the_bvh_joint_positions(imported, length_scale):
+    """The dataset's tree (parents, joint offsets in the stored unit, rotations="parent"): forward
+    kinematics of the stored coordinates gives the BVH joints' world poses (z up, scaled) to 1e-9."""
+    ds, _ = imported
+    if length_scale != 1.0:
+        ds = cmu_cartwheel(cfg(smoothing=None, steps=8, train_steps=8, rollout_steps=8, length_scale=length_scale))
+    tree = ds.tree
+    assert tree is not None and tree.rotations == "parent" and tree.free_root
+    assert list(tree.parents) == ds.params["skeleton"]["parents"] and tree.offsets[0] == (0.0, 0.0, 0.0)
+    np.testing.assert_allclose(np.asarray(tree.offsets)[1:], np.asarray(ds.params["skeleton"]["offsets"])[1:])
+    frames = [0, 3, 7]
+    for i, name in enumerate(("49_06", "49_07")):
+        b = read_bvh(ROOT / "data" / "cmu_mocap" / f"{name}.bvh")
+        Rw, pw = b.world_poses()
+        idx = [b.names.index(n) for n in ds.body_names]
+        R, p = ds.extras["R_raw"][i, frames], ds.extras["p_raw"][i, frames]
+        world = forward_kinematics(tree, Pose(torch.as_tensor(R), torch.as_tensor(p)))
+        ref_p = length_scale * pw[[k + 1 for k in frames]][:, idx] @ Z_UP.T  # + 1: the skipped T-pose
+        ref_R = Z_UP @ Rw[[k + 1 for k in frames]][:, idx]
+        scale = np.abs(ref_p).max()
+        np.testing.assert_allclose(world.p.numpy(), ref_p, rtol=0, atol=1e-9 * scale)
+        np.testing.assert_allclose(world.R.numpy(), ref_R, rtol=0, atol=1e-9)
+        pts, _ = skeleton_points(R, p, ds.params["skeleton"])
+        np.testing.assert_allclose(world.p.numpy(), pts[:, : ds.n_bodies], rtol=0, atol=1e-9 * scale)
 
 
 def test_recording_discrepancy_numbers(imported):

@@ -87,7 +87,7 @@ ROTATIONS = {
 QUAT_COLUMNS = ("q0", "q1", "q2", "q3")
 MATRIX_COLUMNS = tuple(f"r{i}{j}" for i in range(3) for j in range(3))
 POSITION_COLUMNS = ("x", "y", "z")
-IMPORT_VERSION = 1
+IMPORT_VERSION = 2  # 2: the cached copy carries the file's kinematic tree
 """Bump when the import would produce different data for the same config and file (part of the hash)."""
 
 
@@ -333,6 +333,7 @@ def from_file(c: dict, progress: Callable[[float], None] | None = None) -> Datas
         split=split,
         extras=extras,
         t=t,
+        tree=ds.tree,
     )
 
 

@@ -25,6 +25,7 @@ from ..io_utils import clean_orphans, deferred_signals
 from ..lie import so3
 from ..lie.product import Pose, ProductGroup
 from ..lie.tolerances import tol
+from ..lie.tree import ROTATIONS, Tree
 
 FORMAT_VERSION = 1
 BODY_KINDS = ("se3", "so3")
@@ -45,6 +46,7 @@ class Dataset:
     split: dict[str, np.ndarray] = field(default_factory=dict)
     extras: dict[str, np.ndarray] = field(default_factory=dict)
     t: np.ndarray | None = None  # (N+1,); defaults to h * arange(N+1)
+    tree: Tree | None = None  # kinematic tree (parents, joint offsets, rotation convention), if any
 
     def __post_init__(self):
         self.R = np.asarray(self.R, dtype=np.float64)
@@ -162,6 +164,10 @@ def _write(ds: Dataset, path: Path, tmp: Path) -> None:
             g = f.create_group("split")
             for k in ("train", "test"):
                 g.create_dataset(k, data=np.asarray(ds.split[k], dtype=np.int64))
+            if ds.tree is not None:
+                a["parents"] = json.dumps(list(ds.tree.parents))
+                a["rotations"] = ds.tree.rotations
+                f.create_dataset("joint_offsets", data=np.asarray(ds.tree.offsets, dtype=np.float64))
             e = f.create_group("extras")
             for k, v in ds.extras.items():
                 e.create_dataset(k, data=np.asarray(v))
@@ -250,6 +256,9 @@ def load_dataset(path, require_split: bool = True) -> Dataset:
             scene = _attr(f, "scene", src, required=False, default=path.stem)
             params = _json_attr(f, "params", src, required=False, default={})
             seed = _attr(f, "seed", src, required=False, default=-1)
+            parents = _json_attr(f, "parents", src, required=False)
+            rotations = _attr(f, "rotations", src, required=False)
+            offsets = _array(f, "joint_offsets", src)
             R = _array(f, "R", src)
             if R is None:
                 raise DatasetError(f"{src}: dataset 'R' is missing")
@@ -285,6 +294,7 @@ def load_dataset(path, require_split: bool = True) -> Dataset:
         if not np.issubdtype(np.asarray(split[k]).dtype, np.integer):
             raise DatasetError(f"{src}: dataset 'split/{k}' must hold integers, got dtype {np.asarray(split[k]).dtype}")
     input_dtype = torch.float32 if R.dtype == np.float32 else torch.float64
+    tree = read_tree(parents, offsets, rotations, kinds, src)
     ds = Dataset(
         R=R,
         p=p,
@@ -297,6 +307,7 @@ def load_dataset(path, require_split: bool = True) -> Dataset:
         split=split or {},
         extras=extras,
         t=None if t is None else _float_array(t, "t", src),
+        tree=tree,
     )
     if split is None and require_split:
         raise DatasetError(
@@ -309,6 +320,58 @@ def load_dataset(path, require_split: bool = True) -> Dataset:
     if require_split and ds.split["train"].size == 0:
         raise DatasetError(f"{src}: dataset 'split/train' is empty: there is nothing to train on")
     return ds
+
+
+def read_tree(parents, offsets, rotations, kinds: list, src: str) -> Tree | None:
+    """The kinematic tree of a file from its raw fields (root attributes `parents` (JSON list),
+    `rotations`, dataset `joint_offsets` (B, 3)), or None when the file has none. Every problem is a
+    one-line DatasetError naming the field; `kinds` (the body kinds) fix B and the root's kind."""
+    if rotations is not None and (not isinstance(rotations, str) or rotations not in ROTATIONS):
+        raise DatasetError(f"{src}: attribute 'rotations' is {rotations!r}; use one of {list(ROTATIONS)}")
+    if parents is None and offsets is None:
+        if rotations == "parent":
+            raise DatasetError(
+                f"{src}: attribute 'rotations' is 'parent' but the file has no tree: parent-relative "
+                "rotations need the attribute 'parents' and the dataset 'joint_offsets'"
+            )
+        return None
+    if parents is None or offsets is None:
+        have, missing = ("joint_offsets", "parents") if parents is None else ("parents", "joint_offsets")
+        what = "attribute" if missing == "parents" else "dataset"
+        raise DatasetError(
+            f"{src}: {what} '{missing}' is missing (a tree needs both 'parents' and 'joint_offsets'; "
+            f"the file has '{have}')"
+        )
+    B = len(kinds)
+    if not isinstance(parents, list) or not all(isinstance(q, int) and not isinstance(q, bool) for q in parents):
+        raise DatasetError(f"{src}: attribute 'parents' must be a JSON list of integers, got {parents!r}")
+    if len(parents) != B:
+        raise DatasetError(f"{src}: attribute 'parents' has {len(parents)} entries but 'body_kinds' has {B}")
+    if parents[0] != -1:
+        raise DatasetError(f"{src}: attribute 'parents' must start with -1 (body 0 is the root), got {parents[0]}")
+    for b, q in enumerate(parents[1:], start=1):
+        if not 0 <= q < b:
+            raise DatasetError(
+                f"{src}: attribute 'parents' has parent {q} for body {b}; every parent must be an earlier "
+                f"body (0..{b - 1}), i.e. parents come before their children"
+            )
+    offsets = _float_array(offsets, "joint_offsets", src)
+    if offsets.shape != (B, 3):
+        raise DatasetError(f"{src}: dataset 'joint_offsets' has shape {offsets.shape}, expected ({B}, 3)")
+    fin = np.isfinite(offsets)
+    if not fin.all():
+        raise DatasetError(f"{src}: dataset 'joint_offsets' has non-finite value at index {_first(~fin)}")
+    n_se3 = sum(k == "se3" for k in kinds)
+    if n_se3 > 1:
+        raise DatasetError(
+            f"{src}: attribute 'parents' describes a tree but 'body_kinds' lists {n_se3} SE(3) bodies; a tree has "
+            "exactly one (body 0, the free root) or none (all SO(3), the root pinned at joint_offsets[0])"
+        )
+    if n_se3 == 1 and np.any(offsets[0] != 0):
+        raise DatasetError(
+            f"{src}: dataset 'joint_offsets' row 0 is {offsets[0].tolist()}; the free (SE(3)) root's row must be zeros"
+        )
+    return Tree.from_lists(parents, offsets, rotations or "world", free_root=n_se3 == 1)
 
 
 def _float_array(a, name: str, src: str) -> np.ndarray:
@@ -358,6 +421,13 @@ def _validate(
     if not np.isfinite(ds.h) or ds.h <= 0:
         raise DatasetError(f"{src}: attribute 'h' must be a positive finite number, got {ds.h!r}")
     B, m = len(kinds), kinds.count("se3")
+    if ds.tree is not None:
+        tr = ds.tree
+        read_tree(list(tr.parents), np.asarray(tr.offsets, dtype=np.float64), tr.rotations, kinds, src)
+        if tr.free_root != (m == 1):
+            raise DatasetError(
+                f"{src}: field 'tree' has free_root={tr.free_root} but 'body_kinds' lists {m} SE(3) bodies"
+            )
 
     R, p = ds.R, ds.p
     if R.ndim != 5 or R.shape[2:] != (B, 3, 3):
@@ -448,4 +518,4 @@ def _validate(
     return R
 
 
-__all__ = ["FORMAT_VERSION", "Dataset", "save_dataset", "load_dataset"]
+__all__ = ["FORMAT_VERSION", "Dataset", "save_dataset", "load_dataset", "read_tree"]

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import warnings
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
@@ -44,9 +45,10 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..errors import ConfigError, DatasetError
+from ..errors import ConfigError, DatasetError, DataWarning
 from ..lie import so3
 from ..lie.product import Pose
+from ..lie.tree import Tree
 from .bvh import BVH, forward_kinematics, read_bvh
 from .hdf5 import Dataset
 from .scene_common import REQUIRED_KEYS, check_config, dataset_params, to_dict
@@ -121,7 +123,7 @@ BVH_TO_ASF = {
     "RThumb": "rthumb",
 }
 
-IMPORT_VERSION = 1
+IMPORT_VERSION = 2  # 2: the dataset carries its kinematic tree (parents, joint_offsets, rotations="parent")
 """Bump (here and in conf/dataset/cmu_cartwheel.yaml) when the import would change the data for the same
 config: the config, hence `import_version`, is part of the cache hash."""
 
@@ -383,6 +385,25 @@ def _skeleton(b: BVH, bodies: list[int], scale: float) -> dict:
     return {"bodies": [b.names[j] for j in bodies], "parents": parents, "offsets": offsets, "points": points}
 
 
+def joint_offsets(b: BVH, bodies: list[int], skip: int, scale: float, source) -> np.ndarray:
+    """(B, 3) joint offsets of the kept bodies for the dataset's tree: each joint's origin in its
+    parent's frame (OFFSET + position channels, which must then be constant over the frames used),
+    times `scale`; the root's row is zeros (its world position is the SE(3) body's p). The z-up turn
+    acts on the root's world attitude only, so the offsets are unchanged by it."""
+    t = b.local_translations(bodies)[skip:]
+    moving = np.abs(t - t[:1]).max(axis=0).max(axis=-1) > 0
+    moving[0] = False
+    if moving.any():
+        j = int(np.argmax(moving))
+        raise DatasetError(
+            f"{source}: joint {b.names[bodies[j]]!r} has position channels that change over the recording; "
+            "the dataset's kinematic tree needs fixed joint offsets"
+        )
+    out = t[0] * scale
+    out[0] = 0.0
+    return out
+
+
 def import_bvh(path: Path, s: dict) -> tuple[np.ndarray, np.ndarray, dict, BVH, list[int]]:
     """One recording -> (R (F, B, 3, 3), p (F, 1, 3), source info, BVH, body joint indices), unsmoothed."""
     b = read_bvh(path)
@@ -425,6 +446,7 @@ def cmu_cartwheel(cfg, progress: Callable[[float], None] | None = None) -> Datas
     s = _scene_config(c)
     sub, steps, h = s["subsample"], int(c["steps"]), float(c["h"])
     Rs, ps, raws, infos, skeleton = [], [], [], [], None
+    offsets: list[np.ndarray] = []
     for i, f in enumerate(s["files"]):
         path = _resolve(f)
         R, p, info, b, bodies = import_bvh(path, s)
@@ -445,6 +467,7 @@ def cmu_cartwheel(cfg, progress: Callable[[float], None] | None = None) -> Datas
         ps.append(p)
         raws.append(raw)
         infos.append(info)
+        offsets.append(joint_offsets(b, bodies, s["skip_frames"], s["length_scale"], path))
         sk = _skeleton(b, bodies, s["length_scale"])
         if skeleton is None:
             skeleton = sk
@@ -480,6 +503,17 @@ def cmu_cartwheel(cfg, progress: Callable[[float], None] | None = None) -> Datas
             )
         split = {"train": np.arange(T - k), "test": np.arange(T - k, T)}
     unit_m = s["unit_m"] / s["length_scale"]
+    tree = None
+    if all(np.array_equal(o, offsets[0]) for o in offsets):
+        parents = list(skeleton["parents"])  # type: ignore[index]
+        tree = Tree.from_lists(parents, offsets[0], "parent", free_root=True)
+    else:
+        warnings.warn(
+            f"{c['name']}: the recordings have different skeletons (joint offsets); the dataset gets no "
+            "kinematic tree (params['skeleton']['per_file_offsets'] lists them)",
+            DataWarning,
+            stacklevel=2,
+        )
     params = dataset_params(
         c,
         sources=infos,
@@ -494,7 +528,7 @@ def cmu_cartwheel(cfg, progress: Callable[[float], None] | None = None) -> Datas
         ),
         bodies={
             "root": "world pose of " + s["root"],
-            "joints": "rotation relative to the BVH parent",
+            "joints": "rotation relative to the BVH parent (the file's attribute rotations = 'parent')",
             "asf_names": [BVH_TO_ASF.get(n, n) for n in [s["root"]] + s["joints"]],
         },
         smoothing=(
@@ -520,6 +554,7 @@ def cmu_cartwheel(cfg, progress: Callable[[float], None] | None = None) -> Datas
         seed=int(c["seed"]),
         split=split,
         extras={"R_raw": R_raw, "p_raw": p_raw},
+        tree=tree,
     )
 
 

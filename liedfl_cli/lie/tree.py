@@ -21,7 +21,7 @@ the coordinates moves body b's world pose to (Rw_b exp(dw_b), pw_b + Rw_b dv_b) 
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -57,7 +57,13 @@ class Tree:
             raise ValueError(f"rotations must be one of {ROTATIONS}, got {self.rotations!r}")
 
     @classmethod
-    def from_lists(cls, parents: Sequence[int], offsets, rotations: str = "world", free_root: bool = True) -> Tree:
+    def from_lists(
+        cls,
+        parents: Sequence[int],
+        offsets: Iterable[Iterable[float]],
+        rotations: str = "world",
+        free_root: bool = True,
+    ) -> Tree:
         """From plain lists or arrays: parents (B,), offsets (B, 3)."""
         return cls(
             tuple(int(p) for p in parents),
@@ -68,6 +74,7 @@ class Tree:
 
     @property
     def n_bodies(self) -> int:
+        """B, the number of bodies."""
         return len(self.parents)
 
     @property

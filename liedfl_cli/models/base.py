@@ -33,6 +33,7 @@ from torch import nn
 
 from ..errors import ConfigError
 from ..lie import Pose, ProductGroup
+from ..lie.tree import Tree
 from ..solvers.newton import NewtonProblem, NewtonResult
 from ..solvers.options import SolverOptions
 from ..solvers.rollout import Rollout, rollout_explicit, rollout_implicit
@@ -73,6 +74,8 @@ class BuildContext:
     forces: the `force` group as {name: options} (empty: no learned force).
     physics: the scene's true parameters (a synthetic dataset's params["physics"]) or None.
     metadata: the dataset's whole `params` (declarations such as params["gravity"]) or None.
+    tree: the dataset's kinematic tree (`Dataset.tree`: parents, joint offsets, rotation convention,
+    free or pinned root) or None when the data declare none.
     """
 
     group: ProductGroup
@@ -82,6 +85,7 @@ class BuildContext:
     forces: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
     physics: Mapping[str, Any] | None = None
     metadata: Mapping[str, Any] | None = None
+    tree: Tree | None = None
 
     # -------------------------------------------------------------- what the data declare
     def declared_gravity(self) -> float | None:

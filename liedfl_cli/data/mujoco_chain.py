@@ -1,0 +1,485 @@
+"""Articulated chains simulated by MuJoCo: an independent engine to test liedfl's trees and
+articulated models against (docs/data_format.md, "MuJoCo chains"; script `scripts/mujoco_chain.py`).
+
+`chain_spec(...)` draws a chain of 2..5 links from a seed: link masses, inertias about the centre of
+mass with off-diagonal terms (box-like principal moments about principal axes turned by a random
+rotation in the body frame), centres of mass off the joint, joint offsets, hinge axes. `chain_mjcf`
+writes its MJCF (contacts disabled, MuJoCo's RK4 integrator, gravity along -e3), `simulate_chain`
+integrates random initial states with `mj_step` and samples every h, `chain_dataset` makes a liedfl
+`Dataset` of it: the coordinates R (world or parent-relative attitudes) and p (the free root's
+position), the kinematic tree (parents, joint offsets: the MJCF body `pos` in the parent frame; every
+joint sits at its body's origin), `params["physics"]` declaring the truth (schema below) and the
+engine's world poses, velocities, energies and momenta under `extras/` (evaluation only).
+
+Body frames: every MJCF body has the identity `quat`, so its frame at the reference configuration is
+parallel to its parent's, and MuJoCo's `xmat` (body -> world) is the world attitude Rw_b; a ball
+joint's quaternion (w, x, y, z) is then R_parent^T R_b and a hinge's rotation is exp(theta a) with the
+axis a in the body frame. MuJoCo's joint damping d acts per degree of freedom on the relative angular
+velocity of the child w.r.t. its parent in the child frame: torque = -d * w_rel.
+
+params["physics"] = {
+    "kind": "articulated", "g": <gravity magnitude along -e3>,
+    "bodies": [{"name", "mass", "com": body frame, from the joint, "inertia": 3x3 about the COM, body frame}],
+    "joint_damping": [d per non-root body], "root_damping": 0.0,
+    "joints": ["free" | "ball" | "hinge" per body (the root: "free" or its pinned joint)],
+    "hinge_axes": [[3] or null per body] (body frame) or null when there is no hinge,
+    "engine": "mujoco <version>", "dt": dt, "integrator": "RK4"}
+
+mujoco is imported inside the functions (`pip install mujoco`, or the `test` extra).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..errors import ConfigError
+from ..lie import so3
+from ..lie.tree import Tree
+from .files import default_split
+from .hdf5 import Dataset
+
+JOINTS = ("ball", "hinge")
+ROOTS = ("free", "pinned")
+GENERATOR_VERSION = 1
+
+
+def require_mujoco():
+    """The `mujoco` module, or a one-line ConfigError saying how to install it."""
+    try:
+        import mujoco
+    except ImportError:
+        raise ConfigError(
+            "MuJoCo chains need the mujoco package: pip install mujoco (or the test extra: pip install -e '.[test]')"
+        ) from None
+    return mujoco
+
+
+@dataclass
+class Link:
+    """One rigid link: its joint sits at the body origin, `offset` in the parent frame (the root: the
+    pivot of a pinned root, zeros for a free one)."""
+
+    name: str
+    mass: float
+    com: np.ndarray  # (3,) body frame, from the joint
+    inertia: np.ndarray  # (3, 3) about the COM, body frame
+    offset: np.ndarray  # (3,)
+    axis: np.ndarray | None = None  # hinge axis (body frame), None for ball / free
+    length: float = 0.0  # for drawing: the capsule from the joint along `direction`
+    direction: np.ndarray = field(default_factory=lambda: np.array([1.0, 0.0, 0.0]))
+
+
+@dataclass
+class ChainSpec:
+    links: list[Link]
+    joint: str  # "ball" | "hinge" (every non-root joint; a pinned root too)
+    root: str  # "free" | "pinned"
+    gravity: float
+    joint_damping: float
+    dt: float
+
+    @property
+    def parents(self) -> list[int]:
+        return [-1] + list(range(len(self.links) - 1))
+
+    def joint_kinds(self) -> list[str]:
+        return [("free" if self.root == "free" else self.joint)] + [self.joint] * (len(self.links) - 1)
+
+
+def _rotation(rng: np.random.Generator) -> np.ndarray:
+    q = rng.standard_normal(4)
+    return so3.from_quaternion(torch.from_numpy(q / np.linalg.norm(q))).numpy()
+
+
+def _unit(rng: np.random.Generator) -> np.ndarray:
+    v = rng.standard_normal(3)
+    return v / np.linalg.norm(v)
+
+
+def chain_spec(
+    links: int = 3,
+    joint: str = "ball",
+    root: str = "free",
+    gravity: float = 0.0,
+    joint_damping: float = 0.05,
+    dt: float = 1e-3,
+    seed: int = 0,
+) -> ChainSpec:
+    """A random but physical serial chain of `links` links (body b's parent is b - 1).
+
+    Each link: mass U(1, 3) kg, length U(0.25, 0.5) m along a random direction d (the next joint at
+    L d plus a sideways offset up to 0.05 m), centre of mass at U(0.35, 0.65) L d plus up to 0.03 m
+    sideways, the inertia of a box L x a x c (a, c U(0.15, 0.25) m) about the COM whose principal axes
+    are the link's axes turned by a random rotation of 0.2 to 0.6 rad (off-diagonal terms in the
+    body frame). Links this thick keep the joint damping non-stiff: h lambda_max(M^-1 D) stays below
+    about 1 at h = 0.05 with d = 0.05 (slender links, small moments about the long axis, make
+    lambda_max large; `chain_dataset` records the figure)."""
+    if not 2 <= int(links) <= 5:
+        raise ConfigError(f"links={links}: a MuJoCo chain has 2 to 5 links")
+    if joint not in JOINTS:
+        raise ConfigError(f"joint={joint!r}: use one of {list(JOINTS)}")
+    if root not in ROOTS:
+        raise ConfigError(f"root={root!r}: use one of {list(ROOTS)}")
+    if not (math.isfinite(gravity) and gravity >= 0):
+        raise ConfigError(f"gravity={gravity}: the magnitude along -e3 must be >= 0")
+    if not (math.isfinite(joint_damping) and joint_damping >= 0):
+        raise ConfigError(f"joint_damping={joint_damping}: must be >= 0")
+    if not (math.isfinite(dt) and dt > 0):
+        raise ConfigError(f"dt={dt}: must be > 0")
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 1]))
+    out: list[Link] = []
+    for b in range(int(links)):
+        m = float(rng.uniform(1.0, 3.0))
+        L = float(rng.uniform(0.25, 0.5))
+        d = _unit(rng)
+        side = _unit(rng)
+        side -= side.dot(d) * d
+        side /= np.linalg.norm(side)
+        com = rng.uniform(0.35, 0.65) * L * d + rng.uniform(0.0, 0.03) * side
+        a, c = rng.uniform(0.15, 0.25, 2)  # a box L x a x c: a physical inertia (triangle inequalities hold)
+        moments = m / 12 * np.array([a * a + c * c, L * L + c * c, L * L + a * a])
+        # principal axes: column 0 along the link, turned by a random rotation of up to 0.6 rad
+        e1 = d
+        e2 = side
+        frame = np.stack([e1, e2, np.cross(e1, e2)], -1)
+        turn = so3.exp(torch.from_numpy(_unit(rng) * rng.uniform(0.2, 0.6))).numpy()
+        Q = turn @ frame
+        inertia = Q @ np.diag(moments) @ Q.T
+        if b == 0:
+            offset = np.zeros(3) if root == "free" else rng.uniform(-0.5, 0.5, 3)
+        else:
+            prev = out[-1]
+            side2 = _unit(rng)
+            offset = prev.length * prev.direction + rng.uniform(0.0, 0.05) * side2
+        axis = _unit(rng) if (joint == "hinge" and (b > 0 or root == "pinned")) else None
+        out.append(Link(f"link{b}", m, com, 0.5 * (inertia + inertia.T), offset, axis, L, d))
+    return ChainSpec(out, joint, root, float(gravity), float(joint_damping), float(dt))
+
+
+def _v(x) -> str:
+    return " ".join(repr(float(a)) for a in np.asarray(x).reshape(-1))
+
+
+def chain_mjcf(spec: ChainSpec) -> str:
+    """The MJCF of the chain: nested bodies with the identity `quat`, explicit inertials (no mass from
+    geoms), massless capsule geoms for drawing only, contacts disabled, RK4 at `dt`, energy on."""
+    lines = [
+        '<mujoco model="liedfl_chain">',
+        '  <compiler angle="radian" inertiafromgeom="false"/>',
+        f'  <option timestep="{spec.dt!r}" integrator="RK4" gravity="0 0 {-spec.gravity!r}">',
+        '    <flag contact="disable" energy="enable"/>',
+        "  </option>",
+        "  <worldbody>",
+    ]
+    close = []
+    for b, link in enumerate(spec.links):
+        ind = "    " + "  " * b
+        lines.append(f'{ind}<body name="{link.name}" pos="{_v(link.offset)}">')
+        if b == 0 and spec.root == "free":
+            lines.append(f'{ind}  <freejoint name="root"/>')
+        else:
+            damping = spec.joint_damping if b > 0 else 0.0
+            axis = f' axis="{_v(link.axis)}"' if link.axis is not None else ""
+            lines.append(f'{ind}  <joint name="j{b}" type="{spec.joint}" damping="{damping!r}"{axis}/>')
+        I = link.inertia
+        full = [I[0, 0], I[1, 1], I[2, 2], I[0, 1], I[0, 2], I[1, 2]]
+        lines.append(f'{ind}  <inertial pos="{_v(link.com)}" mass="{link.mass!r}" fullinertia="{_v(full)}"/>')
+        lines.append(
+            f'{ind}  <geom type="capsule" size="0.02" fromto="0 0 0 {_v(link.length * link.direction)}" '
+            'mass="0" contype="0" conaffinity="0"/>'
+        )
+        close.append(f"{ind}</body>")
+    lines += close[::-1]
+    lines += ["  </worldbody>", "</mujoco>"]
+    return "\n".join(lines)
+
+
+def declared_physics(spec: ChainSpec, model) -> dict[str, Any]:
+    """params["physics"] from the compiled MuJoCo model (masses, COMs and inertias as MuJoCo uses them)."""
+    mujoco = require_mujoco()
+    bodies = []
+    for b, link in enumerate(spec.links):
+        i = b + 1  # MuJoCo's body 0 is the world
+        q = model.body_iquat[i]  # (w, x, y, z): principal frame -> body frame
+        Rq = so3.from_quaternion(torch.tensor(np.asarray(q), dtype=torch.float64)).numpy()  # liedfl: (w, x, y, z) too
+        inertia = Rq @ np.diag(model.body_inertia[i]) @ Rq.T
+        bodies.append(
+            {
+                "name": link.name,
+                "mass": float(model.body_mass[i]),
+                "com": [float(x) for x in model.body_ipos[i]],
+                "inertia": [[float(x) for x in row] for row in 0.5 * (inertia + inertia.T)],
+            }
+        )
+    hinge = spec.joint == "hinge"
+    return {
+        "kind": "articulated",
+        "g": spec.gravity,
+        "bodies": bodies,
+        "joint_damping": [spec.joint_damping] * (len(spec.links) - 1),
+        "root_damping": 0.0,
+        "joints": spec.joint_kinds(),
+        "hinge_axes": [None if k.axis is None else [float(x) for x in k.axis] for k in spec.links] if hinge else None,
+        "engine": f"mujoco {mujoco.__version__}",
+        "dt": spec.dt,
+        "integrator": "RK4",
+    }
+
+
+def _quat_wxyz(R: np.ndarray) -> np.ndarray:
+    return so3.to_quaternion(torch.from_numpy(R)).numpy()  # (w, x, y, z), as MuJoCo
+
+
+def _initial_state(spec: ChainSpec, model, data, rng: np.random.Generator, speed: float):
+    """Random qpos, qvel: every joint at a random rotation (hinges: a random angle), the free root at
+    a random attitude and a position in [-1, 1]^3; velocities: Gaussian directions (every joint's
+    relative angular velocity, the root's linear velocity at a tenth of the scale in m/s), scaled so
+    that the kinetic energy is E = 1/2 speed^2 sum_b tr(I_b)/3, the energy of every link spinning at
+    `speed` rad/s about its centre of mass (a fixed energy bounds how fast the light links can whip)."""
+    qpos = np.zeros(model.nq)
+    qvel = np.zeros(model.nv)
+    for b in range(len(spec.links)):
+        jid = model.body_jntadr[b + 1]
+        qa, va = model.jnt_qposadr[jid], model.jnt_dofadr[jid]
+        kind = spec.joint_kinds()[b]
+        if kind == "free":
+            qpos[qa : qa + 3] = rng.uniform(-1.0, 1.0, 3)
+            qpos[qa + 3 : qa + 7] = _quat_wxyz(_rotation(rng))
+            qvel[va : va + 3] = rng.normal(0.0, 0.1, 3)  # world frame
+            qvel[va + 3 : va + 6] = rng.normal(0.0, 1.0, 3)  # body frame
+        elif kind == "ball":
+            qpos[qa : qa + 4] = _quat_wxyz(_rotation(rng))
+            qvel[va : va + 3] = rng.normal(0.0, 1.0, 3)
+        else:
+            qpos[qa] = rng.uniform(-math.pi, math.pi)
+            qvel[va] = rng.normal(0.0, 1.0)
+    mujoco = require_mujoco()
+    data.qpos[:], data.qvel[:] = qpos, qvel
+    mujoco.mj_forward(model, data)
+    target = 0.5 * speed**2 * float(model.body_inertia[1:].sum()) / 3.0
+    kinetic = float(data.energy[1])
+    if kinetic > 0:
+        data.qvel[:] = qvel * math.sqrt(target / kinetic)
+
+
+@dataclass
+class ChainRecord:
+    """What the engine reports at every sample: world poses (T, N+1, B, 3, 3) / (T, N+1, B, 3), body-frame
+    angular velocities of the world attitudes (T, N+1, B, 3), qpos, qvel, energies (T, N+1), momenta."""
+
+    Rw: np.ndarray
+    pw: np.ndarray
+    omega: np.ndarray
+    qpos: np.ndarray
+    qvel: np.ndarray
+    kinetic: np.ndarray
+    potential: np.ndarray
+    linear_momentum: np.ndarray
+    angular_momentum: np.ndarray
+    damping_rate: float = 0.0  # lambda_max(M^-1 D) over the initial states (1/s)
+
+
+def simulate_chain(
+    spec: ChainSpec,
+    n_trajectories: int,
+    steps: int,
+    h: float,
+    seed: int = 0,
+    speed: float = 5.0,
+    progress: Callable[[float], None] | None = None,
+) -> tuple[ChainRecord, Any]:
+    """Integrate `n_trajectories` random initial states with mj_step at spec.dt, sampled every h
+    (h must be a multiple of dt). Returns (record, compiled MjModel)."""
+    mujoco = require_mujoco()
+    sub = int(round(h / spec.dt))
+    if sub < 1 or abs(sub * spec.dt - h) > 1e-9 * h:
+        raise ConfigError(f"h={h} must be a whole multiple of dt={spec.dt}")
+    model = mujoco.MjModel.from_xml_string(chain_mjcf(spec))
+    data = mujoco.MjData(model)
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 2]))
+    T, N1, B = int(n_trajectories), int(steps) + 1, len(spec.links)
+    rec = ChainRecord(
+        Rw=np.zeros((T, N1, B, 3, 3)),
+        pw=np.zeros((T, N1, B, 3)),
+        omega=np.zeros((T, N1, B, 3)),
+        qpos=np.zeros((T, N1, model.nq)),
+        qvel=np.zeros((T, N1, model.nv)),
+        kinetic=np.zeros((T, N1)),
+        potential=np.zeros((T, N1)),
+        linear_momentum=np.zeros((T, N1, 3)),
+        angular_momentum=np.zeros((T, N1, 3)),
+    )
+    vel = np.zeros(6)
+    total_mass = float(model.body_subtreemass[1])
+    for i in range(T):
+        mujoco.mj_resetData(model, data)
+        _initial_state(spec, model, data, rng, speed)
+        mujoco.mj_forward(model, data)
+        M = np.zeros((model.nv, model.nv))
+        mujoco.mj_fullM(model, data, M)
+        rate = np.linalg.eigvals(np.linalg.solve(M, np.diag(model.dof_damping))).real.max()
+        rec.damping_rate = max(rec.damping_rate, float(rate))
+        for k in range(N1):
+            if k > 0:
+                mujoco.mj_step(model, data, nstep=sub)
+            mujoco.mj_forward(model, data)  # kinematics and energy of the current state
+            mujoco.mj_subtreeVel(model, data)
+            rec.Rw[i, k] = data.xmat[1:].reshape(B, 3, 3)
+            rec.pw[i, k] = data.xpos[1:]
+            for b in range(B):
+                mujoco.mj_objectVelocity(model, data, mujoco.mjtObj.mjOBJ_BODY, b + 1, vel, 1)
+                rec.omega[i, k, b] = vel[:3]
+            rec.qpos[i, k], rec.qvel[i, k] = data.qpos, data.qvel
+            rec.potential[i, k], rec.kinetic[i, k] = data.energy
+            rec.linear_momentum[i, k] = total_mass * data.subtree_linvel[1]
+            rec.angular_momentum[i, k] = data.subtree_angmom[1]  # about the chain's centre of mass
+        if progress is not None:
+            progress((i + 1) / T)
+    return rec, model
+
+
+def step_rotations(R: np.ndarray) -> np.ndarray:
+    """Geodesic angle of every increment R_k^T R_(k+1): (T, N+1, B, 3, 3) -> (T, N, B)."""
+    W = np.swapaxes(R[:, :-1], -1, -2) @ R[:, 1:]
+    c = np.clip((np.trace(W, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
+    return np.arccos(c)
+
+
+def chain_coordinates(rec: ChainRecord, rotations: str, free_root: bool) -> tuple[np.ndarray, np.ndarray]:
+    """(R, p) of the dataset from the engine's world poses: world attitudes or R_parent^T R_b."""
+    R = rec.Rw.copy()
+    if rotations == "parent":
+        R[:, :, 1:] = np.swapaxes(rec.Rw[:, :, :-1], -1, -2) @ rec.Rw[:, :, 1:]
+    p = rec.pw[:, :, :1] if free_root else rec.pw[:, :, :0]
+    return R, p
+
+
+def chain_dataset(
+    links: int = 3,
+    joint: str = "ball",
+    rotations: str = "world",
+    root: str = "free",
+    gravity: float = 0.0,
+    joint_damping: float = 0.05,
+    n_trajectories: int = 128,
+    steps: int = 100,
+    h: float = 0.05,
+    dt: float = 1e-3,
+    seed: int = 0,
+    speed: float = 5.0,
+    test_fraction: float = 0.1,
+    max_step_rotation: float = 0.5 * math.pi / 2,
+    progress: Callable[[float], None] | None = None,
+) -> Dataset:
+    """A liedfl dataset of a random MuJoCo chain (module docstring). ConfigError when the largest
+    per-step rotation of the coordinates or of a world attitude exceeds `max_step_rotation`
+    (default pi/4: well below the pi/2 at which liedfl warns; lower `speed` or h)."""
+    if rotations not in ("world", "parent"):
+        raise ConfigError(f"rotations={rotations!r}: use 'world' or 'parent'")
+    if int(n_trajectories) < 1 or int(steps) < 1:
+        raise ConfigError(f"n_trajectories={n_trajectories}, steps={steps}: need at least 1 of each")
+    spec = chain_spec(links, joint, root, gravity, joint_damping, dt, seed)
+    rec, model = simulate_chain(spec, n_trajectories, steps, h, seed, speed, progress)
+    free = root == "free"
+    R, p = chain_coordinates(rec, rotations, free)
+    tree = Tree.from_lists(spec.parents, [k.offset for k in spec.links], rotations, free_root=free)
+    coord_rot, world_rot = step_rotations(R), step_rotations(rec.Rw)
+    worst = max(float(coord_rot.max()), float(world_rot.max()))
+    largest = {
+        "coordinates": float(coord_rot.max()),
+        "world": float(world_rot.max()),
+        "where": [int(i) for i in np.unravel_index(int(np.argmax(coord_rot)), coord_rot.shape)],
+    }
+    if worst > max_step_rotation:
+        raise ConfigError(
+            f"the largest per-step rotation is {worst:.3f} rad (> {max_step_rotation:.3f}): lower speed={speed} "
+            f"or h={h}"
+        )
+    T = int(n_trajectories)
+    split, overlap = default_split(T, float(test_fraction), None, int(seed))
+    physics = declared_physics(spec, model)
+    config = {
+        "links": int(links),
+        "joint": joint,
+        "rotations": rotations,
+        "root": root,
+        "gravity": float(gravity),
+        "joint_damping": float(joint_damping),
+        "n_trajectories": T,
+        "steps": int(steps),
+        "h": float(h),
+        "dt": float(dt),
+        "seed": int(seed),
+        "speed": float(speed),
+        "test_fraction": float(test_fraction),
+    }
+    params: dict[str, Any] = {
+        "physics": physics,
+        "gravity": float(gravity),
+        "config": config,
+        "generator": "liedfl_cli.data.mujoco_chain",
+        "generator_version": GENERATOR_VERSION,
+        "mjcf": chain_mjcf(spec),
+        "split_overlap": overlap,
+        "step_rotation": largest,
+        "length_unit_m": 1.0,
+        "bodies": {
+            "root": "free (SE(3)) root, world pose" if free else "root pinned at joint_offsets[0] (SO(3))",
+            "rotations": rotations,
+        },
+        "simulation": {
+            "substeps_per_sample": int(round(h / dt)),
+            "initial_speed_rad_s": float(speed),
+            "h_lambda_max_damping": h * rec.damping_rate,
+        },
+    }
+    if gravity == 0:
+        params["potential"] = "none"
+    extras = {
+        "body_R_world": rec.Rw,
+        "body_p_world": rec.pw,
+        "body_omega": rec.omega,
+        "qpos": rec.qpos,
+        "qvel": rec.qvel,
+        "kinetic_energy": rec.kinetic,
+        "potential_energy": rec.potential,
+        "energy": rec.kinetic + rec.potential,
+        "linear_momentum": rec.linear_momentum,
+        "angular_momentum": rec.angular_momentum,
+    }
+    return Dataset(
+        R=R,
+        p=p,
+        h=float(h),
+        scene="mujoco_chain",
+        body_names=[k.name for k in spec.links],
+        body_kinds=(["se3"] if free else ["so3"]) + ["so3"] * (len(spec.links) - 1),
+        params=params,
+        seed=int(seed),
+        split=split,
+        extras=extras,
+        tree=tree,
+    )
+
+
+__all__ = [
+    "JOINTS",
+    "ROOTS",
+    "Link",
+    "ChainSpec",
+    "ChainRecord",
+    "require_mujoco",
+    "chain_spec",
+    "chain_mjcf",
+    "declared_physics",
+    "simulate_chain",
+    "step_rotations",
+    "chain_coordinates",
+    "chain_dataset",
+]

@@ -1,0 +1,346 @@
+"""Kinematic trees in the data (parents, joint_offsets, rotations) and MuJoCo chains, the independent
+engine they are tested against (liedfl_cli/data/mujoco_chain.py, scripts/mujoco_chain.py)."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import torch
+from omegaconf import OmegaConf
+
+from liedfl_cli.data.hdf5 import Dataset, load_dataset, save_dataset
+from liedfl_cli.data.scenes import get_dataset
+from liedfl_cli.errors import DatasetError
+from liedfl_cli.lie import so3
+from liedfl_cli.lie.product import Pose
+from liedfl_cli.lie.tree import Tree, coordinates, forward_kinematics
+
+mujoco = pytest.importorskip("mujoco")
+
+from liedfl_cli.data.mujoco_chain import (  # noqa: E402
+    chain_dataset,
+    chain_mjcf,
+    chain_spec,
+    declared_physics,
+    step_rotations,
+)
+
+ROOT = Path(__file__).resolve().parents[1]
+FILE = {
+    "name": "file",
+    "n_trajectories": None,
+    "steps": None,
+    "train_steps": None,
+    "rollout_steps": None,
+    "split": "auto",
+    "test_fraction": 0.2,
+    "n_test": None,
+    "seed": 0,
+    "noise": {"rotation": 0.0, "position": 0.0},
+    "smoothing": None,
+}
+
+
+def small(**kw) -> Dataset:
+    args = {"n_trajectories": 2, "steps": 20, "h": 0.02, "speed": 3.0, "max_step_rotation": 1.0, **kw}
+    return chain_dataset(**args)
+
+
+def fk(ds: Dataset) -> Pose:
+    assert ds.tree is not None
+    return forward_kinematics(ds.tree, ds.pose())
+
+
+# ---------------------------------------------------------------------- chains: FK against MuJoCo
+CASES = [
+    dict(links=links, joint=joint, root=root, rotations=rot, gravity=g, joint_damping=d)
+    for links, joint, root, rot, (g, d) in itertools.product(
+        (2, 3, 5), ("ball", "hinge"), ("free", "pinned"), ("world", "parent"), ((0.0, 0.0), (9.81, 0.05))
+    )
+    if not (links == 5 and g == 0.0)  # keep the fast tier fast: 5 links only with gravity and damping
+]
+
+
+@pytest.mark.parametrize("kw", CASES, ids=lambda kw: "-".join(str(v) for v in kw.values()))
+def test_forward_kinematics_reproduces_mujocos_bodies(tmp_path, kw):
+    ds = small(seed=kw["links"], **kw)
+    path = save_dataset(ds, tmp_path / "chain.h5")
+    back = load_dataset(path)
+    assert back.tree == ds.tree and back.tree is not None
+    assert back.tree.rotations == kw["rotations"] and back.tree.free_root == (kw["root"] == "free")
+    assert back.group.n_se3 == (1 if kw["root"] == "free" else 0) and back.n_bodies == kw["links"]
+    world = fk(back)
+    np.testing.assert_allclose(world.R.numpy(), back.extras["body_R_world"], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(world.p.numpy(), back.extras["body_p_world"], rtol=0, atol=1e-9)
+    # and back: the coordinates of the engine's world poses are the stored ones
+    c = coordinates(back.tree, Pose(torch.as_tensor(back.extras["body_R_world"]), world.p))
+    np.testing.assert_allclose(c.R.numpy(), back.R, atol=1e-12)
+    phys = back.params["physics"]
+    assert phys["kind"] == "articulated" and phys["g"] == kw["gravity"] and phys["integrator"] == "RK4"
+    assert phys["joint_damping"] == [kw["joint_damping"]] * (kw["links"] - 1) and phys["root_damping"] == 0.0
+    assert len(phys["bodies"]) == kw["links"] and phys["engine"].startswith("mujoco ")
+    assert (back.params.get("potential") == "none") == (kw["gravity"] == 0)
+    assert back.params["gravity"] == kw["gravity"]
+    if kw["joint"] == "hinge":
+        assert len(phys["hinge_axes"]) == kw["links"] and phys["hinge_axes"][1] is not None
+    else:
+        assert phys["hinge_axes"] is None
+
+
+def test_resimulated_directly_in_the_test():
+    """One chain re-simulated here from its MJCF and its recorded initial qpos/qvel: MuJoCo's bodies
+    equal the forward kinematics of the stored coordinates (and a fresh simulation reproduces them)."""
+    ds = small(links=4, joint="ball", root="free", rotations="parent", gravity=9.81, joint_damping=0.05, seed=3)
+    model = mujoco.MjModel.from_xml_string(ds.params["mjcf"])
+    data = mujoco.MjData(model)
+    sub = ds.params["simulation"]["substeps_per_sample"]
+    world = fk(ds)
+    for i in range(ds.n_trajectories):
+        data.qpos[:], data.qvel[:] = ds.extras["qpos"][i, 0], ds.extras["qvel"][i, 0]
+        for k in range(ds.n_steps + 1):
+            if k > 0:
+                mujoco.mj_step(model, data, nstep=sub)
+            mujoco.mj_forward(model, data)
+            np.testing.assert_allclose(world.p[i, k].numpy(), data.xpos[1:], atol=1e-9)
+            np.testing.assert_allclose(world.R[i, k].numpy(), data.xmat[1:].reshape(-1, 3, 3), atol=1e-9)
+
+
+def test_conservation_without_damping_and_gravity():
+    """Zero damping, zero gravity, free root: MuJoCo's energy and momenta are conserved (RK4 at dt=1e-3)."""
+    ds = small(links=3, joint="ball", root="free", gravity=0.0, joint_damping=0.0, steps=40, seed=5)
+    E = ds.extras["energy"]
+    assert np.abs(E - E[:, :1]).max() < 1e-8 * np.abs(E).max()
+    for name in ("linear_momentum", "angular_momentum"):
+        L = ds.extras[name]
+        assert np.abs(L - L[:, :1]).max() < 1e-8 * max(1.0, np.abs(L).max())
+    damped = small(links=3, joint="ball", root="free", gravity=0.0, joint_damping=0.2, steps=40, seed=5)
+    assert (damped.extras["energy"][:, -1] < damped.extras["energy"][:, 0] - 1e-4).all()  # damping dissipates
+    L = damped.extras["angular_momentum"]  # joint damping is internal: momentum stays
+    assert np.abs(L - L[:, :1]).max() < 1e-8 * max(1.0, np.abs(L).max())
+
+
+def _kinetic_from_poses(ds: Dataset) -> np.ndarray:
+    """Kinetic energy at samples 1..N-1 from central differences of the FK world poses and the
+    declared physics: sum_b 1/2 m |c'|^2 + 1/2 w^T I w (w body frame, c the world COM)."""
+    world = fk(ds)
+    Rw, pw = world.R.numpy(), world.p.numpy()
+    phys = ds.params["physics"]
+    h = ds.h
+    K = np.zeros((ds.n_trajectories, ds.n_steps - 1))
+    for b, body in enumerate(phys["bodies"]):
+        com = pw[:, :, b] + np.einsum("tkij,j->tki", Rw[:, :, b], np.asarray(body["com"]))
+        v = (com[:, 2:] - com[:, :-2]) / (2 * h)
+        dR = np.swapaxes(Rw[:, 1:-1, b], -1, -2) @ (Rw[:, 2:, b] - Rw[:, :-2, b]) / (2 * h)
+        w = np.stack([dR[..., 2, 1] - dR[..., 1, 2], dR[..., 0, 2] - dR[..., 2, 0], dR[..., 1, 0] - dR[..., 0, 1]], -1)
+        w /= 2
+        Iw = np.einsum("ij,tkj->tki", np.asarray(body["inertia"]), w)
+        K += 0.5 * body["mass"] * (v * v).sum(-1) + 0.5 * (w * Iw).sum(-1)
+    return K
+
+
+@pytest.mark.parametrize("root,gravity", [("free", 0.0), ("free", 9.81), ("pinned", 0.0)])
+def test_declared_physics_recomputes_mujocos_kinetic_energy_to_second_order(root, gravity):
+    """The declared masses, centres of mass and inertias (body frame) with central differences of the
+    FK world poses give MuJoCo's kinetic energy up to O(h^2) over the same 0.2 s."""
+    errors = []
+    for h in (0.02, 0.01):
+        ds = small(links=3, root=root, gravity=gravity, joint_damping=0.05, h=h, steps=round(0.2 / h), seed=2)
+        K = _kinetic_from_poses(ds)
+        ref = ds.extras["kinetic_energy"][:, 1:-1]
+        errors.append(np.abs(K - ref).max() / np.abs(ref).max())
+    assert errors[0] < 2e-3
+    assert errors[1] < errors[0] / 3  # O(h^2): halving h divides the error by about 4
+
+
+def test_declared_physics_is_mujocos_compiled_model():
+    spec = chain_spec(links=3, seed=4)
+    model = mujoco.MjModel.from_xml_string(chain_mjcf(spec))
+    phys = declared_physics(spec, model)
+    for link, body in zip(spec.links, phys["bodies"]):
+        assert body["mass"] == pytest.approx(link.mass)
+        np.testing.assert_allclose(body["com"], link.com, atol=1e-12)
+        np.testing.assert_allclose(body["inertia"], link.inertia, atol=1e-10)
+        I = np.asarray(body["inertia"])
+        assert np.abs(I - np.diag(np.diag(I))).max() > 1e-4  # off-diagonal terms in the body frame
+        assert np.linalg.eigvalsh(I).min() > 0
+    assert all(np.linalg.norm(body["com"]) > 0.05 for body in phys["bodies"])  # centres of mass off the joint
+
+
+def test_chain_is_deterministic_and_rotations_are_bounded():
+    a, b = small(seed=7), small(seed=7)
+    np.testing.assert_array_equal(a.R, b.R)
+    np.testing.assert_array_equal(a.p, b.p)
+    assert a.params["step_rotation"]["coordinates"] == pytest.approx(float(step_rotations(a.R).max()))
+    assert a.params["step_rotation"]["coordinates"] < 1.0
+    c = small(seed=8)
+    assert not np.allclose(a.R, c.R)
+    with pytest.raises(Exception, match="largest per-step rotation"):
+        small(seed=7, max_step_rotation=1e-3)
+
+
+def test_script_writes_a_file_that_dataset_file_reads_with_its_tree(tmp_path):
+    out = tmp_path / "chain.h5"
+    r = subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / "mujoco_chain.py"), "--links", "2", "--n-trajectories", "3",
+         "--steps", "10", "--rotations", "parent", "--out", str(out)],
+        capture_output=True, text=True, cwd=ROOT, env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"},
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    assert "largest per-step rotation" in r.stdout and "SE(3) x SO(3)" in r.stdout
+    ds, cached = get_dataset({**FILE, "path": str(out)}, tmp_path / "data")
+    assert ds.tree is not None and ds.tree.rotations == "parent" and ds.tree == load_dataset(out).tree
+    assert load_dataset(cached).tree == ds.tree
+    bad = subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / "mujoco_chain.py"), "--links", "7", "--out", str(tmp_path / "x.h5")],
+        capture_output=True, text=True, cwd=ROOT, env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"},
+    )  # fmt: skip
+    assert bad.returncode == 2 and "links=7" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
+
+
+# ---------------------------------------------------------------------- the tree fields of the format
+def tree_dataset(free: bool = True, rotations: str = "parent", B: int = 3) -> Dataset:
+    g = torch.Generator().manual_seed(0)
+    T, N1 = 2, 4
+    R = so3.random((T, N1, B), generator=g).numpy()
+    R[:, 1:] = R[:, :1]  # still data (the per-step check is not what is tested here)
+    m = 1 if free else 0
+    offsets = np.arange(3 * B, dtype=np.float64).reshape(B, 3) / 10
+    if free:
+        offsets[0] = 0.0
+    return Dataset(
+        R=R,
+        p=np.zeros((T, N1, m, 3)),
+        h=0.1,
+        scene="tree",
+        body_names=[f"b{i}" for i in range(B)],
+        body_kinds=["se3"] * m + ["so3"] * (B - m),
+        split={"train": np.array([0]), "test": np.array([1])},
+        tree=Tree.from_lists([-1, 0, 1][:B] + [0] * (B - 3), offsets, rotations, free_root=free),
+    )
+
+
+@pytest.mark.parametrize("free", [True, False])
+@pytest.mark.parametrize("rotations", ["world", "parent"])
+def test_tree_fields_round_trip(tmp_path, free, rotations):
+    ds = tree_dataset(free, rotations)
+    path = save_dataset(ds, tmp_path / "t.h5")
+    with h5py.File(path) as f:
+        assert json.loads(f.attrs["parents"]) == [-1, 0, 1] and f.attrs["rotations"] == rotations
+        assert f["joint_offsets"].dtype == np.float64 and f["joint_offsets"].shape == (3, 3)
+    back = load_dataset(path)
+    assert back.tree == ds.tree
+
+
+def test_a_file_without_tree_has_none(tmp_path):
+    ds = tree_dataset()
+    ds.tree = None
+    back = load_dataset(save_dataset(ds, tmp_path / "t.h5"))
+    assert back.tree is None
+    with h5py.File(tmp_path / "t.h5") as f:
+        assert "parents" not in f.attrs and "joint_offsets" not in f
+
+
+def _edit(path: Path, attrs=None, offsets=None, delete=()):
+    with h5py.File(path, "a") as f:
+        for k in delete:
+            if k in f.attrs:
+                del f.attrs[k]
+            elif k in f:
+                del f[k]
+        for k, v in (attrs or {}).items():
+            f.attrs[k] = v
+        if offsets is not None:
+            del f["joint_offsets"]
+            f.create_dataset("joint_offsets", data=offsets)
+
+
+BAD = [
+    ({"attrs": {"parents": json.dumps([-1, 2, 0])}}, r"attribute 'parents' has parent 2 for body 1.*before"),
+    ({"attrs": {"parents": json.dumps([0, 0, 1])}}, r"attribute 'parents' must start with -1"),
+    ({"attrs": {"parents": json.dumps([-1, 0])}}, r"attribute 'parents' has 2 entries"),
+    ({"attrs": {"parents": json.dumps([-1, "a", 0])}}, r"attribute 'parents' must be a JSON list of integers"),
+    ({"offsets": np.zeros((3, 2))}, r"dataset 'joint_offsets' has shape \(3, 2\), expected \(3, 3\)"),
+    ({"offsets": np.full((3, 3), np.nan)}, r"dataset 'joint_offsets' has non-finite value"),
+    ({"offsets": np.ones((3, 3))}, r"dataset 'joint_offsets' row 0 .* must be zeros"),
+    ({"attrs": {"rotations": "local"}}, r"attribute 'rotations' is 'local'"),
+    ({"delete": ["joint_offsets"]}, r"dataset 'joint_offsets' is missing"),
+    ({"delete": ["parents"]}, r"attribute 'parents' is missing"),
+    ({"delete": ["parents", "joint_offsets"]}, r"attribute 'rotations' is 'parent' but the file has no tree"),
+    (
+        {"attrs": {"body_kinds": json.dumps(["se3", "se3", "so3"]), "n_se3": 2, "n_so3": 1}},
+        r"attribute 'parents' describes a tree but 'body_kinds' lists 2 SE\(3\) bodies",
+    ),
+]
+
+
+@pytest.mark.parametrize("edit,pattern", BAD, ids=[p for _, p in BAD])
+def test_malformed_tree_fields_are_one_line_errors(tmp_path, edit, pattern):
+    path = save_dataset(tree_dataset(), tmp_path / "t.h5")
+    if "body_kinds" in edit.get("attrs", {}):
+        with h5py.File(path, "a") as f:
+            p = f["p"][()]
+            del f["p"]
+            f.create_dataset("p", data=np.concatenate([p, p], 2))
+    _edit(path, **edit)
+    with pytest.raises(DatasetError, match=pattern) as e:
+        load_dataset(path)
+    msg = str(e.value)
+    assert msg.startswith(str(path)) and "\n" not in msg
+
+
+def test_save_refuses_a_tree_that_does_not_fit_the_bodies(tmp_path):
+    ds = tree_dataset(free=True)
+    ds.tree = Tree.from_lists([-1, 0, 1], np.zeros((3, 3)), "world", free_root=False)
+    with pytest.raises(DatasetError, match="free_root=False"):
+        save_dataset(ds, tmp_path / "t.h5")
+    ds.tree = Tree.from_lists([-1, 0], np.zeros((2, 3)), "world")
+    with pytest.raises(DatasetError, match="'parents' has 2 entries"):
+        save_dataset(ds, tmp_path / "t.h5")
+
+
+def test_build_context_carries_the_tree():
+    from liedfl_cli.factory import build_context
+
+    cfg = OmegaConf.create({"seed": 0, "train": {"epsilon": 10.0}, "force": None})
+    ds = tree_dataset()
+    assert build_context(cfg, ds).tree == ds.tree
+    ds.tree = None
+    assert build_context(cfg, ds).tree is None
+
+
+def test_pinned_root_sits_at_its_offset():
+    ds = small(links=2, root="pinned", seed=1)
+    assert ds.tree is not None and not ds.tree.free_root
+    np.testing.assert_allclose(ds.extras["body_p_world"][:, :, 0], np.broadcast_to(ds.tree.offsets[0], (2, 21, 3)))
+    assert math.isclose(float(np.abs(fk(ds).p[:, :, 0].numpy() - np.asarray(ds.tree.offsets[0])).max()), 0.0)
+
+
+def test_rolling_a_tree_model_out_on_other_data_needs_the_same_tree():
+    from types import SimpleNamespace
+
+    from liedfl_cli.errors import ConfigError
+    from liedfl_cli.lie.product import ProductGroup
+    from liedfl_cli.other_data import check_model_fits_data
+
+    ds = tree_dataset()
+    assert ds.tree is not None
+    model = SimpleNamespace(G=ProductGroup(1, 2), h=0.1, tree=ds.tree)
+    check_model_fits_data(model, ds, "run")
+    check_model_fits_data(SimpleNamespace(G=ProductGroup(1, 2), h=0.1), ds, "run")  # a model without a tree
+    other = tree_dataset(rotations="world")
+    with pytest.raises(ConfigError, match="other rotations"):
+        check_model_fits_data(model, other, "run")
+    other.tree = Tree.from_lists(ds.tree.parents, np.zeros((3, 3)), "parent")
+    with pytest.raises(ConfigError, match="other offsets"):
+        check_model_fits_data(model, other, "run")
+    other.tree = None
+    with pytest.raises(ConfigError, match="has none"):
+        check_model_fits_data(model, other, "run")
