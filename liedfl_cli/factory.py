@@ -19,7 +19,9 @@ from torch import nn
 
 from .errors import ConfigError
 from .lie import Pose
+from .models.articulated import ArticulatedLieDFLNN
 from .models.base import BuildContext, LossOptions, Model
+from .models.liedflnn import LieDFLNN
 from .solvers.options import SolverOptions
 
 PACKAGE_PREFIX = "liedfl_cli.models."
@@ -78,6 +80,8 @@ def build_model(cfg: DictConfig, dataset) -> Model:
     options = dict(_plain(cfg.model))
     cls = model_class(options.pop("_target_", None))
     name = str(options.pop("name", cls.__name__.lower()))
+    if issubclass(cls, LieDFLNN) and options.get("kinetic") == "articulated":
+        cls = ArticulatedLieDFLNN  # the same options on the data's kinematic tree
     try:
         model = cls.from_config(build_context(cfg, dataset), **options)
     except ConfigError:

@@ -41,6 +41,7 @@ from ..mechanics.parameterizations import Inertia, PositiveVector
 from ..mechanics.potentials import STANDARD_GRAVITY, GravityPotential, MLPPotential, UniformGravityPotential
 from ..solvers.newton import NewtonProblem, jacobian
 from .base import Batch, ImplicitModel, LossOptions, TripletBatch, TripletSet, initial_scale, oriented_logdet
+from .liedflnn import del_regularity_loss
 
 RESIDUAL_MODES = ("fast", "generic")
 
@@ -265,8 +266,13 @@ class ArticulatedLieDFLNN(ImplicitModel):
 
     # ------------------------------------------------------------------ config
     @classmethod
-    def from_config(cls, ctx, **options: Any) -> ArticulatedLieDFLNN:  # built by LieDFLNN.from_config
-        raise NotImplementedError("build through LieDFLNN.from_config with model.kinetic=articulated")
+    def from_config(cls, ctx, **options: Any) -> ArticulatedLieDFLNN:
+        """From the options of `conf/model/liedflnn.yaml` with `kinetic: articulated` (the factory picks
+        this class for them); the tree comes from the data (`ctx.tree`)."""
+        from .liedflnn import LieDFLNN
+
+        _, parts, why, opt = LieDFLNN.resolve_options(ctx, options)
+        return build_articulated(ctx, parts, opt, why)
 
     def components(self) -> list[str]:
         seen: set[int] = set()
@@ -446,7 +452,6 @@ class ArticulatedLieDFLNN(ImplicitModel):
 
     def loss(self, batch: Batch | ArticulatedBatch, opts: LossOptions):
         """w_DEL mean ||r||^2 + w_reg mean penalty(log|det H_b|) -> (loss, {"del_loss", "reg_loss"})."""
-        from .liedflnn import del_regularity_loss
 
         if isinstance(batch, ArticulatedBatch):
             r = self._batch_residual(batch)

@@ -182,12 +182,12 @@ class LieDFLNN(ImplicitModel):
     )
 
     @classmethod
-    def from_config(cls, ctx: BuildContext, **options) -> ImplicitModel:
-        """`model.potential: auto` reads the data (`BuildContext.resolve_potential_parts`); with a known
-        potential it is none. `model.gravity: auto` is the data's declared g (9.81 when undeclared or
-        0). What auto chose is kept in `notes` (printed by `liedfl train`). `model.kinetic:
-        articulated` builds the kinematic-tree model (`models.articulated`) from the data's tree."""
-        opt = config_options(cls, options, cls.OPTIONS)
+    def resolve_options(cls, ctx: BuildContext, options) -> tuple[str, tuple[str, ...], str, dict]:
+        """The config options of a LieDFLNN (this class's or the articulated one's) resolved against the
+        data: (kinetic, potential parts, why, the other options with `known` and a numeric `gravity`).
+        `model.potential: auto` reads the data (`BuildContext.resolve_potential_parts`); with a known
+        potential it is none. `model.gravity: auto` is the data's declared g (9.81 when undeclared or 0)."""
+        opt = config_options(cls, options, LieDFLNN.OPTIONS)
         kinetic_kind = opt.pop("kinetic", "per_body")
         if kinetic_kind not in KINETIC_KINDS:
             raise ConfigError(f"model.kinetic={kinetic_kind!r}: choose one of {', '.join(KINETIC_KINDS)}")
@@ -206,10 +206,17 @@ class LieDFLNN(ImplicitModel):
             gravity = float(gravity)
         except (TypeError, ValueError):
             raise ConfigError(f"model.gravity={gravity!r}: auto or a number") from None
-        if kinetic_kind == "articulated":
-            from .articulated import build_articulated
+        return kinetic_kind, parts, why, {**opt, "known": known, "gravity": gravity}
 
-            return build_articulated(ctx, parts, {**opt, "known": known, "gravity": gravity}, why)
+    @classmethod
+    def from_config(cls, ctx: BuildContext, **options) -> LieDFLNN:
+        """The per-body model from its config options (`resolve_options`). What auto chose is kept in
+        `notes` (printed by `liedfl train`). `model.kinetic: articulated` is built by the factory as
+        `models.articulated.ArticulatedLieDFLNN` (same options)."""
+        kinetic_kind, parts, why, opt = cls.resolve_options(ctx, options)
+        if kinetic_kind != "per_body":
+            raise ConfigError(f"model.kinetic={kinetic_kind}: build it with ArticulatedLieDFLNN.from_config")
+        known, gravity = opt.pop("known"), opt.pop("gravity")
         try:
             model = cls(
                 ctx.group,
