@@ -185,8 +185,8 @@ def run_eval_from_objects(
     model_name = model_name or OmegaConf.select(cfg, "model.name", default=None)
     names = plots.display_names(rf.models, model_name)
     rows, curves = _rows(rf, truth, timings, names)
-    for r in rows if checkpoint else ():  # which checkpoint rolled out (docs/validation.md)
-        if r["model"] == "model":
+    for r in rows:  # which checkpoint rolled out (docs/validation.md)
+        if checkpoint and r["model"] == "model":
             r.update(checkpoint=checkpoint.get("checkpoint"), checkpoint_epoch=checkpoint.get("checkpoint_epoch"))
     own = out.resolve() == run_dir.resolve()
     recovery_path = run_dir / "recovery.json"

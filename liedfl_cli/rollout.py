@@ -137,14 +137,13 @@ def run_rollout(cfg: DictConfig) -> dict:
     the scene's extra evaluation). With `dataset=...` the rollout runs on that dataset's test split and
     is evaluated against it (`source.json` records it). The run's own rollout.h5 and evaluation are never
     touched; on failure the new folder is removed."""
-    from .checkpoint import load_checkpoint
+    from .checkpoint import CHECKPOINT_FILE, describe_checkpoint, load_checkpoint
     from .evaluate import run_eval_from_objects
     from .evaluation import run_extra_evals
     from .factory import configure_runtime
     from .io_utils import write_json
     from .other_data import SOURCE_FILE, other_dataset
     from .rollout_file import FILE_NAME
-    from .checkpoint import CHECKPOINT_FILE, describe_checkpoint
     from .runs import load_run_checkpoint
 
     configure_runtime(cfg)  # this command's runtime section: threads, device, dtype, ...

@@ -44,8 +44,8 @@ from .ui import console, err_console, progress_bar
 from .validation import (
     VAL_COLUMNS,
     Selection,
-    ValSplit,
     Validator,
+    ValSplit,
     format_pass,
     make_selection,
     make_val_split,
@@ -285,9 +285,10 @@ def fit(
                 improved, early = selection.update(epoch, row) if selection is not None else (False, False)
                 if improved and save_best is not None:
                     save_best(epoch, row)
-                row["val_seconds"] = time.perf_counter() - tv  # the pass and best.pt
-                val_seconds += row["val_seconds"]
-                t0 += row["val_seconds"]  # validation is not training time
+                spent = time.perf_counter() - tv
+                row["val_seconds"] = spent  # the pass and best.pt
+                val_seconds += spent
+                t0 += spent  # validation is not training time
                 val_text = format_pass(row)
             history.append(row)
             last = epoch
@@ -397,7 +398,7 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
     """`liedfl train`: data -> model -> fit (with checkpoints) -> checkpoint -> recovery ->
     rollout -> eval. `resume`: a checkpoint payload to continue from. Returns a summary."""
     from .data.files import complete_steps
-    from .data.scenes import dataset_steps, get_dataset
+    from .data.scenes import get_dataset
     from .evaluate import run_eval_from_objects
     from .factory import build_model, configure_runtime, data_pose
     from .rollout import rollout_and_save

@@ -148,9 +148,9 @@ class Selection:
         if self.metric is None:
             return False, False
         value = row.get(self.metric)
-        finite = isinstance(value, (int, float)) and math.isfinite(value)
-        if finite and (self.best is None or value < self.best - self.min_delta):
-            self.best, self.best_epoch, self.bad_passes = float(value), int(epoch), 0
+        value = float(value) if isinstance(value, (int, float)) else math.nan
+        if math.isfinite(value) and (self.best is None or value < self.best - self.min_delta):
+            self.best, self.best_epoch, self.bad_passes = value, int(epoch), 0
             return True, False
         self.bad_passes += 1
         self.stopped = self.patience is not None and self.bad_passes >= self.patience
