@@ -42,7 +42,8 @@ def load_run(run_dir, data_dir=None, checkpoint: str = "best"):
 
 def load_run_checkpoint(run_dir, data_dir=None, checkpoint: str = "best"):
     """`load_run` plus the record of the checkpoint loaded (`checkpoint.checkpoint_record`:
-    file, epoch, selection metric and value)."""
+    file, epoch, selection metric and value). The run's config comes from checkpoints/last.pt, which
+    is always loaded and checked (a broken last.pt is a broken run); best.pt then replaces the weights."""
     from .data.hdf5 import load_dataset
     from .data.scenes import get_dataset
     from .factory import build_model, placement
@@ -52,7 +53,8 @@ def load_run_checkpoint(run_dir, data_dir=None, checkpoint: str = "best"):
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise ConfigError(f"run={run_dir}: no such run directory")
-    ckpt = checkpoint_path(run_dir, checkpoint)
+    selected = checkpoint_path(run_dir, checkpoint)
+    ckpt = run_dir / "checkpoints" / "last.pt"
     payload = load_checkpoint(ckpt, map_location=placement()[0])
     if not isinstance(payload["config"], dict):
         raise CheckpointError(f"{ckpt}: field 'config' is not a mapping (got {type(payload['config']).__name__})")
@@ -70,6 +72,9 @@ def load_run_checkpoint(run_dir, data_dir=None, checkpoint: str = "best"):
     except Exception as e:
         raise CheckpointError(f"{ckpt}: field 'config' does not build a model ({e})") from None
     load_state(ckpt, model, payload)
+    if selected != ckpt:
+        ckpt, payload = selected, load_checkpoint(selected, map_location=placement()[0])
+        load_state(ckpt, model, payload)
     return cfg, model, dataset, run_dir, checkpoint_record(ckpt, payload)
 
 
