@@ -209,9 +209,14 @@ def test_early_stopping_stops_training(tmp_path, monkeypatch):
     assert s["checkpoint"]["checkpoint_epoch"] == 1
 
 
-def test_select_last_writes_no_best_and_rolls_out_the_last_epoch(tmp_path):
+def test_select_last_writes_no_best_and_rolls_out_the_last_epoch(tmp_path, capsys):
     s = run_train(_cfg(tmp_path, "run", ["train.select=last", "rollout.enabled=false"]))
     run = Path(s["run_dir"])
+    # smoke data: 4 train trajectories of 8 steps -> split in time, the last step validates
+    out = capsys.readouterr().out
+    assert "validation in time: poses 6..8 of each of the 4 train trajectories" in out
+    assert "training on steps 0..7" in out and "checkpoint: last.pt (epoch 2)" in out
+    assert s["validation"]["split"] == "time" and s["dataset"]["val"] == 4
     assert not (run / "checkpoints" / "best.pt").exists()
     assert s["checkpoint"] == {"checkpoint": "last.pt", "checkpoint_epoch": 2}
     assert all(r["val_one_step_error"] for r in _rows(run))  # still measured
@@ -259,3 +264,14 @@ def test_every_baseline_validates(tmp_path, baseline):
     row = _rows(Path(s["run_dir"]))[0]
     assert math.isfinite(float(row["val_one_step_error"])) and math.isfinite(float(row["val_rollout_error"]))
     assert s["checkpoint"]["checkpoint"] == "best.pt"
+
+
+@pytest.mark.parametrize("name", ["soap", "adam"])
+def test_weight_decay_reaches_both_optimizers(name):
+    from omegaconf import OmegaConf
+
+    from liedfl_cli.train import make_optimizer
+
+    cfg = OmegaConf.create({"name": name, "lr": 1e-3, "weight_decay": 0.25})
+    opt = make_optimizer([torch.nn.Parameter(torch.ones(3))], cfg)
+    assert opt.param_groups[0]["weight_decay"] == 0.25
