@@ -217,7 +217,8 @@ def describe_checkpoint(used: dict) -> str:
     """`checkpoint: best.pt (epoch 340, val_one_step_error 1.2e-04)`."""
     text = f"checkpoint: {used['checkpoint']} (epoch {used.get('checkpoint_epoch')}"
     if used.get("selected_by"):
-        text += f", {used['selected_by']} {used.get('value', float('nan')):.2e}"
+        value = used.get("value")
+        text += f", {used['selected_by']} {float('nan') if value is None else float(value):.2e}"
     if used.get("note"):
         text += f"; {used['note']}"
     return text + ")"

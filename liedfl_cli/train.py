@@ -9,6 +9,12 @@ metrics are appended to `train_metrics.csv` as training goes. SIGINT/SIGTERM fin
 epoch, save a checkpoint and stop with one line saying how to resume (a second signal stops at
 once). `liedfl train resume=<run dir>` (`run_resume`) continues from the last checkpoint and, for
 the same seed, ends with the same losses and weights as an uninterrupted run.
+
+Validation (`validation.py`, docs/validation.md): a split taken from the train split
+(`dataset.val_fraction`), a pass every `train.val_every` epochs (its columns in train_metrics.csv,
+its time left out of the training time), the best pass's weights in `checkpoints/best.pt`
+(`train.select`), early stopping (`train.early_stopping`); after training the selected weights are
+rolled out and evaluated.
 """
 
 from __future__ import annotations
