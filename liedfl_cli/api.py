@@ -20,7 +20,7 @@ is refused, and so are complex, boolean, float16 and non-finite inputs.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, cast
 
@@ -247,6 +247,7 @@ class Run:
     model: Any
     dataset: Any
     run_dir: Path
+    checkpoint: dict = field(default_factory=dict)  # which checkpoint was loaded (file, epoch, selection)
 
     @property
     def name(self) -> str:
@@ -280,13 +281,15 @@ class Run:
         )
 
 
-def load_run(run_dir, data_dir=None) -> Run:
-    """Load a run written by `liedfl train` (its checkpoint, config and dataset)."""
-    from .runs import load_run as _load
+def load_run(run_dir, data_dir=None, checkpoint: str = "best") -> Run:
+    """Load a run written by `liedfl train` (its checkpoint, config and dataset). checkpoint: `best`
+    (checkpoints/best.pt, the model selected on the validation split, when the run has one; else
+    last.pt) or `last`; `Run.checkpoint` says which was loaded."""
+    from .runs import load_run_checkpoint
 
-    cfg, model, dataset, path = _load(run_dir, data_dir)
+    cfg, model, dataset, path, used = load_run_checkpoint(run_dir, data_dir, checkpoint)
     model.eval()
-    return Run(cfg, model, dataset, Path(path))
+    return Run(cfg, model, dataset, Path(path), used)
 
 
 def train(*overrides: str, output_dir=None, data_dir=None, progress: bool = False) -> Run:

@@ -180,6 +180,64 @@ def load_state(path, model, payload: dict) -> None:
     model.load_state_dict(sd)
 
 
+# ----------------------------------------------------------------------------- which checkpoint
+CHECKPOINTS = ("best", "last")
+"""`checkpoint=best|last` of `liedfl rollout` / `liedfl eval` and `api.load_run`."""
+CHECKPOINT_FILE = "checkpoint.json"
+"""Next to a rollout.h5: the checkpoint that produced it (`checkpoint_record`)."""
+
+
+def checkpoint_path(run_dir, which: str = "best") -> Path:
+    """`<run>/checkpoints/best.pt` for which=best when it exists (the selected model, see
+    docs/validation.md), else `<run>/checkpoints/last.pt` (runs trained with `train.select=last` or
+    before validation existed)."""
+    from .errors import ConfigError
+
+    if which not in CHECKPOINTS:
+        raise ConfigError(f"checkpoint={which!r}: choose one of {', '.join(CHECKPOINTS)}")
+    folder = Path(run_dir) / "checkpoints"
+    if which == "best" and (folder / "best.pt").is_file():
+        return folder / "best.pt"
+    return folder / "last.pt"
+
+
+def checkpoint_record(path, payload: dict) -> dict:
+    """What a loaded checkpoint is: {checkpoint: file name, checkpoint_epoch, [selected_by, value]}."""
+    epoch = payload.get("epoch")
+    record: dict[str, Any] = {"checkpoint": Path(path).name, "checkpoint_epoch": None if epoch is None else int(epoch)}
+    metric = payload.get("selected_by")
+    if isinstance(metric, str):
+        record["selected_by"] = metric
+        value = (payload.get("val") or {}).get(metric)
+        record["value"] = None if value is None else float(value)
+    return record
+
+
+def describe_checkpoint(used: dict) -> str:
+    """`checkpoint: best.pt (epoch 340, val_one_step_error 1.2e-04)`."""
+    text = f"checkpoint: {used['checkpoint']} (epoch {used.get('checkpoint_epoch')}"
+    if used.get("selected_by"):
+        value = used.get("value")
+        text += f", {used['selected_by']} {float('nan') if value is None else float(value):.2e}"
+    if used.get("note"):
+        text += f"; {used['note']}"
+    return text + ")"
+
+
+def rollout_checkpoint(rollout_path, loaded: dict) -> dict:
+    """The checkpoint record of a rollout file: its `checkpoint.json` (written next to it by `liedfl
+    train` / `liedfl rollout`) when there is a readable one, else `loaded` (the checkpoint just loaded;
+    runs written before checkpoint.json existed rolled out last.pt)."""
+    import json
+
+    path = Path(rollout_path).parent / CHECKPOINT_FILE
+    try:
+        record = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return loaded
+    return record if isinstance(record, dict) and "checkpoint" in record else loaded
+
+
 # ----------------------------------------------------------------------------- RNG state
 def capture_rng_state(generators: dict[str, torch.Generator] | None = None) -> dict:
     """The global RNG states of torch (CPU, and CUDA when available), numpy and Python's `random`,
@@ -232,6 +290,12 @@ def restore_rng_state(state: dict, generators: dict[str, torch.Generator] | None
 
 __all__ = [
     "REQUIRED",
+    "CHECKPOINTS",
+    "CHECKPOINT_FILE",
+    "checkpoint_path",
+    "checkpoint_record",
+    "describe_checkpoint",
+    "rollout_checkpoint",
     "save_checkpoint",
     "load_checkpoint",
     "load_state",

@@ -229,12 +229,19 @@ def rollout_path_arg(value, run_dir) -> Path:
 
 
 def run_eval_from_objects(
-    cfg: DictConfig, dataset, run_dir, timings: dict | None = None, rollout_path=None, model_name: str | None = None
+    cfg: DictConfig,
+    dataset,
+    run_dir,
+    timings: dict | None = None,
+    rollout_path=None,
+    model_name: str | None = None,
+    checkpoint: dict | None = None,
 ) -> list[dict]:
     """Evaluate a rollout file against `dataset`: eval.csv, eval.md, eval_curves.json and plots/ next to
     the file. rollout_path: default `<run_dir>/rollout.h5`. The run's parameter recovery (recovery.json)
     goes into eval.md of any rollout of the run, the loss curve only into the run's own plots.
-    model_name: what the `model` entry is (default: `cfg.model.name`)."""
+    model_name: what the `model` entry is (default: `cfg.model.name`). checkpoint: which checkpoint the
+    model's rollout came from (`checkpoint.checkpoint_record`): columns `checkpoint`, `checkpoint_epoch`."""
     run_dir = Path(run_dir)
     path = Path(rollout_path) if rollout_path is not None else run_dir / FILE_NAME
     out = path.parent
@@ -244,8 +251,16 @@ def run_eval_from_objects(
     from omegaconf import OmegaConf
 
     model_name = model_name or OmegaConf.select(cfg, "model.name", default=None)
+<<<<<<< HEAD
     names = plots.display_names([*rf.models, CONSTANT_VELOCITY], model_name)
     rows, curves = _rows(rf, truth, timings, names, group=dataset.group)
+=======
+    names = plots.display_names(rf.models, model_name)
+    rows, curves = _rows(rf, truth, timings, names)
+    for r in rows:  # which checkpoint rolled out (docs/validation.md)
+        if checkpoint and r["model"] == "model":
+            r.update(checkpoint=checkpoint.get("checkpoint"), checkpoint_epoch=checkpoint.get("checkpoint_epoch"))
+>>>>>>> val
     own = out.resolve() == run_dir.resolve()
     recovery_path = run_dir / "recovery.json"
     write_csv(out / "eval.csv", rows)
@@ -323,15 +338,19 @@ def run_eval(cfg: DictConfig) -> list[dict]:
     rollout file of the run (written next to that file)."""
     from omegaconf import OmegaConf
 
-    from .checkpoint import load_checkpoint
+    from .checkpoint import describe_checkpoint, load_checkpoint, rollout_checkpoint
     from .evaluation import run_extra_evals
     from .factory import configure_runtime
     from .other_data import rollout_dataset
-    from .runs import load_run
+    from .runs import load_run_checkpoint
 
     configure_runtime(cfg)  # this command's runtime section (the model of the scene's extra evaluation)
-    run_cfg, model, dataset, run_dir = load_run(cfg.run, cfg.paths.data_dir)
+    run_cfg, model, dataset, run_dir, used = load_run_checkpoint(
+        cfg.run, cfg.paths.data_dir, cfg.get("checkpoint") or "best"
+    )
     path = rollout_path_arg(cfg.get("rollout"), run_dir)
+    used = rollout_checkpoint(path, used)  # the rollout's own record (checkpoint.json) when it has one
+    console.print(describe_checkpoint(used), highlight=False)
     dataset, run_cfg = rollout_dataset(path, model, dataset, run_cfg, run_dir, cfg.paths.data_dir)
     timings = load_checkpoint(Path(run_dir) / "checkpoints" / "last.pt").get("timings")
     rows = run_eval_from_objects(
@@ -341,6 +360,7 @@ def run_eval(cfg: DictConfig) -> list[dict]:
         timings,
         rollout_path=path,
         model_name=OmegaConf.select(run_cfg, "model.name", default=None),
+        checkpoint=used,
     )
     run_extra_evals(
         OmegaConf.merge(run_cfg, {"eval": cfg.eval, "ui": cfg.ui}), model, dataset, run_dir, rollout_path=path

@@ -162,17 +162,20 @@ def run_rollout(cfg: DictConfig) -> dict:
     the scene's extra evaluation). With `dataset=...` the rollout runs on that dataset's test split and
     is evaluated against it (`source.json` records it). The run's own rollout.h5 and evaluation are never
     touched; on failure the new folder is removed."""
-    from .checkpoint import load_checkpoint
+    from .checkpoint import CHECKPOINT_FILE, describe_checkpoint, load_checkpoint
     from .evaluate import run_eval_from_objects
     from .evaluation import run_extra_evals
     from .factory import configure_runtime
     from .io_utils import write_json
     from .other_data import SOURCE_FILE, other_dataset
     from .rollout_file import FILE_NAME
-    from .runs import load_run
+    from .runs import load_run_checkpoint
 
     configure_runtime(cfg)  # this command's runtime section: threads, device, dtype, ...
-    run_cfg, model, dataset, run_dir = load_run(cfg.run, cfg.paths.data_dir)
+    run_cfg, model, dataset, run_dir, used = load_run_checkpoint(
+        cfg.run, cfg.paths.data_dir, cfg.get("checkpoint") or "best"
+    )
+    console.print(describe_checkpoint(used), highlight=False)
     other = other_dataset(cfg, model, run_dir)
     merged = OmegaConf.merge(
         run_cfg,
@@ -204,7 +207,8 @@ def run_rollout(cfg: DictConfig) -> dict:
         path = out / FILE_NAME
         results = rollout_and_save(merged, model, dataset, path, steps=steps)
         timings = load_checkpoint(Path(run_dir) / "checkpoints" / "last.pt").get("timings")
-        rows = run_eval_from_objects(merged, dataset, run_dir, timings, rollout_path=path)
+        write_json(out / CHECKPOINT_FILE, used)
+        rows = run_eval_from_objects(merged, dataset, run_dir, timings, rollout_path=path, checkpoint=used)
         extra = run_extra_evals(merged, model, dataset, run_dir, rollout_path=path)
     except BaseException:
         shutil.rmtree(out, ignore_errors=True)
@@ -212,4 +216,11 @@ def run_rollout(cfg: DictConfig) -> dict:
             out.parent.rmdir()  # only if empty: the first rollout of this run failed
         raise
     console.print(f"rollout and its evaluation written to {out}")
-    return {"dir": str(out), "rollout": results, "eval": rows, "extra_eval": extra, "source": source}
+    return {
+        "dir": str(out),
+        "rollout": results,
+        "eval": rows,
+        "extra_eval": extra,
+        "source": source,
+        "checkpoint": used,
+    }

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
-from .checkpoint import load_checkpoint, load_state
+from .checkpoint import checkpoint_path, checkpoint_record, load_checkpoint, load_state
 from .errors import CheckpointError, ConfigError, DatasetError
 
 
@@ -32,9 +32,18 @@ def _recorded_dataset(run_dir: Path, recorded) -> Path | None:
     return next((c for c in candidates if c.is_file()), None)
 
 
-def load_run(run_dir, data_dir=None):
+def load_run(run_dir, data_dir=None, checkpoint: str = "best"):
     """-> (config, model with trained weights on the runtime's device and dtype, dataset, run_dir).
-    The checkpoint is loaded with `map_location` = that device."""
+    checkpoint: `best` (checkpoints/best.pt, the selected model, when the run has one; else last.pt)
+    or `last`. The checkpoint is loaded with `map_location` = that device."""
+    cfg, model, dataset, run_dir, _ = load_run_checkpoint(run_dir, data_dir, checkpoint)
+    return cfg, model, dataset, run_dir
+
+
+def load_run_checkpoint(run_dir, data_dir=None, checkpoint: str = "best"):
+    """`load_run` plus the record of the checkpoint loaded (`checkpoint.checkpoint_record`:
+    file, epoch, selection metric and value). The run's config comes from checkpoints/last.pt, which
+    is always loaded and checked (a broken last.pt is a broken run); best.pt then replaces the weights."""
     from .data.hdf5 import load_dataset
     from .data.scenes import get_dataset
     from .factory import build_model, placement
@@ -44,6 +53,7 @@ def load_run(run_dir, data_dir=None):
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise ConfigError(f"run={run_dir}: no such run directory")
+    selected = checkpoint_path(run_dir, checkpoint)
     ckpt = run_dir / "checkpoints" / "last.pt"
     payload = load_checkpoint(ckpt, map_location=placement()[0])
     if not isinstance(payload["config"], dict):
@@ -62,7 +72,10 @@ def load_run(run_dir, data_dir=None):
     except Exception as e:
         raise CheckpointError(f"{ckpt}: field 'config' does not build a model ({e})") from None
     load_state(ckpt, model, payload)
-    return cfg, model, dataset, run_dir
+    if selected != ckpt:
+        ckpt, payload = selected, load_checkpoint(selected, map_location=placement()[0])
+        load_state(ckpt, model, payload)
+    return cfg, model, dataset, run_dir, checkpoint_record(ckpt, payload)
 
 
 # ----------------------------------------------------------------------------- other run files

@@ -46,6 +46,12 @@ class OptimizerSchema:
 
 
 @dataclass
+class EarlyStoppingSchema:
+    patience: int | None = None  # validation passes without improvement before training stops; null = off
+    min_delta: float = 0.0  # an improvement must exceed this
+
+
+@dataclass
 class TrainSchema:
     epochs: int = 1000
     batch_size: int = 1024
@@ -57,6 +63,10 @@ class TrainSchema:
     epsilon: float = 10.0
     checkpoint_every: Any = "auto"  # auto | positive int (checked in train.checkpoint_interval)
     full_batch: bool = False  # one optimiser step per epoch over every sample
+    val_every: Any = "auto"  # auto | positive int (checked in validation.val_interval)
+    val_horizon: int = 20
+    select: str = "val_one_step"
+    early_stopping: EarlyStoppingSchema = field(default_factory=EarlyStoppingSchema)
 
 
 @dataclass
@@ -131,6 +141,8 @@ SECTIONS: dict[str, Any] = {
 }
 CHOICES = {
     ("train", "reg_form"): ("relu", "gaussian"),
+    ("train", "select"): ("val_one_step", "val_rollout", "last"),
+    ("checkpoint",): ("best", "last"),  # liedfl rollout / eval
     ("train", "optimizer", "name"): ("soap", "adam"),
     ("train", "optimizer", "schedule"): ("constant", "cosine"),
     ("model", "potential"): ("auto", "mlp", "none", "uniform_gravity"),  # or a list of mlp, uniform_gravity
@@ -146,8 +158,11 @@ TOP_LEVEL: dict[str, tuple[str, ...]] = {
     # budget files also set train/rollout/epoch_scale, which `liedfl data` ignores
     "data": ("task_name", "ui", "paths", "group", "dataset", "train", "rollout", "epoch_scale", "seed"),
     # rollout run=<run> dataset=<scene>: other data (the dataset file selects its group)
-    "rollout": ("task_name", "run", "steps", "rollout", "eval", "ui", "paths", "solver", "runtime", "dataset", "group"),
-    "eval": ("task_name", "run", "rollout", "eval", "ui", "paths", "solver", "runtime"),
+    "rollout": (
+        *("task_name", "run", "checkpoint", "steps", "rollout", "eval", "ui", "paths", "solver", "runtime"),
+        *("dataset", "group"),
+    ),
+    "eval": ("task_name", "run", "checkpoint", "rollout", "eval", "ui", "paths", "solver", "runtime"),
     "report": ("task_name", "sweep", "plots"),
     "resume": ("task_name", "resume", "epochs", "ui"),
 }
@@ -469,6 +484,17 @@ def _check_values(cfg, command: str) -> None:
         _float(cfg, "train.epsilon")
         if _value(cfg, "train.checkpoint_every") not in (None, "auto"):
             _int(cfg, "train.checkpoint_every", 1, what="auto or a positive integer")
+        if _value(cfg, "train.val_every") not in (None, "auto"):
+            _int(cfg, "train.val_every", 1, what="auto or a positive integer")
+        if _has(cfg, "train.val_horizon"):
+            _int(cfg, "train.val_horizon", 2)
+        if _has(cfg, "train.early_stopping.patience"):
+            _int(cfg, "train.early_stopping.patience", 1, nullable=True)
+        if _has(cfg, "train.early_stopping.min_delta"):
+            _float(cfg, "train.early_stopping.min_delta", nonnegative=True)
+        fraction = _value(cfg, "dataset.val_fraction")
+        if fraction is not None and not (_is_number(fraction) and 0 <= fraction < 1):
+            raise ConfigError(f"dataset.val_fraction={fraction!r}: must be a number in [0, 1) (0: no validation)")
     if isinstance(cfg.get("rollout"), DictConfig):  # (`liedfl eval rollout=<dir>`: a path, or null)
         if "steps" in cfg.rollout:  # a rollout needs the two given poses and at least one predicted step
             _int(cfg, "rollout.steps", 2, nullable=True)

@@ -9,6 +9,12 @@ metrics are appended to `train_metrics.csv` as training goes. SIGINT/SIGTERM fin
 epoch, save a checkpoint and stop with one line saying how to resume (a second signal stops at
 once). `liedfl train resume=<run dir>` (`run_resume`) continues from the last checkpoint and, for
 the same seed, ends with the same losses and weights as an uninterrupted run.
+
+Validation (`validation.py`, docs/validation.md): a split taken from the train split
+(`dataset.val_fraction`), a pass every `train.val_every` epochs (its columns in train_metrics.csv,
+its time left out of the training time), the best pass's weights in `checkpoints/best.pt`
+(`train.select`), early stopping (`train.early_stopping`); after training the selected weights are
+rolled out and evaluated.
 """
 
 from __future__ import annotations
@@ -25,13 +31,34 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from .checkpoint import capture_rng_state, load_checkpoint, load_state, restore_rng_state, save_checkpoint
+from .checkpoint import (
+    CHECKPOINT_FILE,
+    capture_rng_state,
+    checkpoint_record,
+    describe_checkpoint,
+    load_checkpoint,
+    load_state,
+    restore_rng_state,
+    save_checkpoint,
+)
 from .errors import CheckpointError, ConfigError, LiedflError
 from .factory import loss_options
 from .io_utils import write_json
 from .lie import Pose
 from .solvers import runtime
 from .ui import console, err_console, progress_bar
+from .validation import (
+    VAL_COLUMNS,
+    Selection,
+    Validator,
+    ValSplit,
+    format_pass,
+    make_selection,
+    make_val_split,
+    select_option,
+    val_fraction,
+    val_interval,
+)
 
 AUTO_CHECKPOINT_SECONDS = 60.0  # `checkpoint_every: auto` loses at most about this much work
 
@@ -180,6 +207,9 @@ def fit(
     save: Callable[[dict], None] | None = None,
     on_epoch: Callable[[dict], None] | None = None,
     stop: StopRequest | None = None,
+    validator: Validator | None = None,
+    selection: Selection | None = None,
+    save_best: Callable[[int, dict], None] | None = None,
 ) -> dict:
     """Train `model` on the first `steps` steps of `data` (T, N+1, ...).
 
@@ -226,12 +256,18 @@ def fit(
             "scheduler": sched.state_dict() if sched is not None else None,
             "rng": capture_rng_state({"batches": gen}),
             "history": history,
+            "selection": selection.state() if selection is not None else None,
+            "val_every": validator.every if validator is not None else None,
         }
 
+    val_seconds = sum(float(r.get("val_seconds") or 0.0) for r in history)
+    no_pass = dict.fromkeys(VAL_COLUMNS) if validator is not None else {}
+    val_text = next((format_pass(r) for r in reversed(history) if r.get("val_one_step_error") is not None), "")
+    last = start - 1
     t0 = time.perf_counter() - offset
     last_save = time.perf_counter()
     with progress_bar(show_progress) as bar:
-        task = bar.add_task("train", total=epochs, completed=start - 1, loss=float("nan"))
+        task = bar.add_task("train", total=epochs, completed=start - 1, loss=float("nan"), val=val_text)
         for epoch in range(start, epochs + 1):
             perm = torch.randperm(n, generator=gen)
             sums: dict[str, float] = {}
@@ -247,18 +283,42 @@ def fit(
                     sums[k] = sums.get(k, 0.0) + float(v.detach()) / n_batches
             if sched is not None:
                 sched.step()
-            row = {"epoch": epoch, **sums, "seconds": time.perf_counter() - t0}
+            row = {"epoch": epoch, **sums, "seconds": time.perf_counter() - t0, **no_pass}
+            early = False
+            if validator is not None and validator.due(epoch, epochs):
+                tv = time.perf_counter()
+                row.update(validator.measure(model))
+                improved, early = selection.update(epoch, row) if selection is not None else (False, False)
+                if improved and save_best is not None:
+                    save_best(epoch, row)
+                spent = time.perf_counter() - tv
+                row["val_seconds"] = spent  # the pass and best.pt
+                val_seconds += spent
+                t0 += spent  # validation is not training time
+                val_text = format_pass(row)
             history.append(row)
+            last = epoch
             if on_epoch is not None:
                 on_epoch(row)
-            bar.update(task, advance=1, loss=sums["loss"])
-            if log_epochs and not show_progress and (epoch % max(1, epochs // 10) == 0 or epoch == epochs):
+            bar.update(task, advance=1, loss=sums["loss"], val=val_text)
+            if log_epochs and not show_progress and (epoch % max(1, epochs // 10) == 0 or epoch == epochs or early):
                 console.print(
                     f"epoch {epoch}/{epochs}  "
                     + "  ".join(f"{k} {v:.3e}" for k, v in sums.items())
+                    + (f"  {val_text}" if val_text else "")
                     + f"  ({time.perf_counter() - t0:.1f} s)",
                     highlight=False,
                 )
+            if early:
+                assert selection is not None
+                console.print(
+                    f"early stopping after epoch {epoch}/{epochs}: {selection.metric} has not improved by more than "
+                    f"{selection.min_delta:g} for {selection.bad_passes} validation passes "
+                    f"(best {selection.best if selection.best is not None else float('nan'):.3e} "
+                    f"at epoch {selection.best_epoch})",
+                    highlight=False,
+                )
+                break
             signum = stop.signum if stop is not None else None
             stopping = signum is not None
             due = (epoch % every == 0) if every else (time.perf_counter() - last_save >= AUTO_CHECKPOINT_SECONDS)
@@ -274,11 +334,66 @@ def fit(
     return {
         "history": history,
         "train_seconds": wall,
-        "seconds_per_epoch": wall / max(epochs, 1),
+        "seconds_per_epoch": wall / max(last, 1),
+        "val_seconds": val_seconds,
+        "epochs": last,
         "n_samples": n,
         "batches_per_epoch": n_batches,
-        "state": state(epochs),
+        "state": state(last),
     }
+
+
+def validation_setup(cfg: DictConfig, dataset, resume: dict | None) -> tuple[ValSplit, Validator | None, Selection]:
+    """The validation split (`dataset.val_fraction`, taken from the train split), the validation
+    passes (`train.val_every`, `train.val_horizon`) and the selection (`train.select`,
+    `train.early_stopping`), restored from `resume`; prints what was chosen."""
+    from .data.scenes import dataset_steps
+    from .factory import data_pose, solver_options
+
+    steps = dataset_steps(cfg.dataset, dataset, "train_steps")
+    seed = int(dataset.seed) if int(dataset.seed) >= 0 else 0
+    split = make_val_split(dataset.train_idx, steps, val_fraction(cfg.dataset.get("val_fraction")), seed)
+    select, notes = select_option(cfg.train, split)
+    selection = make_selection(cfg.train, select)
+    if resume is not None:
+        selection.restore(resume.get("selection"))
+    validator = None
+    if split.kind != "none":
+        horizon = cfg.train.get("val_horizon", 20)
+        if isinstance(horizon, bool) or not isinstance(horizon, int) or horizon < 2:
+            raise ConfigError(f"train.val_horizon={horizon!r}: must be an integer >= 2")
+        every = val_interval(cfg.train.get("val_every", "auto"), int(cfg.train.epochs))
+        if resume is not None and resume.get("val_every"):  # the schedule of the run, also when extended
+            every = int(resume["val_every"])
+        truth = data_pose(dataset, split.val_idx).index((slice(None), slice(split.val_start, split.val_stop + 1)))
+        validator = Validator(dataset.group, truth, solver_options(cfg.solver), horizon, every)
+        console.print(
+            f"[bold]validation[/] {split.describe()}; a pass every {every} epochs (and the last): one-step error on "
+            f"{validator.n_pairs} pairs (constant velocity: {validator.cv_error:.3e} rad), rollout error over "
+            f"{validator.horizon} steps; selecting by {selection.metric or 'last'}",
+            highlight=False,
+        )
+    else:
+        console.print(f"[bold]validation[/] {split.describe()}: checkpoint = the last epoch", highlight=False)
+    for note in notes:
+        console.print(f"[bold yellow]note:[/] {note}", highlight=False)
+    return split, validator, selection
+
+
+def use_selected(model, out: Path, selection: Selection, last_epoch: int) -> dict:
+    """Load the selected weights (`checkpoints/best.pt`) into `model` unless the selection is `last`
+    or found nothing finite; print and return which checkpoint the model now holds."""
+    best = out / "checkpoints" / "best.pt"
+    if selection.metric is not None and selection.best_epoch is not None and best.is_file():
+        payload = load_checkpoint(best)
+        load_state(best, model, payload)
+        used = checkpoint_record(best, payload)
+    else:
+        used = {"checkpoint": "last.pt", "checkpoint_epoch": int(last_epoch)}
+        if selection.metric is not None:
+            used["note"] = f"no finite {selection.metric} in any validation pass: nothing selected"
+    console.print(describe_checkpoint(used), highlight=False)
+    return used
 
 
 def count_parameters(model) -> int:
@@ -289,7 +404,7 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
     """`liedfl train`: data -> model -> fit (with checkpoints) -> checkpoint -> recovery ->
     rollout -> eval. `resume`: a checkpoint payload to continue from. Returns a summary."""
     from .data.files import complete_steps
-    from .data.scenes import dataset_steps, get_dataset
+    from .data.scenes import get_dataset
     from .evaluate import run_eval_from_objects
     from .factory import build_model, configure_runtime, data_pose
     from .rollout import rollout_and_save
@@ -298,6 +413,7 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
     out = Path(cfg.paths.output_dir)
     out.mkdir(parents=True, exist_ok=True)
     ckpt = out / "checkpoints" / "last.pt"
+    best = out / "checkpoints" / "best.pt"
     torch.manual_seed(int(cfg.seed))
     dataset, data_path = get_dataset(cfg.dataset, cfg.paths.data_dir, console=err_console)
     complete_steps(cfg.dataset, dataset)  # a file's null train_steps / rollout_steps: all its steps
@@ -338,14 +454,29 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
 
     history = list(resume.get("history", [])) if resume else []
     log = MetricsLog(out / "train_metrics.csv", history)
-    train_data = data_pose(dataset, dataset.train_idx)
     epochs = int(cfg.train.epochs)
-    if resume is not None and int(resume["epoch"]) >= epochs:  # training done: redo what follows it
+    split, validator, selection = validation_setup(cfg, dataset, resume)
+    if resume is None:
+        best.unlink(missing_ok=True)  # a reused run directory: no stale best.pt
+
+    def save_best(epoch: int, row: dict) -> None:
+        val = {k: v for k, v in row.items() if k in VAL_COLUMNS and v is not None}
+        extra = {"dataset_path": dataset_path, "components": comps, "epoch": epoch, "val": val}
+        save_checkpoint(best, model, config, {**extra, "selected_by": selection.metric})
+
+    train_data = data_pose(dataset, split.train_idx)
+    done = resume is not None and (int(resume["epoch"]) >= epochs or selection.stopped)
+    if done:  # training done: redo what follows it
+        assert resume is not None
         result = {"history": history, "train_seconds": resume.get("timings", {}).get("train_seconds", 0.0)}
-        result["seconds_per_epoch"] = result["train_seconds"] / max(epochs, 1)
+        result["epochs"] = int(resume["epoch"])
+        result["seconds_per_epoch"] = result["train_seconds"] / max(result["epochs"], 1)
+        result["val_seconds"] = resume.get("timings", {}).get("val_seconds", 0.0)
         result["n_samples"] = resume.get("timings", {}).get("n_samples")
-        result["state"] = {k: resume[k] for k in ("epoch", "optimizer", "scheduler", "rng", "history")}
-        console.print(f"{ckpt}: all {epochs} epochs are trained; redoing the evaluation")
+        keys = ("epoch", "optimizer", "scheduler", "rng", "history", "selection", "val_every")
+        result["state"] = {k: resume.get(k) for k in keys}
+        why = "stopped early" if selection.stopped else f"all {epochs} epochs are trained"
+        console.print(f"{ckpt}: {why} (epoch {result['epochs']}); redoing the evaluation")
     else:
         if resume is not None:
             console.print(f"resuming {out} at epoch {int(resume['epoch']) + 1}/{epochs}")
@@ -355,29 +486,35 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
                     model,
                     train_data,
                     cfg.train,
-                    dataset_steps(cfg.dataset, dataset, "train_steps"),
+                    split.train_steps,
                     seed=int(cfg.seed),
                     show_progress=cfg.ui.progress,
                     resume=resume,
                     save=save,
                     on_epoch=log.append,
                     stop=stop,
+                    validator=validator,
+                    selection=selection,
+                    save_best=save_best,
                 )
             except TrainingInterrupted as e:
                 raise TrainingInterrupted(f"{e}; resume with: liedfl train resume={out}", e.exit_code) from None
     timings = {
         "train_seconds": result["train_seconds"],
         "seconds_per_epoch": result["seconds_per_epoch"],
-        "epochs": epochs,
+        "epochs": result["epochs"],
         "n_samples": result["n_samples"],
         "parameters": n_params,
+        "val_seconds": result["val_seconds"],
     }
     # the trained model is saved before anything else can fail
     save(result["state"], timings)
     console.print(
-        f"trained {epochs} epochs in {result['train_seconds']:.1f} s "
-        f"(final loss {result['history'][-1]['loss']:.3e}); checkpoint {ckpt}"
+        f"trained {result['epochs']} epochs in {result['train_seconds']:.1f} s "
+        + (f"(+ {result['val_seconds']:.1f} s validation) " if validator is not None else "")
+        + f"(final loss {result['history'][-1]['loss']:.3e}); checkpoint {ckpt}"
     )
+    used = use_selected(model, out, selection, result["epochs"])
     from .data.checks import step_rotation_summary
 
     summary = {
@@ -392,9 +529,12 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
             "train_steps": int(cfg.dataset.train_steps),
             "train": len(dataset.train_idx),
             "test": len(dataset.test_idx),
+            "val": len(split.val_idx),
         },
         "timings": timings,
         "final_loss": result["history"][-1]["loss"],
+        "validation": {"split": split.kind, "description": split.describe(), **selection.state()},
+        "checkpoint": used,
         "data_step_rotation": step_rotation_summary(dataset),
     }
     from .recovery import parameter_recovery
@@ -409,7 +549,8 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
     if cfg.rollout.enabled:
         ro = rollout_and_save(cfg, model, dataset, out / "rollout.h5", steps=cfg.rollout.steps)
         summary["rollout"] = ro
-        summary["eval"] = run_eval_from_objects(cfg, dataset, out, timings)
+        write_json(out / CHECKPOINT_FILE, used)  # which checkpoint rolled out (liedfl eval reads it)
+        summary["eval"] = run_eval_from_objects(cfg, dataset, out, timings, checkpoint=used)
         from .evaluation import run_extra_evals
 
         extra = run_extra_evals(cfg, model, dataset, out)
@@ -437,6 +578,9 @@ def run_resume(cfg: DictConfig) -> dict:
         raise CheckpointError(f"{ckpt}: field 'config' is not a mapping")
     saved = OmegaConf.create(payload["config"])
     saved.paths.output_dir = str(run_dir)
+    if "val_fraction" not in saved.dataset:  # a run from before validation: keep its training data
+        saved.dataset.val_fraction = 0.0
+        console.print("[bold yellow]note:[/] a run written before validation existed: resumed without validation")
     if cfg.get("epochs") is not None:
         try:
             epochs = int(cfg.epochs)

@@ -64,13 +64,16 @@ def log_to(path, mode: str = "a"):
 
 
 class _LossColumn(ProgressColumn):
-    """`loss 1.234e-02` while a task reports a finite loss (training); nothing otherwise (rollouts)."""
+    """`loss 1.234e-02` while a task reports a finite loss (training), followed by the last validation
+    pass (`val 1.2e-04 (0.31x CV), roll 3.4e-03`) when the task reports one; nothing otherwise (rollouts)."""
 
     def render(self, task) -> Text:
         loss = task.fields.get("loss")
-        if isinstance(loss, (int, float)) and math.isfinite(loss):
-            return Text(f"loss {loss:.3e}")
-        return Text("")
+        text = f"loss {loss:.3e}" if isinstance(loss, (int, float)) and math.isfinite(loss) else ""
+        val = task.fields.get("val")
+        if text and val:
+            text += f"  {val}"
+        return Text(text)
 
 
 class _PhaseLines:
@@ -105,6 +108,8 @@ class _PhaseLines:
             loss = t["fields"].get("loss")
             if isinstance(loss, (int, float)) and math.isfinite(loss):
                 line += f", loss {loss:.3e}"
+                if t["fields"].get("val"):
+                    line += f", {t['fields']['val']}"
             console.print(line, highlight=False, markup=False, soft_wrap=True)
 
 

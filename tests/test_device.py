@@ -330,7 +330,7 @@ def test_float32_run_trains_rolls_out_and_evaluates(smoke_cfg, tmp_path, restore
     runtime.configure({"dtype": "float32"})
     _, model, _, _ = runs.load_run(run)
     assert all(p.dtype == torch.float32 for p in model.parameters())
-    assert where == [torch.device("cpu")] * 2
+    assert where == [torch.device("cpu")] * 4  # each load_run reads last.pt (config, checks) and best.pt (weights)
 
 
 @pytest.mark.parametrize("fused", [True, False], ids=["fused", "reference"])

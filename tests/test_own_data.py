@@ -61,11 +61,13 @@ def test_the_scene_configs_hold_exactly_the_keys_the_scenes_accept():
 
     from liedfl_cli.cli import CONF_DIR
     from liedfl_cli.data.files import FILE_KEYS, IMPORT_KEYS
+    from liedfl_cli.data.scene_common import TRAIN_TIME_KEYS
 
     for name, keys, ref in (("file", FILE_KEYS, FILE), ("import", IMPORT_KEYS, IMPORT)):
         c = yaml.safe_load((CONF_DIR / "dataset" / f"{name}.yaml").read_text())
         c.pop("defaults")
-        assert set(c) == set(keys) == set(ref) | {"path"}, name
+        assert set(TRAIN_TIME_KEYS) <= set(c), name  # the trainer's keys (validation split): no scene sees them
+        assert set(c) - set(TRAIN_TIME_KEYS) == set(keys) == set(ref) | {"path"}, name
 
 
 # ----------------------------------------------------------------------------- import

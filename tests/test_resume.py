@@ -20,6 +20,7 @@ from liedfl_cli.errors import CheckpointError, ConfigError
 from liedfl_cli.train import TrainingInterrupted, run_resume, run_train
 
 CONF = str(Path(__file__).resolve().parents[1] / "liedfl_cli" / "conf")
+_real_graceful_stop = train_mod.graceful_stop
 
 
 def _cfg(tmp: Path, run: str, extra=(), name="train"):
@@ -32,7 +33,7 @@ def _cfg(tmp: Path, run: str, extra=(), name="train"):
 def _losses(run: Path) -> list[list[str]]:
     with open(run / "train_metrics.csv") as f:
         rows = list(csv.DictReader(f))
-    return [[r[k] for k in r if k != "seconds"] for r in rows]
+    return [[r[k] for k in r if k not in ("seconds", "val_seconds")] for r in rows]  # timings differ
 
 
 def _stop_at(monkeypatch, epoch: int) -> None:
@@ -74,20 +75,58 @@ def test_interrupted_then_resumed_equals_uninterrupted(tmp_path, monkeypatch, ba
     monkeypatch.undo()
     run_resume(_cfg(tmp_path, "", [f"resume={cut}", "ui.progress=false"], name="resume"))
     assert _losses(cut) == _losses(Path(full["run_dir"]))
-    a = load_checkpoint(Path(full["run_dir"]) / "checkpoints" / "last.pt")["state_dict"]
-    b = load_checkpoint(cut / "checkpoints" / "last.pt")["state_dict"]
-    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    a = load_checkpoint(Path(full["run_dir"]) / "checkpoints" / "last.pt")
+    b = load_checkpoint(cut / "checkpoints" / "last.pt")
+    assert a["state_dict"].keys() == b["state_dict"].keys()
+    assert all(torch.equal(a["state_dict"][k], b["state_dict"][k]) for k in a["state_dict"])
     assert (cut / "eval.csv").is_file()
+    # the validation passes and the selection (best-so-far state, best.pt) are those of the full run
+    assert "val_one_step_error" in _rows(cut)[0] and all(r["val_one_step_error"] for r in _rows(cut))
+    assert a["selection"] == b["selection"] and a["selection"]["best_epoch"] is not None
+    best_a = load_checkpoint(Path(full["run_dir"]) / "checkpoints" / "best.pt")
+    best_b = load_checkpoint(cut / "checkpoints" / "best.pt")
+    assert best_a["epoch"] == best_b["epoch"] == a["selection"]["best_epoch"]
+    assert all(torch.equal(best_a["state_dict"][k], best_b["state_dict"][k]) for k in best_a["state_dict"])
+    assert json.loads((cut / "summary.json").read_text())["checkpoint"] == full["checkpoint"]
+
+
+def test_resume_keeps_the_best_so_far_when_later_passes_are_worse(tmp_path, monkeypatch):
+    """Cut after the best pass: the resumed run must still select it (state from the checkpoint)."""
+    from liedfl_cli.validation import VAL_COLUMNS
+
+    values = iter([2.0, 1.0, 3.0, 3.0, 3.0, 3.0])
+
+    def measure(self, model):
+        return {**dict.fromkeys(VAL_COLUMNS), "val_one_step_error": next(values), "val_seconds": 0.0}
+
+    monkeypatch.setattr(train_mod.Validator, "measure", measure)
+    _stop_at(monkeypatch, 4)
+    with pytest.raises(TrainingInterrupted):
+        run_train(_cfg(tmp_path, "cut", ["train.val_every=1", "rollout.enabled=false"]))
+    cut = tmp_path / "cut"
+    assert load_checkpoint(cut / "checkpoints" / "last.pt")["selection"]["best_epoch"] == 2
+    monkeypatch.setattr(train_mod, "graceful_stop", _real_graceful_stop)
+    s = run_resume(_cfg(tmp_path, "", [f"resume={cut}", "ui.progress=false"], name="resume"))
+    assert s["checkpoint"]["checkpoint"] == "best.pt" and s["checkpoint"]["checkpoint_epoch"] == 2
+    assert load_checkpoint(cut / "checkpoints" / "best.pt")["epoch"] == 2
+
+
+def _rows(run: Path) -> list[dict]:
+    with open(run / "train_metrics.csv") as f:
+        return list(csv.DictReader(f))
 
 
 def test_checkpoints_are_written_during_training(tmp_path, monkeypatch):
     seen = []
     real_save = train_mod.save_checkpoint
     monkeypatch.setattr(
-        train_mod, "save_checkpoint", lambda p, m, c, e: (seen.append(e.get("epoch")), real_save(p, m, c, e))
+        train_mod,
+        "save_checkpoint",
+        lambda p, m, c, e: (seen.append((Path(p).name, e["epoch"])), real_save(p, m, c, e)),
     )
     run_train(_cfg(tmp_path, "run", ["rollout.enabled=false"]))
-    assert seen == [2, 4, 6]  # every 2 epochs, then the final one
+    assert [e for name, e in seen if name == "last.pt"] == [2, 4, 6]  # every 2 epochs, then the final one
+    assert [e for name, e in seen if name == "best.pt"][0] == 1  # best.pt: whenever the selected metric improves
 
 
 def test_resume_of_a_finished_run_redoes_the_evaluation_and_can_extend(tmp_path):

@@ -45,7 +45,7 @@ import torch
 from ..errors import ConfigError, DatasetError, DataWarning
 from ..lie import so3
 from .hdf5 import Dataset, load_dataset
-from .scene_common import config_hash, make_split
+from .scene_common import TRAIN_TIME_KEYS, config_hash, make_split
 from .smoothing import check_window, smooth_pose
 from .transforms import noise_spec, smoothing_spec
 
@@ -135,7 +135,7 @@ def _shipped_defaults(name: str) -> dict:
     raw = OmegaConf.load(Path(__file__).resolve().parent.parent / "conf" / "dataset" / f"{name}.yaml")
     out = OmegaConf.to_container(raw, resolve=True)
     assert isinstance(out, dict)
-    return {k: v for k, v in out.items() if k != "defaults" and v != "???"}
+    return {k: v for k, v in out.items() if k != "defaults" and v != "???" and k not in TRAIN_TIME_KEYS}
 
 
 def check_source_config(c: dict) -> dict:

@@ -23,8 +23,12 @@ from .physics import SolverOptions
 GENERATOR_VERSION = 1
 """Bump when generated data would change for the same config (it is part of the cache hash)."""
 
-NON_GENERATOR_KEYS = ("train_steps", "rollout_steps")
+NON_GENERATOR_KEYS = ("train_steps", "rollout_steps", "val_fraction")
 """Config keys that select how data is used, not what is generated (excluded from the hash)."""
+
+TRAIN_TIME_KEYS = ("val_fraction",)
+"""Dataset keys read by the trainer only (the validation split, taken from the train split at train
+time: liedfl_cli/validation.py); `to_dict` drops them, so no generator sees them."""
 
 REQUIRED_KEYS = (
     "name",
@@ -45,17 +49,23 @@ REQUIRED_KEYS = (
 
 # --------------------------------------------------------------------------- config handling
 def to_dict(cfg) -> dict[str, Any]:
-    """DictConfig / Mapping -> plain nested dict (interpolations resolved)."""
+    """DictConfig / Mapping -> plain nested dict (interpolations resolved), without TRAIN_TIME_KEYS."""
+    out: dict[str, Any] | None = None
     try:
         from omegaconf import DictConfig, OmegaConf
 
         if isinstance(cfg, DictConfig):
-            return OmegaConf.to_container(cfg, resolve=True)  # type: ignore[return-value]
+            out = OmegaConf.to_container(cfg, resolve=True)  # type: ignore[assignment]
     except ImportError:  # pragma: no cover
         pass
-    if not isinstance(cfg, Mapping):
-        raise ConfigError(f"dataset config must be a mapping, got {type(cfg).__name__}")
-    return copy.deepcopy(dict(cfg))
+    if out is None:
+        if not isinstance(cfg, Mapping):
+            raise ConfigError(f"dataset config must be a mapping, got {type(cfg).__name__}")
+        out = copy.deepcopy(dict(cfg))
+    if isinstance(out, dict):
+        for k in TRAIN_TIME_KEYS:
+            out.pop(k, None)
+    return out
 
 
 def _canonical(x):
