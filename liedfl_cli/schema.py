@@ -46,6 +46,13 @@ class OptimizerSchema:
 
 
 @dataclass
+class RolloutLossSchema:  # train.loss=rollout: the fine-tuning stage (liedfl_cli/finetune.py)
+    horizon: int = 5  # k: steps rolled out per window of k + 2 true poses
+    epochs: int = 100  # fine-tuning epochs after train.epochs of the DEL loss
+    lr: Any = None  # null: train.optimizer.lr
+
+
+@dataclass
 class TrainSchema:
     epochs: int = 1000
     batch_size: int = 1024
@@ -57,6 +64,8 @@ class TrainSchema:
     epsilon: float = 10.0
     checkpoint_every: Any = "auto"  # auto | positive int (checked in train.checkpoint_interval)
     full_batch: bool = False  # one optimiser step per epoch over every sample
+    loss: str = "del"  # del | newton | rollout (models/losses.py)
+    rollout_loss: RolloutLossSchema = field(default_factory=RolloutLossSchema)
 
 
 @dataclass
@@ -130,6 +139,7 @@ SECTIONS: dict[str, Any] = {
 }
 CHOICES = {
     ("train", "reg_form"): ("relu", "gaussian"),
+    ("train", "loss"): ("del", "newton", "rollout"),
     ("train", "optimizer", "name"): ("soap", "adam"),
     ("train", "optimizer", "schedule"): ("constant", "cosine"),
     ("model", "potential"): ("auto", "mlp", "none", "uniform_gravity"),  # or a list of mlp, uniform_gravity
@@ -465,6 +475,11 @@ def _check_values(cfg, command: str) -> None:
         _float(cfg, "train.w_reg", nonnegative=True)
         _int(cfg, "train.reg_points", 0)
         _float(cfg, "train.epsilon")
+        if _value(cfg, "train.rollout_loss") is not None:
+            _int(cfg, "train.rollout_loss.horizon", 1)
+            _int(cfg, "train.rollout_loss.epochs", 1)
+            if _value(cfg, "train.rollout_loss.lr") is not None:
+                _float(cfg, "train.rollout_loss.lr", positive=True)
         if _value(cfg, "train.checkpoint_every") not in (None, "auto"):
             _int(cfg, "train.checkpoint_every", 1, what="auto or a positive integer")
     if isinstance(cfg.get("rollout"), DictConfig):  # (`liedfl eval rollout=<dir>`: a path, or null)
