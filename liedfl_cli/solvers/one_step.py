@@ -43,7 +43,7 @@ def _pairs(truth: Pose) -> tuple[Pose, Pose, tuple[int, int]]:
         raise ValueError(f"one-step predictions need trajectories of at least 3 poses, got {n1}")
     prev = truth.index((slice(None), slice(0, n1 - 2)))
     cur = truth.index((slice(None), slice(1, n1 - 1)))
-    flat = lambda g: Pose(g.R.reshape(-1, *g.R.shape[2:]), g.p.reshape(-1, *g.p.shape[2:]))
+    flat = lambda g: Pose(g.R.flatten(0, 1), g.p.flatten(0, 1))  # (reshape(-1, 0, 3) fails for SO(3)-only p)
     return flat(prev), flat(cur), (T, n1 - 2)
 
 
