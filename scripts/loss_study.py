@@ -135,7 +135,8 @@ def write_markdown(results: list[dict], path: Path) -> None:
         "# Which training loss predicts best (scripts/loss_study.py)",
         "",
         "| case | train.loss | train s (fine-tune s) | rollout geodesic error (mean) | rollout rel. rot. error | "
-        "Newton failures | one-step rot. error (rad) | constant velocity | one-step pos. error | constant velocity | load (1-min avg before / after) |",
+        "Newton failures | one-step rot. error (rad) | constant velocity | one-step pos. error | constant velocity | "
+        "load (1-min avg before / after) |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
