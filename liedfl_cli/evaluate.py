@@ -251,16 +251,11 @@ def run_eval_from_objects(
     from omegaconf import OmegaConf
 
     model_name = model_name or OmegaConf.select(cfg, "model.name", default=None)
-<<<<<<< HEAD
     names = plots.display_names([*rf.models, CONSTANT_VELOCITY], model_name)
     rows, curves = _rows(rf, truth, timings, names, group=dataset.group)
-=======
-    names = plots.display_names(rf.models, model_name)
-    rows, curves = _rows(rf, truth, timings, names)
     for r in rows:  # which checkpoint rolled out (docs/validation.md)
         if checkpoint and r["model"] == "model":
             r.update(checkpoint=checkpoint.get("checkpoint"), checkpoint_epoch=checkpoint.get("checkpoint_epoch"))
->>>>>>> val
     own = out.resolve() == run_dir.resolve()
     recovery_path = run_dir / "recovery.json"
     write_csv(out / "eval.csv", rows)

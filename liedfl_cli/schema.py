@@ -52,6 +52,13 @@ class EarlyStoppingSchema:
 
 
 @dataclass
+class RolloutLossSchema:  # train.loss=rollout: the fine-tuning stage (liedfl_cli/finetune.py)
+    horizon: int = 5  # k: steps rolled out per window of k + 2 true poses
+    epochs: int = 100  # fine-tuning epochs after train.epochs of the DEL loss
+    lr: Any = None  # null: train.optimizer.lr
+
+
+@dataclass
 class TrainSchema:
     epochs: int = 1000
     batch_size: int = 1024
@@ -67,6 +74,8 @@ class TrainSchema:
     val_horizon: int = 20
     select: str = "val_one_step"
     early_stopping: EarlyStoppingSchema = field(default_factory=EarlyStoppingSchema)
+    loss: str = "del"  # del | newton | rollout (models/losses.py)
+    rollout_loss: RolloutLossSchema = field(default_factory=RolloutLossSchema)
 
 
 @dataclass
@@ -143,6 +152,7 @@ CHOICES = {
     ("train", "reg_form"): ("relu", "gaussian"),
     ("train", "select"): ("val_one_step", "val_rollout", "last"),
     ("checkpoint",): ("best", "last"),  # liedfl rollout / eval
+    ("train", "loss"): ("del", "newton", "rollout"),
     ("train", "optimizer", "name"): ("soap", "adam"),
     ("train", "optimizer", "schedule"): ("constant", "cosine"),
     ("model", "potential"): ("auto", "mlp", "none", "uniform_gravity"),  # or a list of mlp, uniform_gravity
@@ -482,6 +492,11 @@ def _check_values(cfg, command: str) -> None:
         _float(cfg, "train.w_reg", nonnegative=True)
         _int(cfg, "train.reg_points", 0)
         _float(cfg, "train.epsilon")
+        if _value(cfg, "train.rollout_loss") is not None:
+            _int(cfg, "train.rollout_loss.horizon", 1)
+            _int(cfg, "train.rollout_loss.epochs", 1)
+            if _value(cfg, "train.rollout_loss.lr") is not None:
+                _float(cfg, "train.rollout_loss.lr", positive=True)
         if _value(cfg, "train.checkpoint_every") not in (None, "auto"):
             _int(cfg, "train.checkpoint_every", 1, what="auto or a positive integer")
         if _value(cfg, "train.val_every") not in (None, "auto"):

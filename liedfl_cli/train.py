@@ -45,6 +45,7 @@ from .errors import CheckpointError, ConfigError, LiedflError
 from .factory import loss_options
 from .io_utils import write_json
 from .lie import Pose
+from .models.losses import training_stage
 from .solvers import runtime
 from .ui import console, err_console, progress_bar
 from .validation import (
@@ -221,8 +222,8 @@ def fit(
     `history`) to continue from. save(state): called with that state at checkpoint times
     (`cfg_train.checkpoint_every`) and when `stop` is set. on_epoch(row): each epoch's metrics.
     """
-    opts = loss_options(cfg_train)
-    samples = model.training_set(data, int(steps))
+    # train.loss: newton changes the batches' loss; rollout trains with del here (fine-tuning: finetune.py)
+    opts, samples = training_stage(model, data, int(steps), loss_options(cfg_train))
     n = samples.n
     bs = n if cfg_train.get("full_batch", False) else min(int(cfg_train.batch_size), n)
     n_batches = math.ceil(n / bs)
@@ -499,6 +500,9 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
                 )
             except TrainingInterrupted as e:
                 raise TrainingInterrupted(f"{e}; resume with: liedfl train resume={out}", e.exit_code) from None
+    done_before = resume is not None and int(resume["epoch"]) >= epochs  # a finished run: evaluation only
+    if str(cfg.train.get("loss", "del")) == "rollout" and not done_before:  # train.loss=rollout: fine-tune
+        result = _finetune_stage(cfg, model, train_data, result, out)
     timings = {
         "train_seconds": result["train_seconds"],
         "seconds_per_epoch": result["seconds_per_epoch"],
@@ -506,6 +510,7 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
         "n_samples": result["n_samples"],
         "parameters": n_params,
         "val_seconds": result["val_seconds"],
+        **{str(k): result[k] for k in ("del_seconds", "finetune_seconds") if k in result},
     }
     # the trained model is saved before anything else can fail
     save(result["state"], timings)
@@ -558,6 +563,33 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
             summary["extra_eval"] = extra
     write_json(out / "summary.json", summary)
     return summary
+
+
+def _finetune_stage(cfg: DictConfig, model, train_data: Pose, result: dict, out: Path) -> dict:
+    """`finetune.finetune` after the DEL stage; its seconds are added to the training time."""
+    from .factory import solver_options
+    from .finetune import finetune
+
+    log = MetricsLog(out / "finetune_metrics.csv", [])
+    tuned = finetune(
+        model,
+        train_data,
+        cfg.train,
+        int(cfg.dataset.train_steps),
+        solver_options(cfg.solver),
+        seed=int(cfg.seed),
+        show_progress=cfg.ui.progress,
+        on_epoch=log.append,
+        make_optimizer=make_optimizer,
+    )
+    console.print(
+        f"fine-tuned on {tuned['windows']} rollout windows for {tuned['epochs']} epochs in {tuned['seconds']:.1f} s"
+    )
+    result = dict(result)
+    result["del_seconds"] = result["train_seconds"]
+    result["train_seconds"] = result["train_seconds"] + tuned["seconds"]
+    result["finetune_seconds"] = tuned["seconds"]
+    return result
 
 
 def run_resume(cfg: DictConfig) -> dict:

@@ -180,22 +180,30 @@ class LossOptions:
 
     w_del, w_reg: weights of mean ||r||^2 and of the regularity penalty. epsilon: threshold on
     log|det H| per body block. reg_form: relu | gaussian. reg_points: pairs drawn per batch for
-    the regularity term (0 = none)."""
+    the regularity term (0 = none). loss: del | newton | rollout (`models.losses`; w_del then
+    weighs mean ||H^-1 r||^2 for newton). rollout_horizon: steps k of the rollout loss's windows;
+    solver: the Newton settings of its solves (the run's `solver` section, set by the fine-tuning stage)."""
 
     w_del: float = 0.5
     w_reg: float = 0.5
     epsilon: float = 10.0
     reg_form: str = "relu"
     reg_points: int = 10
+    loss: str = "del"
+    rollout_horizon: int = 5
+    solver: SolverOptions | None = None  # the rollout loss's Newton solves (None: SolverOptions())
 
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any]) -> LossOptions:
+        rollout = values.get("rollout_loss") or {}
         return cls(
             w_del=float(values.get("w_del", cls.w_del)),
             w_reg=float(values.get("w_reg", cls.w_reg)),
             epsilon=float(values.get("epsilon", cls.epsilon)),
             reg_form=str(values.get("reg_form", cls.reg_form)),
             reg_points=int(values.get("reg_points", cls.reg_points)),
+            loss=str(values.get("loss", cls.loss)),
+            rollout_horizon=int(rollout.get("horizon", cls.rollout_horizon)),
         )
 
 

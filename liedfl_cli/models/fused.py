@@ -523,8 +523,20 @@ class IncrementSet(TripletSet):
                 static = static + potential_covector(model, self.cur)
         if any(not _trainable(x) for x in others) or (model.potential is not None and not self.potential_trainable):
             f["static"] = static
+        self.static_jac: torch.Tensor | None = None  # dF/dxi~ of the frozen forces at (g_k, xi~_k), N x dim x dim
+        frozen = [x for x in others if not _trainable(x)]
+        if frozen:
+            with torch.no_grad():
+                self.static_jac = sum(force_jacobian_xi(x, self.cur, xi2) for x in frozen)  # type: ignore[assignment]
         self.fields = f
         del self.prev, self.cur, self.nxt  # everything needed is in `fields`
+
+    def enable_jacobian(self) -> None:
+        """Also give every batch what the step Jacobian at (g_k, W_k) needs (`models.losses`, loss
+        newton): W2r, W_k of every body flattened (N, B, 9), and static_jac for frozen forces."""
+        self.fields["W2r"] = self.reg_W
+        if self.static_jac is not None:
+            self.fields["static_jac"] = self.static_jac
 
     def batch(self, idx: torch.Tensor, generator: torch.Generator, reg_points: int) -> IncrementBatch:  # type: ignore[override]
         """Triplets `idx` plus `reg_points` random pairs from `generator` (the draws of `TripletSet`)."""

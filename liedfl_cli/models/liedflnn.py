@@ -40,6 +40,7 @@ from .base import (
     BuildContext,
     ImplicitModel,
     LossOptions,
+    TrajectoryBatch,
     TripletBatch,
     config_options,
     initial_scale,
@@ -255,7 +256,15 @@ class LieDFLNN(ImplicitModel):
         return super().training_set(data, steps)
 
     def loss(self, batch: Batch | fused.IncrementBatch, opts: LossOptions):
-        """w_DEL mean ||r||^2 + w_reg mean penalty(log|det H|) -> (loss, {"del_loss", "reg_loss"})."""
+        """w_DEL mean ||r||^2 + w_reg mean penalty(log|det H|) -> (loss, {"del_loss", "reg_loss"});
+        `opts.loss` newton / rollout: `models.losses`."""
+        if opts.loss != "del":
+            from . import losses
+
+            if opts.loss == "newton":
+                return losses.newton_loss(self, batch, opts)
+            assert isinstance(batch, TrajectoryBatch), "train.loss=rollout trains on windows (losses.WindowSet)"
+            return losses.rollout_window_loss(self, batch, opts, opts.solver)
         if isinstance(batch, fused.IncrementBatch):
             if runtime.want_compile("train"):  # the whole loss, forward and backward, compiled
                 ref = next(self.parameters())
