@@ -72,7 +72,13 @@ FACTORIES = (
 INTEGER_FACTORIES = ("arange", "randint", "randperm")
 SETTINGS_MODULES = ("lie/tolerances.py", "solvers/runtime.py")  # rule 2a (runtime.py: rules 1 and 4 too)
 CONSTRUCTION_MODULES = ("mechanics/scene_physics.py",)  # rule 2c
-CONSTRUCTION_FUNCTIONS = {("mechanics/potentials.py", "_vec3")}  # rule 2c
+CONSTRUCTION_FUNCTIONS = {  # rule 2c
+    ("mechanics/potentials.py", "_vec3"),
+    # the articulated model's declared truth and starting geometry, read when it is built
+    ("models/articulated.py", "articulated_parameters"),
+    ("models/articulated.py", "joint_damping_matrix"),
+    ("models/articulated.py", "geometric_start"),
+}
 PYTHON_FLOAT_FUNCTIONS = {("models/fused.py", "_exp_coefficients_scalar")}  # rule 2d
 
 

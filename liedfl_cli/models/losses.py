@@ -39,6 +39,15 @@ from . import fused
 from .base import ImplicitModel, LossOptions, LossParts, TrajectoryBatch, TripletBatch, oriented_logdet
 
 LOSSES = ("del", "newton", "rollout")
+"""The losses a model can train with; `train.loss: auto` takes the model's `default_loss`."""
+
+
+def resolve_loss(model: Any, loss: str) -> str:
+    """`auto` -> the model's `default_loss` (del unless the model says otherwise: the articulated model
+    trains with newton, measured in docs/results.md); any other value as given."""
+    return str(getattr(model, "default_loss", "del")) if loss == "auto" else loss
+
+
 NEWTON_CLIP = 1.0
 """Largest Newton step |H^-1 r| (tangent norm) the newton loss and the rollout loss's IFT step take."""
 
@@ -67,6 +76,7 @@ def check_loss(model: Any, loss: str) -> None:
 def training_stage(model: Any, data: Pose, steps: int, opts: LossOptions) -> tuple[LossOptions, Any]:
     """(the options, the samples) of `train.fit`'s stage: `rollout` trains with `del` first (its
     fine-tuning stage is `liedfl_cli.finetune`); `newton` asks a fused set for the Jacobian's fields."""
+    opts = dataclasses.replace(opts, loss=resolve_loss(model, opts.loss))
     check_loss(model, opts.loss)
     if opts.loss == "rollout":
         opts = dataclasses.replace(opts, loss="del")
@@ -350,7 +360,7 @@ def rollout_window_loss(
         "reg_loss": reg_loss,
         "rollout_rot_rms": torch.sqrt(rot_sum / denom),
         "rollout_pos_rms": torch.sqrt(pos_sum / denom),
-        "not_converged": torch.tensor(float(failed), dtype=traj.R.dtype),
+        "not_converged": torch.tensor(float(failed), dtype=traj.R.dtype, device=traj.R.device),
     }
     return rollout + opts.w_reg * reg_loss, parts
 
