@@ -98,7 +98,6 @@ def test_rollout_converges_to_mujoco_at_second_order():
 
 def test_articulated_training_runs_end_to_end(tmp_path):
     from helpers import compose_config
-
     from liedfl_cli.train import run_train
 
     path = tmp_path / "chain.h5"
