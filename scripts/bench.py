@@ -9,6 +9,8 @@ few repeats, so a speed-up is a ratio taken under the same load. Keys:
   train_triplets_per_s          default `liedfl train` (free rigid body, batch 1024, SOAP)
   exp3_s_per_epoch              Exp 3 LieDFLNN (heavy body on SE(3), MLP potential 32x3)
   mocap_s_per_epoch             Exp 4 (mocap, SE(3) x SO(3)^22, SOAP, batch 63)
+  mocap_articulated_s_per_epoch the same with model.kinetic=articulated and the paper's DEL loss
+  mocap_articulated_newton_s_per_epoch  ... with the articulated model's default loss (newton)
   rollout_us_per_step_traj      {model: {batch: us}} for the free body with true parameters and
                                 the SE(3) LieDFLNN with an MLP potential 64x3, batches 1/10/1000/10000
   compile_s                     first compilation of the Newton step (runtime.compile=true)
@@ -63,17 +65,18 @@ def config(overrides: list[str], data_dir: str):
         return compose("train", overrides=[*overrides, *paths])
 
 
-def epoch_seconds(overrides: list[str], epochs: int, repeats: int, data_dir: str) -> dict:
-    """Seconds per epoch of `fit` (best of `repeats`), fused and reference, and the sample count."""
+def epoch_seconds(overrides: list[str], epochs: int, repeats: int, data_dir: str, reference: bool = True) -> dict:
+    """Seconds per epoch of `fit` (best of `repeats`), fused and reference (`reference=False`: fused
+    only, the reference figures NaN), and the sample count."""
     cfg = config(overrides, data_dir)
     ds, _ = get_dataset(cfg.dataset, data_dir)
     data = ds.pose(ds.train_idx)
     tcfg = OmegaConf.merge(cfg.train, {"epochs": epochs, "checkpoint_every": 10**9})
-    best = {True: float("inf"), False: float("inf")}
-    cpu = {True: float("inf"), False: float("inf")}
+    best = {True: float("inf"), False: float("inf") if reference else float("nan")}
+    cpu = {True: float("inf"), False: float("inf") if reference else float("nan")}
     n = 0
     for _ in range(repeats):
-        for fused in (True, False):
+        for fused in (True, False) if reference else (True,):
             with runtime.using(fused=fused):
                 model = build_model(cfg, ds)
                 t, c = time.perf_counter(), time.process_time()
@@ -182,6 +185,17 @@ def main() -> None:
     out["mocap_s_per_epoch"], out["baseline_mocap_s_per_epoch"] = r["fused"], r["reference"]
     cpu["mocap_s_per_epoch"], cpu["baseline_mocap_s_per_epoch"] = r["cpu"], r["cpu_ref"]
     log(f"mocap: {r['fused']:.3f} s/epoch (reference {r['reference']:.3f})")
+    # the articulated model (model.kinetic=articulated) at the same Exp 4 settings: with the paper's DEL
+    # loss, and with its default loss (train.loss=auto: newton), against the per-body epoch above
+    for key, extra in (
+        ("mocap_articulated_s_per_epoch", ["train.loss=del"]),
+        ("mocap_articulated_newton_s_per_epoch", []),
+    ):
+        r = epoch_seconds(
+            ["experiment=exp4_mocap", "model.kinetic=articulated", *extra], 1 if q else 3, 1, args.data_dir, False
+        )
+        out[key], cpu[key] = r["fused"], r["cpu"]
+        log(f"{key}: {r['fused']:.3f} s/epoch ({r['fused'] / out['mocap_s_per_epoch']:.2f}x the per-body epoch)")
 
     # rollouts
     budget, repeats = (0.3, 2) if q else (1.0, 3)

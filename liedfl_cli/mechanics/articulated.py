@@ -117,27 +117,3 @@ def fk_and_jacobian(tree: Tree, g: Pose) -> tuple[Pose, torch.Tensor]:
     """(FK(g) as SE(3)^B poses, A(g) (..., B, 6, dim))."""
     world = forward_kinematics(tree, g)
     return world, fk_jacobian(tree, g, world)
-
-
-# ---------------------------------------------------------------------------- linear form
-def kinetic_covectors_linear(inc_prev: Pose, inc_next: Pose, Jdo, mass, moment, h: float) -> torch.Tensor:
-    """D2 K(inc_prev) + D1 K(inc_next) in SE(3)^B layout, (..., 6B), with K written LINEARLY in its
-    parameters: K = [tr J_dO - tr(W J_dO)]/h + m|z|^2/(2h) + z^T (W - I) c / h, where
-    c = m rho (first moment) and J_dO = J_d + m rho rho^T (the matrix inertia about the joint), which
-    is the same K as `kinetic.kinetic_lagrangian` with (J_d, m, rho) (expand |z + (W - I) rho|^2 and
-    use (W - I)^T (W - I) = 2I - W - W^T). Covectors of the c-term:
-    D1: (z x c, -(W - I) c) / h;  D2: (c x W^T z, (I - W^T) c) / h.
-    Jdo (B, 3, 3) or (..., B, 3, 3), mass (B,), moment (B, 3); used for least-squares initialisation."""
-    B = inc_prev.R.shape[-3]
-    Gw = ProductGroup(B, 0)
-    zero = moment.new_zeros(B, 3)
-    d = kinetic.kinetic_d2(Gw, inc_prev, Jdo, mass, zero, h) + kinetic.kinetic_d1(Gw, inc_next, Jdo, mass, zero, h)
-    W2, z2 = inc_next.R, inc_next.p  # D1 of the next interval
-    Wc = so3.act(W2, moment.expand_as(z2))
-    d1_w = torch.cross(z2, moment.expand_as(z2), dim=-1) / h
-    d1_v = -(Wc - moment) / h
-    W1, z1 = inc_prev.R, inc_prev.p  # D2 of the previous interval
-    Wtz = so3.act(W1.transpose(-1, -2), z1)
-    d2_w = torch.cross(moment.expand_as(Wtz), Wtz, dim=-1) / h
-    d2_v = (moment - so3.act(W1.transpose(-1, -2), moment.expand_as(z1))) / h
-    return d + Gw.join(d1_w + d2_w, d1_v + d2_v)
