@@ -24,13 +24,13 @@ def _tree(rotations: str, free_root: bool, parents=(-1, 0, 1, 1, 3)) -> Tree:
     return Tree.from_lists(parents, offsets, rotations, free_root)
 
 
-def _trajectories(tree: Tree, T: int = 4, N: int = 5, seed: int = 0) -> Pose:
+def _trajectories(tree: Tree, T: int = 4, N: int = 5, seed: int = 0, speed: float = 0.3) -> Pose:
     """Smooth random coordinate trajectories (T, N+1): constant random velocities plus a wobble."""
     G = tree.group
     gen = torch.Generator().manual_seed(seed)
     R0 = so3.exp(torch.randn(T, tree.n_bodies, 3, generator=gen, dtype=torch.float64))
     p0 = torch.randn(T, G.n_se3, 3, generator=gen, dtype=torch.float64)
-    xi = 0.3 * torch.randn(T, G.dim, generator=gen, dtype=torch.float64)
+    xi = speed * torch.randn(T, G.dim, generator=gen, dtype=torch.float64)
     g = Pose(R0, p0)
     Rs, ps = [g.R], [g.p]
     for k in range(N):
@@ -103,7 +103,7 @@ def test_training_batches_give_the_residual_and_its_gradient(rotations, free_roo
 
 def test_rollout_solves_the_residual_and_stays_on_the_group():
     tree = _tree("world", True)
-    data = _trajectories(tree, T=3, N=4)
+    data = _trajectories(tree, T=3, N=4, speed=0.05)  # a few degrees per step, as sampled data
     model = _model(tree, "fast", {"rayleigh": {"coupling": "per_body"}}, potential=("uniform_gravity",))
     g0, g1 = data.index((slice(None), 0)), data.index((slice(None), 1))
     from liedfl_cli.solvers.options import SolverOptions
