@@ -347,3 +347,12 @@ def test_file_errors(tmp_path):
     bad.write_text((ROOT / "data" / "cmu_mocap" / "49_07.bvh").read_text().replace("Frames: 472", "Frames: 47"))
     with pytest.raises(DatasetError, match=f"{bad}: field 'Frames' declares 47 frames"):
         cmu_cartwheel(cfg(files=[str(ROOT / "data" / "cmu_mocap" / "49_06.bvh"), str(bad)]))
+
+
+def test_the_number_of_recordings_follows_the_files():
+    """`dataset.files=[one.bvh]` alone gives one trajectory (no dataset.n_trajectories=1 needed)."""
+    from helpers import compose_config
+
+    one = compose_config("train", ["dataset=cmu_cartwheel", "dataset.files=[data/cmu_mocap/49_07.bvh]"])
+    assert one.dataset.n_trajectories == 1
+    assert compose_config("train", ["dataset=cmu_cartwheel"]).dataset.n_trajectories == 2
