@@ -33,8 +33,13 @@ CONF = ROOT / "liedfl_cli" / "conf" / "dataset" / "cmu_cartwheel.yaml"
 
 
 def cfg(**over) -> dict:
-    c = OmegaConf.to_container(OmegaConf.load(CONF))
-    c.pop("defaults", None)  # Hydra's defaults list (selects the group), consumed by composition
+    """The scene's config as the CLI composes it: interpolations resolved (n_trajectories follows
+    `files`, also when `over` replaces them), Hydra's defaults list dropped."""
+    raw = OmegaConf.load(CONF)
+    raw.pop("defaults", None)  # Hydra's defaults list (selects the group), consumed by composition
+    if "files" in over:
+        raw.files = over["files"]
+    c = OmegaConf.to_container(raw, resolve=True)
     c.update(over)
     return c
 

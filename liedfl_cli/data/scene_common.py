@@ -127,6 +127,9 @@ def check_config(c: dict, scenes: Mapping | None = None) -> dict:
             raise ConfigError(f"dataset.{key} must be positive, got {v!r}")
         return kind(v)
 
+    files = c.get("files", ())  # scenes of recordings: n_trajectories follows the files, so check them first
+    if "files" in c and (not isinstance(files, (list, tuple)) or not files):
+        raise ConfigError(f"dataset.files must be a non-empty list of recordings, got {files!r}")
     num("h"), num("n_trajectories", int), num("steps", int), num("train_steps", int), num("rollout_steps", int)
     num("seed", int, positive=False)
     if not 0.0 <= num("test_fraction", positive=False) < 1.0:

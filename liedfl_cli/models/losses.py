@@ -67,7 +67,7 @@ def supports_prediction_losses(model: Any) -> bool:
 def check_loss(model: Any, loss: str) -> None:
     """One-line ConfigError for an unknown loss or one the model cannot train with."""
     if loss not in LOSSES:
-        raise ConfigError(f"train.loss={loss!r}: choose one of {', '.join(LOSSES)}")
+        raise ConfigError(f"train.loss={loss!r}: choose one of {', '.join(('auto', *LOSSES))}")
     if loss != "del" and not supports_prediction_losses(model):
         name = getattr(model, "name", "") or type(model).__name__
         raise ConfigError(f"train.loss={loss} is not available for {name}")
