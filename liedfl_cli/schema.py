@@ -74,7 +74,7 @@ class TrainSchema:
     val_horizon: int = 20
     select: str = "val_one_step"
     early_stopping: EarlyStoppingSchema = field(default_factory=EarlyStoppingSchema)
-    loss: str = "auto"  # auto (the model's default_loss) | del | newton | rollout (models/losses.py)
+    loss: str = "del"  # del | newton | rollout (models/losses.py)
     rollout_loss: RolloutLossSchema = field(default_factory=RolloutLossSchema)
 
 
@@ -152,7 +152,7 @@ CHOICES = {
     ("train", "reg_form"): ("relu", "gaussian"),
     ("train", "select"): ("val_one_step", "val_rollout", "last"),
     ("checkpoint",): ("best", "last"),  # liedfl rollout / eval
-    ("train", "loss"): ("auto", "del", "newton", "rollout"),
+    ("train", "loss"): ("del", "newton", "rollout"),
     ("train", "optimizer", "name"): ("soap", "adam"),
     ("train", "optimizer", "schedule"): ("constant", "cosine"),
     ("model", "potential"): ("auto", "mlp", "none", "uniform_gravity"),  # or a list of mlp, uniform_gravity

@@ -211,14 +211,14 @@ def test_unsupported_models_get_one_line():
     with pytest.raises(ConfigError, match=r"^train.loss=newton is not available for euler_dflnn$"):
         losses.check_loss(model, "newton")
     losses.check_loss(model, "del")
-    with pytest.raises(ConfigError, match="choose one of auto, del, newton, rollout"):
+    with pytest.raises(ConfigError, match="choose one of del, newton, rollout"):
         losses.check_loss(make("so3_no_force"), "newtn")
 
 
 @pytest.mark.parametrize(
     "override, message",
     [
-        ("train.loss=newtn", "train.loss='newtn': choose one of auto, del, newton, rollout"),
+        ("train.loss=newtn", "train.loss='newtn': choose one of del, newton, rollout"),
         ("+train.rollout_loss.horizn=3", "did you mean 'train.rollout_loss.horizon'"),
         ("train.rollout_loss.horizon=0", "train.rollout_loss.horizon=0: must be a positive integer"),
         ("train.rollout_loss.lr=-1", "train.rollout_loss.lr=-1: must be a positive number"),

@@ -23,7 +23,6 @@ A_k^T blockdiag(H_b) A_{k+1}, regular when the blocks are and A has full rank.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -210,11 +209,6 @@ class ArticulatedLieDFLNN(ImplicitModel):
 
     window = "triplet"
     notes: list[str]
-    # train.loss=auto: the Newton-normalised residual. The DEL residual's rows are ~m/h for translations
-    # and ~J/h for rotations, so the plain loss fits the heavy directions and learns the links' inertias
-    # slowly (MuJoCo chain, 400 epochs: one step 0.07x constant velocity with newton, 0.21x with del;
-    # docs/results.md)
-    default_loss = "newton"
 
     def __init__(
         self,
@@ -493,8 +487,6 @@ class ArticulatedLieDFLNN(ImplicitModel):
         -> (loss, parts)."""
         from . import losses
 
-        if opts.loss == "auto":
-            opts = dataclasses.replace(opts, loss=self.default_loss)
         if opts.loss == "rollout":
             assert isinstance(batch, TrajectoryBatch), "train.loss=rollout trains on windows (losses.WindowSet)"
             return losses.rollout_window_loss(self, batch, opts, opts.solver)

@@ -258,7 +258,7 @@ class LieDFLNN(ImplicitModel):
     def loss(self, batch: Batch | fused.IncrementBatch, opts: LossOptions):
         """w_DEL mean ||r||^2 + w_reg mean penalty(log|det H|) -> (loss, {"del_loss", "reg_loss"});
         `opts.loss` newton / rollout: `models.losses`."""
-        if opts.loss not in ("del", "auto"):  # auto: this model's default_loss, del
+        if opts.loss != "del":
             from . import losses
 
             if opts.loss == "newton":

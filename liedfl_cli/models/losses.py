@@ -39,13 +39,6 @@ from . import fused
 from .base import ImplicitModel, LossOptions, LossParts, TrajectoryBatch, TripletBatch, oriented_logdet
 
 LOSSES = ("del", "newton", "rollout")
-"""The losses a model can train with; `train.loss: auto` takes the model's `default_loss`."""
-
-
-def resolve_loss(model: Any, loss: str) -> str:
-    """`auto` -> the model's `default_loss` (del unless the model says otherwise: the articulated model
-    trains with newton, measured in docs/results.md); any other value as given."""
-    return str(getattr(model, "default_loss", "del")) if loss == "auto" else loss
 
 
 NEWTON_CLIP = 1.0
@@ -67,7 +60,7 @@ def supports_prediction_losses(model: Any) -> bool:
 def check_loss(model: Any, loss: str) -> None:
     """One-line ConfigError for an unknown loss or one the model cannot train with."""
     if loss not in LOSSES:
-        raise ConfigError(f"train.loss={loss!r}: choose one of {', '.join(('auto', *LOSSES))}")
+        raise ConfigError(f"train.loss={loss!r}: choose one of {', '.join(LOSSES)}")
     if loss != "del" and not supports_prediction_losses(model):
         name = getattr(model, "name", "") or type(model).__name__
         raise ConfigError(f"train.loss={loss} is not available for {name}")
@@ -76,7 +69,6 @@ def check_loss(model: Any, loss: str) -> None:
 def training_stage(model: Any, data: Pose, steps: int, opts: LossOptions) -> tuple[LossOptions, Any]:
     """(the options, the samples) of `train.fit`'s stage: `rollout` trains with `del` first (its
     fine-tuning stage is `liedfl_cli.finetune`); `newton` asks a fused set for the Jacobian's fields."""
-    opts = dataclasses.replace(opts, loss=resolve_loss(model, opts.loss))
     check_loss(model, opts.loss)
     if opts.loss == "rollout":
         opts = dataclasses.replace(opts, loss="del")
