@@ -189,7 +189,7 @@ def make_pose(
         raise InputError(f"{need} for {G.name} (the body axis B = {B} is required)")
     lead = Rm.shape[:-3]
     if m == 0:
-        if p is not None and np.size(p):
+        if p is not None and _size(p):
             raise InputError(f"p: {G.name} has no positions (no SE(3) body); leave p out (got shape {np.shape(p)})")
         pm = np.zeros((*lead, 0, 3))
     else:
@@ -201,6 +201,11 @@ def make_pose(
         if pm.shape != (*lead, m, 3):
             raise InputError(f"p: shape {pm.shape}; need {(*lead, m, 3)} (the rotations have leading shape {lead})")
     return Pose(torch.from_numpy(np.ascontiguousarray(Rm)), torch.from_numpy(np.ascontiguousarray(pm)))
+
+
+def _size(x) -> int:
+    """Number of entries of an array or tensor (np.size of a torch tensor is its bound `size` method)."""
+    return int(x.numel()) if isinstance(x, torch.Tensor) else int(np.size(x))
 
 
 def _pose(x, G: ProductGroup, name: str) -> Pose:
@@ -216,7 +221,7 @@ def _pose(x, G: ProductGroup, name: str) -> Pose:
     else:
         raise InputError(f"{name}: expected a pose (api.make_pose(...), or a pair (R, p)), got {type(x).__name__}")
     try:
-        return make_pose(G, R=R, p=p if (p is not None and np.size(p)) else None)
+        return make_pose(G, R=R, p=p if (p is not None and _size(p)) else None)
     except InputError as e:
         raise InputError(f"{name}: {e}") from None
 

@@ -185,3 +185,18 @@ def test_the_documented_example_runs(tmp_path, monkeypatch):
     assert (tmp_path / "rollout_error.png").stat().st_size > 1000
     assert namespace["traj"].R.shape[0] == namespace["steps"] + 1
     assert os.path.isdir(namespace["run_dir"])
+
+
+def test_so3_poses_from_torch_tensors_and_their_own_pose():
+    """An SO(3) pose given as torch tensors (R, and the empty p of a Pose) is accepted (issue 21, item 1:
+    np.size of a torch tensor is a method, so the empty positions were taken for real ones)."""
+    from liedfl_cli import api
+    from liedfl_cli.lie import SO3, so3
+
+    R = so3.exp(torch.tensor([[0.1, 0.2, 0.3]], dtype=torch.float64))
+    g = api.make_pose(SO3, R=R[0])
+    assert g.R.shape == (1, 3, 3) and g.p.shape == (0, 3)
+    again = api._pose(g, SO3, "g0")  # a Pose whose p is an empty torch tensor
+    torch.testing.assert_close(again.R, g.R)
+    with pytest.raises(api.InputError, match="no positions"):
+        api.make_pose(SO3, R=R[0], p=torch.zeros(1, 3, dtype=torch.float64))
