@@ -32,7 +32,6 @@ import torch
 
 from ..lie import Pose, ProductGroup, so3
 from ..lie.tree import Tree, fk_jacobian, forward_kinematics
-from . import kinetic
 
 
 def world_group(tree: Tree) -> ProductGroup:
@@ -50,18 +49,6 @@ def to_coordinates(A: torch.Tensor, c_world: torch.Tensor) -> torch.Tensor:
     B = A.shape[-3]
     c = c_world.reshape(*c_world.shape[:-1], B, 6)
     return torch.einsum("...bkd,...bk->...d", A, c)
-
-
-def kinetic_covectors(
-    tree: Tree, inc_prev: Pose, inc_next: Pose, Jd, mass, rho, h: float
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """World covectors (D2 K(inc_prev), D1 K(inc_next)), each (..., 6B): world increments of
-    SE(3)^B (W (..., B, 3, 3), z (..., B, 3)); Jd (B, 3, 3), mass (B,), rho (B, 3)."""
-    Gw = world_group(tree)
-    return (
-        kinetic.kinetic_d2(Gw, inc_prev, Jd, mass, rho, h),
-        kinetic.kinetic_d1(Gw, inc_next, Jd, mass, rho, h),
-    )
 
 
 def newton_jacobian(A_k: torch.Tensor, inc_next: Pose, A_next: torch.Tensor, Jd, mass, rho, h: float) -> torch.Tensor:
