@@ -101,7 +101,9 @@ def stop_reason(signum: int) -> str:
 def graceful_stop():
     """SIGINT/SIGTERM -> finish the epoch, checkpoint, stop; a second signal stops at once. In a
     submitit job (sweeps on SLURM, `hydra/launcher=liedfl_local`) also submitit's warning signal, so
-    that a job reaching its time limit saves a checkpoint it can be resumed from."""
+    that a job reaching its time limit saves a checkpoint it can be resumed from. A SIGINT that the
+    process inherited ignored (`nohup`, a background job of a script: asked not to be interrupted by
+    Ctrl-C) stays ignored; SIGTERM is always handled (README, "Interruptions and resume")."""
     stop = StopRequest()
     if threading.current_thread() is not threading.main_thread():  # handlers need the main thread
         yield stop
@@ -113,7 +115,9 @@ def graceful_stop():
         stop.signum = signum
         console.print("[bold yellow]stop requested:[/] finishing the epoch and saving a checkpoint (again: stop now)")
 
-    signums: list[int] = [signal.SIGINT, signal.SIGTERM]
+    signums: list[int] = [signal.SIGTERM]
+    if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:
+        signums.append(signal.SIGINT)
     warning = _cluster_warning_signal()
     if warning is not None:
         signums.append(warning)
