@@ -213,6 +213,40 @@ def checkpoint_record(path, payload: dict) -> dict:
     return record
 
 
+def file_sha256(path) -> str | None:
+    """The SHA-256 (hex) of a file's bytes, None when it cannot be read."""
+    import hashlib
+
+    digest = hashlib.sha256()
+    try:
+        with open(path, "rb") as f:
+            for chunk in iter(lambda: f.read(1 << 20), b""):
+                digest.update(chunk)
+    except OSError:
+        return None
+    return digest.hexdigest()
+
+
+def new_run_id() -> str:
+    """A run's stable id (written into its checkpoints, summary.json and rollout files)."""
+    import uuid
+
+    return uuid.uuid4().hex
+
+
+def run_provenance(run_dir, run_id: str | None, model_name: str | None, used: dict) -> dict:
+    """The provenance attributes of a rollout file written by the run `run_dir` from the checkpoint `used`
+    (`checkpoint_record`, its file in `<run>/checkpoints/`); see `rollout_file.PROVENANCE`."""
+    name = used.get("checkpoint")
+    return {
+        "run_id": run_id,
+        "run_dir": str(Path(run_dir).resolve()),
+        "model_name": model_name,
+        "checkpoint": name,
+        "checkpoint_sha256": file_sha256(Path(run_dir) / "checkpoints" / name) if name else None,
+    }
+
+
 def describe_checkpoint(used: dict) -> str:
     """`checkpoint: best.pt (epoch 340, val_one_step_error 1.2e-04)`."""
     text = f"checkpoint: {used['checkpoint']} (epoch {used.get('checkpoint_epoch')}"
@@ -296,6 +330,9 @@ __all__ = [
     "checkpoint_record",
     "describe_checkpoint",
     "rollout_checkpoint",
+    "file_sha256",
+    "new_run_id",
+    "run_provenance",
     "save_checkpoint",
     "load_checkpoint",
     "load_state",

@@ -25,7 +25,7 @@ from .errors import ConfigError
 from .io_utils import markdown_table, write_csv, write_json, write_text
 from .lie import Pose, ProductGroup
 from .metrics import drift_metrics, error_metrics, one_step_metrics
-from .rollout_file import FILE_NAME, RolloutFile, load_rollout
+from .rollout_file import FILE_NAME, RolloutFile, load_rollout, read_rollout
 from .ui import console, print_table
 
 SHORT = {
@@ -327,10 +327,74 @@ def run_eval_from_objects(
     return rows
 
 
+EVALS_DIR = "evals"
+"""`<run>/evals/<name>/`: where `liedfl eval run=<run> rollout=<file outside the run>` writes."""
+
+
+def check_provenance(path: Path, attrs: dict, run_dir, run_id: str | None) -> bool:
+    """Refuse (ConfigError, one line naming both runs) a rollout file written by another run than
+    `run_dir` (id `run_id`, None for runs written before run ids existed); a file without provenance
+    (written before rollout files recorded it) passes with a one-line warning. True when it is the run's."""
+    other = attrs.get("run_id")
+    if other in (None, ""):
+        console.print(
+            f"[bold yellow]warning:[/] {path}: provenance unknown (the file records no run_id: written before "
+            f"rollout files recorded their run); evaluated as a rollout of run {run_dir}",
+            soft_wrap=True,
+            highlight=False,
+        )
+        return False
+    if str(other) != str(run_id):
+        model = f", model {attrs['model_name']}" if attrs.get("model_name") else ""
+        ours = f"run_id {run_id}" if run_id else "a run without a run_id"
+        raise ConfigError(
+            f"rollout={path}: written by run {attrs.get('run_dir', '?')} (run_id {other}{model}), not by run "
+            f"{run_dir} ({ours}); evaluate it with `liedfl eval run={attrs.get('run_dir', '<its run>')}`"
+        )
+    return True
+
+
+def _inside(path: Path, folder) -> bool:
+    return Path(path).resolve().is_relative_to(Path(folder).resolve())
+
+
+def copy_into_run(path: Path, run_dir) -> Path:
+    """A rollout file outside the run evaluated as the run's: copied with its source.json and
+    checkpoint.json into a new `<run>/evals/<date>_<time>_<folder of the file>/`, where the evaluation
+    then writes (an evaluation never writes outside the run it evaluates). Returns the copy's path."""
+    import shutil
+    from datetime import datetime
+
+    from .checkpoint import CHECKPOINT_FILE
+    from .other_data import SOURCE_FILE
+
+    base = Path(run_dir) / EVALS_DIR
+    base.mkdir(exist_ok=True)
+    tag = "".join(ch if ch.isalnum() or ch in "-_." else "-" for ch in path.resolve().parent.name) or "rollout"
+    stamp = datetime.now().strftime("%Y-%m-%d_%H-%M-%S") + "_" + tag
+    for k in range(1, 1000):
+        out = base / (stamp + (f"_{k}" if k > 1 else ""))
+        try:
+            out.mkdir()
+            break
+        except FileExistsError:
+            continue
+    else:
+        raise ConfigError(f"{base}: cannot create a new evaluation folder for {stamp}")
+    for name in (FILE_NAME, SOURCE_FILE, CHECKPOINT_FILE):
+        src = path if name == FILE_NAME else path.parent / name
+        if src.is_file():
+            shutil.copy2(src, out / name)
+    console.print(f"{path} lies outside run {run_dir}: copied to {out}, evaluated there", highlight=False)
+    return out / FILE_NAME
+
+
 def run_eval(cfg: DictConfig) -> list[dict]:
     """`liedfl eval run=<dir> [rollout=<file>]`: recompute the evaluation (eval.csv / eval.md / plots and
     the scene's extra evaluation: torque recovery, mocap table) of the run's rollout.h5, or of another
-    rollout file of the run (written next to that file)."""
+    rollout file of the run (written next to that file). A file written by another run is refused
+    (`check_provenance`); one outside the run's folder is evaluated in a copy under `<run>/evals/`
+    (`copy_into_run`): an evaluation writes only under the run it evaluates."""
     from omegaconf import OmegaConf
 
     from .checkpoint import describe_checkpoint, load_checkpoint, rollout_checkpoint
@@ -344,10 +408,14 @@ def run_eval(cfg: DictConfig) -> list[dict]:
         cfg.run, cfg.paths.data_dir, cfg.get("checkpoint") or "best"
     )
     path = rollout_path_arg(cfg.get("rollout"), run_dir)
+    last = load_checkpoint(Path(run_dir) / "checkpoints" / "last.pt")
+    check_provenance(path, read_rollout(path).attrs, run_dir, last.get("run_id"))
+    if not _inside(path, run_dir):
+        path = copy_into_run(path, run_dir)
     used = rollout_checkpoint(path, used)  # the rollout's own record (checkpoint.json) when it has one
     console.print(describe_checkpoint(used), highlight=False)
     dataset, run_cfg = rollout_dataset(path, model, dataset, run_cfg, run_dir, cfg.paths.data_dir)
-    timings = load_checkpoint(Path(run_dir) / "checkpoints" / "last.pt").get("timings")
+    timings = last.get("timings")
     rows = run_eval_from_objects(
         cfg,
         dataset,

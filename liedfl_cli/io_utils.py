@@ -58,7 +58,8 @@ def deferred_signals(signums=(signal.SIGINT, signal.SIGTERM)):
     """Hold SIGINT/SIGTERM while the block runs (a file being written and renamed), then deliver them
     to the handlers that were installed before. A Ctrl-C in the middle of an HDF5 or torch write
     would otherwise be raised inside library code (and may be swallowed as "Exception ignored").
-    Only the main thread can install handlers; elsewhere the block runs unprotected."""
+    Only the main thread can install handlers; elsewhere the block runs unprotected. A signal whose
+    disposition is SIG_IGN (e.g. SIGINT inherited ignored under `nohup`) is left ignored."""
     if threading.current_thread() is not threading.main_thread():
         yield []
         return
@@ -70,7 +71,8 @@ def deferred_signals(signums=(signal.SIGINT, signal.SIGTERM)):
     old = {}
     try:
         for s in signums:
-            old[s] = signal.signal(s, hold)
+            if signal.getsignal(s) is not signal.SIG_IGN:
+                old[s] = signal.signal(s, hold)
         yield received
     finally:
         for s, h in old.items():

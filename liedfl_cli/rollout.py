@@ -100,9 +100,10 @@ def rollout_steps(given) -> int:
     return steps
 
 
-def rollout_and_save(cfg: DictConfig, model, dataset, path, steps=None) -> dict:
+def rollout_and_save(cfg: DictConfig, model, dataset, path, steps=None, provenance: dict | None = None) -> dict:
     """Roll out `model` (and the true scheme, if the scene has one, on the same device and dtype) from
-    each test trajectory's first pair; write `path` (CPU float64). Returns timing/solver summaries."""
+    each test trajectory's first pair; write `path` (CPU float64) with `provenance` (the run, model and
+    checkpoint: `checkpoint.run_provenance`) and the rollout's dtype. Returns timing/solver summaries."""
     from .data.scenes import dataset_steps
     from .factory import place
     from .models.true_scheme import true_model
@@ -124,7 +125,10 @@ def rollout_and_save(cfg: DictConfig, model, dataset, path, steps=None) -> dict:
         entry.one_step = one_step(m, truth, steps, solver_options(cfg.solver))
         m.train(was_training)
         rollouts[name] = entry
-    written = write_rollout(path, steps=steps, h=dataset.h, scene=dataset.scene, traj_index=idx, rollouts=rollouts)
+    prov = {**(provenance or {}), "dtype": str(truth.R.dtype).removeprefix("torch.")}
+    written = write_rollout(
+        path, steps=steps, h=dataset.h, scene=dataset.scene, traj_index=idx, rollouts=rollouts, provenance=prov
+    )
     results = {name: entry.summary() for name, entry in written.models.items()}
     for name, entry in written.models.items():
         if entry.one_step is not None:
@@ -162,7 +166,7 @@ def run_rollout(cfg: DictConfig) -> dict:
     the scene's extra evaluation). With `dataset=...` the rollout runs on that dataset's test split and
     is evaluated against it (`source.json` records it). The run's own rollout.h5 and evaluation are never
     touched; on failure the new folder is removed."""
-    from .checkpoint import CHECKPOINT_FILE, describe_checkpoint, load_checkpoint
+    from .checkpoint import CHECKPOINT_FILE, describe_checkpoint, load_checkpoint, run_provenance
     from .evaluate import run_eval_from_objects
     from .evaluation import run_extra_evals
     from .factory import configure_runtime
@@ -205,8 +209,11 @@ def run_rollout(cfg: DictConfig) -> dict:
             )
             write_json(out / SOURCE_FILE, source)
         path = out / FILE_NAME
-        results = rollout_and_save(merged, model, dataset, path, steps=steps)
-        timings = load_checkpoint(Path(run_dir) / "checkpoints" / "last.pt").get("timings")
+        last = load_checkpoint(Path(run_dir) / "checkpoints" / "last.pt")
+        model_name = OmegaConf.select(run_cfg, "model.name", default=None)
+        provenance = run_provenance(run_dir, last.get("run_id"), model_name, used)
+        results = rollout_and_save(merged, model, dataset, path, steps=steps, provenance=provenance)
+        timings = last.get("timings")
         write_json(out / CHECKPOINT_FILE, used)
         rows = run_eval_from_objects(merged, dataset, run_dir, timings, rollout_path=path, checkpoint=used)
         extra = run_extra_evals(merged, model, dataset, run_dir, rollout_path=path)

@@ -3,7 +3,10 @@
 Format (docs/data_format.md, section "rollout.h5"):
 
   root attributes  steps (S: every trajectory holds S+1 poses), h, dataset_scene, group (the product
-                   group's name, e.g. "SE(3) x SO(3)"; absent in files written before it was added)
+                   group's name, e.g. "SE(3) x SO(3)"; absent in files written before it was added);
+                   provenance (optional, absent in older files): run_id (the id of the run that wrote
+                   it), run_dir, model_name, checkpoint (file name), checkpoint_sha256, dtype (the
+                   rollout's floating type before widening to float64)
   traj_index       (T,) int: the dataset trajectories rolled out (members of its test split)
   <model>/         one group per rolled-out model: `model`, and `true_scheme` when the scene has a
                    true-parameter scheme
@@ -21,7 +24,8 @@ Format (docs/data_format.md, section "rollout.h5"):
                    attributes seconds, n_pairs
 
 `write_rollout` writes a file atomically, `read_rollout` reads one and checks it is self-consistent,
-`validate_rollout` checks it against the dataset it claims to roll out, and `load_rollout` does both.
+`validate_rollout` checks it against the dataset it claims to roll out (including that every model
+starts from the data's first two poses), and `load_rollout` does both.
 Every problem is a `DatasetError` with one line naming the file and the field.
 """
 
@@ -43,6 +47,11 @@ from .lie.product import ProductGroup
 FILE_NAME = "rollout.h5"
 REQUIRED = ("R", "p", "converged", "iterations")
 """Datasets every model group must hold (residual_norm is optional on reading)."""
+PROVENANCE = ("run_id", "run_dir", "model_name", "checkpoint", "checkpoint_sha256", "dtype")
+"""Optional root attributes (strings): which run, model and checkpoint wrote the file (docs/data_format.md)."""
+START_RTOL = {"float64": 1e-9, "float32": 1e-6}
+"""Relative tolerance of the start check (samples 0 and 1 against the data) by the rollout's recorded dtype;
+files that do not record it get the float32 one (they may hold widened float32 rollouts)."""
 
 
 @dataclass
@@ -171,6 +180,11 @@ class RolloutFile:
     def model(self) -> RolloutEntry:
         return self.models["model"]
 
+    @property
+    def provenance(self) -> dict[str, str]:
+        """The provenance attributes the file has (empty for files written before they existed)."""
+        return {k: str(self.attrs[k]) for k in PROVENANCE if self.attrs.get(k) not in (None, "")}
+
 
 def _short(xs: list, n: int = 8) -> str:
     return ", ".join(map(str, xs[:n])) + (", ..." if len(xs) > n else "")
@@ -277,6 +291,7 @@ def validate_rollout(rf: RolloutFile, dataset) -> RolloutFile:
         else:
             why = f"it is not in the dataset's test split ({len(test)} trajectories: {_short(sorted(test))})"
         raise DatasetError(f"{path}: dataset 'traj_index' holds trajectory {i} at index {j}, but {why}")
+    _check_start(rf, dataset)
     n = min(rf.steps, int(dataset.n_steps))
     for name, e in rf.models.items():
         if e.one_step is not None and e.one_step.R.shape[1] != n - 1:
@@ -285,6 +300,30 @@ def validate_rollout(rf: RolloutFile, dataset) -> RolloutFile:
                 f"trajectory; need min(steps, dataset steps) - 1 = {n - 1} (samples 2..{n})"
             )
     return rf
+
+
+def _check_start(rf: RolloutFile, dataset) -> None:
+    """Every model's samples 0 and 1 are the data's first two poses of the trajectory (relative tolerance
+    `START_RTOL` of the pose magnitudes): a rollout starts from the true pair, so anything else is
+    another dataset's, a shifted or a tampered file."""
+    rtol = START_RTOL.get(str(rf.attrs.get("dtype")), START_RTOL["float32"])
+    idx = [int(i) for i in rf.traj_index]
+    R_true = np.asarray(dataset.R[idx][:, :2], dtype=np.float64)
+    p_true = np.asarray(dataset.p[idx][:, :2], dtype=np.float64)
+    for name, e in rf.models.items():
+        for key, pred, true in (("R", e.R[:, :2], R_true), ("p", e.p[:, :2], p_true)):
+            if true.size == 0:
+                continue
+            for j, i in enumerate(idx):
+                scale = max(float(np.abs(true[j]).max()), 1e-300)
+                for k in (0, 1):
+                    err = float(np.abs(pred[j, k] - true[j, k]).max()) / scale
+                    if not err <= rtol:  # NaN fails too
+                        raise DatasetError(
+                            f"{rf.path}: dataset '{name}/{key}' sample {k} of trajectory {i} (index {j}) is "
+                            f"not the data's (relative difference {err:.3g} > {rtol:g}): a rollout starts from "
+                            "the dataset's first two poses"
+                        )
 
 
 # --------------------------------------------------------------------------- reading
@@ -405,13 +444,20 @@ def load_rollout(path, dataset) -> RolloutFile:
 
 
 # --------------------------------------------------------------------------- writing
-def write_rollout(path, *, steps: int, h: float, scene: str, traj_index, rollouts: dict) -> RolloutFile:
+def write_rollout(
+    path, *, steps: int, h: float, scene: str, traj_index, rollouts: dict, provenance: dict | None = None
+) -> RolloutFile:
     """Write `rollouts` ({name: solver `Rollout` or `RolloutEntry`}, `model` first) to `path` atomically.
+    provenance: root attributes naming what wrote the file (keys of `PROVENANCE`; None values skipped).
 
     The content is checked as on reading before anything is written. Returns the written `RolloutFile`."""
     import h5py
 
     path = Path(path)
+    unknown = sorted(set(provenance or {}) - set(PROVENANCE))
+    if unknown:
+        raise ValueError(f"write_rollout: unknown provenance key(s) {unknown}; known: {', '.join(PROVENANCE)}")
+    prov = {k: str(v) for k, v in (provenance or {}).items() if v is not None}
     entries = {k: v if isinstance(v, RolloutEntry) else RolloutEntry.from_rollout(v) for k, v in rollouts.items()}
     idx = np.asarray(traj_index, dtype=np.int64)
     rf = RolloutFile(path=path, steps=int(steps), h=float(h), traj_index=idx, models=entries, scene=str(scene))
@@ -421,6 +467,8 @@ def write_rollout(path, *, steps: int, h: float, scene: str, traj_index, rollout
         f.attrs["h"] = rf.h
         f.attrs["dataset_scene"] = rf.scene
         f.attrs["group"] = rf.group
+        for k, v in prov.items():
+            f.attrs[k] = v
         f.create_dataset("traj_index", data=idx)
         for name, e in entries.items():
             g = f.create_group(name)
@@ -437,12 +485,13 @@ def write_rollout(path, *, steps: int, h: float, scene: str, traj_index, rollout
                 o.create_dataset("p", data=e.one_step.p)
                 o.create_dataset("converged", data=e.one_step.converged)
                 o.attrs.update(e.one_step.attrs)
-    rf.attrs = {"steps": rf.steps, "h": rf.h, "dataset_scene": rf.scene, "group": rf.group}
+    rf.attrs = {"steps": rf.steps, "h": rf.h, "dataset_scene": rf.scene, "group": rf.group, **prov}
     return rf
 
 
 __all__ = [
     "FILE_NAME",
+    "PROVENANCE",
     "OneStep",
     "RolloutEntry",
     "RolloutFile",

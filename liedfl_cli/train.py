@@ -38,7 +38,9 @@ from .checkpoint import (
     describe_checkpoint,
     load_checkpoint,
     load_state,
+    new_run_id,
     restore_rng_state,
+    run_provenance,
     save_checkpoint,
 )
 from .errors import CheckpointError, ConfigError, LiedflError
@@ -101,7 +103,9 @@ def stop_reason(signum: int) -> str:
 def graceful_stop():
     """SIGINT/SIGTERM -> finish the epoch, checkpoint, stop; a second signal stops at once. In a
     submitit job (sweeps on SLURM, `hydra/launcher=liedfl_local`) also submitit's warning signal, so
-    that a job reaching its time limit saves a checkpoint it can be resumed from."""
+    that a job reaching its time limit saves a checkpoint it can be resumed from. A SIGINT that the
+    process inherited ignored (`nohup`, a background job of a script: asked not to be interrupted by
+    Ctrl-C) stays ignored; SIGTERM is always handled (README, "Interruptions and resume")."""
     stop = StopRequest()
     if threading.current_thread() is not threading.main_thread():  # handlers need the main thread
         yield stop
@@ -113,7 +117,9 @@ def graceful_stop():
         stop.signum = signum
         console.print("[bold yellow]stop requested:[/] finishing the epoch and saving a checkpoint (again: stop now)")
 
-    signums: list[int] = [signal.SIGINT, signal.SIGTERM]
+    signums: list[int] = [signal.SIGTERM]
+    if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:
+        signums.append(signal.SIGINT)
     warning = _cluster_warning_signal()
     if warning is not None:
         signums.append(warning)
@@ -446,9 +452,10 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
     config = OmegaConf.to_container(cfg, resolve=True)
     assert isinstance(config, dict)
     dataset_path = str(Path(data_path).resolve())
+    run_id = str((resume or {}).get("run_id") or new_run_id())  # the run's stable id (rollout provenance)
 
     def save(train_state: dict, timings: dict | None = None) -> None:
-        extra = {"dataset_path": dataset_path, "components": comps, **train_state}
+        extra = {"dataset_path": dataset_path, "components": comps, "run_id": run_id, **train_state}
         if timings is not None:
             extra["timings"] = timings
         save_checkpoint(ckpt, model, config, extra)
@@ -462,7 +469,7 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
 
     def save_best(epoch: int, row: dict) -> None:
         val = {k: v for k, v in row.items() if k in VAL_COLUMNS and v is not None}
-        extra = {"dataset_path": dataset_path, "components": comps, "epoch": epoch, "val": val}
+        extra = {"dataset_path": dataset_path, "components": comps, "run_id": run_id, "epoch": epoch, "val": val}
         save_checkpoint(best, model, config, {**extra, "selected_by": selection.metric})
 
     train_data = data_pose(dataset, split.train_idx)
@@ -524,6 +531,7 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
 
     summary = {
         "run_dir": str(out),
+        "run_id": run_id,
         "dataset_path": dataset_path,
         "dataset": {
             "scene": dataset.scene,
@@ -552,7 +560,8 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
     if recovery is not None:
         write_json(out / "recovery.json", recovery)
     if cfg.rollout.enabled:
-        ro = rollout_and_save(cfg, model, dataset, out / "rollout.h5", steps=cfg.rollout.steps)
+        provenance = run_provenance(out, run_id, OmegaConf.select(cfg, "model.name", default=None), used)
+        ro = rollout_and_save(cfg, model, dataset, out / "rollout.h5", steps=cfg.rollout.steps, provenance=provenance)
         summary["rollout"] = ro
         write_json(out / CHECKPOINT_FILE, used)  # which checkpoint rolled out (liedfl eval reads it)
         summary["eval"] = run_eval_from_objects(cfg, dataset, out, timings, checkpoint=used)

@@ -221,10 +221,27 @@ _CHILD = textwrap.dedent(
 )
 
 
+def _default_signals() -> None:
+    """In the child before exec: SIGINT and SIGTERM at their defaults, as from a terminal (a test run under
+    `nohup` or as a background job of a script inherits SIGINT ignored, and Python then keeps it ignored)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+@pytest.fixture
+def sigint_raises():
+    """This process's SIGINT raises KeyboardInterrupt (Python's default), even if it was started with SIGINT
+    ignored; the previous disposition is restored afterwards."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
+
+
 @pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
 def test_a_signal_during_a_dataset_write_is_not_swallowed_and_leaves_no_temporary_file(tmp_path, sig):
     target = tmp_path / "data" / "x.h5"
-    proc = subprocess.run([sys.executable, "-c", _CHILD, str(target), sig], capture_output=True, text=True, timeout=120)
+    proc = subprocess.run([sys.executable, "-c", _CHILD, str(target), sig], capture_output=True, text=True, timeout=120,
+                          preexec_fn=_default_signals)  # fmt: skip
     if sig == "SIGINT":
         assert proc.returncode == 130 and proc.stderr.strip().splitlines()[-1] == "interrupted", proc.stderr
     else:
@@ -233,7 +250,7 @@ def test_a_signal_during_a_dataset_write_is_not_swallowed_and_leaves_no_temporar
     assert not [p for p in target.parent.iterdir() if ".tmp" in p.name]
 
 
-def test_atomic_path_holds_a_signal_until_the_file_is_in_place(tmp_path):
+def test_atomic_path_holds_a_signal_until_the_file_is_in_place(tmp_path, sigint_raises):
     target = tmp_path / "a.txt"
     with pytest.raises(KeyboardInterrupt), atomic_path(target) as tmp:
         Path(tmp).write_text("complete\n")

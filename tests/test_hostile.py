@@ -20,6 +20,7 @@ import hashlib
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import textwrap
@@ -722,9 +723,23 @@ def _subprocess(args: list[str], cwd: Path, python: str | None) -> tuple[int, st
         python or ""
     ) + "\nimport sys\nfrom liedfl_cli.cli import main\nsys.argv = ['liedfl', *sys.argv[1:]]\nmain()\n"
     proc = subprocess.run(
-        [sys.executable, "-c", code, *args], cwd=cwd, env=_env(), capture_output=True, text=True, timeout=300
+        [sys.executable, "-c", code, *args],
+        cwd=cwd,
+        env=_env(),
+        capture_output=True,
+        text=True,
+        timeout=300,
+        preexec_fn=_default_signals,
     )
     return proc.returncode, proc.stderr
+
+
+def _default_signals() -> None:
+    """In the child before exec: SIGINT and SIGTERM at their defaults, as from a terminal. Under `nohup` or
+    as a background job of a script the tests inherit SIGINT ignored, and liedfl (like Python) then keeps
+    ignoring it (README, "Interruptions and resume"): the Ctrl-C cases need a process that takes it."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
 def _allowed(rel: str, patterns: tuple[str, ...]) -> bool:

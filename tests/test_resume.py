@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import signal
 import subprocess
 import time
@@ -153,6 +154,38 @@ def test_bad_checkpoint_every_is_a_config_error(tmp_path):
         run_train(_cfg(tmp_path, "run", ["train.checkpoint_every=0"]))
 
 
+def _default_signals() -> None:
+    """In the child before exec: SIGINT and SIGTERM at their defaults (a test run under `nohup` or as a
+    background job of a script inherits SIGINT ignored, which liedfl respects)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+def test_an_inherited_ignored_sigint_stays_ignored_and_sigterm_is_always_handled():
+    """README, "Interruptions and resume": started with SIGINT ignored (nohup), training is not stopped by
+    Ctrl-C; SIGTERM still finishes the epoch and saves a checkpoint."""
+    old = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        with _real_graceful_stop() as stop:
+            assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+            os.kill(os.getpid(), signal.SIGINT)
+            assert stop.signum is None
+            os.kill(os.getpid(), signal.SIGTERM)
+            assert stop.signum == signal.SIGTERM
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+        assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        with _real_graceful_stop() as stop:
+            os.kill(os.getpid(), signal.SIGINT)
+            assert stop.signum == signal.SIGINT
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+
+
 def test_sigint_saves_a_checkpoint_and_says_how_to_resume(tmp_path):
     """The real handler in a real process: SIGINT mid-training -> exit 130, one line, resumable."""
     run = tmp_path / "run"
@@ -165,7 +198,12 @@ def test_sigint_saves_a_checkpoint_and_says_how_to_resume(tmp_path):
         f"hydra.run.dir={run}",
     ]
     proc = subprocess.Popen(
-        [*cli_command(), *args], cwd=tmp_path, env=cli_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE
+        [*cli_command(), *args],
+        cwd=tmp_path,
+        env=cli_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        preexec_fn=_default_signals,  # as from a terminal, even when the tests run under nohup
     )
     deadline = time.time() + 120
     metrics = run / "train_metrics.csv"
