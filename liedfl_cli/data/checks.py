@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from typing import NoReturn
 
 import numpy as np
 
@@ -87,4 +88,203 @@ def check_step_rotation(R_or_dataset, source: str, body_names: list[str] | None 
     return s
 
 
-__all__ = ["WARN_ANGLE", "ERROR_ANGLE", "step_angles", "step_rotation_summary", "check_step_rotation"]
+# ---------------------------------------------------------------------------- declared physics
+def _fail(error: type[Exception], head: str, field: str, problem: str) -> NoReturn:
+    raise error(f"{head}{field} {problem}")
+
+
+def _numbers(x, head: str, field: str, error: type[Exception]) -> np.ndarray:
+    """x as a float64 array of finite numbers (bools and strings refused)."""
+    try:
+        bad = isinstance(x, (str, bytes, bool)) or x is None
+        a = np.asarray(x, dtype=np.float64) if not bad else None
+    except (TypeError, ValueError):
+        a = None
+    if a is None or (a.dtype == object):
+        _fail(error, head, field, f"must be a number or an array of numbers, got {x!r:.80}")
+    assert a is not None
+    if isinstance(x, (list, tuple)) and any(isinstance(v, bool) for v in np.asarray(x, dtype=object).reshape(-1)):
+        _fail(error, head, field, f"must hold numbers, got {x!r:.80}")
+    if not np.isfinite(a).all():
+        _fail(error, head, field, f"has a non-finite value: {x!r:.80}")
+    return a
+
+
+def _inertia(J: np.ndarray, head: str, field: str, error: type[Exception]) -> None:
+    """J (3, 3): symmetric, positive definite, principal moments obeying the triangle inequality."""
+    scale = max(1.0, float(np.abs(J).max()))
+    if np.abs(J - J.T).max() > 1e-9 * scale:
+        _fail(error, head, field, f"must be symmetric, got {J.tolist()}")
+    lam = np.linalg.eigvalsh(0.5 * (J + J.T))
+    if lam.min() <= 0:
+        _fail(error, head, field, f"must be positive definite (principal moments {lam.tolist()})")
+    if lam[2] > lam[0] + lam[1] + 1e-9 * lam.sum():
+        _fail(
+            error,
+            head,
+            field,
+            f"violates the triangle inequality (principal moments {lam.tolist()}: the largest exceeds the sum of "
+            "the other two; no mass distribution has it)",
+        )
+
+
+def _per_body_inertia(J, n_bodies: int, head: str, field: str, error: type[Exception]) -> None:
+    a = _numbers(J, head, field, error)
+    if a.shape == (3,):
+        mats = [np.diag(a)] * n_bodies
+    elif a.shape == (3, 3):
+        mats = [a] * n_bodies
+    elif a.shape == (n_bodies, 3):
+        mats = [np.diag(r) for r in a]
+    elif a.shape == (n_bodies, 3, 3):
+        mats = list(a)
+    else:
+        _fail(error, head, field, f"has shape {a.shape}; expected (3,), (3, 3), ({n_bodies}, 3) or ({n_bodies}, 3, 3)")
+    for b, M in enumerate(mats):
+        _inertia(M, head, f"{field}" if n_bodies == 1 or a.ndim == 1 or a.shape == (3, 3) else f"{field}[{b}]", error)
+
+
+def check_physics(
+    physics,
+    n_bodies: int,
+    dim: int,
+    tree=None,
+    source: str | None = None,
+    prefix: str = "params.physics",
+    error: type[Exception] = DatasetError,
+) -> None:
+    """Validate a declared physics (a dataset's params["physics"] or a scene's `dataset.physics`) for
+    a group of `n_bodies` bodies and tangent dimension `dim`; `tree`: the file's kinematic tree (the
+    articulated schema needs one). Raises `error` with one line `<source>: <prefix>.<field> <problem>`.
+
+    Two schemas (docs/data_format.md): per body (mechanics.scene_physics: J, m, rho, g, D,
+    interaction, control) and `kind: "articulated"` (models.articulated: bodies, joint_damping, ...)."""
+    head = f"{source}: " if source else ""
+    if not isinstance(physics, dict):
+        _fail(error, head, prefix, f"must be a JSON object, got {type(physics).__name__}")
+    kind = physics.get("kind")
+    if kind == "articulated":
+        _check_articulated(physics, n_bodies, tree, head, prefix, error)
+        return
+    if kind is not None:
+        _fail(error, head, f"{prefix}.kind", f"is {kind!r}; the only kind is 'articulated' (or none: per body)")
+    B = n_bodies
+    if "J" not in physics:
+        _fail(error, head, f"{prefix}.J", "is missing (the inertia: 3 diagonal entries, 3x3, or one per body)")
+    _per_body_inertia(physics["J"], B, head, f"{prefix}.J", error)
+    if "m" in physics:
+        m = _numbers(physics["m"], head, f"{prefix}.m", error)
+        if m.shape not in ((), (B,)):
+            _fail(error, head, f"{prefix}.m", f"has shape {m.shape}; expected one mass or {B}")
+        if (m <= 0).any():
+            _fail(error, head, f"{prefix}.m", f"must be positive, got {physics['m']!r}")
+    if "rho" in physics:
+        rho = _numbers(physics["rho"], head, f"{prefix}.rho", error)
+        if rho.shape not in ((3,), (B, 3)):
+            _fail(error, head, f"{prefix}.rho", f"has shape {rho.shape}; expected (3,) or ({B}, 3)")
+    if physics.get("g") is not None and _numbers(physics["g"], head, f"{prefix}.g", error).shape != ():
+        _fail(error, head, f"{prefix}.g", f"must be one number, got {physics['g']!r}")
+    if "D" in physics:
+        D = _numbers(physics["D"], head, f"{prefix}.D", error)
+        if D.shape == (dim,):
+            if (D < 0).any():
+                _fail(error, head, f"{prefix}.D", f"must be non-negative, got entry {int(np.argmin(D))} = {D.min()}")
+        elif D.shape == (dim, dim):
+            scale = max(1.0, float(np.abs(D).max()))
+            if np.abs(D - D.T).max() > 1e-9 * scale:
+                _fail(error, head, f"{prefix}.D", "must be symmetric")
+            if np.linalg.eigvalsh(0.5 * (D + D.T)).min() < -1e-9 * scale:
+                _fail(error, head, f"{prefix}.D", "must be positive semidefinite")
+        else:
+            _fail(
+                error, head, f"{prefix}.D", f"has shape {D.shape}; expected ({dim},) or ({dim}, {dim}) for this group"
+            )
+    inter = physics.get("interaction")
+    if inter:
+        f = f"{prefix}.interaction"
+        if not isinstance(inter, dict):
+            _fail(error, head, f, f"must be an object, got {type(inter).__name__}")
+        if not isinstance(inter.get("kind"), str):
+            _fail(error, head, f"{f}.kind", f"must be a string, got {inter.get('kind')!r}")
+        if _numbers(inter.get("mu"), head, f"{f}.mu", error).shape != ():
+            _fail(error, head, f"{f}.mu", "must be one number")
+        bodies = inter.get("bodies", [0, 1])
+        if (
+            not isinstance(bodies, list)
+            or len(bodies) != 2
+            or not all(isinstance(i, int) and not isinstance(i, bool) and 0 <= i < B for i in bodies)
+            or bodies[0] == bodies[1]
+        ):
+            _fail(error, head, f"{f}.bodies", f"must be 2 distinct body indices in [0, {B}), got {bodies!r}")
+    ctrl = physics.get("control")
+    if ctrl:
+        f = f"{prefix}.control"
+        if not isinstance(ctrl, dict):
+            _fail(error, head, f, f"must be an object, got {type(ctrl).__name__}")
+        for key in ("R_f", "K_R", "K_w"):
+            if key not in ctrl:
+                _fail(error, head, f"{f}.{key}", "is missing")
+        if _numbers(ctrl["R_f"], head, f"{f}.R_f", error).shape != (3,):
+            _fail(error, head, f"{f}.R_f", f"must be a rotation vector of 3 numbers, got {ctrl['R_f']!r}")
+        _numbers(ctrl["K_R"], head, f"{f}.K_R", error)
+        _numbers(ctrl["K_w"], head, f"{f}.K_w", error)
+
+
+def _check_articulated(physics: dict, B: int, tree, head: str, prefix: str, error: type[Exception]) -> None:
+    if tree is None:
+        _fail(
+            error,
+            head,
+            f"{prefix}.kind",
+            "is 'articulated' but the file has no kinematic tree (attribute 'parents', dataset 'joint_offsets')",
+        )
+    bodies = physics.get("bodies")
+    if not isinstance(bodies, list) or len(bodies) != B:
+        n = len(bodies) if isinstance(bodies, list) else type(bodies).__name__
+        _fail(error, head, f"{prefix}.bodies", f"must list {B} bodies (mass, com, inertia), got {n}")
+    for b, body in enumerate(bodies):
+        f = f"{prefix}.bodies[{b}]"
+        if not isinstance(body, dict):
+            _fail(error, head, f, f"must be an object with mass, com, inertia, got {type(body).__name__}")
+        for key in ("mass", "com", "inertia"):
+            if key not in body:
+                _fail(error, head, f"{f}.{key}", "is missing")
+        mass = _numbers(body["mass"], head, f"{f}.mass", error)
+        if mass.shape != () or not mass > 0:
+            _fail(error, head, f"{f}.mass", f"must be one positive number, got {body['mass']!r}")
+        if _numbers(body["com"], head, f"{f}.com", error).shape != (3,):
+            _fail(error, head, f"{f}.com", f"must be 3 numbers, got {body['com']!r:.80}")
+        J = _numbers(body["inertia"], head, f"{f}.inertia", error)
+        if J.shape != (3, 3):
+            _fail(error, head, f"{f}.inertia", f"has shape {J.shape}; expected (3, 3)")
+        _inertia(J, head, f"{f}.inertia", error)
+    jd = physics.get("joint_damping")
+    if jd is not None:
+        d = _numbers(jd, head, f"{prefix}.joint_damping", error)
+        if d.shape != (B - 1,):
+            _fail(
+                error,
+                head,
+                f"{prefix}.joint_damping",
+                f"must have {B - 1} entries (one per non-root body), got {d.shape}",
+            )
+        if (d < 0).any():
+            i = int(np.argmin(d))
+            _fail(error, head, f"{prefix}.joint_damping[{i}]", f"must be >= 0, got {d[i]}")
+    for key in ("root_damping", "g"):
+        if physics.get(key) is not None:
+            v = _numbers(physics[key], head, f"{prefix}.{key}", error)
+            if v.shape != ():
+                _fail(error, head, f"{prefix}.{key}", f"must be one number, got {physics[key]!r}")
+            if key == "root_damping" and v < 0:
+                _fail(error, head, f"{prefix}.{key}", f"must be >= 0, got {float(v)}")
+
+
+__all__ = [
+    "WARN_ANGLE",
+    "ERROR_ANGLE",
+    "step_angles",
+    "step_rotation_summary",
+    "check_step_rotation",
+    "check_physics",
+]

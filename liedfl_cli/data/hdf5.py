@@ -295,6 +295,15 @@ def load_dataset(path, require_split: bool = True) -> Dataset:
             raise DatasetError(f"{src}: dataset 'split/{k}' must hold integers, got dtype {np.asarray(split[k]).dtype}")
     input_dtype = torch.float32 if R.dtype == np.float32 else torch.float64
     tree = read_tree(parents, offsets, rotations, kinds, src)
+    if not isinstance(params, dict):
+        raise DatasetError(f"{src}: attribute 'params' must be a JSON object, got a JSON {type(params).__name__}")
+    if isinstance(seed, bool) or not isinstance(seed, (int, float)) or not float(seed).is_integer():
+        raise DatasetError(f"{src}: attribute 'seed' must be an integer, got {seed!r:.80}")
+    if "physics" in params and all(k in BODY_KINDS for k in kinds):
+        from .checks import check_physics
+
+        n_so3 = len(kinds) - m
+        check_physics(params["physics"], len(kinds), 6 * m + 3 * n_so3, tree, src)
     ds = Dataset(
         R=R,
         p=p,

@@ -195,6 +195,10 @@ def rigid_physics(c: dict, dim: int) -> dict:
         raise ConfigError(
             f"dataset.physics.D must be a list of {dim} numbers (diagonal) or a {dim}x{dim} matrix, got {ph['D']!r}"
         )
+    from .checks import check_physics
+
+    check_physics({"J": ph["J"], "m": ph["m"], "rho": ph["rho"], "g": ph["g"], "D": D_out}, 1, dim,
+                  prefix="dataset.physics", error=ConfigError)  # fmt: skip
     return {
         "J": [float(x) for x in ph["J"]],
         "m": float(ph["m"]),
