@@ -237,6 +237,17 @@ def _del(name):
     return _edit(lambda f: f.__delitem__(name))
 
 
+def _physics(**changes):
+    """Change entries of the cached dataset's declared physics (params["physics"])."""
+
+    def edit(f):
+        params = json.loads(f.attrs["params"])
+        params["physics"].update(changes)
+        f.attrs["params"] = json.dumps(params, sort_keys=True)
+
+    return _edit(edit)
+
+
 def _conf_with_typo(ctx: Ctx):
     conf = ctx.tmp / "conf" / "dataset"
     conf.mkdir(parents=True)
@@ -559,6 +570,14 @@ CASES: list[Case] = [
     ),
     Case("data-R-float16", (T, *FAST), ("{data}", "'R'", "float16"), setup=_edit_R(lambda R: R.astype(np.float16))),
     Case("data-R-missing", (T, *FAST), ("{data}", "'R'", "missing"), setup=_del("R")),
+    Case("data-params-list", (T, *FAST), ("{data}", "'params'", "JSON object"), setup=_set_attr("params", "[1, 2]")),
+    Case("data-seed-text", (T, *FAST), ("{data}", "'seed'", "integer"), setup=_set_attr("seed", "abc")),
+    Case("data-physics-J-text", (T, *FAST), ("{data}", "params.physics.J", "number"), setup=_physics(J="heavy")),
+    Case(
+        "data-physics-J-triangle", (T, *FAST), ("{data}", "params.physics.J", "triangle"), setup=_physics(J=[1, 1, 5])
+    ),
+    Case("data-physics-D-size", (T, *FAST), ("{data}", "params.physics.D", "shape (2,)"), setup=_physics(D=[0, 0])),
+    Case("override-physics-J-triangle", (T, *FAST, "dataset.physics.J=[1,1,5]"), ("dataset.physics.J", "triangle")),
     Case("data-no-split", (T, *FAST), ("{data}", "group 'split' is missing"), setup=_del("split")),
     Case(
         "data-empty-train",
