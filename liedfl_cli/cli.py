@@ -18,8 +18,8 @@ CONF_DIR = Path(__file__).resolve().parent / "conf"
 COMMANDS = {
     "train": "train and evaluate a model (generates the dataset if needed)",
     "data": "only generate (or import) a dataset",
-    "rollout": "roll a trained run out: liedfl rollout run=<run dir> [steps=N]",
-    "eval": "metrics table and plots of a run: liedfl eval run=<run dir>",
+    "rollout": "roll a trained run out: liedfl rollout run=<run dir>|latest [steps=N]",
+    "eval": "metrics table and plots of a run: liedfl eval run=<run dir>|latest",
     "report": "one table and figures over a sweep: liedfl report sweep=<multirun dir>",
 }
 USAGE = (
@@ -28,6 +28,8 @@ USAGE = (
     + "} [key=value ...] [-m] [--cfg job] [--help]\n\n"
     + "\n".join(f"  {k:<8} {v}" for k, v in COMMANDS.items())
     + "\n\n  liedfl <command> --help         the command's config groups and keys"
+    + "\n  liedfl train resume=<run>       continue a run (run=latest, resume=latest: the newest one in outputs/runs/)"
+    + "\n  liedfl --version                liedfl's version (also -V, and after a command)"
     + '\n  liedfl --completion bash|zsh    shell completion: eval "$(liedfl --completion bash)" in ~/.bashrc'
 )
 COMPLETION = r"""# liedfl shell completion: commands, then config groups and keys through Hydra (liedfl <cmd> -sc).
@@ -35,7 +37,7 @@ COMPLETION = r"""# liedfl shell completion: commands, then config groups and key
 _liedfl_complete() {
     local cur="${COMP_WORDS[COMP_CWORD]}"
     if (( COMP_CWORD <= 1 )); then
-        COMPREPLY=($(compgen -W "COMMANDS --help --completion" -- "$cur"))
+        COMPREPLY=($(compgen -W "COMMANDS --help --version --completion" -- "$cur"))
         return
     fi
     local cmd="${COMP_WORDS[1]}"
@@ -226,8 +228,70 @@ def _check_dir_arg(command: str, args: list[str]) -> None:
         raise SystemExit(2)
 
 
+RUNS_DIR = Path("outputs") / "runs"
+
+
+def version() -> str:
+    """`liedfl <version>`: the installed distribution's version (the package's when not installed)."""
+    try:
+        from importlib.metadata import version as dist_version
+
+        return f"liedfl {dist_version('liedfl')}"
+    except Exception:  # not installed (e.g. run from a source tree)
+        from . import __version__
+
+        return f"liedfl {__version__}"
+
+
+def latest_run(root: Path = RUNS_DIR) -> Path | None:
+    """The run folder under `root` whose checkpoints/last.pt was modified last (None if there is none)."""
+    best: tuple[float, Path] | None = None
+    if root.is_dir():
+        for d in root.iterdir():
+            try:
+                mtime = (d / "checkpoints" / "last.pt").stat().st_mtime
+            except OSError:
+                continue
+            if best is None or mtime > best[0]:
+                best = (mtime, d)
+    return None if best is None else best[1]
+
+
+def _resolve_latest(command: str, args: list[str]) -> list[str]:
+    """`run=latest` (rollout, eval) and `resume=latest` (train): the newest run under outputs/runs/."""
+    key = {"rollout": "run", "eval": "run", "resume": "resume"}.get(command)
+    if key is None or f"{key}=latest" not in args:
+        return args
+    run = latest_run()
+    if run is None:
+        print(
+            f"error: {key}=latest: no run under {RUNS_DIR}/ (no run folder with checkpoints/last.pt)", file=sys.stderr
+        )
+        raise SystemExit(2)
+    return [f"{key}={run}" if a == f"{key}=latest" else a for a in args]
+
+
 def main() -> None:
+    """`liedfl ...`; output cut short by a closed pipe (`liedfl train --help | head -1`) ends quietly with
+    exit code 141 (128 + SIGPIPE, as for other commands killed by a closed pipe)."""
+    try:
+        try:
+            _main()
+        finally:
+            sys.stdout.flush()
+    except BrokenPipeError:
+        # Python would complain again when it flushes stdout at exit: point stdout at /dev/null
+        with contextlib.suppress(OSError, ValueError):
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+        raise SystemExit(141) from None
+
+
+def _main() -> None:
     argv = sys.argv[1:]
+    if argv and argv[0] in ("-V", "--version"):
+        print(version())
+        raise SystemExit(0)
     if not argv or argv[0] in ("-h", "--help", "help"):
         print(USAGE)
         raise SystemExit(0 if argv else 2)
@@ -244,6 +308,10 @@ def main() -> None:
     if command not in COMMANDS and command != "resume":
         print(f"error: unknown command {command!r}\n\n{USAGE}", file=sys.stderr)
         raise SystemExit(2)
+    if any(a in ("--version", "-V") for a in argv[1:]):  # liedfl's version, not Hydra's
+        print(version())
+        raise SystemExit(0)
+    argv = [argv[0], *_resolve_latest(command, argv[1:])]
     if not (CONF_DIR / f"{command}.yaml").is_file():
         print(
             f"error: config directory {CONF_DIR} not found; reinstall liedfl (`pip install .`)",
@@ -263,7 +331,7 @@ def main() -> None:
     def _hydra_main(cfg):
         return _run(command, cfg)
 
-    sys.argv = [f"liedfl-{command}", *argv[1:], *_help_overrides(command, argv[1:])]
+    sys.argv = [f"liedfl-{command}", *_with_help_overrides(command, argv[1:])]
     # Hydra prints its own errors over several lines and exits; with HYDRA_FULL_ERROR it raises them
     # instead, so that they can be reduced to one line here (the user's HYDRA_FULL_ERROR=1 keeps
     # Hydra's full text).
@@ -315,6 +383,16 @@ def _launcher_failure(e: Exception) -> str | None:
     lines = [ln.strip() for ln in str(e).splitlines() if ln.strip() and not set(ln.strip()) <= set("-=")]
     text = type(e).__name__ if not lines else lines[0] if len(lines) == 1 else f"{lines[0]} ... {lines[-1]}"
     return f"{type(e).__name__}: {text}" if not text.startswith(type(e).__name__) else text
+
+
+def _with_help_overrides(command: str, args: list[str]) -> list[str]:
+    """`args` with `_help_overrides` inserted next to the user's own overrides: argparse takes the
+    overrides as one run of positional words, so `dataset=import --help <ours>` would be refused."""
+    extra = _help_overrides(command, args)
+    if not extra:
+        return list(args)
+    i = next((i for i, a in enumerate(args) if not a.startswith("-") and "=" in a), len(args))
+    return [*args[:i], *extra, *args[i:]]
 
 
 def _help_overrides(command: str, args: list[str]) -> list[str]:
@@ -430,6 +508,9 @@ def _hydra_failure(command: str, e: Exception) -> None:
         fail(f"{e.filename}: {e.strerror or type(e).__name__}")
     if not isinstance(e, (HydraException, OmegaConfBaseException)):
         raise e
+    unknown = unknown_key_message(command, e)
+    if unknown is not None:
+        fail(unknown)
     message = hydra_message(command, e)
     if "hydra/launcher/submitit" in message:  # the plugin's configs exist only once it is installed
         message += ' (the submitit launchers need hydra-submitit-launcher: pip install -e ".[cluster]")'
@@ -478,28 +559,87 @@ def hydra_message(command: str, e: BaseException) -> str:
     return msg
 
 
+def _user_overrides(dotted: str) -> list[str]:
+    """The overrides on the command line (sys.argv, as `main` hands it to Hydra) other than the ones
+    of `dotted` and of hydra.*: the config the user asked for, without the failing key."""
+    out = []
+    for a in sys.argv[1:]:
+        if a.startswith("-") or "=" not in a:
+            continue
+        key = a.split("=", 1)[0].lstrip("+~")
+        if key != dotted and not key.startswith("hydra."):
+            out.append(a)
+    return out
+
+
+def _parent_node(command: str, dotted: str):
+    """The config node that would hold `dotted`, composed with the user's other overrides (e.g.
+    dataset=file, whose `path` a misspelt `dataset.pth` is close to); without the sweeps when they do
+    not compose, then without any. None when there is no such node."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+    from omegaconf import DictConfig, OmegaConf
+
+    overrides = _user_overrides(dotted)
+    attempts = [overrides, [o for o in overrides if "," not in o.split("=", 1)[1]], []]
+    base = None
+    for attempt in attempts:
+        try:
+            GlobalHydra.instance().clear()
+            with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+                base = compose(config_name=command, overrides=attempt)
+            break
+        except Exception:
+            continue
+    if base is None:
+        return None
+    parent = dotted.rpartition(".")[0]
+    node = OmegaConf.select(base, parent) if parent else base
+    return node if isinstance(node, DictConfig) else None
+
+
 def _closest_existing_key(command: str, dotted: str) -> str:
-    """' (did you mean X?)' from the config composed without overrides; '' when nothing is close."""
+    """' (did you mean X?)' (the closest key of the node `dotted` would be in; a looser match when
+    none is close); '' when nothing is."""
+    import difflib
+
     try:
-        from hydra import compose, initialize_config_dir
-        from hydra.core.global_hydra import GlobalHydra
-        from omegaconf import DictConfig, OmegaConf
-
-        from .schema import closest
-
-        GlobalHydra.instance().clear()
-        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-            base = compose(config_name=command)
-        parent, _, key = dotted.rpartition(".")
-        node = OmegaConf.select(base, parent) if parent else base
-        if not isinstance(node, DictConfig):
-            return ""
-        hint = closest(key, list(node.keys()))
-        if "did you mean" not in hint:
-            return ""
-        return hint.replace("'", f"'{parent}." if parent else "'", 1)
+        node = _parent_node(command, dotted)
     except Exception:  # a hint only
         return ""
+    if node is None:
+        return ""
+    parent, _, key = dotted.rpartition(".")
+    keys = sorted(str(k) for k in node if k != "hydra")
+    match = difflib.get_close_matches(key, keys, n=1, cutoff=0.6) or difflib.get_close_matches(key, keys, cutoff=0.4)
+    return f" (did you mean '{parent + '.' if parent else ''}{match[0]}'?)" if match else ""
+
+
+def unknown_key_message(command: str, e: BaseException) -> str | None:
+    """Hydra's refusal of an override of a key that does not exist (`dataset.pth=3`: "Could not
+    override 'dataset.pth' ... Key 'pth' is not in struct") as the schema's one line for a misspelt
+    key: "unknown config key 'dataset.pth' for scene 'file' (did you mean 'dataset.path'?)"."""
+    import re
+
+    text = str(e) + " " + str(e.__cause__ or "")
+    m = re.search(r"Could not override '([^']+)'", text)
+    if m is None or "not in struct" not in text:
+        return None
+    dotted = m.group(1)
+    try:
+        node = _parent_node(command, dotted)
+    except Exception:  # a hint only
+        node = None
+    if node is None:
+        return None
+    from .schema import closest
+
+    parent, _, key = dotted.rpartition(".")
+    hint = _closest_existing_key(command, dotted)
+    if not hint:
+        hint = closest(key, [str(k) for k in node if k != "hydra"])
+    where = f" for scene '{node.get('name')}'" if parent == "dataset" and node.get("name") else ""
+    return f"unknown config key '{dotted}'{where}{hint}"
 
 
 if __name__ == "__main__":

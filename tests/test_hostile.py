@@ -402,6 +402,11 @@ CASES: list[Case] = [
     Case("hydra-missing-option", (T, "dataset=nosuch"), ("dataset/nosuch", "free_rigid_body", "HYDRA_FULL_ERROR")),
     Case("hydra-missing-baseline", (T, "baseline=nosuch"), ("baseline/nosuch", "glnn_rk4")),
     Case("hydra-override-without-plus", (T, "train.epoch=3"), ("train.epoch", "train.epochs")),
+    Case(
+        "hydra-override-without-plus-scene",
+        (T, "dataset=file", "dataset.pth=x.h5"),
+        ("unknown config key 'dataset.pth' for scene 'file'", "did you mean 'dataset.path'?"),
+    ),
     Case("hydra-grammar", (T, "a=b=c"), ("a=b=c",)),
     Case("hydra-unclosed-list", (T, "seed=[1,2"), ("seed=[1,2",)),
     Case("hydra-delete-missing", (T, "~nosuchkey"), ("nosuchkey",)),
@@ -423,6 +428,8 @@ CASES: list[Case] = [
     Case("rollout-steps-arg-text", ("rollout", "run={run}", "steps=abc"), ("steps", "abc"), setup=lambda c: c.run()),
     Case("rollout-steps-arg-negative", ("rollout", "run={run}", "steps=-3"), ("steps=-3",), setup=lambda c: c.run()),
     Case("eval-typo", ("eval", "run={run}", "+rollot=x"), ("rollot", "rollout"), setup=lambda c: c.run()),
+    Case("rollout-latest-no-runs", ("rollout", "run=latest"), ("run=latest", "no run under outputs/runs/")),
+    Case("resume-latest-no-runs", (T, "resume=latest"), ("resume=latest", "no run under outputs/runs/")),
     # --- run folders and checkpoints
     Case(
         "ckpt-missing",
