@@ -138,3 +138,25 @@ def test_vectorised_world_blocks_equal_the_per_body_closed_form_and_autodiff():
         torch.testing.assert_close(
             blocks[:, b].detach(), full[:, s, s], rtol=1e-10, atol=1e-10 * float(full.abs().max())
         )
+
+
+@pytest.mark.parametrize(("rotations", "free_root", "forces"), CASES[:2])
+def test_newton_loss_of_the_batches_equals_the_reference_path(rotations, free_root, forces):
+    """train.loss=newton: the precomputed batches (`enable_jacobian`) give the loss of the generic
+    reference path (`models.losses.newton_loss`: autodiff Jacobian of the residual, then solve)."""
+    from liedfl_cli.models.losses import training_stage
+
+    tree = _tree(rotations, free_root)
+    data = _trajectories(tree, T=3, N=6, speed=0.05)
+    fast = _model(tree, "fast", forces)
+    generic = _model(tree, "generic", forces)
+    generic.load_state_dict(fast.state_dict())
+    opts = LossOptions(reg_points=0, loss="newton")
+    _, fs = training_stage(fast, data, 6, opts)
+    assert isinstance(fs, ArticulatedTriplets) and fs.A_next is not None
+    gen = torch.Generator().manual_seed(0)
+    idx = torch.arange(6)
+    lf, pf = fast.loss(fs.batch(idx, gen, 0), opts)
+    lg, pg = generic.loss(generic.training_set(data, 6).batch(idx, gen, 0), opts)
+    assert float(pf["newton_loss"]) > 0 and float(pf["singular"]) == 0
+    torch.testing.assert_close(lf, lg, rtol=1e-8, atol=0)

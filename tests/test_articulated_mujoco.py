@@ -96,9 +96,12 @@ def test_rollout_converges_to_mujoco_at_second_order():
     assert 1.6 < float(order) < 2.6, (errs, float(order))
 
 
-def test_articulated_training_runs_end_to_end(tmp_path):
+def test_articulated_training_runs_end_to_end(tmp_path, monkeypatch):
     from helpers import compose_config
+    from liedfl_cli.solvers import runtime
     from liedfl_cli.train import run_train
+
+    monkeypatch.setattr(runtime, "_current", runtime.current())  # run_train configures the runtime: restore it
 
     path = tmp_path / "chain.h5"
     save_dataset(chain_dataset(n_trajectories=10, steps=12, h=0.05, seed=1, links=3), path)

@@ -217,8 +217,9 @@ def test_the_scan_allows_what_the_rules_allow(snippet):
 # ----------------------------------------------------------------------------- settings
 @pytest.fixture
 def restore_runtime(monkeypatch):
-    """In-process commands call runtime.configure: put the settings back afterwards."""
-    monkeypatch.setattr(runtime, "_current", runtime.current())
+    """In-process commands call runtime.configure: start from the defaults (not from whatever an earlier
+    test left) and put the settings back afterwards."""
+    monkeypatch.setattr(runtime, "_current", runtime.RuntimeOptions())
     threads = torch.get_num_threads()
     yield
     torch.set_num_threads(threads)

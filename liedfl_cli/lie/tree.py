@@ -119,17 +119,19 @@ def forward_kinematics(tree: Tree, g: Pose) -> Pose:
     return Pose(torch.stack(Rw, -3), torch.stack(pw, -2))  # type: ignore[arg-type]
 
 
+def relative_rotations(tree: Tree, Rw: torch.Tensor) -> torch.Tensor:
+    """World attitudes (..., B, 3, 3) -> each body's attitude relative to its parent, R_parent^T R_b
+    (the root's as it is), (..., B, 3, 3)."""
+    par = [max(q, 0) for q in tree.parents]
+    Rp = Rw[..., par, :, :]
+    return torch.cat((Rw[..., :1, :, :], Rp[..., 1:, :, :].transpose(-1, -2) @ Rw[..., 1:, :, :]), -3)
+
+
 def coordinates(tree: Tree, world: Pose) -> Pose:
     """Inverse of `forward_kinematics` on its image: world poses (Rw (..., B, 3, 3), pw (..., B, 3))
     -> the tree's coordinates (R (..., B, 3, 3), p (..., m, 3)). Positions of non-root bodies are
     implied by the joints and are not read."""
-    Rw = world.R
-    if tree.rotations == "parent":
-        par = [max(q, 0) for q in tree.parents]
-        Rp = Rw[..., par, :, :]
-        R = torch.cat((Rw[..., :1, :, :], Rp[..., 1:, :, :].transpose(-1, -2) @ Rw[..., 1:, :, :]), -3)
-    else:
-        R = Rw
+    R = relative_rotations(tree, world.R) if tree.rotations == "parent" else world.R
     p = world.p[..., :1, :] if tree.free_root else world.p[..., :0, :]
     return Pose(R, p)
 

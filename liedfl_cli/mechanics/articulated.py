@@ -30,18 +30,14 @@ from __future__ import annotations
 
 import torch
 
-from ..lie import Pose, ProductGroup, so3
-from ..lie.tree import Tree, fk_jacobian, forward_kinematics
+from ..lie import Pose, ProductGroup
+from ..lie.tree import Tree, fk_jacobian, forward_kinematics, relative_rotations
+from . import kinetic
 
 
 def world_group(tree: Tree) -> ProductGroup:
     """SE(3)^B: every body of the tree as a free rigid body (the layout of FK's world poses)."""
     return ProductGroup(tree.n_bodies, 0)
-
-
-def world_poses(tree: Tree, g: Pose) -> Pose:
-    """FK as a Pose of SE(3)^B: R (..., B, 3, 3), p (..., B, 3)."""
-    return forward_kinematics(tree, g)
 
 
 def to_coordinates(A: torch.Tensor, c_world: torch.Tensor) -> torch.Tensor:
@@ -58,46 +54,34 @@ def newton_jacobian(A_k: torch.Tensor, inc_next: Pose, A_next: torch.Tensor, Jd,
 
 
 def mixed_hessian_blocks(inc: Pose, Jd, mass, rho, h: float) -> torch.Tensor:
-    """Each body's world SE(3) block of the mixed Hessian, (..., B, 6, 6), all bodies at once: the
-    closed form of `kinetic.mixed_hessian_blocks` for SE(3)^B, rows (a_w, a_v), columns (b_w, b_v):
-    [[H_rot + s P W P, -s P W], [s W P, -s W]] with H_rot,ij = tr(hat(e_i) W hat(e_j) J_d) / h,
-    P = hat(rho), s = m / h. W (..., B, 3, 3); Jd (B, 3, 3), mass (B,), rho (B, 3)."""
-    W = inc.R
-    E = so3.hat(torch.eye(3, dtype=W.dtype, device=W.device))
-    Hrot = torch.einsum("iab,...kbc,jcd,kda->...kij", E, W, E, Jd) / h
-    P = so3.hat(rho)
-    s = (mass / h)[:, None, None]
-    PW = P @ W
-    top = torch.cat((Hrot + s * (PW @ P), -s * PW), -1)
-    bottom = torch.cat((s * (W @ P), -s * W), -1)
-    return torch.cat((top, bottom), -2)
+    """Each body's world SE(3) block of the mixed Hessian, (..., B, 6, 6) (`kinetic.se3_mixed_hessian`)."""
+    return kinetic.se3_mixed_hessian(inc.R, Jd, mass, rho, h)
 
 
 def joint_velocity_map(tree: Tree, g: Pose) -> torch.Tensor | None:
     """C(g) (..., dim, dim) with nu = C xi: the root's twist and each joint's relative angular
-    velocity w_b - R_b^T R_parent w_parent (child frame); None when C = I (parent-relative rotations)."""
+    velocity w_b - R_b^T R_parent w_parent (child frame); None when C = I (parent-relative rotations).
+    Built without in-place writes, so torch.func transforms (vmap, jacrev) go through it."""
     if tree.rotations == "parent":
         return None
-    G = tree.group
-    lead = g.R.shape[:-3]
-    C = torch.eye(G.dim, dtype=g.R.dtype, device=g.R.device).expand(*lead, G.dim, G.dim).clone()
-    sl = G.body_slices()
-    for b in range(1, tree.n_bodies):
-        q = tree.parents[b]
-        rel = g.R[..., b, :, :].transpose(-1, -2) @ g.R[..., q, :, :]
-        C[..., sl[b].start : sl[b].start + 3, sl[q].start : sl[q].start + 3] = -rel
-    return C
+    G, B = tree.group, tree.n_bodies
+    dt, dev, lead = g.R.dtype, g.R.device, g.R.shape[:-3]
+    par = [max(q, 0) for q in tree.parents]
+    rel = g.R.transpose(-1, -2) @ g.R[..., par, :, :]  # (..., B, 3, 3): R_b^T R_parent
+    P = torch.zeros(B, B, dtype=dt, device=dev)  # P[b, parent(b)] = 1
+    P[torch.arange(1, B, device=dev), torch.tensor(par[1:], dtype=torch.long, device=dev)] = 1.0
+    C_rot = -torch.einsum("bc,...bij->...bicj", P, rel).reshape(*lead, 3 * B, 3 * B)
+    # into the tangent layout: every body's rotation rows/columns (S), the root's translation untouched
+    rot = torch.cat([torch.arange(s.start, s.start + 3, device=dev) for s in G.body_slices()])
+    S = torch.zeros(G.dim, 3 * B, dtype=dt, device=dev)
+    S[rot, torch.arange(3 * B, device=dev)] = 1.0
+    return torch.eye(G.dim, dtype=dt, device=dev) + S @ C_rot @ S.T
 
 
 def joint_coordinates(tree: Tree, g: Pose) -> Pose:
     """The tree's coordinates with parent-relative rotations (R_parent^T R_b; the root as it is):
     the joints' own configuration, on which forces act. Identity for `rotations="parent"`."""
-    if tree.rotations == "parent":
-        return g
-    par = [max(q, 0) for q in tree.parents]
-    Rp = g.R[..., par, :, :]
-    R = torch.cat((g.R[..., :1, :, :], Rp[..., 1:, :, :].transpose(-1, -2) @ g.R[..., 1:, :, :]), -3)
-    return Pose(R, g.p)
+    return g if tree.rotations == "parent" else Pose(relative_rotations(tree, g.R), g.p)
 
 
 def fk_and_jacobian(tree: Tree, g: Pose) -> tuple[Pose, torch.Tensor]:

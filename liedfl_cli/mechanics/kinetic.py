@@ -85,6 +85,20 @@ def _generators(dtype, device) -> torch.Tensor:
     return so3.hat(torch.eye(3, dtype=dtype, device=device))
 
 
+def se3_mixed_hessian(W: torch.Tensor, Jd, mass, rho, h: float) -> torch.Tensor:
+    """The SE(3) blocks of `mixed_hessian_blocks` for n bodies at once, (..., n, 6, 6):
+    [[H_rot + s P W P, -s P W], [s W P, -s W]], P = hat(rho), s = m / h, rows (a_w, a_v), columns
+    (b_w, b_v). W (..., n, 3, 3); Jd (n, 3, 3), mass (n,), rho (n, 3)."""
+    E = _generators(W.dtype, W.device)
+    Hrot = torch.einsum("iab,...kbc,jcd,kda->...kij", E, W, E, Jd) / h
+    P = so3.hat(rho)
+    s = (mass / h)[:, None, None]
+    PW = P @ W
+    top = torch.cat((Hrot + s * (PW @ P), -s * PW), -1)
+    bottom = torch.cat((s * (W @ P), -s * W), -1)
+    return torch.cat((top, bottom), -2)
+
+
 def mixed_hessian_blocks(G: ProductGroup, inc: Pose, Jd, mass, rho, h: float) -> list[torch.Tensor]:
     """Per-body blocks of H = d^2 K(exp(-a) (W, z) exp(b)) / da db at 0 (closed form).
 
@@ -92,20 +106,12 @@ def mixed_hessian_blocks(G: ProductGroup, inc: Pose, Jd, mass, rho, h: float) ->
     (a_w, a_v) and columns (b_w, b_v), (m/h) [[hat(rho) W hat(rho), -hat(rho) W], [W hat(rho), -W]].
     Returns a list of (..., 3, 3) or (..., 6, 6) tensors, one per body.
     """
-    W = inc.R
-    E = _generators(W.dtype, W.device)
-    Hrot = torch.einsum("iab,...kbc,jcd,kda->...kij", E, W, E, Jd) / h  # (..., B, 3, 3)
-    blocks = []
-    for i in range(G.n_bodies):
-        Hi = Hrot[..., i, :, :]
-        if i < G.n_se3:
-            Wi = W[..., i, :, :]
-            P = so3.hat(rho[i]).expand_as(Wi)
-            s = mass[i] / h
-            top = torch.cat((Hi + s * (P @ Wi @ P), -s * (P @ Wi)), -1)
-            bottom = torch.cat((s * (Wi @ P), -s * Wi), -1)
-            Hi = torch.cat((top, bottom), -2)
-        blocks.append(Hi)
+    W, m = inc.R, G.n_se3
+    blocks = list(se3_mixed_hessian(W[..., :m, :, :], Jd[:m], mass, rho, h).unbind(-3)) if m else []
+    if G.n_so3:
+        E = _generators(W.dtype, W.device)
+        Hrot = torch.einsum("iab,...kbc,jcd,kda->...kij", E, W[..., m:, :, :], E, Jd[m:]) / h  # (..., n, 3, 3)
+        blocks += list(Hrot.unbind(-3))
     return blocks
 
 

@@ -34,7 +34,7 @@ from torch.func import grad
 from ..errors import ConfigError
 from ..lie import Pose, so3
 from ..lie.tolerances import projects_poses
-from ..lie.tree import Tree
+from ..lie.tree import Tree, forward_kinematics
 from ..mechanics import articulated as art
 from ..mechanics import kinetic
 from ..mechanics.forces import RayleighForce, build_forces, force_jacobian_xi
@@ -50,9 +50,7 @@ from .base import (
     TripletSet,
     oriented_logdet,
 )
-from .liedflnn import del_regularity_loss
-
-RESIDUAL_MODES = ("fast", "generic")
+from .liedflnn import check_options, component_tagger, del_regularity_loss
 
 
 def geometric_start(tree: Tree) -> tuple[torch.Tensor, torch.Tensor]:
@@ -74,9 +72,6 @@ def geometric_start(tree: Tree) -> tuple[torch.Tensor, torch.Tensor]:
     positive = length[length > 0]
     floor = 0.1 * float(positive.median()) if len(positive) else 1.0
     return rho, length.clamp_min(floor)
-
-
-KNOWN_PARTS = ("inertia", "potential", "damping")
 
 
 def articulated_parameters(physics: dict, n_bodies: int) -> dict[str, torch.Tensor]:
@@ -146,9 +141,9 @@ class ArticulatedTriplets(TripletSet):
         tree, G = model.tree, model.G
         Gw = art.world_group(tree)
         with torch.no_grad():
-            w_prev = art.world_poses(tree, self.prev)
+            w_prev = forward_kinematics(tree, self.prev)
             w_cur, self.A = art.fk_and_jacobian(tree, self.cur)
-            w_next = art.world_poses(tree, self.nxt)
+            w_next = forward_kinematics(tree, self.nxt)
             self.world_cur = w_cur
             self.inc_prev = Gw.increment(w_prev, w_cur)
             self.inc_next = Gw.increment(w_cur, w_next)
@@ -157,8 +152,15 @@ class ArticulatedTriplets(TripletSet):
             self.nu_prev = kinetic.velocity_estimate(G, G.increment(q_prev, q_cur), model.h)
             self.nu_next = kinetic.velocity_estimate(G, G.increment(q_cur, q_next), model.h)
             self.C = art.joint_velocity_map(tree, self.cur)
-            self.A_next = art.fk_jacobian(tree, self.nxt, w_next)  # for the Newton-normalised loss
-            self.inc_coord = G.increment(self.cur, self.nxt)
+        self.A_next: torch.Tensor | None = None  # `enable_jacobian` (train.loss=newton only)
+        self.inc_coord: Pose | None = None
+        self.tree = tree
+
+    def enable_jacobian(self) -> None:
+        """Also keep A(g_{k+1}) and the coordinate increments, which the Newton-normalised loss needs."""
+        with torch.no_grad():
+            self.A_next = art.fk_jacobian(self.tree, self.nxt)
+            self.inc_coord = self.tree.group.increment(self.cur, self.nxt)
 
     def batch(self, idx: torch.Tensor, generator: torch.Generator, reg_points: int) -> ArticulatedBatch:  # type: ignore[override]
         reg = None
@@ -178,8 +180,8 @@ class ArticulatedTriplets(TripletSet):
             self.nu_prev[i],
             self.nu_next[i],
             None if self.C is None else self.C[i],
-            self.A_next[i],
-            self.inc_coord.index(i),
+            None if self.A_next is None else self.A_next[i],
+            None if self.inc_coord is None else self.inc_coord.index(i),
             reg,
         )
 
@@ -228,14 +230,7 @@ class ArticulatedLieDFLNN(ImplicitModel):
         learn_gravity_direction: bool = False,
     ):
         super().__init__()
-        if residual not in RESIDUAL_MODES:
-            raise ValueError(f"model.residual must be one of {RESIDUAL_MODES}, got {residual!r}")
-        known = tuple(known or ())
-        bad = [k for k in known if k not in KNOWN_PARTS]
-        if bad:
-            raise ValueError(f"model.known: unknown part(s) {bad}; choose from {list(KNOWN_PARTS)}")
-        if known and not physics:
-            raise ValueError(f"model.known={list(known)} needs the data's declared physics (params['physics'])")
+        known = check_options(residual, known, physics)
         self.tree, self.G, self.h, self.residual_mode = tree, tree.group, float(h), residual
         self.known = known
         B = tree.n_bodies
@@ -300,19 +295,7 @@ class ArticulatedLieDFLNN(ImplicitModel):
         return build_articulated(ctx, parts, opt, why)
 
     def components(self) -> list[str]:
-        seen: set[int] = set()
-
-        def tag(label: str, *modules) -> str:
-            params = [
-                p for m in modules if m is not None for p in (m.parameters() if isinstance(m, nn.Module) else [m])
-            ]
-            own = [p for p in params if id(p) not in seen]
-            seen.update(id(p) for p in params)
-            n = sum(p.numel() for p in own if p.requires_grad)
-            if params and not own:
-                return f"{label} (shared)"
-            return f"{label} ({n:,})" if n else f"{label} (known, frozen)"
-
+        tag = component_tagger()
         out = [
             f"tree ({self.tree.n_bodies} bodies, {self.tree.rotations} rotations, "
             f"{'free' if self.tree.free_root else 'pinned'} root)",
@@ -339,7 +322,7 @@ class ArticulatedLieDFLNN(ImplicitModel):
         """V(g), shape (...)."""
         V = g.R.new_zeros(g.R.shape[:-3])
         if self.potential_world is not None:
-            V = V + self.potential_world(art.world_poses(self.tree, g))
+            V = V + self.potential_world(forward_kinematics(self.tree, g))
         if self.potential_coord is not None:
             V = V + self.potential_coord(g)
         return V
@@ -347,14 +330,15 @@ class ArticulatedLieDFLNN(ImplicitModel):
     def lagrangian(self, g: Pose, g_next: Pose) -> torch.Tensor:
         """L_d(g, g_next) through forward kinematics, shape (...)."""
         Gw = art.world_group(self.tree)
-        inc = Gw.increment(art.world_poses(self.tree, g), art.world_poses(self.tree, g_next))
+        inc = Gw.increment(forward_kinematics(self.tree, g), forward_kinematics(self.tree, g_next))
         Jd, m, rho = self._params()
         return kinetic.kinetic_lagrangian(Gw, inc, Jd, m, rho, self.h) - self.h * self.potential(g)
 
-    def joint_torque(self, g: Pose, g_next: Pose) -> torch.Tensor:
+    def joint_torque(self, g: Pose, g_next: Pose, q: Pose | None = None) -> torch.Tensor:
         """sum_f F(q, nu~) of the interval (g, g_next) in joint space, (..., dim): q = the joint
-        coordinates of g, nu~ the velocity estimate of the joint-coordinate increment."""
-        q, q_next = art.joint_coordinates(self.tree, g), art.joint_coordinates(self.tree, g_next)
+        coordinates of g (pass them when known), nu~ the velocity estimate of the joint-coordinate increment."""
+        q = art.joint_coordinates(self.tree, g) if q is None else q
+        q_next = art.joint_coordinates(self.tree, g_next)
         nu = kinetic.velocity_estimate(self.G, self.G.increment(q, q_next), self.h)
         F = torch.zeros_like(nu)
         for f in self.forces:
@@ -405,7 +389,7 @@ class ArticulatedLieDFLNN(ImplicitModel):
             return self._generic_d(2, g_prev, g) + self.half_force(g_prev, g, at=g)
         Gw = art.world_group(self.tree)
         world, A = art.fk_and_jacobian(self.tree, g)
-        inc_w = Gw.increment(art.world_poses(self.tree, g_prev), world)
+        inc_w = Gw.increment(forward_kinematics(self.tree, g_prev), world)
         Jd, m, rho = self._params()
         d2 = kinetic.kinetic_d2(Gw, inc_w, Jd, m, rho, self.h)
         return art.to_coordinates(A, d2) + self.potential_covector(g, world, A) + self.half_force(g_prev, g, at=g)
@@ -416,7 +400,7 @@ class ArticulatedLieDFLNN(ImplicitModel):
             return self._generic_d(1, g, g_next) + self.half_force(g, g_next, at=g)
         Gw = art.world_group(self.tree)
         world, A = art.fk_and_jacobian(self.tree, g)
-        inc_w = Gw.increment(world, art.world_poses(self.tree, g_next))
+        inc_w = Gw.increment(world, forward_kinematics(self.tree, g_next))
         Jd, m, rho = self._params()
         d1 = kinetic.kinetic_d1(Gw, inc_w, Jd, m, rho, self.h)
         return art.to_coordinates(A, d1) + self.half_force(g, g_next, at=g)
@@ -425,14 +409,19 @@ class ArticulatedLieDFLNN(ImplicitModel):
         """Forced DEL residual at g in the tree's coordinates, (..., dim)."""
         return self.residual_const(g_prev, g) + self.residual_var(g, g_next)
 
-    def _force_jacobian(self, g: Pose, inc: Pose) -> torch.Tensor | None:
+    def _force_jacobian(self, g: Pose, inc: Pose, fixed: tuple[Pose, torch.Tensor | None] | None = None):
         """d/d delta of (h/2) C(g)^T F(q, nu~(q, q_next)) with g_next = g inc exp(delta), (..., dim, dim):
-        (h/2) C(g)^T dF/dnu dnu~/d delta_q C(g_next) (delta_q = C(g_next) delta moves the joint coordinates)."""
+        (h/2) C(g)^T dF/dnu dnu~/d delta_q C(g_next) (delta_q = C(g_next) delta moves the joint coordinates).
+        `fixed`: (q, C) of g when already known (a rollout step's Newton iterations share them). None
+        without forces."""
         if not len(self.forces):
             return None
         G = self.G
         g_next = G.compose(g, inc)
-        q, q_next = art.joint_coordinates(self.tree, g), art.joint_coordinates(self.tree, g_next)
+        q, C = (
+            fixed if fixed is not None else (art.joint_coordinates(self.tree, g), art.joint_velocity_map(self.tree, g))
+        )
+        q_next = art.joint_coordinates(self.tree, g_next)
         inc_q = G.increment(q, q_next)
         nu = kinetic.velocity_estimate(G, inc_q, self.h)
         dnu = kinetic.velocity_estimate_jacobian(G, inc_q, self.h)
@@ -442,7 +431,6 @@ class ArticulatedLieDFLNN(ImplicitModel):
         C_next = art.joint_velocity_map(self.tree, g_next)
         if C_next is not None:
             J = J @ C_next
-        C = art.joint_velocity_map(self.tree, g)
         if C is not None:
             J = C.transpose(-1, -2) @ J
         return 0.5 * self.h * J
@@ -472,7 +460,7 @@ class ArticulatedLieDFLNN(ImplicitModel):
         """(log|det H_b|, sign det(-H_b)) of each body's world SE(3) block of the mixed Hessian at the
         pairs (g, g_next), (..., B) (the regularity term's blocks; the contract of `LieDFLNN`)."""
         Gw = art.world_group(self.tree)
-        return self.world_slogdet(Gw.increment(art.world_poses(self.tree, g), art.world_poses(self.tree, g_next)))
+        return self.world_slogdet(Gw.increment(forward_kinematics(self.tree, g), forward_kinematics(self.tree, g_next)))
 
     def world_slogdet(self, inc_world: Pose) -> tuple[torch.Tensor, torch.Tensor]:
         """`regularity_slogdet` from the world increments FK(g)^-1 FK(g_next) (SE(3)^B), (..., B)."""
@@ -508,17 +496,12 @@ class ArticulatedLieDFLNN(ImplicitModel):
 
     def newton_jacobian_batch(self, b: ArticulatedBatch) -> torch.Tensor:
         """H_k = d r_k / d delta_{k+1} of a batch (kinetic A_k^T blockdiag(H_b) A_{k+1} + forces), (N, dim, dim)."""
-        assert b.A_next is not None
+        if b.A_next is None:
+            raise RuntimeError("train.loss=newton needs ArticulatedTriplets.enable_jacobian()")
         Jd, m, rho = self._params()
         Hk = art.newton_jacobian(b.A, b.inc_next, b.A_next, Jd, m, rho, self.h)
         Jf = self._force_jacobian(b.cur, b.inc_coord) if b.inc_coord is not None else None
         return Hk if Jf is None else Hk + Jf
-
-    def newton_residual(self, b: ArticulatedBatch) -> torch.Tensor:
-        """H_k^{-1} r_k, (N, dim): the residual premultiplied by the inverse of its Jacobian in g_{k+1}
-        (kinetic part A_k^T blockdiag(H_b) A_{k+1} and the forces' part): to first order the one-step
-        prediction error in the coordinates' tangent space, differentiable in the parameters."""
-        return torch.linalg.solve(self.newton_jacobian_batch(b), self._batch_residual(b)[..., None])[..., 0]
 
     def _batch_residual(self, b: ArticulatedBatch) -> torch.Tensor:
         Gw = art.world_group(self.tree)
@@ -552,7 +535,7 @@ class ArticulatedLieDFLNN(ImplicitModel):
                 const = self.residual_const(state.g_prev, g).detach()
             else:
                 Jd, m, rho = self._params()
-                inc_w = Gw.increment(art.world_poses(tree, state.g_prev), world)
+                inc_w = Gw.increment(forward_kinematics(tree, state.g_prev), world)
                 const = (
                     art.to_coordinates(A, kinetic.kinetic_d2(Gw, inc_w, Jd, m, rho, self.h))
                     + self.potential_covector(g, world, A)
@@ -573,19 +556,22 @@ class ArticulatedLieDFLNN(ImplicitModel):
 
         with torch.no_grad():
             Jd, m, rho = (t.detach() for t in self._params())
+        # fixed for this step's Newton iterations: g's joint coordinates and joint-velocity map
+        q, C = art.joint_coordinates(tree, g), art.joint_velocity_map(tree, g)
 
         def f_fast(x: Pose) -> torch.Tensor:
-            inc_w = Gw.increment(world, art.world_poses(tree, G.compose(g, x)))
-            d1 = kinetic.kinetic_d1(Gw, inc_w, Jd, m, rho, self.h)
-            with torch.enable_grad():
-                F = self.half_force(g, G.compose(g, x), at=g).detach()
-            return const + art.to_coordinates(A, d1) + F
+            g_next = G.compose(g, x)
+            d1 = kinetic.kinetic_d1(Gw, Gw.increment(world, forward_kinematics(tree, g_next)), Jd, m, rho, self.h)
+            r = const + art.to_coordinates(A, d1)
+            if not len(self.forces):
+                return r
+            tau = self.joint_torque(g, g_next, q=q).detach()
+            return r + 0.5 * self.h * (tau if C is None else (C.transpose(-1, -2) @ tau[..., None])[..., 0])
 
         def jac_fast(x: Pose) -> torch.Tensor:
             w_next, A_next = art.fk_and_jacobian(tree, G.compose(g, x))
             J = art.newton_jacobian(A, Gw.increment(world, w_next), A_next, Jd, m, rho, self.h)
-            with torch.enable_grad():
-                Jf = self._force_jacobian(g, x)
+            Jf = self._force_jacobian(g, x, fixed=(q, C))
             return J if Jf is None else J + Jf.detach()
 
         return NewtonProblem(f_fast, jac_fast, state.inc, G.retract)

@@ -52,6 +52,41 @@ KINETIC_KINDS = ("per_body", "articulated")
 KNOWN_PARTS = ("inertia", "potential", "damping")
 
 
+def check_options(residual: str, known, physics) -> tuple[str, ...]:
+    """The checks every LieDFLNN (per-body or articulated) makes of its options; returns `known` as a tuple."""
+    if residual not in RESIDUAL_MODES:
+        raise ValueError(f"model.residual must be one of {RESIDUAL_MODES}, got {residual!r}")
+    known = tuple(known or ())
+    bad = [k for k in known if k not in KNOWN_PARTS]
+    if bad:
+        raise ValueError(f"model.known: unknown part(s) {bad}; choose from {list(KNOWN_PARTS)}")
+    if known and not physics:
+        raise ValueError(
+            f"model.known={list(known)} needs the scene's true parameters, but the dataset "
+            "has no params['physics'] (real recordings have none)"
+        )
+    return known
+
+
+def component_tagger():
+    """tag(label, *modules) -> "label (n trainable)" | "label (shared)" | "label (known, frozen)", counting
+    parameters shared between parts (uniform_gravity's m, rho) once across the calls of one tagger."""
+    seen: set[int] = set()
+
+    def tag(label: str, *modules) -> str:
+        params = [p for m in modules if m is not None for p in (m.parameters() if isinstance(m, nn.Module) else [m])]
+        own = [p for p in params if id(p) not in seen]
+        seen.update(id(p) for p in params)
+        n = sum(p.numel() for p in own if p.requires_grad)
+        if params and not own:
+            return f"{label} (shared)"
+        if params and n == 0 or not params:
+            return f"{label} (known, frozen)"
+        return f"{label} ({n:,})"
+
+    return tag
+
+
 def potential_parts(potential) -> tuple[str, ...]:
     """ "none" / a part name / a list of part names (POTENTIAL_PARTS) -> the tuple of parts."""
     if potential in (None, "none"):
@@ -100,17 +135,7 @@ class LieDFLNN(ImplicitModel):
         learn_gravity_direction: bool = False,
     ):
         super().__init__()
-        if residual not in RESIDUAL_MODES:
-            raise ValueError(f"model.residual must be one of {RESIDUAL_MODES}, got {residual!r}")
-        known = tuple(known or ())
-        bad = [k for k in known if k not in KNOWN_PARTS]
-        if bad:
-            raise ValueError(f"model.known: unknown part(s) {bad}; choose from {list(KNOWN_PARTS)}")
-        if known and not physics:
-            raise ValueError(
-                f"model.known={list(known)} needs the scene's true parameters, but the dataset "
-                "has no params['physics'] (real recordings have none)"
-            )
+        known = check_options(residual, known, physics)
         self.G, self.h, self.residual_mode = G, float(h), residual
         self.known = known
         gen = torch.Generator().manual_seed(seed)
@@ -284,21 +309,7 @@ class LieDFLNN(ImplicitModel):
         or ["J_d (known, frozen)", "V:gravity+interaction:spring (known, frozen)", ...].
         """
 
-        seen: set[int] = set()  # parameters shared between parts (uniform_gravity's m, rho) count once
-
-        def tag(label: str, *modules) -> str:
-            params = [
-                p for m in modules if m is not None for p in (m.parameters() if isinstance(m, nn.Module) else [m])
-            ]
-            own = [p for p in params if id(p) not in seen]
-            seen.update(id(p) for p in params)
-            n = sum(p.numel() for p in own if p.requires_grad)
-            if params and not own:
-                return f"{label} (shared)"
-            if params and n == 0 or not params:
-                return f"{label} (known, frozen)"
-            return f"{label} ({n:,})"
-
+        tag = component_tagger()
         out = [tag("J_d", self.inertia)]
         if self.G.n_se3:
             out += [tag("m", self.mass), tag("rho_COM", self.rho)]

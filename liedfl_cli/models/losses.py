@@ -73,8 +73,8 @@ def training_stage(model: Any, data: Pose, steps: int, opts: LossOptions) -> tup
     if opts.loss == "rollout":
         opts = dataclasses.replace(opts, loss="del")
     samples = model.training_set(data, steps)
-    if opts.loss == "newton" and isinstance(samples, fused.IncrementSet):
-        samples.enable_jacobian()
+    if opts.loss == "newton" and callable(getattr(samples, "enable_jacobian", None)):
+        samples.enable_jacobian()  # fused.IncrementSet, articulated.ArticulatedTriplets
     return opts, samples
 
 
