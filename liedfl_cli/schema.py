@@ -363,25 +363,6 @@ def _check_reference_keys(node, ref, path: str, where: str) -> None:
             _check_reference_keys(child, sub, f"{path}.{k!s}", where)
 
 
-def _locate(dotted: str):
-    """The object named by a dotted path (None when it cannot be imported)."""
-    import importlib
-
-    parts = dotted.split(".")
-    for i in range(len(parts) - 1, 0, -1):
-        try:
-            obj = importlib.import_module(".".join(parts[:i]))
-        except ImportError:
-            continue
-        try:
-            for attr in parts[i:]:
-                obj = getattr(obj, attr)
-        except AttributeError:
-            return None
-        return obj
-    return None
-
-
 def _check_dataset_keys(cfg) -> None:
     ds = cfg.get("dataset")
     if not isinstance(ds, DictConfig):

@@ -79,9 +79,6 @@ class BVH:
                 f"{self.source}: joint {name!r} is not in the hierarchy (joints: {', '.join(self.names)})"
             ) from None
 
-    def children(self, j: int) -> list[int]:
-        return [i for i, p in enumerate(self.parents) if p == j]
-
     def rotation_order(self, j: int) -> str:
         """Axes of joint j's rotation channels in declared order, e.g. "ZYX" ("" if it has none)."""
         return "".join(c[0] for c in self.channels[j] if c in ROTATION_CHANNELS)

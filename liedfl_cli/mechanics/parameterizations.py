@@ -22,12 +22,6 @@ def jd_from_j(J: torch.Tensor) -> torch.Tensor:
     return 0.5 * tr * torch.eye(3, dtype=J.dtype, device=J.device) - J
 
 
-def j_from_jd(Jd: torch.Tensor) -> torch.Tensor:
-    """J_d -> J = tr(J_d) I - J_d."""
-    tr = Jd.diagonal(dim1=-2, dim2=-1).sum(-1)[..., None, None]
-    return tr * torch.eye(3, dtype=Jd.dtype, device=Jd.device) - Jd
-
-
 class Inertia(nn.Module):
     """Per-body SPD inertia for `n` bodies; `J()` and `Jd()` have shape (n, 3, 3)."""
 

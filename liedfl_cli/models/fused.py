@@ -614,11 +614,6 @@ def force_value(force: nn.Module, g: Pose, xi: torch.Tensor) -> torch.Tensor:
     return force(g, xi)
 
 
-def regularity_logdet(model, batch: IncrementBatch, P: Derived, hess_map: torch.Tensor) -> torch.Tensor:
-    """log|det| of each body's mixed-Hessian block at the regularity pairs, shape (P, B)."""
-    return regularity_slogdet(model, batch, P, hess_map)[0]
-
-
 def regularity_slogdet(
     model, batch: IncrementBatch, P: Derived, hess_map: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:

@@ -258,7 +258,7 @@ def newton_solve_reference(f, jac, x0, retract, opts: SolverOptions | None = Non
     (tol, max_iter, max_halvings from `opts`).
     """
     opts = opts or SolverOptions()
-    tol, max_iter, max_halvings = opts.tol, opts.max_iter, opts.max_halvings
+    tol, max_iter = opts.tol, opts.max_iter
     x = x0
     r = f(x)
     T = r.shape[0]
@@ -270,41 +270,7 @@ def newton_solve_reference(f, jac, x0, retract, opts: SolverOptions | None = Non
         if not active.any():
             break
         step_tol = step_tolerance(x, tol)
-        J = jac(x)
-        sol, info = torch.linalg.solve_ex(J, r[..., None])
-        singular = info > 0
-        delta = -sol[..., 0]
-        if singular.any():
-            delta_ls = -torch.linalg.lstsq(J, r[..., None], driver="gelsd").solution[..., 0]
-            delta = torch.where(singular[:, None], delta_ls, delta)
-        bad = ~torch.isfinite(delta).all(-1)
-        singular = singular | bad
-        delta = torch.where(bad[:, None], torch.zeros_like(delta), delta)
-        full_step = delta.abs().amax(-1)
-        alpha = torch.ones(T, dtype=r.dtype, device=r.device)
-        accepted = ~active
-        new_x, new_r, new_rn = x, r, rn
-        for _h in range(max_halvings + 1):
-            cand = retract(x, alpha[:, None] * delta)
-            rc = f(cand)
-            rcn = torch.linalg.vector_norm(rc, dim=-1)
-            ok = (~accepted) & torch.isfinite(rcn) & (rcn <= rn * (1 - 1e-4 * alpha) + 1e-300)
-            new_x, new_r = select(ok, cand, new_x), select(ok, rc, new_r)
-            new_rn = torch.where(ok, rcn, new_rn)
-            accepted = accepted | ok
-            if accepted.all():
-                break
-            alpha = torch.where(accepted, alpha, 0.5 * alpha)
-        fallback = ~accepted
-        if fallback.any():
-            cand = retract(x, delta)
-            rc = f(cand)
-            rcn = torch.linalg.vector_norm(rc, dim=-1)
-            fin = fallback & torch.isfinite(rcn)
-            new_x, new_r = select(fin, cand, new_x), select(fin, rc, new_r)
-            new_rn = torch.where(fin, rcn, new_rn)
-        x, r = select(active, new_x, x), select(active, new_r, r)
-        rn = torch.where(active, new_rn, rn)
+        x, r, rn, singular, full_step = _careful_iteration(f, jac, retract, x, r, rn, active, opts)
         iters = iters + active.long()
         converged = converged | (active & ~singular & (full_step <= step_tol) & torch.isfinite(rn))
     return NewtonResult(x, converged, iters, r.abs().amax(-1))
