@@ -22,13 +22,14 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, cast
+from typing import Any
 
 import numpy as np
 import torch
 
 from .errors import InputError
 from .lie import Pose, ProductGroup, so3
+from .models.base import Model
 from .solvers.options import SolverOptions
 
 ArrayLike = Any
@@ -228,9 +229,9 @@ def _pose(x, G: ProductGroup, name: str) -> Pose:
 
 def _pair(run_or_model, g0, g1) -> tuple[Any, Pose, Pose, bool]:
     model = getattr(run_or_model, "model", run_or_model)
-    if not isinstance(model, torch.nn.Module) or not hasattr(model, "rollout"):
+    if not isinstance(model, Model):
         raise InputError(f"expected a Run (api.load_run) or a liedfl model, got {type(run_or_model).__name__}")
-    G = cast(ProductGroup, model.G)
+    G = model.G
     a, b = _pose(g0, G, "g0"), _pose(g1, G, "g1")
     if a.R.shape != b.R.shape:
         raise InputError(f"g0 and g1 differ in shape: R {tuple(a.R.shape)} vs {tuple(b.R.shape)}")
@@ -256,7 +257,7 @@ class Run:
 
     @property
     def name(self) -> str:
-        return getattr(self.model, "name", "") or type(self.model).__name__
+        return self.model.name or type(self.model).__name__
 
     @property
     def group(self) -> ProductGroup:
@@ -411,25 +412,10 @@ def parameters(run_or_model) -> dict[str, Any]:
     damping, `C` (3, k) a learned control's input matrix; and under `weights` every parameter tensor
     by its state-dict name (networks included)."""
     model = getattr(run_or_model, "model", run_or_model)
-    if not isinstance(model, torch.nn.Module):
+    if not isinstance(model, Model):
         raise InputError(f"expected a Run (api.load_run) or a liedfl model, got {type(run_or_model).__name__}")
-    out: dict[str, Any] = {}
+    out: dict[str, Any] = {k: v.cpu().numpy() for k, v in model.physical_parameters().items()}
     with torch.no_grad():
-        inertia = getattr(model, "inertia", None)
-        if inertia is not None and hasattr(inertia, "Jd"):
-            out["J_d"] = inertia.Jd().cpu().numpy()
-        mass = getattr(model, "mass", None)
-        if callable(mass):
-            out["m"] = mass().cpu().numpy() if isinstance(mass, torch.nn.Module) else np.asarray(mass())
-        rho = getattr(model, "rho", None)
-        if isinstance(rho, torch.Tensor):
-            out["rho_COM"] = rho.detach().cpu().numpy()
-        for f in getattr(model, "forces", ()) or ():
-            kind = getattr(f, "name", "")
-            if kind == "rayleigh" and callable(getattr(f, "D", None)):
-                out["D"] = f.D().detach().cpu().numpy()
-            elif kind == "control" and callable(getattr(f, "C", None)):
-                out["C"] = f.C().detach().cpu().numpy()
         out["weights"] = {k: v.detach().cpu().numpy().copy() for k, v in model.state_dict().items()}
     return out
 

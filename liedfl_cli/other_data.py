@@ -43,7 +43,7 @@ def check_model_fits_data(model, dataset, run_dir) -> None:
 def _tree_error(model, run_dir, scene: str, tree) -> ConfigError | None:
     """A model built on a kinematic tree (`model.tree`, e.g. model.kinetic=articulated) runs forward
     kinematics with that tree: the data must have the same one (parents, joint offsets, rotations, root)."""
-    own = getattr(model, "tree", None)
+    own = model.tree
     if own is None or own == tree:
         return None
     if tree is None:

@@ -1,135 +1,15 @@
-"""Parameter recovery: learned against true parameters of a synthetic scene, after removing
-the common scale that the DEL residual cannot see."""
+"""Parameter recovery of a trained run: the model's learned parameters against the true ones of
+a synthetic scene (the comparison itself is the model's `parameter_recovery` hook)."""
 
 from __future__ import annotations
 
-import copy
-
-import torch
-
-from .models.articulated import ArticulatedLieDFLNN
-from .models.liedflnn import LieDFLNN
 from .models.true_scheme import true_model
 
 
-def _rayleigh(model):
-    for f in getattr(model, "forces", ()):
-        if getattr(f, "name", None) == "rayleigh":
-            return f
-    return None
-
-
 def parameter_recovery(model, dataset) -> dict | None:
-    """Learned vs true parameters after removing the common scale (divide by tr J_d).
-
-    The residual is linear in (L_d, F), so only the regularity term fixes the overall scale;
-    J_d, D and m (and the first moments m rho of pivot bodies under a uniform_gravity potential)
-    are compared after normalising each side by its own tr J_d; rho is a length and compared as
-    it is. Errors are max |entry difference| / max |true entry| over the compared arrays.
-    """
+    """The model's recovery figures against the scene's true-parameter model (`true_model`); None
+    when the data declare no physics or the model has nothing comparable (`Model.parameter_recovery`)."""
     ref = true_model(dataset)
-    if ref is not None and isinstance(model, ArticulatedLieDFLNN) and isinstance(ref, ArticulatedLieDFLNN):
-        return articulated_recovery(model, ref)
-    if ref is None or not isinstance(model, LieDFLNN) or not isinstance(ref, LieDFLNN):
+    if ref is None:
         return None
-    p = next(model.parameters(), None)
-    if p is not None and (p.device.type != "cpu" or p.dtype != torch.float64):  # compared on the CPU in float64
-        model = copy.deepcopy(model).to(device="cpu", dtype=torch.float64)
-    with torch.no_grad():
-        Jd, Jd_true = model.inertia.Jd(), ref.inertia.Jd()
-        s, s_true = Jd.diagonal(dim1=-2, dim2=-1).sum(-1), Jd_true.diagonal(dim1=-2, dim2=-1).sum(-1)
-        rel = lambda a, b: float((a - b).abs().max() / b.abs().max().clamp_min(1e-300))
-        out = {
-            "Jd_over_trace_max_rel_error": rel(Jd / s[:, None, None], Jd_true / s_true[:, None, None]),
-            "scale_learned_over_true": float((s / s_true).mean()),
-        }
-        f, f_true = _rayleigh(model), _rayleigh(ref)
-        if f is not None and f_true is not None:
-            D, D_true = f.D(), f_true.D()
-            out["D_over_trace_max_rel_error"] = rel(D / s[0], D_true / s_true[0])
-            out["D_ratio_learned"] = float(D.diagonal()[:3].mean() / s[0])
-            out["D_ratio_true"] = float(D_true.diagonal()[:3].mean() / s_true[0])
-        if model.G.n_se3:
-            assert model.mass is not None and model.rho is not None  # set for SE(3) bodies
-            assert ref.mass is not None and ref.rho is not None
-            out["m_over_trace_rel_error"] = rel(model.mass() / s[: model.G.n_se3], ref.mass() / s_true[: model.G.n_se3])
-            out["rho_max_abs_error"] = float((model.rho - ref.rho).abs().max())
-            out["rho_max_rel_error"] = rel(model.rho, ref.rho)
-        grav = _uniform_gravity(model)
-        physics = (dataset.params or {}).get("physics") or {}
-        if grav is not None and model.G.n_so3 and "m" in physics:
-            from .mechanics.scene_physics import body_parameters
-
-            _, masses, rhos, _ = body_parameters(model.G, physics)
-            m = model.G.n_se3
-            true_c = (masses[m:, None] * rhos[m:]) / s_true[m:, None]
-            out["pivot_moment_over_trace_rel_error"] = rel(grav.moment / s[m:, None], true_c)
-        if grav is not None and grav.learn_direction:
-            u, e3 = grav.direction(), torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
-            sin = torch.linalg.vector_norm(torch.linalg.cross(u, e3))
-            out["gravity_direction_error_rad"] = float(torch.atan2(sin, u @ e3))
-    return out
-
-
-def _uniform_gravity(model):
-    from .mechanics.potentials import SumPotential, UniformGravityPotential
-
-    V = getattr(model, "potential", None)
-    terms = list(V.terms) if isinstance(V, SumPotential) else [V]
-    return next((t for t in terms if isinstance(t, UniformGravityPotential)), None)
-
-
-def articulated_recovery(model: ArticulatedLieDFLNN, ref: ArticulatedLieDFLNN) -> dict:
-    """Per-body recovery of an articulated model: m_b, J_b (over the common scale, the total mass
-    sum_b m_b of each side), rho_b as lengths, joint damping over the same scale. Each body's figures
-    and the worst over bodies; errors are |learned - true| / max |true| per body."""
-    if next(model.parameters()).dtype != torch.float64 or next(model.parameters()).device.type != "cpu":
-        model = copy.deepcopy(model).to(device="cpu", dtype=torch.float64)
-    with torch.no_grad():
-        m, m_true = model.mass(), ref.mass()
-        s, s_true = m.sum(), m_true.sum()
-        J, J_true = model.inertia.J() / s, ref.inertia.J() / s_true
-        rel = lambda a, b: float((a - b).abs().max() / b.abs().max().clamp_min(1e-300))
-        bodies: list[dict[str, float | list[float]]] = []
-        for b in range(model.tree.n_bodies):
-            bodies.append(
-                {
-                    "mass_fraction_learned": float(m[b] / s),
-                    "mass_fraction_true": float(m_true[b] / s_true),
-                    "mass_fraction_rel_error": rel(m[b] / s, m_true[b] / s_true),
-                    "com_learned": model.rho[b].tolist(),
-                    "com_true": ref.rho[b].tolist(),
-                    "com_abs_error": float((model.rho[b] - ref.rho[b]).norm()),
-                    "inertia_over_total_mass_rel_error": rel(J[b], J_true[b]),
-                }
-            )
-        out: dict = {
-            "kinetic": "articulated",
-            "scale_learned_over_true": float(s / s_true),
-            "mass_fraction_max_rel_error": max(_floats(bodies, "mass_fraction_rel_error")),
-            "com_max_abs_error": max(_floats(bodies, "com_abs_error")),
-            "inertia_max_rel_error": max(_floats(bodies, "inertia_over_total_mass_rel_error")),
-            "bodies": bodies,
-        }
-        f, f_true = _rayleigh(model), _rayleigh(ref)
-        if f is not None and f_true is not None:
-            D, D_true = f.D() / s, f_true.D() / s_true
-            sl = model.G.body_slices()
-            joints = [
-                {
-                    "body": b,
-                    "learned": float(D[sl[b], sl[b]].diagonal().mean()),
-                    "true": float(D_true[sl[b], sl[b]].diagonal().mean()),
-                }
-                for b in range(1, model.tree.n_bodies)
-            ]
-            out["joint_damping_over_total_mass"] = joints
-            out["joint_damping_max_rel_error"] = max(
-                abs(j["learned"] - j["true"]) / max(abs(j["true"]), 1e-300) for j in joints
-            )
-            out["damping_matrix_rel_error"] = rel(D, D_true)
-    return out
-
-
-def _floats(rows: list[dict], key: str) -> list[float]:
-    return [float(r[key]) for r in rows]
+    return model.parameter_recovery(ref, (dataset.params or {}).get("physics") or {})

@@ -34,9 +34,9 @@ from .ui import console, progress_bar
 def warn_stiff_damping(model, label: str) -> float | None:
     """One warning line when `model`'s constant damping is so stiff that the scheme reverses the
     velocity every step (h lambda_max(M^-1 D) > 2, `models.stiffness`); returns that figure."""
-    from .models.stiffness import STIFF_DAMPING, damping_stiffness, step_factor
+    from .models.stiffness import STIFF_DAMPING, step_factor
 
-    stiffness = damping_stiffness(model)
+    stiffness = model.damping_stiffness()
     if stiffness is not None and stiffness > STIFF_DAMPING:
         console.print(
             f"[bold yellow]warning:[/] {label}: stiff damping, h*lambda_max(M^-1 D) = {stiffness:.3g} > "

@@ -438,7 +438,7 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
         f"[bold]model[/] {type(model).__name__} on {dataset.group.name}, h={dataset.h}: "
         f"components {', '.join(comps)}; {n_params} trainable parameters"
     )
-    for note in getattr(model, "notes", ()):  # e.g. what model.potential=auto chose and why
+    for note in model.notes:  # e.g. what model.potential=auto chose and why
         console.print(f"[bold]model[/] {note}", highlight=False)
     write_json(
         out / "components.json",
@@ -446,7 +446,7 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
             "model": type(model).__name__,
             "components": comps,
             "parameters": n_params,
-            "notes": list(getattr(model, "notes", ())),
+            "notes": list(model.notes),
         },
     )
     config = OmegaConf.to_container(cfg, resolve=True)

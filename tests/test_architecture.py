@@ -131,3 +131,37 @@ def test_the_graph_is_not_trivially_empty():
     assert "liedfl_cli.models.base" in GRAPH["liedfl_cli.models.liedflnn"]
     assert "liedfl_cli.solvers.newton" in GRAPH["liedfl_cli.solvers.rollout"]
     assert _layer("liedfl_cli.train") == "pipeline" and _layer("liedfl_cli.lie.so3") == "lie"
+
+
+def _concrete_model_classes() -> set[str]:
+    """Names of the classes defined under models/ except the abstract contract (`models.base`)."""
+    names = set()
+    for m, p in MODULES.items():
+        if _layer(m) == "models" and m != "liedfl_cli.models.base":
+            names |= {n.name for n in ast.walk(ast.parse(p.read_text())) if isinstance(n, ast.ClassDef)}
+    return names
+
+
+def test_no_code_outside_models_tests_a_concrete_model_class_or_probes_its_attributes():
+    """The model contract (`models.base.Model`) has hooks for what the pipeline needs (notes, tree,
+    force terms, physical parameters, parameter recovery, damping stiffness): outside models/ nothing
+    asks which model it holds (isinstance on a concrete class) or probes a model's attributes."""
+    concrete = _concrete_model_classes()
+    bad = []
+    for m, p in MODULES.items():
+        if _layer(m) == "models":
+            continue
+        for node in ast.walk(ast.parse(p.read_text())):
+            if not isinstance(node, ast.Call) or not isinstance(node.func, ast.Name) or len(node.args) < 2:
+                continue
+            first, second = node.args[0], node.args[1]
+            if node.func.id == "isinstance":
+                names = second.elts if isinstance(second, ast.Tuple) else [second]
+                hit = [n.id for n in names if isinstance(n, ast.Name) and n.id in concrete]
+                if hit:
+                    bad.append(f"{m}:{node.lineno} isinstance(..., {hit[0]})")
+            elif node.func.id in ("getattr", "hasattr"):
+                target = ast.unparse(first)
+                if target in ("model", "self.model", "ref"):
+                    bad.append(f"{m}:{node.lineno} {node.func.id}({target}, ...)")
+    assert not bad, bad

@@ -44,7 +44,7 @@ def force_torques(model, traj: Pose, h: float) -> np.ndarray:
     inc = G.increment(g, traj.index((slice(None), slice(1, None))))
     xi = velocity_estimate(G, inc, h)
     total = torch.zeros_like(xi)
-    for f in model.forces:
+    for f in model.force_terms():
         total = total + f(g, xi)
     w, _ = G.split(total)
     return w.to(device="cpu", dtype=torch.float64).numpy()
@@ -69,10 +69,9 @@ def evaluate_control(cfg, model, dataset, run_dir, rollout_path=None) -> dict | 
 
     rollout_path: the rollout file drawn in the plot (default `<run_dir>/rollout.h5`; the plot goes
     without it when it does not exist); the files go next to it."""
-    from ..models.liedflnn import LieDFLNN
     from ..models.true_scheme import true_model
 
-    if not hasattr(model, "forces") or not len(model.forces):
+    if not model.force_terms():
         console.print("[yellow]control eval skipped:[/] the model has no force components")
         return None
     path = Path(rollout_path) if rollout_path is not None else Path(run_dir) / FILE_NAME
@@ -97,7 +96,7 @@ def evaluate_control(cfg, model, dataset, run_dir, rollout_path=None) -> dict | 
             "rel_error_max": err["rel_error_max"],
             "rel_error_aggregate": err["rel_error_aggregate"],
         }
-        if isinstance(ref, LieDFLNN) and len(ref.forces):
+        if ref is not None and ref.force_terms():
             law = force_torques(ref, traj, h)
             e2 = torque_errors(learned, law)
             row.update(

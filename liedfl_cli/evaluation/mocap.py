@@ -55,7 +55,7 @@ from rich.table import Table
 from ..data.mocap import ASF_UNIT_M, mocap_errors, moving_joints, recording_discrepancy, skeleton_points
 from ..io_utils import fmt, markdown_table, write_csv, write_json, write_text
 from ..lie import Pose
-from ..models.base import tensor_placement
+from ..models.base import Model, tensor_placement
 from ..plots import draw_unit_sphere, plt, save_figure
 from ..rollout_file import FILE_NAME, RolloutEntry, load_rollout
 from ..solvers.options import SolverOptions
@@ -170,14 +170,14 @@ def one_step_errors(model, truth_R, truth_p, solver, joints=None, stored=None, g
 
     truth = Pose(torch.as_tensor(truth_R), torch.as_tensor(truth_p))
     T, K = truth.R.shape[0], truth.R.shape[1] - 2
-    G = group if group is not None else getattr(model, "G", None)
+    G = group if group is not None else (model.G if isinstance(model, Model) else None)
     if K < 1 or G is None:
         return None
     true = truth.index((slice(None), slice(2, None)))
     pred, conv = None, None
     if stored is not None and stored.R.shape[:2] == (T, K):
         pred, conv = stored.pose, torch.from_numpy(stored.converged)
-    elif hasattr(model, "rollout") and hasattr(model, "G"):
+    elif isinstance(model, Model):
         was_training = model.training
         model.eval()
         try:

@@ -50,7 +50,7 @@ from .base import (
     TripletSet,
     oriented_logdet,
 )
-from .liedflnn import check_options, component_tagger, del_regularity_loss
+from .liedflnn import check_options, component_tagger, del_regularity_loss, force_parameters
 
 
 def geometric_start(tree: Tree) -> tuple[torch.Tensor, torch.Tensor]:
@@ -211,6 +211,7 @@ class ArticulatedLieDFLNN(ImplicitModel):
 
     window = "triplet"
     notes: list[str]
+    tree: Tree
 
     def __init__(
         self,
@@ -313,6 +314,21 @@ class ArticulatedLieDFLNN(ImplicitModel):
             desc = describe() if describe is not None else getattr(f, "name", type(f).__name__)
             out.append(tag(f"F:{desc} in joint space", f))
         return out
+
+    # ------------------------------------------------------------------ contract hooks
+    def force_terms(self) -> list[nn.Module]:
+        return list(self.forces)
+
+    def physical_parameters(self) -> dict[str, torch.Tensor]:
+        """Per link: `J_d` (B, 3, 3), `m` (B,), `rho_COM` (B, 3); `D` of a joint-space Rayleigh damping."""
+        with torch.no_grad():
+            Jd, mass, rho = self._params()
+            return {"J_d": Jd.detach(), "m": mass.detach(), "rho_COM": rho.detach(), **force_parameters(self.forces)}
+
+    def parameter_recovery(self, reference, physics) -> dict | None:
+        from .recovery import articulated_recovery
+
+        return articulated_recovery(self, reference) if isinstance(reference, ArticulatedLieDFLNN) else None
 
     # ------------------------------------------------------------------ pieces
     def _params(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

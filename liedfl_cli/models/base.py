@@ -24,7 +24,7 @@ from __future__ import annotations
 import abc
 import itertools
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -306,6 +306,10 @@ class Model(nn.Module, abc.ABC):
     h: float
     window: str = "triplet"
     name: str = ""
+    notes: Sequence[str] = ()
+    """What the model's `auto` options chose and why (printed by `liedfl train`, kept in the run)."""
+    tree: Tree | None = None
+    """The kinematic tree the model runs forward kinematics with (None: the model has none)."""
 
     @classmethod
     @abc.abstractmethod
@@ -331,6 +335,28 @@ class Model(nn.Module, abc.ABC):
     @abc.abstractmethod
     def components(self) -> list[str]:
         """Active components, e.g. ["J_d (6)", "F:rayleigh D (6)"]."""
+
+    # -------------------------------------------------------------- optional hooks
+    def force_terms(self) -> list[nn.Module]:
+        """The learned non-conservative force terms (each with a `name`: rayleigh, control, ...);
+        [] for a model without separate force terms."""
+        return []
+
+    def physical_parameters(self) -> dict[str, torch.Tensor]:
+        """Interpretable learned parameters by name (`api.parameters`): e.g. `J_d` (B, 3, 3), `m` (m,),
+        `rho_COM` (m, 3), `D` (dim, dim), `C` (3, k); {} for a model without any."""
+        return {}
+
+    def parameter_recovery(self, reference: Model, physics: Mapping[str, Any]) -> dict | None:
+        """Learned against true parameters: `reference` is the true-parameter model of the scene
+        (`true_scheme.true_model`), `physics` the scene's declared physics. None where the model has
+        no parameters comparable with the reference's."""
+        return None
+
+    def damping_stiffness(self) -> float | None:
+        """h lambda_max(M^-1 D) of a constant learned damping (`models.stiffness`); None where the
+        model has none or it is not checked."""
+        return None
 
 
 class ImplicitModel(Model):

@@ -100,6 +100,18 @@ def potential_parts(potential) -> tuple[str, ...]:
     return parts
 
 
+def force_parameters(forces) -> dict[str, torch.Tensor]:
+    """`D` of a constant Rayleigh damping and `C` of a learned control among `forces` (no grad)."""
+    out: dict[str, torch.Tensor] = {}
+    for f in forces:
+        kind = getattr(f, "name", "")
+        if kind == "rayleigh" and callable(getattr(f, "D", None)):
+            out["D"] = f.D().detach()
+        elif kind == "control" and callable(getattr(f, "C", None)):
+            out["C"] = f.C().detach()
+    return out
+
+
 class LieDFLNN(ImplicitModel):
     """Learned forced discrete mechanics on a product group (an `ImplicitModel`: trained on pose
     triplets, rolled out by Newton on the DEL residual for each increment).
@@ -301,6 +313,31 @@ class LieDFLNN(ImplicitModel):
         if batch.reg is not None and opts.w_reg > 0:
             logdet = oriented_logdet(*self.regularity_slogdet(*batch.reg), opts.epsilon)
         return del_regularity_loss(self.residual(*batch.poses()), logdet, opts)
+
+    # ------------------------------------------------------------------ contract hooks
+    def force_terms(self) -> list[nn.Module]:
+        return list(self.forces)
+
+    def physical_parameters(self) -> dict[str, torch.Tensor]:
+        """`J_d` (B, 3, 3); for SE(3) bodies `m` (m,), `rho_COM` (m, 3); `D` of a constant Rayleigh
+        damping, `C` (3, k) of a learned control."""
+        with torch.no_grad():
+            Jd, mass, rho = self._params()
+            out = {"J_d": Jd.detach()}
+            if self.G.n_se3:
+                out.update({"m": mass.detach(), "rho_COM": rho.detach()})
+            out.update(force_parameters(self.forces))
+        return out
+
+    def parameter_recovery(self, reference, physics) -> dict | None:
+        from .recovery import lie_recovery
+
+        return lie_recovery(self, reference, physics) if isinstance(reference, LieDFLNN) else None
+
+    def damping_stiffness(self) -> float | None:
+        from .stiffness import damping_stiffness
+
+        return damping_stiffness(self)
 
     def components(self) -> list[str]:
         """Every active component, with its trainable parameter count or "known, frozen".

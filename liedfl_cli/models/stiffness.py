@@ -14,12 +14,13 @@ factor is negative and the scheme reverses that velocity every step while Newton
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 
 from ..lie import Pose
 from ..mechanics import kinetic
 from ..mechanics.forces import RayleighForce
-from .liedflnn import LieDFLNN
 
 STIFF_DAMPING = 2.0
 """h lambda_max(M^-1 D) above which the per-step factor (1 - h lambda/2)/(1 + h lambda/2) is negative."""
@@ -31,12 +32,11 @@ def step_factor(stiffness: float) -> float:
 
 
 @torch.no_grad()
-def damping_stiffness(model) -> float | None:
+def damping_stiffness(model: Any) -> float | None:
+    # model: a LieDFLNN (its `damping_stiffness` hook calls in here, so its class is not imported)
     """h lambda_max(M^-1 D) of a LieDFLNN's constant (Rayleigh) damping D, with M = -h H the mass
-    matrix of its kinetic term (block diagonal over bodies); None for other models and for models
-    without constant damping (a configuration-dependent D(g) is not checked)."""
-    if not isinstance(model, LieDFLNN):
-        return None
+    matrix of its kinetic term (block diagonal over bodies); None for a model without constant
+    damping (a configuration-dependent D(g) is not checked). Other models: `Model.damping_stiffness`."""
     Ds = [f.D() for f in model.forces if isinstance(f, RayleighForce)]
     if not Ds:
         return None
