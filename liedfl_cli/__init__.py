@@ -1,7 +1,6 @@
-"""liedfl: learning forced dynamics on Lie groups from positions only (LieDFLNN)."""
+"""liedfl: learning forced dynamics on Lie groups from positions only (LieDFLNN).
+
+Importing the package or its core (`lie`, `mechanics`, `solvers`, `models`) loads no config system;
+the config resolvers are registered by the modules that read configs (`liedfl_cli.resolvers`)."""
 
 __version__ = "0.1.0"
-
-from .resolvers import register as _register_resolvers
-
-_register_resolvers()

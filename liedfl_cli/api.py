@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from . import resolvers  # noqa: F401  (registers the config resolvers)
 from .errors import InputError
 from .lie import Pose, ProductGroup, so3
 from .models.base import Model

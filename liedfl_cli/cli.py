@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 from typing import NoReturn
 
+from . import resolvers  # noqa: F401  (registers the config resolvers)
 from .preflight import DIR_ARGS, classify, preflight, preflight_or_fail  # noqa: F401 (re-exported)
 
 CONF_DIR = Path(__file__).resolve().parent / "conf"

@@ -17,6 +17,7 @@ from hydra.utils import get_class
 from omegaconf import DictConfig, OmegaConf
 from torch import nn
 
+from . import resolvers  # noqa: F401  (registers the config resolvers)
 from .errors import ConfigError
 from .lie import Pose
 from .models.articulated import ArticulatedLieDFLNN

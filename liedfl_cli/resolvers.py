@@ -1,4 +1,5 @@
-"""OmegaConf resolvers used by the configs (registered when liedfl_cli is imported).
+"""OmegaConf resolvers used by the configs, registered on import of this module (the modules that
+compose or read configs import it: cli, api, factory, runs, schema).
 
 ${scaled:N}  ->  max(1, round(N * epoch_scale)) with `epoch_scale` from the config root
                (1.0 = the paper's budget; conf/budget/reduced.yaml lowers it).
@@ -38,3 +39,6 @@ def register() -> None:
         OmegaConf.register_new_resolver("max", lambda *xs: max(xs))
     if not OmegaConf.has_resolver("by_length"):
         OmegaConf.register_new_resolver("by_length", _by_length)
+
+
+register()

@@ -9,6 +9,7 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
+from . import resolvers  # noqa: F401  (registers the config resolvers)
 from .checkpoint import checkpoint_path, checkpoint_record, load_checkpoint, load_state
 from .errors import CheckpointError, ConfigError, DatasetError
 

@@ -30,6 +30,7 @@ from typing import Any
 from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from . import resolvers  # noqa: F401  (registers the config resolvers)
 from .errors import ConfigError
 
 CONF_DIR = Path(__file__).resolve().parent / "conf"  # the configs ship inside the package

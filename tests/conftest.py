@@ -14,6 +14,7 @@ import pytest
 from hypothesis import HealthCheck, settings
 
 import helpers
+import liedfl_cli.resolvers  # noqa: F401  (the configs the tests compose use its resolvers)
 
 settings.register_profile(
     "default-liedfl",

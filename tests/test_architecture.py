@@ -165,3 +165,19 @@ def test_no_code_outside_models_tests_a_concrete_model_class_or_probes_its_attri
                 if target in ("model", "self.model", "ref"):
                     bad.append(f"{m}:{node.lineno} {node.func.id}({target}, ...)")
     assert not bad, bad
+
+
+def test_importing_the_core_loads_no_config_system():
+    """`import liedfl_cli.lie` (or mechanics, solvers, models) in a fresh interpreter loads neither
+    hydra nor omegaconf: the package root registers nothing (the config modules import
+    `liedfl_cli.resolvers`)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, liedfl_cli.lie, liedfl_cli.mechanics, liedfl_cli.solvers, liedfl_cli.models.liedflnn, "
+        "liedfl_cli.models.articulated; "
+        "print(sorted(m for m in sys.modules if m.split('.')[0] in ('hydra', 'omegaconf')))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=PKG.parent, check=True)
+    assert out.stdout.strip() == "[]", out.stdout
