@@ -420,11 +420,11 @@ def _check_model(cfg) -> None:
         _check_dataclass_keys(model, ModelSchema, "model")
         _check_types(cfg, "model", ModelSchema)
     else:
-        names = _options("model")
-        reference = _reference("model", name) if name in names else None
-        if reference is None:
-            raise ConfigError(f"model.name={name!r}: choose one of {', '.join(names)}")
-        _check_keys(model, list(reference), "model", f" for model '{name}'")
+        # A model whose config lives in this package is checked against that file here; one added on
+        # Hydra's search path (hydra.searchpath) is checked by its own from_config (`config_options`).
+        reference = _reference("model", name) if name in _options("model") else None
+        if reference is not None:
+            _check_keys(model, list(reference), "model", f" for model '{name}'")
     known = _value(cfg, "model.known") or []
     if known:
         from .models.liedflnn import KNOWN_PARTS

@@ -29,7 +29,8 @@ from liedfl_cli.solvers.rollout import Rollout
 from liedfl_cli.train import fit, run_train
 
 CONF = str(Path(__file__).resolve().parents[1] / "liedfl_cli" / "conf")
-NAMES = ["glnn_rk4", "glnn_lie_midpoint", "glnn_lie_heun", "euler_dflnn", "euclidean_dflnn", "neural_ode"]
+# every model config except LieDFLNN's own: a new model file + config is covered without editing this list
+NAMES = sorted(p.stem for p in (Path(CONF) / "model").glob("*.yaml") if p.stem != "liedflnn")
 J_TRUE = torch.diag(torch.tensor([1.521, 1.362, 1.211], dtype=torch.float64))
 D_TRUE = 0.05 * torch.eye(3, dtype=torch.float64)
 F64 = torch.float64
