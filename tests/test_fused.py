@@ -19,7 +19,8 @@ from liedfl_cli.lie import SE3, SO3, Pose, ProductGroup, so3
 from liedfl_cli.mechanics import kinetic
 from liedfl_cli.models import fused
 from liedfl_cli.models.base import LossOptions
-from liedfl_cli.models.liedflnn import LieDFLNN, regularity_penalty
+from liedfl_cli.models.del_loss import regularity_penalty
+from liedfl_cli.models.liedflnn import LieDFLNN
 from liedfl_cli.models.true_scheme import physics_model
 from liedfl_cli.solvers import runtime
 from liedfl_cli.solvers.newton import NewtonProblem, newton_solve, newton_solve_reference, solve, solve_reference

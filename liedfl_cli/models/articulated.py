@@ -50,7 +50,9 @@ from .base import (
     TripletSet,
     oriented_logdet,
 )
-from .liedflnn import check_options, component_tagger, del_regularity_loss, force_parameters
+from .components import component_tagger, force_parameters
+from .del_loss import del_regularity_loss
+from .liedflnn import check_options
 
 
 def geometric_start(tree: Tree) -> tuple[torch.Tensor, torch.Tensor]:

@@ -40,7 +40,7 @@ from .base import (
     config_options,
     initial_scale,
 )
-from .liedflnn import del_regularity_loss
+from .del_loss import del_regularity_loss
 
 # rollout state: the pair (x_{k-1}, x_k), each (N, n)
 State = tuple[torch.Tensor, torch.Tensor]

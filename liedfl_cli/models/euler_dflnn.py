@@ -40,7 +40,7 @@ from .base import (
     require_single_so3,
     so3_pose,
 )
-from .liedflnn import del_regularity_loss
+from .del_loss import del_regularity_loss
 
 
 def _shift_to_principal(q_ref: torch.Tensor) -> torch.Tensor:

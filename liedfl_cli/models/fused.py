@@ -668,7 +668,7 @@ def rotational_loss(model, batch: IncrementBatch, opts) -> tuple[torch.Tensor, d
 
 
 def _penalty_and_slope(logdet: torch.Tensor, epsilon: float, form: str) -> tuple[torch.Tensor, torch.Tensor]:
-    """`liedflnn.regularity_penalty` and its derivative with respect to logdet."""
+    """`del_loss.regularity_penalty` and its derivative with respect to logdet."""
     if form == "relu":
         gap = epsilon - logdet
         return torch.relu(gap), -(gap > 0).to(logdet.dtype)

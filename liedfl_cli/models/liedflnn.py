@@ -46,6 +46,8 @@ from .base import (
     initial_scale,
     oriented_logdet,
 )
+from .components import component_tagger, force_parameters
+from .del_loss import del_regularity_loss
 
 RESIDUAL_MODES = ("fast", "generic")
 KINETIC_KINDS = ("per_body", "articulated")
@@ -68,25 +70,6 @@ def check_options(residual: str, known, physics) -> tuple[str, ...]:
     return known
 
 
-def component_tagger():
-    """tag(label, *modules) -> "label (n trainable)" | "label (shared)" | "label (known, frozen)", counting
-    parameters shared between parts (uniform_gravity's m, rho) once across the calls of one tagger."""
-    seen: set[int] = set()
-
-    def tag(label: str, *modules) -> str:
-        params = [p for m in modules if m is not None for p in (m.parameters() if isinstance(m, nn.Module) else [m])]
-        own = [p for p in params if id(p) not in seen]
-        seen.update(id(p) for p in params)
-        n = sum(p.numel() for p in own if p.requires_grad)
-        if params and not own:
-            return f"{label} (shared)"
-        if params and n == 0 or not params:
-            return f"{label} (known, frozen)"
-        return f"{label} ({n:,})"
-
-    return tag
-
-
 def potential_parts(potential) -> tuple[str, ...]:
     """ "none" / a part name / a list of part names (POTENTIAL_PARTS) -> the tuple of parts."""
     if potential in (None, "none"):
@@ -98,18 +81,6 @@ def potential_parts(potential) -> tuple[str, ...]:
             f"model.potential must be none, one of {POTENTIAL_PARTS} or a list of distinct ones, got {potential!r}"
         )
     return parts
-
-
-def force_parameters(forces) -> dict[str, torch.Tensor]:
-    """`D` of a constant Rayleigh damping and `C` of a learned control among `forces` (no grad)."""
-    out: dict[str, torch.Tensor] = {}
-    for f in forces:
-        kind = getattr(f, "name", "")
-        if kind == "rayleigh" and callable(getattr(f, "D", None)):
-            out["D"] = f.D().detach()
-        elif kind == "control" and callable(getattr(f, "C", None)):
-            out["C"] = f.C().detach()
-    return out
 
 
 class LieDFLNN(ImplicitModel):
@@ -517,21 +488,6 @@ class LieDFLNN(ImplicitModel):
         return torch.stack([s.logabsdet for s in sl], -1), torch.stack(sign, -1)
 
 
-def regularity_penalty(logdet: torch.Tensor, epsilon: float, form: str = "relu") -> torch.Tensor:
-    """Penalty keeping |det H| above e^epsilon, evaluated in log space (no overflow).
-
-    relu:     ReLU(epsilon - log|det H|)
-    gaussian: exp(-(|det H| e^-epsilon - 1)^2 / 2) / sqrt(2 pi), the paper's Gaussian form
-              with its constant prefactor e^-epsilon dropped.
-    """
-    if form == "relu":
-        return torch.relu(epsilon - logdet)
-    if form == "gaussian":
-        u = torch.exp(torch.clamp(logdet - epsilon, max=50.0))
-        return torch.exp(-0.5 * (u - 1.0) ** 2) / math.sqrt(2 * math.pi)
-    raise ValueError(f"train.reg_form must be 'relu' or 'gaussian', got {form!r}")
-
-
 def fused_loss(model: LieDFLNN, batch: fused.IncrementBatch, opts: LossOptions):
     """`LieDFLNN.loss` of an `IncrementBatch`: the fused residual and regularity (what
     `runtime.compile` compiles for training); SO(3)-only models whose trainable parts are J_d and
@@ -539,14 +495,3 @@ def fused_loss(model: LieDFLNN, batch: fused.IncrementBatch, opts: LossOptions):
     if fused.rotational_only(model, batch) and not torch.compiler.is_compiling():
         return fused.rotational_loss(model, batch, opts)
     return del_regularity_loss(*fused.residual_and_logdet(model, batch, opts), opts)
-
-
-def del_regularity_loss(r: torch.Tensor, logdet: torch.Tensor | None, opts: LossOptions):
-    """w_DEL mean ||r||^2 + w_reg mean penalty(logdet) -> (loss, {"del_loss", "reg_loss"}).
-
-    Shared by every model trained on the DEL residual (LieDFLNN, Euler- and Euclidean DFLNN)."""
-    del_loss = (r * r).mean()
-    reg_loss = torch.zeros((), dtype=r.dtype, device=r.device)
-    if logdet is not None:
-        reg_loss = regularity_penalty(logdet, opts.epsilon, opts.reg_form).mean()
-    return opts.w_del * del_loss + opts.w_reg * reg_loss, {"del_loss": del_loss, "reg_loss": reg_loss}

@@ -1,6 +1,6 @@
 """Training losses that measure prediction (`train.loss`): del | newton | rollout.
 
-del      w_DEL mean ||r||^2 + w_reg mean penalty(log|det H_b|), the paper's loss (`liedflnn.del_regularity_loss`).
+del      w_DEL mean ||r||^2 + w_reg mean penalty(log|det H_b|), the paper's loss (`del_loss.del_regularity_loss`).
 newton   w_DEL mean ||H^-1 r||^2 + the same regularity term. H = d r(g_k, g_k W exp(delta)) / d delta at 0
          (`jacobian_var`: kinetic mixed Hessian + force terms) at the data's W_k, so -H^-1 r is the Newton
          step from the observed g_{k+1} towards the model's prediction: to first order the one-step
@@ -358,7 +358,7 @@ def rollout_window_loss(
 
 
 def _penalty(logdet: torch.Tensor, opts: LossOptions) -> torch.Tensor:
-    """mean `liedflnn.regularity_penalty` (the same formulas, `fused._penalty_and_slope`)."""
+    """mean `del_loss.regularity_penalty` (the same formulas, `fused._penalty_and_slope`)."""
     return fused._penalty_and_slope(logdet, opts.epsilon, opts.reg_form)[0].mean()
 
 
