@@ -79,3 +79,33 @@ def test_tensorboard_event_file_holds_losses_validation_lr_and_epoch_time(tmp_pa
     assert [e.step for e in val] == [int(r["epoch"]) for r in rows if r["val_one_step_error"]]
     assert all(e.value > 0 for e in acc.Scalars("time/epoch_seconds"))
     assert [e.value for e in acc.Scalars("lr")] == pytest.approx([float(r["lr"]) for r in rows], rel=1e-6)
+
+
+def test_resumed_tensorboard_log_replaces_the_epochs_after_the_checkpoint(tmp_path):
+    """A run killed after epoch 5 with its checkpoint at epoch 3 logged 4..5 twice: the resumed
+    writer's purge hides the first copies, and the epoch time continues from the kept row."""
+    pytest.importorskip("tensorboard")
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from liedfl_cli.loggers import make_loggers
+
+    def row(epoch, loss):
+        return {"epoch": epoch, "loss": loss, "lr": 1e-3, "seconds": 2.0 * epoch, "val_one_step_error": None}
+
+    first = make_loggers("tensorboard", tmp_path, [])
+    for e in range(1, 6):
+        first.log(row(e, 10.0 + e))
+    first.close()
+    history = [row(e, 10.0 + e) for e in range(1, 4)]  # the checkpoint's rows
+    again = make_loggers("tensorboard", tmp_path, history)
+    for e in range(4, 7):
+        again.log(row(e, 20.0 + e))
+    again.close()
+    acc = EventAccumulator(str(tmp_path / "tensorboard"))
+    acc.Reload()
+    loss = acc.Scalars("loss/loss")
+    assert [e.step for e in loss] == [1, 2, 3, 4, 5, 6]
+    assert [e.value for e in loss] == pytest.approx([11, 12, 13, 24, 25, 26])
+    assert [e.value for e in acc.Scalars("time/epoch_seconds")] == pytest.approx([2.0] * 6)
+    with open(tmp_path / "train_metrics.csv") as f:
+        assert [r["loss"] for r in csv.DictReader(f)] == ["11.0", "12.0", "13.0", "24.0", "25.0", "26.0"]
