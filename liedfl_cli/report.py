@@ -8,8 +8,8 @@ writes into the sweep directory:
   seed aside) with mean ± std over its seeds, then the runs with only the columns that vary (the
   constant ones are listed once above the tables), then the failed runs;
 - `plots/error_vs_speed.png`: error against speed, one point per model and setting (mean ± std over
-  seeds as error bars, labelled), the Pareto front drawn; two panels, training time and rollout time
-  per step per trajectory;
+  seeds as error bars, labelled; numbered with a key in sweeps of more than 8), the Pareto front
+  drawn; two panels, training time and rollout time per step per trajectory (`speed_figure.py`);
 - `plots/error_vs_time.png`: rollout error and manifold drift against time, one line per model and
   setting (mean over seeds, ± std band), as in the paper's Exp 1 and Exp 3 panels, with the true
   scheme (dotted) and constant velocity (dashed, error panel) of the first run that has them;
@@ -31,10 +31,12 @@ import yaml
 from omegaconf import DictConfig
 
 from . import resolvers  # noqa: F401  (registers the config resolvers)
+from . import speed_figure
 from .errors import ConfigError, DatasetError, LiedflError
 from .evaluate import CV_COLUMNS, DRIFT_COLUMNS, ERROR_COLUMNS, ONE_STEP_COLUMNS
 from .io_utils import fmt, markdown_table, write_csv, write_text
 from .rollout_file import FILE_NAME, read_rollout
+from .speed_figure import pareto_front, plain_log_ticks  # noqa: F401  (pareto_front: part of this module's API)
 from .ui import console, print_table
 
 COLUMNS = [
@@ -88,6 +90,16 @@ HEADERS = {
     "train_steps": "train steps",
     "parameters": "parameters",
 }
+CONSOLE_HEADERS = {
+    **HEADERS,
+    "rel_rot_error_mean": "rel. rot. error",
+    "geodesic_error_mean": "geodesic [rad]",
+    "train_seconds": "train [s]",
+    "rollout_s_per_step_per_trajectory": "rollout s/step/traj",
+}
+"""Shorter headers of the console table (report.md keeps HEADERS): the speed columns fit at 80 columns."""
+CONSOLE_PRIORITY = ["label", "rel_rot_error_mean", "train_seconds", "rollout_s_per_step_per_trajectory"]
+"""The console table's columns kept first on a narrow terminal: the error and both speeds."""
 ERROR = "rel_rot_error_mean"
 ERROR_LABEL = "mean relative rotation error ‖R̂ − R‖_F/‖R‖_F [dimensionless]"
 NOT_SETTINGS = ("seed", "baseline", "model")
@@ -235,51 +247,15 @@ def pm(stat) -> str:
     return fmt(mean) if n < 2 else f"{fmt(mean)} ± {fmt(std)}"
 
 
+def pm_short(stat) -> str:
+    """`pm` with 3 significant digits (2 for the std): the console table's cells (report.md has 4)."""
+    mean, std, n = stat
+    if mean is None:
+        return "–"
+    return f"{mean:.3g}" if n < 2 else f"{mean:.3g} ± {std:.2g}"
+
+
 # ----------------------------------------------------------------------------- figures
-def pareto_front(points: list[tuple[float, float]]) -> list[tuple[float, float]]:
-    """The points no other point beats in both coordinates (smaller is better), sorted by x."""
-    front, best = [], math.inf
-    for x, y in sorted(points):
-        if y < best:
-            front.append((x, y))
-            best = y
-    return front
-
-
-def _label_points(ax, pts: list[tuple[float, float, str]], fontsize: float = 7) -> None:
-    """Label each point next to it, at the first of a few offsets (right above, right below, further up
-    or down, left) where the label does not cover one placed before (boxes estimated from the text)."""
-    ax.figure.canvas.draw()  # final limits and transforms
-    to_px, dpi = ax.transData.transform, ax.figure.dpi / 72.0
-    placed: list[tuple[float, float, float, float]] = []
-    for x, y, label in sorted(pts):
-        px, py = to_px((x, y))
-        w, hgt = 0.55 * fontsize * len(label) * dpi, 1.3 * fontsize * dpi
-        for dx, dy in ((5, 4), (5, -12), (5, 14), (5, -22), (5, 24), (-5 - w / dpi, 4), (-5 - w / dpi, -12)):
-            x0, y0 = px + dx * dpi, py + dy * dpi
-            box = (x0, y0, x0 + w, y0 + hgt)
-            if not any(box[0] < b[2] and b[0] < box[2] and box[1] < b[3] and b[1] < box[3] for b in placed):
-                break
-        placed.append(box)
-        ax.annotate(label, (x, y), textcoords="offset points", xytext=(dx, dy), fontsize=fontsize)
-
-
-def _plain_log_ticks(ax) -> None:
-    """Log-axis tick labels as plain numbers (0.5, 1, 2, 5, ...; 1e-05 when small), labelling the 2s and
-    5s between decades only when the axis spans less than two decades (else they would overlap)."""
-    import math
-
-    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
-
-    plain = FuncFormatter(lambda v, _: f"{v:g}")
-    for axis, (lo, hi) in ((ax.xaxis, ax.get_xlim()), (ax.yaxis, ax.get_ylim())):
-        if axis.get_scale() != "log" or lo <= 0:
-            continue
-        axis.set_major_formatter(plain)
-        axis.set_minor_locator(LogLocator(subs=(2.0, 5.0)))
-        axis.set_minor_formatter(plain if math.log10(hi / lo) < 2 else NullFormatter())
-
-
 def _colors(models: list[str]):
     from .plots import plt
 
@@ -287,50 +263,8 @@ def _colors(models: list[str]):
 
 
 def plot_error_vs_speed(summary: list[dict], path: Path) -> bool:
-    from .plots import plt, save_figure
-
-    axes_spec = [
-        ("train_seconds", "training time [s]"),
-        ("rollout_s_per_step_per_trajectory", "rollout time per step per trajectory [s]"),
-    ]
-    if not any(s[ERROR][0] is not None and s[k][0] for s in summary for k, _ in axes_spec):
-        return False
-    colors = _colors(sorted({s["model"] for s in summary}))
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.4))
-    for ax, (key, xlabel) in zip(axes, axes_spec):
-        pts, shown = [], set()
-        for s in summary:
-            (x, dx, _), (y, dy, _) = s[key], s[ERROR]
-            if x is None or y is None or x <= 0 or y <= 0:
-                continue
-            m = s["model"]
-            ax.errorbar(x, y, xerr=dx or None, yerr=dy or None, fmt="o", color=colors[m], capsize=3, ms=5,
-                        label=m if m not in shown else None, zorder=3)  # fmt: skip
-            shown.add(m)
-            pts.append((x, y, s["label"]))
-        front = pareto_front([(x, y) for x, y, _ in pts])
-        if front:
-            fx, fy = zip(*front)
-            ax.step(fx, fy, where="post", color="black", ls="--", lw=1.2, label="Pareto front", zorder=2)
-            ax.plot(fx, fy, "o", ms=10, mfc="none", mec="black", zorder=4)
-        ax.set_xscale("log")
-        ax.set_yscale("log")
-        ax.set_xlabel(xlabel)
-        ax.set_ylabel(ERROR_LABEL, fontsize=8)
-        ax.grid(alpha=0.3, which="both")
-        ax.legend(fontsize=7)
-        _plain_log_ticks(ax)
-        _label_points(ax, pts)
-    n_max = max(s[ERROR][2] for s in summary)
-    fig.suptitle(
-        "error against speed: one point per model and setting"
-        + (f", mean ± std over up to {n_max} seeds" if n_max > 1 else "")
-        + " (lower left is better)",
-        fontsize=10,
-    )
-    fig.tight_layout()
-    save_figure(fig, path)
-    return True
+    """plots/error_vs_speed.png (speed_figure.py)."""
+    return speed_figure.plot_error_vs_speed(summary, path, ERROR, ERROR_LABEL)
 
 
 def _curves(sweep: Path, row: dict) -> dict:
@@ -445,7 +379,7 @@ def plot_error_vs_training_length(rows: list[dict], keys: list[str], path: Path)
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=7)
     ax.set_title("error against training length (mean ± std over seeds)", fontsize=10)
-    _plain_log_ticks(ax)
+    plain_log_ticks(ax)
     save_figure(fig, path)
     return True
 
@@ -570,6 +504,22 @@ def report_markdown(sweep: Path, rows: list[dict], failed: list[tuple[str, str]]
     return md
 
 
+def print_summary_table(summary: list[dict], metrics: list[str], title: str, out=None) -> list[str]:
+    """The console summary: error and both speed columns kept first when the terminal is narrow (the
+    label wraps between words, the others are dropped, named in one line); returns the columns shown."""
+    table_rows = [{"label": s["label"], "seeds": s["seeds"], **{m: pm_short(s[m]) for m in metrics}} for s in summary]
+    return print_table(
+        table_rows,
+        ["label", "seeds", *metrics],
+        {"label": "model / setting", "seeds": "seeds", **{m: CONSOLE_HEADERS[m] for m in metrics}},
+        title=title,
+        priority=CONSOLE_PRIORITY,
+        where="report.md",
+        out=out,
+        wrap=("label",),
+    )
+
+
 def run_report(cfg: DictConfig) -> dict:
     sweep = Path(str(cfg.sweep))
     if str(cfg.sweep) in ("", "???") or not sweep.is_dir():
@@ -591,14 +541,7 @@ def run_report(cfg: DictConfig) -> dict:
         keys = varying_settings(rows)
         summary = summarize(rows, keys)
         metrics = [m for m in METRICS if any(s[m][0] is not None for s in summary)]
-        table_rows = [{"label": s["label"], "seeds": s["seeds"], **{m: pm(s[m]) for m in metrics}} for s in summary]
-        print_table(
-            table_rows,
-            ["label", "seeds", *metrics],
-            {"label": "model / setting", "seeds": "seeds", **{m: HEADERS[m] for m in metrics}},
-            title=f"{len(rows)} runs in {sweep}: mean ± std over seeds",
-            where="report.md",
-        )
+        print_summary_table(summary, metrics, f"{len(rows)} runs in {sweep}: mean ± std over seeds")
     if failed:
         console.print(f"[bold red]failed runs[/] ({len(failed)}):", highlight=False)
         for d, e in failed:

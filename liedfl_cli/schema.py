@@ -135,6 +135,11 @@ class RuntimeSchema:  # execution settings, liedfl_cli/solvers/runtime.py
 
 
 @dataclass
+class LoggerSchema:  # the `logger` config group (liedfl_cli/loggers/)
+    name: str = "csv"  # csv | tensorboard (train_metrics.csv plus <run>/tensorboard/)
+
+
+@dataclass
 class GroupSchema:
     n_se3: int = 0
     n_so3: int = 1
@@ -148,6 +153,7 @@ SECTIONS: dict[str, Any] = {
     "solver": SolverSchema,
     "group": GroupSchema,
     "runtime": RuntimeSchema,
+    "logger": LoggerSchema,
 }
 CHOICES = {
     ("train", "reg_form"): ("relu", "gaussian"),
@@ -161,11 +167,24 @@ CHOICES = {
     ("model", "kinetic"): ("per_body", "articulated"),
     ("runtime", "device"): ("cpu", "cuda", "auto"),
     ("runtime", "dtype"): ("float64", "float32"),
+    ("logger", "name"): ("csv", "tensorboard"),
 }
 _TRAIN_KEYS = ("task_name", "seed", "epoch_scale", "train", "rollout", "eval", "ui", "paths")
 TOP_LEVEL: dict[str, tuple[str, ...]] = {
     # `budgets`: per-model budget tables of the experiment files; `resume`: resume=<run dir> (train.py)
-    "train": (*_TRAIN_KEYS, "group", "dataset", "model", "force", "baseline", "solver", "budgets", "resume", "runtime"),
+    "train": (
+        *_TRAIN_KEYS,
+        "group",
+        "dataset",
+        "model",
+        "force",
+        "baseline",
+        "solver",
+        "budgets",
+        "resume",
+        "runtime",
+        "logger",
+    ),
     # budget files also set train/rollout/epoch_scale, which `liedfl data` ignores
     "data": ("task_name", "ui", "paths", "group", "dataset", "train", "rollout", "epoch_scale", "seed"),
     # rollout run=<run> dataset=<scene>: other data (the dataset file selects its group)
@@ -492,6 +511,10 @@ def _check_values(cfg, command: str) -> None:
         fraction = _value(cfg, "dataset.val_fraction")
         if fraction is not None and not (_is_number(fraction) and 0 <= fraction < 1):
             raise ConfigError(f"dataset.val_fraction={fraction!r}: must be a number in [0, 1) (0: no validation)")
+        if _value(cfg, "logger.name") == "tensorboard":  # the optional extra: refused before the run starts
+            from .loggers import require_tensorboard
+
+            require_tensorboard()
     if isinstance(cfg.get("rollout"), DictConfig):  # (`liedfl eval rollout=<dir>`: a path, or null)
         if "steps" in cfg.rollout:  # a rollout needs the two given poses and at least one predicted step
             _int(cfg, "rollout.steps", 2, nullable=True)

@@ -5,10 +5,11 @@ mean penalty(log|det H|) over `reg_points` random pairs). Samples are batched te
 
 Every `train.checkpoint_every` epochs (`auto`: whenever a minute has passed) the model, optimiser,
 scheduler, RNG states, epoch and loss history go to `checkpoints/last.pt`, and each epoch's
-metrics are appended to `train_metrics.csv` as training goes. SIGINT/SIGTERM finish the current
-epoch, save a checkpoint and stop with one line saying how to resume (a second signal stops at
-once). `liedfl train resume=<run dir>` (`run_resume`) continues from the last checkpoint and, for
-the same seed, ends with the same losses and weights as an uninterrupted run.
+metrics (loss parts, learning rate `lr`, seconds, validation) are appended to `train_metrics.csv` as
+training goes, and with `logger=tensorboard` also written as TensorBoard scalars (`loggers/`).
+SIGINT/SIGTERM finish the current epoch, save a checkpoint and stop with one line saying how to
+resume (a second signal stops at once). `liedfl train resume=<run dir>` (`run_resume`) continues
+from the last checkpoint and, for the same seed, ends with the same losses and weights as an uninterrupted run.
 
 Validation (`validation.py`, docs/validation.md): a split taken from the train split
 (`dataset.val_fraction`), a pass every `train.val_every` epochs (its columns in train_metrics.csv,
@@ -20,7 +21,6 @@ rolled out and evaluated.
 from __future__ import annotations
 
 import contextlib
-import csv
 import math
 import signal
 import threading
@@ -47,6 +47,7 @@ from .errors import CheckpointError, ConfigError, LiedflError
 from .factory import loss_options
 from .io_utils import write_json
 from .lie import Pose
+from .loggers import MetricsLog, make_loggers
 from .models.losses import training_stage
 from .solvers import runtime
 from .ui import console, err_console, progress_bar
@@ -129,33 +130,6 @@ def graceful_stop():
     finally:
         for s, h in previous.items():
             signal.signal(s, h)
-
-
-class MetricsLog:
-    """train_metrics.csv, one row per epoch appended as training goes (the header comes with the
-    first row). On resume the rows past the checkpoint's epoch are dropped first."""
-
-    def __init__(self, path: Path, history: list[dict]):
-        self.path = path
-        self.keys: list[str] | None = None
-        path.parent.mkdir(parents=True, exist_ok=True)
-        if history:
-            self._rewrite(history)
-        elif path.exists():
-            path.unlink()
-
-    def _rewrite(self, rows: list[dict]) -> None:
-        from .io_utils import write_csv
-
-        write_csv(self.path, rows)
-        self.keys = list(rows[0])
-
-    def append(self, row: dict) -> None:
-        if self.keys is None:
-            self._rewrite([row])
-            return
-        with open(self.path, "a", newline="") as f:
-            csv.DictWriter(f, fieldnames=self.keys, extrasaction="ignore").writerow(row)
 
 
 def checkpoint_interval(value) -> int | None:
@@ -288,9 +262,10 @@ def fit(
                 opt.step()
                 for k, v in {"loss": loss, **parts}.items():
                     sums[k] = sums.get(k, 0.0) + float(v.detach()) / n_batches
+            lr = float(opt.param_groups[0]["lr"])  # the rate this epoch's steps used
             if sched is not None:
                 sched.step()
-            row = {"epoch": epoch, **sums, "seconds": time.perf_counter() - t0, **no_pass}
+            row = {"epoch": epoch, **sums, "lr": lr, "seconds": time.perf_counter() - t0, **no_pass}
             early = False
             if validator is not None and validator.due(epoch, epochs):
                 tv = time.perf_counter()
@@ -461,7 +436,7 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
         save_checkpoint(ckpt, model, config, extra)
 
     history = list(resume.get("history", [])) if resume else []
-    log = MetricsLog(out / "train_metrics.csv", history)
+    log = make_loggers(str(OmegaConf.select(cfg, "logger.name", default="csv")), out, history)
     epochs = int(cfg.train.epochs)
     split, validator, selection = validation_setup(cfg, dataset, resume)
     if resume is None:
@@ -476,6 +451,7 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
     done = resume is not None and (int(resume["epoch"]) >= epochs or selection.stopped)
     if done:  # training done: redo what follows it
         assert resume is not None
+        log.close()
         result = {"history": history, "train_seconds": resume.get("timings", {}).get("train_seconds", 0.0)}
         result["epochs"] = int(resume["epoch"])
         result["seconds_per_epoch"] = result["train_seconds"] / max(result["epochs"], 1)
@@ -499,7 +475,7 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
                     show_progress=cfg.ui.progress,
                     resume=resume,
                     save=save,
-                    on_epoch=log.append,
+                    on_epoch=log.log,
                     stop=stop,
                     validator=validator,
                     selection=selection,
@@ -507,6 +483,8 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
                 )
             except TrainingInterrupted as e:
                 raise TrainingInterrupted(f"{e}; resume with: liedfl train resume={out}", e.exit_code) from None
+            finally:
+                log.close()
     done_before = resume is not None and int(resume["epoch"]) >= epochs  # a finished run: evaluation only
     if str(cfg.train.get("loss", "del")) == "rollout" and not done_before:  # train.loss=rollout: fine-tune
         result = _finetune_stage(cfg, model, train_data, result, out)

@@ -148,16 +148,24 @@ def _cell_text(value, fmt) -> str:
 
 
 def fit_columns(
-    rows: list[dict], columns: list[str], headers: dict[str, str], width: int, priority: list[str] | None = None
+    rows: list[dict],
+    columns: list[str],
+    headers: dict[str, str],
+    width: int,
+    priority: list[str] | None = None,
+    wrap: tuple[str, ...] = (),
 ) -> tuple[list[str], list[str]]:
     """(shown, left out): the columns of a table that fit in `width` terminal columns without
     breaking a cell, taken in `priority` order (default: `columns`), shown in `columns` order.
-    The first column is always shown. A rich table with edges takes 1 + sum(width + 3) columns."""
+    The first column is always shown. A rich table with edges takes 1 + sum(width + 3) columns.
+    Columns in `wrap` may wrap at spaces: they need only their longest word."""
     from .io_utils import fmt
 
     def need(c: str) -> int:
-        cells = [_cell_text(r.get(c), fmt) for r in rows]
-        return max([_cell_width(headers.get(c, c)), *(_cell_width(x) for x in cells)]) + 3
+        texts = [headers.get(c, c), *(_cell_text(r.get(c), fmt) for r in rows)]
+        if c in wrap:
+            return max(_cell_width(word) for t in texts for word in (str(t).split() or [""])) + 3
+        return max(_cell_width(t) for t in texts) + 3
 
     order = [c for c in (priority or columns) if c in columns]
     order += [c for c in columns if c not in order]
@@ -181,21 +189,28 @@ def print_table(
     priority: list[str] | None = None,
     where: str | None = None,
     out: Console | None = None,
+    wrap: tuple[str, ...] = (),
 ) -> list[str]:
     """Print `rows` as a table that fits the console's width: columns in `priority` order as long as
-    they fit, numbers never broken; a line names the columns left out (all are in `where`). Returns
-    the columns shown."""
+    they fit, numbers never broken (`wrap`: text columns that may wrap between words); a line names
+    the columns left out (all are in `where`). The title and that line are printed unbroken (a path
+    in them stays copyable; the terminal folds a long line). Returns the columns shown."""
     from rich.table import Table
     from rich.text import Text
 
     from .io_utils import fmt
 
     out = out or console
-    shown, left = fit_columns(rows, columns, headers, out.width, priority)
-    table = Table(title=Text(title) if title else None, title_justify="left")
+    shown, left = fit_columns(rows, columns, headers, out.width, priority, wrap)
+    if title:
+        out.print(title, highlight=False, markup=False, soft_wrap=True)
+    table = Table()
     for c in shown:
         table.add_column(
-            Text(headers.get(c, c)), no_wrap=True, overflow="ellipsis", justify="left" if c == columns[0] else "right"
+            Text(headers.get(c, c)),
+            no_wrap=c not in wrap,
+            overflow="fold" if c in wrap else "ellipsis",
+            justify="left" if c == columns[0] else "right",
         )
     for r in rows:
         table.add_row(*[Text(_cell_text(r.get(c), fmt)) for c in shown])
@@ -203,7 +218,7 @@ def print_table(
     if left:
         note = f"{len(left)} more column(s) ({', '.join(headers.get(c, c) for c in left)})"
         note += (f" in {where}" if where else "") + "; a wider terminal shows more"
-        out.print(note, style="dim", highlight=False, markup=False)
+        out.print(note, style="dim", highlight=False, markup=False, soft_wrap=True)
     return shown
 
 

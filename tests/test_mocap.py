@@ -16,6 +16,7 @@ from liedfl_cli.data.bvh import read_bvh
 from liedfl_cli.data.mocap import (
     ASF_UNIT_M,
     CMU_BODY_JOINTS,
+    MOCAP_DIR,
     Z_UP,
     cmu_cartwheel,
     mocap_errors,
@@ -119,7 +120,7 @@ def test_smoothing_rejects_too_fast_rotations():
 
 
 def test_smoothing_real_recording_stays_on_so3():
-    b = read_bvh(ROOT / "data" / "cmu_mocap" / "49_07.bvh")
+    b = read_bvh(MOCAP_DIR / "49_07.bvh")
     names = ["Hips", *CMU_BODY_JOINTS]
     R = b.local_rotations([b.names.index(n) for n in names])[1:]
     Rs, ps = smooth_pose(R, b.local_translations([0])[1:], 51, 6)
@@ -220,7 +221,7 @@ def test_overlapping_split_needs_the_flag(imported, tmp_path):
 
 def test_skeleton_points_reproduce_forward_kinematics(imported):
     ds, _ = imported
-    b = read_bvh(ROOT / "data" / "cmu_mocap" / "49_06.bvh")
+    b = read_bvh(MOCAP_DIR / "49_06.bvh")
     _, pw = b.world_poses()
     idx = [b.names.index(n) for n in ds.body_names]
     pts, edges = skeleton_points(ds.extras["R_raw"][0, :5], ds.extras["p_raw"][0, :5], ds.params["skeleton"])
@@ -244,7 +245,7 @@ def test_the_tree_reproduces_the_bvh_joint_positions(imported, length_scale):
     np.testing.assert_allclose(np.asarray(tree.offsets)[1:], np.asarray(ds.params["skeleton"]["offsets"])[1:])
     frames = [0, 3, 7]
     for i, name in enumerate(("49_06", "49_07")):
-        b = read_bvh(ROOT / "data" / "cmu_mocap" / f"{name}.bvh")
+        b = read_bvh(MOCAP_DIR / f"{name}.bvh")
         Rw, pw = b.world_poses()
         idx = [b.names.index(n) for n in ds.body_names]
         R, p = ds.extras["R_raw"][i, frames], ds.extras["p_raw"][i, frames]
@@ -314,7 +315,7 @@ def test_options_subsample_scale_crop_no_smoothing():
     )
     assert ds.R.shape == (2, 101, 23, 3, 3)
     assert list(ds.train_idx) == [0] and list(ds.test_idx) == [1] and ds.params["split_overlap"] is False
-    b = read_bvh(ROOT / "data" / "cmu_mocap" / "49_06.bvh")
+    b = read_bvh(MOCAP_DIR / "49_06.bvh")
     np.testing.assert_allclose(ds.p[0, :, 0], b.frames[1::2, :3][:101] * ASF_UNIT_M, atol=1e-12)  # y up, metres
     assert ds.params["length_unit_m"] == pytest.approx(1.0)
     np.testing.assert_array_equal(ds.R, ds.extras["R_raw"])
@@ -344,14 +345,15 @@ def test_config_errors(over, pattern):
 
 
 def test_file_errors(tmp_path):
-    with pytest.raises(DatasetError, match="nope.bvh: BVH file not found"):
+    with pytest.raises(DatasetError, match="nope.bvh: BVH file not found") as e:
         cmu_cartwheel(cfg(files=["nope.bvh", "data/cmu_mocap/49_07.bvh"]))
+    assert str(Path.cwd()) in str(e.value) and str(MOCAP_DIR) in str(e.value)  # where it looked, where they ship
     with pytest.raises(DatasetError, match=r"joint\(s\) \['Tail'\]"):
         cmu_cartwheel(cfg(joints=["Tail"], smoothing=None))
     bad = tmp_path / "bad.bvh"
-    bad.write_text((ROOT / "data" / "cmu_mocap" / "49_07.bvh").read_text().replace("Frames: 472", "Frames: 47"))
+    bad.write_text((MOCAP_DIR / "49_07.bvh").read_text().replace("Frames: 472", "Frames: 47"))
     with pytest.raises(DatasetError, match=f"{bad}: field 'Frames' declares 47 frames"):
-        cmu_cartwheel(cfg(files=[str(ROOT / "data" / "cmu_mocap" / "49_06.bvh"), str(bad)]))
+        cmu_cartwheel(cfg(files=[str(MOCAP_DIR / "49_06.bvh"), str(bad)]))
 
 
 def test_the_number_of_recordings_follows_the_files():

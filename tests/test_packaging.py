@@ -1,5 +1,7 @@
-"""Packaging: the configs ship inside the package, so a built wheel installed anywhere runs
-`liedfl train budget=smoke`; `liedfl --help` and the completion script name the program `liedfl`."""
+"""Packaging: the configs and the CMU recordings (with their attribution) ship inside the package, so a
+built wheel installed anywhere runs `liedfl train budget=smoke` and finds Exp 4's BVH files; `liedfl
+--help` and the completion script name the program `liedfl`; LICENSE and CITATION.cff agree with
+pyproject.toml."""
 
 from __future__ import annotations
 
@@ -36,7 +38,12 @@ def test_wheel_ships_the_configs_and_runs_the_smoke_budget(tmp_path):
     )
     (wheel,) = wheels.glob("liedfl-*.whl")
     with zipfile.ZipFile(wheel) as z:
-        yamls = sorted(n for n in z.namelist() if n.endswith(".yaml"))
+        names = z.namelist()
+        yamls = sorted(n for n in names if n.endswith(".yaml"))
+        mocap = {n: z.read(n) for n in names if n.startswith("liedfl_cli/data/cmu_mocap/")}
+    shipped = ROOT / "liedfl_cli" / "data" / "cmu_mocap"
+    for name in ("49_06.bvh", "49_07.bvh", "ATTRIBUTION.md", "PROVENANCE.md"):  # byte for byte (sha256 in PROVENANCE)
+        assert mocap.get(f"liedfl_cli/data/cmu_mocap/{name}") == (shipped / name).read_bytes(), name
     expected = sorted(
         f"liedfl_cli/conf/{p.relative_to(ROOT / 'liedfl_cli' / 'conf').as_posix()}"
         for p in (ROOT / "liedfl_cli" / "conf").rglob("*.yaml")
@@ -64,6 +71,20 @@ def test_wheel_ships_the_configs_and_runs_the_smoke_budget(tmp_path):
         check=True,
     ).stdout.strip()
     assert Path(where).is_relative_to(site), where  # the installed copy, not the sources
+    # Exp 4's config paths (data/cmu_mocap/*.bvh, relative) resolve to the installed recordings
+    found = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            "from liedfl_cli.data.mocap import _resolve; print(_resolve('data/cmu_mocap/49_07.bvh'))",
+        ],
+        cwd=work,
+        env=env,
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout.strip()
+    assert Path(found).is_relative_to(site) and Path(found).stat().st_size > 100_000, found
     proc = subprocess.run(
         [sys.executable, "-c", "from liedfl_cli.cli import main; main()", "train", "budget=smoke", "ui.progress=false"],
         cwd=work,
@@ -108,3 +129,17 @@ def test_help_and_completion_name_liedfl(tmp_path):
         ["bash", "-c", test], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120
     ).stdout
     assert "A:train" in out and "B:dataset=heavy_se3 dataset=heavy_so3" in out, out
+
+
+def test_license_and_citation_match_the_project():
+    import re
+
+    pyproject = (ROOT / "pyproject.toml").read_text()  # (tomllib needs Python 3.11; liedfl supports 3.10)
+    version = re.search(r'^version = "([^"]+)"', pyproject, re.M)
+    assert version and re.search(r'^license = \{ text = "MIT" \}', pyproject, re.M)
+    license_text = (ROOT / "LICENSE").read_text()
+    assert license_text.startswith("MIT License") and "liedfl developers" in license_text
+    cff = (ROOT / "CITATION.cff").read_text()
+    assert "cff-version: 1.2.0" in cff and f'version: "{version.group(1)}"' in cff
+    assert "2607.12627" in cff and "Learning Forced Multibody Dynamics on Lie Groups" in cff
+    assert "https://arxiv.org/abs/2607.12627" in (ROOT / "README.md").read_text()

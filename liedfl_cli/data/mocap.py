@@ -3,7 +3,8 @@
 Listed in the scene registry `scenes.SCENES`.
 
 Scene `cmu_cartwheel` (config conf/dataset/cmu_cartwheel.yaml, paper Experiment 4): CMU subject 49,
-cartwheel trials 06 and 07 (BVH files shipped under data/cmu_mocap/, see PROVENANCE.md there).
+cartwheel trials 06 and 07 (BVH files shipped inside the package, liedfl_cli/data/cmu_mocap/, with
+their ATTRIBUTION.md and PROVENANCE.md; `data/cmu_mocap/` of the repository links there).
 The import, per file:
 
 1. read the BVH (`bvh.read_bvh`), drop the first `skip_frames` motion lines (1: the T-pose frame the
@@ -55,7 +56,13 @@ from .scene_common import REQUIRED_KEYS, check_config, dataset_params, to_dict
 from .smoothing import check_window, smooth_pose
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
-"""Relative BVH paths in a config are looked up here first (then in the working directory)."""
+"""Relative BVH paths in a config are looked up here first (then in the working directory, then in
+the installed package: `PACKAGE_ROOT`)."""
+PACKAGE_ROOT = Path(__file__).resolve().parents[1]
+"""liedfl_cli/: the shipped recordings are `data/cmu_mocap/*.bvh` under it, so the configs' paths
+(`data/cmu_mocap/49_06.bvh`) resolve in a wheel install too."""
+MOCAP_DIR = PACKAGE_ROOT / "data" / "cmu_mocap"
+"""The CMU recordings shipped with liedfl (49_06.bvh, 49_07.bvh, ATTRIBUTION.md, PROVENANCE.md)."""
 
 ASF_UNIT_M = 0.0254 / 0.45
 """One CMU ASF length unit (skeleton `length 0.45`: 1/0.45 inch) in metres, 0.0564444 m."""
@@ -280,10 +287,14 @@ def _resolve(path: str) -> Path:
     p = Path(str(path)).expanduser()
     if p.is_absolute():
         return p
-    for base in (REPO_ROOT, Path.cwd()):
+    bases = list(dict.fromkeys((REPO_ROOT, Path.cwd(), PACKAGE_ROOT)))  # a source checkout: REPO_ROOT holds liedfl_cli
+    for base in bases:
         if (base / p).is_file():
             return base / p
-    raise DatasetError(f"{path}: BVH file not found (looked in {REPO_ROOT} and {Path.cwd()})")
+    raise DatasetError(
+        f"{path}: BVH file not found (looked in {', '.join(str(b) for b in bases)}); give an absolute path, or "
+        f"a path relative to the working directory (the CMU cartwheels ship in {MOCAP_DIR})"
+    )
 
 
 def _sha256(path: Path) -> str:
