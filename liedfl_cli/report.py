@@ -30,8 +30,10 @@ import numpy as np
 import yaml
 from omegaconf import DictConfig
 
-from . import resolvers  # noqa: F401  (registers the config resolvers)
-from . import speed_figure
+from . import (
+    resolvers,  # noqa: F401  (registers the config resolvers)
+    speed_figure,
+)
 from .errors import ConfigError, DatasetError, LiedflError
 from .evaluate import CV_COLUMNS, DRIFT_COLUMNS, ERROR_COLUMNS, ONE_STEP_COLUMNS
 from .io_utils import fmt, markdown_table, write_csv, write_text
