@@ -201,3 +201,11 @@ def test_the_fused_potential_covector_uses_the_closed_form(monkeypatch):
     with torch.no_grad():
         out = fused.potential_covector(model, poses(SO3))
     assert out.shape == (6, 3) and not calls
+
+
+def test_a_single_linear_layer_has_its_weights_as_gradient():
+    f = nn.Sequential(nn.Linear(5, 1, dtype=torch.float64))
+    x = inputs(5)
+    got = mlp_derivatives.value_and_gradient(f, x)
+    assert got is not None
+    assert got[1].shape == x.shape and rel(got[1], autograd_gradient(f, x)) <= 1e-12
