@@ -16,6 +16,10 @@ few repeats, so a speed-up is a ratio taken under the same load. Keys:
   mocap_articulated_newton_s_per_epoch  ... with train.loss=newton
   rollout_us_per_step_traj      {model: {batch: us}} for the free body with true parameters and
                                 the SE(3) LieDFLNN with an MLP potential 64x3, batches 1/10/1000/10000
+  learned_rollout_us_per_step_traj  {model: {batch: us}} for the learned models users roll out: an
+                                SO(3) LieDFLNN with an MLP potential 10x2 and Rayleigh damping (the
+                                peer's network size, `scripts/bench_peer.py`) and the SE(3) MLP 64x3
+                                model above (the same figures as in rollout_us_per_step_traj)
   compile_s                     first compilation of the Newton step (runtime.compile=true)
   compiled_rollout_us_per_step_traj  the free body with the compiled step, batches 1000/10000
   threads, load_avg             torch threads used; `os.getloadavg()` before and after
@@ -105,6 +109,14 @@ def rollout_models():
     se3 = LieDFLNN(SE3, 0.05, potential="mlp", forces=["rayleigh"], mlp_width=64, mlp_depth=3)
     se3.requires_grad_(False)
     return {"free_body_true": (free, SO3, 0.1), "se3_mlp": (se3, SE3, 0.05)}
+
+
+def learned_so3_model():
+    """The SO(3) LieDFLNN of `scripts/bench_peer.py`: MLP potential 10 x 2, Rayleigh damping, h = 0.05."""
+    torch.manual_seed(0)
+    so3_mlp = LieDFLNN(SO3, 0.05, potential="mlp", forces=["rayleigh"], mlp_width=10, mlp_depth=2)
+    so3_mlp.requires_grad_(False)
+    return so3_mlp, SO3, 0.05
 
 
 def rollout_us(model, G, h, n: int, budget: float, repeats: int, **settings) -> float:
@@ -226,8 +238,26 @@ def main() -> None:
             ref[name][str(n)] = rollout_us(model, G, h, n, budget, repeats, fused=False)
             cpu_ref[name][str(n)] = CPU_US[-1]
             log(f"rollout {name} batch {n}: {fused[name][str(n)]:.2f} us/step/traj (reference {ref[name][str(n)]:.2f})")
+    # the learned SO(3) model of the peer comparison; the SE(3) MLP 64x3 figures are those above
+    learned, learned_ref = {"se3_mlp_64x3": fused["se3_mlp"]}, {"se3_mlp_64x3": ref["se3_mlp"]}
+    model, G, h = learned_so3_model()
+    learned["so3_mlp_10x2"], learned_ref["so3_mlp_10x2"] = {}, {}
+    cpu_learned: dict = {"se3_mlp_64x3": cpu_fused["se3_mlp"], "so3_mlp_10x2": {}}
+    cpu_learned_ref: dict = {"se3_mlp_64x3": cpu_ref["se3_mlp"], "so3_mlp_10x2": {}}
+    for n in BATCHES:
+        learned["so3_mlp_10x2"][str(n)] = rollout_us(model, G, h, n, budget, repeats, fused=True)
+        cpu_learned["so3_mlp_10x2"][str(n)] = CPU_US[-1]
+        learned_ref["so3_mlp_10x2"][str(n)] = rollout_us(model, G, h, n, budget, repeats, fused=False)
+        cpu_learned_ref["so3_mlp_10x2"][str(n)] = CPU_US[-1]
+        log(
+            f"rollout so3_mlp_10x2 batch {n}: {learned['so3_mlp_10x2'][str(n)]:.2f} us/step/traj "
+            f"(reference {learned_ref['so3_mlp_10x2'][str(n)]:.2f})"
+        )
+    out["learned_rollout_us_per_step_traj"], out["baseline_learned_rollout_us_per_step_traj"] = learned, learned_ref
     out["rollout_us_per_step_traj"], out["baseline_rollout_us_per_step_traj"] = fused, ref
     cpu["rollout_us_per_step_traj"], cpu["baseline_rollout_us_per_step_traj"] = cpu_fused, cpu_ref
+    cpu["learned_rollout_us_per_step_traj"] = cpu_learned
+    cpu["baseline_learned_rollout_us_per_step_traj"] = cpu_learned_ref
     out["cpu_time"] = cpu
 
     # compilation
@@ -257,6 +287,10 @@ def main() -> None:
     for name in fused:
         for n in fused[name]:
             speed[f"rollout_{name}_{n}"] = ref[name][n] / fused[name][n]
+    for n in BATCHES:
+        speed[f"learned_rollout_so3_mlp_10x2_{n}"] = (
+            learned_ref["so3_mlp_10x2"][str(n)] / learned["so3_mlp_10x2"][str(n)]
+        )
     out["speedup"] = speed
     out["load_avg_end"] = list(os.getloadavg())
     out["load_avg"] = out["load_avg_start"][0]

@@ -37,9 +37,10 @@ from ..mechanics import kinetic
 from ..mechanics.damping import PerBodySPSD
 from ..mechanics.forces import PDControl, RayleighForce, RayleighNonlinearForce, force_jacobian_xi
 from ..mechanics.parameterizations import Inertia, SPSDMatrix
-from ..mechanics.potentials import MLPPotential, left_gradient
+from ..mechanics.potentials import left_gradient
 from ..solvers import runtime
 from ..solvers.newton import NewtonProblem
+from . import mlp_derivatives
 from .base import TripletSet, oriented_logdet
 
 AFFINE_FORCES = (RayleighNonlinearForce, PDControl)
@@ -407,56 +408,17 @@ def _trainable(module: nn.Module | None) -> bool:
 
 
 # ---------------------------------------------------------------------------- potential gradient
-def mlp_input_gradient(net: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
-    """d sum(net(x)[..., 0]) / dx for a GELU MLP with one output, by hand: one forward pass and
-    one backward pass written as tensor operations (autograd differentiates it once more for the
-    parameters instead of running a double backward). GELU(z) = z Phi(z), GELU'(z) = Phi(z) +
-    z phi(z) share Phi."""
-    linears = [m for m in net if isinstance(m, nn.Linear)]
-    inv_sqrt2, inv_sqrt2pi = 1.0 / math.sqrt(2.0), 1.0 / math.sqrt(2.0 * math.pi)
-    saved = []
-    a = x
-    for lin in linears[:-1]:
-        z = nn.functional.linear(a, lin.weight, lin.bias)
-        Phi = 0.5 + 0.5 * torch.erf(z * inv_sqrt2)
-        saved.append((z, Phi))
-        a = z * Phi
-    g = linears[-1].weight[0].expand(*x.shape[:-1], -1)
-    for lin, (z, Phi) in zip(reversed(linears[:-1]), reversed(saved)):
-        g = (g * (Phi + z * torch.exp(-0.5 * z * z) * inv_sqrt2pi)) @ lin.weight
-    return g
-
-
-def _is_plain_mlp(net: nn.Module) -> bool:
-    if not isinstance(net, nn.Sequential):
-        return False
-    for m in net:
-        if isinstance(m, nn.GELU):
-            if m.approximate != "none":
-                return False
-        elif not isinstance(m, nn.Linear):
-            return False
-    last = [m for m in net if isinstance(m, nn.Linear)][-1]
-    return last.out_features == 1
-
-
 def potential_covector(model, g: Pose, create_graph: bool = False) -> torch.Tensor:
     """-h dV(g exp(eta))/d eta at 0 (`LieDFLNN.potential_covector`), shape (..., dim).
 
-    MLP potentials: the input gradient by hand; others: autograd over the matrices."""
-    G, V = model.G, model.potential
-    if isinstance(V, MLPPotential) and _is_plain_mlp(V.net):
-        lead = g.R.shape[:-3]
-        B, m = G.n_bodies, G.n_se3
-        dx = mlp_input_gradient(V.net, G.flatten(g))
-        dR = dx[..., : 9 * B].reshape(*lead, B, 3, 3)
-        dp = dx[..., 9 * B :].reshape(*lead, m, 3)
-        w = 2.0 * so3.vee(g.R.transpose(-1, -2) @ dR)
-        v = (g.R[..., :m, :, :].transpose(-1, -2) @ dp[..., None])[..., 0]
-        return -model.h * G.join(w, v)
+    MLP potentials: the input gradient in closed form (`mlp_derivatives`); others: autograd over
+    the matrices."""
+    out = mlp_derivatives.potential_covector(model, g)
+    if out is not None:
+        return out
     if create_graph and not (g.R.requires_grad or g.p.requires_grad):  # data poses: leaves of the graph
         g = Pose(g.R.detach().requires_grad_(True), g.p.detach().requires_grad_(True))
-    return -model.h * left_gradient(V, G, g, create_graph=create_graph)
+    return -model.h * left_gradient(model.potential, model.G, g, create_graph=create_graph)
 
 
 # ---------------------------------------------------------------------------- training samples
@@ -972,24 +934,21 @@ class FusedStep:
             const = const + potential_covector(model, g).detach()
         self.const = const
         self.compiled_iterate = compiled_iterate if not self.generic else None
+        self.forces_at = mlp_derivatives.ForcesAt(G, self.generic, g) if self.generic else None
 
     def f(self, x: Pose) -> torch.Tensor:
         """The residual at the increment x, (T, dim)."""
         r = step_residual(self.G, self.h, x, self.const, self.B, self.maps)
-        if self.generic:
+        if self.forces_at is not None:
             xi = kinetic.velocity_estimate(self.G, x, self.h)
-            for f in self.generic:
-                r = r + 0.5 * self.h * f(self.g, xi)
+            r = r + 0.5 * self.h * self.forces_at.value(xi, key=x.R)
         return r
 
     def jac(self, x: Pose) -> torch.Tensor:
         """d f(x exp(delta)) / d delta at 0, (T, dim, dim)."""
         extra = None
-        if self.generic:
-            xi = kinetic.velocity_estimate(self.G, x, self.h)
-            for f in self.generic:
-                Jf = force_jacobian_xi(f, self.g, xi).detach()
-                extra = Jf if extra is None else extra + Jf
+        if self.forces_at is not None:
+            extra = self.forces_at.jacobian(kinetic.velocity_estimate(self.G, x, self.h), key=x.R)
         return step_jacobian(self.G, self.h, x, self.B, self.maps, extra)
 
     def retract(self, x: Pose, delta: torch.Tensor) -> Pose:
@@ -1002,6 +961,8 @@ class FusedStep:
         sub.g = Pose(self.g.R.index_select(0, rows), self.g.p.index_select(0, rows))
         if self.B is not None and self.B.dim() == 3:
             sub.B = self.B.index_select(0, rows)
+        if self.forces_at is not None:
+            sub.forces_at = self.forces_at.restrict(rows)
         return sub.problem(None)
 
     def problem(self, x0) -> NewtonProblem:

@@ -1,0 +1,290 @@
+"""Closed-form derivatives of the project's MLPs (`mechanics.mlp.MLP`: Linear layers with an
+activation between them) for the fused rollout: one forward pass that also gives what Newton needs,
+with no autograd graph.
+
+    value_and_gradient(net, x)      scalar networks (potentials): V and dV/dx        (..., ), (..., n)
+    gradient_and_hvp(net, x, v)     also the Hessian-vector product (d^2V/dx^2) v    (..., n)
+    value_and_jacobian(net, z1, E)  vector networks (forces) from the first layer's pre-activation z1
+                                    (..., width) and its derivative E (..., width, k) with respect to k
+                                    inputs: F and dF/d(inputs)                       (..., out), (..., out, k)
+    left_covector(G, g, dx)         d f(g exp(eta))/d eta at 0 from df/dflatten(g)   (..., dim)
+    potential_covector(model, g)    -h dV(g exp(eta))/d eta at 0 of an MLP potential (None: not an MLP)
+
+The backward pass of every activation is ATen's own (`gelu_backward`, `tanh_backward`, ...), the
+kernels autograd runs, so the gradient is autograd's to rounding. Under autograd (training: the
+parameters need gradients through the input gradient) the same formulas are written as plain tensor
+expressions, which autograd differentiates once more (cheaper than a double backward).
+
+Activations: GELU (exact or tanh form), Tanh, Softplus, SiLU; `layers(net)` is None for anything
+else, and the callers then use autograd.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+from ..lie import Pose, ProductGroup
+
+Layer = tuple[nn.Linear, nn.Module | None]
+
+_INV_SQRT2 = 1.0 / math.sqrt(2.0)
+_INV_SQRT2PI = 1.0 / math.sqrt(2.0 * math.pi)
+_SUPPORTED = (nn.GELU, nn.Tanh, nn.Softplus, nn.SiLU)
+
+
+def layers(net: nn.Module) -> list[Layer] | None:
+    """[(Linear, activation after it or None)] of a Sequential of Linear layers and supported
+    activations ending in a Linear layer; None for anything else."""
+    if not isinstance(net, nn.Sequential) or not len(net):
+        return None
+    out: list[Layer] = []
+    for m in net:
+        if isinstance(m, nn.Linear):
+            out.append((m, None))
+        elif isinstance(m, _SUPPORTED) and out and out[-1][1] is None:
+            out[-1] = (out[-1][0], m)
+        else:
+            return None
+    return out if out[-1][1] is None else None
+
+
+def _act(act: nn.Module, z: torch.Tensor) -> torch.Tensor:
+    return act(z)
+
+
+def _act_backward(act: nn.Module, g: torch.Tensor, z: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+    """g * act'(z) (a = act(z)), with ATen's backward kernels."""
+    aten = torch.ops.aten
+    if isinstance(act, nn.GELU):
+        return aten.gelu_backward(g, z, approximate=act.approximate)
+    if isinstance(act, nn.Tanh):
+        return aten.tanh_backward(g, a)
+    if isinstance(act, nn.Softplus):
+        return aten.softplus_backward(g, z, act.beta, act.threshold)
+    return aten.silu_backward(g, z)
+
+
+def _act_slope(act: nn.Module, z: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+    """act'(z) as a differentiable expression."""
+    if isinstance(act, nn.GELU) and act.approximate == "none":
+        Phi = 0.5 + 0.5 * torch.erf(z * _INV_SQRT2)
+        return Phi + z * torch.exp(-0.5 * z * z) * _INV_SQRT2PI
+    if isinstance(act, nn.Tanh):
+        return 1.0 - a * a
+    if isinstance(act, nn.Softplus):
+        bz = act.beta * z
+        return torch.where(bz > act.threshold, torch.ones_like(z), torch.sigmoid(bz))
+    if isinstance(act, nn.SiLU):
+        s = torch.sigmoid(z)
+        return s * (1.0 + z * (1.0 - s))
+    # GELU, tanh form: 0.5 (1 + t) + 0.5 z (1 - t^2) u'(z), u = c (z + 0.044715 z^3), t = tanh(u)
+    c = math.sqrt(2.0 / math.pi)
+    t = torch.tanh(c * (z + 0.044715 * z * z * z))
+    return 0.5 * (1.0 + t) + 0.5 * z * (1.0 - t * t) * c * (1.0 + 3 * 0.044715 * z * z)
+
+
+def _act_curvature(act: nn.Module, z: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+    """act''(z)."""
+    if isinstance(act, nn.GELU) and act.approximate == "none":
+        return torch.exp(-0.5 * z * z) * _INV_SQRT2PI * (2.0 - z * z)
+    if isinstance(act, nn.Tanh):
+        return -2.0 * a * (1.0 - a * a)
+    if isinstance(act, nn.Softplus):
+        bz = act.beta * z
+        s = torch.sigmoid(bz)
+        return torch.where(bz > act.threshold, torch.zeros_like(z), act.beta * s * (1.0 - s))
+    if isinstance(act, nn.SiLU):
+        s = torch.sigmoid(z)
+        return s * (1.0 - s) * (2.0 + z * (1.0 - 2.0 * s))
+    c, k = math.sqrt(2.0 / math.pi), 0.044715
+    t = torch.tanh(c * (z + k * z * z * z))
+    du = c * (1.0 + 3 * k * z * z)
+    d2u = c * 6 * k * z
+    sech2 = 1.0 - t * t
+    return sech2 * du + 0.5 * z * (-2.0 * t * sech2 * du * du + sech2 * d2u)
+
+
+def _forward(lys: list[Layer], x: torch.Tensor) -> tuple[torch.Tensor, list[tuple[torch.Tensor, torch.Tensor]]]:
+    """Output and the (pre-activation, activation) of every hidden layer."""
+    saved = []
+    a = x
+    for lin, act in lys[:-1]:
+        z = nn.functional.linear(a, lin.weight, lin.bias)
+        assert act is not None
+        a = _act(act, z)
+        saved.append((z, a))
+    last = lys[-1][0]
+    return nn.functional.linear(a, last.weight, last.bias), saved
+
+
+def value_and_gradient(net: nn.Module, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """(net(x)[..., 0] (...,), d sum(net(x)[..., 0]) / dx (..., n)) of a network with one output;
+    None when `layers(net)` is None."""
+    lys = layers(net)
+    if lys is None:
+        return None
+    out, saved = _forward(lys, x)
+    g = lys[-1][0].weight[0]  # broadcast against the batch by the first product below
+    differentiable = torch.is_grad_enabled() and (x.requires_grad or any(p.requires_grad for p in net.parameters()))
+    for (lin, act), (z, a) in zip(reversed(lys[:-1]), reversed(saved)):
+        assert act is not None
+        g = g * _act_slope(act, z, a) if differentiable else _act_backward(act, g, z, a)
+        g = g @ lin.weight
+    return out[..., 0], g.expand(*x.shape[:-1], -1)
+
+
+def gradient_and_hvp(net: nn.Module, x: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """(dV/dx, (d^2 V/dx^2) v), both (..., n), of a network with one output V = net(x)[..., 0]:
+    reverse mode for the gradient and its directional derivative along v carried alongside
+    (forward over reverse, by hand). None when `layers(net)` is None."""
+    lys = layers(net)
+    if lys is None:
+        return None
+    saved = []
+    a, da = x, v
+    for lin, act in lys[:-1]:
+        assert act is not None
+        z = nn.functional.linear(a, lin.weight, lin.bias)
+        dz = da @ lin.weight.T
+        a = act(z)
+        s = _act_slope(act, z, a)
+        saved.append((z, a, dz, s))
+        da = s * dz
+    g = lys[-1][0].weight[0].expand(*x.shape[:-1], -1)
+    dg = torch.zeros_like(g)
+    for (lin, act), (z, a, dz, s) in zip(reversed(lys[:-1]), reversed(saved)):
+        assert act is not None
+        c = _act_curvature(act, z, a)
+        g, dg = g * s, dg * s + g * c * dz
+        g, dg = g @ lin.weight, dg @ lin.weight
+    return g, dg
+
+
+def first_layer(net: nn.Module) -> nn.Linear:
+    """The first Linear layer of a network `layers` accepts."""
+    first = next(iter(net.children()))
+    assert isinstance(first, nn.Linear)
+    return first
+
+
+def value_and_jacobian(net: nn.Module, z1: torch.Tensor, E: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Output (..., out) and its Jacobian (..., out, k) of a network whose first pre-activation z1
+    (..., width) is given together with its derivative E (..., width, k) (or (width, k)) with
+    respect to k inputs (forward mode through the hidden layers). Needs `layers(net)`."""
+    lys = layers(net)
+    assert lys is not None
+    if len(lys) == 1:  # a single Linear layer: z1 is the output
+        return z1, E.expand(*z1.shape[:-1], *E.shape[-2:])
+    z, J = z1, E
+    for i, (_, act) in enumerate(lys[:-1]):
+        assert act is not None
+        a = act(z)
+        s = _act_slope(act, z, a)
+        J = s[..., None] * J
+        nxt = lys[i + 1][0]
+        z = nn.functional.linear(a, nxt.weight, nxt.bias)
+        J = nxt.weight @ J
+    return z, J
+
+
+# ---------------------------------------------------------------------------- on the group
+def left_covector(G: ProductGroup, g: Pose, dx: torch.Tensor) -> torch.Tensor:
+    """d f(g exp(eta)) / d eta at 0, (..., dim), from dx = df/dflatten(g) (..., 9 B + 3 m).
+
+    Per body the rotational part is vee(A - A^T) with A = R^T dR, i.e. sum_k dR_k x R_k over the
+    rows k (A - A^T = hat(sum_k dR_k x R_k)); the translational part of an SE(3) body is R^T dp."""
+    lead = g.R.shape[:-3]
+    B, m = G.n_bodies, G.n_se3
+    dR = dx[..., : 9 * B].reshape(*lead, B, 3, 3)
+    c = torch.linalg.cross(dR, g.R, dim=-1)
+    w = c[..., 0, :] + c[..., 1, :] + c[..., 2, :]  # two adds: faster than a sum over the middle axis
+    if not m:
+        return w.reshape(*lead, 3 * B)
+    dp = dx[..., 9 * B :].reshape(*lead, m, 3)
+    v = (g.R[..., :m, :, :] * dp[..., :, None]).sum(-2)
+    return G.join(w, v)
+
+
+def potential_covector(model, g: Pose) -> torch.Tensor | None:
+    """-h dV(g exp(eta))/d eta at 0 (..., dim) of a model whose potential is an `MLPPotential`
+    of a supported network; None otherwise."""
+    from ..mechanics.potentials import MLPPotential
+
+    V = model.potential
+    if not isinstance(V, MLPPotential):
+        return None
+    G = model.G
+    x = g.R.flatten(-3) if not G.n_se3 else G.flatten(g)  # no copy for rotation-only groups
+    got = value_and_gradient(V.net, x)
+    if got is None:
+        return None
+    return -model.h * left_covector(G, g, got[1])
+
+
+class ForcesAt:
+    """The per-iteration ("generic") forces of a Newton solve at a fixed g: their sum F(g, xi~) and
+    dF/d xi~ (..., dim, dim). An `NNForce` with a supported network is evaluated in closed form
+    (value and Jacobian in one pass, the part of its first layer fixed by g computed once); other
+    forces by calling them and `force_jacobian_xi` (autodiff). The Jacobian computed with a value
+    is kept for the next `jacobian` call at the same xi~ (Newton asks for it at the accepted iterate)."""
+
+    def __init__(self, G: ProductGroup, forces: list[nn.Module], g: Pose):
+        from ..mechanics.forces import NNForce
+
+        self.G, self.g = G, g
+        self.closed: list[tuple[nn.Module, torch.Tensor, torch.Tensor, torch.Tensor]] = []
+        self.other: list[nn.Module] = []
+        for f in forces:
+            if isinstance(f, NNForce) and layers(f.net) is not None and not torch.is_grad_enabled():
+                lin = first_layer(f.net)
+                n_g = lin.in_features - G.dim
+                z0 = nn.functional.linear(G.flatten(g), lin.weight[:, :n_g], lin.bias)
+                self.closed.append((f.net, torch.as_tensor(f.scale), z0, lin.weight[:, n_g:]))
+            else:
+                self.other.append(f)
+        self._kept: tuple[object, torch.Tensor] | None = None
+
+    def _closed(self, xi: torch.Tensor, jac: bool) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+        F = J = None
+        for net, scale, z0, Wxi in self.closed:
+            z1 = torch.addmm(z0, xi, Wxi.T) if xi.dim() == 2 else z0 + xi @ Wxi.T
+            Fi, Ji = value_and_jacobian(net, z1, Wxi)
+            F = scale * Fi if F is None else F + scale * Fi
+            if jac:
+                J = scale * Ji if J is None else J + scale * Ji
+        return F, J
+
+    def value(self, xi: torch.Tensor, key: object = None) -> torch.Tensor:
+        """Sum of the forces at xi~ (..., dim); the closed-form forces' Jacobian is kept under
+        `key` (the iterate xi~ was computed from)."""
+        F, J = self._closed(xi, True)
+        out = torch.zeros_like(xi) if F is None else F
+        for f in self.other:
+            out = out + f(self.g, xi)
+        self._kept = None if J is None or key is None else (key, J)
+        return out
+
+    def jacobian(self, xi: torch.Tensor, key: object = None) -> torch.Tensor:
+        """Sum of dF/d xi~ at xi~, (..., dim, dim) (the one kept by `value` under the same `key`)."""
+        from ..mechanics.forces import force_jacobian_xi
+
+        if key is not None and self._kept is not None and self._kept[0] is key:
+            J: torch.Tensor | None = self._kept[1]
+        else:
+            J = self._closed(xi, True)[1]
+        for f in self.other:
+            Jf = force_jacobian_xi(f, self.g, xi).detach()
+            J = Jf if J is None else J + Jf
+        assert J is not None
+        return J
+
+    def restrict(self, rows: torch.Tensor) -> ForcesAt:
+        """The same forces on the rows `rows` of the batch."""
+        sub = ForcesAt.__new__(ForcesAt)
+        sub.G, sub._kept, sub.other = self.G, None, self.other
+        sub.g = Pose(self.g.R.index_select(0, rows), self.g.p.index_select(0, rows))
+        sub.closed = [(net, s, z0.index_select(0, rows), W) for net, s, z0, W in self.closed]
+        return sub
