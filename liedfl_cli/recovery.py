@@ -3,6 +3,10 @@ a synthetic scene (the comparison itself is the model's `parameter_recovery` hoo
 
 from __future__ import annotations
 
+import copy
+
+import torch
+
 from .models.true_scheme import true_model
 
 
@@ -12,4 +16,7 @@ def parameter_recovery(model, dataset) -> dict | None:
     ref = true_model(dataset)
     if ref is None:
         return None
+    p = next(model.parameters(), None)
+    if p is not None and (p.device.type != "cpu" or p.dtype != torch.float64):  # compared on the CPU in float64
+        model = copy.deepcopy(model).to(device="cpu", dtype=torch.float64)
     return model.parameter_recovery(ref, (dataset.params or {}).get("physics") or {})

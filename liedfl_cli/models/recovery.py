@@ -4,7 +4,6 @@ after removing the common scale that the DEL residual cannot see. Reached throug
 
 from __future__ import annotations
 
-import copy
 from collections.abc import Mapping
 from typing import Any
 
@@ -28,11 +27,9 @@ def lie_recovery(model: Any, ref: Any, physics: Mapping[str, Any]) -> dict:
     J_d, D and m (and the first moments m rho of pivot bodies under a uniform_gravity potential)
     are compared after normalising each side by its own tr J_d; rho is a length and compared as
     it is. Errors are max |entry difference| / max |true entry| over the compared arrays.
-    `physics`: the scene's declared physics (params["physics"]).
+    `physics`: the scene's declared physics (params["physics"]). Both models on one device in one
+    dtype (`liedfl_cli.recovery` compares them on the CPU in float64).
     """
-    p = next(model.parameters(), None)
-    if p is not None and (p.device.type != "cpu" or p.dtype != torch.float64):  # compared on the CPU in float64
-        model = copy.deepcopy(model).to(device="cpu", dtype=torch.float64)
     with torch.no_grad():
         Jd, Jd_true = model.inertia.Jd(), ref.inertia.Jd()
         s, s_true = Jd.diagonal(dim1=-2, dim2=-1).sum(-1), Jd_true.diagonal(dim1=-2, dim2=-1).sum(-1)
@@ -62,7 +59,8 @@ def lie_recovery(model: Any, ref: Any, physics: Mapping[str, Any]) -> dict:
             true_c = (masses[m:, None] * rhos[m:]) / s_true[m:, None]
             out["pivot_moment_over_trace_rel_error"] = rel(grav.moment / s[m:, None], true_c)
         if grav is not None and grav.learn_direction:
-            u, e3 = grav.direction(), torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+            u = grav.direction()
+            e3 = u.new_tensor([0.0, 0.0, 1.0])
             sin = torch.linalg.vector_norm(torch.linalg.cross(u, e3))
             out["gravity_direction_error_rad"] = float(torch.atan2(sin, u @ e3))
     return out
@@ -80,8 +78,6 @@ def articulated_recovery(model: Any, ref: Any) -> dict:
     """Per-body recovery of an articulated model: m_b, J_b (over the common scale, the total mass
     sum_b m_b of each side), rho_b as lengths, joint damping over the same scale. Each body's figures
     and the worst over bodies; errors are |learned - true| / max |true| per body."""
-    if next(model.parameters()).dtype != torch.float64 or next(model.parameters()).device.type != "cpu":
-        model = copy.deepcopy(model).to(device="cpu", dtype=torch.float64)
     with torch.no_grad():
         m, m_true = model.mass(), ref.mass()
         s, s_true = m.sum(), m_true.sum()
