@@ -634,7 +634,13 @@ def import_recording(c: dict, progress: Callable[[float], None] | None = None) -
             if k == 0:
                 raise ConfigError(f"dataset.chunk_steps={n - 1}: {tr.source} has only {len(tr.t) - 1} steps")
             pieces += [
-                _Track(tr.t[j * n : (j + 1) * n], tr.R[j * n : (j + 1) * n], tr.p[j * n : (j + 1) * n], tr.source, tr.columns)
+                _Track(
+                    tr.t[j * n : (j + 1) * n],
+                    tr.R[j * n : (j + 1) * n],
+                    tr.p[j * n : (j + 1) * n],
+                    tr.source,
+                    tr.columns,
+                )
                 for j in range(k)
             ]
         tracks = pieces

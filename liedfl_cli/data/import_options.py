@@ -88,7 +88,9 @@ def gravity_params(c: dict) -> dict:
         if g == 0.0:
             return {"gravity": 0.0}
         up = [float(x) for x in -a / g]
-        return {"gravity": g} if np.allclose(up, [0.0, 0.0, 1.0], rtol=0, atol=1e-12) else {"gravity": g, "gravity_up": up}
+        return (
+            {"gravity": g} if np.allclose(up, [0.0, 0.0, 1.0], rtol=0, atol=1e-12) else {"gravity": g, "gravity_up": up}
+        )
     raise bad
 
 
@@ -166,7 +168,9 @@ class ColumnFinder:
         if i is None and name in self.exact and self.exact[name] not in self.taken:
             i = self.exact[name]
         if i is None:
-            i = next((self.lower[a.lower()] for a in aliases if self.lower.get(a.lower()) not in (None, *self.taken)), None)
+            i = next(
+                (self.lower[a.lower()] for a in aliases if self.lower.get(a.lower()) not in (None, *self.taken)), None
+            )
         return None if i is None else self._take(name, i)
 
     def need(self, name: str, aliases: tuple[str, ...] = ()) -> int:
