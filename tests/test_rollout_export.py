@@ -18,14 +18,15 @@ from liedfl_cli.data.hdf5 import load_dataset
 from liedfl_cli.lie import so3
 
 FAST = ["budget=smoke", "ui.progress=false"]
-IMPORT = ["dataset=import", "dataset.path=log.csv", "dataset.rotation=wxyz"]
+IMPORT = ["dataset=import", "dataset.path=log.csv", "dataset.rotation=xyzw"]  # the README's commands
+WXYZ = [3, 0, 1, 2]  # the export follows the import's convention: q0..q3 = x, y, z, w
 
 
 @pytest.fixture(scope="module")
 def trained_on_two_recordings(tmp_path_factory):
     """(cwd, run dir): a CSV with two recordings imported and trained on (tiny budget)."""
     cwd = tmp_path_factory.mktemp("export")
-    write_csv(cwd / "log.csv", n_traj=2, n_samples=21, rotation="wxyz")
+    write_csv(cwd / "log.csv", n_traj=2, n_samples=21, rotation="xyzw")
     liedfl("train", *IMPORT, *FAST, "dataset.n_test=1", "eval.plots=false", cwd=cwd)
     (run,) = (cwd / "outputs" / "runs").iterdir()
     return cwd, run
@@ -56,7 +57,7 @@ def test_both_recordings_rolled_out_exported_as_csv_and_imported_again(trained_o
     assert len(rows) == T * S1
     ids = np.array([int(r["trajectory"]) for r in rows]).reshape(T, S1)
     t = np.array([float(r["t"]) for r in rows]).reshape(T, S1)
-    q = np.array([[float(r[f"q{k}"]) for k in range(4)] for r in rows]).reshape(T, S1, 1, 4)
+    q = np.array([[float(r[f"q{k}"]) for k in WXYZ] for r in rows]).reshape(T, S1, 1, 4)  # (w, x, y, z)
     xyz = np.array([[float(r[c]) for c in "xyz"] for r in rows]).reshape(T, S1, 1, 3)
     assert (ids == traj[:, None]).all()
     assert np.allclose(t, H * np.arange(S1)[None], rtol=0, atol=1e-12 * H * S1)
@@ -66,7 +67,7 @@ def test_both_recordings_rolled_out_exported_as_csv_and_imported_again(trained_o
     assert np.abs(xyz - p).max() <= 1e-12 * np.abs(p).max()
     # the exported file is a recording again: imported, it holds the predictions
     again = liedfl(
-        "data", "dataset=import", f"dataset.path={folder / 'predictions.csv'}", "dataset.rotation=wxyz", cwd=cwd
+        "data", "dataset=import", f"dataset.path={folder / 'predictions.csv'}", "dataset.rotation=xyzw", cwd=cwd
     )
     assert "2 trajectories x 20 steps on SE(3)" in again.stdout
     (cached,) = [
@@ -96,7 +97,7 @@ def test_rollout_split_options_and_npz_export(trained_on_two_recordings):
             R, traj = f["model/R"][:], f["traj_index"][:]
         assert traj.tolist() == z["trajectory"].tolist() == [0, 1]
         assert z["q"].shape == (*R.shape[:3], 4) and z["p"].shape == (*R.shape[:3], 3)
-        back = so3.from_quaternion(torch.from_numpy(z["q"])).numpy()
+        back = so3.from_quaternion(torch.from_numpy(z["q"][..., WXYZ])).numpy()
         assert np.abs(back - R).max() <= 1e-12
     # the run's own data: test by default; split=train / all on request (recorded for `liedfl eval`)
     liedfl("rollout", f"run={run}", "split=train", "steps=5", "ui.progress=false", "eval.plots=false", cwd=cwd)
