@@ -7,8 +7,12 @@ writes a new folder `<run>/rollouts/<name>/` each time.
 rolls the run out on other data: that dataset's test split, from each trajectory's true first pair,
 evaluated against that dataset. The model's group and time step must be the data's (one-line
 ConfigError otherwise). The folder is `<run>/rollouts/<date>_<time>_<scene>_steps<N>/` and its
-`source.json` names the dataset (file, scene, config), which `liedfl eval run=<run> rollout=<folder>`
-then evaluates against."""
+`source.json` names the dataset (file, scene, config, split, trajectories), which `liedfl eval run=<run>
+rollout=<folder>` then evaluates against.
+
+`split=auto|all|train|test` picks the trajectories (`other_data.choose_split`; auto: every trajectory
+of a `dataset=file|import` file, else the test split); `export=csv|npz` also writes the predictions
+in the import's layout (`export.py`)."""
 
 from __future__ import annotations
 
@@ -216,6 +220,8 @@ def run_rollout(cfg: DictConfig) -> dict:
     split, idx = choose_split(str(cfg.get("split") or "auto"), dataset, other is not None, all_asked)
     if split != "test":
         dataset = with_test_split(dataset, idx)
+        if split == "all" and cfg.rollout.get("max_trajectories") is None:
+            merged.rollout.max_trajectories = None  # every trajectory, not the run's training-time cap
         if source is None:  # the run's own data, other trajectories: recorded for `liedfl eval`
             source = own_source(run_dir, run_cfg, dataset, cfg.paths.data_dir)
     if source is not None:

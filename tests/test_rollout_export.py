@@ -86,16 +86,19 @@ def test_both_recordings_rolled_out_exported_as_csv_and_imported_again(trained_o
 def test_rollout_split_options_and_npz_export(trained_on_two_recordings):
     cwd, run = trained_on_two_recordings
     before = set((run / "rollouts").iterdir()) if (run / "rollouts").exists() else set()
-    # a rollout trains nothing: dataset.test_fraction=1.0 and dataset.n_test=T are accepted (every trajectory)
-    for extra in (["dataset.test_fraction=1.0", "split=test"], ["dataset.n_test=2"]):
-        liedfl("rollout", f"run={run}", *IMPORT, *extra, "export=npz", "ui.progress=false", "eval.plots=false", cwd=cwd)
+    # a rollout trains nothing: dataset.test_fraction=1.0 and dataset.n_test=T are accepted (every trajectory);
+    # a new file of 3 recordings: all 3, although the smoke-trained run caps its own rollouts at 2
+    write_csv(cwd / "new.csv", n_traj=3, n_samples=21, rotation="xyzw")
+    new_file = ["dataset=import", "dataset.path=new.csv", "dataset.rotation=xyzw"]
+    for args in ([*IMPORT, "dataset.test_fraction=1.0", "split=test"], [*new_file, "dataset.n_test=3"]):
+        liedfl("rollout", f"run={run}", *args, "export=npz", "ui.progress=false", "eval.plots=false", cwd=cwd)
     new = sorted(set((run / "rollouts").iterdir()) - before)
     assert len(new) == 2
-    for folder in new:
+    for folder, want in zip(new, ([0, 1], [0, 1, 2])):
         z = np.load(folder / "predictions.npz")
         with h5py.File(folder / "rollout.h5", "r") as f:
             R, traj = f["model/R"][:], f["traj_index"][:]
-        assert traj.tolist() == z["trajectory"].tolist() == [0, 1]
+        assert traj.tolist() == z["trajectory"].tolist() == want
         assert z["q"].shape == (*R.shape[:3], 4) and z["p"].shape == (*R.shape[:3], 3)
         back = so3.from_quaternion(torch.from_numpy(z["q"][..., WXYZ])).numpy()
         assert np.abs(back - R).max() <= 1e-12
