@@ -109,6 +109,8 @@ def test_rollout_split_options_and_npz_export(trained_on_two_recordings):
     with h5py.File(folder / "rollout.h5", "r") as f:
         ds_run = load_dataset(cwd / json.loads((run / "summary.json").read_text())["dataset_path"])
         assert f["traj_index"][:].tolist() == ds_run.train_idx.tolist()
+    assert json.loads((folder / "source.json").read_text())["split"] == "train"
+    liedfl("eval", f"run={run}", f"rollout={folder}", "ui.progress=false", "eval.plots=false", cwd=cwd)
     bad = liedfl("rollout", f"run={run}", "split=some", cwd=cwd, ok=False)
     assert bad.returncode == 2 and "split='some'" in bad.stderr and "Traceback" not in bad.stderr
     bad = liedfl("rollout", f"run={run}", "export=xls", cwd=cwd, ok=False)
