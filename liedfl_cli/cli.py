@@ -19,7 +19,7 @@ CONF_DIR = Path(__file__).resolve().parent / "conf"
 COMMANDS = {
     "train": "train and evaluate a model (generates the dataset if needed)",
     "data": "only generate (or import) a dataset",
-    "rollout": "roll a trained run out: liedfl rollout run=<run dir>|latest [steps=N]",
+    "rollout": "roll a trained run out: liedfl rollout run=<run dir>|latest [steps=N] [split=all] [export=csv|npz]",
     "eval": "metrics table and plots of a run: liedfl eval run=<run dir>|latest",
     "report": "one table and figures over a sweep: liedfl report sweep=<multirun dir>",
 }

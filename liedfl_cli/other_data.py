@@ -12,7 +12,60 @@ from omegaconf import DictConfig, OmegaConf
 from .errors import ConfigError, DatasetError
 
 SOURCE_FILE = "source.json"
-"""Written next to a rollout of a run on other data: which dataset it was rolled out on."""
+"""Written next to a rollout of a run on other data (or of other trajectories than the test split):
+which dataset and trajectories it was rolled out on."""
+SPLITS = ("auto", "all", "train", "test")
+"""`liedfl rollout split=...`: which trajectories (auto: all of a user's file given as dataset=, else test)."""
+USER_FILES = ("file", "import")
+
+
+def relaxed_dataset_config(d: dict) -> tuple[dict, bool]:
+    """A rollout trains nothing, so `dataset.test_fraction=1.0` (every trajectory a test one, which a
+    dataset refuses for training) asks for all trajectories: returns (the config to build the data with,
+    whether all were asked)."""
+    tf = d.get("test_fraction")
+    if isinstance(tf, bool) or not isinstance(tf, (int, float)) or tf != 1.0:
+        return d, False
+    d = dict(d)
+    if d.get("name") in USER_FILES:
+        d.pop("test_fraction")  # the shipped default (data/files.py): the split is replaced anyway
+    else:
+        d["test_fraction"] = 0.0
+    return d, True
+
+
+def with_test_split(dataset, idx):
+    """`dataset` with `idx` as its test split (the trajectories a rollout covers); the data are shared."""
+    import dataclasses
+
+    import numpy as np
+
+    return dataclasses.replace(dataset, split={**dataset.split, "test": np.asarray(idx, dtype=np.int64)})
+
+
+def choose_split(mode: str, dataset, other: bool, all_asked: bool = False):
+    """(split name, trajectory indices) a rollout covers. `auto`: `all` on a user's file named on the
+    command line (`dataset=file` / `dataset=import`: a new recording is rolled out whole), `test`
+    otherwise (the run's own data, generated scenes, the mocap recordings: as before). `all_asked`:
+    dataset.n_test or dataset.test_fraction asked for every trajectory."""
+    import numpy as np
+
+    if mode not in SPLITS:
+        raise ConfigError(f"split={mode!r}: choose one of {', '.join(SPLITS)}")
+    if all_asked:
+        if mode == "train":
+            raise ConfigError("split=train: dataset.n_test / dataset.test_fraction make every trajectory a test one")
+        mode = "all"
+    if mode == "auto":
+        mode = "all" if other and (dataset.params or {}).get("config", {}).get("name") in USER_FILES else "test"
+    if mode == "all":
+        return mode, np.arange(dataset.n_trajectories, dtype=np.int64)
+    idx = dataset.train_idx if mode == "train" else dataset.test_idx
+    if len(idx) == 0:
+        raise DatasetError(
+            f"{dataset.scene}: field 'split/{mode}' is empty: nothing to roll out (split=all: every trajectory)"
+        )
+    return mode, np.asarray(idx, dtype=np.int64)
 
 
 def _group_error(model, run_dir, scene: str, n_se3: int, n_so3: int) -> ConfigError | None:
@@ -67,7 +120,8 @@ def _h_error(model, run_dir, scene: str, h: float) -> ConfigError | None:
 
 
 def other_dataset(cfg: DictConfig, model, run_dir):
-    """(dataset, its file, its config, source record) of `dataset=...` given to `liedfl rollout`, or None."""
+    """(dataset, its config, source record, whether n_test / test_fraction asked for every trajectory)
+    of `dataset=...` given to `liedfl rollout`, or None."""
     from .data.scenes import get_dataset
 
     ds_cfg = cfg.get("dataset")
@@ -82,9 +136,21 @@ def other_dataset(cfg: DictConfig, model, run_dir):
         err = _h_error(model, run_dir, str(ds_cfg.get("name")), float(ds_cfg.h))
         if err is not None:
             raise err
-    dataset, path = get_dataset(ds_cfg, cfg.paths.data_dir)
-    check_model_fits_data(model, dataset, run_dir)
     plain = OmegaConf.to_container(ds_cfg, resolve=True)
+    assert isinstance(plain, dict)
+    plain, all_asked = relaxed_dataset_config(plain)
+    try:
+        dataset, path = get_dataset(plain, cfg.paths.data_dir)
+    except ConfigError as e:  # dataset.n_test = every trajectory: refused for training, not for a rollout
+        n_test = plain.get("n_test")
+        if n_test is None or "dataset.n_test" not in str(e):
+            raise
+        dataset, path = get_dataset({**plain, "n_test": None}, cfg.paths.data_dir)
+        if int(n_test) != dataset.n_trajectories:
+            raise
+        plain, all_asked = {**plain, "n_test": None}, True
+    check_model_fits_data(model, dataset, run_dir)
+    ds_cfg = OmegaConf.create(plain)
     source = {
         "dataset_path": str(Path(path).resolve()),
         "scene": dataset.scene,
@@ -93,7 +159,7 @@ def other_dataset(cfg: DictConfig, model, run_dir):
         "test_trajectories": [int(i) for i in dataset.test_idx],
         "dataset_config": plain,
     }
-    return dataset, ds_cfg, source
+    return dataset, ds_cfg, source, all_asked
 
 
 def load_source(folder) -> dict | None:
@@ -127,9 +193,21 @@ def rollout_dataset(path: Path, model, dataset, run_cfg, run_dir, data_dir):
     else:
         other, _ = get_dataset(ds_cfg, data_dir)
     check_model_fits_data(model, other, run_dir)
+    if src.get("split") not in (None, "test"):  # split=all / train: those trajectories are the ones evaluated
+        other = with_test_split(other, src.get("test_trajectories") or [])
     merged = OmegaConf.merge(run_cfg, {})
     merged.dataset = ds_cfg
     return other, merged
 
 
-__all__ = ["SOURCE_FILE", "check_model_fits_data", "other_dataset", "load_source", "rollout_dataset"]
+__all__ = [
+    "SOURCE_FILE",
+    "SPLITS",
+    "check_model_fits_data",
+    "choose_split",
+    "load_source",
+    "other_dataset",
+    "relaxed_dataset_config",
+    "rollout_dataset",
+    "with_test_split",
+]

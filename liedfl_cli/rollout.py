@@ -7,8 +7,12 @@ writes a new folder `<run>/rollouts/<name>/` each time.
 rolls the run out on other data: that dataset's test split, from each trajectory's true first pair,
 evaluated against that dataset. The model's group and time step must be the data's (one-line
 ConfigError otherwise). The folder is `<run>/rollouts/<date>_<time>_<scene>_steps<N>/` and its
-`source.json` names the dataset (file, scene, config), which `liedfl eval run=<run> rollout=<folder>`
-then evaluates against."""
+`source.json` names the dataset (file, scene, config, split, trajectories), which `liedfl eval run=<run>
+rollout=<folder>` then evaluates against.
+
+`split=auto|all|train|test` picks the trajectories (`other_data.choose_split`; auto: every trajectory
+of a `dataset=file|import` file, else the test split); `export=csv|npz` also writes the predictions
+in the import's layout (`export.py`)."""
 
 from __future__ import annotations
 
@@ -142,6 +146,24 @@ def rollout_and_save(cfg: DictConfig, model, dataset, path, steps=None, provenan
     return results
 
 
+def own_source(run_dir, run_cfg, dataset, data_dir) -> dict:
+    """The `source.json` record of a rollout of the run's own dataset over other trajectories than its
+    test split (`split=all|train`): the run's dataset file, so that `liedfl eval` evaluates those."""
+    from .checkpoint import load_checkpoint
+    from .data.scenes import dataset_path
+    from .runs import _recorded_dataset
+
+    recorded = load_checkpoint(Path(run_dir) / "checkpoints" / "last.pt").get("dataset_path")
+    path = _recorded_dataset(Path(run_dir), recorded) or dataset_path(run_cfg.dataset, data_dir)
+    return {
+        "dataset_path": str(Path(path).resolve()),
+        "scene": dataset.scene,
+        "group": dataset.group.name,
+        "h": dataset.h,
+        "dataset_config": OmegaConf.to_container(run_cfg.dataset, resolve=True),
+    }
+
+
 def new_rollout_dir(run_dir, steps: int, tag: str | None = None) -> Path:
     """Create and return a new folder `<run>/rollouts/<date>_<time>[_<tag>]_steps<N>` (suffix _2, _3, ...
     if taken); `tag`: the other dataset's scene name when rolling out on other data."""
@@ -171,7 +193,7 @@ def run_rollout(cfg: DictConfig) -> dict:
     from .evaluation import run_extra_evals
     from .factory import configure_runtime
     from .io_utils import write_json
-    from .other_data import SOURCE_FILE, other_dataset
+    from .other_data import SOURCE_FILE, choose_split, other_dataset, with_test_split
     from .rollout_file import FILE_NAME
     from .runs import load_run_checkpoint
 
@@ -191,21 +213,32 @@ def run_rollout(cfg: DictConfig) -> dict:
         },
     )
     assert isinstance(merged, DictConfig)  # merged into the run's config, a DictConfig
-    source = None
+    source, all_asked = None, False
     if other is not None:
-        dataset, ds_cfg, source = other
+        dataset, ds_cfg, source, all_asked = other
         merged.dataset = ds_cfg  # replaces the run's dataset section (no key-by-key merge)
+    split, idx = choose_split(str(cfg.get("split") or "auto"), dataset, other is not None, all_asked)
+    if split != "test":
+        dataset = with_test_split(dataset, idx)
+        if split == "all" and cfg.rollout.get("max_trajectories") is None:
+            merged.rollout.max_trajectories = None  # every trajectory, not the run's training-time cap
+        if source is None:  # the run's own data, other trajectories: recorded for `liedfl eval`
+            source = own_source(run_dir, run_cfg, dataset, cfg.paths.data_dir)
+    if source is not None:
+        source.update(split=split, test_trajectories=[int(i) for i in idx])
     from .data.scenes import dataset_steps
 
     steps = rollout_steps(
         cfg.steps if cfg.steps is not None else dataset_steps(merged.dataset, dataset, "rollout_steps")
     )
-    out = new_rollout_dir(run_dir, steps, tag=dataset.scene if source else None)
+    tag = dataset.scene if other is not None else (split if split != "test" else None)
+    out = new_rollout_dir(run_dir, steps, tag=tag)
     try:
         if source is not None:
             console.print(
                 f"rolling {run_dir} out on dataset '{dataset.scene}' ({dataset.group.name}, "
-                f"{len(dataset.test_idx)} test trajectories) from {source['dataset_path']}"
+                f"{len(idx)} trajectories: split={split}) from {source['dataset_path']}",
+                soft_wrap=True,
             )
             write_json(out / SOURCE_FILE, source)
         path = out / FILE_NAME
@@ -217,6 +250,17 @@ def run_rollout(cfg: DictConfig) -> dict:
         write_json(out / CHECKPOINT_FILE, used)
         rows = run_eval_from_objects(merged, dataset, run_dir, timings, rollout_path=path, checkpoint=used)
         extra = run_extra_evals(merged, model, dataset, run_dir, rollout_path=path)
+        exported = None
+        if cfg.get("export"):
+            from .export import export_layout, export_predictions, reimport_command
+
+            exported = export_predictions(path, dataset, str(cfg.export), out)
+            again = reimport_command(exported, *export_layout(dataset))
+            console.print(
+                f"predictions exported to {exported} (re-import: {again})",
+                soft_wrap=True,
+                highlight=False,
+            )
     except BaseException:
         shutil.rmtree(out, ignore_errors=True)
         with contextlib.suppress(OSError):
@@ -230,4 +274,6 @@ def run_rollout(cfg: DictConfig) -> dict:
         "extra_eval": extra,
         "source": source,
         "checkpoint": used,
+        "split": split,
+        "export": None if exported is None else str(exported),
     }

@@ -159,6 +159,8 @@ CHOICES = {
     ("train", "reg_form"): ("relu", "gaussian"),
     ("train", "select"): ("val_one_step", "val_rollout", "last"),
     ("checkpoint",): ("best", "last"),  # liedfl rollout / eval
+    ("split",): ("auto", "all", "train", "test"),  # liedfl rollout (other_data.SPLITS)
+    ("export",): ("csv", "npz"),  # liedfl rollout (export.EXPORTS), or null
     ("train", "loss"): ("del", "newton", "rollout"),
     ("train", "optimizer", "name"): ("soap", "adam"),
     ("train", "optimizer", "schedule"): ("constant", "cosine"),
@@ -190,7 +192,7 @@ TOP_LEVEL: dict[str, tuple[str, ...]] = {
     # rollout run=<run> dataset=<scene>: other data (the dataset file selects its group)
     "rollout": (
         *("task_name", "run", "checkpoint", "steps", "rollout", "eval", "ui", "paths", "solver", "runtime"),
-        *("dataset", "group"),
+        *("dataset", "group", "split", "export"),
     ),
     "eval": ("task_name", "run", "checkpoint", "rollout", "eval", "ui", "paths", "solver", "runtime"),
     "report": ("task_name", "sweep", "plots"),
@@ -554,7 +556,12 @@ def _check_dataset_values(cfg, command: str) -> None:
         return
     from .data.scenes import _checked
 
-    d = _checked(_plain(cfg.dataset, "dataset"))
+    d = _plain(cfg.dataset, "dataset")
+    if command == "rollout":  # a rollout trains nothing: test_fraction=1.0 asks for every trajectory
+        from .other_data import relaxed_dataset_config
+
+        d, _ = relaxed_dataset_config(d)
+    d = _checked(d)
     if command == "train":
         _check_split_sizes(cfg, d)
 

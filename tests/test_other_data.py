@@ -138,7 +138,8 @@ def test_a_users_file_trains_and_rolls_out(run, tmp_path):
     )
     summary = run_train(cfg)
     notes = json.loads((tmp_path / "r" / "components.json").read_text())["notes"]
-    assert notes == ["potential: auto: mlp (the data declare no gravity or potential, so a learned V(g))"]
+    # nothing declared: auto builds no learned potential and names the override (issue 21, item 4)
+    assert len(notes) == 1 and notes[0].startswith("potential: auto: none") and "model.potential=mlp" in notes[0]
     assert summary["rollout"]["model"]["n_failed"] == 0
     with pytest.raises(ConfigError, match="dataset.path"):
         get_dataset(OmegaConf.create({"name": "file", "path": "???"}), data_dir)

@@ -159,8 +159,9 @@ def test_bad_potential_options_are_one_line_config_errors(bad):
         (ProductGroup(1, 0), {"g": 9.81}, {}, ["uniform_gravity"], "gravity g = 9.81"),
         (ProductGroup(1, 1), {"g": 9.81, "interaction": {"kind": "spring"}}, {}, ["uniform_gravity", "mlp"], "inter"),
         (ProductGroup(1, 1), {"g": 0.0}, {}, [], "no interaction"),
-        (ProductGroup(1, 22), None, {}, ["mlp"], "declare no gravity"),  # real recordings
-        (ProductGroup(0, 1), None, {}, ["mlp"], "declare no gravity"),  # a user's file, nothing declared
+        # nothing declared (real recordings, a user's file): no learned potential, the overrides named
+        (ProductGroup(1, 22), None, {}, [], "model.potential=mlp learns one"),
+        (ProductGroup(0, 1), None, {}, [], "dataset.gravity=9.81 declares"),
         (ProductGroup(0, 1), None, {"potential": "none"}, [], "declare no potential"),
         (ProductGroup(0, 2), None, {"gravity": 3.7}, ["uniform_gravity"], "g = 3.7"),
         (ProductGroup(0, 1), None, {"gravity": 0}, [], "free body"),

@@ -45,6 +45,7 @@ import torch
 from ..errors import ConfigError, DatasetError, DataWarning
 from ..lie import so3
 from .hdf5 import Dataset, load_dataset
+from .import_options import ColumnFinder, check_columns, check_time_unit, gravity_params, warn_if_milliseconds
 from .scene_common import TRAIN_TIME_KEYS, config_hash, make_split
 from .smoothing import check_window, smooth_pose
 from .transforms import noise_spec, smoothing_spec
@@ -78,6 +79,9 @@ IMPORT_KEYS = (
     "smoothing",
     "length_scale",
     "chunk_steps",
+    "time_unit",
+    "columns",
+    "gravity",
 )
 ROTATIONS = {
     "wxyz": "quaternions, scalar first (w, x, y, z)",
@@ -202,6 +206,9 @@ def _check_import_options(c: dict) -> None:
     if c.get("h") is not None:
         _number(c, "h")
     _int_or_null(c, "chunk_steps", 2)
+    check_time_unit(c)
+    check_columns(c)
+    gravity_params(c)
     sm = c.get("smoothing")
     if sm is not None:
         if not isinstance(sm, dict) or set(sm) != {"window", "order"}:
@@ -341,8 +348,9 @@ def from_file(c: dict, progress: Callable[[float], None] | None = None) -> Datas
 class _Track:
     """One recording read from a file: time stamps (n,), rotations (n, B, 3, 3), positions (n, m, 3)."""
 
-    def __init__(self, t, R, p, source: str):
+    def __init__(self, t, R, p, source: str, columns: dict[str, str] | None = None):
         self.t, self.R, self.p, self.source = t, R, p, source
+        self.columns = columns  # CSV: {canonical name: the file's column} (import_options.ColumnFinder)
 
 
 def _rotations(values: np.ndarray, rotation: str, where: str, first_row: int = 0) -> np.ndarray:
@@ -384,27 +392,21 @@ def _read_csv(path: Path, c: dict) -> list[_Track]:
     if len(rows) < 3:
         raise DatasetError(f"{path}: needs a header line and at least 2 rows of values, found {len(rows)} line(s)")
     header = [h.strip() for h in rows[0]]
-    col = {h: i for i, h in enumerate(header)}
     bodies = c["bodies"]
     prefixes = [""] if bodies is None else [f"{b}." for b in bodies]
     names = ["body"] if bodies is None else list(bodies)
     rot_cols = MATRIX_COLUMNS if c["rotation"] == "matrix" else QUAT_COLUMNS
-
-    def need(name: str) -> int:
-        if name not in col:
-            raise DatasetError(f"{path}: column '{name}' is missing (header: {', '.join(header)})")
-        return col[name]
-
-    t_col = need(c["time_column"])
-    r_cols = [[need(pre + k) for k in rot_cols] for pre in prefixes]
+    cols = ColumnFinder(header, c, path)
+    t_col = cols.time(c["time_column"])
+    r_cols = [cols.rotation_columns(pre) for pre in prefixes]
     p_cols = []
     for pre, body in zip(prefixes, names):
-        present = [pre + k in col for k in POSITION_COLUMNS]
-        if any(present) and not all(present):
-            missing = [pre + k for k, ok in zip(POSITION_COLUMNS, present) if not ok]
+        found = cols.position_columns(pre)
+        if any(i is not None for i in found) and not all(i is not None for i in found):
+            missing = [pre + k for k, i in zip(POSITION_COLUMNS, found) if i is None]
             raise DatasetError(f"{path}: body '{body}' has some position columns but not {', '.join(missing)}")
-        p_cols.append([col[pre + k] for k in POSITION_COLUMNS] if all(present) else None)
-    traj_col = col.get(c["trajectory_column"])
+        p_cols.append([int(i) for i in found if i is not None] if found[0] is not None else None)
+    traj_col = cols.trajectory(c["trajectory_column"])
     used = [t_col, *(i for r in r_cols for i in r), *(i for q in p_cols if q for i in q)]
     values = np.empty((len(rows) - 1, len(used)))
     for n, r in enumerate(rows[1:], start=2):
@@ -434,7 +436,7 @@ def _read_csv(path: Path, c: dict) -> list[_Track]:
                 ps.append(v[:, off : off + 3])
                 off += 3
         p = np.stack(ps, 1) if ps else np.zeros((len(sel), 0, 3))
-        tracks.append(_Track(v[:, 0], R, p, where))
+        tracks.append(_Track(v[:, 0], R, p, where, columns=cols.used))
     return _order_bodies(tracks, names, [q is not None for q in p_cols], str(path))
 
 
@@ -454,6 +456,11 @@ def _read_npz(path: Path, c: dict):
         arrays = {k: z[k] for k in z.files}
     except (OSError, ValueError) as e:
         raise DatasetError(f"{path}: not a readable .npz file ({type(e).__name__}: {e})") from None
+    for k, v in check_columns(c).items():  # dataset.columns renames arrays: {q: quat, t: time}
+        if k in ("t", "q", "R", "p", "body_names"):
+            if v not in arrays:
+                raise DatasetError(f"{path}: dataset.columns.{k}={v}: no such array ({', '.join(sorted(arrays))})")
+            arrays[k] = arrays.pop(v)
     key = "R" if c["rotation"] == "matrix" else "q"
     for k in ("t", key):
         if k not in arrays:
@@ -587,7 +594,7 @@ def import_recording(c: dict, progress: Callable[[float], None] | None = None) -
         tracks += ts
     assert layout is not None  # _paths returns at least one file
     names, kinds, _ = layout
-    scale_t, scale_p = float(c["time_scale"]), float(c["length_scale"])
+    scale_t, scale_p = float(c["time_scale"]) * check_time_unit(c), float(c["length_scale"])
     for tr in tracks:
         tr.t = (tr.t - tr.t[0]) * scale_t
         tr.p = tr.p * scale_p
@@ -596,6 +603,7 @@ def import_recording(c: dict, progress: Callable[[float], None] | None = None) -
     h_cfg = float(c["h"]) if c.get("h") is not None else None
     steps = [_uniform(tr, c, h_cfg) for tr in tracks]
     h = h_cfg or float(np.median(steps))
+    warn_if_milliseconds(c, h, [tr.t for tr in tracks], ", ".join(map(str, paths)))
     if not c["resample"] and h_cfg is None:
         off = [i for i, s in enumerate(steps) if abs(s - h) > c["time_tolerance"] * h]
         if off:
@@ -626,7 +634,13 @@ def import_recording(c: dict, progress: Callable[[float], None] | None = None) -
             if k == 0:
                 raise ConfigError(f"dataset.chunk_steps={n - 1}: {tr.source} has only {len(tr.t) - 1} steps")
             pieces += [
-                _Track(tr.t[j * n : (j + 1) * n], tr.R[j * n : (j + 1) * n], tr.p[j * n : (j + 1) * n], tr.source)
+                _Track(
+                    tr.t[j * n : (j + 1) * n],
+                    tr.R[j * n : (j + 1) * n],
+                    tr.p[j * n : (j + 1) * n],
+                    tr.source,
+                    tr.columns,
+                )
                 for j in range(k)
             ]
         tracks = pieces
@@ -650,6 +664,8 @@ def import_recording(c: dict, progress: Callable[[float], None] | None = None) -
         resampled=bool(c["resample"]),
         split_source="default split",
         split_overlap=overlap,
+        **({"columns": tracks[0].columns} if tracks[0].columns else {}),
+        **gravity_params(c),
     )
     return Dataset(
         R=R,

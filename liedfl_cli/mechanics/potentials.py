@@ -68,7 +68,8 @@ class UniformGravityPotential(nn.Module):
     passed in and shared), so the potential adds no parameters for them and the mass cannot hide in
     the potential. SO(3) bodies: only the first moment c_j = m_j rho_j enters (the pivot form
     m g e3.R rho), so c_j is the parameter (3 per body, starting at 0). `learn_direction`: u = a/|a|
-    with a learned (starts at e3; 3 parameters).
+    with a learned (starts at e3, or at `up`; 3 parameters). `up`: the fixed (or starting) up direction,
+    e.g. the data's declared params["gravity_up"] (default e3).
 
     As every part of L_d, V is only identified up to the common scale of (J_d, m, c, D): compare
     m / tr J_d and c / tr J_d with the truth; rho and u are identified as they are.
@@ -86,6 +87,7 @@ class UniformGravityPotential(nn.Module):
         mass: nn.Module | None = None,
         rho: torch.Tensor | None = None,
         learn_direction: bool = False,
+        up=None,
     ):
         super().__init__()
         self.G = G
@@ -97,11 +99,13 @@ class UniformGravityPotential(nn.Module):
             self.mass = mass  # shared modules: registered here too, counted once by parameters()
             self.rho = rho
         self.moment = nn.Parameter(torch.zeros(G.n_so3, 3, dtype=torch.float64)) if G.n_so3 else None
-        e3 = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+        start = torch.tensor([0.0, 0.0, 1.0] if up is None else [float(x) for x in up], dtype=torch.float64)
+        if start.shape != (3,) or not bool(torch.isfinite(start).all()) or float(start.norm()) == 0.0:
+            raise ValueError(f"uniform_gravity: up direction {up!r} must be a non-zero 3-vector")
         if learn_direction:
-            self.direction_raw = nn.Parameter(e3)
+            self.direction_raw = nn.Parameter(start)
         else:
-            self.register_buffer("direction_raw", e3)
+            self.register_buffer("direction_raw", start)
         self.learn_direction = bool(learn_direction)
 
     def direction(self) -> torch.Tensor:
@@ -145,7 +149,9 @@ class UniformGravityPotential(nn.Module):
             parts.append("m, rho_COM shared with the kinetic term")
         if self.G.n_so3:
             parts.append(f"m rho of {self.G.n_so3} pivot bod{'y' if self.G.n_so3 == 1 else 'ies'}")
-        parts.append("direction learned" if self.learn_direction else "along -e3")
+        u = [round(float(x), 4) for x in self.direction()]
+        along = "along -e3" if u == [0.0, 0.0, 1.0] else f"along -{u}"
+        parts.append("direction learned" if self.learn_direction else along)
         return "; ".join(parts) + ")"
 
 

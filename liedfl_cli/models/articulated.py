@@ -231,6 +231,7 @@ class ArticulatedLieDFLNN(ImplicitModel):
         physics: dict | None = None,
         gravity: float = STANDARD_GRAVITY,
         learn_gravity_direction: bool = False,
+        gravity_up=None,
     ):
         super().__init__()
         known = check_options(residual, known, physics)
@@ -274,7 +275,12 @@ class ArticulatedLieDFLNN(ImplicitModel):
                     self.potential_coord = MLPPotential(self.G, mlp_width, mlp_depth)
                 elif part == "uniform_gravity":
                     self.potential_world = UniformGravityPotential(
-                        Gw, gravity=gravity, mass=self.mass, rho=self.rho, learn_direction=learn_gravity_direction
+                        Gw,
+                        gravity=gravity,
+                        mass=self.mass,
+                        rho=self.rho,
+                        learn_direction=learn_gravity_direction,
+                        up=gravity_up,
                     )
                 else:
                     raise ValueError(f"model.potential: unknown part {part!r}")

@@ -100,6 +100,20 @@ class BuildContext:
         except (TypeError, ValueError):
             raise ConfigError(f"dataset params: gravity={value!r} is not a number") from None
 
+    def declared_gravity_up(self) -> tuple[float, float, float] | None:
+        """The unit "up" direction the data declare (params["gravity_up"], -acceleration / |acceleration|,
+        written by `dataset=import dataset.gravity=[gx,gy,gz]`); None: +e3 (gravity along -e3)."""
+        up = (self.metadata or {}).get("gravity_up")
+        if up is None:
+            return None
+        try:
+            out = tuple(float(x) for x in up)
+        except (TypeError, ValueError):
+            raise ConfigError(f"dataset params: gravity_up={up!r} is not a 3-vector") from None
+        if len(out) != 3 or not all(math.isfinite(x) for x in out) or not any(out):
+            raise ConfigError(f"dataset params: gravity_up={up!r} is not a non-zero 3-vector")
+        return out[0], out[1], out[2]
+
     def declares_no_potential(self) -> bool:
         """params["potential"] == "none": the data say there is no potential at all."""
         return str((self.metadata or {}).get("potential", "")).lower() == "none"
@@ -117,7 +131,8 @@ class BuildContext:
         - none for data declaring no potential (params["potential"] = "none"), for a free body (one
           body, gravity declared 0) and for several bodies with gravity 0 and no declared interaction;
         - uniform_gravity where the data declare gravity g > 0, plus an MLP for a declared interaction;
-        - an MLP otherwise (nothing declared: real recordings, a user's file without metadata).
+        - none otherwise (nothing declared: real recordings, a user's file without metadata), with
+          the overrides in the note: model.potential=mlp for a learned V(g), dataset.gravity to declare it.
         Other choices: a part name, a list of them, or none.
         """
         if isinstance(choice, str):
@@ -145,7 +160,10 @@ class BuildContext:
         g = self.declared_gravity()
         inter = self.declares_interaction()
         if g is None:
-            return ("mlp",), "auto: mlp (the data declare no gravity or potential, so a learned V(g))"
+            return (), (
+                "auto: none (the data declare no gravity or potential; model.potential=mlp learns one, "
+                "dataset.gravity=9.81 declares gravity on import)"
+            )
         parts = (("uniform_gravity",) if g != 0.0 else ()) + (("mlp",) if inter else ())
         why = [f"the data declare gravity g = {g:g}" if g != 0.0 else "the data declare g = 0"]
         if inter:

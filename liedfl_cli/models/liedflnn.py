@@ -116,6 +116,7 @@ class LieDFLNN(ImplicitModel):
         physics: dict | None = None,
         gravity: float = STANDARD_GRAVITY,
         learn_gravity_direction: bool = False,
+        gravity_up=None,
     ):
         super().__init__()
         known = check_options(residual, known, physics)
@@ -165,7 +166,12 @@ class LieDFLNN(ImplicitModel):
                 else:  # uniform_gravity: shares m and rho_COM with the kinetic term
                     terms.append(
                         UniformGravityPotential(
-                            G, gravity=gravity, mass=self.mass, rho=self.rho, learn_direction=learn_gravity_direction
+                            G,
+                            gravity=gravity,
+                            mass=self.mass,
+                            rho=self.rho,
+                            learn_direction=learn_gravity_direction,
+                            up=gravity_up,
                         )
                     )
             self.potential = None if not terms else terms[0] if len(terms) == 1 else SumPotential(terms)
@@ -215,7 +221,9 @@ class LieDFLNN(ImplicitModel):
             gravity = float(gravity)
         except (TypeError, ValueError):
             raise ConfigError(f"model.gravity={gravity!r}: auto or a number") from None
-        return kinetic_kind, parts, why, {**opt, "known": known, "gravity": gravity}
+        up = ctx.declared_gravity_up()
+        extra = {"gravity_up": up} if up is not None and "uniform_gravity" in parts else {}
+        return kinetic_kind, parts, why, {**opt, "known": known, "gravity": gravity, **extra}
 
     @classmethod
     def from_config(cls, ctx: BuildContext, **options) -> LieDFLNN:
