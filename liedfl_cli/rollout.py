@@ -200,7 +200,10 @@ def run_rollout(cfg: DictConfig) -> dict:
     steps = rollout_steps(
         cfg.steps if cfg.steps is not None else dataset_steps(merged.dataset, dataset, "rollout_steps")
     )
+    from .signals import set_phase
+
     out = new_rollout_dir(run_dir, steps, tag=dataset.scene if source else None)
+    set_phase("rollout", f"nothing kept ({out} removed)")
     try:
         if source is not None:
             console.print(
@@ -215,6 +218,7 @@ def run_rollout(cfg: DictConfig) -> dict:
         results = rollout_and_save(merged, model, dataset, path, steps=steps, provenance=provenance)
         timings = last.get("timings")
         write_json(out / CHECKPOINT_FILE, used)
+        set_phase("evaluation", f"nothing kept ({out} removed)")
         rows = run_eval_from_objects(merged, dataset, run_dir, timings, rollout_path=path, checkpoint=used)
         extra = run_extra_evals(merged, model, dataset, run_dir, rollout_path=path)
     except BaseException:
