@@ -75,7 +75,9 @@ def _dispatch(command: str, cfg):
         return run_resume(cfg)
     if command == "data":
         from .data.command import run_data
+        from .signals import set_phase
 
+        set_phase("data generation", "nothing written")
         return run_data(cfg)
     if command == "rollout":
         from .rollout import run_rollout

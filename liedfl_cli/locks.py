@@ -197,7 +197,7 @@ def acquire(folder, command: str, override: str | None = None) -> RunLock:
     host (the user knows that job is gone). Raises RunLocked with one line naming the folder and the holder."""
     if override is None:
         override = os.environ.get(BREAK_ENV) or None
-    folder = Path(folder).absolute()
+    folder = Path(os.path.abspath(folder))
     key = str(folder)
     if key in _held:
         _held[key].count += 1
@@ -210,6 +210,10 @@ def acquire(folder, command: str, override: str | None = None) -> RunLock:
         holder, seen = _read(path)
         if holder is None:  # released in between: try again
             continue
+        mine = next((lk for lk in _held.values() if holder and holder.get("token") == lk.record["token"]), None)
+        if mine is not None:  # this process's lock, reached by another spelling of the path
+            mine.count += 1
+            return mine
         if seen is None:
             raise RunLocked(f"{path}: cannot read the lock of run folder {folder}")
         if not holder and attempt < 20:  # being written (O_EXCL fallback): give it a moment
@@ -246,7 +250,7 @@ def run_lock(folder, command: str, override: str | None = None):
 
 def release_folder(folder) -> None:
     """Release this process's lock of `folder` however often it was taken (nothing if not held)."""
-    lock = _held.get(str(Path(folder).absolute()))
+    lock = _held.get(str(Path(os.path.abspath(folder))))
     if lock is not None:
         lock.count = 1
         lock.release()
