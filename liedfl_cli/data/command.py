@@ -8,10 +8,8 @@ from ..ui import console, err_console
 
 
 def run_data(cfg: DictConfig):
-    from ..signals import set_phase
     from .scenes import get_dataset
 
-    set_phase("data generation", "nothing written")
     ds, path = get_dataset(cfg.dataset, cfg.paths.data_dir, console=err_console)
     split = (ds.params or {}).get("split_source")
     console.print(
