@@ -130,7 +130,8 @@ def _create(path: Path, record: dict) -> bool:
             os.link(tmp, path)
             return True
         except FileExistsError:
-            return False
+            # NFS may report a link that was made (its first reply lost) as existing: two names = ours
+            return os.stat(tmp).st_nlink == 2
         except OSError:  # no hard links here
             pass
     finally:
