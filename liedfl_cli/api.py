@@ -322,7 +322,11 @@ def train(*overrides: str, output_dir=None, data_dir=None, progress: bool = Fals
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose(config_name="train", overrides=[*overrides, *extra])
     validate(cfg, "train")
-    run_train(cfg)
+    from .locks import run_lock
+
+    Path(output_dir).mkdir(parents=True, exist_ok=True)
+    with run_lock(output_dir, "train"):  # one process per run folder, as for `liedfl train` (locks.RunLocked)
+        run_train(cfg)
     return load_run(output_dir)
 
 

@@ -76,7 +76,9 @@ def _dispatch(command: str, cfg):
         return run_resume(cfg)
     if command == "data":
         from .data.command import run_data
+        from .signals import set_phase
 
+        set_phase("data generation", "nothing written")
         return run_data(cfg)
     if command == "rollout":
         from .rollout import run_rollout
@@ -122,15 +124,17 @@ def _has_content(d: Path) -> bool:
 
 
 def _record_failure(multirun: bool, status_dir, hydra_dir, message: str, code: int, status: str) -> None:
+    from .signals import phase
     from .status import remove_unused_run_dir, write_status
 
     if not multirun and hydra_dir is not None:
         remove_unused_run_dir(hydra_dir)
     if status_dir is None or not status_dir.is_dir():
         return
+    extra = {"phase": phase()} if status == "interrupted" and phase() else {}
     if multirun or _has_content(status_dir):
         with contextlib.suppress(OSError):
-            write_status(status_dir, status, code, error=message)
+            write_status(status_dir, status, code, error=message, **extra)
 
 
 def _log_file(command: str, cfg) -> Path | None:
@@ -145,15 +149,47 @@ def _log_file(command: str, cfg) -> Path | None:
     return None
 
 
-def _run(command: str, cfg):
-    """One job (`_run_job`), with everything it prints mirrored to the run's train.log."""
-    log = _log_file(command, cfg)
-    if log is None:
-        return _run_job(command, cfg)
-    from .ui import log_to
+def _lock_folder(command: str, cfg) -> Path | None:
+    """The run folder the job writes into, which it locks (`locks.py`): the new run's (train, each job of
+    a sweep), the resumed run's, the run rolled out or evaluated; None for data and report."""
+    if command == "train":
+        _, status_dir, _ = _job_context(command, cfg)
+        return status_dir if status_dir is not None and status_dir.is_dir() else None
+    key = {"resume": "resume", "rollout": "run", "eval": "run"}.get(command)
+    if key is None:
+        return None
+    value = str(cfg.get(key) or "")
+    return Path(value) if value not in ("", ".", "???") and Path(value).is_dir() else None
 
-    with log_to(log):
-        return _run_job(command, cfg)
+
+def _run(command: str, cfg):
+    """One job (`_run_job`) holding its run folder's lock, with SIGTERM raised as an exception
+    (`signals.py`) and everything it prints mirrored to the run's train.log."""
+    from .locks import RunLocked, acquire, release_folder
+    from .preflight import classify
+    from .signals import terminate_as_exception
+    from .ui import fail
+
+    with terminate_as_exception():
+        folder = None
+        try:
+            folder = _lock_folder(command, cfg)
+            if folder is not None:
+                acquire(folder, command)
+            log = _log_file(command, cfg)
+            if log is None:
+                return _run_job(command, cfg)
+            from .ui import log_to
+
+            with log_to(log):
+                return _run_job(command, cfg)
+        except (RunLocked, KeyboardInterrupt) as e:  # (the job's own errors are handled in _run_job)
+            known = classify(e)
+            assert known is not None
+            fail(*known)
+        finally:
+            if folder is not None:
+                release_folder(folder)
 
 
 def _run_job(command: str, cfg):
@@ -185,6 +221,8 @@ def _run_job(command: str, cfg):
             raise
         message, code = known
         interrupted = isinstance(e, KeyboardInterrupt) or code in (130, 143)
+        if interrupted and command == "resume":  # the run went on training: say that it stopped, and where
+            failure_dir = status_dir
         _record_failure(multirun, failure_dir, hydra_dir, message, code, "interrupted" if interrupted else "failed")
         if multirun and not interrupted:
             assert status_dir is not None  # a multirun job's status folder is Hydra's job folder
@@ -279,6 +317,9 @@ def main() -> None:
         try:
             _main()
         finally:
+            from .locks import release_all
+
+            release_all()  # (the job releases its lock; this covers a lock taken before the job ran)
             sys.stdout.flush()
     except BrokenPipeError:
         # Python would complain again when it flushes stdout at exit: point stdout at /dev/null

@@ -13,6 +13,7 @@ constant-velocity row (`one_step_vs_cv`, `rollout_vs_cv`)."""
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import math
@@ -358,10 +359,11 @@ def _inside(path: Path, folder) -> bool:
     return Path(path).resolve().is_relative_to(Path(folder).resolve())
 
 
-def copy_into_run(path: Path, run_dir) -> Path:
+def copy_into_run(path: Path, run_dir, made: list[Path] | None = None) -> Path:
     """A rollout file outside the run evaluated as the run's: copied with its source.json and
     checkpoint.json into a new `<run>/evals/<date>_<time>_<folder of the file>/`, where the evaluation
-    then writes (an evaluation never writes outside the run it evaluates). Returns the copy's path."""
+    then writes (an evaluation never writes outside the run it evaluates). Returns the copy's path;
+    `made` gets the new folder as soon as it exists (removed by the caller if the evaluation fails)."""
     import shutil
     from datetime import datetime
 
@@ -376,6 +378,8 @@ def copy_into_run(path: Path, run_dir) -> Path:
         out = base / (stamp + (f"_{k}" if k > 1 else ""))
         try:
             out.mkdir()
+            if made is not None:
+                made.append(out)
             break
         except FileExistsError:
             continue
@@ -395,13 +399,10 @@ def run_eval(cfg: DictConfig) -> list[dict]:
     rollout file of the run (written next to that file). A file written by another run is refused
     (`check_provenance`); one outside the run's folder is evaluated in a copy under `<run>/evals/`
     (`copy_into_run`): an evaluation writes only under the run it evaluates."""
-    from omegaconf import OmegaConf
-
-    from .checkpoint import describe_checkpoint, load_checkpoint, rollout_checkpoint
-    from .evaluation import run_extra_evals
+    from .checkpoint import load_checkpoint
     from .factory import configure_runtime
-    from .other_data import rollout_dataset
     from .runs import load_run_checkpoint
+    from .signals import set_phase
 
     configure_runtime(cfg)  # this command's runtime section (the model of the scene's extra evaluation)
     run_cfg, model, dataset, run_dir, used = load_run_checkpoint(
@@ -410,8 +411,48 @@ def run_eval(cfg: DictConfig) -> list[dict]:
     path = rollout_path_arg(cfg.get("rollout"), run_dir)
     last = load_checkpoint(Path(run_dir) / "checkpoints" / "last.pt")
     check_provenance(path, read_rollout(path).attrs, run_dir, last.get("run_id"))
-    if not _inside(path, run_dir):
-        path = copy_into_run(path, run_dir)
+    own = path.parent.resolve() == Path(run_dir).resolve()
+    again = f"liedfl eval run={run_dir}" + ("" if own else f" rollout={path}")
+    set_phase("evaluation", f"to redo it: {again}")
+    copied: list[Path] = []
+    try:
+        if not _inside(path, run_dir):
+            path = copy_into_run(path, run_dir, made=copied)
+        return _eval_rollout(cfg, run_cfg, model, dataset, run_dir, used, path, last)
+    except BaseException as e:
+        _interrupted_eval(e, path.parent, copied[0] if copied else None, run_dir)
+        raise
+
+
+def _interrupted_eval(e: BaseException, out: Path, copied: Path | None, run_dir) -> None:
+    """After a failed or interrupted evaluation: the copy this evaluation made under `<run>/evals/` is
+    removed (nothing half-made is left); an interrupted evaluation of an existing folder (the run's, a
+    rollout folder) is marked in its status.json (its eval files are each whole, but may be a mix of
+    old and new), until an evaluation there completes."""
+    import shutil
+
+    from .preflight import classify
+    from .status import mark_interrupted
+
+    if copied is not None:
+        shutil.rmtree(copied, ignore_errors=True)
+        with contextlib.suppress(OSError):
+            copied.parent.rmdir()  # only if empty
+        return
+    if isinstance(e, KeyboardInterrupt) and _inside(out, run_dir):
+        message, code = classify(e) or ("interrupted", 130)
+        with contextlib.suppress(OSError):
+            mark_interrupted(out, message, code, "evaluation")
+
+
+def _eval_rollout(cfg, run_cfg, model, dataset, run_dir, used, path: Path, last: dict) -> list[dict]:
+    from omegaconf import OmegaConf
+
+    from .checkpoint import describe_checkpoint, rollout_checkpoint
+    from .evaluation import run_extra_evals
+    from .other_data import rollout_dataset
+    from .status import clear_interruption
+
     used = rollout_checkpoint(path, used)  # the rollout's own record (checkpoint.json) when it has one
     console.print(describe_checkpoint(used), highlight=False)
     dataset, run_cfg = rollout_dataset(path, model, dataset, run_cfg, run_dir, cfg.paths.data_dir)
@@ -428,4 +469,5 @@ def run_eval(cfg: DictConfig) -> list[dict]:
     run_extra_evals(
         OmegaConf.merge(run_cfg, {"eval": cfg.eval, "ui": cfg.ui}), model, dataset, run_dir, rollout_path=path
     )
+    clear_interruption(path.parent, "evaluation")
     return rows

@@ -7,12 +7,49 @@ import csv
 import json
 import os
 import re
+import secrets
 import signal
+import socket
 import threading
+import time
 from pathlib import Path
 
-# liedfl's temporary names: `.<name>.tmp<pid>` (atomic_path) and `<stem>.h5.tmp<pid>` (save_dataset)
-_TMP = re.compile(r"(?:\..+|.+\.h5)\.tmp(\d+)")
+# liedfl's temporary names carry the writer's host, pid and a random token, so that writers on several
+# machines sharing one file system (a cluster's NFS home) never share a name and the clean-up can tell
+# whose file it is: `.<name>.tmp.<host>.<pid>.<token>` (atomic_path) and
+# `<stem>.h5.tmp.<host>.<pid>.<token>` (save_dataset).
+_TMP = re.compile(r"(?:\..+|.+\.h5)\.tmp\.(?P<host>[A-Za-z0-9_-]+)\.(?P<pid>\d+)\.(?P<token>[0-9a-f]{8})")
+_LEGACY_TMP = re.compile(r"(?:\..+|.+\.h5)\.tmp(\d+)")  # liedfl before 0.x: no host in the name
+# Another host's temporary file (or a legacy one, whose host is unknown) is removed only when untouched
+# for this long: its writer's liveness cannot be judged from here, and a write takes seconds to minutes
+# (a writer's file changes as it writes), so a day-old one is a leftover of a killed node, not a write.
+FOREIGN_TMP_MAX_AGE = 86400.0
+
+
+def host_id() -> str:
+    """This machine's name as written into temporary names and locks: the host name with characters
+    other than letters, digits, `-` and `_` replaced by `_`, plus `-ns<inode>` of the PID namespace
+    where Linux tells it (two containers with one host name but their own PIDs differ by it)."""
+    name = re.sub(r"[^A-Za-z0-9_-]", "_", socket.gethostname() or "localhost")[:64] or "localhost"
+    ns = _pid_namespace()
+    return f"{name}-ns{ns}" if ns else name
+
+
+def _pid_namespace() -> str:
+    try:
+        link = os.readlink("/proc/self/ns/pid")  # 'pid:[4026531836]'
+    except OSError:
+        return ""
+    m = re.search(r"\d+", link)
+    return m.group(0) if m else ""
+
+
+def temporary_name(path: str | os.PathLike, hidden: bool = True) -> Path:
+    """A temporary name next to `path`, unique across hosts and processes:
+    `.<name>.tmp.<host>.<pid>.<token>` (hidden) or `<name>.tmp.<host>.<pid>.<token>`."""
+    path = Path(path)
+    tag = f"tmp.{host_id()}.{os.getpid()}.{secrets.token_hex(4)}"
+    return path.with_name(f".{path.name}.{tag}" if hidden else f"{path.name}.{tag}")
 
 
 def pid_alive(pid: int) -> bool:
@@ -30,19 +67,35 @@ def pid_alive(pid: int) -> bool:
     return True
 
 
+def _orphan(p: Path, me: str) -> bool:
+    """Whether `p` is a liedfl temporary file whose writer is gone: one of this host whose process no
+    longer exists, or (another host's, or a legacy name without a host) untouched for a day."""
+    m = _TMP.fullmatch(p.name)
+    if m is not None and m.group("host") == me:
+        pid = int(m.group("pid"))
+        return pid != os.getpid() and not pid_alive(pid)
+    if m is None and _LEGACY_TMP.fullmatch(p.name) is None:
+        return False
+    try:
+        return time.time() - p.lstat().st_mtime > FOREIGN_TMP_MAX_AGE
+    except OSError:
+        return False
+
+
 def clean_orphans(folder) -> list[Path]:
-    """Remove liedfl's temporary files (`.<name>.tmp<pid>`, `<stem>.h5.tmp<pid>`) in `folder` left by
-    processes that no longer exist (a writer killed between writing its temporary file and renaming
-    it). Files of live processes, and files not named like that, are kept. Returns the removed paths."""
+    """Remove liedfl's temporary files in `folder` left by writers that are gone (killed between writing
+    the temporary file and renaming it): liveness is judged only for writers of this host (the host in
+    the name); another host's file, whose writer may be writing right now, is kept unless untouched
+    for `FOREIGN_TMP_MAX_AGE`. Files not named like liedfl's temporary files are kept. Returns the
+    removed paths."""
     removed: list[Path] = []
     try:
         entries = list(Path(folder).iterdir())
     except OSError:
         return removed
-    me = os.getpid()
+    me = host_id()
     for p in entries:
-        m = _TMP.fullmatch(p.name)
-        if not m or int(m.group(1)) == me or pid_alive(int(m.group(1))):
+        if not _orphan(p, me):
             continue
         try:
             if p.is_file() or p.is_symlink():
@@ -90,7 +143,7 @@ def atomic_path(path: str | os.PathLike):
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     clean_orphans(path.parent)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    tmp = temporary_name(path)
     with deferred_signals():
         try:
             yield tmp

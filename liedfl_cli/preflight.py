@@ -56,8 +56,9 @@ def classify(e: BaseException) -> tuple[str, int] | None:
             f" (key {key})" if key else ""
         ), 2
     if isinstance(e, KeyboardInterrupt):  # KeyboardInterrupt("<how to resume>") adds its text to the line
-        detail = " ".join(str(a) for a in e.args if str(a).strip())
-        return ("interrupted: " + detail if detail else "interrupted"), 130
+        from .signals import Terminated, interruption_message
+
+        return interruption_message(e), e.exit_code if isinstance(e, Terminated) else 130
     if type(e).__name__ == "UncompletedJobError" and type(e).__module__.split(".")[0] == "submitit":
         # raised inside a submitit job by submitit's handler of the cluster's warning signal (the
         # job's time limit, hydra.launcher.timeout_min, or a preemption): the job records it and ends

@@ -528,8 +528,10 @@ def run_report(cfg: DictConfig) -> dict:
         raise ConfigError(
             f"sweep={cfg.sweep}: not a directory (give a multirun directory, e.g. outputs/multirun/<date>)"
         )
+    from .signals import set_phase
     from .status import failed_runs
 
+    set_phase("report", "each file of the report is whole (old or new); rerun liedfl report to redo it")
     rows = collect(sweep)
     failed = [(str(d.relative_to(sweep)), err) for d, err in failed_runs(sweep)]
     if not rows and not failed:

@@ -232,7 +232,10 @@ def run_rollout(cfg: DictConfig) -> dict:
         cfg.steps if cfg.steps is not None else dataset_steps(merged.dataset, dataset, "rollout_steps")
     )
     tag = dataset.scene if other is not None else (split if split != "test" else None)
+    from .signals import set_phase
+
     out = new_rollout_dir(run_dir, steps, tag=tag)
+    set_phase("rollout", f"nothing kept ({out} removed)")
     try:
         if source is not None:
             console.print(
@@ -248,6 +251,7 @@ def run_rollout(cfg: DictConfig) -> dict:
         results = rollout_and_save(merged, model, dataset, path, steps=steps, provenance=provenance)
         timings = last.get("timings")
         write_json(out / CHECKPOINT_FILE, used)
+        set_phase("evaluation", f"nothing kept ({out} removed)")
         rows = run_eval_from_objects(merged, dataset, run_dir, timings, rollout_path=path, checkpoint=used)
         extra = run_extra_evals(merged, model, dataset, run_dir, rollout_path=path)
         exported = None

@@ -47,6 +47,29 @@ def write_status(run_dir, status: str, exit_code: int, error: str | None = None,
     return path
 
 
+def mark_interrupted(folder, message: str, exit_code: int, phase: str) -> Path:
+    """Record in `<folder>/status.json` that `phase` (e.g. an evaluation of the folder) was interrupted,
+    keeping the status it had under "previous" (`clear_interruption` restores it)."""
+    previous = read_status(folder)
+    if previous is not None and previous.get("status") == "interrupted" and previous.get("phase") == phase:
+        previous = previous.get("previous")
+    return write_status(folder, "interrupted", exit_code, error=message, phase=phase, previous=previous)
+
+
+def clear_interruption(folder, phase: str) -> None:
+    """After `phase` completed in `folder`: its earlier interruption mark (`mark_interrupted`) is
+    replaced by the status it hid (or removed if there was none)."""
+    st = read_status(folder)
+    if st is None or st.get("status") != "interrupted" or st.get("phase") != phase or "previous" not in st:
+        return
+    previous = st["previous"]
+    path = Path(folder) / STATUS_FILE
+    if isinstance(previous, dict):
+        write_json(path, previous)
+    else:
+        path.unlink(missing_ok=True)
+
+
 def read_status(run_dir) -> dict | None:
     """The run's status.json as a dict; None when absent; a `failed` status when unreadable."""
     path = Path(run_dir) / STATUS_FILE
@@ -141,7 +164,9 @@ def remove_unused_run_dir(run_dir) -> bool:
     keep_from = Path(_state["keep_from"]).absolute()
     if keep_from == run_dir:  # the folder existed before this run: leave it
         return False
-    entries = list(run_dir.iterdir())
+    from .locks import LOCK_FILE, release_folder
+
+    entries = [e for e in run_dir.iterdir() if e.name != LOCK_FILE]  # (this process's lock: released below)
     hydra = run_dir / ".hydra"
     if any(e != hydra and not (e.suffix == ".log" and e.is_file()) for e in entries):
         return False
@@ -149,6 +174,7 @@ def remove_unused_run_dir(run_dir) -> bool:
         not hydra.is_dir() or any(p.name not in HYDRA_FILES or not p.is_file() for p in hydra.iterdir())
     ):
         return False
+    release_folder(run_dir)
     try:
         for name in HYDRA_FILES:
             (hydra / name).unlink(missing_ok=True)
@@ -174,6 +200,19 @@ def _deepest_existing(path: Path) -> Path:
     return path
 
 
+def _lock_new_run(run_dir: Path) -> None:
+    """Take the run folder's lock before Hydra writes its `.hydra/` files there (a second
+    `liedfl train hydra.run.dir=<dir>` must not overwrite the first one's config); the job keeps it."""
+    from .locks import RunLocked, acquire
+    from .ui import fail
+
+    run_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        acquire(run_dir, "train")
+    except RunLocked as e:
+        fail(str(e))
+
+
 class LiedflCallback(Callback):
     """Hydra callback: validate before the run folder exists, remember what the run creates, and
     remember the sweep folder of a multirun."""
@@ -190,6 +229,8 @@ class LiedflCallback(Callback):
             _state["keep_from"] = str(_deepest_existing(run_dir))
         # SystemExit on a bad config: Hydra turns a callback's exceptions into warnings, not exits
         preflight_or_fail(str(config.get("task_name")), config)
+        if run_dir is not None and str(config.get("task_name")) == "train":
+            _lock_new_run(run_dir)
 
     def on_multirun_start(self, config, **kwargs) -> None:
         from omegaconf import OmegaConf
@@ -205,6 +246,8 @@ __all__ = [
     "LiedflCallback",
     "write_status",
     "read_status",
+    "mark_interrupted",
+    "clear_interruption",
     "job_dirs",
     "failed_runs",
     "sweep_summary",

@@ -390,6 +390,7 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
     from .evaluate import run_eval_from_objects
     from .factory import build_model, configure_runtime, data_pose
     from .rollout import rollout_and_save
+    from .signals import set_phase
 
     configure_runtime(cfg)  # threads, fused paths, compilation, device, dtype (cfg.runtime)
     out = Path(cfg.paths.output_dir)
@@ -397,6 +398,7 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
     ckpt = out / "checkpoints" / "last.pt"
     best = out / "checkpoints" / "best.pt"
     torch.manual_seed(int(cfg.seed))
+    set_phase("data generation")
     dataset, data_path = get_dataset(cfg.dataset, cfg.paths.data_dir, console=err_console)
     complete_steps(cfg.dataset, dataset)  # a file's null train_steps / rollout_steps: all its steps
     if cfg.rollout.enabled and len(dataset.test_idx) == 0:  # fail now, not after training
@@ -404,6 +406,8 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
             f"{data_path}: the dataset's test split is empty, so there is nothing to roll out after training; "
             "give it test trajectories (dataset=file: dataset.split=default) or set rollout.enabled=false"
         )
+    resumable = ckpt.is_file() and resume is not None
+    set_phase("training", f"resume with: liedfl train resume={out}" if resumable else None)
     model = build_model(cfg, dataset)  # on the runtime's device, in its dtype
     if resume is not None:
         load_state(ckpt, model, resume)
@@ -499,6 +503,8 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
     }
     # the trained model is saved before anything else can fail
     save(result["state"], timings)
+    redo = f"the trained model is saved in {ckpt}: `liedfl train resume={out}` redoes the evaluation"
+    set_phase("evaluation", redo)
     console.print(
         f"trained {result['epochs']} epochs in {result['train_seconds']:.1f} s "
         + (f"(+ {result['val_seconds']:.1f} s validation) " if validator is not None else "")
@@ -538,9 +544,11 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
     if recovery is not None:
         write_json(out / "recovery.json", recovery)
     if cfg.rollout.enabled:
+        set_phase("rollout", redo)
         provenance = run_provenance(out, run_id, OmegaConf.select(cfg, "model.name", default=None), used)
         ro = rollout_and_save(cfg, model, dataset, out / "rollout.h5", steps=cfg.rollout.steps, provenance=provenance)
         summary["rollout"] = ro
+        set_phase("evaluation", redo)
         write_json(out / CHECKPOINT_FILE, used)  # which checkpoint rolled out (liedfl eval reads it)
         summary["eval"] = run_eval_from_objects(cfg, dataset, out, timings, checkpoint=used)
         from .evaluation import run_extra_evals

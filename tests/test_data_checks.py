@@ -178,12 +178,14 @@ def _dead_pid() -> int:
 
 
 def test_orphaned_temporary_files_of_dead_writers_are_removed_at_the_next_write(tmp_path):
-    dead, alive = _dead_pid(), os.getppid()
-    orphan = tmp_path / f"scene-abc.h5.tmp{dead}"
-    orphan_small = tmp_path / f".eval.csv.tmp{dead}"
-    live = tmp_path / f"scene-abc.h5.tmp{alive}"
+    from liedfl_cli.io_utils import host_id
+
+    dead, alive, host = _dead_pid(), os.getppid(), host_id()
+    orphan = tmp_path / f"scene-abc.h5.tmp.{host}.{dead}.0123abcd"
+    orphan_small = tmp_path / f".eval.csv.tmp.{host}.{dead}.89abcdef"
+    live = tmp_path / f"scene-abc.h5.tmp.{host}.{alive}.0123abcd"
     keep = tmp_path / "notes.tmp"  # no pid: not a liedfl temporary file
-    user = tmp_path / f"notes.txt.tmp{dead}"  # not named like liedfl's temporary files
+    user = tmp_path / f"notes.txt.tmp.{host}.{dead}.0123abcd"  # not named like liedfl's temporary files
     for p in (orphan, orphan_small, live, keep, user):
         p.write_bytes(b"half written")
     save_dataset(_dataset(0.1, T=2, N=3, B=1), tmp_path / "x.h5")

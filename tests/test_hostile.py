@@ -324,6 +324,52 @@ _SIGNAL_DURING_WRITE = textwrap.dedent(
 )
 
 
+# --- locks/signals setups (issue 18 items 2-4)
+def _locked(host: str | None = None, dead: bool = False):
+    """The run, locked by another process: a live one of this host (the test runner's parent), or one of
+    another host (its pid, dead or not, means nothing here)."""
+
+    def setup(ctx: Ctx):
+        from liedfl_cli import locks
+        from liedfl_cli.io_utils import host_id
+
+        run = ctx.run()
+        pid = _gone_pid() if dead else os.getppid()
+        record = {"host": host or host_id(), "hostname": host or "thishost", "pid": pid,
+                  "start": "" if host else locks.process_start(pid), "since": "2026-01-01T00:00:00+00:00",
+                  "command": "train", "token": "e" * 16}  # fmt: skip
+        (run / locks.LOCK_FILE).write_text(json.dumps(record))
+
+    return setup
+
+
+def _gone_pid() -> int:
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    return proc.pid
+
+
+def _signal_hook(target: str, *sigs: str) -> str:
+    """Python run before main(): `target` ('module:attribute') first sends `sigs` to the process."""
+    module, attr = target.split(":")
+    kills = "".join(f"    os.kill(os.getpid(), signal.{s})\n" for s in sigs)
+    return (
+        f"import os, signal, importlib\n_m = importlib.import_module({module!r})\n_real = _m.{attr}\n"
+        f"def _hooked(*a, **k):\n{kills}    return _real(*a, **k)\n_m.{attr} = _hooked\n"
+    )
+
+
+def _run_and_outside_rollout(ctx: Ctx):
+    run = ctx.run()
+    (ctx.tmp / "elsewhere").mkdir()
+    shutil.copy(run / "rollout.h5", ctx.tmp / "elsewhere" / "rollout.h5")
+    ctx.vars["elsewhere"] = str(ctx.tmp / "elsewhere")
+
+
+_IGNORE_SIGINT = "import signal\nsignal.signal(signal.SIGINT, signal.SIG_IGN)  # as if inherited (nohup)\n"
+_RO = ("ui.progress=false", "eval.plots=false")
+
+
 # ----------------------------------------------------------------------------- the table
 T = "train"
 CASES: list[Case] = [
@@ -704,6 +750,113 @@ CASES: list[Case] = [
         proc=True,
         python=_SIGNAL_DURING_WRITE,
         allowed=("outputs", "outputs/data", "outputs/data/*.h5"),
+    ),
+    # --- locks/signals (issue 18 items 2-4)
+    Case("lock-held-eval", ("eval", "run={run}", *_RO), ("run folder {run}", "in use", "pid"), setup=_locked()),
+    Case("lock-held-rollout", ("rollout", "run={run}", *_RO), ("run folder {run}", "in use"), setup=_locked()),
+    Case("lock-held-resume", (T, "resume={run}", "ui.progress=false"), ("run folder {run}", "in use"), setup=_locked()),
+    Case(
+        "lock-held-train-same-dir", (T, *FAST, "hydra.run.dir={run}"), ("run folder {run}", "in use"), setup=_locked()
+    ),
+    Case("lock-held-eval-cli", ("eval", "run={run}", *_RO), ("run folder {run}", "in use"), setup=_locked(), proc=True),
+    Case(
+        "lock-other-host-eval",
+        ("eval", "run={run}", *_RO),
+        ("{run}", "another machine", "othernode", "LIEDFL_RUN_LOCK=break"),
+        setup=_locked("othernode"),
+    ),
+    Case(
+        "lock-other-host-dead-pid-rollout",
+        ("rollout", "run={run}", *_RO),
+        ("{run}", "another machine", "LIEDFL_RUN_LOCK=break"),
+        setup=_locked("othernode", dead=True),
+    ),
+    Case(
+        "lock-other-host-dead-pid-resume",
+        (T, "resume={run}", "ui.progress=false"),
+        ("{run}", "another machine"),
+        setup=_locked("othernode", dead=True),
+        proc=True,
+    ),
+    Case(
+        "sigterm-during-data-generation",
+        ("data", "budget=smoke", "ui.progress=false"),
+        ("SIGTERM: interrupted during data generation",),
+        code=143,
+        proc=True,
+        python=_signal_hook("liedfl_cli.data.scenes:_generate", "SIGTERM"),
+    ),
+    Case(
+        "sigterm-during-train-data-generation",
+        (T, *FAST),
+        ("SIGTERM: interrupted during data generation",),
+        code=143,
+        proc=True,
+        python=_signal_hook("liedfl_cli.data.scenes:_generate", "SIGTERM"),
+    ),
+    Case(
+        "sigterm-during-rollout",
+        ("rollout", "run={run}", "steps=12", *_RO),
+        ("SIGTERM: interrupted during rollout", "nothing kept"),
+        setup=lambda c: c.run(),
+        code=143,
+        proc=True,
+        python=_signal_hook("liedfl_cli.rollout:_roll", "SIGTERM"),
+    ),
+    Case(
+        "sigint-during-rollout",
+        ("rollout", "run={run}", "steps=12", *_RO),
+        ("interrupted",),
+        setup=lambda c: c.run(),
+        code=130,
+        proc=True,
+        python=_signal_hook("liedfl_cli.rollout:_roll", "SIGINT"),
+    ),
+    Case(
+        "sigterm-during-rollout-eval",
+        ("rollout", "run={run}", "steps=12", *_RO),
+        ("SIGTERM: interrupted during evaluation", "nothing kept"),
+        setup=lambda c: c.run(),
+        code=143,
+        proc=True,
+        python=_signal_hook("liedfl_cli.evaluate:run_eval_from_objects", "SIGTERM"),
+    ),
+    Case(
+        "sigterm-during-eval",
+        ("eval", "run={run}", *_RO),
+        ("SIGTERM: interrupted during evaluation", "liedfl eval run={run}"),
+        setup=lambda c: c.run(),
+        code=143,
+        proc=True,
+        python=_signal_hook("liedfl_cli.evaluate:run_eval_from_objects", "SIGTERM"),
+        allowed=("run/status.json",),  # the interruption is recorded there
+    ),
+    Case(
+        "sigterm-during-eval-of-outside-rollout",
+        ("eval", "run={run}", "rollout={elsewhere}", *_RO),
+        ("SIGTERM: interrupted during evaluation", "rollout={elsewhere}"),
+        setup=_run_and_outside_rollout,
+        code=143,
+        proc=True,
+        python=_signal_hook("liedfl_cli.evaluate:run_eval_from_objects", "SIGTERM"),
+    ),
+    Case(
+        "sigterm-during-report",
+        ("report", "sweep={sweep}", "plots=false"),
+        ("SIGTERM: interrupted during report",),
+        setup=lambda c: c.sweep(),
+        code=143,
+        proc=True,
+        python=_signal_hook("liedfl_cli.report:collect", "SIGTERM"),
+    ),
+    Case(
+        "sigint-ignored-then-sigterm-during-rollout",
+        ("rollout", "run={run}", "steps=12", *_RO),
+        ("SIGTERM: interrupted during rollout",),
+        setup=lambda c: c.run(),
+        code=143,
+        proc=True,
+        python=_IGNORE_SIGINT + _signal_hook("liedfl_cli.rollout:_roll", "SIGINT", "SIGTERM"),
     ),
 ]
 

@@ -21,7 +21,7 @@ import torch
 
 from .. import __version__
 from ..errors import DatasetError, DataWarning
-from ..io_utils import clean_orphans, deferred_signals
+from ..io_utils import clean_orphans, deferred_signals, temporary_name
 from ..lie import so3
 from ..lie.product import Pose, ProductGroup
 from ..lie.tolerances import tol
@@ -126,16 +126,19 @@ class Dataset:
 
 # ---------------------------------------------------------------------- writing
 def save_dataset(ds: Dataset, path) -> Path:
-    """Write `ds` to `path` atomically (write `<path>.tmp<pid>`, then os.replace). Returns the path.
+    """Write `ds` to `path` atomically (write `<path>.tmp.<host>.<pid>.<token>`, then os.replace).
+    Returns the path.
 
-    The temporary name carries the process id, so parallel sweep jobs that generate the same
-    dataset never write into one temporary file; the last rename wins with identical content.
-    Temporary files of writers that died (killed between writing and renaming) are removed first."""
+    The temporary name carries the host, the process id and a random token, so parallel sweep jobs
+    that generate the same dataset (on one machine or on several sharing the file system) never write
+    into one temporary file; the last rename wins with identical content. Temporary files of writers
+    of this host that died (killed between writing and renaming) are removed first; another host's
+    are left alone (`io_utils.clean_orphans`)."""
     path = Path(path)
     _validate(ds, str(path), project=False)
     path.parent.mkdir(parents=True, exist_ok=True)
     clean_orphans(path.parent)
-    tmp = path.with_suffix(f".h5.tmp{os.getpid()}")
+    tmp = temporary_name(path.with_suffix(".h5"), hidden=False)
     # SIGINT/SIGTERM are held while the file is written and renamed, then delivered (a Ctrl-C
     # exits with "interrupted" and leaves no temporary file)
     with deferred_signals():
