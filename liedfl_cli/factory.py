@@ -11,7 +11,6 @@ model there, `data_pose` converts a dataset's trajectories; nothing below the pi
 from __future__ import annotations
 
 import inspect
-
 from typing import Any, TypeVar
 
 import torch
