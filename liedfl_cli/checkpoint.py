@@ -157,6 +157,29 @@ def load_checkpoint(path, map_location: Any = "cpu") -> dict:
     return payload
 
 
+def check_training_state(path, payload: dict) -> int:
+    """The checkpoint's `epoch` (an integer >= 0) after checking that `history` is its list of
+    per-epoch rows (dicts with numbers `epoch` = 1, 2, ..., epoch, `loss` and `seconds`); CheckpointError
+    naming the field otherwise (a tampered file would train "epochs" -4..2 or crash mid-resume)."""
+    epoch, history = payload.get("epoch"), payload.get("history")
+    if isinstance(epoch, bool) or not isinstance(epoch, int) or epoch < 0:
+        raise CheckpointError(f"{path}: field 'epoch' must be an integer >= 0, got {epoch!r}")
+    if not isinstance(history, list):
+        raise CheckpointError(f"{path}: field 'history' must be a list of per-epoch rows, got {type(history).__name__}")
+    if len(history) != epoch:
+        raise CheckpointError(f"{path}: field 'history' has {len(history)} rows for epoch {epoch} (one per epoch)")
+    for i, row in enumerate(history):
+        if not isinstance(row, dict):
+            raise CheckpointError(f"{path}: field 'history[{i}]' is not a mapping (got {type(row).__name__})")
+        if row.get("epoch") != i + 1 or isinstance(row.get("epoch"), bool):
+            raise CheckpointError(f"{path}: field 'history[{i}].epoch' must be {i + 1}, got {row.get('epoch')!r}")
+        for key in ("loss", "seconds"):
+            v = row.get(key)
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                raise CheckpointError(f"{path}: field 'history[{i}].{key}' must be a number, got {v!r}")
+    return epoch
+
+
 def load_state(path, model, payload: dict) -> None:
     """Load the state dict, naming the first missing/unexpected/mis-shaped key."""
     sd = payload["state_dict"]

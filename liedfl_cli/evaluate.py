@@ -404,8 +404,10 @@ def run_eval(cfg: DictConfig) -> list[dict]:
     from .runs import load_run_checkpoint
 
     configure_runtime(cfg)  # this command's runtime section (the model of the scene's extra evaluation)
+    from .dataset_identity import accept_option
+
     run_cfg, model, dataset, run_dir, used = load_run_checkpoint(
-        cfg.run, cfg.paths.data_dir, cfg.get("checkpoint") or "best"
+        cfg.run, cfg.paths.data_dir, cfg.get("checkpoint") or "best", accept_option(cfg)
     )
     path = rollout_path_arg(cfg.get("rollout"), run_dir)
     last = load_checkpoint(Path(run_dir) / "checkpoints" / "last.pt")

@@ -176,8 +176,10 @@ def run_rollout(cfg: DictConfig) -> dict:
     from .runs import load_run_checkpoint
 
     configure_runtime(cfg)  # this command's runtime section: threads, device, dtype, ...
+    from .dataset_identity import accept_option
+
     run_cfg, model, dataset, run_dir, used = load_run_checkpoint(
-        cfg.run, cfg.paths.data_dir, cfg.get("checkpoint") or "best"
+        cfg.run, cfg.paths.data_dir, cfg.get("checkpoint") or "best", accept_option(cfg)
     )
     console.print(describe_checkpoint(used), highlight=False)
     other = other_dataset(cfg, model, run_dir)

@@ -170,11 +170,15 @@ TOP_LEVEL: dict[str, tuple[str, ...]] = {
     # rollout run=<run> dataset=<scene>: other data (the dataset file selects its group)
     "rollout": (
         *("task_name", "run", "checkpoint", "steps", "rollout", "eval", "ui", "paths", "solver", "runtime"),
+        "accept_changed_dataset",
         *("dataset", "group"),
     ),
-    "eval": ("task_name", "run", "checkpoint", "rollout", "eval", "ui", "paths", "solver", "runtime"),
+    "eval": (
+        *("task_name", "run", "checkpoint", "rollout", "eval", "ui", "paths", "solver", "runtime"),
+        "accept_changed_dataset",
+    ),
     "report": ("task_name", "sweep", "plots"),
-    "resume": ("task_name", "resume", "epochs", "ui"),
+    "resume": ("task_name", "resume", "epochs", "ui", "accept_changed_dataset"),
 }
 _SOLVER = ("solver.tol", "solver.max_iter", "solver.max_halvings")
 _RUN_KEYS = ("run", "steps", "rollout.max_trajectories", "rollout.reference", "eval.plots", "ui.progress")
