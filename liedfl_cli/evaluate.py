@@ -28,7 +28,7 @@ from .io_utils import markdown_table, write_csv, write_json, write_text
 from .lie import Pose, ProductGroup
 from .metrics import drift_metrics, error_metrics, one_step_metrics, valid_horizons, valid_steps
 from .rollout_file import FILE_NAME, RolloutFile, load_rollout, read_rollout
-from .ui import console, print_table
+from .ui import console, print_table, warning_line
 
 SHORT = {
     "rel_rot_error_mean": "rel err",
@@ -365,11 +365,9 @@ def check_provenance(path: Path, attrs: dict, run_dir, run_id: str | None) -> bo
     (written before rollout files recorded it) passes with a one-line warning. True when it is the run's."""
     other = attrs.get("run_id")
     if other in (None, ""):
-        console.print(
-            f"[bold yellow]warning:[/] {path}: provenance unknown (the file records no run_id: written before "
-            f"rollout files recorded their run); evaluated as a rollout of run {run_dir}",
-            soft_wrap=True,
-            highlight=False,
+        warning_line(
+            f"{path}: provenance unknown (the file records no run_id: written before "
+            f"rollout files recorded their run); evaluated as a rollout of run {run_dir}"
         )
         return False
     if str(other) != str(run_id):

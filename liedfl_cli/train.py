@@ -50,7 +50,7 @@ from .io_utils import write_json
 from .lie import Pose
 from .models.losses import training_stage
 from .solvers import runtime
-from .ui import console, err_console, progress_bar
+from .ui import console, err_console, progress_bar, warning_line
 from .validation import (
     VAL_COLUMNS,
     Selection,
@@ -633,7 +633,7 @@ def run_train(cfg: DictConfig, resume: dict | None = None, accept_changed_datase
     try:
         recovery = parameter_recovery(model, dataset)
     except (ValueError, RuntimeError, KeyError, IndexError) as e:  # the model cannot represent the truth
-        console.print(f"[bold yellow]warning:[/] parameter recovery skipped ({type(e).__name__}: {e})")
+        warning_line(f"parameter recovery skipped ({type(e).__name__}: {e})")
         recovery = None
     if recovery is not None:
         write_json(out / "recovery.json", recovery)
