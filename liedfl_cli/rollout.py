@@ -55,7 +55,8 @@ def _roll(model, truth: Pose, steps: int, solver: SolverOptions, label: str, sho
     if ro.n_failed:
         warning_line(
             f"{label}: Newton did not converge on {ro.n_failed} step(s); "
-            f"first at step {ro.first_failure()} (flagged in rollout.h5; the errors stop at each trajectory's first failure)"
+            f"first at step {ro.first_failure()} (flagged in rollout.h5; the errors stop at each trajectory's "
+            "first failure)"
         )
     return ro
 
