@@ -457,11 +457,12 @@ def _train_dataset(cfg: DictConfig, resume: dict | None, accept_changed: bool):
     from .data.scenes import get_dataset
     from .dataset_identity import check_unchanged
 
-    recorded = (resume or {}).get("dataset_path")
+    state = resume or {}
+    recorded = state.get("dataset_path")
     if recorded and Path(str(recorded)).is_absolute() and Path(str(recorded)).is_file():
         path = Path(str(recorded))
-        check_unchanged(Path(cfg.paths.output_dir) / "checkpoints" / "last.pt", resume.get("dataset_sha256"), path,
-                        accept_changed)  # fmt: skip
+        ckpt = Path(cfg.paths.output_dir) / "checkpoints" / "last.pt"
+        check_unchanged(ckpt, state.get("dataset_sha256"), path, accept_changed)
         return load_dataset(path), path
     return get_dataset(cfg.dataset, cfg.paths.data_dir, console=err_console)
 
