@@ -868,7 +868,7 @@ CASES: list[Case] = [
     Case(
         "accept-changed-dataset-not-bool",
         ("eval", "run={run}", "accept_changed_dataset=maybe"),
-        ("accept_changed_dataset",),
+        ("accept_changed_dataset='maybe'", "true or false"),
         setup=lambda c: c.run(),
     ),
     Case(
