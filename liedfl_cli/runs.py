@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import math
@@ -67,8 +68,9 @@ def load_run_checkpoint(run_dir, data_dir=None, checkpoint: str = "best", accept
         raise CheckpointError(f"{ckpt}: field 'config' is not a valid config ({type(e).__name__}: {e})") from None
     ds_path = _recorded_dataset(run_dir, payload.get("dataset_path"))
     if ds_path is not None:
-        check_unchanged(ckpt, payload.get("dataset_sha256"), ds_path, accept_changed_dataset)
-        dataset = load_dataset(ds_path)
+        with _naming_the_users_file(cfg, ds_path):
+            check_unchanged(ckpt, payload.get("dataset_sha256"), ds_path, accept_changed_dataset)
+            dataset = load_dataset(ds_path)
     else:  # regenerate from the recorded config (deterministic given its seed)
         dataset, _ = get_dataset(cfg.dataset, data_dir or cfg.paths.data_dir)
     try:
@@ -81,6 +83,34 @@ def load_run_checkpoint(run_dir, data_dir=None, checkpoint: str = "best", accept
         load_state(ckpt, model, payload)
     check_finite_first_step(ckpt, model, dataset)
     return cfg, model, dataset, run_dir, checkpoint_record(ckpt, payload)
+
+
+@contextlib.contextmanager
+def _naming_the_users_file(cfg, cached: Path):
+    """Errors and warnings about the cached copy of a user's file (dataset=file / import) also name
+    the user's file (`dataset.path`), which is the one they know."""
+    import warnings
+
+    from .errors import DataWarning
+
+    source = OmegaConf.select(cfg, "dataset.path", default=None)
+    if not isinstance(source, str) or not source:
+        yield
+        return
+    note = f" (the cached copy of {source})"
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", DataWarning)
+            try:
+                yield
+            except DatasetError as e:
+                raise DatasetError(f"{e}{note}") from None
+    finally:  # re-emitted once the recording has ended
+        for w in caught:
+            if issubclass(w.category, DataWarning):
+                warnings.warn(f"{w.message}{note}", w.category, stacklevel=3)
+            else:
+                warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
 
 
 def check_finite_first_step(ckpt, model, dataset) -> None:

@@ -336,3 +336,23 @@ def test_the_coarse_sampling_warning_of_a_users_file_is_printed_once(tmp_path, m
     coarse = [ln for ln in err.splitlines() if "sampled coarsely" in ln]
     assert len(coarse) == 1 and coarse[0].startswith("warning: mine.h5"), err
     assert "sampled coarsely" not in out
+
+
+def test_messages_about_a_cached_copy_name_the_users_file(tmp_path):
+    import warnings
+
+    from omegaconf import OmegaConf
+
+    from liedfl_cli.errors import DatasetError, DataWarning
+    from liedfl_cli.runs import _naming_the_users_file
+
+    cfg = OmegaConf.create({"dataset": {"name": "file", "path": "/home/me/mine.h5"}})
+    cached = tmp_path / "file-abc.h5"
+    with pytest.raises(DatasetError) as info, _naming_the_users_file(cfg, cached):
+        raise DatasetError(f"{cached}: dataset 'R' is broken")
+    assert str(info.value).endswith("(the cached copy of /home/me/mine.h5)")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        with _naming_the_users_file(cfg, cached):
+            warnings.warn(f"{cached}: sampled coarsely", DataWarning, stacklevel=1)
+    assert [str(w.message) for w in caught] == [f"{cached}: sampled coarsely (the cached copy of /home/me/mine.h5)"]
