@@ -462,7 +462,7 @@ def _check_model(cfg) -> None:
 def _check_model_size(cfg) -> None:
     """`model.mlp_width` x `model.mlp_depth`: refused when one MLP's weights, gradients and the
     optimiser's two moments (4 float64 copies of width^2 (depth - 1) + width weights) cannot fit."""
-    from .memory import check_fits
+    from .data.memory import check_fits
 
     width, depth = _value(cfg, "model.mlp_width"), _value(cfg, "model.mlp_depth")
     if not _is_int(width) or width < 1:

@@ -142,7 +142,7 @@ def check_config(c: dict, scenes: Mapping | None = None) -> dict:
     need = max(int(c["train_steps"]), int(c["rollout_steps"]))
     if int(c["steps"]) < need:
         raise ConfigError(f"dataset.steps={c['steps']} is shorter than max(train_steps, rollout_steps)={need}")
-    from ..memory import check_fits
+    from .memory import check_fits
 
     # a lower bound: one body's R (9) and p (3) in float64 per pose
     check_fits(

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import os
 
-from .errors import ConfigError
+from ..errors import ConfigError
 
 
 def machine_memory() -> int | None:
