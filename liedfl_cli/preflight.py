@@ -77,7 +77,9 @@ def classify(e: BaseException) -> tuple[str, int] | None:
 
 # liedfl's temporary names: `.<name>.tmp<suffix>` (io_utils.atomic_path) and `<name>.h5.tmp<suffix>`
 # (data.hdf5.save_dataset); the suffix is a process id, or host, process id and a random part
-_TMP_NAME = re.compile(r"(?:(?<=/)|^)\.([^/\s'\"]+?)\.tmp[A-Za-z0-9_.\-]*|([^/\s'\"]+?\.h5)\.tmp[A-Za-z0-9_.\-]*")
+_TMP_NAME = re.compile(
+    r"(?:(?<=/)|^)\.([^/\s'\"]+?)\.tmp(?:\d|[-_.])[A-Za-z0-9_.\-]*|([^/\s'\"]+?\.h5)\.tmp(?:\d|[-_.])[A-Za-z0-9_.\-]*"
+)
 
 
 def user_path(text: str) -> str:

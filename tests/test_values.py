@@ -321,6 +321,8 @@ def test_user_path_replaces_temporary_names():
     assert user_path("/a/b/.last.pt.tmp123: x") == "/a/b/last.pt: x"
     assert user_path("name = '/d/free-1.h5.tmp77', errno = 28") == "name = '/d/free-1.h5', errno = 28"
     assert user_path("/a/my.tmp/b.txt") == "/a/my.tmp/b.txt"
+    assert user_path("/a/.eval.csv.tmp-node1-77-9f") == "/a/eval.csv"
+    assert user_path("/a/.config.tmpl") == "/a/.config.tmpl"
 
 
 # ----------------------------------------------------------------------------- item 10: warnings
