@@ -83,13 +83,18 @@ def _safe_load(path, what: str = "checkpoint", map_location: Any = "cpu"):
     """torch.load with weights_only=True, tensors moved to `map_location`; TorchVersion (a str
     subclass) is allowed so that checkpoints written before versions were stored as plain strings
     stay readable."""
-    safe_globals = getattr(torch.serialization, "safe_globals", None)
-    if safe_globals is not None:
-        from torch.torch_version import TorchVersion
+    import warnings
 
-        with safe_globals([TorchVersion]):
-            return torch.load(path, map_location=map_location, weights_only=True)
-    return torch.load(path, map_location=map_location, weights_only=True)  # pragma: no cover (torch < 2.5)
+    safe_globals = getattr(torch.serialization, "safe_globals", None)
+    with warnings.catch_warnings():
+        # a plain (non-zip) pickle: torch warns about its protocol over two lines before the refusal
+        warnings.filterwarnings("ignore", message="Detected pickle protocol", category=UserWarning)
+        if safe_globals is not None:
+            from torch.torch_version import TorchVersion
+
+            with safe_globals([TorchVersion]):
+                return torch.load(path, map_location=map_location, weights_only=True)
+        return torch.load(path, map_location=map_location, weights_only=True)  # pragma: no cover (torch < 2.5)
 
 
 def _refusal(e: Exception) -> str:
@@ -155,6 +160,29 @@ def load_checkpoint(path, map_location: Any = "cpu") -> dict:
         if k not in payload:
             raise CheckpointError(f"{path}: checkpoint has no field '{k}'")
     return payload
+
+
+def check_training_state(path, payload: dict) -> int:
+    """The checkpoint's `epoch` (an integer >= 0) after checking that `history` is its list of
+    per-epoch rows (dicts with numbers `epoch` = 1, 2, ..., epoch, `loss` and `seconds`); CheckpointError
+    naming the field otherwise (a tampered file would train "epochs" -4..2 or crash mid-resume)."""
+    epoch, history = payload.get("epoch"), payload.get("history")
+    if isinstance(epoch, bool) or not isinstance(epoch, int) or epoch < 0:
+        raise CheckpointError(f"{path}: field 'epoch' must be an integer >= 0, got {epoch!r}")
+    if not isinstance(history, list):
+        raise CheckpointError(f"{path}: field 'history' must be a list of per-epoch rows, got {type(history).__name__}")
+    if len(history) != epoch:
+        raise CheckpointError(f"{path}: field 'history' has {len(history)} rows for epoch {epoch} (one per epoch)")
+    for i, row in enumerate(history):
+        if not isinstance(row, dict):
+            raise CheckpointError(f"{path}: field 'history[{i}]' is not a mapping (got {type(row).__name__})")
+        if row.get("epoch") != i + 1 or isinstance(row.get("epoch"), bool):
+            raise CheckpointError(f"{path}: field 'history[{i}].epoch' must be {i + 1}, got {row.get('epoch')!r}")
+        for key in ("loss", "seconds"):
+            v = row.get(key)
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                raise CheckpointError(f"{path}: field 'history[{i}].{key}' must be a number, got {v!r}")
+    return epoch
 
 
 def load_state(path, model, payload: dict) -> None:

@@ -371,7 +371,15 @@ def _main() -> None:
 
     @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name=command)
     def _hydra_main(cfg):
-        return _run(command, cfg)
+        try:
+            return _run(command, cfg)
+        except Exception as e:  # e.g. train.log cannot be opened: one line here, not Hydra's extra line
+            known = classify(e)
+            if known is None:
+                raise
+            from .ui import fail
+
+            fail(*known)
 
     sys.argv = [f"liedfl-{command}", *_with_help_overrides(command, argv[1:])]
     # Hydra prints its own errors over several lines and exits; with HYDRA_FULL_ERROR it raises them
@@ -547,7 +555,12 @@ def _hydra_failure(command: str, e: Exception) -> None:
     from .ui import fail
 
     if isinstance(e, OSError) and e.filename:  # e.g. a run folder that cannot be created
-        fail(f"{e.filename}: {e.strerror or type(e).__name__}")
+        from .preflight import os_error_line
+
+        fail(os_error_line(e))
+    yaml_error = _yaml_error(e)
+    if yaml_error is not None:
+        fail(yaml_error)
     if not isinstance(e, (HydraException, OmegaConfBaseException)):
         raise e
     unknown = unknown_key_message(command, e)
@@ -557,6 +570,22 @@ def _hydra_failure(command: str, e: Exception) -> None:
     if "hydra/launcher/submitit" in message:  # the plugin's configs exist only once it is installed
         message += ' (the submitit launchers need hydra-submitit-launcher: pip install -e ".[cluster]")'
     fail(message + " (HYDRA_FULL_ERROR=1 shows Hydra's full message)")
+
+
+def _yaml_error(e: BaseException) -> str | None:
+    """One line for a YAML syntax error in a config file (an experiment, a `--config-dir` file):
+    the file, line and column, and what the parser found; None for other errors."""
+    import yaml
+
+    while e is not None and not isinstance(e, yaml.YAMLError):
+        e = e.__cause__ or e.__context__  # type: ignore[assignment]
+    if e is None:
+        return None
+    mark = getattr(e, "problem_mark", None) or getattr(e, "context_mark", None)
+    problem = getattr(e, "problem", None) or str(e).splitlines()[0]
+    context = getattr(e, "context", None)
+    where = f"{mark.name}: line {mark.line + 1}, column {mark.column + 1}" if mark is not None else "a config file"
+    return f"{where}: YAML syntax error: {problem}" + (f" ({context})" if context else "")
 
 
 def hydra_message(command: str, e: BaseException) -> str:

@@ -19,15 +19,17 @@ import json
 import math
 from pathlib import Path
 
+import numpy as np
+import torch
 from omegaconf import DictConfig
 
 from . import plots
 from .errors import ConfigError
 from .io_utils import markdown_table, write_csv, write_json, write_text
 from .lie import Pose, ProductGroup
-from .metrics import drift_metrics, error_metrics, one_step_metrics
+from .metrics import drift_metrics, error_metrics, one_step_metrics, valid_horizons, valid_steps
 from .rollout_file import FILE_NAME, RolloutFile, load_rollout, read_rollout
-from .ui import console, print_table
+from .ui import console, print_table, warning_line
 
 SHORT = {
     "rel_rot_error_mean": "rel err",
@@ -48,9 +50,17 @@ SHORT = {
     "one_step_pos_error_mean": "1-step pos",
     "one_step_vs_cv": "1-step/CV",
     "rollout_vs_cv": "geo/CV",
+    "valid_horizon_min": "valid to",
+    "failed_trajectories": "failed traj",
+    "excluded_samples": "excluded",
 }
 ERROR_COLUMNS = ["rel_rot_error_mean", "rel_rot_error_final", "geodesic_error_mean", "position_error_mean"]
-"""Columns computed against ground truth: over the steps the dataset has."""
+"""Columns computed against ground truth: over the steps the dataset has, each trajectory up to its first
+Newton failure (a failed step and the poses predicted from it are not the model's predictions)."""
+HORIZON_COLUMNS = ["valid_horizon_min", "valid_horizon_mean", "failed_trajectories", "excluded_samples"]
+"""What the errors cover: the trajectories' valid horizons (the last sample before their first Newton
+failure; the error span's end without one), how many trajectories failed within the span and how
+many samples the errors leave out."""
 ONE_STEP_COLUMNS = ["one_step_rot_error_mean", "one_step_pos_error_mean"]
 """Teacher-forced one-step errors (each g_{k+1} from the true (g_{k-1}, g_k)), over the steps with ground truth."""
 CV_COLUMNS = ["one_step_vs_cv", "rollout_vs_cv"]
@@ -62,6 +72,7 @@ DRIFT_COLUMNS = ["max_orth_drift", "max_det_drift"]
 COLUMNS = [
     "model",
     *ERROR_COLUMNS,
+    *HORIZON_COLUMNS,
     *ONE_STEP_COLUMNS,
     *CV_COLUMNS,
     *DRIFT_COLUMNS,
@@ -104,9 +115,11 @@ def _rows(
     n = min(rf.steps, truth.R.shape[1] - 1)
     target = truth.index((slice(None), slice(2, n + 1)))  # what the one-step predictions predict
     for name, ro in rf.models.items():
-        row, curves[name] = _errors(name, names, ro.pose, truth, n)
+        valid = valid_steps(torch.from_numpy(np.asarray(ro.converged, dtype=bool)), n)
+        row, curves[name] = _errors(name, names, ro.pose, truth, n, valid)
         if ro.one_step is not None:
-            row.update(one_step_metrics(ro.one_step.pose, target))
+            conv = torch.from_numpy(np.asarray(ro.one_step.converged, dtype=bool))
+            row.update(one_step_metrics(ro.one_step.pose, target, conv))
             row["one_step_newton_failures"] = ro.one_step.n_failed
         else:
             row.update({k: None for k in ONE_STEP_COLUMNS if k != "one_step_pos_error_mean" or truth.p.shape[-2]})
@@ -144,14 +157,25 @@ def _rows(
     return rows, curves
 
 
-def _errors(name: str, names: dict[str, str], pred: Pose, truth: Pose, n: int) -> tuple[dict, dict]:
-    """(row with the error, drift and non-finite columns, curves) of one predicted rollout."""
+def _errors(
+    name: str, names: dict[str, str], pred: Pose, truth: Pose, n: int, valid: torch.Tensor | None = None
+) -> tuple[dict, dict]:
+    """(row with the error, horizon, drift and non-finite columns, curves) of one predicted rollout.
+    valid: (T, n+1) bool, the samples the errors cover (`metrics.valid_steps`); None = all."""
     span = (slice(None), slice(0, n + 1))
-    err = error_metrics(pred.index(span), truth.index(span))
+    err = error_metrics(pred.index(span), truth.index(span), valid)
     drift = drift_metrics(pred)
     scalars = {**err["scalars"], **drift["scalars"]}
+    if valid is not None and not bool(valid[:, 2:].any()):  # no predicted sample is valid: no error to give
+        scalars.update({k: float("nan") for k in err["scalars"]})
     row = {"model": name, "name": names.get(name, name), **{k: scalars[k] for k in _ROW_ORDER if k in scalars}}
-    return row, {**err["curves"], **drift["curves"]}
+    T = int(pred.R.shape[0])
+    horizons = valid_horizons(valid) if valid is not None else [n] * T
+    row["valid_horizon_min"] = min(horizons) if horizons else None
+    row["valid_horizon_mean"] = float(np.mean(horizons)) if horizons else None
+    row["failed_trajectories"] = sum(hz < n for hz in horizons)
+    row["excluded_samples"] = int(T * (n + 1) - (int(valid.sum()) if valid is not None else T * (n + 1)))
+    return row, {**err["curves"], **drift["curves"], "valid_horizon": np.asarray(horizons, dtype=np.int64)}
 
 
 def _ratio(a, b) -> float | None:
@@ -171,6 +195,8 @@ TABLE_PRIORITY = [
     "one_step_rot_error_mean",
     "max_orth_drift",
     "newton_failures",
+    "valid_horizon_min",
+    "failed_trajectories",
     "rollout_s_per_step",
     "rel_rot_error_final",
     "max_det_drift",
@@ -212,6 +238,8 @@ def span_note(rf: RolloutFile, dataset) -> str:
     return (
         f"errors (rel err, rel err end, geo err, pos err) over steps 0..{n}"
         + (f" (the dataset ends at step {dataset.n_steps})" if n < rf.steps else "")
+        + ", each trajectory up to its first Newton failure (valid to: the shortest such horizon; failed traj,"
+        + " excluded: the trajectories cut short and the samples left out)"
         + f"; one-step errors (1-step rot, 1-step pos) over the teacher-forced predictions of steps 2..{n}"
         + f"; drift, non-finite and Newton columns over the whole rollout, steps 0..{rf.steps}"
     )
@@ -338,11 +366,9 @@ def check_provenance(path: Path, attrs: dict, run_dir, run_id: str | None) -> bo
     (written before rollout files recorded it) passes with a one-line warning. True when it is the run's."""
     other = attrs.get("run_id")
     if other in (None, ""):
-        console.print(
-            f"[bold yellow]warning:[/] {path}: provenance unknown (the file records no run_id: written before "
-            f"rollout files recorded their run); evaluated as a rollout of run {run_dir}",
-            soft_wrap=True,
-            highlight=False,
+        warning_line(
+            f"{path}: provenance unknown (the file records no run_id: written before "
+            f"rollout files recorded their run); evaluated as a rollout of run {run_dir}"
         )
         return False
     if str(other) != str(run_id):
@@ -405,8 +431,10 @@ def run_eval(cfg: DictConfig) -> list[dict]:
     from .signals import set_phase
 
     configure_runtime(cfg)  # this command's runtime section (the model of the scene's extra evaluation)
+    from .dataset_identity import accept_option
+
     run_cfg, model, dataset, run_dir, used = load_run_checkpoint(
-        cfg.run, cfg.paths.data_dir, cfg.get("checkpoint") or "best"
+        cfg.run, cfg.paths.data_dir, cfg.get("checkpoint") or "best", accept_option(cfg)
     )
     path = rollout_path_arg(cfg.get("rollout"), run_dir)
     last = load_checkpoint(Path(run_dir) / "checkpoints" / "last.pt")

@@ -10,6 +10,7 @@ model there, `data_pose` converts a dataset's trajectories; nothing below the pi
 
 from __future__ import annotations
 
+import inspect
 from typing import Any, TypeVar
 
 import torch
@@ -42,6 +43,11 @@ def model_class(target: str) -> type[Model]:
         raise ConfigError(f"model._target_={target!r}: no such class") from None
     if not (isinstance(cls, type) and issubclass(cls, Model)):
         raise ConfigError(f"model._target_={target!r}: not a liedfl model (a subclass of models.base.Model)")
+    if inspect.isabstract(cls):  # Model, ImplicitModel, ...: from_config is not implemented
+        raise ConfigError(
+            f"model._target_={target!r}: an abstract base class, not a model; pick a model with "
+            "model=<name> (liedfl train --help lists them)"
+        )
     return cls
 
 

@@ -39,37 +39,71 @@ def orthogonality_drift(R_hat: torch.Tensor) -> torch.Tensor:
     return so3.orthogonality_error(R_hat)
 
 
-def error_metrics(pred: Pose, true: Pose) -> dict:
+def masked_mean(x: torch.Tensor, valid: torch.Tensor | None, dim: int | None = None) -> torch.Tensor:
+    """Mean of `x` over the entries where `valid` (same shape, bool) holds (all when None); NaN where
+    no entry is valid. Entries outside `valid` may be non-finite: they are never added."""
+    if valid is None:
+        return x.mean() if dim is None else x.mean(dim)
+    w = valid.to(x.dtype)
+    total = torch.where(valid, x, torch.zeros_like(x))
+    if dim is None:
+        return total.sum() / w.sum()  # 0 / 0 = NaN: nothing valid
+    return total.sum(dim) / w.sum(dim)
+
+
+def error_metrics(pred: Pose, true: Pose, valid: torch.Tensor | None = None) -> dict:
     """Errors against ground truth: per-step curves (numpy, shape (S+1,), mean over trajectories and
     bodies) and scalars (means over trajectories, steps and bodies; `*_final` at the last step).
 
     pred, true: R (T, S+1, B, 3, 3), p (T, S+1, m, 3), over the steps where ground truth exists.
+    valid: (T, S+1) bool, the samples the errors cover (a rollout's steps up to its first Newton
+    failure, `valid_steps`); None = all. `*_final` averages the trajectories valid at the last step.
     """
     rel = relative_rotation_error(pred.R, true.R).mean(-1)  # (T, S+1)
     geo = geodesic_error(torch.nan_to_num(pred.R), true.R).mean(-1)
-    curves = {"rel_rot_error": rel.mean(0), "geodesic_error": geo.mean(0)}
+    last = None if valid is None else valid[:, -1]
+    curves = {"rel_rot_error": masked_mean(rel, valid, 0), "geodesic_error": masked_mean(geo, valid, 0)}
     scalars = {
-        "rel_rot_error_mean": rel.mean(),
-        "rel_rot_error_final": rel[:, -1].mean(),
-        "geodesic_error_mean": geo.mean(),
+        "rel_rot_error_mean": masked_mean(rel, valid),
+        "rel_rot_error_final": masked_mean(rel[:, -1], last),
+        "geodesic_error_mean": masked_mean(geo, valid),
     }
     if pred.p.shape[-2] > 0:
         pos = position_error(pred.p, true.p).mean(-1)
-        curves["position_error"] = pos.mean(0)
-        scalars["position_error_mean"] = pos.mean()
-        scalars["position_error_final"] = pos[:, -1].mean()
+        curves["position_error"] = masked_mean(pos, valid, 0)
+        scalars["position_error_mean"] = masked_mean(pos, valid)
+        scalars["position_error_final"] = masked_mean(pos[:, -1], last)
     return {"curves": _numpy(curves), "scalars": {k: float(v) for k, v in scalars.items()}}
 
 
-def one_step_metrics(pred: Pose, true: Pose) -> dict:
+def valid_steps(converged: torch.Tensor, n: int) -> torch.Tensor:
+    """(T, n+1) bool: the samples 0..n of each trajectory up to its first Newton failure (excluded).
+
+    converged: (T, S-1) bool, converged[:, j] for the solve that produced sample j + 2 (a rollout's
+    flags); samples 0 and 1 are the data's. A failed step's pose is the last iterate, and every later
+    pose is predicted from it: neither is a prediction of the model."""
+    T = converged.shape[0]
+    ok = torch.cumprod(converged.to(torch.int64), dim=1).bool()
+    full = torch.cat([torch.ones(T, 2, dtype=torch.bool), ok], dim=1)
+    return full[:, : n + 1]
+
+
+def valid_horizons(valid: torch.Tensor) -> list[int]:
+    """Per trajectory, the last sample index the errors cover (its valid horizon; n without failure)."""
+    return [int(v.sum()) - 1 for v in valid]
+
+
+def one_step_metrics(pred: Pose, true: Pose, converged: torch.Tensor | None = None) -> dict:
     """Teacher-forced one-step errors: the geodesic rotation error (rad) and, with SE(3) bodies, the
     position error, each the mean over bodies, predicted samples and trajectories.
 
     pred, true: R (T, K, B, 3, 3), p (T, K, m, 3): the K one-step predictions and the true poses they predict.
+    converged: (T, K) bool, the predictions whose Newton solve converged (the others are left out); None = all.
     """
-    out = {"one_step_rot_error_mean": float(geodesic_error(torch.nan_to_num(pred.R), true.R).mean())}
+    geo = geodesic_error(torch.nan_to_num(pred.R), true.R).mean(-1)  # (T, K)
+    out = {"one_step_rot_error_mean": float(masked_mean(geo, converged))}
     if pred.p.shape[-2] > 0:
-        out["one_step_pos_error_mean"] = float(position_error(pred.p, true.p).mean())
+        out["one_step_pos_error_mean"] = float(masked_mean(position_error(pred.p, true.p).mean(-1), converged))
     return out
 
 

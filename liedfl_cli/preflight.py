@@ -3,6 +3,9 @@ CLI reports as one line. Used by the CLI and by the Hydra callback (`status.Lied
 
 from __future__ import annotations
 
+import os
+import re
+
 # commands whose Hydra run dir is `${<key>}`, an existing directory named on the command line
 DIR_ARGS = {
     "rollout": ("run", "run dir", "run directory", "a directory written by `liedfl train`"),
@@ -47,6 +50,8 @@ def classify(e: BaseException) -> tuple[str, int] | None:
 
     if isinstance(e, LiedflError):
         return str(e), int(getattr(e, "exit_code", 2))
+    if isinstance(e, OSError) and not isinstance(e, BrokenPipeError):  # a full disk, a read-only folder, ...
+        return os_error_line(e), 2
     if isinstance(e, FloatingPointError):
         return f"numerical failure: {e}", 2
     if isinstance(e, OmegaConfBaseException):  # e.g. a broken interpolation in an override file
@@ -69,3 +74,29 @@ def classify(e: BaseException) -> tuple[str, int] | None:
             2,
         )
     return None
+
+
+# liedfl's temporary names: `.<name>.tmp<suffix>` (io_utils.atomic_path) and `<name>.h5.tmp<suffix>`
+# (data.hdf5.save_dataset); the suffix is a process id, or host, process id and a random part
+_TMP_NAME = re.compile(
+    r"(?:(?<=/)|^)\.([^/\s'\"]+?)\.tmp(?:\d|[-_.])[A-Za-z0-9_.\-]*|([^/\s'\"]+?\.h5)\.tmp(?:\d|[-_.])[A-Za-z0-9_.\-]*"
+)
+
+
+def user_path(text: str) -> str:
+    """`text` with liedfl's temporary file names replaced by the names of the files being written
+    (an error while writing `.last.pt.tmp123` is about `last.pt`)."""
+    return _TMP_NAME.sub(lambda m: m.group(1) or m.group(2), str(text))
+
+
+def os_error_line(e: OSError) -> str:
+    """One line for an OSError: the file it is about (the user's name, not a temporary one) and why;
+    ENOSPC says that nothing half-written was kept (every file is written then renamed)."""
+    import errno
+
+    why = e.strerror or " ".join(str(a) for a in e.args) or type(e).__name__
+    where = f"{user_path(os.fsdecode(e.filename))}: " if e.filename else ""
+    line = user_path(f"{where}{why}")
+    if e.errno in (errno.ENOSPC, errno.EDQUOT):
+        line += " (no file was left half-written; free some space and run the command again)"
+    return line

@@ -39,7 +39,7 @@ from .evaluate import CV_COLUMNS, DRIFT_COLUMNS, ERROR_COLUMNS, ONE_STEP_COLUMNS
 from .io_utils import fmt, markdown_table, write_csv, write_text
 from .rollout_file import FILE_NAME, read_rollout
 from .speed_figure import pareto_front, plain_log_ticks  # noqa: F401  (pareto_front: part of this module's API)
-from .ui import console, print_table
+from .ui import console, print_table, warning_line
 
 COLUMNS = [
     "run",
@@ -395,7 +395,7 @@ def _sphere_tracks(run: Path) -> tuple[dict, np.ndarray | None]:
     try:
         rf = read_rollout(path)
     except LiedflError as e:
-        console.print(f"[yellow]warning:[/] {e}; its sphere panel is left empty")
+        warning_line(f"{e}; its sphere panel is left empty")
         return {}, None
     tracks = {name: e.R[0, :, 0, :, 2] for name, e in rf.models.items()}
     truth = None

@@ -32,7 +32,7 @@ from .lie import Pose
 from .rollout_file import OneStep, RolloutEntry, write_rollout
 from .solvers.options import SolverOptions
 from .solvers.rollout import Rollout
-from .ui import console, progress_bar
+from .ui import console, progress_bar, warning_line
 
 
 def warn_stiff_damping(model, label: str) -> float | None:
@@ -42,11 +42,10 @@ def warn_stiff_damping(model, label: str) -> float | None:
 
     stiffness = model.damping_stiffness()
     if stiffness is not None and stiffness > STIFF_DAMPING:
-        console.print(
-            f"[bold yellow]warning:[/] {label}: stiff damping, h*lambda_max(M^-1 D) = {stiffness:.3g} > "
+        warning_line(
+            f"{label}: stiff damping, h*lambda_max(M^-1 D) = {stiffness:.3g} > "
             f"{STIFF_DAMPING:g}: velocity x {step_factor(stiffness):+.3f} per step, its sign flips every step "
-            f"(exact: x {math.exp(-stiffness):.2g}); Newton still converges (docs/math.md, 'Stiff damping')",
-            soft_wrap=True,
+            f"(exact: x {math.exp(-stiffness):.2g}); Newton still converges (docs/math.md, 'Stiff damping')"
         )
     return stiffness
 
@@ -58,9 +57,10 @@ def _roll(model, truth: Pose, steps: int, solver: SolverOptions, label: str, sho
         task = bar.add_task(f"rollout {label}", total=max(steps - 1, 0), loss=float("nan"))
         ro = model.rollout(g0, g1, steps, solver, progress=lambda k: bar.update(task, completed=k))
     if ro.n_failed:
-        console.print(
-            f"[bold yellow]warning:[/] {label}: Newton did not converge on {ro.n_failed} step(s); "
-            f"first at step {ro.first_failure()} (flagged in rollout.h5, counted in the eval table)"
+        warning_line(
+            f"{label}: Newton did not converge on {ro.n_failed} step(s); "
+            f"first at step {ro.first_failure()} (flagged in rollout.h5; the errors stop at each trajectory's "
+            "first failure)"
         )
     return ro
 
@@ -198,8 +198,10 @@ def run_rollout(cfg: DictConfig) -> dict:
     from .runs import load_run_checkpoint
 
     configure_runtime(cfg)  # this command's runtime section: threads, device, dtype, ...
+    from .dataset_identity import accept_option
+
     run_cfg, model, dataset, run_dir, used = load_run_checkpoint(
-        cfg.run, cfg.paths.data_dir, cfg.get("checkpoint") or "best"
+        cfg.run, cfg.paths.data_dir, cfg.get("checkpoint") or "best", accept_option(cfg)
     )
     console.print(describe_checkpoint(used), highlight=False)
     other = other_dataset(cfg, model, run_dir)

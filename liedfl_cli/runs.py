@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import math
@@ -11,6 +12,7 @@ from omegaconf import OmegaConf
 
 from . import resolvers  # noqa: F401  (registers the config resolvers)
 from .checkpoint import checkpoint_path, checkpoint_record, load_checkpoint, load_state
+from .dataset_identity import check_unchanged
 from .errors import CheckpointError, ConfigError, DatasetError
 
 
@@ -41,10 +43,12 @@ def load_run(run_dir, data_dir=None, checkpoint: str = "best"):
     return cfg, model, dataset, run_dir
 
 
-def load_run_checkpoint(run_dir, data_dir=None, checkpoint: str = "best"):
+def load_run_checkpoint(run_dir, data_dir=None, checkpoint: str = "best", accept_changed_dataset: bool = False):
     """`load_run` plus the record of the checkpoint loaded (`checkpoint.checkpoint_record`:
     file, epoch, selection metric and value). The run's config comes from checkpoints/last.pt, which
-    is always loaded and checked (a broken last.pt is a broken run); best.pt then replaces the weights."""
+    is always loaded and checked (a broken last.pt is a broken run); best.pt then replaces the weights.
+    The recorded dataset file must be the one trained on (its SHA-256, `dataset_identity`) unless
+    `accept_changed_dataset`; the model must give finite values at the data's first step."""
     from .data.hdf5 import load_dataset
     from .data.scenes import get_dataset
     from .factory import build_model, placement
@@ -65,7 +69,9 @@ def load_run_checkpoint(run_dir, data_dir=None, checkpoint: str = "best"):
         raise CheckpointError(f"{ckpt}: field 'config' is not a valid config ({type(e).__name__}: {e})") from None
     ds_path = _recorded_dataset(run_dir, payload.get("dataset_path"))
     if ds_path is not None:
-        dataset = load_dataset(ds_path)
+        with _naming_the_users_file(cfg, ds_path):
+            check_unchanged(ckpt, payload.get("dataset_sha256"), ds_path, accept_changed_dataset)
+            dataset = load_dataset(ds_path)
     else:  # regenerate from the recorded config (deterministic given its seed)
         dataset, _ = get_dataset(cfg.dataset, data_dir or cfg.paths.data_dir)
     try:
@@ -76,7 +82,72 @@ def load_run_checkpoint(run_dir, data_dir=None, checkpoint: str = "best"):
     if selected != ckpt:
         ckpt, payload = selected, load_checkpoint(selected, map_location=placement()[0])
         load_state(ckpt, model, payload)
+    check_finite_first_step(ckpt, model, dataset)
     return cfg, model, dataset, run_dir, checkpoint_record(ckpt, payload)
+
+
+@contextlib.contextmanager
+def _naming_the_users_file(cfg, cached: Path):
+    """Errors and warnings about the cached copy of a user's file (dataset=file / import) also name
+    the user's file (`dataset.path`), which is the one they know."""
+    import warnings
+
+    from .errors import DataWarning
+
+    source = OmegaConf.select(cfg, "dataset.path", default=None)
+    if not isinstance(source, str) or not source:
+        yield
+        return
+    note = f" (the cached copy of {source})"
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", DataWarning)
+            try:
+                yield
+            except DatasetError as e:
+                raise DatasetError(f"{e}{note}") from None
+    finally:  # re-emitted once the recording has ended
+        for w in caught:
+            if issubclass(w.category, DataWarning):
+                warnings.warn(f"{w.message}{note}", w.category, stacklevel=3)
+            else:
+                warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+
+
+def check_finite_first_step(ckpt, model, dataset) -> None:
+    """CheckpointError when the model, from the first pair of the first test (else train) trajectory,
+    predicts a non-finite pose or residual: weights such as a diverged run's (finite but huge) would
+    otherwise roll out as a table of Newton failures, or fail inside a linear-algebra library."""
+    import numpy as np
+    import torch
+
+    from .factory import data_pose
+    from .solvers.options import SolverOptions
+
+    idx = np.asarray(dataset.test_idx if len(dataset.test_idx) else dataset.train_idx)[:1]
+    if len(idx) == 0 or dataset.n_steps < 2:
+        return
+    truth = data_pose(dataset, idx)
+    g0, g1 = truth.index((slice(None), 0)), truth.index((slice(None), 1))
+    was_training = model.training
+    model.eval()
+    try:
+        with torch.no_grad():
+            ro = model.rollout(g0, g1, 3, SolverOptions())
+    except (ArithmeticError, ValueError, RuntimeError) as e:
+        bad = f"{type(e).__name__}: {e}"
+    else:
+        finite = bool(torch.isfinite(ro.pose.R).all() and torch.isfinite(ro.pose.p).all())
+        finite = finite and bool(torch.isfinite(ro.residual_norm).all())
+        bad = "" if finite else "non-finite values"
+    finally:
+        model.train(was_training)
+    if bad:
+        big = max(((float(v.abs().max()), k) for k, v in model.state_dict().items() if v.numel()), default=(0.0, ""))
+        raise CheckpointError(
+            f"{ckpt}: the model's predictions are non-finite from the data's first pair ({bad}; largest "
+            f"|weight| {big[0]:.3g} in state_dict.{big[1]}): the weights are unusable"
+        )
 
 
 # ----------------------------------------------------------------------------- other run files

@@ -192,11 +192,15 @@ TOP_LEVEL: dict[str, tuple[str, ...]] = {
     # rollout run=<run> dataset=<scene>: other data (the dataset file selects its group)
     "rollout": (
         *("task_name", "run", "checkpoint", "steps", "rollout", "eval", "ui", "paths", "solver", "runtime"),
+        "accept_changed_dataset",
         *("dataset", "group", "split", "export"),
     ),
-    "eval": ("task_name", "run", "checkpoint", "rollout", "eval", "ui", "paths", "solver", "runtime"),
+    "eval": (
+        *("task_name", "run", "checkpoint", "rollout", "eval", "ui", "paths", "solver", "runtime"),
+        "accept_changed_dataset",
+    ),
     "report": ("task_name", "sweep", "plots"),
-    "resume": ("task_name", "resume", "epochs", "ui"),
+    "resume": ("task_name", "resume", "epochs", "ui", "accept_changed_dataset"),
 }
 _SOLVER = ("solver.tol", "solver.max_iter", "solver.max_halvings")
 _RUN_KEYS = ("run", "steps", "rollout.max_trajectories", "rollout.reference", "eval.plots", "ui.progress")
@@ -323,11 +327,11 @@ def _is_number(v) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool)
 
 
-def _int(cfg, key: str, minimum: int, nullable: bool = False, what: str | None = None):
+def _int(cfg, key: str, minimum: int, nullable: bool = False, what: str | None = None, maximum: int | None = None):
     v = _value(cfg, key)
     if v is None and nullable:
         return None
-    if not _is_int(v) or v < minimum:
+    if not _is_int(v) or v < minimum or (maximum is not None and v > maximum):
         need = what or ("a positive integer" if minimum == 1 else f"an integer >= {minimum}")
         raise ConfigError(f"{key}={v!r}: must be {need}" + (" or null" if nullable else ""))
     return v
@@ -446,6 +450,7 @@ def _check_model(cfg) -> None:
         reference = _reference("model", name) if name in _options("model") else None
         if reference is not None:
             _check_keys(model, list(reference), "model", f" for model '{name}'")
+    _check_model_size(cfg)
     known = _value(cfg, "model.known") or []
     if known:
         from .models.liedflnn import KNOWN_PARTS
@@ -455,6 +460,18 @@ def _check_model(cfg) -> None:
             raise ConfigError(
                 f"model.known={list(known)}: unknown part {bad[0]!r}; choose from {', '.join(KNOWN_PARTS)}"
             )
+
+
+def _check_model_size(cfg) -> None:
+    """`model.mlp_width` x `model.mlp_depth`: refused when one MLP's weights, gradients and the
+    optimiser's two moments (4 float64 copies of width^2 (depth - 1) + width weights) cannot fit."""
+    from .data.memory import check_fits
+
+    width, depth = _value(cfg, "model.mlp_width"), _value(cfg, "model.mlp_depth")
+    if not _is_int(width) or width < 1:
+        return
+    depth = depth if _is_int(depth) and depth >= 1 else 1
+    check_fits(f"model.mlp_width={width} (model.mlp_depth={depth})", 4 * 8 * (float(width) ** 2 * (depth - 1) + width))
 
 
 def _check_data_dir(cfg, must_write: bool) -> None:
@@ -477,10 +494,13 @@ def _check_data_dir(cfg, must_write: bool) -> None:
         raise ConfigError(f"paths.data_dir={raw}: cannot be created ({parent} is not writable)")
 
 
+SEED_MAX = 2**63 - 1  # torch's generators take a signed 64-bit seed
+
+
 def _check_scalars(cfg, command: str) -> None:
     """Top-level scalars (checked first: section values interpolate them)."""
     if "seed" in cfg:
-        _int(cfg, "seed", 0, what="an integer >= 0")
+        _int(cfg, "seed", 0, what=f"an integer from 0 to {SEED_MAX} (2**63 - 1)", maximum=SEED_MAX)
     if "epoch_scale" in cfg and command == "train":
         _float(cfg, "epoch_scale", positive=True)
 

@@ -29,11 +29,12 @@ from collections.abc import Callable
 from pathlib import Path
 
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 from .checkpoint import (
     CHECKPOINT_FILE,
     capture_rng_state,
+    check_training_state,
     checkpoint_record,
     describe_checkpoint,
     load_checkpoint,
@@ -50,7 +51,7 @@ from .lie import Pose
 from .loggers import MetricsLog, make_loggers
 from .models.losses import training_stage
 from .solvers import runtime
-from .ui import console, err_console, progress_bar
+from .ui import console, err_console, progress_bar, warning_line
 from .validation import (
     VAL_COLUMNS,
     Selection,
@@ -73,6 +74,38 @@ class TrainingInterrupted(LiedflError):
     def __init__(self, message: str, exit_code: int):
         super().__init__(message)
         self.exit_code = exit_code
+
+
+class TrainingDiverged(LiedflError):
+    """The training loss became non-finite (or overflowed): the learning rate is too large, or the
+    weights it started from are unusable. `first`: on the first step of this `fit` call."""
+
+    def __init__(self, epoch: int, batch: int | None, value: str, first: bool, saved: int | None):
+        where = f"epoch {epoch}, batch {batch}" if batch is not None else f"the end of epoch {epoch}"
+        super().__init__(f"training diverged at {where}: the loss became {value}")
+        self.epoch, self.batch, self.value, self.first, self.saved = epoch, batch, value, first, saved
+
+
+def _loss_value(model, batch, opts) -> tuple[torch.Tensor | None, dict, str]:
+    """(loss, parts, '') or (None, {}, what it became) when it is non-finite or overflows."""
+    try:
+        loss, parts = model.loss(batch, opts)
+    except OverflowError as e:
+        return None, {}, f"too large ({e})"
+    if not torch.isfinite(loss):
+        return None, {}, str(loss.item())
+    return loss, parts, ""
+
+
+def _weights_usable(model, samples, opts) -> str:
+    """'' when the loss at the current weights is finite on a few samples (a private generator: the
+    training's random streams are untouched), else what it became. Weights one step past a divergence
+    are finite but huge; their loss is not."""
+    gen = torch.Generator().manual_seed(0)
+    idx = torch.arange(min(4, samples.n))
+    with torch.no_grad():
+        _, _, bad = _loss_value(model, samples.batch(idx, gen, opts.reg_points), opts)
+    return bad
 
 
 class StopRequest:
@@ -245,6 +278,7 @@ def fit(
     no_pass = dict.fromkeys(VAL_COLUMNS) if validator is not None else {}
     val_text = next((format_pass(r) for r in reversed(history) if r.get("val_one_step_error") is not None), "")
     last = start - 1
+    saved_epoch = start - 1 if resume is not None else None  # the epoch of the last checkpoint written
     t0 = time.perf_counter() - offset
     last_save = time.perf_counter()
     with progress_bar(show_progress) as bar:
@@ -255,9 +289,9 @@ def fit(
             for b in range(n_batches):
                 idx = perm[b * bs : (b + 1) * bs]
                 opt.zero_grad(set_to_none=True)
-                loss, parts = model.loss(samples.batch(idx, gen, opts.reg_points), opts)
-                if not torch.isfinite(loss):
-                    raise FloatingPointError(f"training loss became {loss.item()} at epoch {epoch}, batch {b}")
+                loss, parts, bad = _loss_value(model, samples.batch(idx, gen, opts.reg_points), opts)
+                if loss is None:
+                    raise TrainingDiverged(epoch, b, bad, first=epoch == start and b == 0, saved=saved_epoch)
                 loss.backward()
                 opt.step()
                 for k, v in {"loss": loss, **parts}.items():
@@ -305,7 +339,11 @@ def fit(
             stopping = signum is not None
             due = (epoch % every == 0) if every else (time.perf_counter() - last_save >= AUTO_CHECKPOINT_SECONDS)
             if save is not None and epoch < epochs and (due or stopping):
+                bad = _weights_usable(model, samples, opts)  # never save diverged weights over good ones
+                if bad:
+                    raise TrainingDiverged(epoch, None, bad, first=False, saved=saved_epoch)
                 save(state(epoch))
+                saved_epoch = epoch
                 last_save = time.perf_counter()
             if signum is not None and epoch < epochs:
                 raise TrainingInterrupted(
@@ -313,6 +351,10 @@ def fit(
                     128 + int(signum),
                 )
     wall = time.perf_counter() - t0
+    if last >= start:  # the last step's weights (their loss was never computed)
+        bad = _weights_usable(model, samples, opts)
+        if bad:
+            raise TrainingDiverged(last, None, bad, first=False, saved=saved_epoch)
     return {
         "history": history,
         "train_seconds": wall,
@@ -382,11 +424,40 @@ def count_parameters(model) -> int:
     return sum(p.numel() for p in model.parameters() if p.requires_grad)
 
 
-def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
-    """`liedfl train`: data -> model -> fit (with checkpoints) -> checkpoint -> recovery ->
-    rollout -> eval. `resume`: a checkpoint payload to continue from. Returns a summary."""
-    from .data.files import complete_steps
+def _train_dataset(cfg: DictConfig, resume: dict | None, accept_changed: bool):
+    """(dataset, its file) for training. A resumed run reads the file its checkpoint recorded (an
+    absolute path: resuming works from any directory), which must still be the file trained on
+    (`dataset_identity`); a run whose recorded file is gone gets it again from its config."""
+    from .data.hdf5 import load_dataset
     from .data.scenes import get_dataset
+    from .dataset_identity import check_unchanged
+
+    state = resume or {}
+    recorded = state.get("dataset_path")
+    if recorded and Path(str(recorded)).is_absolute() and Path(str(recorded)).is_file():
+        path = Path(str(recorded))
+        ckpt = Path(cfg.paths.output_dir) / "checkpoints" / "last.pt"
+        check_unchanged(ckpt, state.get("dataset_sha256"), path, accept_changed)
+        return load_dataset(path), path
+    return get_dataset(cfg.dataset, cfg.paths.data_dir, console=err_console)
+
+
+def _absolute_user_paths(cfg: DictConfig) -> None:
+    """`dataset.path` (dataset=file / import) made absolute in the config the run records: a resume
+    or rollout from another directory finds the same file (the cache name does not hash the path)."""
+    from .dataset_identity import absolute
+
+    path = OmegaConf.select(cfg, "dataset.path", default=None)
+    if isinstance(path, str) and path and not Path(path).is_absolute():
+        with open_dict(cfg.dataset):
+            cfg.dataset.path = absolute(path)
+
+
+def run_train(cfg: DictConfig, resume: dict | None = None, accept_changed_dataset: bool = False) -> dict:
+    """`liedfl train`: data -> model -> fit (with checkpoints) -> checkpoint -> recovery ->
+    rollout -> eval. `resume`: a checkpoint payload to continue from. Returns a summary.
+    accept_changed_dataset: resume although the dataset file changed since training (a warning)."""
+    from .data.files import complete_steps
     from .evaluate import run_eval_from_objects
     from .factory import build_model, configure_runtime, data_pose
     from .rollout import rollout_and_save
@@ -399,7 +470,7 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
     best = out / "checkpoints" / "best.pt"
     torch.manual_seed(int(cfg.seed))
     set_phase("data generation")
-    dataset, data_path = get_dataset(cfg.dataset, cfg.paths.data_dir, console=err_console)
+    dataset, data_path = _train_dataset(cfg, resume, accept_changed_dataset)
     complete_steps(cfg.dataset, dataset)  # a file's null train_steps / rollout_steps: all its steps
     if cfg.rollout.enabled and len(dataset.test_idx) == 0:  # fail now, not after training
         raise ConfigError(
@@ -428,13 +499,18 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
             "notes": list(model.notes),
         },
     )
+    _absolute_user_paths(cfg)
     config = OmegaConf.to_container(cfg, resolve=True)
     assert isinstance(config, dict)
     dataset_path = str(Path(data_path).resolve())
+    from .dataset_identity import file_sha256
+
+    dataset_sha256 = file_sha256(dataset_path)  # rollout, eval and resume check the file is unchanged
     run_id = str((resume or {}).get("run_id") or new_run_id())  # the run's stable id (rollout provenance)
 
     def save(train_state: dict, timings: dict | None = None) -> None:
-        extra = {"dataset_path": dataset_path, "components": comps, "run_id": run_id, **train_state}
+        extra = {"dataset_path": dataset_path, "dataset_sha256": dataset_sha256, "components": comps,
+                 "run_id": run_id, **train_state}  # fmt: skip
         if timings is not None:
             extra["timings"] = timings
         save_checkpoint(ckpt, model, config, extra)
@@ -448,7 +524,8 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
 
     def save_best(epoch: int, row: dict) -> None:
         val = {k: v for k, v in row.items() if k in VAL_COLUMNS and v is not None}
-        extra = {"dataset_path": dataset_path, "components": comps, "run_id": run_id, "epoch": epoch, "val": val}
+        extra = {"dataset_path": dataset_path, "dataset_sha256": dataset_sha256, "components": comps,
+                 "run_id": run_id, "epoch": epoch, "val": val}  # fmt: skip
         save_checkpoint(best, model, config, {**extra, "selected_by": selection.metric})
 
     train_data = data_pose(dataset, split.train_idx)
@@ -487,6 +564,8 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
                 )
             except TrainingInterrupted as e:
                 raise TrainingInterrupted(f"{e}; resume with: liedfl train resume={out}", e.exit_code) from None
+            except TrainingDiverged as e:
+                raise _diverged(e, cfg, ckpt, resume is not None) from None
             finally:
                 log.close()
     done_before = resume is not None and int(resume["epoch"]) >= epochs  # a finished run: evaluation only
@@ -539,7 +618,7 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
     try:
         recovery = parameter_recovery(model, dataset)
     except (ValueError, RuntimeError, KeyError, IndexError) as e:  # the model cannot represent the truth
-        console.print(f"[bold yellow]warning:[/] parameter recovery skipped ({type(e).__name__}: {e})")
+        warning_line(f"parameter recovery skipped ({type(e).__name__}: {e})")
         recovery = None
     if recovery is not None:
         write_json(out / "recovery.json", recovery)
@@ -558,6 +637,30 @@ def run_train(cfg: DictConfig, resume: dict | None = None) -> dict:
             summary["extra_eval"] = extra
     write_json(out / "summary.json", summary)
     return summary
+
+
+def _diverged(e: TrainingDiverged, cfg: DictConfig, ckpt: Path, resumed: bool) -> LiedflError:
+    """The one-line error of a diverged training: from a resumed checkpoint's own weights, the
+    checkpoint is unusable; otherwise the learning rate diverged. last.pt is never overwritten by
+    diverged weights: the line names the last good checkpoint (or says there is none)."""
+    if resumed and e.first:
+        return CheckpointError(
+            f"{ckpt}: the training loss at the checkpoint's weights is {e.value}: the weights are unusable "
+            "(retrain, or resume an earlier copy of the run)"
+        )
+    lr = cfg.train.optimizer.lr
+    kept = (
+        f"the last good checkpoint {ckpt} (epoch {e.saved}) is kept"
+        if e.saved is not None
+        else "no checkpoint had been saved"
+    )
+    if (ckpt.parent / "best.pt").is_file():
+        kept += " (best.pt: the best validated epoch)"
+    e.args = (
+        f"{e}: the learning rate diverged (train.optimizer.lr={lr:g} with {cfg.train.optimizer.name}); "
+        f"lower train.optimizer.lr; {kept}",
+    )
+    return e
 
 
 def _finetune_stage(cfg: DictConfig, model, train_data: Pose, result: dict, out: Path) -> dict:
@@ -603,6 +706,7 @@ def run_resume(cfg: DictConfig) -> dict:
         )
     if not isinstance(payload["config"], dict):
         raise CheckpointError(f"{ckpt}: field 'config' is not a mapping")
+    check_training_state(ckpt, payload)
     saved = OmegaConf.create(payload["config"])
     saved.paths.output_dir = str(run_dir)
     if "val_fraction" not in saved.dataset:  # a run from before validation: keep its training data
@@ -617,4 +721,6 @@ def run_resume(cfg: DictConfig) -> dict:
             raise ConfigError(f"epochs={epochs}: the checkpoint is already at epoch {int(payload['epoch'])}")
         saved.train.epochs = epochs
     saved.ui = cfg.ui
-    return run_train(saved, resume=payload)
+    from .dataset_identity import accept_option
+
+    return run_train(saved, resume=payload, accept_changed_dataset=accept_option(cfg))

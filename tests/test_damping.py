@@ -241,9 +241,9 @@ def test_rollout_warns_about_stiff_damping_and_not_on_the_default_scene(capsys):
     g0, g1 = _free_start(h, 2)
     truth = Pose(torch.stack((g0.R, g1.R), 1), torch.stack((g0.p, g1.p), 1))
     _roll(_free_body(h, [100.0 * j for j in J_FREE]), truth, 5, SolverOptions(), "true_scheme", False)
-    lines = [x for x in capsys.readouterr().out.splitlines() if "stiff damping" in x]
+    lines = [x for x in capsys.readouterr().err.splitlines() if "stiff damping" in x]
     assert len(lines) == 1 and "= 10 > 2" in lines[0] and "-0.667" in lines[0], lines
     learned = LieDFLNN(ProductGroup(0, 1), h, potential="none", forces=["rayleigh"], seed=0)  # the default start
     for model in (_free_body(h, [0.05] * 3), learned):
         _roll(model, truth, 5, SolverOptions(), "model", False)
-        assert "stiff damping" not in capsys.readouterr().out
+        assert "stiff damping" not in capsys.readouterr().err

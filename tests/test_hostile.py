@@ -343,6 +343,20 @@ def _locked(host: str | None = None, dead: bool = False):
     return setup
 
 
+# --- setups of the values block (issue 18 items 6, 7, 9, 10)
+RUN_FOLDER = ("outputs", "outputs/runs", "outputs/runs/*")  # a failed train keeps its run folder (status.json)
+
+
+def _bad_yaml(group: str, text: str):
+    def setup(ctx: Ctx):
+        d = ctx.tmp / "conf" / group
+        d.mkdir(parents=True)
+        (d / "bad.yaml").write_text(text)
+        ctx.vars["conf"] = str(ctx.tmp / "conf")
+
+    return setup
+
+
 def _gone_pid() -> int:
     proc = subprocess.Popen([sys.executable, "-c", "pass"])
     proc.wait()
@@ -368,6 +382,64 @@ def _run_and_outside_rollout(ctx: Ctx):
 
 _IGNORE_SIGINT = "import signal\nsignal.signal(signal.SIGINT, signal.SIG_IGN)  # as if inherited (nohup)\n"
 _RO = ("ui.progress=false", "eval.plots=false")
+
+
+def _scaled_weights(factor: float):
+    """Both checkpoints' weights times `factor`: finite, but the model's predictions are not."""
+
+    def setup(ctx: Ctx):
+        def edit(run: Path):
+            for name in ("last.pt", "best.pt"):
+                path = run / "checkpoints" / name
+                if path.is_file():
+                    payload = torch.load(path, map_location="cpu", weights_only=True)
+                    for v in payload["state_dict"].values():
+                        if v.is_floating_point():
+                            v.mul_(factor)
+                    torch.save(payload, path)
+
+        ctx.run(edit)
+
+    return setup
+
+
+def _enospc(filename=None) -> OSError:
+    import errno
+
+    return OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), *([str(filename)] if filename is not None else []))
+
+
+def _disk_full_torch_save(ctx: Ctx):
+    """The disk fills while a checkpoint is written: torch.save fails on the temporary file."""
+    ctx.dataset()
+
+    def save(obj, f, *a, **k):
+        Path(f).write_bytes(b"half")  # a partial temporary file, which must not stay
+        raise _enospc(f)
+
+    ctx.monkeypatch.setattr(torch, "save", save)
+
+
+def _disk_full_h5(ctx: Ctx):
+    """The disk fills while the dataset is written (h5py's errors name no file)."""
+
+    def create(self, *a, **k):
+        raise _enospc()
+
+    ctx.monkeypatch.setattr(h5py.Group, "create_dataset", create)
+
+
+def _disk_full_json(ctx: Ctx):
+    ctx.dataset()
+    real = Path.write_text
+
+    def write_text(self, *a, **k):
+        if ".tmp" in self.name:
+            real(self, "{", encoding="utf-8")
+            raise _enospc(self)
+        return real(self, *a, **k)
+
+    ctx.monkeypatch.setattr(Path, "write_text", write_text)
 
 
 # ----------------------------------------------------------------------------- the table
@@ -857,6 +929,134 @@ CASES: list[Case] = [
         code=143,
         proc=True,
         python=_IGNORE_SIGINT + _signal_hook("liedfl_cli.rollout:_roll", "SIGINT", "SIGTERM"),
+    ),
+    # --- values (issue 18 items 6,7,9,10) ---
+    Case(
+        "lr-diverges-soap",
+        (T, *FAST, "train.optimizer.lr=1e300"),
+        ("training diverged", "learning rate diverged", "train.optimizer.lr=1e+300"),
+        setup=lambda c: c.dataset(),
+        allowed=RUN_FOLDER,
+    ),
+    Case(
+        "lr-diverges-adam",
+        (T, *FAST, "train.optimizer.lr=1e6", "train.optimizer.name=adam"),
+        ("training diverged", "learning rate diverged", "adam"),
+        setup=lambda c: c.dataset(),
+        allowed=RUN_FOLDER,
+    ),
+    Case("seed-past-64-bits", (T, *FAST, "seed=18446744073709551616"), ("seed=18446744073709551616", "2**63 - 1")),
+    Case("seed-2-to-the-63", (T, *FAST, "seed=9223372036854775808"), ("seed=9223372036854775808",)),
+    Case("target-abstract-model", (T, *FAST, "model._target_=liedfl_cli.models.base.Model"), ("abstract",)),
+    Case(
+        "target-abstract-implicit",
+        (T, *FAST, "model._target_=liedfl_cli.models.base.ImplicitModel"),
+        ("model._target_", "abstract"),
+    ),
+    Case(
+        "yaml-syntax-config-dir",
+        (T, "--config-dir", "{conf}", *FAST, "dataset=bad"),
+        ("bad.yaml: line 4, column 1", "YAML syntax error"),
+        setup=_bad_yaml("dataset", "name: free_rigid_body\nh: 0.1\nn_trajectories: [1,\n"),
+    ),
+    Case(
+        "yaml-syntax-experiment",
+        (T, "--config-dir", "{conf}", *FAST, "+experiment=bad"),
+        ("bad.yaml: line 4", "YAML syntax error", "mapping values are not allowed"),
+        setup=_bad_yaml("experiment", "# @package _global_\ntrain:\n  epochs: 3\n   lr: 2\n"),
+    ),
+    Case(
+        "size-trajectories",
+        (T, *FAST, "dataset.n_trajectories=1000000000000"),
+        ("dataset.n_trajectories=1000000000000", "memory", "this machine's"),
+    ),
+    Case(
+        "size-trajectories-float",
+        ("data", "budget=smoke", "dataset.n_trajectories=1e12"),
+        ("dataset.n_trajectories", "memory"),
+    ),
+    Case(
+        "size-steps",
+        (T, *FAST, "dataset.steps=100000000000000", "dataset.n_trajectories=100"),
+        ("dataset.steps=100000000000000", "memory"),
+    ),
+    Case("size-mlp-width", (T, *FAST, "model.mlp_width=1000000000"), ("model.mlp_width=1000000000", "memory")),
+    Case(
+        "size-mlp-width-ode",
+        (T, *FAST, "baseline=neural_ode", "model.mlp_width=100000000"),
+        ("model.mlp_width=100000000", "memory"),
+    ),
+    Case("rollout-huge-weights", ("rollout", "run={run}"), ("non-finite", "unusable"), setup=_scaled_weights(1e300)),
+    Case(
+        "rollout-huge-weights-last",
+        ("rollout", "run={run}", "checkpoint=last"),
+        ("{ckpt}", "non-finite", "largest |weight|"),
+        setup=_scaled_weights(1e300),
+    ),
+    Case("eval-huge-weights", ("eval", "run={run}"), ("non-finite", "unusable"), setup=_scaled_weights(1e300)),
+    Case(
+        "data-split-2d",
+        (T, *FAST),
+        ("{data}", "'split/train'", "1-D", "(2, 2)"),
+        setup=_edit(lambda f: _replace(f, "split/train", f["split/train"][...][:4].reshape(2, 2))),
+    ),
+    Case(
+        "data-split-2d-test",
+        (T, *FAST),
+        ("{data}", "'split/test'", "1-D"),
+        setup=_edit(lambda f: _replace(f, "split/test", f["split/test"][...].reshape(1, -1))),
+    ),
+    Case(
+        "dataset-changed-rollout",
+        ("rollout", "run={run}"),
+        ("changed since", "accept_changed_dataset=true"),
+        setup=_ckpt_edit(lambda p: p.__setitem__("dataset_sha256", "0" * 64)),
+    ),
+    Case(
+        "dataset-changed-eval",
+        ("eval", "run={run}"),
+        ("changed since", "accept_changed_dataset=true"),
+        setup=_ckpt_edit(lambda p: p.__setitem__("dataset_sha256", "0" * 64)),
+    ),
+    Case(
+        "accept-changed-dataset-not-bool",
+        ("eval", "run={run}", "accept_changed_dataset=maybe"),
+        ("accept_changed_dataset='maybe'", "true or false"),
+        setup=lambda c: c.run(),
+    ),
+    Case(
+        "ckpt-plain-pickle",
+        ("eval", "run={run}"),
+        ("{ckpt}", "not a readable checkpoint"),
+        setup=_ckpt_bytes(__import__("pickle").dumps({"state_dict": {}, "x": list(range(3))}, protocol=4)),
+    ),
+    Case(
+        "ckpt-plain-pickle-cli",
+        ("eval", "run={run}"),
+        ("{ckpt}", "not a readable checkpoint"),
+        setup=_ckpt_bytes(__import__("pickle").dumps({"state_dict": {}}, protocol=5)),
+        proc=True,
+    ),
+    Case(
+        "disk-full-checkpoint",
+        (T, *FAST),
+        ("checkpoints/best.pt: No space left on device",),
+        setup=_disk_full_torch_save,
+        allowed=RUN_FOLDER,
+    ),
+    Case(
+        "disk-full-dataset-no-filename",
+        ("data", "budget=smoke", "ui.progress=false"),
+        ("No space left on device",),
+        setup=_disk_full_h5,
+        allowed=("outputs", "outputs/data"),
+    ),
+    Case(
+        "disk-full-json",
+        (T, *FAST),
+        ("components.json: No space left on device",),
+        setup=_disk_full_json,
+        allowed=RUN_FOLDER,
     ),
 ]
 

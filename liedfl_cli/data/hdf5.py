@@ -296,6 +296,11 @@ def load_dataset(path, require_split: bool = True) -> Dataset:
     for k in ("train", "test") if split is not None else ():
         if not np.issubdtype(np.asarray(split[k]).dtype, np.integer):
             raise DatasetError(f"{src}: dataset 'split/{k}' must hold integers, got dtype {np.asarray(split[k]).dtype}")
+        if np.asarray(split[k]).ndim != 1:  # a 2-D split would be flattened into other trajectories
+            raise DatasetError(
+                f"{src}: dataset 'split/{k}' must be a 1-D list of trajectory indices, got shape "
+                f"{tuple(np.asarray(split[k]).shape)}"
+            )
     input_dtype = torch.float32 if R.dtype == np.float32 else torch.float64
     tree = read_tree(parents, offsets, rotations, kinds, src)
     if not isinstance(params, dict):

@@ -142,6 +142,13 @@ def check_config(c: dict, scenes: Mapping | None = None) -> dict:
     need = max(int(c["train_steps"]), int(c["rollout_steps"]))
     if int(c["steps"]) < need:
         raise ConfigError(f"dataset.steps={c['steps']} is shorter than max(train_steps, rollout_steps)={need}")
+    from .memory import check_fits
+
+    # a lower bound: one body's R (9) and p (3) in float64 per pose
+    check_fits(
+        f"dataset.n_trajectories={c['n_trajectories']} x dataset.steps={c['steps']}",
+        float(c["n_trajectories"]) * (float(c["steps"]) + 1) * 12 * 8,
+    )
     for sub in ("physics", "initial", "solver"):
         if not isinstance(c[sub], Mapping):
             raise ConfigError(f"dataset.{sub} must be a mapping, got {c[sub]!r}")

@@ -15,10 +15,11 @@ data (nor the hash). A user's file also hashes its content. Every scene also tak
 from __future__ import annotations
 
 import time
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 
-from ..errors import DatasetError
+from ..errors import DatasetError, DataWarning
 from . import transforms
 from .files import SOURCE_SCENES, check_source_config, file_digest, from_file, hashed_config, import_recording
 from .hdf5 import Dataset, load_dataset, save_dataset
@@ -148,7 +149,10 @@ def get_dataset(cfg, data_dir="outputs/data", console=None) -> tuple[Dataset, Pa
         )
         task = prog.add_task(what, total=t_end)
         ds = _generate(c, lambda tt: prog.update(task, completed=tt))
-    save_dataset(ds, path)
+    with warnings.catch_warnings():
+        if c["name"] in SOURCE_SCENES:  # the user's file was checked (and warned about) when read
+            warnings.simplefilter("ignore", DataWarning)
+        save_dataset(ds, path)
     console.print(
         f"[green]{'read' if c['name'] in SOURCE_SCENES else 'generated'}[/green] {c['name']}: "
         f"{ds.n_trajectories} trajectories x {ds.n_steps} steps in {time.perf_counter() - start:.1f} s -> {path}",

@@ -190,9 +190,17 @@ def _exp_coefficients_scalar(t2: float) -> tuple[float, float, float]:
                 acc = acc * t2 + c
             out.append(acc)
         return out[0], out[1], out[2]
+    if not math.isfinite(t2):  # huge weights: a non-finite result (reported by the caller), as torch.sin gives
+        return math.nan, math.nan, math.nan
     t = math.sqrt(t2)
     sin_t, half = math.sin(t), math.sin(0.5 * t)
     return sin_t / t, 2.0 * (half * half) / t2, (t - sin_t) / (t2 * t)
+
+
+def _exp(x: float) -> float:
+    """math.exp, but inf past float64's range (as torch.exp): huge weights give a non-finite loss or
+    prediction that the caller reports, not an OverflowError."""
+    return math.exp(x) if x < 709.0 else math.inf
 
 
 def _matmul3(A, B):
@@ -216,7 +224,7 @@ class _InertiaJdScalar(torch.autograd.Function):
         rs, abcs = r.tolist(), abc.tolist()
         saved, out = [], []
         for w, (a, b, c) in zip(rs, abcs):
-            e = (math.exp(a), math.exp(b), math.exp(c))
+            e = (_exp(a), _exp(b), _exp(c))
             d = (e[0] + e[1], e[0] + e[2], e[1] + e[2])
             s1, s2, s3 = _exp_coefficients_scalar(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
             K = _hat3(w)

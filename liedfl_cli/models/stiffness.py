@@ -46,5 +46,8 @@ def damping_stiffness(model: Any) -> float | None:
     eye = torch.eye(3, dtype=Jd.dtype, device=Jd.device).expand(G.n_bodies, 3, 3)
     identity = Pose(eye, Jd.new_zeros(G.n_se3, 3))
     M = torch.block_diag(*(-h * b for b in kinetic.mixed_hessian_blocks(G, identity, Jd, mass, rho, h)))
-    lam = torch.linalg.eigvals(torch.linalg.solve(M, D)).real.max()
+    A = torch.linalg.solve(M, D)
+    if not torch.isfinite(A).all():  # unusable weights: LAPACK would print an error of its own
+        return None
+    lam = torch.linalg.eigvals(A).real.max()
     return float(h * lam)
