@@ -449,10 +449,19 @@ def _order_bodies(tracks: list[_Track], names: list[str], has_p: list[bool], whe
 
 
 def _read_npz(path: Path, c: dict):
+    import zipfile
+    import zlib
+
     try:
-        z = np.load(path, allow_pickle=False)
-        arrays = {k: z[k] for k in z.files}
-    except (OSError, ValueError) as e:
+        # the file is opened here, so that it is closed when numpy fails half-way through the archive
+        with open(path, "rb") as fh:
+            z = np.load(fh, allow_pickle=False)
+            if not isinstance(z, np.lib.npyio.NpzFile):  # a bare .npy array under an .npz name
+                raise DatasetError(f"{path}: not an .npz archive (a single .npy array)")
+            arrays = {k: z[k] for k in z.files}
+    except DatasetError:
+        raise
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, zlib.error) as e:
         raise DatasetError(f"{path}: not a readable .npz file ({type(e).__name__}: {e})") from None
     key = "R" if c["rotation"] == "matrix" else "q"
     for k in ("t", key):
