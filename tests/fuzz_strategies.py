@@ -19,6 +19,7 @@ invariants) or raises the CLI's one-line error type (`LiedflError`) whose messag
 
 from __future__ import annotations
 
+import contextlib
 import json
 import warnings
 from dataclasses import dataclass, field
@@ -193,10 +194,8 @@ class Tree:
         with h5py.File(path, "w") as f:
             for g in sorted(self.groups):
                 if g not in f:
-                    try:
+                    with contextlib.suppress(TypeError, ValueError):  # a dataset is in the way
                         f.require_group(g)
-                    except (TypeError, ValueError):  # a dataset is in the way: the mutation wins
-                        pass
             for name, v in sorted(self.datasets.items()):
                 try:
                     if name in f:
@@ -206,10 +205,8 @@ class Tree:
                     pass
             for (g, k), v in sorted(self.attrs.items(), key=lambda kv: kv[0]):
                 if g in f:
-                    try:
+                    with contextlib.suppress(TypeError, ValueError):  # a value HDF5 cannot hold
                         f[g].attrs[k] = v
-                    except (TypeError, ValueError):
-                        pass
 
 
 tree_mutation = st.one_of(

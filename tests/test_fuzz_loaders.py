@@ -74,21 +74,38 @@ def _rigid_dataset() -> Dataset:
     """SE(3), 5 trajectories x 12 samples, split, declared per-body physics."""
     _, R, p = motion(5, 12)
     physics = {"J": [1.0, 2.0, 2.5], "m": 1.5, "rho": [0.0, 0.0, 0.1], "g": 9.81, "D": [0.1] * 6}
-    return Dataset(R=R[:, :, None], p=p[:, :, None], h=H, scene="rigid", body_names=["box"], body_kinds=["se3"],
-                   params={"physics": physics}, seed=3,
-                   split={"train": np.arange(1, 5), "test": np.array([0])})  # fmt: skip
+    return Dataset(
+        R=R[:, :, None],
+        p=p[:, :, None],
+        h=H,
+        scene="rigid",
+        body_names=["box"],
+        body_kinds=["se3"],
+        params={"physics": physics},
+        seed=3,
+        split={"train": np.arange(1, 5), "test": np.array([0])},
+    )
 
 
 def _chain_dataset() -> Dataset:
     """SO(3)^3 joined by a kinematic tree (parent-relative rotations), articulated physics, extras."""
     Rs = np.stack([motion(4, 10, seed=s)[1] for s in range(3)], axis=2)  # (T, N+1, 3, 3, 3)
     body = {"mass": 1.0, "com": [0.0, 0.0, 0.5], "inertia": [[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.5]]}
-    tree = KinematicTree.from_lists([-1, 0, 1], np.array([[0, 0, 1.0], [0, 0, 1.0], [0, 0, 1.0]]), "parent",
-                                    free_root=False)  # fmt: skip
-    return Dataset(R=Rs, p=np.zeros(Rs.shape[:2] + (0, 3)), h=H, scene="chain", body_names=["a", "b", "c"],
-                   body_kinds=["so3"] * 3, split={"train": np.array([0, 1, 2]), "test": np.array([3])},
-                   params={"physics": {"kind": "articulated", "bodies": [body] * 3, "joint_damping": [0.1, 0.2]}},
-                   extras={"omega": np.zeros((4, 10, 3, 3))}, tree=tree)  # fmt: skip
+    tree = KinematicTree.from_lists(
+        [-1, 0, 1], np.array([[0, 0, 1.0], [0, 0, 1.0], [0, 0, 1.0]]), "parent", free_root=False
+    )
+    return Dataset(
+        R=Rs,
+        p=np.zeros(Rs.shape[:2] + (0, 3)),
+        h=H,
+        scene="chain",
+        body_names=["a", "b", "c"],
+        body_kinds=["so3"] * 3,
+        split={"train": np.array([0, 1, 2]), "test": np.array([3])},
+        params={"physics": {"kind": "articulated", "bodies": [body] * 3, "joint_damping": [0.1, 0.2]}},
+        extras={"omega": np.zeros((4, 10, 3, 3))},
+        tree=tree,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -144,11 +161,27 @@ def _run_slow(prop, **strategies) -> int:
 
 # ----------------------------------------------------------------------------- CSV / NPZ import
 IMPORT = {
-    "name": "import", "rotation": "wxyz", "bodies": None, "time_column": "t", "trajectory_column": "trajectory",
-    "time_scale": 1.0, "time_tolerance": 0.01, "resample": False, "h": None, "smoothing": None,
-    "noise": {"rotation": 0.0, "position": 0.0}, "length_scale": 1.0, "chunk_steps": None, "n_trajectories": None,
-    "steps": None, "train_steps": None, "rollout_steps": None, "test_fraction": 0.2, "n_test": None, "seed": 0,
-}  # fmt: skip
+    "name": "import",
+    "rotation": "wxyz",
+    "bodies": None,
+    "time_column": "t",
+    "trajectory_column": "trajectory",
+    "time_scale": 1.0,
+    "time_tolerance": 0.01,
+    "resample": False,
+    "h": None,
+    "smoothing": None,
+    "noise": {"rotation": 0.0, "position": 0.0},
+    "length_scale": 1.0,
+    "chunk_steps": None,
+    "n_trajectories": None,
+    "steps": None,
+    "train_steps": None,
+    "rollout_steps": None,
+    "test_fraction": 0.2,
+    "n_test": None,
+    "seed": 0,
+}
 
 
 @pytest.fixture(scope="module")
@@ -158,8 +191,10 @@ def import_bases(tmp_path_factory) -> tuple[Path, bytes, list[tuple[dict, str]]]
     t, R, p = motion(2, 9)
     q = np.zeros((2, 9, 1, 4))
     q[..., 0] = 1.0
-    npz = [({"t": t, "R": R[0], "p": p[0]}, "matrix"),
-           ({"t": np.stack([t, t]), "q": q, "body_names": np.array(["gyro"])}, "wxyz")]  # fmt: skip
+    npz = [
+        ({"t": t, "R": R[0], "p": p[0]}, "matrix"),
+        ({"t": np.stack([t, t]), "q": q, "body_names": np.array(["gyro"])}, "wxyz"),
+    ]
     return root, csv_bytes, npz
 
 
@@ -258,8 +293,19 @@ MOTION
 def _bvh_config(path: Path) -> dict:
     from test_mocap import cfg
 
-    return cfg(files=[str(path)], n_trajectories=1, root="Hips", joints=["Spine", "Head"], h=0.05, steps=8,
-               train_steps=8, rollout_steps=8, smoothing=None, skip_frames=1, subsample=1)  # fmt: skip
+    return cfg(
+        files=[str(path)],
+        n_trajectories=1,
+        root="Hips",
+        joints=["Spine", "Head"],
+        h=0.05,
+        steps=8,
+        train_steps=8,
+        rollout_steps=8,
+        smoothing=None,
+        skip_frames=1,
+        subsample=1,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -301,9 +347,9 @@ def test_fuzz_bvh_slow(bvh_root):
 @pytest.fixture(scope="module")
 def run_dir(tmp_path_factory) -> Path:
     """A run folder holding checkpoints/last.pt of an untrained smoke model and its cached dataset."""
-    from helpers import SMOKE, compose_config
     from omegaconf import OmegaConf
 
+    from helpers import SMOKE, compose_config
     from liedfl_cli.checkpoint import save_checkpoint
     from liedfl_cli.factory import build_model
 
@@ -313,8 +359,12 @@ def run_dir(tmp_path_factory) -> Path:
     model = build_model(cfg, ds)
     (root / "run" / "checkpoints").mkdir(parents=True)
     config = OmegaConf.to_container(cfg, resolve=True)
-    save_checkpoint(root / "run" / "checkpoints" / "last.pt", model, config,
-                    extra={"dataset_path": str(ds_path), "epoch": 2, "history": [{"epoch": 1, "loss": 0.5}]})  # fmt: skip
+    save_checkpoint(
+        root / "run" / "checkpoints" / "last.pt",
+        model,
+        config,
+        extra={"dataset_path": str(ds_path), "epoch": 2, "history": [{"epoch": 1, "loss": 0.5}]},
+    )
     return root / "run"
 
 
@@ -350,8 +400,12 @@ def _mutate_payload(payload: dict, m: tuple):
     import fractions
 
     if m[0] == "whole":
-        return {"list": [payload], "object": {**payload, "config": fractions.Fraction(1, 3)},
-                "tensor": torch.zeros(3), "none": None}[m[1]]  # fmt: skip
+        return {
+            "list": [payload],
+            "object": {**payload, "config": fractions.Fraction(1, 3)},
+            "tensor": torch.zeros(3),
+            "none": None,
+        }[m[1]]
     payload = copy.deepcopy(payload)
     paths = [p for p, v in _leaves(payload) if _mutable(p) and (m[0] != "tensor" or isinstance(v, torch.Tensor))]
     if not paths:
@@ -424,17 +478,39 @@ def rollout_base(tmp_path_factory) -> tuple[Path, Tree, Dataset]:
     ds = load_dataset(save_dataset(_rigid_dataset(), root / "data.h5"))
     idx = ds.test_idx
     S = ds.n_steps
-    one = OneStep(R=ds.R[idx][:, 2:], p=ds.p[idx][:, 2:], converged=np.ones((1, S - 1), bool),
-                  attrs={"seconds": 0.1, "n_pairs": S - 1})  # fmt: skip
-    entry = RolloutEntry(R=ds.R[idx], p=ds.p[idx], converged=np.ones((1, S - 1), bool),
-                         iterations=np.full((1, S - 1), 2), residual_norm=np.full((1, S - 1), 1e-12),
-                         attrs={"seconds": 0.2, "seconds_per_step": 0.01, "n_failed": 0, "first_failure": -1},
-                         one_step=one)  # fmt: skip
+    one = OneStep(
+        R=ds.R[idx][:, 2:],
+        p=ds.p[idx][:, 2:],
+        converged=np.ones((1, S - 1), bool),
+        attrs={"seconds": 0.1, "n_pairs": S - 1},
+    )
+    entry = RolloutEntry(
+        R=ds.R[idx],
+        p=ds.p[idx],
+        converged=np.ones((1, S - 1), bool),
+        iterations=np.full((1, S - 1), 2),
+        residual_norm=np.full((1, S - 1), 1e-12),
+        attrs={"seconds": 0.2, "seconds_per_step": 0.01, "n_failed": 0, "first_failure": -1},
+        one_step=one,
+    )
     path = root / "base.h5"
-    prov = {"run_id": "abc", "run_dir": str(root), "model_name": "liedflnn", "checkpoint": "last.pt",
-            "checkpoint_sha256": "0" * 64, "dtype": "float64"}  # fmt: skip
-    write_rollout(path, steps=S, h=ds.h, scene=ds.scene, traj_index=idx, rollouts={"model": entry, "true_scheme": entry},
-                  provenance=prov)  # fmt: skip
+    prov = {
+        "run_id": "abc",
+        "run_dir": str(root),
+        "model_name": "liedflnn",
+        "checkpoint": "last.pt",
+        "checkpoint_sha256": "0" * 64,
+        "dtype": "float64",
+    }
+    write_rollout(
+        path,
+        steps=S,
+        h=ds.h,
+        scene=ds.scene,
+        traj_index=idx,
+        rollouts={"model": entry, "true_scheme": entry},
+        provenance=prov,
+    )
     load_rollout(path, ds)
     return root, Tree.read(path), ds
 
