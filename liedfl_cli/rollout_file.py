@@ -358,7 +358,7 @@ def read_rollout(path) -> RolloutFile:
         raise DatasetError(f"{path}: rollout file not found (run `liedfl rollout run=<dir>` first)")
     try:
         f = h5py.File(path, "r")
-    except OSError as e:
+    except (OSError, RuntimeError, ValueError) as e:  # h5py: RuntimeError/ValueError on corrupt metadata
         raise DatasetError(f"{path}: not an HDF5 file ({e})") from None
     try:
         with f:
@@ -391,7 +391,7 @@ def read_rollout(path) -> RolloutFile:
             attrs = {k: _plain(v) for k, v in f.attrs.items()}
     except DatasetError:
         raise
-    except (OSError, KeyError, ValueError, TypeError) as e:
+    except (OSError, KeyError, ValueError, TypeError, RuntimeError) as e:  # RuntimeError: h5py, corrupt metadata
         raise DatasetError(f"{path}: cannot read rollout file ({type(e).__name__}: {e})") from None
     steps, h = _plain(steps), _plain(h)
     if isinstance(steps, bool) or not isinstance(steps, (int, float)) or not float(steps).is_integer() or steps < 2:

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -419,13 +420,19 @@ def check_outcome(load, path: Path, names: tuple[str, ...] = ()):
     fails the test."""
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
+        e = None
         try:
             result = load()
-        except LiedflError as e:
+        except LiedflError as err:
+            e = err
             msg = str(e)
             assert "\n" not in msg.strip(), f"multi-line error: {msg!r}"
             assert any(str(n) in msg for n in (str(path), *names)), f"error names no file: {msg!r}"
             result = None
+    log = os.environ.get("LIEDFL_FUZZ_LOG")  # outcome tally of a run (which checks the sample reached)
+    if log:
+        with open(log, "a") as f:
+            f.write(("loaded" if result is not None else str(e).replace(str(path), "<file>")[:90]) + "\n")
     foreign = [w for w in caught if not issubclass(w.category, LiedflWarning)]
     assert not foreign, f"a warning other than liedfl's own: {foreign[0].category.__name__}: {foreign[0].message}"
     return result

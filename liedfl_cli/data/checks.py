@@ -159,6 +159,13 @@ def check_physics(
 
     Two schemas (docs/data_format.md): per body (mechanics.scene_physics: J, m, rho, g, D,
     interaction, control) and `kind: "articulated"` (models.articulated: bodies, joint_damping, ...)."""
+    # finite but huge values (1e308) overflow in the sums below: inf compares as it should, and numpy's
+    # RuntimeWarning would only add a second line to the user's message
+    with np.errstate(over="ignore"):
+        _check_physics(physics, n_bodies, dim, tree, source, prefix, error)
+
+
+def _check_physics(physics, n_bodies: int, dim: int, tree, source, prefix: str, error: type[Exception]) -> None:
     head = f"{source}: " if source else ""
     if not isinstance(physics, dict):
         _fail(error, head, prefix, f"must be a JSON object, got {type(physics).__name__}")
