@@ -14,9 +14,12 @@ Cases that once failed are kept as `@example`s or plain tests.
 from __future__ import annotations
 
 import itertools
+import re
 import shutil
+import warnings
 from pathlib import Path
 
+import h5py
 import numpy as np
 import pytest
 import torch
@@ -43,6 +46,7 @@ from own_data import H, motion, write_csv
 
 from liedfl_cli.data.hdf5 import Dataset, load_dataset, save_dataset
 from liedfl_cli.data.scenes import get_dataset
+from liedfl_cli.errors import DatasetError
 from liedfl_cli.lie.tree import Tree as KinematicTree
 from liedfl_cli.rollout_file import OneStep, RolloutEntry, load_rollout, validate_rollout, write_rollout
 
@@ -136,6 +140,14 @@ def _dataset_property(h5_bases, which: int, case) -> None:
 
 @FAST
 @given(which=st.integers(0, 1), case=tree_case)
+# found by the slow tier: a declared inertia of 1e308 (numpy overflow warnings), corrupt HDF5 metadata
+# (h5py's RuntimeError), huge entries of R (overflow in R^T R)
+@example(which=0, case=([("json", 459, 459, 1e308), ("json", 459, 459, 1e308)], None))
+@example(
+    which=0,
+    case=([("to_group", 207)] * 3, ("flip", 0.5734574195871264, b"\xd5(1u\xc4\xc143\x8c\xfa\x1b\x0e\x8f\xdf\xa3m")),
+)
+@example(which=0, case=([("add", "junk", 733)], ("flip", 0.417973316226831, b'\xfet]"0XU\xd7G\x93\x10>\xaa\xc1\xae)')))
 def test_fuzz_dataset_hdf5(h5_bases, which, case):
     _dataset_property(h5_bases, which, case)
 
@@ -223,7 +235,8 @@ def _npz_property(import_bases, which, mutations, raw) -> None:
     for m in mutations:
         arrays = apply_dict_mutation(arrays, m)
     path = _fresh(root, ".npz")
-    with open(path, "wb") as f:
+    with open(path, "wb") as f, warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # numpy: the string dtype's metadata is not stored
         np.savez(f, **arrays)
     if raw is not None:
         path.write_bytes(apply_byte_mutation(path.read_bytes(), raw))
@@ -247,6 +260,7 @@ def test_fuzz_csv_import(import_bases, mutations, raw):
 
 @FAST
 @given(**npz_case)
+@example(which=1, mutations=[("set", 0, 0.0)], raw=None)  # found by the slow tier: 0-d body_names
 def test_fuzz_npz_import(import_bases, which, mutations, raw):
     _npz_property(import_bases, which, mutations, raw)
 
@@ -542,5 +556,59 @@ def test_fuzz_rollout_file_slow(rollout_base):
     assert _run_slow(lambda case: _rollout_property(rollout_base, case), case=tree_case) >= SLOW_EXAMPLES
 
 
-# keep `example` imported for the regression cases below
-_ = example
+# ----------------------------------------------------------------------------- regressions
+# Bugs the fuzz found, as plain tests: each failed before its fix (a traceback, a numpy warning
+# printed before the error, a message about an internal error instead of the field, or a
+# non-rotation accepted).
+def _strict(load):
+    """`load()` with numpy's RuntimeWarnings as errors (they would reach the user as extra lines)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        return load()
+
+
+def test_huge_rotation_entries_are_rejected_without_numpy_warnings(tmp_path):
+    """R^T R overflows: inf, and inf - inf = NaN, which once compared as 'not gross' and loaded."""
+    path = save_dataset(_rigid_dataset(), tmp_path / "d.h5")
+    big = 1e200
+    for block in ([[big, -big, 0], [big, big, 0], [0, 0, 1]], [[big, big, 0], [big, -big, 0], [0, 0, 1]]):
+        with h5py.File(path, "a") as f:
+            R = f["R"][()]
+            R[0, 1, 0] = block
+            f["R"][...] = R
+        with pytest.raises(DatasetError, match=rf"{path}: dataset 'R' is not a rotation at index \(0, 1, 0\)"):
+            _strict(lambda: load_dataset(path))
+
+
+def test_huge_declared_physics_loads_without_numpy_warnings(tmp_path):
+    ds = _rigid_dataset()
+    ds.params = {"physics": {"J": [1e308, 1e308, 1e308], "m": 1e308, "D": [1e308] * 6}}
+    path = save_dataset(ds, tmp_path / "d.h5")
+    assert _strict(lambda: load_dataset(path)).params["physics"]["J"][0] == 1e308
+
+
+def test_a_body_count_attribute_of_the_wrong_type_is_one_line(tmp_path):
+    path = save_dataset(_rigid_dataset(), tmp_path / "d.h5")
+    for value in (np.array([1, 2]), "1", 1.0):
+        with h5py.File(path, "a") as f:
+            f.attrs["n_se3"] = value
+        with pytest.raises(DatasetError, match=rf"{path}: attribute 'n_se3' is .* but 'body_kinds' lists 1"):
+            load_dataset(path)
+
+
+def test_a_corrupt_npz_archive_is_one_line(tmp_path):
+    t, R, p = motion(1, 9)
+    path = tmp_path / "rec.npz"
+    np.savez(path, t=t, R=R[0], p=p[0])
+    data = bytearray(path.read_bytes())
+    data[len(data) // 3] ^= 0xFF  # inside R's data: the archive's CRC no longer matches
+    path.write_bytes(bytes(data))
+    bare = tmp_path / "bare.npz"
+    with open(bare, "wb") as f:
+        np.save(f, R[0])  # an .npy array under an .npz name
+    names = tmp_path / "names.npz"
+    np.savez(names, t=t, R=R[0], p=p[0], body_names=np.array("box"))  # a 0-d array of names
+    for bad, needle in ((path, "not a readable .npz file"), (bare, "not an .npz archive"),
+                        (names, "array 'body_names' has shape ()")):  # fmt: skip
+        with pytest.raises(DatasetError, match=re.escape(f"{bad}: {needle}")):
+            _import(bad, "matrix")
