@@ -511,10 +511,10 @@ def _read_npz(path: Path, c: dict):
     if t.ndim == 1:
         t, rot, p = t[None], rot[None], p[None]
     m = p.shape[-2]
-    names = arrays.get("body_names")
-    if names is not None and np.ndim(names) != 1:
-        raise DatasetError(f"{path}: array 'body_names' has shape {np.shape(names)}; need ({B},), one name per body")
-    names = [str(x) for x in names] if names is not None else [f"body{i}" for i in range(B)]
+    given = arrays.get("body_names")
+    if given is not None and given.ndim != 1:
+        raise DatasetError(f"{path}: array 'body_names' has shape {given.shape}; need ({B},), one name per body")
+    names = [str(x) for x in given] if given is not None else [f"body{i}" for i in range(B)]
     if len(names) != B:
         raise DatasetError(f"{path}: array 'body_names' has {len(names)} entries for {B} bodies")
     tracks = []
