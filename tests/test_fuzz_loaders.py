@@ -473,6 +473,7 @@ def _checkpoint_property(run_dir: Path, mutations, raw) -> None:
 
 @FAST
 @given(**checkpoint_case)
+@example(mutations=[("set", 9999, "-inf"), ("set", 222, -5), ("rename", 720)], raw=None)  # omegaconf: 3 lines
 def test_fuzz_checkpoint(run_dir, mutations, raw):
     _checkpoint_property(run_dir, mutations, raw)
 
@@ -612,3 +613,21 @@ def test_a_corrupt_npz_archive_is_one_line(tmp_path):
                         (names, "array 'body_names' has shape ()")):  # fmt: skip
         with pytest.raises(DatasetError, match=re.escape(f"{bad}: {needle}")):
             _import(bad, "matrix")
+
+
+def test_a_checkpoint_config_missing_a_key_is_one_line(run_dir, tmp_path):
+    """omegaconf's message of a missing key has `full_key:` and `object_type=` lines of its own."""
+    from liedfl_cli.errors import CheckpointError
+    from liedfl_cli.runs import load_run_checkpoint
+
+    run = tmp_path / "run"
+    shutil.copytree(run_dir, run)
+    path = run / "checkpoints" / "last.pt"
+    payload = torch.load(path, weights_only=True)
+    del payload["config"]["train"]["epsilon"]
+    torch.save(payload, path)
+    with pytest.raises(
+        CheckpointError, match=r"does not build a model \(Missing key epsilon; full_key: train.epsilon"
+    ) as e:
+        load_run_checkpoint(run, checkpoint="last")
+    assert "\n" not in str(e.value) and str(path) in str(e.value)
