@@ -334,6 +334,10 @@ def _attr(f, key: str, path: Path):
 
 
 def _array(g, key: str, name: str, path: Path, kind: str) -> np.ndarray:
+    import h5py
+
+    if not isinstance(g[key], h5py.Dataset):
+        raise DatasetError(f"{path}: '{name}/{key}' must be an HDF5 dataset, found a group")
     arr = np.asarray(g[key][...])
     ok = {
         "float": np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer),

@@ -631,3 +631,15 @@ def test_a_checkpoint_config_missing_a_key_is_one_line(run_dir, tmp_path):
     ) as e:
         load_run_checkpoint(run, checkpoint="last")
     assert "\n" not in str(e.value) and str(path) in str(e.value)
+
+
+def test_a_rollout_field_that_is_a_group_is_named(rollout_base, tmp_path):
+    _, tree, ds = rollout_base
+    t = tree.copy()
+    del t.datasets["model/R"]
+    t.groups.add("model/R")
+    t.write(tmp_path / "r.h5")
+    with pytest.raises(
+        DatasetError, match=re.escape(f"{tmp_path / 'r.h5'}: 'model/R' must be an HDF5 dataset, found a group")
+    ):
+        load_rollout(tmp_path / "r.h5", ds)
