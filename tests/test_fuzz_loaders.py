@@ -597,7 +597,7 @@ def test_a_body_count_attribute_of_the_wrong_type_is_one_line(tmp_path):
             load_dataset(path)
 
 
-def test_a_corrupt_npz_archive_is_one_line(tmp_path):
+def test_a_corrupt_or_huge_npz_archive_is_one_line(tmp_path):
     t, R, p = motion(1, 9)
     path = tmp_path / "rec.npz"
     np.savez(path, t=t, R=R[0], p=p[0])
@@ -609,6 +609,12 @@ def test_a_corrupt_npz_archive_is_one_line(tmp_path):
         np.save(f, R[0])  # an .npy array under an .npz name
     names = tmp_path / "names.npz"
     np.savez(names, t=t, R=R[0], p=p[0], body_names=np.array("box"))  # a 0-d array of names
+    huge = tmp_path / "huge.npz"
+    R_huge = R[0].copy()
+    R_huge[3] = [[1e200, -1e200, 0], [1e200, 1e200, 0], [0, 0, 1]]  # R^T R overflows
+    np.savez(huge, t=t, R=R_huge, p=p[0])
+    with pytest.raises(DatasetError, match=re.escape(f"{huge}: row 3, body 0: not a rotation matrix")):
+        _strict(lambda: _import(huge, "matrix"))
     for bad, needle in ((path, "not a readable .npz file"), (bare, "not an .npz archive"),
                         (names, "array 'body_names' has shape ()")):  # fmt: skip
         with pytest.raises(DatasetError, match=re.escape(f"{bad}: {needle}")):

@@ -349,10 +349,12 @@ def _rotations(values: np.ndarray, rotation: str, where: str, first_row: int = 0
     """(n, B, 4) quaternions or (n, B, 9) row-major matrices -> rotations (n, B, 3, 3)."""
     if rotation == "matrix":
         M = values.reshape(*values.shape[:-1], 3, 3)
-        E = np.swapaxes(M, -1, -2) @ M - np.eye(3)
-        err = np.sqrt((E * E).sum((-1, -2)))
-        det = np.linalg.det(M)
-        bad = (err > 1e-3) | (det < 0)
+        # huge finite entries overflow to inf or NaN (inf - inf): both are bad, hence `not <=`
+        with np.errstate(over="ignore", invalid="ignore"):
+            E = np.swapaxes(M, -1, -2) @ M - np.eye(3)
+            err = np.sqrt((E * E).sum((-1, -2)))
+            det = np.linalg.det(M)
+        bad = ~(err <= 1e-3) | ~(det >= 0)
         if bad.any():
             i, b = (int(x) for x in np.argwhere(bad)[0])
             raise DatasetError(
@@ -360,8 +362,9 @@ def _rotations(values: np.ndarray, rotation: str, where: str, first_row: int = 0
                 f"det = {det[i, b]:.4g}); dataset.rotation=matrix expects r00..r22 row by row"
             )
         return so3.project(torch.from_numpy(np.ascontiguousarray(M))).numpy()
-    norm = np.linalg.norm(values, axis=-1)
-    bad = np.abs(norm - 1.0) > 1e-2
+    with np.errstate(over="ignore"):  # huge entries: an infinite norm, refused below
+        norm = np.linalg.norm(values, axis=-1)
+    bad = ~(np.abs(norm - 1.0) <= 1e-2)
     if bad.any():
         i, b = (int(x) for x in np.argwhere(bad)[0])
         raise DatasetError(
