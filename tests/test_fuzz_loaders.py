@@ -261,6 +261,7 @@ def test_fuzz_csv_import(import_bases, mutations, raw):
 @FAST
 @given(**npz_case)
 @example(which=1, mutations=[("set", 0, 0.0)], raw=None)  # found by the slow tier: 0-d body_names
+@example(which=0, mutations=[("array", 0, ("poke", 1939, -np.inf))], raw=("flip", 0.9313536174238457, b">\x9d\xeb"))
 def test_fuzz_npz_import(import_bases, which, mutations, raw):
     _npz_property(import_bases, which, mutations, raw)
 

@@ -464,7 +464,17 @@ def _read_npz(path: Path, c: dict):
             arrays = {k: z[k] for k in z.files}
     except DatasetError:
         raise
-    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, zlib.error) as e:
+    # zipfile: NotImplementedError for an unknown compression method, RuntimeError for an encrypted entry
+    except (
+        OSError,
+        ValueError,
+        EOFError,
+        KeyError,
+        NotImplementedError,
+        RuntimeError,
+        zipfile.BadZipFile,
+        zlib.error,
+    ) as e:
         raise DatasetError(f"{path}: not a readable .npz file ({type(e).__name__}: {e})") from None
     key = "R" if c["rotation"] == "matrix" else "q"
     for k in ("t", key):
