@@ -7,13 +7,15 @@ either succeeds and its result passes the loader's own invariants, or raises the
 error type (`LiedflError`) naming the file. Any other exception, a multi-line message, or a
 foreign warning is a bug.
 
-Fast tier: 40 derandomized files per loader. Slow tier (`-m slow`): 1,000 per loader, counted.
+Fast tier: 40 derandomized files per loader. Slow tier (`-m slow`): 1,000 per loader, counted
+(LIEDFL_FUZZ_SEED=<int> draws another sample; LIEDFL_FUZZ_LOG=<file> tallies the outcomes).
 Cases that once failed are kept as `@example`s or plain tests.
 """
 
 from __future__ import annotations
 
 import itertools
+import os
 import re
 import shutil
 import warnings
@@ -40,7 +42,7 @@ from fuzz_strategies import (
     text_mutation,
     tree_mutation,
 )
-from hypothesis import example, given
+from hypothesis import example, given, seed, settings
 from hypothesis import strategies as st
 from own_data import H, motion, write_csv
 
@@ -166,7 +168,13 @@ def _run_slow(prop, **strategies) -> int:
         count[0] += 1
         prop(**kw)
 
-    SLOW(given(**strategies)(counted))()
+    test = given(**strategies)(counted)
+    other = os.environ.get("LIEDFL_FUZZ_SEED")  # another sample than CI's derandomized one
+    if other:
+        test = seed(int(other))(settings(SLOW, derandomize=False)(test))
+    else:
+        test = SLOW(test)
+    test()
     print(f"{count[0]} generated files")
     return count[0]
 
