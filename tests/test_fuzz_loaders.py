@@ -270,6 +270,7 @@ def test_fuzz_csv_import(import_bases, mutations, raw):
 @given(**npz_case)
 @example(which=1, mutations=[("set", 0, 0.0)], raw=None)  # found by the slow tier: 0-d body_names
 @example(which=0, mutations=[("array", 0, ("poke", 1939, -np.inf))], raw=("flip", 0.9313536174238457, b">\x9d\xeb"))
+@example(which=0, mutations=[("array", 8228, ("poke", 449, 1e308)), ("add", "t", ("poke", 0, 0.0))], raw=None)
 def test_fuzz_npz_import(import_bases, which, mutations, raw):
     _npz_property(import_bases, which, mutations, raw)
 
@@ -483,6 +484,7 @@ def _checkpoint_property(run_dir: Path, mutations, raw) -> None:
 @FAST
 @given(**checkpoint_case)
 @example(mutations=[("set", 9999, "-inf"), ("set", 222, -5), ("rename", 720)], raw=None)  # omegaconf: 3 lines
+@example(mutations=[("set", 343, '{"physics": {"J": [1, 1, 1], "D": [1, 2]}}')], raw=None)  # a text epoch
 def test_fuzz_checkpoint(run_dir, mutations, raw):
     _checkpoint_property(run_dir, mutations, raw)
 
@@ -658,3 +660,28 @@ def test_a_rollout_field_that_is_a_group_is_named(rollout_base, tmp_path):
         DatasetError, match=re.escape(f"{tmp_path / 'r.h5'}: 'model/R' must be an HDF5 dataset, found a group")
     ):
         load_rollout(tmp_path / "r.h5", ds)
+
+
+def test_a_checkpoint_epoch_that_is_not_an_integer_is_one_line(run_dir, tmp_path):
+    from liedfl_cli.errors import CheckpointError
+    from liedfl_cli.runs import load_run_checkpoint
+
+    run = tmp_path / "run"
+    shutil.copytree(run_dir, run)
+    path = run / "checkpoints" / "last.pt"
+    payload = torch.load(path, weights_only=True)
+    for epoch in ("", "3", 2.5, True):
+        payload["epoch"] = epoch
+        torch.save(payload, path)
+        with pytest.raises(
+            CheckpointError, match=re.escape(f"{path}: field 'epoch' must be an integer, got {epoch!r}")
+        ):
+            load_run_checkpoint(run, checkpoint="last")
+
+
+def test_import_time_stamps_near_the_largest_float_are_one_line(tmp_path):
+    t, R, p = motion(1, 9)
+    path = tmp_path / "t.npz"
+    np.savez(path, t=np.concatenate([t[:-1], [1e308]]), R=R[0], p=p[0])
+    with pytest.raises(DatasetError, match=re.escape(f"{path}: time stamps are not uniform")):
+        _strict(lambda: _import(path, "matrix"))

@@ -544,23 +544,28 @@ def _uniform(tr: _Track, c: dict, h_cfg: float | None) -> float:
     of the median step (or of the configured h), and the step returned is the mean one (rounded to 10
     digits, which removes the rounding of printed time stamps); with resampling, the median step."""
     t = tr.t
-    d = np.diff(t)
+    with np.errstate(over="ignore"):  # finite stamps near 1e308: differences overflow to inf (refused below)
+        d = np.diff(t)
     if (d <= 0).any():
         k = int(np.argmax(d <= 0))
-        raise DatasetError(f"{tr.source}: time stamps are not increasing at sample {k + 1}: {t[k]!r} then {t[k + 1]!r}")
+        raise DatasetError(
+            f"{tr.source}: time stamps are not increasing at sample {k + 1}: {float(t[k])!r} then {float(t[k + 1])!r}"
+        )
     median = float(np.median(d))
     if c["resample"]:
         return median
     ref = h_cfg or median
-    dev = np.abs(d - ref) / ref
-    if (dev > c["time_tolerance"]).any():
-        k = int(np.argmax(dev))
+    with np.errstate(over="ignore", invalid="ignore"):
+        dev = np.abs(d - ref) / ref
+    if (~(dev <= c["time_tolerance"])).any():
+        k = int(np.argmax(~(dev <= c["time_tolerance"])))
         raise DatasetError(
             f"{tr.source}: time stamps are not uniform: step {k} -> {k + 1} is {d[k]:.6g} s, the "
             f"{'configured' if h_cfg else 'median'} step {ref:.6g} s (off by {dev[k]:.1%}, tolerance "
             f"dataset.time_tolerance={c['time_tolerance']:g}); set dataset.resample=true to resample on the group"
         )
-    return float(f"{(t[-1] - t[0]) / (len(t) - 1):.10g}")
+    with np.errstate(over="ignore"):
+        return float(f"{(t[-1] - t[0]) / (len(t) - 1):.10g}")
 
 
 def resample(t: np.ndarray, R: np.ndarray, p: np.ndarray, h: float, where: str = "track"):
