@@ -168,6 +168,8 @@ def load_state(path, model, payload: dict) -> None:
             raise CheckpointError(f"{path}: field 'state_dict.{k}' is not a tensor (got {type(v).__name__})")
         if k not in own:
             raise CheckpointError(f"{path}: field 'state_dict' has unexpected key '{k}' for this model config")
+        if v.is_complex() or v.is_floating_point() != own[k].is_floating_point():  # torch would cast silently
+            raise CheckpointError(f"{path}: field 'state_dict.{k}' has dtype {v.dtype}, model expects {own[k].dtype}")
         if own[k].shape != v.shape:
             raise CheckpointError(
                 f"{path}: field 'state_dict.{k}' has shape {tuple(v.shape)}, model expects {tuple(own[k].shape)}"

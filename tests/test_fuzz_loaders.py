@@ -485,6 +485,7 @@ def _checkpoint_property(run_dir: Path, mutations, raw) -> None:
 @given(**checkpoint_case)
 @example(mutations=[("set", 9999, "-inf"), ("set", 222, -5), ("rename", 720)], raw=None)  # omegaconf: 3 lines
 @example(mutations=[("set", 343, '{"physics": {"J": [1, 1, 1], "D": [1, 2]}}')], raw=None)  # a text epoch
+@example(mutations=[("tensor", 2779, ("dtype", "complex128"))], raw=None)  # torch cast complex weights silently
 def test_fuzz_checkpoint(run_dir, mutations, raw):
     _checkpoint_property(run_dir, mutations, raw)
 
@@ -685,3 +686,20 @@ def test_import_time_stamps_near_the_largest_float_are_one_line(tmp_path):
     np.savez(path, t=np.concatenate([t[:-1], [1e308]]), R=R[0], p=p[0])
     with pytest.raises(DatasetError, match=re.escape(f"{path}: time stamps are not uniform")):
         _strict(lambda: _import(path, "matrix"))
+
+
+def test_checkpoint_weights_of_another_kind_of_dtype_are_refused(run_dir, tmp_path):
+    """torch's load_state_dict casts complex (and integer) tensors into real weights without a word."""
+    from liedfl_cli.errors import CheckpointError
+    from liedfl_cli.runs import load_run_checkpoint
+
+    run = tmp_path / "run"
+    shutil.copytree(run_dir, run)
+    path = run / "checkpoints" / "last.pt"
+    payload = torch.load(path, weights_only=True)
+    key = next(k for k, v in payload["state_dict"].items() if v.is_floating_point())
+    for dtype in (torch.complex128, torch.int64):
+        bad = {**payload, "state_dict": {**payload["state_dict"], key: payload["state_dict"][key].to(dtype)}}
+        torch.save(bad, path)
+        with pytest.raises(CheckpointError, match=re.escape(f"{path}: field 'state_dict.{key}' has dtype {dtype}")):
+            _strict(lambda: load_run_checkpoint(run, checkpoint="last"))
