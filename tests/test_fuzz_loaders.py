@@ -581,7 +581,7 @@ def _strict(load):
 
 
 def test_huge_rotation_entries_are_rejected_without_numpy_warnings(tmp_path):
-    """R^T R overflows: inf, and inf - inf = NaN, which once compared as 'not gross' and loaded."""
+    """R^T R overflows to inf (or inf - inf = NaN): numpy warned before the error; NaN must count as gross."""
     path = save_dataset(_rigid_dataset(), tmp_path / "d.h5")
     big = 1e200
     for block in ([[big, -big, 0], [big, big, 0], [0, 0, 1]], [[big, big, 0], [big, -big, 0], [0, 0, 1]]):
