@@ -83,13 +83,19 @@ def _safe_load(path, what: str = "checkpoint", map_location: Any = "cpu"):
     """torch.load with weights_only=True, tensors moved to `map_location`; TorchVersion (a str
     subclass) is allowed so that checkpoints written before versions were stored as plain strings
     stay readable."""
-    safe_globals = getattr(torch.serialization, "safe_globals", None)
-    if safe_globals is not None:
-        from torch.torch_version import TorchVersion
+    import warnings
 
-        with safe_globals([TorchVersion]):
-            return torch.load(path, map_location=map_location, weights_only=True)
-    return torch.load(path, map_location=map_location, weights_only=True)  # pragma: no cover (torch < 2.5)
+    safe_globals = getattr(torch.serialization, "safe_globals", None)
+    with warnings.catch_warnings():
+        # a non-zip file whose first bytes read as a pickle protocol: torch warns (two lines) before
+        # the refusal that the caller turns into one line
+        warnings.filterwarnings("ignore", message="Detected pickle protocol", category=UserWarning)
+        if safe_globals is not None:
+            from torch.torch_version import TorchVersion
+
+            with safe_globals([TorchVersion]):
+                return torch.load(path, map_location=map_location, weights_only=True)
+        return torch.load(path, map_location=map_location, weights_only=True)  # pragma: no cover (torch < 2.5)
 
 
 def _refusal(e: Exception) -> str:

@@ -486,6 +486,7 @@ def _checkpoint_property(run_dir: Path, mutations, raw) -> None:
 @example(mutations=[("set", 9999, "-inf"), ("set", 222, -5), ("rename", 720)], raw=None)  # omegaconf: 3 lines
 @example(mutations=[("set", 343, '{"physics": {"J": [1, 1, 1], "D": [1, 2]}}')], raw=None)  # a text epoch
 @example(mutations=[("tensor", 2779, ("dtype", "complex128"))], raw=None)  # torch cast complex weights silently
+@example(mutations=[("set", 683, -1)], raw=("replace", b"\x80\xb3"))  # torch's pickle-protocol warning
 def test_fuzz_checkpoint(run_dir, mutations, raw):
     _checkpoint_property(run_dir, mutations, raw)
 
@@ -703,3 +704,16 @@ def test_checkpoint_weights_of_another_kind_of_dtype_are_refused(run_dir, tmp_pa
         torch.save(bad, path)
         with pytest.raises(CheckpointError, match=re.escape(f"{path}: field 'state_dict.{key}' has dtype {dtype}")):
             _strict(lambda: load_run_checkpoint(run, checkpoint="last"))
+
+
+def test_a_two_byte_pickle_header_is_refused_without_torchs_warning(run_dir, tmp_path):
+    from liedfl_cli.checkpoint import load_checkpoint
+    from liedfl_cli.errors import CheckpointError
+
+    path = tmp_path / "last.pt"
+    path.write_bytes(b"\x80\xb3")  # PROTO 179: torch warned over two lines before refusing
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        with pytest.raises(CheckpointError, match=re.escape(f"{path}: not a readable checkpoint")):
+            load_checkpoint(path)
+    assert [str(w.message) for w in caught] == []
