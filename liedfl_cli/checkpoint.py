@@ -196,6 +196,8 @@ def load_state(path, model, payload: dict) -> None:
             raise CheckpointError(f"{path}: field 'state_dict.{k}' is not a tensor (got {type(v).__name__})")
         if k not in own:
             raise CheckpointError(f"{path}: field 'state_dict' has unexpected key '{k}' for this model config")
+        if v.is_complex() or v.is_floating_point() != own[k].is_floating_point():  # torch would cast silently
+            raise CheckpointError(f"{path}: field 'state_dict.{k}' has dtype {v.dtype}, model expects {own[k].dtype}")
         if own[k].shape != v.shape:
             raise CheckpointError(
                 f"{path}: field 'state_dict.{k}' has shape {tuple(v.shape)}, model expects {tuple(own[k].shape)}"
@@ -232,11 +234,18 @@ def checkpoint_path(run_dir, which: str = "best") -> Path:
 def checkpoint_record(path, payload: dict) -> dict:
     """What a loaded checkpoint is: {checkpoint: file name, checkpoint_epoch, [selected_by, value]}."""
     epoch = payload.get("epoch")
+    if epoch is not None and (
+        isinstance(epoch, bool) or not isinstance(epoch, (int, float)) or not float(epoch).is_integer()
+    ):
+        raise CheckpointError(f"{path}: field 'epoch' must be an integer, got {epoch!r:.60}")
     record: dict[str, Any] = {"checkpoint": Path(path).name, "checkpoint_epoch": None if epoch is None else int(epoch)}
     metric = payload.get("selected_by")
     if isinstance(metric, str):
         record["selected_by"] = metric
-        value = (payload.get("val") or {}).get(metric)
+        val = payload.get("val")
+        value = val.get(metric) if isinstance(val, dict) else None
+        if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))):
+            raise CheckpointError(f"{path}: field 'val.{metric}' must be a number, got {value!r:.60}")
         record["value"] = None if value is None else float(value)
     return record
 

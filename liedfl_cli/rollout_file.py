@@ -334,6 +334,10 @@ def _attr(f, key: str, path: Path):
 
 
 def _array(g, key: str, name: str, path: Path, kind: str) -> np.ndarray:
+    import h5py
+
+    if not isinstance(g[key], h5py.Dataset):
+        raise DatasetError(f"{path}: '{name}/{key}' must be an HDF5 dataset, found a group")
     arr = np.asarray(g[key][...])
     ok = {
         "float": np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer),
@@ -358,7 +362,7 @@ def read_rollout(path) -> RolloutFile:
         raise DatasetError(f"{path}: rollout file not found (run `liedfl rollout run=<dir>` first)")
     try:
         f = h5py.File(path, "r")
-    except OSError as e:
+    except (OSError, RuntimeError, ValueError) as e:  # h5py: RuntimeError/ValueError on corrupt metadata
         raise DatasetError(f"{path}: not an HDF5 file ({e})") from None
     try:
         with f:
@@ -391,7 +395,7 @@ def read_rollout(path) -> RolloutFile:
             attrs = {k: _plain(v) for k, v in f.attrs.items()}
     except DatasetError:
         raise
-    except (OSError, KeyError, ValueError, TypeError) as e:
+    except (OSError, KeyError, ValueError, TypeError, RuntimeError) as e:  # RuntimeError: h5py, corrupt metadata
         raise DatasetError(f"{path}: cannot read rollout file ({type(e).__name__}: {e})") from None
     steps, h = _plain(steps), _plain(h)
     if isinstance(steps, bool) or not isinstance(steps, (int, float)) or not float(steps).is_integer() or steps < 2:

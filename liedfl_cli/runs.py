@@ -35,6 +35,11 @@ def _recorded_dataset(run_dir: Path, recorded) -> Path | None:
     return next((c for c in candidates if c.is_file()), None)
 
 
+def _one_line(e: Exception) -> str:
+    """An exception's text on one line (omegaconf's messages add `full_key: ...` lines)."""
+    return "; ".join(ln.strip() for ln in str(e).splitlines() if ln.strip()) or type(e).__name__
+
+
 def load_run(run_dir, data_dir=None, checkpoint: str = "best"):
     """-> (config, model with trained weights on the runtime's device and dtype, dataset, run_dir).
     checkpoint: `best` (checkpoints/best.pt, the selected model, when the run has one; else last.pt)
@@ -66,7 +71,9 @@ def load_run_checkpoint(run_dir, data_dir=None, checkpoint: str = "best", accept
     try:
         cfg = OmegaConf.create(payload["config"])
     except Exception as e:
-        raise CheckpointError(f"{ckpt}: field 'config' is not a valid config ({type(e).__name__}: {e})") from None
+        raise CheckpointError(
+            f"{ckpt}: field 'config' is not a valid config ({type(e).__name__}: {_one_line(e)})"
+        ) from None
     ds_path = _recorded_dataset(run_dir, payload.get("dataset_path"))
     if ds_path is not None:
         with _naming_the_users_file(cfg, ds_path):
@@ -77,7 +84,7 @@ def load_run_checkpoint(run_dir, data_dir=None, checkpoint: str = "best", accept
     try:
         model = build_model(cfg, dataset)
     except Exception as e:
-        raise CheckpointError(f"{ckpt}: field 'config' does not build a model ({e})") from None
+        raise CheckpointError(f"{ckpt}: field 'config' does not build a model ({_one_line(e)})") from None
     load_state(ckpt, model, payload)
     if selected != ckpt:
         ckpt, payload = selected, load_checkpoint(selected, map_location=placement()[0])

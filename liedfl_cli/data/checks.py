@@ -113,12 +113,14 @@ def _numbers(x, head: str, field: str, error: type[Exception]) -> np.ndarray:
 def _inertia(J: np.ndarray, head: str, field: str, error: type[Exception]) -> None:
     """J (3, 3): symmetric, positive definite, principal moments obeying the triangle inequality."""
     scale = max(1.0, float(np.abs(J).max()))
-    if np.abs(J - J.T).max() > 1e-9 * scale:
+    Js = J / scale  # every check below is scale-invariant; entries near 1e308 would overflow unscaled
+    if np.abs(Js - Js.T).max() > 1e-9:
         _fail(error, head, field, f"must be symmetric, got {J.tolist()}")
-    lam = np.linalg.eigvalsh(0.5 * (J + J.T))
+    lam = np.linalg.eigvalsh(0.5 * (Js + Js.T))
     if lam.min() <= 0:
-        _fail(error, head, field, f"must be positive definite (principal moments {lam.tolist()})")
+        _fail(error, head, field, f"must be positive definite (principal moments {(lam * scale).tolist()})")
     if lam[2] > lam[0] + lam[1] + 1e-9 * lam.sum():
+        lam = lam * scale
         _fail(
             error,
             head,
@@ -159,6 +161,13 @@ def check_physics(
 
     Two schemas (docs/data_format.md): per body (mechanics.scene_physics: J, m, rho, g, D,
     interaction, control) and `kind: "articulated"` (models.articulated: bodies, joint_damping, ...)."""
+    # finite but huge values (1e308) overflow in the sums below: inf compares as it should, and numpy's
+    # RuntimeWarning would only add a second line to the user's message
+    with np.errstate(over="ignore"):
+        _check_physics(physics, n_bodies, dim, tree, source, prefix, error)
+
+
+def _check_physics(physics, n_bodies: int, dim: int, tree, source, prefix: str, error: type[Exception]) -> None:
     head = f"{source}: " if source else ""
     if not isinstance(physics, dict):
         _fail(error, head, prefix, f"must be a JSON object, got {type(physics).__name__}")
@@ -190,10 +199,10 @@ def check_physics(
             if (D < 0).any():
                 _fail(error, head, f"{prefix}.D", f"must be non-negative, got entry {int(np.argmin(D))} = {D.min()}")
         elif D.shape == (dim, dim):
-            scale = max(1.0, float(np.abs(D).max()))
-            if np.abs(D - D.T).max() > 1e-9 * scale:
+            Ds = D / max(1.0, float(np.abs(D).max()))  # scaled: no overflow of huge entries
+            if np.abs(Ds - Ds.T).max() > 1e-9:
                 _fail(error, head, f"{prefix}.D", "must be symmetric")
-            if np.linalg.eigvalsh(0.5 * (D + D.T)).min() < -1e-9 * scale:
+            if np.linalg.eigvalsh(0.5 * (Ds + Ds.T)).min() < -1e-9:
                 _fail(error, head, f"{prefix}.D", "must be positive semidefinite")
         else:
             _fail(

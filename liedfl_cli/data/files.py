@@ -357,10 +357,12 @@ def _rotations(values: np.ndarray, rotation: str, where: str, first_row: int = 0
     """(n, B, 4) quaternions or (n, B, 9) row-major matrices -> rotations (n, B, 3, 3)."""
     if rotation == "matrix":
         M = values.reshape(*values.shape[:-1], 3, 3)
-        E = np.swapaxes(M, -1, -2) @ M - np.eye(3)
-        err = np.sqrt((E * E).sum((-1, -2)))
-        det = np.linalg.det(M)
-        bad = (err > 1e-3) | (det < 0)
+        # huge finite entries overflow to inf or NaN (inf - inf): both are bad, hence `not <=`
+        with np.errstate(over="ignore", invalid="ignore"):
+            E = np.swapaxes(M, -1, -2) @ M - np.eye(3)
+            err = np.sqrt((E * E).sum((-1, -2)))
+            det = np.linalg.det(M)
+        bad = ~(err <= 1e-3) | ~(det >= 0)
         if bad.any():
             i, b = (int(x) for x in np.argwhere(bad)[0])
             raise DatasetError(
@@ -368,8 +370,9 @@ def _rotations(values: np.ndarray, rotation: str, where: str, first_row: int = 0
                 f"det = {det[i, b]:.4g}); dataset.rotation=matrix expects r00..r22 row by row"
             )
         return so3.project(torch.from_numpy(np.ascontiguousarray(M))).numpy()
-    norm = np.linalg.norm(values, axis=-1)
-    bad = np.abs(norm - 1.0) > 1e-2
+    with np.errstate(over="ignore"):  # huge entries: an infinite norm, refused below
+        norm = np.linalg.norm(values, axis=-1)
+    bad = ~(np.abs(norm - 1.0) <= 1e-2)
     if bad.any():
         i, b = (int(x) for x in np.argwhere(bad)[0])
         raise DatasetError(
@@ -451,10 +454,29 @@ def _order_bodies(tracks: list[_Track], names: list[str], has_p: list[bool], whe
 
 
 def _read_npz(path: Path, c: dict):
+    import zipfile
+    import zlib
+
     try:
-        z = np.load(path, allow_pickle=False)
-        arrays = {k: z[k] for k in z.files}
-    except (OSError, ValueError) as e:
+        # the file is opened here, so that it is closed when numpy fails half-way through the archive
+        with open(path, "rb") as fh:
+            z = np.load(fh, allow_pickle=False)
+            if not isinstance(z, np.lib.npyio.NpzFile):  # a bare .npy array under an .npz name
+                raise DatasetError(f"{path}: not an .npz archive (a single .npy array)")
+            arrays = {k: z[k] for k in z.files}
+    except DatasetError:
+        raise
+    # zipfile: NotImplementedError for an unknown compression method, RuntimeError for an encrypted entry
+    except (
+        OSError,
+        ValueError,
+        EOFError,
+        KeyError,
+        NotImplementedError,
+        RuntimeError,
+        zipfile.BadZipFile,
+        zlib.error,
+    ) as e:
         raise DatasetError(f"{path}: not a readable .npz file ({type(e).__name__}: {e})") from None
     for k, v in check_columns(c).items():  # dataset.columns renames arrays: {q: quat, t: time}
         if k in ("t", "q", "R", "p", "body_names"):
@@ -509,8 +531,10 @@ def _read_npz(path: Path, c: dict):
     if t.ndim == 1:
         t, rot, p = t[None], rot[None], p[None]
     m = p.shape[-2]
-    names = arrays.get("body_names")
-    names = [str(x) for x in names] if names is not None else [f"body{i}" for i in range(B)]
+    given = arrays.get("body_names")
+    if given is not None and given.ndim != 1:
+        raise DatasetError(f"{path}: array 'body_names' has shape {given.shape}; need ({B},), one name per body")
+    names = [str(x) for x in given] if given is not None else [f"body{i}" for i in range(B)]
     if len(names) != B:
         raise DatasetError(f"{path}: array 'body_names' has {len(names)} entries for {B} bodies")
     tracks = []
@@ -527,23 +551,28 @@ def _uniform(tr: _Track, c: dict, h_cfg: float | None) -> float:
     of the median step (or of the configured h), and the step returned is the mean one (rounded to 10
     digits, which removes the rounding of printed time stamps); with resampling, the median step."""
     t = tr.t
-    d = np.diff(t)
+    with np.errstate(over="ignore"):  # finite stamps near 1e308: differences overflow to inf (refused below)
+        d = np.diff(t)
     if (d <= 0).any():
         k = int(np.argmax(d <= 0))
-        raise DatasetError(f"{tr.source}: time stamps are not increasing at sample {k + 1}: {t[k]!r} then {t[k + 1]!r}")
+        raise DatasetError(
+            f"{tr.source}: time stamps are not increasing at sample {k + 1}: {float(t[k])!r} then {float(t[k + 1])!r}"
+        )
     median = float(np.median(d))
     if c["resample"]:
         return median
     ref = h_cfg or median
-    dev = np.abs(d - ref) / ref
-    if (dev > c["time_tolerance"]).any():
-        k = int(np.argmax(dev))
+    with np.errstate(over="ignore", invalid="ignore"):
+        dev = np.abs(d - ref) / ref
+    if (~(dev <= c["time_tolerance"])).any():
+        k = int(np.argmax(~(dev <= c["time_tolerance"])))
         raise DatasetError(
             f"{tr.source}: time stamps are not uniform: step {k} -> {k + 1} is {d[k]:.6g} s, the "
             f"{'configured' if h_cfg else 'median'} step {ref:.6g} s (off by {dev[k]:.1%}, tolerance "
             f"dataset.time_tolerance={c['time_tolerance']:g}); set dataset.resample=true to resample on the group"
         )
-    return float(f"{(t[-1] - t[0]) / (len(t) - 1):.10g}")
+    with np.errstate(over="ignore"):
+        return float(f"{(t[-1] - t[0]) / (len(t) - 1):.10g}")
 
 
 def resample(t: np.ndarray, R: np.ndarray, p: np.ndarray, h: float, where: str = "track"):

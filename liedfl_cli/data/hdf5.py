@@ -252,9 +252,9 @@ def load_dataset(path, require_split: bool = True) -> Dataset:
                 names = [f"body{i}" for i in range(len(kinds))]
             for key, expected in (("n_se3", kinds.count("se3")), ("n_so3", kinds.count("so3"))):
                 given = _attr(f, key, src, required=False)
-                if given is not None and given != expected:
+                if given is not None and (type(given) is not int or given != expected):  # arrays, text, bools too
                     raise DatasetError(
-                        f"{src}: attribute '{key}' is {given} but 'body_kinds' lists {expected} such bodies"
+                        f"{src}: attribute '{key}' is {given!r:.80} but 'body_kinds' lists {expected} such bodies"
                     )
             scene = _attr(f, "scene", src, required=False, default=path.stem)
             params = _json_attr(f, "params", src, required=False, default={})
@@ -281,7 +281,7 @@ def load_dataset(path, require_split: bool = True) -> Dataset:
                     extras[k] = _native(_array(f, f"extras/{k}", src))
     except DatasetError:
         raise
-    except (OSError, KeyError, ValueError, TypeError) as exc:
+    except (OSError, KeyError, ValueError, TypeError, RuntimeError) as exc:  # RuntimeError: h5py, corrupt metadata
         raise DatasetError(f"{src}: cannot read file ({type(exc).__name__}: {exc})") from None
 
     if not isinstance(h, (int, float)) or not np.isfinite(h) or h <= 0:
@@ -506,16 +506,19 @@ def _validate(
 
     # rotations: ||R^T R - I||_F and det R
     warn_tol, reject_tol = tol(input_dtype, "project_warn"), tol(input_dtype, "reject")
-    E = np.swapaxes(R, -1, -2) @ R - np.eye(3)
-    err = np.sqrt((E * E).sum((-1, -2)))
-    det_err = np.abs(np.linalg.det(R) - 1.0)
+    # huge finite entries overflow to inf (or inf - inf = NaN): both must count as gross, hence `not <=`
+    with np.errstate(over="ignore", invalid="ignore"):
+        E = np.swapaxes(R, -1, -2) @ R - np.eye(3)
+        err = np.sqrt((E * E).sum((-1, -2)))
+        det = np.linalg.det(R)
+        det_err = np.abs(det - 1.0)
     worst = np.maximum(err, det_err)
-    gross = worst > reject_tol
+    gross = ~(worst <= reject_tol)
     if gross.any():
         i = _first(gross)
         raise DatasetError(
             f"{src}: dataset 'R' is not a rotation at index {i} (trajectory, sample, body): "
-            f"||R^T R - I||_F = {err[i]:.3g}, det R = {np.linalg.det(R[i]):.6g} (reject tolerance {reject_tol:g})"
+            f"||R^T R - I||_F = {err[i]:.3g}, det R = {det[i]:.6g} (reject tolerance {reject_tol:g})"
         )
     off = worst > warn_tol
     if project and off.any():
