@@ -443,6 +443,47 @@ def _disk_full_json(ctx: Ctx):
 
 
 # ----------------------------------------------------------------------------- the table
+# --- setups of the import / export / logger block (the features of the usability round)
+def _import_csv(edit: Callable[[list[str]], list[str]] | None = None, name: str = "log.csv"):
+    """A valid two-recording CSV log (tests/own_data.py), its lines edited by `edit`."""
+
+    def setup(ctx: Ctx):
+        from own_data import write_csv
+
+        path, _, _ = write_csv(ctx.tmp / name, n_traj=2, n_samples=21, rotation="wxyz")
+        if edit is not None:
+            path.write_text("\n".join(edit(path.read_text().splitlines())) + "\n")
+
+    return setup
+
+
+def _cell(row: int, col: int, value: str):
+    """Line `row` (0 = the header) with field `col` replaced."""
+
+    def edit(lines: list[str]) -> list[str]:
+        cells = lines[row].split(",")
+        cells[col] = value
+        return [*lines[:row], ",".join(cells), *lines[row + 1 :]]
+
+    return edit
+
+
+def _swap(a: int, b: int):
+    def edit(lines: list[str]) -> list[str]:
+        lines = list(lines)
+        lines[a], lines[b] = lines[b], lines[a]
+        return lines
+
+    return edit
+
+
+def _npz_without_q(ctx: Ctx):
+    np.savez(ctx.tmp / "log.npz", t=np.arange(5.0))
+
+
+IMP = ("data", "dataset=import", "dataset.path=log.csv", "dataset.rotation=wxyz")
+
+
 T = "train"
 CASES: list[Case] = [
     # --- config values (fail before any folder or data exists)
@@ -1058,6 +1099,96 @@ CASES: list[Case] = [
         setup=_disk_full_json,
         allowed=RUN_FOLDER,
     ),
+    # --- import / export / logger (the usability round's new keys and files)
+    Case("import-time-unit-unknown", (*IMP, "dataset.time_unit=hours"), ("dataset.time_unit='hours'", "s, ms or us")),
+    Case("import-gravity-text", (*IMP, "dataset.gravity=down"), ("dataset.gravity='down'",), setup=_import_csv()),
+    Case("import-gravity-2-vector", (*IMP, "dataset.gravity=[0,9.81]"), ("dataset.gravity=[0, 9.81]",)),
+    Case(
+        "import-columns-no-such-column",
+        (*IMP, "dataset.columns={{q0:qa}}"),
+        ("log.csv", "dataset.columns.q0=qa", "no such column"),
+        setup=_import_csv(),
+    ),
+    Case("import-columns-list-too-short", (*IMP, "dataset.columns=[a,b]"), ("dataset.columns=['a', 'b']",)),
+    Case(
+        "import-time-column-missing",
+        (*IMP, "dataset.time_column=time"),
+        ("log.csv", "column 'time' is missing", "dataset.columns"),
+        setup=_import_csv(),
+    ),
+    Case(
+        "import-rotation-unknown", (*IMP[:3], "dataset.rotation=zyx"), ("dataset.rotation='zyx'", "wxyz, xyzw, matrix")
+    ),
+    Case("import-length-scale-negative", (*IMP, "dataset.length_scale=-1"), ("dataset.length_scale=-1", "positive")),
+    Case("import-chunk-steps-zero", (*IMP, "dataset.chunk_steps=0"), ("dataset.chunk_steps=0", ">= 2")),
+    Case("import-time-scale-zero", (*IMP, "dataset.time_scale=0"), ("dataset.time_scale=0", "positive")),
+    Case(
+        "import-csv-nan-cell", IMP, ("log.csv", "line 6", "'q0'", "not finite"), setup=_import_csv(_cell(5, 2, "nan"))
+    ),
+    Case(
+        "import-csv-text-cell",
+        IMP,
+        ("log.csv", "line 6", "'q1'", "not a number"),
+        setup=_import_csv(_cell(5, 3, "abc")),
+    ),
+    Case(
+        "import-csv-zero-quaternion",
+        IMP,
+        ("log.csv", "quaternion norm 0", "not a unit quaternion"),
+        setup=_import_csv(lambda ls: _cell(5, 2, "0")(_cell(5, 3, "0")(_cell(5, 4, "0")(_cell(5, 5, "0")(ls))))),
+    ),
+    Case("import-csv-time-backwards", IMP, ("log.csv", "not increasing at sample 5"), setup=_import_csv(_swap(5, 6))),
+    Case(
+        "import-csv-header-only",
+        IMP,
+        ("log.csv", "header line and at least 2 rows"),
+        setup=_import_csv(lambda ls: ls[:1]),
+    ),
+    Case("import-csv-empty", IMP, ("log.csv", "found 0 line(s)"), setup=_import_csv(lambda ls: [])),
+    Case(
+        "import-csv-ragged",
+        IMP,
+        ("log.csv", "line 8 has 10 fields", "header has 9"),
+        setup=_import_csv(lambda ls: [*ls[:7], ls[7] + ",1", *ls[8:]]),
+    ),
+    Case(
+        "import-npz-no-quaternions",
+        ("data", "dataset=import", "dataset.path=log.npz", "dataset.rotation=wxyz"),
+        ("log.npz", "array 'q' is missing"),
+        setup=_npz_without_q,
+    ),
+    Case(
+        "rollout-split-unknown",
+        ("rollout", "run={run}", "split=some"),
+        ("split='some'", "auto, all, train, test"),
+        setup=lambda c: c.run(),
+    ),  # fmt: skip
+    Case(
+        "rollout-export-unknown",
+        ("rollout", "run={run}", "export=xls"),
+        ("export='xls'", "csv, npz"),
+        setup=lambda c: c.run(),
+    ),  # fmt: skip
+    Case(
+        "rollout-checkpoint-unknown",
+        ("rollout", "run={run}", "checkpoint=middle"),
+        ("checkpoint='middle'", "best, last"),
+        setup=lambda c: c.run(),
+    ),  # fmt: skip
+    Case(
+        "eval-rollout-not-hdf5",
+        ("eval", "run={run}", "rollout=junk.h5"),
+        ("junk.h5", "not an HDF5 file"),
+        setup=lambda c: (c.run(), c.file("junk.h5", b"\x89 not hdf5 " * 20)),
+    ),
+    Case(
+        "eval-rollout-missing",
+        ("eval", "run={run}", "rollout=nothere.h5"),
+        ("rollout=nothere.h5", "no such rollout file"),
+        setup=lambda c: c.run(),
+    ),  # fmt: skip
+    Case("logger-unknown", (T, *FAST, "logger=wandb"), ("logger/wandb", "csv, tensorboard")),
+    Case("logger-key-unknown", (T, *FAST, "+logger.flush_secs=3"), ("logger.flush_secs",)),
 ]
 
 
@@ -1160,5 +1291,5 @@ def test_hostile_input(case: Case, trained, pristine, tmp_path, monkeypatch, cap
 
 
 def test_the_table_is_large_and_ids_are_unique():
-    assert len(CASES) >= 60
+    assert len(CASES) >= 200  # issue 18: at least 200 hostile cases
     assert len({c.id for c in CASES}) == len(CASES)
