@@ -3,18 +3,27 @@
 The default torch dtype is deliberately left alone: every Lie-group test states its dtype.
 A modest hypothesis profile keeps the property tests fast (select another one with
 HYPOTHESIS_PROFILE=<name>, e.g. `thorough`).
+
+Every test starts from the same engine state, whatever ran before it (`_fresh_runtime`): the default
+`runtime` settings, no planned work, one torch thread (`runtime.threads: auto`), and `runtime.compile:
+auto` never compiling in this process (a test that trains longer than the smoke budget must not pay
+tens of seconds of compilation by accident; `@pytest.mark.compile_auto` keeps the real threshold, and
+`runtime.compile=true` still compiles). Subprocesses are not covered: pass `runtime.compile=false`.
 """
 
 from __future__ import annotations
 
+import math
 import os
 from pathlib import Path
 
 import pytest
+import torch
 from hypothesis import HealthCheck, settings
 
 import helpers
 import liedfl_cli.resolvers  # noqa: F401  (the configs the tests compose use its resolvers)
+from liedfl_cli.solvers import runtime
 
 settings.register_profile(
     "default-liedfl",
@@ -24,6 +33,28 @@ settings.register_profile(
 )
 settings.register_profile("thorough", deadline=None, max_examples=300)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "default-liedfl"))
+
+
+# ----------------------------------------------------------------------------- engine state
+@pytest.fixture(autouse=True)
+def _fresh_runtime(request):
+    """The default engine state before each test, restored after it (see the module docstring)."""
+    threads, min_work = torch.get_num_threads(), dict(runtime.COMPILE_MIN_WORK)
+
+    def reset() -> None:
+        runtime._current = runtime.RuntimeOptions()
+        runtime._planned.clear()
+
+    reset()
+    torch.set_num_threads(runtime.DEFAULT_THREADS)
+    if request.node.get_closest_marker("compile_auto") is None:
+        runtime.COMPILE_MIN_WORK.update(dict.fromkeys(runtime.COMPILE_MIN_WORK, math.inf))
+    try:
+        yield
+    finally:
+        runtime.COMPILE_MIN_WORK.update(min_work)
+        reset()
+        torch.set_num_threads(threads)
 
 
 # ----------------------------------------------------------------------------- shared fixtures
@@ -55,6 +86,17 @@ def run_cli():
     """run_cli(*args, cwd, ok=False) -> CompletedProcess of the `liedfl` command in a subprocess
     (ok=True asserts exit 0 and no traceback)."""
     return helpers.run_cli
+
+
+@pytest.fixture
+def run_main(capfd, monkeypatch):
+    """run_main(*args, cwd, ok=False) -> CompletedProcess of `liedfl *args` run in this process
+    (`helpers.run_main`: the entry point's `main()`, without a new interpreter per call)."""
+
+    def run(*args: str, cwd: Path, ok: bool = False):
+        return helpers.run_main(*args, cwd=cwd, capfd=capfd, monkeypatch=monkeypatch, ok=ok)
+
+    return run
 
 
 @pytest.fixture(scope="session")

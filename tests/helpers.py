@@ -7,6 +7,7 @@ import os
 import shutil
 import subprocess
 import sys
+import traceback
 from pathlib import Path
 
 from liedfl_cli.cli import CONF_DIR
@@ -40,6 +41,44 @@ def run_cli(*args: str, cwd: Path, ok: bool = False, timeout: int = 300) -> subp
     """`liedfl *args` in a subprocess (cwd, `cli_env()`); ok=True asserts exit 0 and no traceback."""
     proc = subprocess.run([*cli_command(), *args], cwd=cwd, env=cli_env(), capture_output=True, text=True,
                           timeout=timeout)  # fmt: skip
+    if ok:
+        assert proc.returncode == 0, f"liedfl {' '.join(args)} -> {proc.returncode}\n{proc.stdout}\n{proc.stderr}"
+        assert "Traceback" not in proc.stderr, proc.stderr
+    return proc
+
+
+def run_main(*args: str, cwd: Path, capfd, monkeypatch, ok: bool = False) -> subprocess.CompletedProcess:
+    """`liedfl *args` as `liedfl_cli.cli.main` called in this process (what the `liedfl` entry point runs),
+    in cwd, with the environment of `cli_env()`; returns a CompletedProcess like `run_cli` (returncode
+    from SystemExit; an escaping exception: returncode 1 and its traceback appended to stderr). Saves
+    the seconds of a new interpreter per call, for tests of a command's behaviour; tests of the process
+    boundary (signals, the installed script, exit on a closed pipe) keep `run_cli`."""
+    from hydra.core.global_hydra import GlobalHydra
+
+    from liedfl_cli.cli import main
+
+    for key in ("LIEDFL_DATA_DIR", "HYDRA_FULL_ERROR"):
+        monkeypatch.delenv(key, raising=False)
+    for key, value in (("MPLBACKEND", "Agg"), ("COLUMNS", "200")):
+        monkeypatch.setenv(key, value)
+    capfd.readouterr()
+    argv, here = sys.argv, os.getcwd()
+    sys.argv = ["liedfl", *args]
+    os.chdir(cwd)
+    extra = ""
+    try:
+        main()
+        code = 0
+    except SystemExit as e:
+        code = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
+    except BaseException:  # what the process would print as a traceback
+        code, extra = 1, traceback.format_exc()
+    finally:
+        sys.argv = argv
+        os.chdir(here)
+        GlobalHydra.instance().clear()
+    out, err = capfd.readouterr()
+    proc = subprocess.CompletedProcess(["liedfl", *args], code, out, err + extra)
     if ok:
         assert proc.returncode == 0, f"liedfl {' '.join(args)} -> {proc.returncode}\n{proc.stdout}\n{proc.stderr}"
         assert "Traceback" not in proc.stderr, proc.stderr

@@ -1,5 +1,7 @@
 """End to end through the installed `liedfl` command (subprocess, cwd = a temporary directory),
-plus `run_train` called in-process on a composed config. Everything runs on the smoke budget."""
+plus `run_train` called in-process on a composed config. Everything runs on the smoke budget. The
+cases about what a command writes or refuses beyond the first train / rollout / eval run `main()`
+in-process (`run_main`, the same code without a new interpreter per call)."""
 
 from __future__ import annotations
 
@@ -109,9 +111,13 @@ def test_eval_rewrites_eval_csv(trained, tmp_path):
     assert list(tmp_path.iterdir()) == []  # the recorded dataset was found; nothing regenerated here
 
 
-def test_eval_of_another_rollout_writes_next_to_it(trained, tmp_path):
+def test_eval_of_another_rollout_writes_next_to_it(trained, tmp_path, run_main):
     """`liedfl eval run=<run> rollout=<file or folder>` evaluates that file and writes next to it only."""
     run = trained
+
+    def liedfl(*args: str, cwd: Path, ok: bool = True) -> subprocess.CompletedProcess:
+        return run_main(*args, cwd=cwd, ok=ok)
+
     liedfl("rollout", f"run={run}", "steps=12", "ui.progress=false", "eval.plots=false", cwd=tmp_path)
     folder = next(d for d in (run / "rollouts").iterdir() if d.name.endswith("_steps12"))
     (folder / "eval.csv").unlink()
@@ -127,7 +133,7 @@ def test_eval_of_another_rollout_writes_next_to_it(trained, tmp_path):
     ]
 
 
-def test_eval_refuses_a_rollout_that_does_not_match_the_dataset(trained, tmp_path):
+def test_eval_refuses_a_rollout_that_does_not_match_the_dataset(trained, tmp_path, run_main):
     """Issue 11: a rollout.h5 with one predicted trajectory for two test trajectories is a one-line error
     naming the file and field (exit 2), and the run's evaluation stays as it was."""
     run = tmp_path / "run"
@@ -139,7 +145,7 @@ def test_eval_refuses_a_rollout_that_does_not_match_the_dataset(trained, tmp_pat
             del f[f"model/{k}"]
             f[f"model/{k}"] = a
     before = (run / "eval.csv").read_bytes()
-    proc = liedfl("eval", f"run={run}", "ui.progress=false", cwd=tmp_path, ok=False)
+    proc = run_main("eval", f"run={run}", "ui.progress=false", cwd=tmp_path)
     lines = [line for line in proc.stderr.splitlines() if line.strip()]
     assert proc.returncode == 2 and "Traceback" not in proc.stderr and len(lines) == 1, proc.stderr
     assert lines[0].startswith(f"error: {run / 'rollout.h5'}: dataset 'model/R' holds 1 trajectories"), lines[0]

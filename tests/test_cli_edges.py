@@ -1,5 +1,7 @@
 """Edges of the `liedfl` command line (issue 21, item 6): --version, a closed stdout pipe, a misspelt key
-without `+`, --help after overrides, run=latest / resume=latest. Nothing here trains."""
+without `+`, --help after overrides, run=latest / resume=latest. Nothing here trains. The misspelt-key and
+run=latest messages come from `main()` run in-process (`run_main`); --version, the pipes and --help through
+a real process."""
 
 from __future__ import annotations
 
@@ -63,8 +65,8 @@ def test_help_piped_into_head(tmp_path):
         (["dataset.zzzzzz=1"], "unknown config key 'dataset.zzzzzz' for scene 'free_rigid_body' (valid keys: h,"),
     ],
 )
-def test_misspelt_key_without_plus(args, expected, tmp_path):
-    proc = run_cli("train", *args, cwd=tmp_path)
+def test_misspelt_key_without_plus(args, expected, tmp_path, run_main):
+    proc = run_main("train", *args, cwd=tmp_path)
     assert proc.returncode == 2
     assert proc.stderr.startswith("error: ") and proc.stderr.count("\n") == 1, proc.stderr
     assert expected in proc.stderr, proc.stderr
@@ -118,8 +120,8 @@ def test_latest_run(tmp_path, monkeypatch):
 
 
 @pytest.mark.parametrize(("command", "key"), [("rollout", "run"), ("eval", "run"), ("train", "resume")])
-def test_latest_without_runs(command, key, tmp_path):
-    proc = run_cli(command, f"{key}=latest", cwd=tmp_path)
+def test_latest_without_runs(command, key, tmp_path, run_main):
+    proc = run_main(command, f"{key}=latest", cwd=tmp_path)
     assert proc.returncode == 2
     assert proc.stderr == (
         f"error: {key}=latest: no run under outputs/runs/ (no run folder with checkpoints/last.pt)\n"
@@ -127,12 +129,12 @@ def test_latest_without_runs(command, key, tmp_path):
     assert not (tmp_path / "outputs").exists()
 
 
-def test_latest_picks_the_newest_run(tmp_path):
+def test_latest_picks_the_newest_run(tmp_path, run_main):
     """run=latest names the newest run (here a broken one: the error names its checkpoint)."""
     now = time.time()
     _fake_run(tmp_path, "old", now - 100)
     _fake_run(tmp_path, "new", now)
-    proc = run_cli("eval", "run=latest", cwd=tmp_path)
+    proc = run_main("eval", "run=latest", cwd=tmp_path)
     assert proc.returncode != 0 and "Traceback" not in proc.stderr
     assert "new" in proc.stderr and "old" not in proc.stderr, proc.stderr
 

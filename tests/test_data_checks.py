@@ -261,7 +261,7 @@ def test_atomic_path_holds_a_signal_until_the_file_is_in_place(tmp_path, sigint_
     assert [p.name for p in tmp_path.iterdir()] == ["a.txt"]
 
 
-def test_the_cli_shows_the_coarse_sampling_warning_on_one_line(tmp_path):
+def test_the_cli_shows_the_coarse_sampling_warning_on_one_line(tmp_path, run_main):
     """`liedfl data` on a cached file with one increment of 0.6 pi: exit 0, one `warning:` line."""
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
@@ -279,15 +279,7 @@ def test_the_cli_shows_the_coarse_sampling_warning_on_one_line(tmp_path):
         W = _axis_angle(0.6 * math.pi, (0.0, 0.0, 1.0))
         R[2, 7:, 0] = (R[2, 6, 0] @ W @ R[2, 7, 0].T) @ R[2, 7:, 0]
         f["R"][...] = R
-    env = {k: v for k, v in os.environ.items() if k not in ("LIEDFL_DATA_DIR", "HYDRA_FULL_ERROR")}
-    proc = subprocess.run(
-        [sys.executable, "-c", "from liedfl_cli.cli import main; main()", "data", "budget=smoke", "ui.progress=false"],
-        cwd=tmp_path,
-        env={**env, "COLUMNS": "200"},
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    proc = run_main("data", "budget=smoke", "ui.progress=false", cwd=tmp_path)  # in-process: the message is tested
     assert proc.returncode == 0, proc.stderr
     lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith("warning: "), proc.stderr

@@ -261,8 +261,8 @@ def test_cuda_without_a_gpu_is_a_one_line_config_error(restore_runtime, monkeypa
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has a CUDA device")
-def test_cli_cuda_without_a_gpu_fails_before_anything_is_written(run_cli, tmp_path):
-    proc = run_cli("train", "budget=smoke", "runtime.device=cuda", f"paths.data_dir={tmp_path}/data", cwd=tmp_path)
+def test_cli_cuda_without_a_gpu_fails_before_anything_is_written(run_main, tmp_path):
+    proc = run_main("train", "budget=smoke", "runtime.device=cuda", f"paths.data_dir={tmp_path}/data", cwd=tmp_path)
     assert proc.returncode == 2, proc.stderr
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: runtime.device=cuda: no CUDA device"), proc.stderr

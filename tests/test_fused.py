@@ -399,6 +399,7 @@ def test_configure_runtime_from_the_train_config(tmp_path):
         torch.set_num_threads(before)
 
 
+@pytest.mark.compile_auto
 @pytest.mark.parametrize("setting", ["false", "auto"])
 def test_compile_false_and_auto_roll_out_the_same(setting):
     model = physics_model(SO3, 0.1, {**PHYS, "g": 0.0, "D": [0.05] * 3})

@@ -6,8 +6,6 @@ from __future__ import annotations
 import itertools
 import json
 import math
-import subprocess
-import sys
 from pathlib import Path
 
 import h5py
@@ -186,23 +184,24 @@ def test_chain_is_deterministic_and_rotations_are_bounded():
         small(seed=7, max_step_rotation=1e-3)
 
 
-def test_script_writes_a_file_that_dataset_file_reads_with_its_tree(tmp_path):
+def test_script_writes_a_file_that_dataset_file_reads_with_its_tree(tmp_path, capsys):
+    """scripts/mujoco_chain.py's `main(argv)`, called in-process (its argument handling, output and file)."""
+    import runpy
+
+    main = runpy.run_path(str(ROOT / "scripts" / "mujoco_chain.py"), run_name="mujoco_chain_script")["main"]
     out = tmp_path / "chain.h5"
-    r = subprocess.run(
-        [sys.executable, str(ROOT / "scripts" / "mujoco_chain.py"), "--links", "2", "--n-trajectories", "3",
-         "--steps", "10", "--rotations", "parent", "--out", str(out)],
-        capture_output=True, text=True, cwd=ROOT, env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"},
-    )  # fmt: skip
-    assert r.returncode == 0, r.stderr
-    assert "largest per-step rotation" in r.stdout and "SE(3) x SO(3)" in r.stdout
+    argv = ["--links", "2", "--n-trajectories", "3", "--steps", "10", "--rotations", "parent", "--out", str(out)]
+    assert main(argv) == 0, capsys.readouterr().err
+    stdout = capsys.readouterr().out
+    assert "largest per-step rotation" in stdout and "SE(3) x SO(3)" in stdout
     ds, cached = get_dataset({**FILE, "path": str(out)}, tmp_path / "data")
     assert ds.tree is not None and ds.tree.rotations == "parent" and ds.tree == load_dataset(out).tree
     assert load_dataset(cached).tree == ds.tree
-    bad = subprocess.run(
-        [sys.executable, str(ROOT / "scripts" / "mujoco_chain.py"), "--links", "7", "--out", str(tmp_path / "x.h5")],
-        capture_output=True, text=True, cwd=ROOT, env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"},
-    )  # fmt: skip
-    assert bad.returncode == 2 and "links=7" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
+    capsys.readouterr()
+    code = main(["--links", "7", "--out", str(tmp_path / "x.h5")])
+    err = capsys.readouterr().err
+    assert code == 2 and "links=7" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "x.h5").exists()
 
 
 # ---------------------------------------------------------------------- the tree fields of the format

@@ -98,8 +98,9 @@ def test_interaction_values_by_hand():
 def test_energy_conserved_without_damping(kind):
     system = two_body_system(physics(kind))
     R0, p0, xi0 = initial(system, 2)
+    # DOP853 (8th order) reaches rtol 1e-10 in 2-4x fewer evaluations than RK45; both stay ~1e-10 from E(0)
     sim = simulate_multibody(
-        system, R0, p0, xi0, 0.05 * np.arange(41), {"method": "RK45", "rtol": 1e-10, "atol": 1e-12}
+        system, R0, p0, xi0, 0.05 * np.arange(41), {"method": "DOP853", "rtol": 1e-10, "atol": 1e-12}
     )
     E = system.energy(sim.R, sim.p, sim.w)
     assert np.ptp(system.kinetic(sim.w)) > 1e-2  # the bodies do exchange energy with the potential

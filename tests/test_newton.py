@@ -127,7 +127,7 @@ def test_a_tolerance_below_rounding_converges_at_the_rounding_floor():
     ]
     for model, (g0, g1) in cases:
         for tol in (0.0, 1e-17):
-            for ro in _rollouts(model, g0, g1, 150, SolverOptions(tol=tol)):
+            for ro in _rollouts(model, g0, g1, 60, SolverOptions(tol=tol)):  # without the floor: >= 1 failure
                 assert ro.n_failed == 0, (model.G.name, tol, ro.n_failed)
                 assert float(ro.iterations.double().mean()) < 5  # 3.5-3.7 here: a step or two past 1e-12
 
@@ -141,10 +141,10 @@ def test_the_floor_leaves_flags_and_iteration_counts_as_they_were(monkeypatch):
     for tol in (SolverOptions().tol, 1e-12):
         for m, (g0, g1) in ((model, so3_start), (se3, _se3_start(3))):
             opts = SolverOptions(tol=tol)
-            now = _rollouts(m, g0, g1, 100, opts)
+            now = _rollouts(m, g0, g1, 40, opts)
             with monkeypatch.context() as mp:
                 mp.setattr(newton, "ROUNDING_ULPS", 0.0)
-                plain = _rollouts(m, g0, g1, 100, opts)
+                plain = _rollouts(m, g0, g1, 40, opts)
             for a, b in zip(now, plain):
                 assert torch.equal(a.converged, b.converged) and torch.equal(a.iterations, b.iterations)
                 assert torch.equal(a.pose.R, b.pose.R) and torch.equal(a.pose.p, b.pose.p)

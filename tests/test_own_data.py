@@ -12,7 +12,6 @@ import h5py
 import numpy as np
 import pytest
 from own_data import H, motion, write_csv, write_h5
-from test_cli import liedfl
 
 from liedfl_cli.data.files import complete_steps, default_split, resample
 from liedfl_cli.data.hdf5 import load_dataset
@@ -71,6 +70,17 @@ def test_the_scene_configs_hold_exactly_the_keys_the_scenes_accept():
         c.pop("defaults")
         assert set(TRAIN_TIME_KEYS) <= set(c), name  # the trainer's keys (validation split): no scene sees them
         assert set(c) - set(TRAIN_TIME_KEYS) == set(keys) == set(ref) | {"path"}, name
+
+
+@pytest.fixture
+def liedfl(run_main):
+    """liedfl(*args, cwd, ok=True) -> CompletedProcess of the command run in-process (`run_main`; the
+    process boundary is test_cli.py's)."""
+
+    def run(*args: str, cwd: Path, ok: bool = True):
+        return run_main(*args, cwd=cwd, ok=ok)
+
+    return run
 
 
 # ----------------------------------------------------------------------------- import
@@ -229,7 +239,7 @@ def test_default_split():
 FAST = ["budget=smoke", "ui.progress=false"]
 
 
-def test_csv_to_trained_model_to_rollout_plots_with_the_readme_commands(tmp_path):
+def test_csv_to_trained_model_to_rollout_plots_with_the_readme_commands(tmp_path, liedfl):
     """The README's path for a CSV of quaternions and positions: import, train, roll out, evaluate."""
     write_csv(tmp_path / "log.csv", n_traj=4, n_samples=21, rotation="xyzw")
     opts = ["dataset=import", "dataset.path=log.csv", "dataset.rotation=xyzw"]
@@ -252,7 +262,7 @@ def test_csv_to_trained_model_to_rollout_plots_with_the_readme_commands(tmp_path
     liedfl("eval", f"run={run}", "ui.progress=false", "eval.plots=false", cwd=tmp_path)
 
 
-def test_train_on_a_file_without_split_and_refuse_an_empty_test_split_before_training(tmp_path):
+def test_train_on_a_file_without_split_and_refuse_an_empty_test_split_before_training(tmp_path, liedfl):
     write_h5(tmp_path / "nosplit.h5", n_traj=6, split=False)
     liedfl("train", "dataset=file", "dataset.path=nosplit.h5", *FAST, "eval.plots=false", cwd=tmp_path)
     (run,) = (tmp_path / "outputs" / "runs").iterdir()
@@ -270,7 +280,7 @@ def test_train_on_a_file_without_split_and_refuse_an_empty_test_split_before_tra
     assert sorted(p.name for p in (tmp_path / "outputs" / "runs").iterdir()) == [run.name]
 
 
-def test_missing_path_is_rejected_before_the_run_folder_exists(tmp_path):
+def test_missing_path_is_rejected_before_the_run_folder_exists(tmp_path, liedfl):
     proc = liedfl("train", "dataset=file", *FAST, cwd=tmp_path, ok=False)
     assert proc.returncode == 2 and "dataset.path" in proc.stderr
     proc = liedfl("train", "dataset=file", "dataset.path=nope.h5", *FAST, cwd=tmp_path, ok=False)

@@ -12,7 +12,7 @@ import h5py
 import numpy as np
 import pytest
 from own_data import motion, write_h5
-from test_cli import FAST, liedfl
+from test_cli import FAST
 
 from liedfl_cli.data.hdf5 import Dataset, load_dataset, save_dataset
 from liedfl_cli.errors import ConfigError, DatasetError
@@ -177,6 +177,12 @@ def test_the_scene_config_check_shares_the_rules():
         check_physics({"J": [1, 1, 5]}, 1, 3, prefix="dataset.physics", error=ConfigError)
 
 
+@pytest.fixture
+def liedfl(run_main):
+    """The command run in-process (`run_main`): these tests are about the check, not the process."""
+    return run_main
+
+
 def _no_run(cwd: Path) -> None:
     runs = cwd / "outputs" / "runs"
     assert not runs.exists() or not any(p.is_file() for p in runs.rglob("*")), sorted(runs.rglob("*"))
@@ -192,7 +198,7 @@ def _no_run(cwd: Path) -> None:
     ],
     ids=["J-string", "articulated-triangle", "params-list", "seed-text"],
 )
-def test_train_on_a_bad_file_stops_in_one_line_before_training(tmp_path, make, needle):
+def test_train_on_a_bad_file_stops_in_one_line_before_training(tmp_path, make, needle, liedfl):
     make(tmp_path / "bad.h5")
     proc = liedfl("train", "dataset=file", "dataset.path=bad.h5", *FAST, "runtime.threads=1", cwd=tmp_path, ok=False)
     lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
@@ -201,7 +207,7 @@ def test_train_on_a_bad_file_stops_in_one_line_before_training(tmp_path, make, n
     _no_run(tmp_path)
 
 
-def test_a_non_physical_inertia_override_stops_before_generation(tmp_path):
+def test_a_non_physical_inertia_override_stops_before_generation(tmp_path, liedfl):
     proc = liedfl("train", *FAST, "runtime.threads=1", "dataset.physics.J=[1,1,5]", cwd=tmp_path, ok=False)
     lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
     assert proc.returncode == 2 and len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr

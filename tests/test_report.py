@@ -1,15 +1,18 @@
 """`liedfl report` over a small real sweep contains every run and writes its figures."""
 
 import csv
-import subprocess
-import sys
+
+import pytest
 
 
-def _liedfl(args, cwd):
-    return subprocess.run([sys.executable, "-m", "liedfl_cli.cli", *args], cwd=cwd, capture_output=True, text=True)
+@pytest.fixture
+def _liedfl(run_main):
+    """_liedfl(args, cwd) -> CompletedProcess of `liedfl *args` run in-process (`run_main`; the sweep
+    runs its jobs in this process too: Hydra's basic launcher)."""
+    return lambda args, cwd: run_main(*args, cwd=cwd)
 
 
-def test_report_over_small_sweep(tmp_path):
+def test_report_over_small_sweep(tmp_path, _liedfl):
     r = _liedfl(
         ["train", "-m", "budget=smoke", "ui.progress=false", "eval.plots=false", "dataset.train_steps=4,8", "seed=0,1"],
         tmp_path,
@@ -29,7 +32,7 @@ def test_report_over_small_sweep(tmp_path):
     assert "4 runs" in (sweeps[0] / "report.md").read_text()
 
 
-def test_report_rejects_missing_sweep(tmp_path):
+def test_report_rejects_missing_sweep(tmp_path, _liedfl):
     r = _liedfl(["report", f"sweep={tmp_path / 'nope'}"], tmp_path)
     assert r.returncode == 2
     assert "no such multirun directory" in r.stderr and "Traceback" not in r.stderr

@@ -194,6 +194,7 @@ def test_sigint_saves_a_checkpoint_and_says_how_to_resume(tmp_path):
         "budget=smoke",
         "ui.progress=false",
         "train.epochs=100000",
+        "runtime.compile=false",  # 1e5 epochs cross `compile: auto`'s threshold: compiling is not tested here
         f"paths.data_dir={tmp_path}/data",
         f"hydra.run.dir={run}",
     ]

@@ -31,11 +31,13 @@ def liedfl(*args: str, cwd: Path, **env) -> subprocess.CompletedProcess:
     return subprocess.run(_cmd(*args), cwd=cwd, env=_env(**env), capture_output=True, text=True, timeout=300)
 
 
-@pytest.fixture(scope="module")
-def sweep(tmp_path_factory) -> tuple[subprocess.CompletedProcess, Path]:
-    """`liedfl train -m train.epochs=0,1`: job 0 fails validation, job 1 trains (smoke)."""
-    cwd = tmp_path_factory.mktemp("sweep")
-    proc = liedfl("train", "-m", *FAST, "train.epochs=0,1", cwd=cwd)
+@pytest.fixture
+def sweep(tmp_path, run_main) -> tuple[subprocess.CompletedProcess, Path]:
+    """`liedfl train -m train.epochs=0,1` (in-process, Hydra's basic launcher runs the jobs here too: cheaper
+    per test than one subprocess per module): job 0 fails validation, job 1 trains (smoke)."""
+    cwd = tmp_path / "sweep"
+    cwd.mkdir()
+    proc = run_main("train", "-m", *FAST, "train.epochs=0,1", cwd=cwd)
     (sweep_dir,) = (cwd / "outputs" / "multirun").iterdir()
     return proc, sweep_dir
 
@@ -58,9 +60,9 @@ def test_the_sweep_exit_code_counts_the_failed_jobs(sweep):
     assert errors[-1] == f"error: 1 of 2 jobs failed: {Path('outputs') / 'multirun' / sweep_dir.name / '0'}"
 
 
-def test_report_lists_failed_runs(sweep, tmp_path):
+def test_report_lists_failed_runs(sweep, tmp_path, run_main):
     _, sweep_dir = sweep
-    proc = liedfl("report", f"sweep={sweep_dir}", "plots=false", cwd=tmp_path)
+    proc = run_main("report", f"sweep={sweep_dir}", "plots=false", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
     assert "failed runs (1)" in proc.stdout and "0: train.epochs=0: must be a positive integer" in proc.stdout
     md = (sweep_dir / "report.md").read_text()
@@ -94,8 +96,8 @@ def test_two_sweeps_started_together_get_their_own_folders(tmp_path):
     assert all(len(s.name.split("_")[1].split("-")) == 4 for s in sweeps)
 
 
-def test_a_sweep_where_every_job_succeeds_exits_zero(tmp_path):
-    proc = liedfl("data", "-m", "budget=smoke", "ui.progress=false", "dataset.seed=1,2", cwd=tmp_path)
+def test_a_sweep_where_every_job_succeeds_exits_zero(tmp_path, run_main):
+    proc = run_main("data", "-m", "budget=smoke", "ui.progress=false", "dataset.seed=1,2", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
     assert "all 2 jobs finished" in proc.stdout
     (sweep_dir,) = (tmp_path / "outputs" / "multirun").iterdir()
