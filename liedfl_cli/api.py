@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from . import resolvers  # noqa: F401  (registers the config resolvers)
+from .config import resolvers  # noqa: F401  (registers the config resolvers)
 from .errors import InputError
 from .lie import Pose, ProductGroup, so3
 from .models.base import Model
@@ -292,7 +292,7 @@ def load_run(run_dir, data_dir=None, checkpoint: str = "best") -> Run:
     """Load a run written by `liedfl train` (its checkpoint, config and dataset). checkpoint: `best`
     (checkpoints/best.pt, the model selected on the validation split, when the run has one; else
     last.pt) or `last`; `Run.checkpoint` says which was loaded."""
-    from .runs import load_run_checkpoint
+    from .config.runs import load_run_checkpoint
 
     cfg, model, dataset, path, used = load_run_checkpoint(run_dir, data_dir, checkpoint)
     model.eval()
@@ -310,8 +310,8 @@ def train(*overrides: str, output_dir=None, data_dir=None, progress: bool = Fals
     from hydra.core.global_hydra import GlobalHydra
 
     from .cli import CONF_DIR
-    from .schema import validate
-    from .train import run_train
+    from .commands.train import run_train
+    from .config.schema import validate
 
     if output_dir is None:
         output_dir = Path("outputs/runs") / datetime.now().strftime("%Y-%m-%d_%H-%M-%S-%f_api")
@@ -322,7 +322,7 @@ def train(*overrides: str, output_dir=None, data_dir=None, progress: bool = Fals
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose(config_name="train", overrides=[*overrides, *extra])
     validate(cfg, "train")
-    from .locks import run_lock
+    from .files.locks import run_lock
 
     Path(output_dir).mkdir(parents=True, exist_ok=True)
     with run_lock(output_dir, "train"):  # one process per run folder, as for `liedfl train` (locks.RunLocked)

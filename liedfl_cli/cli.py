@@ -12,8 +12,8 @@ import sys
 from pathlib import Path
 from typing import NoReturn
 
-from . import resolvers  # noqa: F401  (registers the config resolvers)
-from .preflight import DIR_ARGS, classify, preflight, preflight_or_fail  # noqa: F401 (re-exported)
+from .config import resolvers  # noqa: F401  (registers the config resolvers)
+from .config.preflight import DIR_ARGS, classify, preflight, preflight_or_fail  # noqa: F401 (re-exported)
 
 CONF_DIR = Path(__file__).resolve().parent / "conf"
 COMMANDS = {
@@ -67,31 +67,31 @@ def completion_script(shell: str) -> str:
 
 def _dispatch(command: str, cfg):
     if command == "train":
-        from .train import run_train
+        from .commands.train import run_train
 
         return run_train(cfg)
     if command == "resume":
-        from .train import run_resume
+        from .commands.train import run_resume
 
         return run_resume(cfg)
     if command == "data":
         from .data.command import run_data
-        from .signals import set_phase
+        from .files.signals import set_phase
 
         set_phase("data generation", "nothing written")
         return run_data(cfg)
     if command == "rollout":
-        from .rollout import run_rollout
+        from .commands.rollout import run_rollout
 
         return run_rollout(cfg)
     if command == "eval":
-        from .evaluate import run_eval
-        from .runs import check_run_files
+        from .commands.evaluate import run_eval
+        from .config.runs import check_run_files
 
         check_run_files(cfg.run)
         return run_eval(cfg)
     if command == "report":
-        from .report import run_report
+        from .commands.report import run_report
 
         return run_report(cfg)
     raise AssertionError(command)
@@ -124,8 +124,8 @@ def _has_content(d: Path) -> bool:
 
 
 def _record_failure(multirun: bool, status_dir, hydra_dir, message: str, code: int, status: str) -> None:
-    from .signals import phase
-    from .status import remove_unused_run_dir, write_status
+    from .commands.status import remove_unused_run_dir, write_status
+    from .files.signals import phase
 
     if not multirun and hydra_dir is not None:
         remove_unused_run_dir(hydra_dir)
@@ -165,10 +165,10 @@ def _lock_folder(command: str, cfg) -> Path | None:
 def _run(command: str, cfg):
     """One job (`_run_job`) holding its run folder's lock, with SIGTERM raised as an exception
     (`signals.py`) and everything it prints mirrored to the run's train.log."""
-    from .locks import RunLocked, acquire, release_folder
-    from .preflight import classify
-    from .signals import terminate_as_exception
-    from .ui import fail
+    from .config.preflight import classify
+    from .display.ui import fail
+    from .files.locks import RunLocked, acquire, release_folder
+    from .files.signals import terminate_as_exception
 
     with terminate_as_exception():
         folder = None
@@ -179,7 +179,7 @@ def _run(command: str, cfg):
             log = _log_file(command, cfg)
             if log is None:
                 return _run_job(command, cfg)
-            from .ui import log_to
+            from .display.ui import log_to
 
             with log_to(log):
                 return _run_job(command, cfg)
@@ -197,8 +197,8 @@ def _run_job(command: str, cfg):
     and returns (the sweep goes on; `main` reports the count); in a single run it exits non-zero."""
     import time
 
-    from .status import write_status
-    from .ui import error_line, fail
+    from .commands.status import write_status
+    from .display.ui import error_line, fail
 
     _one_line_warnings()  # (also in launcher worker processes, which do not run `main`)
     multirun, status_dir, hydra_dir = _job_context(command, cfg)
@@ -317,7 +317,7 @@ def main() -> None:
         try:
             _main()
         finally:
-            from .locks import release_all
+            from .files.locks import release_all
 
             release_all()  # (the job releases its lock; this covers a lock taken before the job ran)
             sys.stdout.flush()
@@ -364,7 +364,7 @@ def _main() -> None:
         _check_dir_arg(command, argv[1:])
     _check_flags(command, argv[1:])
     _one_line_warnings()
-    from .status import reset
+    from .commands.status import reset
 
     reset()
     import hydra
@@ -377,7 +377,7 @@ def _main() -> None:
             known = classify(e)
             if known is None:
                 raise
-            from .ui import fail
+            from .display.ui import fail
 
             fail(*known)
 
@@ -410,8 +410,8 @@ def _main() -> None:
 def _interrupted_sweep() -> None:
     """Ctrl-C in the process that waits for the jobs of a submitit sweep: one line (the jobs run in
     processes of their own; on a cluster they go on)."""
-    from .status import jobs_ran_elsewhere, sweep_dir
-    from .ui import fail
+    from .commands.status import jobs_ran_elsewhere, sweep_dir
+    from .display.ui import fail
 
     sd = sweep_dir()
     if sd is not None and jobs_ran_elsewhere():
@@ -426,7 +426,7 @@ def _launcher_failure(e: Exception) -> str | None:
     """One line for an error of the sweep's launcher (None for anything else). submitit raises in the
     launching process when a job died without returning (killed, out of memory, past its time limit,
     interrupted) or could not be submitted; the jobs' own failures are recorded in their folders."""
-    from .status import sweep_dir
+    from .commands.status import sweep_dir
 
     if sweep_dir() is None or type(e).__module__.split(".")[0] != "submitit":
         return None
@@ -506,7 +506,7 @@ def _one_line_warnings() -> None:
 
     def show(message, category, filename, lineno, file=None, line=None):
         if isinstance(category, type) and issubclass(category, LiedflWarning):
-            from .ui import warning_line
+            from .display.ui import warning_line
 
             warning_line(str(message))
         else:
@@ -522,8 +522,8 @@ def _sweep_exit(launcher_error: str | None = None) -> None:
     The summary is read from the job folders (status.json), whichever process ran the jobs. Jobs that
     ran elsewhere (submitit) printed their errors into their logs: their error lines are repeated
     here. launcher_error: the launcher stopped the sweep (the exit code is then at least 1)."""
-    from .status import jobs_ran_elsewhere, sweep_dir, sweep_summary
-    from .ui import console, error_line, fail
+    from .commands.status import jobs_ran_elsewhere, sweep_dir, sweep_summary
+    from .display.ui import console, error_line, fail
 
     sd = sweep_dir()
     if sd is None or not Path(sd).is_dir():
@@ -552,10 +552,10 @@ def _hydra_failure(command: str, e: Exception) -> None:
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
 
-    from .ui import fail
+    from .display.ui import fail
 
     if isinstance(e, OSError) and e.filename:  # e.g. a run folder that cannot be created
-        from .preflight import os_error_line
+        from .config.preflight import os_error_line
 
         fail(os_error_line(e))
     yaml_error = _yaml_error(e)
@@ -703,7 +703,7 @@ def unknown_key_message(command: str, e: BaseException) -> str | None:
         node = None
     if node is None:
         return None
-    from .schema import closest
+    from .config.schema import closest
 
     parent, _, key = dotted.rpartition(".")
     hint = _closest_existing_key(command, dotted)

@@ -52,13 +52,13 @@ from hydra.core.global_hydra import GlobalHydra  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
 from liedfl_cli.cli import CONF_DIR  # noqa: E402
+from liedfl_cli.commands.train import fit  # noqa: E402
+from liedfl_cli.config.factory import build_model  # noqa: E402
 from liedfl_cli.data.scenes import get_dataset  # noqa: E402
-from liedfl_cli.factory import build_model  # noqa: E402
 from liedfl_cli.lie import SE3, SO3, Pose, so3  # noqa: E402
 from liedfl_cli.models.liedflnn import LieDFLNN  # noqa: E402
 from liedfl_cli.models.true_scheme import physics_model  # noqa: E402
 from liedfl_cli.solvers import runtime  # noqa: E402
-from liedfl_cli.train import fit  # noqa: E402
 
 PHYS = {"J": [1.521, 1.362, 1.211], "m": 0.5, "rho": [0.0, 0.5, 1.0]}
 BATCHES = (1, 10, 1000, 10000)

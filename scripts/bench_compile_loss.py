@@ -23,8 +23,8 @@ sys.path.insert(0, str(ROOT / "scripts"))
 
 from bench import config  # noqa: E402
 
+from liedfl_cli.config.factory import build_model  # noqa: E402
 from liedfl_cli.data.scenes import get_dataset  # noqa: E402
-from liedfl_cli.factory import build_model  # noqa: E402
 from liedfl_cli.models import fused  # noqa: E402
 from liedfl_cli.models.base import LossOptions  # noqa: E402
 from liedfl_cli.models.liedflnn import fused_loss  # noqa: E402

@@ -59,9 +59,9 @@ def train(out: Path, key: str, epochs: int) -> Path:
 
 def mass_scan(run: Path, factors=(0.25, 0.5, 1.0, 2.0, 4.0)) -> list[float]:
     """DEL loss of the true-parameter scheme (uniform_gravity at the true values) with m multiplied."""
+    from liedfl_cli.config.runs import load_run
     from liedfl_cli.models.liedflnn import LieDFLNN
     from liedfl_cli.models.true_scheme import true_model
-    from liedfl_cli.runs import load_run
 
     cfg, _, ds, _ = load_run(run)
     ref = true_model(ds)
@@ -82,8 +82,8 @@ def mass_scan(run: Path, factors=(0.25, 0.5, 1.0, 2.0, 4.0)) -> list[float]:
 
 
 def read(run: Path) -> dict:
-    from liedfl_cli.recovery import parameter_recovery
-    from liedfl_cli.runs import load_run
+    from liedfl_cli.config.recovery import parameter_recovery
+    from liedfl_cli.config.runs import load_run
 
     with open(run / "eval.csv") as f:
         ev = {r["model"]: r for r in csv.DictReader(f)}

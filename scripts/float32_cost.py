@@ -40,8 +40,8 @@ from hydra.core.global_hydra import GlobalHydra  # noqa: E402
 
 from liedfl_cli.cli import CONF_DIR  # noqa: E402
 from liedfl_cli.data.scenes import get_dataset  # noqa: E402
+from liedfl_cli.evaluation.metrics import orthogonality_drift, relative_rotation_error  # noqa: E402
 from liedfl_cli.lie import tolerances  # noqa: E402
-from liedfl_cli.metrics import orthogonality_drift, relative_rotation_error  # noqa: E402
 from liedfl_cli.models.true_scheme import true_model  # noqa: E402
 from liedfl_cli.solvers.options import SolverOptions  # noqa: E402
 

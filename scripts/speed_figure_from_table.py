@@ -15,7 +15,7 @@ import math
 import sys
 from pathlib import Path
 
-from liedfl_cli import report
+from liedfl_cli.commands import report
 
 COLUMNS = {
     "rel. rotation error": report.ERROR,

@@ -22,7 +22,7 @@ import torch
 from hypothesis import HealthCheck, settings
 
 import helpers
-import liedfl_cli.resolvers  # noqa: F401  (the configs the tests compose use its resolvers)
+import liedfl_cli.config.resolvers  # noqa: F401  (the configs the tests compose use its resolvers)
 from liedfl_cli.solvers import runtime
 
 settings.register_profile(

@@ -16,8 +16,8 @@ import pytest
 import torch
 
 from liedfl_cli.errors import ConfigError
+from liedfl_cli.evaluation.metrics import geodesic_error, position_error
 from liedfl_cli.lie.tree import forward_kinematics
-from liedfl_cli.metrics import geodesic_error, position_error
 from liedfl_cli.models.articulated import ArticulatedLieDFLNN, articulated_true_model
 from liedfl_cli.solvers.one_step import constant_velocity_one_step, constant_velocity_rollout, one_step_predictions
 from liedfl_cli.solvers.options import SolverOptions
@@ -98,8 +98,8 @@ def test_rollout_converges_to_mujoco_at_second_order():
 
 def test_articulated_training_runs_end_to_end(tmp_path, monkeypatch):
     from helpers import compose_config
+    from liedfl_cli.commands.train import run_train
     from liedfl_cli.solvers import runtime
-    from liedfl_cli.train import run_train
 
     monkeypatch.setattr(runtime, "_current", runtime.current())  # run_train configures the runtime: restore it
 

@@ -16,9 +16,10 @@ import torch
 from omegaconf import OmegaConf
 
 from helpers import SMOKE, compose_config
+from liedfl_cli.commands.train import fit, run_train
+from liedfl_cli.config.factory import build_model
 from liedfl_cli.data.scenes import generate
 from liedfl_cli.errors import ConfigError
-from liedfl_cli.factory import build_model
 from liedfl_cli.lie import SE3, SO3, Pose, euler, so3
 from liedfl_cli.mechanics.potentials import GravityPotential
 from liedfl_cli.models.euclidean_dflnn import EuclideanDFLNN
@@ -26,7 +27,6 @@ from liedfl_cli.models.euler_dflnn import EulerDFLNN
 from liedfl_cli.models.glnn import GLNN
 from liedfl_cli.models.true_scheme import physics_model
 from liedfl_cli.solvers.rollout import Rollout
-from liedfl_cli.train import fit, run_train
 
 CONF = str(Path(__file__).resolve().parents[1] / "liedfl_cli" / "conf")
 # every model config except LieDFLNN's own: a new model file + config is covered without editing this list
@@ -327,7 +327,7 @@ def test_every_baseline_runs_end_to_end(name, data_dir):
     if name in ("glnn_lie_midpoint", "glnn_lie_heun", "euler_dflnn"):
         assert row["max_orth_drift"] < 1e-10  # these predict rotations (Euler: via the angle map)
     # the checkpoint reloads into the same model
-    from liedfl_cli.runs import load_run
+    from liedfl_cli.config.runs import load_run
 
     _, model, _, _ = load_run(run)
     assert type(model).__name__ == json.loads((run / "components.json").read_text())["model"]

@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 import torch
 
-from liedfl_cli.checkpoint import (
+from liedfl_cli.errors import CheckpointError
+from liedfl_cli.files.checkpoint import (
     capture_rng_state,
     load_checkpoint,
     load_state,
@@ -21,7 +22,6 @@ from liedfl_cli.checkpoint import (
     save_checkpoint,
     to_plain,
 )
-from liedfl_cli.errors import CheckpointError
 
 
 def _model() -> torch.nn.Module:

@@ -87,7 +87,7 @@ def test_rollout_writes_a_new_folder(trained):
 
 def test_a_failed_rollout_leaves_no_folder(trained, monkeypatch):
     """`liedfl rollout` removes its new folder when anything fails after creating it."""
-    from liedfl_cli import rollout as rollout_mod
+    from liedfl_cli.commands import rollout as rollout_mod
 
     def broken(*args, **kwargs):
         raise KeyboardInterrupt
@@ -188,9 +188,9 @@ def test_help_and_unknown_command(tmp_path):
 
 
 def test_run_train_in_process(tmp_path):
-    from liedfl_cli.runs import load_run
-    from liedfl_cli.schema import validate
-    from liedfl_cli.train import run_train
+    from liedfl_cli.commands.train import run_train
+    from liedfl_cli.config.runs import load_run
+    from liedfl_cli.config.schema import validate
 
     cfg = compose_config(
         "train",

@@ -19,8 +19,8 @@ from pathlib import Path
 
 import pytest
 
-from liedfl_cli import status
 from liedfl_cli.cli import CONF_DIR
+from liedfl_cli.commands import status
 
 pytestmark = pytest.mark.skipif(
     importlib.util.find_spec("hydra_plugins.hydra_submitit_launcher") is None,
@@ -252,7 +252,7 @@ def test_submitits_stop_inside_a_job_is_a_recorded_failure():
     not running (data generation, rollout): one line, and the job returns (its status records it)."""
     from submitit.core.utils import UncompletedJobError
 
-    from liedfl_cli.preflight import classify
+    from liedfl_cli.config.preflight import classify
 
     message, code = classify(UncompletedJobError("Job not requeued because: timed-out too many times."))
     assert code == 2

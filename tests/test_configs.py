@@ -14,8 +14,8 @@ from omegaconf import OmegaConf
 
 from helpers import compose_config
 from liedfl_cli.cli import COMMANDS, CONF_DIR
+from liedfl_cli.config.schema import validate
 from liedfl_cli.errors import ConfigError
-from liedfl_cli.schema import validate
 
 PRIMARY = sorted(p.stem for p in CONF_DIR.glob("*.yaml"))
 GROUPS = sorted(d.name for d in CONF_DIR.iterdir() if d.is_dir() and not d.name.startswith((".", "_")))
@@ -165,7 +165,7 @@ def test_force_options_match_registry():
 def test_model_configs_name_their_option_and_a_model_class():
     """liedfl_cli/conf/model/<name>.yaml has name: <name> and a _target_ that is a Model of this package;
     each baseline=<name> that exists selects exactly liedfl_cli/conf/model/<name>.yaml (none selects liedflnn)."""
-    from liedfl_cli.factory import model_class
+    from liedfl_cli.config.factory import model_class
 
     for name in _options("model"):
         cfg = OmegaConf.load(CONF_DIR / "model" / f"{name}.yaml")

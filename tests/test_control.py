@@ -12,6 +12,7 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
+from liedfl_cli.commands.train import count_parameters
 from liedfl_cli.data import generate
 from liedfl_cli.data.scenes_multibody import pd_torque
 from liedfl_cli.evaluation.control import force_torques, plot_torque, torque_errors
@@ -19,7 +20,6 @@ from liedfl_cli.lie import SO3, Pose, ProductGroup, so3
 from liedfl_cli.mechanics.forces import ControlForce
 from liedfl_cli.models.liedflnn import LieDFLNN
 from liedfl_cli.models.true_scheme import physics_model, true_model
-from liedfl_cli.train import count_parameters
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -167,7 +167,7 @@ def test_torque_evaluation_of_the_true_law(pd_data, tmp_path):
 
 
 def test_exp5_smoke_run_end_to_end(tmp_path):
-    from liedfl_cli.train import run_train
+    from liedfl_cli.commands.train import run_train
 
     with initialize_config_dir(config_dir=str(ROOT / "liedfl_cli" / "conf"), version_base="1.3"):
         cfg = compose(
@@ -193,7 +193,7 @@ def test_exp5_smoke_run_end_to_end(tmp_path):
     assert (run / "control_eval.md").is_file() and "extra_eval" in summary
     assert summary["rollout"]["model"]["n_failed"] == 0
     # the frozen known parts are saved and restored with the checkpoint
-    from liedfl_cli.runs import load_run
+    from liedfl_cli.config.runs import load_run
 
     _, model, _, _ = load_run(run, tmp_path)
     torch.testing.assert_close(model.inertia.Jd(), physics_model(SO3, 0.05, model_physics(cfg, tmp_path)).inertia.Jd())

@@ -8,15 +8,15 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
+from liedfl_cli.commands.train import count_parameters, fit
+from liedfl_cli.config.recovery import parameter_recovery
 from liedfl_cli.data.scenes import generate
 from liedfl_cli.lie import Pose, ProductGroup, so3
 from liedfl_cli.mechanics.damping import PerBodyDampingNet, PerBodySPSD, block_diagonal
 from liedfl_cli.mechanics.forces import RayleighForce, RayleighNonlinearForce, force_jacobian_xi
 from liedfl_cli.mechanics.parameterizations import SPSDMatrix
 from liedfl_cli.models.liedflnn import LieDFLNN
-from liedfl_cli.recovery import parameter_recovery
 from liedfl_cli.solvers.newton import jacobian
-from liedfl_cli.train import count_parameters, fit
 
 GROUPS = [ProductGroup(0, 1), ProductGroup(1, 0), ProductGroup(1, 2), ProductGroup(2, 3), ProductGroup(0, 3)]
 D_TRUE = [[0.05, 0.02, 0.01], [0.02, 0.06, -0.015], [0.01, -0.015, 0.04]]
@@ -234,7 +234,7 @@ def test_stiff_damping_reverses_the_spin_every_step_while_newton_converges():
 
 
 def test_rollout_warns_about_stiff_damping_and_not_on_the_default_scene(capsys):
-    from liedfl_cli.rollout import _roll
+    from liedfl_cli.commands.rollout import _roll
     from liedfl_cli.solvers.options import SolverOptions
 
     h = 0.1

@@ -21,7 +21,7 @@ import torch
 from liedfl_cli.data import Dataset, DatasetError, load_dataset, save_dataset
 from liedfl_cli.data.checks import ERROR_ANGLE, WARN_ANGLE, step_angles, step_rotation_summary
 from liedfl_cli.errors import DataWarning
-from liedfl_cli.io_utils import atomic_path, clean_orphans, write_text
+from liedfl_cli.files.io_utils import atomic_path, clean_orphans, write_text
 from liedfl_cli.lie import so3
 
 
@@ -178,7 +178,7 @@ def _dead_pid() -> int:
 
 
 def test_orphaned_temporary_files_of_dead_writers_are_removed_at_the_next_write(tmp_path):
-    from liedfl_cli.io_utils import host_id
+    from liedfl_cli.files.io_utils import host_id
 
     dead, alive, host = _dead_pid(), os.getppid(), host_id()
     orphan = tmp_path / f"scene-abc.h5.tmp.{host}.{dead}.0123abcd"

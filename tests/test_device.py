@@ -242,7 +242,7 @@ def test_device_and_dtype_settings_are_checked(restore_runtime, monkeypatch):
 
 
 def test_schema_knows_device_and_dtype(compose_cfg, tmp_path):
-    from liedfl_cli.schema import validate
+    from liedfl_cli.config.schema import validate
 
     for name in ("train", "rollout", "eval"):
         base = [f"paths.data_dir={tmp_path}"] + (["run=x"] if name != "train" else [])
@@ -283,7 +283,7 @@ def _state(run: Path) -> dict:
 def test_cpu_and_auto_runs_equal_the_default_run_bit_for_bit(smoke_cfg, tmp_path, restore_runtime, monkeypatch):
     import h5py
 
-    from liedfl_cli.train import run_train
+    from liedfl_cli.commands.train import run_train
 
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)  # auto -> cpu even on a GPU machine
     runs = {"default": (), "cpu": ("runtime.device=cpu",), "auto": ("runtime.device=auto", "runtime.dtype=float64")}
@@ -300,7 +300,7 @@ def test_cpu_and_auto_runs_equal_the_default_run_bit_for_bit(smoke_cfg, tmp_path
 
 
 def test_placing_a_model_on_the_cpu_in_float64_moves_nothing(free_body_dataset, compose_cfg, restore_runtime):
-    from liedfl_cli.factory import build_model, place
+    from liedfl_cli.config.factory import build_model, place
 
     cfg = compose_cfg("train", ["budget=smoke", "paths.data_dir=unused", "paths.output_dir=unused"])
     model = build_model(cfg, free_body_dataset)
@@ -312,8 +312,8 @@ def test_placing_a_model_on_the_cpu_in_float64_moves_nothing(free_body_dataset, 
 def test_float32_run_trains_rolls_out_and_evaluates(smoke_cfg, tmp_path, restore_runtime, monkeypatch):
     import h5py
 
-    from liedfl_cli import runs
-    from liedfl_cli.train import run_train
+    from liedfl_cli.commands.train import run_train
+    from liedfl_cli.config import runs
 
     summary = run_train(smoke_cfg(tmp_path, "run", "runtime.dtype=float32"))
     run = tmp_path / "run"
@@ -371,8 +371,8 @@ def test_float64_rollouts_are_not_projected():
 
 # ----------------------------------------------------------------------------- checkpoints
 def test_checkpoint_loads_with_map_location(tmp_path, free_body_dataset, compose_cfg, restore_runtime):
-    from liedfl_cli.checkpoint import load_checkpoint, load_state, save_checkpoint
-    from liedfl_cli.factory import build_model
+    from liedfl_cli.config.factory import build_model
+    from liedfl_cli.files.checkpoint import load_checkpoint, load_state, save_checkpoint
 
     cfg = compose_cfg("train", ["budget=smoke", "paths.data_dir=unused", "paths.output_dir=unused"])
     model = build_model(cfg, free_body_dataset)

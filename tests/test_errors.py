@@ -55,7 +55,7 @@ def snapshot(run: Path) -> dict[str, bytes]:
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory) -> Path:
     """A finished smoke run, trained in-process (absolute data dir, so any cwd can reload it)."""
-    from liedfl_cli.train import run_train
+    from liedfl_cli.commands.train import run_train
 
     root = tmp_path_factory.mktemp("errors_run")
     cfg = compose_config("train", [*FAST, f"paths.output_dir={root / 'run'}", f"paths.data_dir={root / 'data'}"])

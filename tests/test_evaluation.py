@@ -1,4 +1,4 @@
-"""The rollout file (liedfl_cli/rollout_file.py: one writer, reader and validator of rollout.h5), the
+"""The rollout file (liedfl_cli/files/rollout_file.py: one writer, reader and validator of rollout.h5), the
 general evaluation over it (spans of the columns) and the scene-evaluation registry.
 
 Everything runs on small in-memory datasets and hand-made rollouts: no training."""
@@ -16,11 +16,11 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
+from liedfl_cli.commands.evaluate import run_eval_from_objects
 from liedfl_cli.data.hdf5 import Dataset
 from liedfl_cli.errors import DatasetError
-from liedfl_cli.evaluate import run_eval_from_objects
+from liedfl_cli.files.rollout_file import RolloutEntry, load_rollout, read_rollout, write_rollout
 from liedfl_cli.lie import Pose, so3
-from liedfl_cli.rollout_file import RolloutEntry, load_rollout, read_rollout, write_rollout
 
 N = 6  # dataset steps
 TEST = [1, 2]
@@ -373,7 +373,7 @@ def test_constant_velocity_is_exact_for_a_uniform_motion(tmp_path):
 
 def _one_step_entry(ds: Dataset, idx=TEST) -> RolloutEntry:
     """A perfect rollout entry whose one-step predictions are the true samples 2..N."""
-    from liedfl_cli.rollout_file import OneStep
+    from liedfl_cli.files.rollout_file import OneStep
 
     e = entry(ds.R[idx], ds.p[idx])
     K = ds.n_steps - 1

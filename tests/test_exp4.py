@@ -57,7 +57,7 @@ def test_exp4_config_matches_the_paper(tmp_path):
 
 @pytest.fixture(scope="module")
 def smoke_run(tmp_path_factory):
-    from liedfl_cli.train import run_train
+    from liedfl_cli.commands.train import run_train
 
     tmp = tmp_path_factory.mktemp("exp4")
     cfg = _compose(

@@ -112,8 +112,8 @@ def test_fast_residual_and_newton_jacobian_equal_generic_with_every_force(G):
 
 def test_hydra_force_list_composes_a_sum(tmp_path):
     """`liedfl train 'force=[rayleigh_nonlinear,nn]'` selects both forces; the model adds them."""
+    from liedfl_cli.config.factory import build_model
     from liedfl_cli.data import generate
-    from liedfl_cli.factory import build_model
 
     with initialize_config_dir(config_dir=str(ROOT / "liedfl_cli" / "conf"), version_base="1.3"):
         cfg = compose(

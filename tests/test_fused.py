@@ -309,10 +309,10 @@ def _smoke_config(tmp_path, *overrides: str):
 
 
 def _smoke_fit(tmp_path, optimizer: str):
+    from liedfl_cli.commands.train import fit
+    from liedfl_cli.config.factory import build_model
+    from liedfl_cli.config.recovery import parameter_recovery
     from liedfl_cli.data.scenes import get_dataset
-    from liedfl_cli.factory import build_model
-    from liedfl_cli.recovery import parameter_recovery
-    from liedfl_cli.train import fit
 
     cfg = _smoke_config(tmp_path, f"train.optimizer.name={optimizer}")
     ds, _ = get_dataset(cfg.dataset, cfg.paths.data_dir)
@@ -358,9 +358,9 @@ def test_smoke_training_with_soap_agrees_until_soaps_first_update(tmp_path):
 
 
 def test_full_batch_and_precondition_frequency_options(tmp_path):
+    from liedfl_cli.commands.train import fit, make_optimizer
+    from liedfl_cli.config.factory import build_model
     from liedfl_cli.data.scenes import get_dataset
-    from liedfl_cli.factory import build_model
-    from liedfl_cli.train import fit, make_optimizer
 
     cfg = _smoke_config(tmp_path, "train.full_batch=true", "train.optimizer.precondition_frequency=3")
     ds, _ = get_dataset(cfg.dataset, cfg.paths.data_dir)
@@ -388,7 +388,7 @@ def test_threads_default_and_one_thread_per_parallel_job():
 
 
 def test_configure_runtime_from_the_train_config(tmp_path):
-    from liedfl_cli.factory import configure_runtime
+    from liedfl_cli.config.factory import configure_runtime
 
     before = torch.get_num_threads()
     try:

@@ -49,8 +49,8 @@ from own_data import H, motion, write_csv
 from liedfl_cli.data.hdf5 import Dataset, load_dataset, save_dataset
 from liedfl_cli.data.scenes import get_dataset
 from liedfl_cli.errors import DatasetError
+from liedfl_cli.files.rollout_file import OneStep, RolloutEntry, load_rollout, validate_rollout, write_rollout
 from liedfl_cli.lie.tree import Tree as KinematicTree
-from liedfl_cli.rollout_file import OneStep, RolloutEntry, load_rollout, validate_rollout, write_rollout
 
 _ids = itertools.count()
 tree_case = st.tuples(st.lists(tree_mutation, min_size=1, max_size=3), st.none() | byte_mutation)
@@ -374,8 +374,8 @@ def run_dir(tmp_path_factory) -> Path:
     from omegaconf import OmegaConf
 
     from helpers import SMOKE, compose_config
-    from liedfl_cli.checkpoint import save_checkpoint
-    from liedfl_cli.factory import build_model
+    from liedfl_cli.config.factory import build_model
+    from liedfl_cli.files.checkpoint import save_checkpoint
 
     root = tmp_path_factory.mktemp("fuzz_ckpt")
     cfg = compose_config("train", (*SMOKE, f"paths.data_dir={root / 'data'}", f"paths.output_dir={root / 'run'}"))
@@ -462,7 +462,7 @@ checkpoint_case = dict(mutations=st.lists(payload_mutation, min_size=1, max_size
 
 
 def _checkpoint_property(run_dir: Path, mutations, raw) -> None:
-    from liedfl_cli.runs import load_run_checkpoint
+    from liedfl_cli.config.runs import load_run_checkpoint
 
     base = run_dir / "checkpoints" / "last.pt"
     case = _fresh(run_dir.parent, "")
@@ -636,8 +636,8 @@ def test_a_corrupt_or_huge_npz_archive_is_one_line(tmp_path):
 
 def test_a_checkpoint_config_missing_a_key_is_one_line(run_dir, tmp_path):
     """omegaconf's message of a missing key has `full_key:` and `object_type=` lines of its own."""
+    from liedfl_cli.config.runs import load_run_checkpoint
     from liedfl_cli.errors import CheckpointError
-    from liedfl_cli.runs import load_run_checkpoint
 
     run = tmp_path / "run"
     shutil.copytree(run_dir, run)
@@ -665,8 +665,8 @@ def test_a_rollout_field_that_is_a_group_is_named(rollout_base, tmp_path):
 
 
 def test_a_checkpoint_epoch_that_is_not_an_integer_is_one_line(run_dir, tmp_path):
+    from liedfl_cli.config.runs import load_run_checkpoint
     from liedfl_cli.errors import CheckpointError
-    from liedfl_cli.runs import load_run_checkpoint
 
     run = tmp_path / "run"
     shutil.copytree(run_dir, run)
@@ -691,8 +691,8 @@ def test_import_time_stamps_near_the_largest_float_are_one_line(tmp_path):
 
 def test_checkpoint_weights_of_another_kind_of_dtype_are_refused(run_dir, tmp_path):
     """torch's load_state_dict casts complex (and integer) tensors into real weights without a word."""
+    from liedfl_cli.config.runs import load_run_checkpoint
     from liedfl_cli.errors import CheckpointError
-    from liedfl_cli.runs import load_run_checkpoint
 
     run = tmp_path / "run"
     shutil.copytree(run_dir, run)
@@ -707,8 +707,8 @@ def test_checkpoint_weights_of_another_kind_of_dtype_are_refused(run_dir, tmp_pa
 
 
 def test_a_two_byte_pickle_header_is_refused_without_torchs_warning(run_dir, tmp_path):
-    from liedfl_cli.checkpoint import load_checkpoint
     from liedfl_cli.errors import CheckpointError
+    from liedfl_cli.files.checkpoint import load_checkpoint
 
     path = tmp_path / "last.pt"
     path.write_bytes(b"\x80\xb3")  # PROTO 179: torch warned over two lines before refusing

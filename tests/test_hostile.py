@@ -47,7 +47,7 @@ CMU = REPO / "data" / "cmu_mocap" / "49_06.bvh"
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory) -> Path:
     """One finished smoke run (trained in-process); its dataset is the smoke cache file."""
-    from liedfl_cli.train import run_train
+    from liedfl_cli.commands.train import run_train
 
     root = tmp_path_factory.mktemp("hostile_run")
     GlobalHydra.instance().clear()
@@ -330,8 +330,8 @@ def _locked(host: str | None = None, dead: bool = False):
     another host (its pid, dead or not, means nothing here)."""
 
     def setup(ctx: Ctx):
-        from liedfl_cli import locks
-        from liedfl_cli.io_utils import host_id
+        from liedfl_cli.files import locks
+        from liedfl_cli.files.io_utils import host_id
 
         run = ctx.run()
         pid = _gone_pid() if dead else os.getppid()
@@ -515,7 +515,7 @@ CASES: list[Case] = [
     ),
     Case("target-builtin", (T, *FAST, "model._target_=builtins.print"), ("model._target_", "builtins.print")),
     Case("target-os-system", (T, *FAST, "model._target_=os.system"), ("model._target_", "os.system")),
-    Case("target-own-function", (T, *FAST, "model._target_=liedfl_cli.io_utils.write_text"), ("model._target_",)),
+    Case("target-own-function", (T, *FAST, "model._target_=liedfl_cli.files.io_utils.write_text"), ("model._target_",)),
     Case("target-missing-class", (T, *FAST, "model._target_=liedfl_cli.models.Nope"), ("model._target_",)),
     Case("residual-unknown", (T, *FAST, "model.residual=bogus"), ("model.residual", "bogus")),
     Case("potential-unknown", (T, *FAST, "model.potential=quadratic"), ("model.potential",)),
@@ -914,7 +914,7 @@ CASES: list[Case] = [
         setup=lambda c: c.run(),
         code=143,
         proc=True,
-        python=_signal_hook("liedfl_cli.rollout:_roll", "SIGTERM"),
+        python=_signal_hook("liedfl_cli.commands.rollout:_roll", "SIGTERM"),
     ),
     Case(
         "sigint-during-rollout",
@@ -923,7 +923,7 @@ CASES: list[Case] = [
         setup=lambda c: c.run(),
         code=130,
         proc=True,
-        python=_signal_hook("liedfl_cli.rollout:_roll", "SIGINT"),
+        python=_signal_hook("liedfl_cli.commands.rollout:_roll", "SIGINT"),
     ),
     Case(
         "sigterm-during-rollout-eval",
@@ -932,7 +932,7 @@ CASES: list[Case] = [
         setup=lambda c: c.run(),
         code=143,
         proc=True,
-        python=_signal_hook("liedfl_cli.evaluate:run_eval_from_objects", "SIGTERM"),
+        python=_signal_hook("liedfl_cli.commands.evaluate:run_eval_from_objects", "SIGTERM"),
     ),
     Case(
         "sigterm-during-eval",
@@ -941,7 +941,7 @@ CASES: list[Case] = [
         setup=lambda c: c.run(),
         code=143,
         proc=True,
-        python=_signal_hook("liedfl_cli.evaluate:run_eval_from_objects", "SIGTERM"),
+        python=_signal_hook("liedfl_cli.commands.evaluate:run_eval_from_objects", "SIGTERM"),
         allowed=("run/status.json",),  # the interruption is recorded there
     ),
     Case(
@@ -951,7 +951,7 @@ CASES: list[Case] = [
         setup=_run_and_outside_rollout,
         code=143,
         proc=True,
-        python=_signal_hook("liedfl_cli.evaluate:run_eval_from_objects", "SIGTERM"),
+        python=_signal_hook("liedfl_cli.commands.evaluate:run_eval_from_objects", "SIGTERM"),
     ),
     Case(
         "sigterm-during-report",
@@ -960,7 +960,7 @@ CASES: list[Case] = [
         setup=lambda c: c.sweep(),
         code=143,
         proc=True,
-        python=_signal_hook("liedfl_cli.report:collect", "SIGTERM"),
+        python=_signal_hook("liedfl_cli.commands.report:collect", "SIGTERM"),
     ),
     Case(
         "sigint-ignored-then-sigterm-during-rollout",
@@ -969,7 +969,7 @@ CASES: list[Case] = [
         setup=lambda c: c.run(),
         code=143,
         proc=True,
-        python=_IGNORE_SIGINT + _signal_hook("liedfl_cli.rollout:_roll", "SIGINT", "SIGTERM"),
+        python=_IGNORE_SIGINT + _signal_hook("liedfl_cli.commands.rollout:_roll", "SIGINT", "SIGTERM"),
     ),
     # --- values (issue 18 items 6,7,9,10) ---
     Case(

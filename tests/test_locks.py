@@ -1,5 +1,5 @@
-"""One process per run folder (liedfl_cli/locks.py) and temporary names that are safe on a file system
-shared by several hosts (liedfl_cli/io_utils.py): issue 18, items 2 and 3."""
+"""One process per run folder (liedfl_cli/files/locks.py) and temporary names that are safe on a file system
+shared by several hosts (liedfl_cli/files/io_utils.py): issue 18, items 2 and 3."""
 
 from __future__ import annotations
 
@@ -16,9 +16,9 @@ import h5py
 import numpy as np
 import pytest
 
-from liedfl_cli import locks
 from liedfl_cli.data.hdf5 import Dataset, load_dataset, save_dataset
-from liedfl_cli.io_utils import clean_orphans, host_id, temporary_name
+from liedfl_cli.files import locks
+from liedfl_cli.files.io_utils import clean_orphans, host_id, temporary_name
 
 
 def _dead_pid() -> int:
@@ -105,7 +105,7 @@ _RECOVER = textwrap.dedent(
     """
     import sys, time
     from pathlib import Path
-    from liedfl_cli import locks
+    from liedfl_cli.files import locks
     go = Path(sys.argv[2])
     while not go.exists():
         time.sleep(0.001)
@@ -135,7 +135,7 @@ def test_two_recoverers_of_one_stale_lock_cannot_both_win(tmp_path):
 
 
 # ----------------------------------------------------------------------------- through the CLI
-_HOLD = "import sys, time\nfrom liedfl_cli import locks\nlocks.acquire(sys.argv[1], 'train')\nprint('held', flush=True)\ntime.sleep(60)\n"  # noqa: E501
+_HOLD = "import sys, time\nfrom liedfl_cli.files import locks\nlocks.acquire(sys.argv[1], 'train')\nprint('held', flush=True)\ntime.sleep(60)\n"  # noqa: E501
 
 
 @pytest.fixture

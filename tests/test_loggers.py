@@ -10,10 +10,10 @@ from pathlib import Path
 import pytest
 
 from helpers import SMOKE, compose_config
+from liedfl_cli.commands.train import run_train
+from liedfl_cli.config.schema import validate
 from liedfl_cli.errors import ConfigError
 from liedfl_cli.loggers.tensorboard_log import tag
-from liedfl_cli.schema import validate
-from liedfl_cli.train import run_train
 
 
 def _cfg(tmp: Path, *extra: str):

@@ -1,4 +1,4 @@
-"""train.loss = del | newton | rollout (liedfl_cli/models/losses.py, liedfl_cli/finetune.py)."""
+"""train.loss = del | newton | rollout (liedfl_cli/models/losses.py, liedfl_cli/commands/finetune.py)."""
 
 from __future__ import annotations
 
@@ -225,7 +225,7 @@ def test_unsupported_models_get_one_line():
     ],
 )
 def test_config_keys_are_validated(compose_cfg, override, message):
-    from liedfl_cli.schema import validate
+    from liedfl_cli.config.schema import validate
 
     cfg = compose_cfg("train", [override])
     with pytest.raises(ConfigError) as e:

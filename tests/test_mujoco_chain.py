@@ -306,7 +306,7 @@ def test_save_refuses_a_tree_that_does_not_fit_the_bodies(tmp_path):
 
 
 def test_build_context_carries_the_tree():
-    from liedfl_cli.factory import build_context
+    from liedfl_cli.config.factory import build_context
 
     cfg = OmegaConf.create({"seed": 0, "train": {"epsilon": 10.0}, "force": None})
     ds = tree_dataset()
@@ -325,15 +325,17 @@ def test_pinned_root_sits_at_its_offset():
 def test_rolling_a_tree_model_out_on_other_data_needs_the_same_tree():
     from types import SimpleNamespace
 
+    from liedfl_cli.config.other_data import check_model_fits_data
     from liedfl_cli.errors import ConfigError
     from liedfl_cli.lie.product import ProductGroup
-    from liedfl_cli.other_data import check_model_fits_data
 
     ds = tree_dataset()
     assert ds.tree is not None
     model = SimpleNamespace(G=ProductGroup(1, 2), h=0.1, tree=ds.tree)
     check_model_fits_data(model, ds, "run")
-    check_model_fits_data(SimpleNamespace(G=ProductGroup(1, 2), h=0.1), ds, "run")  # a model without a tree
+    check_model_fits_data(
+        SimpleNamespace(G=ProductGroup(1, 2), h=0.1, tree=None), ds, "run"
+    )  # a model without a tree (Model.tree)
     other = tree_dataset(rotations="world")
     with pytest.raises(ConfigError, match="other rotations"):
         check_model_fits_data(model, other, "run")

@@ -16,7 +16,7 @@ from helpers import compose_config
 
 @pytest.fixture(scope="module")
 def smoke_run(tmp_path_factory):
-    from liedfl_cli.train import run_train
+    from liedfl_cli.commands.train import run_train
 
     tmp = tmp_path_factory.mktemp("one_step")
     cfg = compose_config(
@@ -59,8 +59,8 @@ def test_train_stores_one_step_predictions_and_reports_them_for_every_row(smoke_
 
 
 def test_the_stored_predictions_are_the_models_one_step_predictions(smoke_run):
-    from liedfl_cli.rollout_file import read_rollout
-    from liedfl_cli.runs import load_run
+    from liedfl_cli.config.runs import load_run
+    from liedfl_cli.files.rollout_file import read_rollout
     from liedfl_cli.solvers.one_step import one_step_predictions
 
     _, run, data = smoke_run
@@ -79,7 +79,7 @@ def test_eval_of_a_run_whose_rollout_file_has_no_one_step_data(smoke_run, tmp_pa
     the one-step columns of the rolled-out models are blank, nothing crashes."""
     import shutil
 
-    from liedfl_cli.evaluate import run_eval
+    from liedfl_cli.commands.evaluate import run_eval
 
     _, run, data = smoke_run
     old = tmp_path / "old_run"

@@ -41,7 +41,7 @@ def _liedfl(run_main):
 @pytest.fixture(scope="module")
 def run(tmp_path_factory) -> tuple[Path, Path]:
     """A smoke-trained LieDFLNN on the free rigid body (SO(3), h = 0.1): (run dir, data dir)."""
-    from liedfl_cli.train import run_train
+    from liedfl_cli.commands.train import run_train
 
     tmp = tmp_path_factory.mktemp("other_data")
     cfg = _compose("train", [*SMOKE, f"paths.output_dir={tmp / 'run'}", f"paths.data_dir={tmp / 'data'}"])
@@ -50,7 +50,7 @@ def run(tmp_path_factory) -> tuple[Path, Path]:
 
 
 def _rollout(run_dir: Path, data_dir: Path, *overrides: str) -> dict:
-    from liedfl_cli.rollout import run_rollout
+    from liedfl_cli.commands.rollout import run_rollout
 
     cfg = _compose("rollout", [f"run={run_dir}", f"paths.data_dir={data_dir}", *SMOKE[1:], *overrides])
     return run_rollout(cfg)
@@ -76,7 +76,7 @@ def test_rollout_on_other_data_writes_its_own_folder(run):
     assert {n: (run_dir / n).read_bytes() for n in own} == own  # the run's own files are untouched
     # liedfl eval of that folder evaluates against the same (other) dataset
     (folder / "eval.csv").unlink()
-    from liedfl_cli.evaluate import run_eval
+    from liedfl_cli.commands.evaluate import run_eval
 
     eval_cfg = _compose("eval", [f"run={run_dir}", f"rollout={folder}", f"paths.data_dir={data_dir}", *SMOKE[1:]])
     rows2 = run_eval(eval_cfg)
@@ -125,7 +125,7 @@ def test_a_users_file_trains_and_rolls_out(run, tmp_path):
     recorded = Path(json.loads((Path(out["dir"]) / "source.json").read_text())["dataset_path"])
     assert recorded.parent == data_dir.resolve() and recorded.name.startswith("file-")  # the cached copy
     assert load_dataset(recorded).params["source"]["file"] == str(path)  # of the user's file
-    from liedfl_cli.train import run_train
+    from liedfl_cli.commands.train import run_train
 
     cfg = _compose(
         "train",

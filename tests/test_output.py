@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 from rich.console import Console
 
-from liedfl_cli import ui
-from liedfl_cli.evaluate import COLUMNS, print_eval_table
-from liedfl_cli.io_utils import fmt
+from liedfl_cli.commands.evaluate import COLUMNS, print_eval_table
+from liedfl_cli.display import ui
+from liedfl_cli.files.io_utils import fmt
 
 
 def _rows() -> list[dict]:
@@ -133,7 +133,7 @@ def test_loss_plot_with_a_part_that_reaches_zero(tmp_path):
     import matplotlib
 
     matplotlib.use("Agg")
-    from liedfl_cli import plots
+    from liedfl_cli.display import plots
 
     captured = {}
     real = plots.save_figure
@@ -165,7 +165,7 @@ def test_every_run_figure_has_labelled_axes_with_units(tmp_path, monkeypatch):
     import matplotlib
 
     matplotlib.use("Agg")
-    from liedfl_cli import plots
+    from liedfl_cli.display import plots
     from liedfl_cli.lie import Pose
 
     axes = []
@@ -214,7 +214,7 @@ def test_every_run_figure_has_labelled_axes_with_units(tmp_path, monkeypatch):
 
 # ----------------------------------------------------------------------------- report
 def test_report_helpers():
-    from liedfl_cli.report import mean_std, pareto_front, pm, summarize, varying_settings
+    from liedfl_cli.commands.report import mean_std, pareto_front, pm, summarize, varying_settings
 
     assert pareto_front([(1, 5), (2, 3), (3, 4), (4, 1), (0.5, 9)]) == [(0.5, 9), (1, 5), (2, 3), (4, 1)]
     mean, std, n = mean_std([1.0, 2.0, None, float("nan"), 3.0])

@@ -11,6 +11,8 @@ from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 
 from liedfl_cli.cli import CONF_DIR
+from liedfl_cli.commands.train import count_parameters
+from liedfl_cli.config.schema import validate
 from liedfl_cli.errors import ConfigError
 from liedfl_cli.lie import Pose, ProductGroup, so3
 from liedfl_cli.mechanics.potentials import (
@@ -22,8 +24,6 @@ from liedfl_cli.mechanics.potentials import (
 )
 from liedfl_cli.models.base import BuildContext
 from liedfl_cli.models.liedflnn import LieDFLNN
-from liedfl_cli.schema import validate
-from liedfl_cli.train import count_parameters
 
 GROUPS = [ProductGroup(0, 1), ProductGroup(1, 0), ProductGroup(1, 2), ProductGroup(2, 1)]
 
@@ -253,9 +253,9 @@ def test_recovery_reports_pivot_moments_and_field_direction():
     from omegaconf import OmegaConf
 
     from liedfl_cli.cli import CONF_DIR
+    from liedfl_cli.config.recovery import parameter_recovery
     from liedfl_cli.data.scenes import generate
     from liedfl_cli.models.true_scheme import true_model
-    from liedfl_cli.recovery import parameter_recovery
 
     c = OmegaConf.to_container(OmegaConf.load(CONF_DIR / "dataset" / "heavy_so3.yaml"))
     c.pop("defaults", None)

@@ -18,15 +18,15 @@ import pytest
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 
-from liedfl_cli.checkpoint import file_sha256, load_checkpoint
 from liedfl_cli.cli import CONF_DIR
-from liedfl_cli.rollout_file import PROVENANCE
+from liedfl_cli.files.checkpoint import file_sha256, load_checkpoint
+from liedfl_cli.files.rollout_file import PROVENANCE
 
 FAST = ("budget=smoke", "ui.progress=false", "eval.plots=false", "runtime.threads=1")
 
 
 def _train(root: Path, name: str, *overrides: str) -> Path:
-    from liedfl_cli.train import run_train
+    from liedfl_cli.commands.train import run_train
 
     GlobalHydra.instance().clear()
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):

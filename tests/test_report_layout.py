@@ -12,8 +12,9 @@ from omegaconf import OmegaConf
 from report_sweep import fake_sweep
 from rich.console import Console
 
-from liedfl_cli import plots, report, ui
-from liedfl_cli.speed_figure import log_bar
+from liedfl_cli.commands import report
+from liedfl_cli.display import plots, ui
+from liedfl_cli.display.speed_figure import log_bar
 
 SPEED = ("rollout s/step/traj", "train [s]")
 

@@ -14,11 +14,11 @@ from pathlib import Path
 import pytest
 import torch
 
-import liedfl_cli.train as train_mod
+import liedfl_cli.commands.train as train_mod
 from helpers import SMOKE, cli_command, cli_env, compose_config
-from liedfl_cli.checkpoint import load_checkpoint
+from liedfl_cli.commands.train import TrainingInterrupted, run_resume, run_train
 from liedfl_cli.errors import CheckpointError, ConfigError
-from liedfl_cli.train import TrainingInterrupted, run_resume, run_train
+from liedfl_cli.files.checkpoint import load_checkpoint
 
 CONF = str(Path(__file__).resolve().parents[1] / "liedfl_cli" / "conf")
 _real_graceful_stop = train_mod.graceful_stop
@@ -93,7 +93,7 @@ def test_interrupted_then_resumed_equals_uninterrupted(tmp_path, monkeypatch, ba
 
 def test_resume_keeps_the_best_so_far_when_later_passes_are_worse(tmp_path, monkeypatch):
     """Cut after the best pass: the resumed run must still select it (state from the checkpoint)."""
-    from liedfl_cli.validation import VAL_COLUMNS
+    from liedfl_cli.commands.validation import VAL_COLUMNS
 
     values = iter([2.0, 1.0, 3.0, 3.0, 3.0, 3.0])
 

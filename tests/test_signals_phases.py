@@ -23,7 +23,7 @@ from liedfl_cli.cli import CONF_DIR
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory) -> Path:
     """One finished smoke run (trained in-process)."""
-    from liedfl_cli.train import run_train
+    from liedfl_cli.commands.train import run_train
 
     root = tmp_path_factory.mktemp("signals_run")
     GlobalHydra.instance().clear()
@@ -105,7 +105,9 @@ def test_a_signal_during_a_rollout_leaves_no_rollout_folder(trained, tmp_path, s
     run = _copy(trained, tmp_path)
     before = _snapshot(run)
     proc = liedfl(
-        ["rollout", f"run={run}", "steps=20", "ui.progress=false"], tmp_path, hook("liedfl_cli.rollout:_roll", sig)
+        ["rollout", f"run={run}", "steps=20", "ui.progress=false"],
+        tmp_path,
+        hook("liedfl_cli.commands.rollout:_roll", sig),
     )
     assert proc.returncode == code, proc.stderr
     line = _one_line(proc)
@@ -136,7 +138,9 @@ def test_the_issues_reproducer_sigterm_to_a_long_rollout(trained, tmp_path):
 def test_sigterm_during_an_evaluation_marks_the_run_until_an_evaluation_completes(trained, tmp_path):
     run = _copy(trained, tmp_path)
     (run / "status.json").write_text(json.dumps({"status": "ok", "exit_code": 0}))
-    proc = liedfl(["eval", f"run={run}", *SMOKE[1:]], tmp_path, hook("liedfl_cli.evaluate:run_eval_from_objects"))
+    proc = liedfl(
+        ["eval", f"run={run}", *SMOKE[1:]], tmp_path, hook("liedfl_cli.commands.evaluate:run_eval_from_objects")
+    )
     assert proc.returncode == 143, proc.stderr
     line = _one_line(proc)
     assert line.startswith("error: SIGTERM: interrupted during evaluation; to redo it: liedfl eval run=")
@@ -158,7 +162,7 @@ def test_sigterm_during_the_evaluation_of_an_outside_rollout_removes_its_copy(tr
     shutil.copy(run / "rollout.h5", outside / "rollout.h5")
     before = _snapshot(run)
     proc = liedfl(["eval", f"run={run}", f"rollout={outside}", *SMOKE[1:]], tmp_path,
-                  hook("liedfl_cli.evaluate:run_eval_from_objects"))  # fmt: skip
+                  hook("liedfl_cli.commands.evaluate:run_eval_from_objects"))  # fmt: skip
     assert proc.returncode == 143 and "during evaluation" in _one_line(proc), proc.stderr
     assert _snapshot(run) == before  # no evals/<copy>/ left
 
@@ -167,7 +171,7 @@ def test_sigterm_during_the_evaluation_of_an_outside_rollout_removes_its_copy(tr
 def test_sigterm_during_a_report_writes_nothing(tmp_path):
     sweep = tmp_path / "sweep"
     sweep.mkdir()
-    proc = liedfl(["report", f"sweep={sweep}", "plots=false"], tmp_path, hook("liedfl_cli.report:collect"))
+    proc = liedfl(["report", f"sweep={sweep}", "plots=false"], tmp_path, hook("liedfl_cli.commands.report:collect"))
     assert proc.returncode == 143, proc.stderr
     assert "SIGTERM: interrupted during report" in _one_line(proc)
     assert list(sweep.iterdir()) == []
@@ -175,7 +179,9 @@ def test_sigterm_during_a_report_writes_nothing(tmp_path):
 
 # ----------------------------------------------------------------------------- train after training
 def test_sigterm_during_the_rollout_of_train_records_the_phase_and_keeps_the_model(tmp_path):
-    proc = liedfl(["train", *SMOKE, "hydra.run.dir=run"], tmp_path, hook("liedfl_cli.rollout:rollout_and_save"))
+    proc = liedfl(
+        ["train", *SMOKE, "hydra.run.dir=run"], tmp_path, hook("liedfl_cli.commands.rollout:rollout_and_save")
+    )
     assert proc.returncode == 143, proc.stderr
     run = tmp_path / "run"
     line = _one_line(proc, progress=True)  # ("generated <dataset>" came before)
@@ -190,7 +196,7 @@ def test_sigterm_during_the_rollout_of_train_records_the_phase_and_keeps_the_mod
 def test_an_inherited_ignored_sigint_stays_ignored_outside_training(trained, tmp_path):
     run = _copy(trained, tmp_path)
     proc = liedfl(["rollout", f"run={run}", "steps=12", *SMOKE[1:]], tmp_path,
-                  hook("liedfl_cli.rollout:_roll", "SIGINT"), ignore_sigint=True)  # fmt: skip
+                  hook("liedfl_cli.commands.rollout:_roll", "SIGINT"), ignore_sigint=True)  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     (folder,) = (run / "rollouts").iterdir()
     assert (folder / "rollout.h5").is_file() and (folder / "eval.csv").is_file()

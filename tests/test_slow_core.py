@@ -6,7 +6,7 @@ from pathlib import Path
 import pytest
 from hydra import compose, initialize_config_dir
 
-from liedfl_cli.train import run_train
+from liedfl_cli.commands.train import run_train
 
 CONF = str(Path(__file__).resolve().parents[1] / "liedfl_cli" / "conf")
 pytestmark = pytest.mark.slow

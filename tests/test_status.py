@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from liedfl_cli import status
+from liedfl_cli.commands import status
 
 FAST = ["budget=smoke", "ui.progress=false", "eval.plots=false"]
 
@@ -115,9 +115,10 @@ def test_hydra_full_error_keeps_hydras_full_message(tmp_path):
 # ----------------------------------------------------------------------------- single runs
 def test_a_failed_run_with_content_keeps_its_folder_and_records_the_failure(tmp_path, monkeypatch, capfd):
     """A failure after the run wrote something: the folder stays, with status.json and the error line."""
-    from liedfl_cli import cli, train
+    from liedfl_cli import cli
+    from liedfl_cli.commands import train
     from liedfl_cli.errors import DatasetError
-    from liedfl_cli.io_utils import write_json
+    from liedfl_cli.files.io_utils import write_json
 
     def run_train(cfg):
         out = Path(cfg.paths.output_dir)
@@ -137,7 +138,8 @@ def test_a_failed_run_with_content_keeps_its_folder_and_records_the_failure(tmp_
 
 
 def test_a_run_that_fails_before_writing_leaves_no_folder(tmp_path, monkeypatch, capfd):
-    from liedfl_cli import cli, train
+    from liedfl_cli import cli
+    from liedfl_cli.commands import train
     from liedfl_cli.errors import DatasetError
 
     def run_train(cfg):
@@ -191,8 +193,9 @@ def test_status_of_a_job_without_status_file(tmp_path):
 
 def test_an_interruption_with_a_message_is_one_line_and_recorded(tmp_path, monkeypatch, capfd):
     """What the training loop raises on Ctrl-C after saving a checkpoint: exit 130, the message kept."""
-    from liedfl_cli import cli, train
-    from liedfl_cli.io_utils import write_json
+    from liedfl_cli import cli
+    from liedfl_cli.commands import train
+    from liedfl_cli.files.io_utils import write_json
 
     def run_train(cfg):
         write_json(Path(cfg.paths.output_dir) / "components.json", {"model": "x"})

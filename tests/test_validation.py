@@ -12,14 +12,14 @@ import numpy as np
 import pytest
 import torch
 
-import liedfl_cli.train as train_mod
+import liedfl_cli.commands.train as train_mod
 from helpers import SMOKE, compose_config
-from liedfl_cli.checkpoint import load_checkpoint
 from liedfl_cli.cli import CONF_DIR
+from liedfl_cli.commands.train import run_train
+from liedfl_cli.commands.validation import VAL_COLUMNS, Selection, make_val_split, select_option, val_interval
+from liedfl_cli.config.schema import validate
 from liedfl_cli.errors import ConfigError
-from liedfl_cli.schema import validate
-from liedfl_cli.train import run_train
-from liedfl_cli.validation import VAL_COLUMNS, Selection, make_val_split, select_option, val_interval
+from liedfl_cli.files.checkpoint import load_checkpoint
 
 
 def _cfg(tmp: Path, run: str, extra=()):
@@ -232,8 +232,8 @@ def test_no_validation_leaves_the_columns_out_and_selects_last(tmp_path):
 
 def test_rollout_eval_and_api_use_and_report_the_selected_checkpoint(tmp_path, capsys):
     from liedfl_cli import api
-    from liedfl_cli.evaluate import run_eval
-    from liedfl_cli.rollout import run_rollout
+    from liedfl_cli.commands.evaluate import run_eval
+    from liedfl_cli.commands.rollout import run_rollout
 
     s = run_train(_cfg(tmp_path, "run", ["train.epochs=3"]))
     run = Path(s["run_dir"])
@@ -269,7 +269,7 @@ def test_every_baseline_validates(tmp_path, model):
 def test_weight_decay_reaches_both_optimizers(name):
     from omegaconf import OmegaConf
 
-    from liedfl_cli.train import make_optimizer
+    from liedfl_cli.commands.train import make_optimizer
 
     cfg = OmegaConf.create({"name": name, "lr": 1e-3, "weight_decay": 0.25})
     opt = make_optimizer([torch.nn.Parameter(torch.ones(3))], cfg)

@@ -36,7 +36,7 @@ def _compose(overrides: list[str]):
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory) -> Path:
     """One finished smoke run; its dataset is the smoke cache file under <root>/data."""
-    from liedfl_cli.train import run_train
+    from liedfl_cli.commands.train import run_train
 
     root = tmp_path_factory.mktemp("values_run")
     run_train(_compose([*FAST, f"paths.output_dir={root / 'run'}", f"paths.data_dir={root / 'data'}"]))
@@ -82,8 +82,8 @@ def _edit_checkpoint(path: Path, fn) -> None:
 
 # ----------------------------------------------------------------------------- item 6: divergence
 def test_a_diverging_learning_rate_stops_with_one_line_and_keeps_the_last_good_checkpoint(trained, tmp_path):
-    from liedfl_cli.checkpoint import load_checkpoint
-    from liedfl_cli.train import TrainingDiverged, run_train
+    from liedfl_cli.commands.train import TrainingDiverged, run_train
+    from liedfl_cli.files.checkpoint import load_checkpoint
 
     out = tmp_path / "run"
     cfg = _compose(
@@ -164,8 +164,8 @@ def test_resume_refuses_unusable_weights_naming_the_checkpoint(trained, tmp_path
 
 # ----------------------------------------------------------------------------- item 7: the dataset file
 def test_the_checkpoint_records_the_datasets_sha256(trained):
-    from liedfl_cli.checkpoint import load_checkpoint
-    from liedfl_cli.dataset_identity import file_sha256
+    from liedfl_cli.files.checkpoint import load_checkpoint
+    from liedfl_cli.files.dataset_identity import file_sha256
 
     payload = load_checkpoint(trained / "checkpoints" / "last.pt")
     assert Path(payload["dataset_path"]).is_absolute()
@@ -173,7 +173,7 @@ def test_the_checkpoint_records_the_datasets_sha256(trained):
 
 
 def test_a_changed_dataset_file_is_refused_unless_accepted(trained, tmp_path, capfd):
-    from liedfl_cli.checkpoint import load_checkpoint
+    from liedfl_cli.files.checkpoint import load_checkpoint
 
     run = _copy_run(trained, tmp_path)
     data = tmp_path / "data.h5"
@@ -198,7 +198,7 @@ def test_a_changed_dataset_file_is_refused_unless_accepted(trained, tmp_path, ca
 
 
 def test_resume_from_another_directory_with_a_relative_dataset_path(trained, tmp_path, monkeypatch, capfd):
-    from liedfl_cli.checkpoint import load_checkpoint
+    from liedfl_cli.files.checkpoint import load_checkpoint
 
     first, second = tmp_path / "first", tmp_path / "second"
     first.mkdir()
@@ -220,7 +220,7 @@ def test_resume_from_another_directory_with_a_relative_dataset_path(trained, tmp
 def _synthetic_rollout(truth, fail_at: dict[int, int]):
     """A rollout entry equal to the truth, except that trajectory t fails at sample fail_at[t] (its
     solve there did not converge) and every pose from it on is garbage (the identity)."""
-    from liedfl_cli.rollout_file import RolloutEntry
+    from liedfl_cli.files.rollout_file import RolloutEntry
 
     R, p = truth.R.numpy().copy(), truth.p.numpy().copy()
     T, S1 = R.shape[:2]
@@ -232,10 +232,10 @@ def _synthetic_rollout(truth, fail_at: dict[int, int]):
 
 
 def test_errors_cover_converged_steps_only_with_the_valid_horizon_and_failure_count(trained):
-    from liedfl_cli.checkpoint import load_checkpoint
+    from liedfl_cli.commands.evaluate import _rows
     from liedfl_cli.data.hdf5 import load_dataset
-    from liedfl_cli.evaluate import _rows
-    from liedfl_cli.rollout_file import RolloutFile
+    from liedfl_cli.files.checkpoint import load_checkpoint
+    from liedfl_cli.files.rollout_file import RolloutFile
 
     dataset = load_dataset(load_checkpoint(trained / "checkpoints" / "last.pt")["dataset_path"])
     idx = np.asarray(dataset.test_idx)[:2]
@@ -257,10 +257,10 @@ def test_errors_cover_converged_steps_only_with_the_valid_horizon_and_failure_co
 
 
 def test_without_any_converged_prediction_the_errors_are_nan_not_zero(trained):
-    from liedfl_cli.checkpoint import load_checkpoint
+    from liedfl_cli.commands.evaluate import _rows
     from liedfl_cli.data.hdf5 import load_dataset
-    from liedfl_cli.evaluate import _rows
-    from liedfl_cli.rollout_file import RolloutFile
+    from liedfl_cli.files.checkpoint import load_checkpoint
+    from liedfl_cli.files.rollout_file import RolloutFile
 
     dataset = load_dataset(load_checkpoint(trained / "checkpoints" / "last.pt")["dataset_path"])
     idx = np.asarray(dataset.test_idx)[:2]
@@ -294,7 +294,7 @@ def test_a_forced_newton_failure_cuts_the_errors_in_a_real_rollout(trained, tmp_
 
 # ----------------------------------------------------------------------------- item 6/10: OSErrors
 def test_a_full_disk_names_the_users_file_in_one_line_and_leaves_no_temporary_file(trained, tmp_path, capfd):
-    import liedfl_cli.checkpoint as checkpoint
+    import liedfl_cli.files.checkpoint as checkpoint
 
     out = tmp_path / "run"
 
@@ -316,7 +316,7 @@ def test_a_full_disk_names_the_users_file_in_one_line_and_leaves_no_temporary_fi
 
 
 def test_user_path_replaces_temporary_names():
-    from liedfl_cli.preflight import user_path
+    from liedfl_cli.config.preflight import user_path
 
     assert user_path("/a/b/.last.pt.tmp123: x") == "/a/b/last.pt: x"
     assert user_path("name = '/d/free-1.h5.tmp77', errno = 28") == "name = '/d/free-1.h5', errno = 28"
@@ -345,8 +345,8 @@ def test_messages_about_a_cached_copy_name_the_users_file(tmp_path):
 
     from omegaconf import OmegaConf
 
+    from liedfl_cli.config.runs import _naming_the_users_file
     from liedfl_cli.errors import DatasetError, DataWarning
-    from liedfl_cli.runs import _naming_the_users_file
 
     cfg = OmegaConf.create({"dataset": {"name": "file", "path": "/home/me/mine.h5"}})
     cached = tmp_path / "file-abc.h5"

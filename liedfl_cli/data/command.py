@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from omegaconf import DictConfig
 
-from ..ui import console, err_console
+from ..display.ui import console, err_console
 
 
 def run_data(cfg: DictConfig):

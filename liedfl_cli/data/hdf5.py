@@ -21,7 +21,7 @@ import torch
 
 from .. import __version__
 from ..errors import DatasetError, DataWarning
-from ..io_utils import clean_orphans, deferred_signals, temporary_name
+from ..files.io_utils import clean_orphans, deferred_signals, temporary_name
 from ..lie import so3
 from ..lie.product import Pose, ProductGroup
 from ..lie.tolerances import tol

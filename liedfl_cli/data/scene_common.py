@@ -28,7 +28,7 @@ NON_GENERATOR_KEYS = ("train_steps", "rollout_steps", "val_fraction")
 
 TRAIN_TIME_KEYS = ("val_fraction",)
 """Dataset keys read by the trainer only (the validation split, taken from the train split at train
-time: liedfl_cli/validation.py); `to_dict` drops them, so no generator sees them."""
+time: liedfl_cli/commands/validation.py); `to_dict` drops them, so no generator sees them."""
 
 REQUIRED_KEYS = (
     "name",

@@ -25,13 +25,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..io_utils import markdown_table, write_json, write_text
+from ..display.plots import COLORS, display_names, draw_unit_sphere, plt, save_figure
+from ..display.ui import console
+from ..files.io_utils import markdown_table, write_json, write_text
+from ..files.rollout_file import FILE_NAME, load_rollout
 from ..lie import Pose
 from ..mechanics.kinetic import velocity_estimate
 from ..models.base import tensor_placement
-from ..plots import COLORS, display_names, draw_unit_sphere, plt, save_figure
-from ..rollout_file import FILE_NAME, load_rollout
-from ..ui import console
 
 
 @torch.no_grad()

@@ -53,13 +53,13 @@ from rich.markup import escape
 from rich.table import Table
 
 from ..data.mocap import ASF_UNIT_M, mocap_errors, moving_joints, recording_discrepancy, skeleton_points
-from ..io_utils import fmt, markdown_table, write_csv, write_json, write_text
+from ..display.plots import draw_unit_sphere, plt, save_figure
+from ..display.ui import console
+from ..files.io_utils import fmt, markdown_table, write_csv, write_json, write_text
+from ..files.rollout_file import FILE_NAME, RolloutEntry, load_rollout
 from ..lie import Pose
 from ..models.base import Model, tensor_placement
-from ..plots import draw_unit_sphere, plt, save_figure
-from ..rollout_file import FILE_NAME, RolloutEntry, load_rollout
 from ..solvers.options import SolverOptions
-from ..ui import console
 
 PAPER: dict[str, Any] = {
     "sequences": [

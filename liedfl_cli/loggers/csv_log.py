@@ -20,7 +20,7 @@ class MetricsLog:
             path.unlink()
 
     def _rewrite(self, rows: list[dict]) -> None:
-        from ..io_utils import write_csv
+        from ..files.io_utils import write_csv
 
         write_csv(self.path, rows)
         self.keys = list(rows[0])

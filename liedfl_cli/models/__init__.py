@@ -8,5 +8,5 @@
 | glnn_rk4 / _lie_heun / _lie_midpoint | GLNN (glnn.py)      | explicit | SO(3)          | trajectories / triplets |
 | neural_ode             | NeuralODE (neural_ode.py)         | explicit | any product    | trajectories |
 
-`liedfl_cli.factory.build_model(cfg, dataset)` builds the one a config names.
+`liedfl_cli.config.factory.build_model(cfg, dataset)` builds the one a config names.
 """

@@ -15,7 +15,7 @@ models: LieDFLNN, Euler-angle and Euclidean DFLNN) describe one implicit step as
 problem; `ExplicitModel`s (GLNN, Neural ODE) describe an integrator step, or integrate the
 whole time grid at once when their integrator is adaptive.
 
-Nothing here knows about Hydra: the pipeline (`liedfl_cli.factory`) turns configs into a
+Nothing here knows about Hydra: the pipeline (`liedfl_cli.config.factory`) turns configs into a
 `BuildContext` and plain keyword options.
 """
 

@@ -7,7 +7,7 @@ newton   w_DEL mean ||H^-1 r||^2 + the same regularity term. H = d r(g_k, g_k W 
          prediction error in the tangent space (rad / step for rotations; docs/math.md). H^-1 r does not
          change when L_d and F are scaled by a common factor (r and H scale alike), so the loss cannot be
          lowered by shrinking L_d; the regularity term keeps its absolute weight and only fixes the scale.
-rollout  first `del` for train.epochs, then a fine-tuning stage (`liedfl_cli.finetune`) on the k-step
+rollout  first `del` for train.epochs, then a fine-tuning stage (`liedfl_cli.commands.finetune`) on the k-step
          rollout error of windows of k+2 true poses started from their first two, the gradient taken
          through the converged Newton solves by the implicit function theorem (`rollout_window_loss`).
 
@@ -68,7 +68,7 @@ def check_loss(model: Any, loss: str) -> None:
 
 def training_stage(model: Any, data: Pose, steps: int, opts: LossOptions) -> tuple[LossOptions, Any]:
     """(the options, the samples) of `train.fit`'s stage: `rollout` trains with `del` first (its
-    fine-tuning stage is `liedfl_cli.finetune`); `newton` asks a fused set for the Jacobian's fields."""
+    fine-tuning stage is `liedfl_cli.commands.finetune`); `newton` asks a fused set for the Jacobian's fields."""
     check_loss(model, opts.loss)
     if opts.loss == "rollout":
         opts = dataclasses.replace(opts, loss="del")

@@ -1,6 +1,6 @@
 """Parameter recovery of the DEL models: learned against true parameters of a synthetic scene,
 after removing the common scale that the DEL residual cannot see. Reached through the model hook
-`Model.parameter_recovery` (the pipeline calls `liedfl_cli.runs`-level code only through it)."""
+`Model.parameter_recovery` (the pipeline calls `liedfl_cli.config.runs`-level code only through it)."""
 
 from __future__ import annotations
 
@@ -28,7 +28,7 @@ def lie_recovery(model: Any, ref: Any, physics: Mapping[str, Any]) -> dict:
     are compared after normalising each side by its own tr J_d; rho is a length and compared as
     it is. Errors are max |entry difference| / max |true entry| over the compared arrays.
     `physics`: the scene's declared physics (params["physics"]). Both models on one device in one
-    dtype (`liedfl_cli.recovery` compares them on the CPU in float64).
+    dtype (`liedfl_cli.config.recovery` compares them on the CPU in float64).
     """
     with torch.no_grad():
         Jd, Jd_true = model.inertia.Jd(), ref.inertia.Jd()

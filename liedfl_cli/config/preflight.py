@@ -20,7 +20,7 @@ def preflight(command: str, cfg) -> None:
     ConfigError (called by the Hydra callback before the run folder exists, and when the job starts)."""
     from omegaconf import OmegaConf
 
-    from .errors import ConfigError
+    from ..errors import ConfigError
     from .schema import validate
 
     if command in DIR_ARGS and OmegaConf.is_missing(cfg, DIR_ARGS[command][0]):
@@ -31,7 +31,7 @@ def preflight(command: str, cfg) -> None:
 
 def preflight_or_fail(command: str, cfg) -> None:
     """`preflight`, turning an error into one stderr line and a non-zero exit."""
-    from .ui import fail
+    from ..display.ui import fail
 
     try:
         preflight(command, cfg)
@@ -46,7 +46,7 @@ def classify(e: BaseException) -> tuple[str, int] | None:
     """(one-line message, exit code) of an error the CLI reports without a traceback; None for others."""
     from omegaconf.errors import OmegaConfBaseException
 
-    from .errors import LiedflError
+    from ..errors import LiedflError
 
     if isinstance(e, LiedflError):
         return str(e), int(getattr(e, "exit_code", 2))
@@ -61,7 +61,7 @@ def classify(e: BaseException) -> tuple[str, int] | None:
             f" (key {key})" if key else ""
         ), 2
     if isinstance(e, KeyboardInterrupt):  # KeyboardInterrupt("<how to resume>") adds its text to the line
-        from .signals import Terminated, interruption_message
+        from ..files.signals import Terminated, interruption_message
 
         return interruption_message(e), e.exit_code if isinstance(e, Terminated) else 130
     if type(e).__name__ == "UncompletedJobError" and type(e).__module__.split(".")[0] == "submitit":

@@ -31,7 +31,10 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from .checkpoint import (
+from ..config.factory import loss_options
+from ..display.ui import console, err_console, progress_bar, warning_line
+from ..errors import CheckpointError, ConfigError, LiedflError
+from ..files.checkpoint import (
     CHECKPOINT_FILE,
     capture_rng_state,
     check_training_state,
@@ -44,14 +47,11 @@ from .checkpoint import (
     run_provenance,
     save_checkpoint,
 )
-from .errors import CheckpointError, ConfigError, LiedflError
-from .factory import loss_options
-from .io_utils import write_json
-from .lie import Pose
-from .loggers import MetricsLog, make_loggers
-from .models.losses import training_stage
-from .solvers import runtime
-from .ui import console, err_console, progress_bar, warning_line
+from ..files.io_utils import write_json
+from ..lie import Pose
+from ..loggers import MetricsLog, make_loggers
+from ..models.losses import training_stage
+from ..solvers import runtime
 from .validation import (
     VAL_COLUMNS,
     Selection,
@@ -371,8 +371,8 @@ def validation_setup(cfg: DictConfig, dataset, resume: dict | None) -> tuple[Val
     """The validation split (`dataset.val_fraction`, taken from the train split), the validation
     passes (`train.val_every`, `train.val_horizon`) and the selection (`train.select`,
     `train.early_stopping`), restored from `resume`; prints what was chosen."""
-    from .data.scenes import dataset_steps
-    from .factory import data_pose, solver_options
+    from ..config.factory import data_pose, solver_options
+    from ..data.scenes import dataset_steps
 
     steps = dataset_steps(cfg.dataset, dataset, "train_steps")
     seed = int(dataset.seed) if int(dataset.seed) >= 0 else 0
@@ -428,9 +428,9 @@ def _train_dataset(cfg: DictConfig, resume: dict | None, accept_changed: bool):
     """(dataset, its file) for training. A resumed run reads the file its checkpoint recorded (an
     absolute path: resuming works from any directory), which must still be the file trained on
     (`dataset_identity`); a run whose recorded file is gone gets it again from its config."""
-    from .data.hdf5 import load_dataset
-    from .data.scenes import get_dataset
-    from .dataset_identity import check_unchanged
+    from ..data.hdf5 import load_dataset
+    from ..data.scenes import get_dataset
+    from ..files.dataset_identity import check_unchanged
 
     state = resume or {}
     recorded = state.get("dataset_path")
@@ -445,7 +445,7 @@ def _train_dataset(cfg: DictConfig, resume: dict | None, accept_changed: bool):
 def _absolute_user_paths(cfg: DictConfig) -> None:
     """`dataset.path` (dataset=file / import) made absolute in the config the run records: a resume
     or rollout from another directory finds the same file (the cache name does not hash the path)."""
-    from .dataset_identity import absolute
+    from ..files.dataset_identity import absolute
 
     path = OmegaConf.select(cfg, "dataset.path", default=None)
     if isinstance(path, str) and path and not Path(path).is_absolute():
@@ -457,11 +457,11 @@ def run_train(cfg: DictConfig, resume: dict | None = None, accept_changed_datase
     """`liedfl train`: data -> model -> fit (with checkpoints) -> checkpoint -> recovery ->
     rollout -> eval. `resume`: a checkpoint payload to continue from. Returns a summary.
     accept_changed_dataset: resume although the dataset file changed since training (a warning)."""
-    from .data.files import complete_steps
+    from ..config.factory import build_model, configure_runtime, data_pose
+    from ..data.files import complete_steps
+    from ..files.signals import set_phase
     from .evaluate import run_eval_from_objects
-    from .factory import build_model, configure_runtime, data_pose
     from .rollout import rollout_and_save
-    from .signals import set_phase
 
     configure_runtime(cfg)  # threads, fused paths, compilation, device, dtype (cfg.runtime)
     out = Path(cfg.paths.output_dir)
@@ -503,7 +503,7 @@ def run_train(cfg: DictConfig, resume: dict | None = None, accept_changed_datase
     config = OmegaConf.to_container(cfg, resolve=True)
     assert isinstance(config, dict)
     dataset_path = str(Path(data_path).resolve())
-    from .dataset_identity import file_sha256
+    from ..files.dataset_identity import file_sha256
 
     dataset_sha256 = file_sha256(dataset_path)  # rollout, eval and resume check the file is unchanged
     run_id = str((resume or {}).get("run_id") or new_run_id())  # the run's stable id (rollout provenance)
@@ -590,7 +590,7 @@ def run_train(cfg: DictConfig, resume: dict | None = None, accept_changed_datase
         + f"(final loss {result['history'][-1]['loss']:.3e}); checkpoint {ckpt}"
     )
     used = use_selected(model, out, selection, result["epochs"])
-    from .data.checks import step_rotation_summary
+    from ..data.checks import step_rotation_summary
 
     summary = {
         "run_dir": str(out),
@@ -613,7 +613,7 @@ def run_train(cfg: DictConfig, resume: dict | None = None, accept_changed_datase
         "checkpoint": used,
         "data_step_rotation": step_rotation_summary(dataset),
     }
-    from .recovery import parameter_recovery
+    from ..config.recovery import parameter_recovery
 
     try:
         recovery = parameter_recovery(model, dataset)
@@ -630,7 +630,7 @@ def run_train(cfg: DictConfig, resume: dict | None = None, accept_changed_datase
         set_phase("evaluation", redo)
         write_json(out / CHECKPOINT_FILE, used)  # which checkpoint rolled out (liedfl eval reads it)
         summary["eval"] = run_eval_from_objects(cfg, dataset, out, timings, checkpoint=used)
-        from .evaluation import run_extra_evals
+        from ..evaluation import run_extra_evals
 
         extra = run_extra_evals(cfg, model, dataset, out)
         if extra is not None:
@@ -665,7 +665,7 @@ def _diverged(e: TrainingDiverged, cfg: DictConfig, ckpt: Path, resumed: bool) -
 
 def _finetune_stage(cfg: DictConfig, model, train_data: Pose, result: dict, out: Path) -> dict:
     """`finetune.finetune` after the DEL stage; its seconds are added to the training time."""
-    from .factory import solver_options
+    from ..config.factory import solver_options
     from .finetune import finetune
 
     log = MetricsLog(out / "finetune_metrics.csv", [])
@@ -721,6 +721,6 @@ def run_resume(cfg: DictConfig) -> dict:
             raise ConfigError(f"epochs={epochs}: the checkpoint is already at epoch {int(payload['epoch'])}")
         saved.train.epochs = epochs
     saved.ui = cfg.ui
-    from .dataset_identity import accept_option
+    from ..files.dataset_identity import accept_option
 
     return run_train(saved, resume=payload, accept_changed_dataset=accept_option(cfg))

@@ -22,8 +22,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from . import __version__
-from .errors import CheckpointError
+from .. import __version__
+from ..errors import CheckpointError
 from .io_utils import atomic_path
 
 REQUIRED = ("state_dict", "config", "versions")
@@ -221,7 +221,7 @@ def checkpoint_path(run_dir, which: str = "best") -> Path:
     """`<run>/checkpoints/best.pt` for which=best when it exists (the selected model, see
     docs/validation.md), else `<run>/checkpoints/last.pt` (runs trained with `train.select=last` or
     before validation existed)."""
-    from .errors import ConfigError
+    from ..errors import ConfigError
 
     if which not in CHECKPOINTS:
         raise ConfigError(f"checkpoint={which!r}: choose one of {', '.join(CHECKPOINTS)}")

@@ -10,10 +10,10 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
+from ..errors import CheckpointError, ConfigError, DatasetError
+from ..files.checkpoint import checkpoint_path, checkpoint_record, load_checkpoint, load_state
+from ..files.dataset_identity import check_unchanged
 from . import resolvers  # noqa: F401  (registers the config resolvers)
-from .checkpoint import checkpoint_path, checkpoint_record, load_checkpoint, load_state
-from .dataset_identity import check_unchanged
-from .errors import CheckpointError, ConfigError, DatasetError
 
 
 def _recorded_dataset(run_dir: Path, recorded) -> Path | None:
@@ -54,8 +54,8 @@ def load_run_checkpoint(run_dir, data_dir=None, checkpoint: str = "best", accept
     is always loaded and checked (a broken last.pt is a broken run); best.pt then replaces the weights.
     The recorded dataset file must be the one trained on (its SHA-256, `dataset_identity`) unless
     `accept_changed_dataset`; the model must give finite values at the data's first step."""
-    from .data.hdf5 import load_dataset
-    from .data.scenes import get_dataset
+    from ..data.hdf5 import load_dataset
+    from ..data.scenes import get_dataset
     from .factory import build_model, placement
 
     if run_dir in (None, "", "???"):
@@ -99,7 +99,7 @@ def _naming_the_users_file(cfg, cached: Path):
     the user's file (`dataset.path`), which is the one they know."""
     import warnings
 
-    from .errors import DataWarning
+    from ..errors import DataWarning
 
     source = OmegaConf.select(cfg, "dataset.path", default=None)
     if not isinstance(source, str) or not source:
@@ -128,8 +128,8 @@ def check_finite_first_step(ckpt, model, dataset) -> None:
     import numpy as np
     import torch
 
+    from ..solvers.options import SolverOptions
     from .factory import data_pose
-    from .solvers.options import SolverOptions
 
     idx = np.asarray(dataset.test_idx if len(dataset.test_idx) else dataset.train_idx)[:1]
     if len(idx) == 0 or dataset.n_steps < 2:

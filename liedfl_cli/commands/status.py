@@ -20,7 +20,7 @@ from typing import Any
 
 from hydra.experimental.callback import Callback
 
-from .io_utils import write_json
+from ..files.io_utils import write_json
 
 STATUS_FILE = "status.json"
 HYDRA_FILES = ("config.yaml", "hydra.yaml", "overrides.yaml")
@@ -138,7 +138,7 @@ def check_launcher(config) -> None:
 
     from omegaconf import OmegaConf
 
-    from .ui import fail
+    from ..display.ui import fail
 
     target = str(OmegaConf.select(config, "hydra.launcher._target_", default="") or "")
     if not target.startswith(SUBMITIT_PLUGIN):
@@ -164,7 +164,7 @@ def remove_unused_run_dir(run_dir) -> bool:
     keep_from = Path(_state["keep_from"]).absolute()
     if keep_from == run_dir:  # the folder existed before this run: leave it
         return False
-    from .locks import LOCK_FILE, release_folder
+    from ..files.locks import LOCK_FILE, release_folder
 
     entries = [e for e in run_dir.iterdir() if e.name != LOCK_FILE]  # (this process's lock: released below)
     hydra = run_dir / ".hydra"
@@ -203,8 +203,8 @@ def _deepest_existing(path: Path) -> Path:
 def _lock_new_run(run_dir: Path) -> None:
     """Take the run folder's lock before Hydra writes its `.hydra/` files there (a second
     `liedfl train hydra.run.dir=<dir>` must not overwrite the first one's config); the job keeps it."""
-    from .locks import RunLocked, acquire
-    from .ui import fail
+    from ..display.ui import fail
+    from ..files.locks import RunLocked, acquire
 
     run_dir.mkdir(parents=True, exist_ok=True)
     try:
@@ -220,7 +220,7 @@ class LiedflCallback(Callback):
     def on_run_start(self, config, **kwargs) -> None:
         from omegaconf import OmegaConf
 
-        from .preflight import preflight_or_fail
+        from ..config.preflight import preflight_or_fail
 
         run_dir = OmegaConf.select(config, "hydra.run.dir", default=None)
         if run_dir is not None:

@@ -39,10 +39,10 @@ from typing import Any
 import numpy as np
 import torch
 
-from .errors import DatasetError
+from ..errors import DatasetError
+from ..lie import Pose
+from ..lie.product import ProductGroup
 from .io_utils import atomic_path
-from .lie import Pose
-from .lie.product import ProductGroup
 
 FILE_NAME = "rollout.h5"
 REQUIRED = ("R", "p", "converged", "iterations")

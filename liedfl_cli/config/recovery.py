@@ -7,7 +7,7 @@ import copy
 
 import torch
 
-from .models.true_scheme import true_model
+from ..models.true_scheme import true_model
 
 
 def parameter_recovery(model, dataset) -> dict | None:

@@ -30,7 +30,7 @@ import time
 from datetime import datetime, timezone
 from pathlib import Path
 
-from .errors import LiedflError
+from ..errors import LiedflError
 from .io_utils import host_id, pid_alive, temporary_name
 
 LOCK_FILE = ".lock"

@@ -30,16 +30,14 @@ import numpy as np
 import yaml
 from omegaconf import DictConfig
 
-from . import (
-    resolvers,  # noqa: F401  (registers the config resolvers)
-    speed_figure,
-)
-from .errors import ConfigError, DatasetError, LiedflError
+from ..config import resolvers  # noqa: F401  (registers the config resolvers)
+from ..display import speed_figure
+from ..display.speed_figure import pareto_front, plain_log_ticks  # noqa: F401  (pareto_front: part of this module's API)
+from ..display.ui import console, print_table, warning_line
+from ..errors import ConfigError, DatasetError, LiedflError
+from ..files.io_utils import fmt, markdown_table, write_csv, write_text
+from ..files.rollout_file import FILE_NAME, read_rollout
 from .evaluate import CV_COLUMNS, DRIFT_COLUMNS, ERROR_COLUMNS, ONE_STEP_COLUMNS
-from .io_utils import fmt, markdown_table, write_csv, write_text
-from .rollout_file import FILE_NAME, read_rollout
-from .speed_figure import pareto_front, plain_log_ticks  # noqa: F401  (pareto_front: part of this module's API)
-from .ui import console, print_table, warning_line
 
 COLUMNS = [
     "run",
@@ -124,7 +122,7 @@ def find_runs(sweep: Path) -> list[Path]:
 
 def _read(path: Path, kind: str):
     """A run file as parsed YAML / CSV rows / JSON; DatasetError naming the file when garbled."""
-    from .runs import read_json_object
+    from ..config.runs import read_json_object
 
     try:
         if kind == "json":
@@ -259,7 +257,7 @@ def pm_short(stat) -> str:
 
 # ----------------------------------------------------------------------------- figures
 def _colors(models: list[str]):
-    from .plots import plt
+    from ..display.plots import plt
 
     return {m: plt.get_cmap("tab10")(i % 10) for i, m in enumerate(models)}
 
@@ -289,7 +287,7 @@ def _h(sweep: Path, row: dict) -> float | None:
 
 
 def plot_error_vs_time(sweep: Path, summary: list[dict], path: Path) -> bool:
-    from .plots import plt, save_figure
+    from ..display.plots import plt, save_figure
 
     panels = [
         ("rel_rot_error", "relative rotation error [dimensionless]"),
@@ -359,7 +357,7 @@ def plot_error_vs_training_length(rows: list[dict], keys: list[str], path: Path)
     lengths = sorted({r["train_steps"] for r in rows if r["train_steps"] is not None})
     if len(lengths) < 2:
         return False
-    from .plots import plt, save_figure
+    from ..display.plots import plt, save_figure
 
     other = [k for k in keys if k != "dataset.train_steps"]
     colors = _colors(sorted({r["model"] for r in rows}))
@@ -400,7 +398,7 @@ def _sphere_tracks(run: Path) -> tuple[dict, np.ndarray | None]:
     tracks = {name: e.R[0, :, 0, :, 2] for name, e in rf.models.items()}
     truth = None
     try:
-        from .data.hdf5 import load_dataset
+        from ..data.hdf5 import load_dataset
 
         ds_path = _read(run / "summary.json", "json").get("dataset_path") if (run / "summary.json").is_file() else None
         if ds_path and Path(ds_path).is_file():
@@ -413,7 +411,7 @@ def _sphere_tracks(run: Path) -> tuple[dict, np.ndarray | None]:
 
 
 def plot_sphere_per_model(sweep: Path, rows: list[dict], path: Path) -> bool:
-    from .plots import _on_sphere, draw_unit_sphere, plt, save_figure
+    from ..display.plots import _on_sphere, draw_unit_sphere, plt, save_figure
 
     models = sorted({r["model"] for r in rows})
     colors = _colors(models)
@@ -528,7 +526,7 @@ def run_report(cfg: DictConfig) -> dict:
         raise ConfigError(
             f"sweep={cfg.sweep}: not a directory (give a multirun directory, e.g. outputs/multirun/<date>)"
         )
-    from .signals import set_phase
+    from ..files.signals import set_phase
     from .status import failed_runs
 
     set_phase("report", "each file of the report is whole (old or new); rerun liedfl report to redo it")

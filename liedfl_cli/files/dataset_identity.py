@@ -9,7 +9,7 @@ import hashlib
 import os
 from pathlib import Path
 
-from .errors import ConfigError, DatasetError
+from ..errors import ConfigError, DatasetError
 
 OVERRIDE_KEY = "accept_changed_dataset"
 
@@ -55,7 +55,7 @@ def check_unchanged(ckpt, recorded, path, accept: bool = False) -> None:
     if accept:
         import warnings
 
-        from .errors import DataWarning
+        from ..errors import DataWarning
 
         warnings.warn(f"{message}; used anyway ({OVERRIDE_KEY}=true)", DataWarning, stacklevel=2)
         return

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
-from .errors import ConfigError, DatasetError
+from ..errors import ConfigError, DatasetError
 
 SOURCE_FILE = "source.json"
 """Written next to a rollout of a run on other data (or of other trajectories than the test split):
@@ -69,7 +69,7 @@ def choose_split(mode: str, dataset, other: bool, all_asked: bool = False):
 
 
 def _group_error(model, run_dir, scene: str, n_se3: int, n_so3: int) -> ConfigError | None:
-    from .lie import ProductGroup
+    from ..lie import ProductGroup
 
     G = model.G
     if (G.n_se3, G.n_so3) == (n_se3, n_so3):
@@ -122,7 +122,7 @@ def _h_error(model, run_dir, scene: str, h: float) -> ConfigError | None:
 def other_dataset(cfg: DictConfig, model, run_dir):
     """(dataset, its config, source record, whether n_test / test_fraction asked for every trajectory)
     of `dataset=...` given to `liedfl rollout`, or None."""
-    from .data.scenes import get_dataset
+    from ..data.scenes import get_dataset
 
     ds_cfg = cfg.get("dataset")
     if ds_cfg is None:
@@ -180,8 +180,8 @@ def rollout_dataset(path: Path, model, dataset, run_cfg, run_dir, data_dir):
     """(dataset, config) a rollout file belongs to: the run's own, or the one named by the `source.json`
     next to it: the recorded (cached) dataset file, or, where it is gone, the dataset regenerated or
     re-read from its config."""
-    from .data.hdf5 import load_dataset
-    from .data.scenes import get_dataset
+    from ..data.hdf5 import load_dataset
+    from ..data.scenes import get_dataset
 
     src = load_source(path.parent)
     if src is None:

@@ -30,10 +30,10 @@ from typing import Any
 from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from ..errors import ConfigError
 from . import resolvers  # noqa: F401  (registers the config resolvers)
-from .errors import ConfigError
 
-CONF_DIR = Path(__file__).resolve().parent / "conf"  # the configs ship inside the package
+CONF_DIR = Path(__file__).resolve().parents[1] / "conf"  # the configs ship inside the package
 
 
 @dataclass
@@ -53,7 +53,7 @@ class EarlyStoppingSchema:
 
 
 @dataclass
-class RolloutLossSchema:  # train.loss=rollout: the fine-tuning stage (liedfl_cli/finetune.py)
+class RolloutLossSchema:  # train.loss=rollout: the fine-tuning stage (liedfl_cli/commands/finetune.py)
     horizon: int = 5  # k: steps rolled out per window of k + 2 true poses
     epochs: int = 100  # fine-tuning epochs after train.epochs of the DEL loss
     lr: Any = None  # null: train.optimizer.lr
@@ -436,8 +436,8 @@ def _check_model(cfg) -> None:
             f"model._target_={target!r}: only liedfl's own model classes may be instantiated "
             f"(a name starting with '{TARGET_PREFIX}models.', e.g. {DEFAULT_MODEL_TARGET})"
         )
+    from ..models.liedflnn import LieDFLNN
     from .factory import model_class
-    from .models.liedflnn import LieDFLNN
 
     cls = model_class(target)
     name = _value(cfg, "model.name")
@@ -453,7 +453,7 @@ def _check_model(cfg) -> None:
     _check_model_size(cfg)
     known = _value(cfg, "model.known") or []
     if known:
-        from .models.liedflnn import KNOWN_PARTS
+        from ..models.liedflnn import KNOWN_PARTS
 
         bad = [k for k in known if k not in KNOWN_PARTS]
         if bad:
@@ -465,7 +465,7 @@ def _check_model(cfg) -> None:
 def _check_model_size(cfg) -> None:
     """`model.mlp_width` x `model.mlp_depth`: refused when one MLP's weights, gradients and the
     optimiser's two moments (4 float64 copies of width^2 (depth - 1) + width weights) cannot fit."""
-    from .data.memory import check_fits
+    from ..data.memory import check_fits
 
     width, depth = _value(cfg, "model.mlp_width"), _value(cfg, "model.mlp_depth")
     if not _is_int(width) or width < 1:
@@ -534,7 +534,7 @@ def _check_values(cfg, command: str) -> None:
         if fraction is not None and not (_is_number(fraction) and 0 <= fraction < 1):
             raise ConfigError(f"dataset.val_fraction={fraction!r}: must be a number in [0, 1) (0: no validation)")
         if _value(cfg, "logger.name") == "tensorboard":  # the optional extra: refused before the run starts
-            from .loggers import require_tensorboard
+            from ..loggers import require_tensorboard
 
             require_tensorboard()
     if isinstance(cfg.get("rollout"), DictConfig):  # (`liedfl eval rollout=<dir>`: a path, or null)
@@ -574,7 +574,7 @@ def _check_split_sizes(cfg, d: dict) -> None:
 def _check_dataset_values(cfg, command: str) -> None:
     if not isinstance(cfg.get("dataset"), DictConfig):
         return
-    from .data.scenes import _checked
+    from ..data.scenes import _checked
 
     d = _plain(cfg.dataset, "dataset")
     if command == "rollout":  # a rollout trains nothing: test_fraction=1.0 asks for every trajectory

@@ -26,19 +26,19 @@ from pathlib import Path
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
-from .errors import ConfigError, DatasetError
-from .factory import solver_options
-from .lie import Pose
-from .rollout_file import OneStep, RolloutEntry, write_rollout
-from .solvers.options import SolverOptions
-from .solvers.rollout import Rollout
-from .ui import console, progress_bar, warning_line
+from ..config.factory import solver_options
+from ..display.ui import console, progress_bar, warning_line
+from ..errors import ConfigError, DatasetError
+from ..files.rollout_file import OneStep, RolloutEntry, write_rollout
+from ..lie import Pose
+from ..solvers.options import SolverOptions
+from ..solvers.rollout import Rollout
 
 
 def warn_stiff_damping(model, label: str) -> float | None:
     """One warning line when `model`'s constant damping is so stiff that the scheme reverses the
     velocity every step (h lambda_max(M^-1 D) > 2, `models.stiffness`); returns that figure."""
-    from .models.stiffness import STIFF_DAMPING, step_factor
+    from ..models.stiffness import STIFF_DAMPING, step_factor
 
     stiffness = model.damping_stiffness()
     if stiffness is not None and stiffness > STIFF_DAMPING:
@@ -69,7 +69,7 @@ def one_step(model, truth: Pose, steps: int, solver: SolverOptions) -> OneStep |
     """The model's teacher-forced one-step predictions of samples 2..n (n = min(steps, the data's steps)),
     each from the true pair (g_{k-1}, g_k): one batched two-step rollout over all pairs
     (`solvers.one_step.one_step_predictions`), timed. None when the data has fewer than 3 poses."""
-    from .solvers.one_step import one_step_predictions
+    from ..solvers.one_step import one_step_predictions
 
     n = min(steps, truth.R.shape[1] - 1)
     if n < 2:
@@ -81,7 +81,7 @@ def one_step(model, truth: Pose, steps: int, solver: SolverOptions) -> OneStep |
 
 def test_trajectories(dataset, max_trajectories) -> tuple[np.ndarray, Pose]:
     """(indices, poses) of the test trajectories rolled out, on the runtime's device and dtype."""
-    from .factory import data_pose
+    from ..config.factory import data_pose
 
     idx = np.asarray(dataset.test_idx)
     if len(idx) == 0:
@@ -108,9 +108,9 @@ def rollout_and_save(cfg: DictConfig, model, dataset, path, steps=None, provenan
     """Roll out `model` (and the true scheme, if the scene has one, on the same device and dtype) from
     each test trajectory's first pair; write `path` (CPU float64) with `provenance` (the run, model and
     checkpoint: `checkpoint.run_provenance`) and the rollout's dtype. Returns timing/solver summaries."""
-    from .data.scenes import dataset_steps
-    from .factory import place
-    from .models.true_scheme import true_model
+    from ..config.factory import place
+    from ..data.scenes import dataset_steps
+    from ..models.true_scheme import true_model
 
     steps = rollout_steps(steps if steps is not None else dataset_steps(cfg.dataset, dataset, "rollout_steps"))
     idx, truth = test_trajectories(dataset, cfg.rollout.max_trajectories)
@@ -149,9 +149,9 @@ def rollout_and_save(cfg: DictConfig, model, dataset, path, steps=None, provenan
 def own_source(run_dir, run_cfg, dataset, data_dir) -> dict:
     """The `source.json` record of a rollout of the run's own dataset over other trajectories than its
     test split (`split=all|train`): the run's dataset file, so that `liedfl eval` evaluates those."""
-    from .checkpoint import load_checkpoint
-    from .data.scenes import dataset_path
-    from .runs import _recorded_dataset
+    from ..config.runs import _recorded_dataset
+    from ..data.scenes import dataset_path
+    from ..files.checkpoint import load_checkpoint
 
     recorded = load_checkpoint(Path(run_dir) / "checkpoints" / "last.pt").get("dataset_path")
     path = _recorded_dataset(Path(run_dir), recorded) or dataset_path(run_cfg.dataset, data_dir)
@@ -188,17 +188,17 @@ def run_rollout(cfg: DictConfig) -> dict:
     the scene's extra evaluation). With `dataset=...` the rollout runs on that dataset's test split and
     is evaluated against it (`source.json` records it). The run's own rollout.h5 and evaluation are never
     touched; on failure the new folder is removed."""
-    from .checkpoint import CHECKPOINT_FILE, describe_checkpoint, load_checkpoint, run_provenance
+    from ..config.factory import configure_runtime
+    from ..config.other_data import SOURCE_FILE, choose_split, other_dataset, with_test_split
+    from ..config.runs import load_run_checkpoint
+    from ..evaluation import run_extra_evals
+    from ..files.checkpoint import CHECKPOINT_FILE, describe_checkpoint, load_checkpoint, run_provenance
+    from ..files.io_utils import write_json
+    from ..files.rollout_file import FILE_NAME
     from .evaluate import run_eval_from_objects
-    from .evaluation import run_extra_evals
-    from .factory import configure_runtime
-    from .io_utils import write_json
-    from .other_data import SOURCE_FILE, choose_split, other_dataset, with_test_split
-    from .rollout_file import FILE_NAME
-    from .runs import load_run_checkpoint
 
     configure_runtime(cfg)  # this command's runtime section: threads, device, dtype, ...
-    from .dataset_identity import accept_option
+    from ..files.dataset_identity import accept_option
 
     run_cfg, model, dataset, run_dir, used = load_run_checkpoint(
         cfg.run, cfg.paths.data_dir, cfg.get("checkpoint") or "best", accept_option(cfg)
@@ -228,13 +228,13 @@ def run_rollout(cfg: DictConfig) -> dict:
             source = own_source(run_dir, run_cfg, dataset, cfg.paths.data_dir)
     if source is not None:
         source.update(split=split, test_trajectories=[int(i) for i in idx])
-    from .data.scenes import dataset_steps
+    from ..data.scenes import dataset_steps
 
     steps = rollout_steps(
         cfg.steps if cfg.steps is not None else dataset_steps(merged.dataset, dataset, "rollout_steps")
     )
     tag = dataset.scene if other is not None else (split if split != "test" else None)
-    from .signals import set_phase
+    from ..files.signals import set_phase
 
     out = new_rollout_dir(run_dir, steps, tag=tag)
     set_phase("rollout", f"nothing kept ({out} removed)")

@@ -22,11 +22,11 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from .errors import ConfigError
-from .lie import Pose
-from .metrics import geodesic_error, position_error
-from .solvers.one_step import constant_velocity_one_step, one_step_predictions
-from .solvers.options import SolverOptions
+from ..errors import ConfigError
+from ..evaluation.metrics import geodesic_error, position_error
+from ..lie import Pose
+from ..solvers.one_step import constant_velocity_one_step, one_step_predictions
+from ..solvers.options import SolverOptions
 
 DEFAULT_VAL_FRACTION = 0.1
 TIME_SPLIT_BELOW = 5
@@ -274,7 +274,7 @@ class Validator:
     def _note_once(self, what: str, model, e: BaseException) -> None:
         if what not in self._failed:
             self._failed.add(what)
-            from .ui import console
+            from ..display.ui import console
 
             console.print(
                 f"[bold yellow]note:[/] {what} skipped for {type(model).__name__} ({_reason(e)})", highlight=False

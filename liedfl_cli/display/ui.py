@@ -159,7 +159,7 @@ def fit_columns(
     breaking a cell, taken in `priority` order (default: `columns`), shown in `columns` order.
     The first column is always shown. A rich table with edges takes 1 + sum(width + 3) columns.
     Columns in `wrap` may wrap at spaces: they need only their longest word."""
-    from .io_utils import fmt
+    from ..files.io_utils import fmt
 
     def need(c: str) -> int:
         texts = [headers.get(c, c), *(_cell_text(r.get(c), fmt) for r in rows)]
@@ -198,7 +198,7 @@ def print_table(
     from rich.table import Table
     from rich.text import Text
 
-    from .io_utils import fmt
+    from ..files.io_utils import fmt
 
     out = out or console
     shown, left = fit_columns(rows, columns, headers, out.width, priority, wrap)

@@ -18,11 +18,11 @@ from collections.abc import Callable
 import torch
 from omegaconf import DictConfig
 
-from .factory import loss_options
-from .lie import Pose
-from .models.losses import WindowSet, check_loss, rollout_window_loss
-from .solvers.options import SolverOptions
-from .ui import console, progress_bar
+from ..config.factory import loss_options
+from ..display.ui import console, progress_bar
+from ..lie import Pose
+from ..models.losses import WindowSet, check_loss, rollout_window_loss
+from ..solvers.options import SolverOptions
 
 
 def finetune(

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import torch
 
-from .lie import Pose, so3
+from ..lie import Pose, so3
 
 
 def relative_rotation_error(R_hat: torch.Tensor, R: torch.Tensor) -> torch.Tensor:

@@ -18,13 +18,13 @@ from hydra.utils import get_class
 from omegaconf import DictConfig, OmegaConf
 from torch import nn
 
+from ..errors import ConfigError
+from ..lie import Pose
+from ..models.articulated import ArticulatedLieDFLNN
+from ..models.base import BuildContext, LossOptions, Model
+from ..models.liedflnn import LieDFLNN
+from ..solvers.options import SolverOptions
 from . import resolvers  # noqa: F401  (registers the config resolvers)
-from .errors import ConfigError
-from .lie import Pose
-from .models.articulated import ArticulatedLieDFLNN
-from .models.base import BuildContext, LossOptions, Model
-from .models.liedflnn import LieDFLNN
-from .solvers.options import SolverOptions
 
 PACKAGE_PREFIX = "liedfl_cli.models."
 
@@ -102,7 +102,7 @@ def build_model(cfg: DictConfig, dataset) -> Model:
 def placement() -> tuple[torch.device, torch.dtype]:
     """(device, dtype) of this command's models and data: `runtime.device` / `runtime.dtype` as
     applied by `configure_runtime` (cpu / float64 before it runs)."""
-    from .solvers import runtime
+    from ..solvers import runtime
 
     return runtime.placement()
 
@@ -139,7 +139,7 @@ def configure_runtime(cfg: DictConfig):
     """Apply `cfg.runtime` (threads, fused paths, compilation, device, dtype) to this process; a job
     of a joblib sweep runs on one thread (the jobs share the cores). `runtime.device=cuda` without a
     CUDA device: ConfigError."""
-    from .solvers import runtime
+    from ..solvers import runtime
 
     parallel = False
     try:

@@ -20,9 +20,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .data.files import ROTATIONS
-from .errors import ConfigError
-from .lie import so3
+from ..data.files import ROTATIONS
+from ..errors import ConfigError
+from ..lie import so3
 
 EXPORTS = ("csv", "npz")
 
@@ -49,7 +49,7 @@ def reimport_command(path: Path, rotation: str, bodies: list[str] | None) -> str
 
 def export_predictions(rollout_path, dataset, fmt: str, out_dir) -> Path:
     """Write the model's rollout in `rollout_path` as `<out_dir>/predictions.<fmt>`; returns the path."""
-    from .rollout_file import read_rollout
+    from ..files.rollout_file import read_rollout
 
     if fmt not in EXPORTS:
         raise ConfigError(f"export={fmt!r}: choose csv or npz (or null for none)")

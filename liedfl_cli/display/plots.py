@@ -17,7 +17,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from .io_utils import atomic_path
+from ..files.io_utils import atomic_path
 
 
 class ArrayPose(NamedTuple):

@@ -23,13 +23,13 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from . import plots
-from .errors import ConfigError
-from .io_utils import markdown_table, write_csv, write_json, write_text
-from .lie import Pose, ProductGroup
-from .metrics import drift_metrics, error_metrics, one_step_metrics, valid_horizons, valid_steps
-from .rollout_file import FILE_NAME, RolloutFile, load_rollout, read_rollout
-from .ui import console, print_table, warning_line
+from ..display import plots
+from ..display.ui import console, print_table, warning_line
+from ..errors import ConfigError
+from ..evaluation.metrics import drift_metrics, error_metrics, one_step_metrics, valid_horizons, valid_steps
+from ..files.io_utils import markdown_table, write_csv, write_json, write_text
+from ..files.rollout_file import FILE_NAME, RolloutFile, load_rollout, read_rollout
+from ..lie import Pose, ProductGroup
 
 SHORT = {
     "rel_rot_error_mean": "rel err",
@@ -136,7 +136,7 @@ def _rows(
         row["rollout_trajectories"] = int(ro.R.shape[0])
         rows.append(row)
     if group is not None:
-        from .solvers.one_step import constant_velocity_one_step, constant_velocity_rollout
+        from ..solvers.one_step import constant_velocity_one_step, constant_velocity_rollout
 
         g0, g1 = truth.index((slice(None), 0)), truth.index((slice(None), 1))
         row, curves[CONSTANT_VELOCITY] = _errors(
@@ -222,7 +222,7 @@ def print_eval_table(rows: list[dict], cols: list[str], title: str, out=None) ->
 
 def length_unit(dataset) -> str | None:
     """The unit of the dataset's positions: metres unless it records another (mocap: CMU ASF units)."""
-    from .data.mocap import ASF_UNIT_M
+    from ..data.mocap import ASF_UNIT_M
 
     unit = (dataset.params or {}).get("length_unit_m")
     if unit is None or abs(float(unit) - 1.0) < 1e-9:
@@ -393,8 +393,8 @@ def copy_into_run(path: Path, run_dir, made: list[Path] | None = None) -> Path:
     import shutil
     from datetime import datetime
 
-    from .checkpoint import CHECKPOINT_FILE
-    from .other_data import SOURCE_FILE
+    from ..config.other_data import SOURCE_FILE
+    from ..files.checkpoint import CHECKPOINT_FILE
 
     base = Path(run_dir) / EVALS_DIR
     base.mkdir(exist_ok=True)
@@ -425,13 +425,13 @@ def run_eval(cfg: DictConfig) -> list[dict]:
     rollout file of the run (written next to that file). A file written by another run is refused
     (`check_provenance`); one outside the run's folder is evaluated in a copy under `<run>/evals/`
     (`copy_into_run`): an evaluation writes only under the run it evaluates."""
-    from .checkpoint import load_checkpoint
-    from .factory import configure_runtime
-    from .runs import load_run_checkpoint
-    from .signals import set_phase
+    from ..config.factory import configure_runtime
+    from ..config.runs import load_run_checkpoint
+    from ..files.checkpoint import load_checkpoint
+    from ..files.signals import set_phase
 
     configure_runtime(cfg)  # this command's runtime section (the model of the scene's extra evaluation)
-    from .dataset_identity import accept_option
+    from ..files.dataset_identity import accept_option
 
     run_cfg, model, dataset, run_dir, used = load_run_checkpoint(
         cfg.run, cfg.paths.data_dir, cfg.get("checkpoint") or "best", accept_option(cfg)
@@ -459,7 +459,7 @@ def _interrupted_eval(e: BaseException, out: Path, copied: Path | None, run_dir)
     old and new), until an evaluation there completes."""
     import shutil
 
-    from .preflight import classify
+    from ..config.preflight import classify
     from .status import mark_interrupted
 
     if copied is not None:
@@ -476,9 +476,9 @@ def _interrupted_eval(e: BaseException, out: Path, copied: Path | None, run_dir)
 def _eval_rollout(cfg, run_cfg, model, dataset, run_dir, used, path: Path, last: dict) -> list[dict]:
     from omegaconf import OmegaConf
 
-    from .checkpoint import describe_checkpoint, rollout_checkpoint
-    from .evaluation import run_extra_evals
-    from .other_data import rollout_dataset
+    from ..config.other_data import rollout_dataset
+    from ..evaluation import run_extra_evals
+    from ..files.checkpoint import describe_checkpoint, rollout_checkpoint
     from .status import clear_interruption
 
     used = rollout_checkpoint(path, used)  # the rollout's own record (checkpoint.json) when it has one

@@ -1,0 +1,1 @@
+"""What the user sees: terminal output (rich) and figures (matplotlib)."""
