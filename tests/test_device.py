@@ -40,7 +40,7 @@ dtype from the inputs (`x.new_zeros`, `torch.zeros_like`, `dtype=x.dtype, device
       built as modules) and potentials._vec3 (an `__init__` helper). Parameters and buffers are
       created on the CPU in float64 (the same initial values from the seed whatever the runtime);
       the pipeline then moves the module (`factory.place`),
-   d. in fused._exp_coefficients_scalar (Python-float arithmetic is float64 whatever the tensors);
+   d. in fused_maps._exp_coefficients_scalar (Python-float arithmetic is float64 whatever the tensors);
 3. outside construction code (2c) a tensor factory (torch.zeros, ones, empty, full, eye, arange,
    linspace, logspace, tensor, as_tensor, rand, randn, randint, randperm, normal) passes `device=`
    (or `**options`), unless it draws from a `generator=` (whose device decides), and every factory
@@ -79,7 +79,7 @@ CONSTRUCTION_FUNCTIONS = {  # rule 2c
     ("models/articulated.py", "joint_damping_matrix"),
     ("models/articulated.py", "geometric_start"),
 }
-PYTHON_FLOAT_FUNCTIONS = {("models/fused.py", "_exp_coefficients_scalar")}  # rule 2d
+PYTHON_FLOAT_FUNCTIONS = {("models/fused_maps.py", "_exp_coefficients_scalar")}  # rule 2d
 
 
 def _is_torch_attr(node: ast.AST, names) -> bool:
