@@ -477,8 +477,8 @@ def _eval_rollout(cfg, run_cfg, model, dataset, run_dir, used, path: Path, last:
     from omegaconf import OmegaConf
 
     from ..config.other_data import rollout_dataset
-    from ..evaluation import run_extra_evals
     from ..files.checkpoint import describe_checkpoint, rollout_checkpoint
+    from .outputs import run_scene_eval
     from .status import clear_interruption
 
     used = rollout_checkpoint(path, used)  # the rollout's own record (checkpoint.json) when it has one
@@ -494,7 +494,7 @@ def _eval_rollout(cfg, run_cfg, model, dataset, run_dir, used, path: Path, last:
         model_name=OmegaConf.select(run_cfg, "model.name", default=None),
         checkpoint=used,
     )
-    run_extra_evals(
+    run_scene_eval(
         OmegaConf.merge(run_cfg, {"eval": cfg.eval, "ui": cfg.ui}), model, dataset, run_dir, rollout_path=path
     )
     clear_interruption(path.parent, "evaluation")
