@@ -12,10 +12,12 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
+from liedfl_cli.commands.outputs import write_outputs
 from liedfl_cli.commands.train import count_parameters
 from liedfl_cli.data import generate
 from liedfl_cli.data.scenes_multibody import pd_torque
-from liedfl_cli.evaluation.control import force_torques, plot_torque, torque_errors
+from liedfl_cli.evaluation import EvalOutputs
+from liedfl_cli.evaluation.control import evaluate_control, force_torques, plot_torque, torque_errors
 from liedfl_cli.lie import SO3, Pose, ProductGroup, so3
 from liedfl_cli.mechanics.forces import ControlForce
 from liedfl_cli.models.liedflnn import LieDFLNN
@@ -155,15 +157,41 @@ def test_torque_evaluation_of_the_true_law(pd_data, tmp_path):
     assert err["rel_error_mean"] < 0.05 and err["rel_error_max"] < 0.2
     assert torque_errors(learned, learned)["rel_error_max"] == 0.0
     path = tmp_path / "plots" / "torque.png"
-    plot_torque(
+    fig = plot_torque(
         {"learned": learned[0], "true": ds.extras["tau_ext"][0, :40], "rel_error": err["curve"]},
         ds.h,
         {"truth": ds.R[0], "model": ds.R[0], "_index": 0},
-        path,
         "test",
     )
+    assert not path.parent.exists()  # drawn, not written: the command's writer saves it
+    write_outputs(EvalOutputs({}, tmp_path, {"plots/torque.png": fig}))
     assert path.is_file() and path.stat().st_size > 1000
     assert not list(path.parent.glob(".*tmp*"))
+
+
+def _tree(root: Path) -> dict[str, tuple[int, int]]:
+    return {str(p.relative_to(root)): (p.stat().st_size, p.stat().st_mtime_ns) for p in root.rglob("*")}
+
+
+def test_evaluate_control_writes_nothing_and_returns_what_is_written(pd_data, tmp_path, monkeypatch):
+    """The evaluation computes (summary, rows, figure); only `commands.outputs.write_outputs` writes."""
+    ds = pd_data
+    cwd, run = tmp_path / "cwd", tmp_path / "run"
+    cwd.mkdir(), run.mkdir()
+    monkeypatch.chdir(cwd)
+    cfg = OmegaConf.create({"eval": {"plots": True}})
+    out = evaluate_control(cfg, true_model(ds), ds, run)
+    assert _tree(cwd) == {} and _tree(run) == {}
+    assert out is not None and out.out_dir == run
+    assert set(out.files) == {"control_eval.json", "control_eval.md", "plots/torque.png"}
+    rows = out.summary["rows"]
+    assert [r["split"] for r in rows] == ["train", "test"] and out.files["control_eval.json"] is out.summary
+    written = write_outputs(out)
+    assert sorted(p.relative_to(run).as_posix() for p in written) == sorted(out.files)
+    assert json.loads((run / "control_eval.json").read_text())["rows"] == json.loads(json.dumps(rows))
+    md = (run / "control_eval.md").read_text()
+    assert all(f"| {r['split']} |" in md for r in rows)
+    assert (run / "plots" / "torque.png").stat().st_size > 1000 and _tree(cwd) == {}
 
 
 def test_exp5_smoke_run_end_to_end(tmp_path):

@@ -128,6 +128,59 @@ def test_exp4_smoke_run_end_to_end(smoke_run):
     assert not list(run.glob(".*tmp*")) and not list((run / "plots").glob(".*tmp*"))
 
 
+def test_evaluate_mocap_writes_nothing_and_returns_what_is_written(smoke_run, tmp_path, monkeypatch):
+    """The mocap evaluation computes (summary, rows, markdown, figures) and writes nothing; the
+    command's writer then writes exactly the files the run holds (same bytes for the tables)."""
+    from liedfl_cli.commands.outputs import write_outputs
+    from liedfl_cli.config.runs import load_run
+    from liedfl_cli.evaluation.mocap import evaluate_mocap
+
+    cfg, _, run, data = smoke_run
+    _, model, dataset, _ = load_run(run, data)
+
+    def tree(root):
+        return {str(p.relative_to(root)): (p.stat().st_size, p.stat().st_mtime_ns) for p in root.rglob("*")}
+
+    before = tree(run)
+    monkeypatch.chdir(tmp_path)
+    out = evaluate_mocap(cfg, model, dataset, run)
+    assert tree(run) == before and tree(tmp_path) == {}
+    assert out.out_dir == run and set(out.files) == {"mocap_eval.json", "mocap_eval.csv", "mocap_eval.md"} | {
+        f"plots/{n}" for n in PLOTS
+    }
+    assert out.table("mocap_eval.csv") is out.summary["rows"] and len(out.summary["rows"]) == 5
+    written = write_outputs(out, tmp_path / "again")
+    assert sorted(p.relative_to(tmp_path / "again").as_posix() for p in written) == sorted(out.files)
+    for name in ("mocap_eval.json", "mocap_eval.csv", "mocap_eval.md"):
+        assert (tmp_path / "again" / name).read_bytes() == (run / name).read_bytes(), name
+    with open(tmp_path / "again" / "mocap_eval.csv") as f:
+        assert [r["row"] for r in csv.DictReader(f)] == [r["row"] for r in out.summary["rows"]]
+
+
+def test_compute_eval_writes_nothing_and_returns_what_is_written(smoke_run, tmp_path, monkeypatch):
+    """The general evaluation of `liedfl eval` computes its rows, eval.md and figures without writing;
+    `run_eval_from_objects` writes them (the run's eval.csv holds the same rows)."""
+    from liedfl_cli.commands.evaluate import compute_eval
+    from liedfl_cli.commands.outputs import write_outputs
+    from liedfl_cli.config.runs import load_run
+
+    cfg, _, run, data = smoke_run
+    _, _, dataset, _ = load_run(run, data)
+    before = {p: p.stat().st_mtime_ns for p in run.rglob("*")}
+    monkeypatch.chdir(tmp_path)
+    out = compute_eval(cfg, dataset, run)
+    assert {p: p.stat().st_mtime_ns for p in run.rglob("*")} == before and not list(tmp_path.iterdir())
+    assert {"eval.csv", "eval.md", "eval_curves.json", "plots/error_vs_step.png"} <= set(out.files)
+    rows = out.table("eval.csv")
+    assert rows is out.summary["rows"] and {r["model"] for r in rows} == {"model", "constant_velocity"}
+    write_outputs(out, tmp_path / "again")
+    with open(tmp_path / "again" / "eval.csv") as f, open(run / "eval.csv") as g:
+        mine, theirs = list(csv.DictReader(f)), list(csv.DictReader(g))
+    assert [r["model"] for r in mine] == [r["model"] for r in rows] == [r["model"] for r in theirs]
+    for a, b in zip(mine, theirs):  # the run's own eval.csv has the train timings of the run, not given here
+        assert a["geodesic_error_mean"] == b["geodesic_error_mean"]
+
+
 def test_mocap_errors_truth_and_discrepancy(smoke_run):
     """Truth against itself is zero; recording 0 against recording 1 is `recording_discrepancy`."""
     from liedfl_cli.data.mocap import mocap_errors, moving_joints, recording_discrepancy

@@ -26,10 +26,12 @@ from omegaconf import DictConfig
 from ..display import plots
 from ..display.ui import console, print_table, warning_line
 from ..errors import ConfigError
+from ..evaluation import EvalOutputs
 from ..evaluation.metrics import drift_metrics, error_metrics, one_step_metrics, valid_horizons, valid_steps
-from ..files.io_utils import markdown_table, write_csv, write_json, write_text
+from ..files.io_utils import markdown_table
 from ..files.rollout_file import FILE_NAME, RolloutFile, load_rollout, read_rollout
 from ..lie import Pose, ProductGroup
+from .outputs import write_outputs
 
 SHORT = {
     "rel_rot_error_mean": "rel err",
@@ -266,8 +268,25 @@ def run_eval_from_objects(
     model_name: str | None = None,
     checkpoint: dict | None = None,
 ) -> list[dict]:
-    """Evaluate a rollout file against `dataset`: eval.csv, eval.md, eval_curves.json and plots/ next to
-    the file. rollout_path: default `<run_dir>/rollout.h5`. The run's parameter recovery (recovery.json)
+    """Evaluate a rollout file against `dataset` (`compute_eval`) and write eval.csv, eval.md,
+    eval_curves.json and plots/ next to the file (`outputs.write_outputs`); returns the rows."""
+    result = compute_eval(cfg, dataset, run_dir, timings, rollout_path, model_name, checkpoint)
+    write_outputs(result)
+    return result.summary["rows"]
+
+
+def compute_eval(
+    cfg: DictConfig,
+    dataset,
+    run_dir,
+    timings: dict | None = None,
+    rollout_path=None,
+    model_name: str | None = None,
+    checkpoint: dict | None = None,
+) -> EvalOutputs:
+    """The evaluation of a rollout file against `dataset`, computed, not written: summary {"rows": rows}
+    and the files eval.csv, eval.md, eval_curves.json and plots/ (drawn figures) to go next to the
+    file. rollout_path: default `<run_dir>/rollout.h5`. The run's parameter recovery (recovery.json)
     goes into eval.md of any rollout of the run, the loss curve only into the run's own plots.
     model_name: what the `model` entry is (default: `cfg.model.name`). checkpoint: which checkpoint the
     model's rollout came from (`checkpoint.checkpoint_record`): columns `checkpoint`, `checkpoint_epoch`."""
@@ -287,7 +306,8 @@ def run_eval_from_objects(
             r.update(checkpoint=checkpoint.get("checkpoint"), checkpoint_epoch=checkpoint.get("checkpoint_epoch"))
     own = out.resolve() == run_dir.resolve()
     recovery_path = run_dir / "recovery.json"
-    write_csv(out / "eval.csv", rows)
+    result = EvalOutputs({"rows": rows}, out)
+    result.add("eval.csv", rows)
     cols = [c for c in COLUMNS if any(r.get(c) is not None for r in rows)]
     note = span_note(rf, dataset)
     md = (
@@ -314,8 +334,8 @@ def run_eval_from_objects(
     if recovery_path.is_file():
         rec = json.loads(recovery_path.read_text())
         md += "\n## Parameter recovery (normalised by tr J_d)\n\n" + markdown_table([rec], list(rec))
-    write_text(out / "eval.md", md)
-    write_json(out / "eval_curves.json", {k: {kk: vv.tolist() for kk, vv in v.items()} for k, v in curves.items()})
+    result.add("eval.md", md)
+    result.add("eval_curves.json", {k: {kk: vv.tolist() for kk, vv in v.items()} for k, v in curves.items()})
     console.print(
         "columns: rel err = mean ||R^-R||_F/||R||_F over steps; geo err = mean geodesic error (rad); "
         "1-step = teacher-forced one-step error (each step from the true previous pair); "
@@ -331,29 +351,34 @@ def run_eval_from_objects(
     print_eval_table(rows, cols, f"{dataset.scene}: test rollout ({len(idx)} x {rf.steps} steps)")
     if cfg.eval.plots:
         h = dataset.h
-        pdir = out / "plots"
         unit = length_unit(dataset)
-        plots.error_vs_step(curves, h, pdir / "error_vs_step.png", names, length_unit=unit)
-        plots.drift_vs_step(
-            {k: v for k, v in curves.items() if k != CONSTANT_VELOCITY}, h, pdir / "drift_vs_step.png", names
+        result.add("plots/error_vs_step.png", plots.draw_error_vs_step(curves, h, names, length_unit=unit))
+        result.add(
+            "plots/drift_vs_step.png",
+            plots.draw_drift_vs_step({k: v for k, v in curves.items() if k != CONSTANT_VELOCITY}, h, names),
         )
         preds = {k: v.pose for k, v in rf.models.items()}
-        plots.sphere(truth.R.numpy(), {k: v.R.numpy() for k, v in preds.items()}, pdir / "sphere.png", names=names)
-        plots.predicted_vs_true(
-            plots.ArrayPose(truth.R.numpy(), truth.p.numpy()),
-            {k: plots.ArrayPose(v.R.numpy(), v.p.numpy()) for k, v in preds.items()},
-            h,
-            pdir / "predicted_vs_true.png",
-            names=names,
-            length_unit=unit,
+        result.add(
+            "plots/sphere.png",
+            plots.draw_sphere(truth.R.numpy(), {k: v.R.numpy() for k, v in preds.items()}, names=names),
+        )
+        result.add(
+            "plots/predicted_vs_true.png",
+            plots.draw_predicted_vs_true(
+                plots.ArrayPose(truth.R.numpy(), truth.p.numpy()),
+                {k: plots.ArrayPose(v.R.numpy(), v.p.numpy()) for k, v in preds.items()},
+                h,
+                names=names,
+                length_unit=unit,
+            ),
         )
         hist = run_dir / "train_metrics.csv"
         if own and hist.is_file():
             with open(hist) as f:
                 history = [{k: float(v) for k, v in r.items() if k and v not in (None, "")} for r in csv.DictReader(f)]
             if history and all("epoch" in r for r in history):
-                plots.loss_curve(history, pdir / "loss.png")
-    return rows
+                result.add("plots/loss.png", plots.draw_loss_curve(history))
+    return result
 
 
 EVALS_DIR = "evals"
@@ -477,8 +502,8 @@ def _eval_rollout(cfg, run_cfg, model, dataset, run_dir, used, path: Path, last:
     from omegaconf import OmegaConf
 
     from ..config.other_data import rollout_dataset
-    from ..evaluation import run_extra_evals
     from ..files.checkpoint import describe_checkpoint, rollout_checkpoint
+    from .outputs import run_scene_eval
     from .status import clear_interruption
 
     used = rollout_checkpoint(path, used)  # the rollout's own record (checkpoint.json) when it has one
@@ -494,7 +519,7 @@ def _eval_rollout(cfg, run_cfg, model, dataset, run_dir, used, path: Path, last:
         model_name=OmegaConf.select(run_cfg, "model.name", default=None),
         checkpoint=used,
     )
-    run_extra_evals(
+    run_scene_eval(
         OmegaConf.merge(run_cfg, {"eval": cfg.eval, "ui": cfg.ui}), model, dataset, run_dir, rollout_path=path
     )
     clear_interruption(path.parent, "evaluation")

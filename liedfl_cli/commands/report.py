@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 import yaml
+from matplotlib.figure import Figure
 from omegaconf import DictConfig
 
 from ..config import resolvers  # noqa: F401  (registers the config resolvers)
@@ -35,9 +36,11 @@ from ..display import speed_figure
 from ..display.speed_figure import pareto_front, plain_log_ticks  # noqa: F401  (pareto_front: part of this module's API)
 from ..display.ui import console, print_table, warning_line
 from ..errors import ConfigError, DatasetError, LiedflError
-from ..files.io_utils import fmt, markdown_table, write_csv, write_text
+from ..evaluation import EvalOutputs
+from ..files.io_utils import fmt, markdown_table
 from ..files.rollout_file import FILE_NAME, read_rollout
 from .evaluate import CV_COLUMNS, DRIFT_COLUMNS, ERROR_COLUMNS, ONE_STEP_COLUMNS
+from .outputs import write_outputs
 
 COLUMNS = [
     "run",
@@ -267,6 +270,10 @@ def plot_error_vs_speed(summary: list[dict], path: Path) -> bool:
     return speed_figure.plot_error_vs_speed(summary, path, ERROR, ERROR_LABEL)
 
 
+def draw_error_vs_speed(summary: list[dict]) -> Figure | None:
+    return speed_figure.draw_error_vs_speed(summary, ERROR, ERROR_LABEL)
+
+
 def _curves(sweep: Path, row: dict) -> dict:
     path = sweep / row["run"] / "eval_curves.json"
     try:
@@ -286,8 +293,8 @@ def _h(sweep: Path, row: dict) -> float | None:
         return None
 
 
-def plot_error_vs_time(sweep: Path, summary: list[dict], path: Path) -> bool:
-    from ..display.plots import plt, save_figure
+def draw_error_vs_time(sweep: Path, summary: list[dict]) -> Figure | None:
+    from ..display.plots import plt
 
     panels = [
         ("rel_rot_error", "relative rotation error [dimensionless]"),
@@ -328,7 +335,7 @@ def plot_error_vs_time(sweep: Path, summary: list[dict], path: Path) -> bool:
             drawn = True
     if not drawn:
         plt.close(fig)
-        return False
+        return None
     ref, h = reference if reference else (None, None)
     for ax, (key, ylabel) in zip(axes, panels):
         if ref and h is not None and key in ref:
@@ -349,15 +356,14 @@ def plot_error_vs_time(sweep: Path, summary: list[dict], path: Path) -> bool:
     axes[0].set_title("rollout error (mean over test trajectories)", fontsize=10)
     axes[1].set_title("manifold drift (max over trajectories and bodies)", fontsize=10)
     fig.tight_layout()
-    save_figure(fig, path)
-    return True
+    return fig
 
 
-def plot_error_vs_training_length(rows: list[dict], keys: list[str], path: Path) -> bool:
+def draw_error_vs_training_length(rows: list[dict], keys: list[str]) -> Figure | None:
     lengths = sorted({r["train_steps"] for r in rows if r["train_steps"] is not None})
     if len(lengths) < 2:
-        return False
-    from ..display.plots import plt, save_figure
+        return None
+    from ..display.plots import plt
 
     other = [k for k in keys if k != "dataset.train_steps"]
     colors = _colors(sorted({r["model"] for r in rows}))
@@ -380,8 +386,7 @@ def plot_error_vs_training_length(rows: list[dict], keys: list[str], path: Path)
     ax.legend(fontsize=7)
     ax.set_title("error against training length (mean ± std over seeds)", fontsize=10)
     plain_log_ticks(ax)
-    save_figure(fig, path)
-    return True
+    return fig
 
 
 def _sphere_tracks(run: Path) -> tuple[dict, np.ndarray | None]:
@@ -410,8 +415,8 @@ def _sphere_tracks(run: Path) -> tuple[dict, np.ndarray | None]:
     return tracks, truth
 
 
-def plot_sphere_per_model(sweep: Path, rows: list[dict], path: Path) -> bool:
-    from ..display.plots import _on_sphere, draw_unit_sphere, plt, save_figure
+def draw_sphere_per_model(sweep: Path, rows: list[dict]) -> Figure:
+    from ..display.plots import _on_sphere, draw_unit_sphere, plt
 
     models = sorted({r["model"] for r in rows})
     colors = _colors(models)
@@ -430,24 +435,23 @@ def plot_sphere_per_model(sweep: Path, rows: list[dict], path: Path) -> bool:
         ax.set_title(f"{m} (run {r['run']}): body axis R e3", fontsize=9)
         ax.legend(fontsize=7, loc="upper left")
     fig.suptitle("first test trajectory of each model's first run on the unit sphere", fontsize=9)
-    save_figure(fig, path)
-    return True
+    return fig
 
 
-def make_plots(sweep: Path, rows: list[dict]) -> list[Path]:
-    pdir = sweep / "plots"
+def report_figures(sweep: Path, rows: list[dict]) -> dict[str, Figure]:
+    """{"plots/<name>.png": Figure} of the figures that have something to show (drawn, not saved)."""
     keys = varying_settings(rows)
     summary = summarize(rows, keys)
-    out = []
-    for name, make in (
-        ("error_vs_speed", lambda p: plot_error_vs_speed(summary, p)),
-        ("error_vs_time", lambda p: plot_error_vs_time(sweep, summary, p)),
-        ("error_vs_training_length", lambda p: plot_error_vs_training_length(rows, keys, p)),
-        ("sphere_per_model", lambda p: plot_sphere_per_model(sweep, rows, p)),
+    out = {}
+    for name, draw in (
+        ("error_vs_speed", lambda: draw_error_vs_speed(summary)),
+        ("error_vs_time", lambda: draw_error_vs_time(sweep, summary)),
+        ("error_vs_training_length", lambda: draw_error_vs_training_length(rows, keys)),
+        ("sphere_per_model", lambda: draw_sphere_per_model(sweep, rows)),
     ):
-        path = pdir / f"{name}.png"
-        if make(path):
-            out.append(path)
+        fig = draw()
+        if fig is not None:
+            out[f"plots/{name}.png"] = fig
     return out
 
 
@@ -535,10 +539,14 @@ def run_report(cfg: DictConfig) -> dict:
     if not rows and not failed:
         raise ConfigError(f"sweep={sweep}: no finished runs found (folders with .hydra/config.yaml and eval.csv)")
     rows.sort(key=lambda r: (r["dataset"], r["model"], r["train_steps"] or 0, r["run"]))
+    result = EvalOutputs({"rows": rows, "failed": failed}, sweep)
     if rows:
-        write_csv(sweep / "report.csv", rows)
-    write_text(sweep / "report.md", report_markdown(sweep, rows, failed))
-    plots = make_plots(sweep, rows) if cfg.plots and rows else []
+        result.add("report.csv", rows)
+    result.add("report.md", report_markdown(sweep, rows, failed))
+    if cfg.plots and rows:
+        for name, fig in report_figures(sweep, rows).items():
+            result.add(name, fig)
+    plots = [p for p in write_outputs(result) if p.suffix == ".png"]
     if rows:
         keys = varying_settings(rows)
         summary = summarize(rows, keys)

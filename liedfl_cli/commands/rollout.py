@@ -191,11 +191,11 @@ def run_rollout(cfg: DictConfig) -> dict:
     from ..config.factory import configure_runtime
     from ..config.other_data import SOURCE_FILE, choose_split, other_dataset, with_test_split
     from ..config.runs import load_run_checkpoint
-    from ..evaluation import run_extra_evals
     from ..files.checkpoint import CHECKPOINT_FILE, describe_checkpoint, load_checkpoint, run_provenance
     from ..files.io_utils import write_json
     from ..files.rollout_file import FILE_NAME
     from .evaluate import run_eval_from_objects
+    from .outputs import run_scene_eval
 
     configure_runtime(cfg)  # this command's runtime section: threads, device, dtype, ...
     from ..files.dataset_identity import accept_option
@@ -255,7 +255,7 @@ def run_rollout(cfg: DictConfig) -> dict:
         write_json(out / CHECKPOINT_FILE, used)
         set_phase("evaluation", f"nothing kept ({out} removed)")
         rows = run_eval_from_objects(merged, dataset, run_dir, timings, rollout_path=path, checkpoint=used)
-        extra = run_extra_evals(merged, model, dataset, run_dir, rollout_path=path)
+        extra = run_scene_eval(merged, model, dataset, run_dir, rollout_path=path)
         exported = None
         if cfg.get("export"):
             from .export import export_layout, export_predictions, reimport_command

@@ -630,9 +630,9 @@ def run_train(cfg: DictConfig, resume: dict | None = None, accept_changed_datase
         set_phase("evaluation", redo)
         write_json(out / CHECKPOINT_FILE, used)  # which checkpoint rolled out (liedfl eval reads it)
         summary["eval"] = run_eval_from_objects(cfg, dataset, out, timings, checkpoint=used)
-        from ..evaluation import run_extra_evals
+        from .outputs import run_scene_eval
 
-        extra = run_extra_evals(cfg, model, dataset, out)
+        extra = run_scene_eval(cfg, model, dataset, out)
         if extra is not None:
             summary["extra_eval"] = extra
     write_json(out / "summary.json", summary)

@@ -16,6 +16,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.figure import Figure
 
 from ..files.io_utils import atomic_path
 
@@ -90,9 +91,9 @@ def length_label(unit: str | None) -> str:
     return f"[{unit}]" if unit else "[data length unit]"
 
 
-def error_vs_step(
-    curves: dict[str, dict], h: float, path: Path, names: dict[str, str] | None = None, length_unit: str | None = "m"
-) -> None:
+def draw_error_vs_step(
+    curves: dict[str, dict], h: float, names: dict[str, str] | None = None, length_unit: str | None = "m"
+) -> Figure:
     """Errors against time, one panel per error, one line per model (log scale); the constant-velocity
     reference dashed. Samples 0 and 1 are the given initial pair (zero error): the lines start at the
     first prediction."""
@@ -118,10 +119,17 @@ def error_vs_step(
         ax.legend(fontsize=8)
     fig.suptitle("rollout errors, mean over the test trajectories", fontsize=10)
     fig.tight_layout()
-    save_figure(fig, path)
+    return fig
 
 
-def drift_vs_step(curves: dict[str, dict], h: float, path: Path, names: dict[str, str] | None = None) -> None:
+def error_vs_step(
+    curves: dict[str, dict], h: float, path: Path, names: dict[str, str] | None = None, length_unit: str | None = "m"
+) -> None:
+    """`draw_error_vs_step` saved to `path` (PNG, atomically) and closed."""
+    save_figure(draw_error_vs_step(curves, h, names=names, length_unit=length_unit), path)
+
+
+def draw_drift_vs_step(curves: dict[str, dict], h: float, names: dict[str, str] | None = None) -> Figure:
     """Distance of the predicted rotations from SO(3) against time (largest over trajectories and bodies)."""
     names = names or display_names(curves)
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.4))
@@ -136,7 +144,12 @@ def drift_vs_step(curves: dict[str, dict], h: float, path: Path, names: dict[str
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
     fig.tight_layout()
-    save_figure(fig, path)
+    return fig
+
+
+def drift_vs_step(curves: dict[str, dict], h: float, path: Path, names: dict[str, str] | None = None) -> None:
+    """`draw_drift_vs_step` saved to `path` (PNG, atomically) and closed."""
+    save_figure(draw_drift_vs_step(curves, h, names=names), path)
 
 
 def _positive(y: np.ndarray) -> np.ndarray:
@@ -151,15 +164,14 @@ def _color(name: str, i: int = 0):
     return COLORS.get(name, plt.get_cmap("tab10")((i + 2) % 10))
 
 
-def sphere(
+def draw_sphere(
     truth_R: np.ndarray,
     preds: dict[str, np.ndarray],
-    path: Path,
     axis: int = 2,
     n_traj: int = 3,
     body: int = 0,
     names: dict[str, str] | None = None,
-) -> None:
+) -> Figure:
     """Body axis R e_axis of the first trajectories on the unit sphere: the truth (black) and every
     model (dashed), each in the legend. R arrays (T, S+1, B, 3, 3)."""
     names = names or display_names(preds)
@@ -182,19 +194,31 @@ def sphere(
             )
     ax.legend(loc="upper left", fontsize=8)
     ax.set_title(f"body {body} axis R e{axis + 1} on the unit sphere ({n} test trajectories; dot = start)", fontsize=9)
-    save_figure(fig, path)
+    return fig
 
 
-def predicted_vs_true(
+def sphere(
+    truth_R: np.ndarray,
+    preds: dict[str, np.ndarray],
+    path: Path,
+    axis: int = 2,
+    n_traj: int = 3,
+    body: int = 0,
+    names: dict[str, str] | None = None,
+) -> None:
+    """`draw_sphere` saved to `path` (PNG, atomically) and closed."""
+    save_figure(draw_sphere(truth_R, preds, axis=axis, n_traj=n_traj, body=body, names=names), path)
+
+
+def draw_predicted_vs_true(
     truth: ArrayPose,
     preds: dict[str, ArrayPose],
     h: float,
-    path: Path,
     traj: int = 0,
     body: int = 0,
     names: dict[str, str] | None = None,
     length_unit: str | None = "m",
-) -> None:
+) -> Figure:
     """Components of R e3 (and p for SE(3) bodies) over time for one trajectory."""
     names = names or display_names(preds)
     has_p = truth.p.shape[-2] > body
@@ -223,10 +247,26 @@ def predicted_vs_true(
     axes[0][0].legend(fontsize=8)
     fig.suptitle(f"test trajectory {traj}, body {body}: predicted (dashed) and true (black)", fontsize=10)
     fig.tight_layout()
-    save_figure(fig, path)
+    return fig
 
 
-def loss_curve(history: list[dict], path: Path) -> None:
+def predicted_vs_true(
+    truth: ArrayPose,
+    preds: dict[str, ArrayPose],
+    h: float,
+    path: Path,
+    traj: int = 0,
+    body: int = 0,
+    names: dict[str, str] | None = None,
+    length_unit: str | None = "m",
+) -> None:
+    """`draw_predicted_vs_true` saved to `path` (PNG, atomically) and closed."""
+    save_figure(
+        draw_predicted_vs_true(truth, preds, h, traj=traj, body=body, names=names, length_unit=length_unit), path
+    )
+
+
+def draw_loss_curve(history: list[dict]) -> Figure:
     """Training loss and its parts against the epoch (log scale). A part that reaches exactly 0 (the
     regularity penalty once every sampled pair is regular) is drawn where positive and marked by
     triangles on the bottom edge where it is 0, so the other curves keep their scale."""
@@ -259,4 +299,9 @@ def loss_curve(history: list[dict], path: Path) -> None:
     ax.set_title("training loss" + ("; ▼ = part exactly 0" if zeros else ""), fontsize=10)
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3, which="both")
-    save_figure(fig, path)
+    return fig
+
+
+def loss_curve(history: list[dict], path: Path) -> None:
+    """`draw_loss_curve` saved to `path` (PNG, atomically) and closed."""
+    save_figure(draw_loss_curve(history), path)

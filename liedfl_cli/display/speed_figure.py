@@ -110,16 +110,27 @@ def _seed_values(s: dict, key: str) -> list[float]:
 
 
 def plot_error_vs_speed(summary: list[dict], path: Path, error: str, error_label: str) -> bool:
-    """Draw the figure for `summary` (report.summarize rows: `label`, `model`, `runs`, and per metric
-    (mean, std, n)); `error`: the metric on the y axis. False (nothing written) without a point."""
-    from .plots import plt, save_figure
+    """`draw_error_vs_speed` saved to `path`; False (nothing written) without a point."""
+    from .plots import save_figure
+
+    fig = draw_error_vs_speed(summary, error, error_label)
+    if fig is None:
+        return False
+    save_figure(fig, path)
+    return True
+
+
+def draw_error_vs_speed(summary: list[dict], error: str, error_label: str):
+    """The figure for `summary` (report.summarize rows: `label`, `model`, `runs`, and per metric
+    (mean, std, n)); `error`: the metric on the y axis. None without a point."""
+    from .plots import plt
 
     axes_spec = [
         ("train_seconds", "training time [s]"),
         ("rollout_s_per_step_per_trajectory", "rollout time per step per trajectory [s]"),
     ]
     if not any(s[error][0] is not None and s[k][0] for s in summary for k, _ in axes_spec):
-        return False
+        return None
     models = sorted({s["model"] for s in summary})
     colors = {m: plt.get_cmap("tab10")(i % 10) for i, m in enumerate(models)}
     numbered = len(summary) > FULL_LABELS
@@ -195,5 +206,4 @@ def plot_error_vs_speed(summary: list[dict], path: Path, error: str, error_label
         )  # fmt: skip
     for ax, pts in zip(axes, panel_pts):  # after the layout: label positions depend on the final axes size
         place_labels(ax, pts)
-    save_figure(fig, path)
-    return True
+    return fig

@@ -13,7 +13,8 @@ Listed as SCENE_EVALS["pd_control"] in `liedfl_cli.evaluation` and run by `liedf
             separates identification error from the O(h) error of the velocity estimate.
 
 Relative error per step ||tau_theta - tau|| / ||tau||; summary mean and max over steps and the
-aggregate ||tau_theta - tau||_2 / ||tau||_2 over all steps. Files, next to the rollout file:
+aggregate ||tau_theta - tau||_2 / ||tau||_2 over all steps. Files (computed here, written by the
+command: `commands.outputs.write_outputs`), next to the rollout file:
 control_eval.json, control_eval.md, plots/torque.png (torque components learned vs true, relative
 error, and the rollout's body axis R e3 on the sphere; from the rollout file when present).
 """
@@ -24,14 +25,16 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from matplotlib.figure import Figure
 
-from ..display.plots import COLORS, display_names, draw_unit_sphere, plt, save_figure
+from ..display.plots import COLORS, display_names, draw_unit_sphere, plt
 from ..display.ui import console
-from ..files.io_utils import markdown_table, write_json, write_text
+from ..files.io_utils import markdown_table
 from ..files.rollout_file import FILE_NAME, load_rollout
 from ..lie import Pose
 from ..mechanics.kinetic import velocity_estimate
 from ..models.base import tensor_placement
+from .outputs import EvalOutputs
 
 
 @torch.no_grad()
@@ -64,8 +67,9 @@ def torque_errors(learned: np.ndarray, true: np.ndarray) -> dict:
     }
 
 
-def evaluate_control(cfg, model, dataset, run_dir, rollout_path=None) -> dict | None:
-    """Exp 5 torque recovery; returns the summary dict (None for models without forces).
+def evaluate_control(cfg, model, dataset, run_dir, rollout_path=None) -> EvalOutputs | None:
+    """Exp 5 torque recovery, computed, not written: the summary and files (None for models without
+    forces).
 
     rollout_path: the rollout file drawn in the plot (default `<run_dir>/rollout.h5`; the plot goes
     without it when it does not exist); the files go next to it."""
@@ -111,15 +115,9 @@ def evaluate_control(cfg, model, dataset, run_dir, rollout_path=None) -> dict | 
     if not rows:
         return None
     summary = {"rows": rows, "reference": "extras/tau_ext (true non-conservative torque at the true angular velocity)"}
-    write_json(out_dir / "control_eval.json", summary)
-    md = (
-        "# Control recovery (learned torque along the observed trajectories)\n\n"
-        "Relative error ||tau_theta(R_k, w~_k) - tau(R_k, w_k)|| / ||tau(R_k, w_k)|| per step (mean, max), "
-        "and aggregated over all steps; `vs_law_at_w_tilde`: against the true PD law evaluated at the "
-        "same velocity estimate w~_k.\n\n"
-    )
-    md += markdown_table(rows, list(rows[0]))
-    write_text(out_dir / "control_eval.md", md)
+    out = EvalOutputs(summary, out_dir)
+    out.add("control_eval.json", summary)
+    out.add("control_eval.md", control_markdown(rows))
     for r in rows:
         console.print(
             f"control recovery ({r['split']}): relative torque error mean {r['rel_error_mean']:.3e}, "
@@ -127,8 +125,19 @@ def evaluate_control(cfg, model, dataset, run_dir, rollout_path=None) -> dict | 
         )
     if cfg.eval.plots:
         key = "test" if "test" in curves else "train"
-        plot_torque(curves[key], h, _rollout_R(path, dataset), out_dir / "plots" / "torque.png", key)
-    return summary
+        out.add("plots/torque.png", plot_torque(curves[key], h, _rollout_R(path, dataset), key))
+    return out
+
+
+def control_markdown(rows: list[dict]) -> str:
+    """The content of control_eval.md: the rows of `evaluate_control` as a table."""
+    md = (
+        "# Control recovery (learned torque along the observed trajectories)\n\n"
+        "Relative error ||tau_theta(R_k, w~_k) - tau(R_k, w_k)|| / ||tau(R_k, w_k)|| per step (mean, max), "
+        "and aggregated over all steps; `vs_law_at_w_tilde`: against the true PD law evaluated at the "
+        "same velocity estimate w~_k.\n\n"
+    )
+    return md + markdown_table(rows, list(rows[0]))
 
 
 def _rollout_R(path: Path, dataset) -> dict:
@@ -150,7 +159,7 @@ def _rollout_R(path: Path, dataset) -> dict:
     return out
 
 
-def plot_torque(curve: dict, h: float, rollouts: dict, path: Path, split: str) -> None:
+def plot_torque(curve: dict, h: float, rollouts: dict, split: str) -> Figure:
     """Torque components learned vs true, relative error, rollout on the sphere and its rotation error."""
     learned, true = curve["learned"], curve["true"]  # (N, B, 3)
     N = learned.shape[0]
@@ -210,7 +219,7 @@ def plot_torque(curve: dict, h: float, rollouts: dict, path: Path, split: str) -
         ax.grid(alpha=0.3)
         ax.legend()
     fig.tight_layout()
-    save_figure(fig, path)
+    return fig
 
 
-__all__ = ["force_torques", "torque_errors", "evaluate_control", "plot_torque"]
+__all__ = ["force_torques", "torque_errors", "evaluate_control", "control_markdown", "plot_torque"]

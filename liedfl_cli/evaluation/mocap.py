@@ -33,7 +33,8 @@ by `rollout_file.load_rollout`) and the dataset:
                  two-step rollout here) next to constant velocity's, which separate the model's local
                  error from the compounding of the rollout.
 
-Files, next to the rollout file: mocap_eval.csv, mocap_eval.md, mocap_eval.json and, with eval.plots,
+Files (computed here, written by the command: `commands.outputs.write_outputs`), next to the rollout
+file: mocap_eval.csv, mocap_eval.md, mocap_eval.json and, with eval.plots,
 plots/mocap_errors.png
 (per-timestep errors, discrepancy in grey, constant velocity dashed), plots/mocap_skeleton_seq<i>.png
 (skeletons at uniform intervals by forward kinematics from the BVH offsets in params.skeleton: truth
@@ -44,22 +45,25 @@ plots/mocap_joint_axes_seq<i>.png (bone directions of selected joints on the uni
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
+from matplotlib.figure import Figure
 from rich.markup import escape
 from rich.table import Table
 
 from ..data.mocap import ASF_UNIT_M, mocap_errors, moving_joints, recording_discrepancy, skeleton_points
-from ..display.plots import draw_unit_sphere, plt, save_figure
+from ..display.plots import draw_unit_sphere, plt
 from ..display.ui import console
-from ..files.io_utils import fmt, markdown_table, write_csv, write_json, write_text
+from ..files.io_utils import fmt, markdown_table
 from ..files.rollout_file import FILE_NAME, RolloutEntry, load_rollout
 from ..lie import Pose
 from ..models.base import Model, tensor_placement
 from ..solvers.options import SolverOptions
+from .outputs import EvalOutputs
 
 PAPER: dict[str, Any] = {
     "sequences": [
@@ -326,16 +330,39 @@ def verdict(rows: list[dict], disc: dict | None, asf: float, full: bool = True) 
 
 
 # --------------------------------------------------------------------------- entry point
-def evaluate_mocap(cfg, model, dataset, run_dir, rollout_path=None) -> dict:
-    """Exp 4 table, files and plots of a rollout (see the module docstring).
+@dataclass
+class MocapNumbers:
+    """Everything the table, the summary and the plots of one rollout are made of (see the module
+    docstring). Arrays: tR, tp, pR, pp (T, n_err+1, B, 3, 3) / (T, n_err+1, B, 3) truth and prediction
+    over the samples with ground truth; err, cv (`sequence_errors`), disc (`discrepancy`)."""
 
-    rollout_path: the rollout file (default `<run_dir>/rollout.h5`); the files go next to it."""
-    path = Path(rollout_path) if rollout_path is not None else Path(run_dir) / FILE_NAME
-    out_dir = path.parent
+    ro: RolloutEntry
+    idx: np.ndarray
+    n_err: int
+    tR: np.ndarray
+    tp: np.ndarray
+    pR: np.ndarray
+    pp: np.ndarray
+    joints: list[int]
+    err: dict
+    cv: dict
+    disc: dict | None
+    full: bool
+    asf: float
+    unit_m: float
+    rows: list[dict]
+    verdict: dict
+    nonfinite: list[int]
+    until: list[dict]
+    onestep: dict | None
+    per_joint: dict[str, float]
+
+
+def mocap_numbers(cfg, model, dataset, path: Path) -> MocapNumbers:
+    """Read the rollout file `path` and compute the errors, rows and verdicts (writes nothing)."""
     rf = load_rollout(path, dataset)
     ro, idx = rf.model, rf.traj_index
-    S = ro.steps
-    n_err = min(S, dataset.n_steps)  # errors where ground truth exists; Newton over the whole rollout
+    n_err = min(ro.steps, dataset.n_steps)  # errors where ground truth exists; Newton over the whole rollout
     truth = dataset.pose(idx)
     tR, tp = truth.R.numpy()[:, : n_err + 1], truth.p.numpy()[:, : n_err + 1]
     pR, pp = ro.R[:, : n_err + 1], ro.p[:, : n_err + 1]
@@ -347,26 +374,43 @@ def evaluate_mocap(cfg, model, dataset, run_dir, rollout_path=None) -> dict:
     asf = _asf_per_unit(dataset)
     unit_m = float(dataset.params.get("length_unit_m", float("nan")))
     rows = build_rows(err, disc, idx, dataset, ro, asf, unit_m, n_err, cv=cv_err)
-    ver = verdict(rows, disc, asf, full=full)
-    n_fail, first_fail = ro.n_failed, ro.first_failure
-    nonfinite = [int(i) for n, i in enumerate(idx) if not (np.isfinite(ro.R[n]).all() and np.isfinite(ro.p[n]).all())]
-    until = below_until(err, disc, dataset.h)
-    onestep = one_step_errors(
-        model,
-        tR,
-        tp,
-        _solver(cfg),
-        joints=joints,
-        stored=ro.one_step,
-        group=dataset.group,
-    )
+    onestep = one_step_errors(model, tR, tp, _solver(cfg), joints=joints, stored=ro.one_step, group=dataset.group)
     per_joint = {
         name: float(v)
         for name, v in zip(dataset.body_names[dataset.n_se3 :], np.nanmean(err["joint_rot_per_joint"], 0))
     }
+    return MocapNumbers(
+        ro=ro,
+        idx=idx,
+        n_err=n_err,
+        tR=tR,
+        tp=tp,
+        pR=pR,
+        pp=pp,
+        joints=joints,
+        err=err,
+        cv=cv_err,
+        disc=disc,
+        full=full,
+        asf=asf,
+        unit_m=unit_m,
+        rows=rows,
+        verdict=verdict(rows, disc, asf, full=full),
+        nonfinite=[
+            int(i) for n, i in enumerate(idx) if not (np.isfinite(ro.R[n]).all() and np.isfinite(ro.p[n]).all())
+        ],
+        until=below_until(err, disc, dataset.h),
+        onestep=onestep,
+        per_joint=per_joint,
+    )
+
+
+def verdict_lines(m: MocapNumbers, dataset) -> list[str]:
+    """The two verdict lines and the Newton line of the report."""
+    ro, S = m.ro, m.ro.steps
 
     def verdict_line(key: str, what: str) -> str:
-        v = ver.get(key)
+        v = m.verdict.get(key)
         if v is None:
             return f"{what}: not available (needs two recordings)"
         if not v["given"]:
@@ -375,32 +419,39 @@ def evaluate_mocap(cfg, model, dataset, run_dir, rollout_path=None) -> dict:
             return f"{what}: YES, every one of our errors is below it"
         return f"{what}: NO; not below for {', '.join(v['not_below'])}"
 
-    lines = [
-        verdict_line("measured", "Below the ground-truth discrepancy measured on this data"),
-        verdict_line("paper", "Below the paper's discrepancy numbers (0.373 / 0.416 / 6.624)"),
-    ]
+    n_fail, first_fail = ro.n_failed, ro.first_failure
     newton_line = (
         f"Newton (whole rollout, samples 2..{S}): {n_fail} non-converged implicit step(s) out of "
         f"{ro.converged.size} ({'first at sample ' + str(first_fail) if n_fail else 'none'}); "
         f"mean iterations {ro.mean_iterations:.2f}"
     )
-    if nonfinite:
-        newton_line += f"; NON-FINITE rollout for trajectory(ies) {nonfinite}"
+    if m.nonfinite:
+        newton_line += f"; NON-FINITE rollout for trajectory(ies) {m.nonfinite}"
+    return [
+        verdict_line("measured", "Below the ground-truth discrepancy measured on this data"),
+        verdict_line("paper", "Below the paper's discrepancy numbers (0.373 / 0.416 / 6.624)"),
+        newton_line,
+    ]
+
+
+def mocap_summary(m: MocapNumbers, dataset) -> dict:
+    """The content of mocap_eval.json (also what `evaluate_mocap` returns as its summary)."""
+    ro, idx, onestep, asf, joints = m.ro, m.idx, m.onestep, m.asf, m.joints
     sps = ro.seconds_per_step
-    summary = {
-        "rows": rows,
-        "verdict": ver,
-        "newton_failures": n_fail,
-        "first_failure_sample": first_fail,
-        "nonfinite_trajectories": nonfinite,
-        "rollout_steps": S,
-        "error_steps": n_err,
+    return {
+        "rows": m.rows,
+        "verdict": m.verdict,
+        "newton_failures": ro.n_failed,
+        "first_failure_sample": ro.first_failure,
+        "nonfinite_trajectories": m.nonfinite,
+        "rollout_steps": ro.steps,
+        "error_steps": m.n_err,
         "rollout_seconds_per_step": float(sps) if sps is not None else None,
-        "joint_rot_per_joint": per_joint,
+        "joint_rot_per_joint": m.per_joint,
         "moving_joints": [dataset.body_names[dataset.n_se3 + j] for j in joints],
         "static_joints": [name for j, name in enumerate(dataset.body_names[dataset.n_se3 :]) if j not in set(joints)],
-        "verdict_given": full,
-        "below_discrepancy_until_s": {_sequence_name(dataset, i): u for i, u in zip(idx, until)},
+        "verdict_given": m.full,
+        "below_discrepancy_until_s": {_sequence_name(dataset, i): u for i, u in zip(idx, m.until)},
         "one_step": None
         if onestep is None
         else {
@@ -418,31 +469,38 @@ def evaluate_mocap(cfg, model, dataset, run_dir, rollout_path=None) -> dict:
             "from_rollout_file": onestep["from_rollout_file"],
         },
         "discrepancy_common_frames": int(dataset.n_steps) + 1,
-        "length_unit_m": unit_m,
+        "length_unit_m": m.unit_m,
         "asf_units_per_stored_unit": asf,
         "paper": PAPER,
     }
-    write_json(out_dir / "mocap_eval.json", summary)
-    write_csv(out_dir / "mocap_eval.csv", rows)
-    cols = [
-        "row",
-        "steps",
-        "root_rot",
-        "root_rot_paper",
-        "joint_rot",
-        "joint_rot_paper",
-        "joint_rot_all",
-        "root_pos_asf",
-        "root_pos_m",
-        "root_pos_paper_asf",
-        "newton_failures",
-    ]
+
+
+TABLE_COLUMNS = [
+    "row",
+    "steps",
+    "root_rot",
+    "root_rot_paper",
+    "joint_rot",
+    "joint_rot_paper",
+    "joint_rot_all",
+    "root_pos_asf",
+    "root_pos_m",
+    "root_pos_paper_asf",
+    "newton_failures",
+]
+"""Columns of the table in mocap_eval.md."""
+
+
+def mocap_markdown(m: MocapNumbers, summary: dict, dataset) -> str:
+    """The content of mocap_eval.md: the table, the verdicts, the time below the discrepancy, the
+    one-step errors and the per-joint errors."""
+    ro, idx, onestep, asf, S = m.ro, m.idx, m.onestep, m.asf, m.ro.steps
     static = summary["static_joints"]
     md = (
         f"# Exp 4: cartwheel reproduction errors ({dataset.scene}, h={dataset.h}, rollout of {S} steps from the "
         f"true first pair)\n\n"
-        f"Means over the predicted samples k = 2..{n_err} (where the recording has ground truth): root rotation "
-        f"geodesic error (rad), joint rotation geodesic error averaged over the {len(joints)} moving joints "
+        f"Means over the predicted samples k = 2..{m.n_err} (where the recording has ground truth): root rotation "
+        f"geodesic error (rad), joint rotation geodesic error averaged over the {len(m.joints)} moving joints "
         f"(`joint_rot`, rad; the joints that never rotate in these recordings have zero error and discrepancy: "
         f"{', '.join(static) if static else 'none'}) and over all {dataset.n_so3} joints (`joint_rot_all`), "
         "root position error "
@@ -452,14 +510,15 @@ def evaluate_mocap(cfg, model, dataset, run_dir, rollout_path=None) -> dict:
         f"{int(dataset.n_steps) + 1} frames, root positions measured from each recording's start. "
         "`*_paper`: the paper's table.\n\n"
     )
-    md += markdown_table(rows, cols)
-    md += "\n" + "\n".join(f"- {x}" for x in lines + [newton_line])
+    md += markdown_table(m.rows, TABLE_COLUMNS)
+    md += "\n" + "\n".join(f"- {x}" for x in verdict_lines(m, dataset))
+    sps = ro.seconds_per_step
     if sps is not None:
         md += f"\n- Rollout: {float(sps):.4g} s per step ({S} steps, {len(idx)} sequence(s) batched)"
-    if disc is not None:
+    if m.disc is not None:
         md += "\n\n## Time until the per-timestep error first exceeds the per-timestep discrepancy (s; '–': never)\n\n"
         md += markdown_table(
-            [{"sequence": _sequence_name(dataset, i), **u} for i, u in zip(idx, until)], ["sequence", *METRICS]
+            [{"sequence": _sequence_name(dataset, i), **u} for i, u in zip(idx, m.until)], ["sequence", *METRICS]
         )
     if onestep is not None:
         md += (
@@ -486,11 +545,15 @@ def evaluate_mocap(cfg, model, dataset, run_dir, rollout_path=None) -> dict:
         ]
         md += markdown_table(orows, list(orows[0]))
     md += "\n\n## Mean joint rotation error per joint (rad, mean over the rolled-out sequences)\n\n"
-    md += markdown_table([per_joint], list(per_joint))
-    write_text(out_dir / "mocap_eval.md", md)
+    md += markdown_table([m.per_joint], list(m.per_joint))
+    return md
 
+
+def print_mocap(m: MocapNumbers, dataset) -> None:
+    """The table and the verdict lines on the console."""
     table = Table(
-        title=f"Exp 4 mocap reproduction ({S} steps); ours vs paper; joint rot over {len(joints)} moving joints"
+        title=f"Exp 4 mocap reproduction ({m.ro.steps} steps); ours vs paper; joint rot over {len(m.joints)} "
+        "moving joints"
     )
     for c in (
         "",
@@ -505,7 +568,7 @@ def evaluate_mocap(cfg, model, dataset, run_dir, rollout_path=None) -> dict:
         "Newton fail",
     ):
         table.add_column(escape(c), overflow="fold")
-    for r in rows:
+    for r in m.rows:
         table.add_row(
             r["row"],
             fmt(r["root_rot"]),
@@ -520,27 +583,51 @@ def evaluate_mocap(cfg, model, dataset, run_dir, rollout_path=None) -> dict:
         )
     console.print(table)
     extra = []
-    if onestep is not None:
-        m, c = onestep["model"], onestep["const_velocity"]
+    if m.onestep is not None:
+        mo, c = m.onestep["model"], m.onestep["const_velocity"]
         extra.append(
             "one-step (teacher-forced) mean joint rot. error: "
-            + ("model " + ", ".join(f"{float(v):.3e}" for v in m["joint_rot"]) + " vs " if m is not None else "")
+            + ("model " + ", ".join(f"{float(v):.3e}" for v in mo["joint_rot"]) + " vs " if mo is not None else "")
             + "constant velocity "
             + ", ".join(f"{float(v):.3e}" for v in c["joint_rot"])
             + " rad (per sequence)"
         )
-    for x in lines + [newton_line] + extra:
+    for x in verdict_lines(m, dataset) + extra:
         console.print(escape(x), highlight=False)
 
+
+def mocap_figures(m: MocapNumbers, dataset) -> dict[str, Any]:
+    """{path under the output folder: Figure} of the four kinds of plots (drawn, not saved)."""
+    figs: dict[str, Any] = {"plots/mocap_errors.png": plot_errors(m.err, m.disc, m.idx, dataset, m.asf, cv=m.cv)}
+    for n, i in enumerate(m.idx):
+        sk = _skeleton_for(dataset, i)
+        figs[f"plots/mocap_skeleton_seq{i + 1}.png"] = plot_skeletons(
+            m.tR[n], m.tp[n], m.pR[n], m.pp[n], sk, dataset.h, i
+        )
+        axes = plot_joint_axes(m.tR[n], m.pR[n], sk, dataset.body_names, i)
+        if axes is not None:
+            figs[f"plots/mocap_joint_axes_seq{i + 1}.png"] = axes
+    figs["plots/mocap_root_trajectory.png"] = plot_root_trajectory(m.tR, m.tp, m.pR, m.pp, m.idx, dataset)
+    return figs
+
+
+def evaluate_mocap(cfg, model, dataset, run_dir, rollout_path=None) -> EvalOutputs:
+    """Exp 4 table, files and plots of a rollout (see the module docstring), computed, not written:
+    the files of the returned `EvalOutputs` go next to the rollout file.
+
+    rollout_path: the rollout file (default `<run_dir>/rollout.h5`)."""
+    path = Path(rollout_path) if rollout_path is not None else Path(run_dir) / FILE_NAME
+    m = mocap_numbers(cfg, model, dataset, path)
+    summary = mocap_summary(m, dataset)
+    out = EvalOutputs(summary, path.parent)
+    out.add("mocap_eval.json", summary)
+    out.add("mocap_eval.csv", m.rows)
+    out.add("mocap_eval.md", mocap_markdown(m, summary, dataset))
+    print_mocap(m, dataset)
     if cfg.eval.plots:
-        pdir = out_dir / "plots"
-        plot_errors(err, disc, idx, dataset, asf, pdir / "mocap_errors.png", cv=cv_err)
-        for n, i in enumerate(idx):
-            sk = _skeleton_for(dataset, i)
-            plot_skeletons(tR[n], tp[n], pR[n], pp[n], sk, dataset.h, i, pdir / f"mocap_skeleton_seq{i + 1}.png")
-            plot_joint_axes(tR[n], pR[n], sk, dataset.body_names, i, pdir / f"mocap_joint_axes_seq{i + 1}.png")
-        plot_root_trajectory(tR, tp, pR, pp, idx, dataset, pdir / "mocap_root_trajectory.png")
-    return summary
+        for name, fig in mocap_figures(m, dataset).items():
+            out.add(name, fig)
+    return out
 
 
 # --------------------------------------------------------------------------- plots
@@ -552,7 +639,7 @@ def _skeleton_for(dataset, i: int) -> dict:
     return sk
 
 
-def plot_errors(err: dict, disc: dict | None, idx, dataset, asf: float, path: Path, cv: dict | None = None) -> None:
+def plot_errors(err: dict, disc: dict | None, idx, dataset, asf: float, cv: dict | None = None) -> Figure:
     """Per-timestep errors of each sequence (3 panels) with the ground-truth discrepancy in grey and,
     with `cv` (`constant_velocity_errors`), the constant-velocity rollout of each sequence dashed."""
 
@@ -600,7 +687,7 @@ def plot_errors(err: dict, disc: dict | None, idx, dataset, asf: float, path: Pa
         + ("; dashed: constant velocity from the same pair)" if cv is not None else ")"),
         y=1.02,
     )
-    save_figure(fig, path)
+    return fig
 
 
 def _limits(ax, pts: np.ndarray) -> None:
@@ -615,7 +702,7 @@ def _limits(ax, pts: np.ndarray) -> None:
     ax.set_box_aspect((1, 1, 1))
 
 
-def plot_skeletons(tR, tp, pR, pp, skeleton: dict, h: float, i: int, path: Path, n_frames: int = 8) -> None:
+def plot_skeletons(tR, tp, pR, pp, skeleton: dict, h: float, i: int, n_frames: int = 8) -> Figure:
     """Skeletons (forward kinematics) at uniform intervals: truth (green/red) vs prediction (blue)."""
 
     S = tR.shape[0] - 1
@@ -636,10 +723,10 @@ def plot_skeletons(tR, tp, pR, pp, skeleton: dict, h: float, i: int, path: Path,
         if c == 0:
             ax.legend(fontsize=7, loc="upper left")
     fig.suptitle(f"Sequence {i + 1}: skeleton at uniform intervals (truth vs prediction; world frame, z up)")
-    save_figure(fig, path)
+    return fig
 
 
-def plot_root_trajectory(tR, tp, pR, pp, idx, dataset, path: Path, n_frames: int = 8) -> None:
+def plot_root_trajectory(tR, tp, pR, pp, idx, dataset, n_frames: int = 8) -> Figure:
     """Root position path in 3-D with the root frame (axes) at uniform intervals, truth vs prediction."""
 
     fig = plt.figure(figsize=(5.2 * len(idx), 5))
@@ -667,7 +754,7 @@ def plot_root_trajectory(tR, tp, pR, pp, idx, dataset, path: Path, n_frames: int
         for setter, name in ((ax.set_xlabel, "x"), (ax.set_ylabel, "y"), (ax.set_zlabel, "z")):
             setter(f"{name} [{unit}]", fontsize=8)
         ax.legend(fontsize=8, loc="upper left")
-    save_figure(fig, path)
+    return fig
 
 
 def _bone_axes(skeleton: dict, names: list[str]) -> list[tuple[int, str, np.ndarray]]:
@@ -684,12 +771,12 @@ def _bone_axes(skeleton: dict, names: list[str]) -> list[tuple[int, str, np.ndar
     return out
 
 
-def plot_joint_axes(tR, pR, skeleton: dict, names: list[str], i: int, path: Path) -> None:
+def plot_joint_axes(tR, pR, skeleton: dict, names: list[str], i: int) -> Figure | None:
     """Bone direction R_j d_j (d_j: unit offset of the child in joint j's frame) on the unit sphere."""
 
     axes_list = _bone_axes(skeleton, names)
     if not axes_list:
-        return
+        return None
     fig = plt.figure(figsize=(3.4 * len(axes_list), 3.6))
     color = SEQ_COLORS[i % 2] if i < 2 else "black"
     for c, (j, name, d) in enumerate(axes_list):
@@ -702,12 +789,16 @@ def plot_joint_axes(tR, pR, skeleton: dict, names: list[str], i: int, path: Path
         if c == 0:
             ax.legend(fontsize=7, loc="upper left")
     fig.suptitle(f"Sequence {i + 1}: selected joint rotations (bone direction in the parent frame) on S^2")
-    save_figure(fig, path)
+    return fig
 
 
 __all__ = [
     "PAPER",
     "evaluate_mocap",
+    "mocap_numbers",
+    "mocap_summary",
+    "mocap_markdown",
+    "mocap_figures",
     "sequence_errors",
     "discrepancy",
     "verdict",
