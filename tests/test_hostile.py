@@ -789,11 +789,10 @@ CASES: list[Case] = [
         setup=_edit(lambda f: _replace(f, "extras/omega", f["extras/omega"][:1])),
     ),
     Case("data-not-hdf5", (T, *FAST), ("{data}", "not an HDF5 file"), setup=lambda c: c.dataset(raw=b"R,p\n1,2\n")),
-    Case(
-        "data-nan-cli",
+    Case(  # (in-process: ckpt-pickle-payload-cli and the signal cases take `liedfl` through a process)
+        "data-inf",
         (T, *FAST),
         ("{data}", "non-finite"),
-        proc=True,
         setup=_edit_R(lambda R: R.__setitem__((0, 1, 0, 2, 2), np.inf)),
     ),
     # --- BVH files (imported through the cmu_cartwheel scene)
@@ -1072,11 +1071,10 @@ CASES: list[Case] = [
         setup=_ckpt_bytes(__import__("pickle").dumps({"state_dict": {}, "x": list(range(3))}, protocol=4)),
     ),
     Case(
-        "ckpt-plain-pickle-cli",
+        "ckpt-plain-pickle-protocol5",
         ("eval", "run={run}"),
         ("{ckpt}", "not a readable checkpoint"),
         setup=_ckpt_bytes(__import__("pickle").dumps({"state_dict": {}}, protocol=5)),
-        proc=True,
     ),
     Case(
         "disk-full-checkpoint",
