@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import os
 import random
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -181,21 +179,14 @@ def test_load_checkpoint_refuses_a_pickle_payload(tmp_path):
     assert not marker.exists()
 
 
-def test_eval_refuses_a_pickle_payload_and_runs_nothing(tmp_path):
-    """`liedfl eval run=<dir>` on a run whose last.pt would run `touch`: one-line error, no marker."""
+def test_eval_refuses_a_pickle_payload_and_runs_nothing(tmp_path, run_main):
+    """`liedfl eval run=<dir>` on a run whose last.pt would run `touch`: one-line error, no marker.
+    In this process (`run_main`); test_hostile.py's `ckpt-pickle-payload-cli` refuses one in a new
+    `liedfl` process (no allow-list state left by other tests)."""
     run, marker = tmp_path / "run", tmp_path / "PWNED"
     ckpt = run / "checkpoints" / "last.pt"
     _malicious_checkpoint(ckpt, marker)
-    env = {k: v for k, v in os.environ.items() if k not in ("LIEDFL_DATA_DIR", "HYDRA_FULL_ERROR")}
-    env.update(OMP_NUM_THREADS="1", COLUMNS="200")
-    proc = subprocess.run(
-        [sys.executable, "-c", "from liedfl_cli.cli import main; main()", "eval", f"run={run}", "eval.plots=false"],
-        cwd=tmp_path,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    proc = run_main("eval", f"run={run}", "eval.plots=false", cwd=tmp_path)
     assert proc.returncode != 0
     assert "Traceback" not in proc.stderr
     lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]

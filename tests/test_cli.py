@@ -62,15 +62,16 @@ def test_train_writes_the_run_directory(trained):
     assert not [p for p in run.rglob("*") if ".tmp" in p.name]
 
 
-def test_rollout_writes_a_new_folder(trained):
+def test_rollout_writes_a_new_folder(trained, run_main):
     """`liedfl rollout` writes <run>/rollouts/<name>/ (rollout.h5 and its evaluation) each time and leaves
     the run's own rollout.h5 and evaluation byte for byte as they were."""
     run = trained
     own = {name: (run / name).read_bytes() for name in ("rollout.h5", "eval.csv", "eval.md", "eval_curves.json")}
     with h5py.File(run / "rollout.h5") as f:
         assert int(f.attrs["steps"]) != 15
-    for _ in range(2):
-        liedfl("rollout", f"run={run}", "steps=15", "ui.progress=false", "eval.plots=false", cwd=run.parents[2])
+    args = ("rollout", f"run={run}", "steps=15", "ui.progress=false", "eval.plots=false")
+    liedfl(*args, cwd=run.parents[2])  # through the `liedfl` command once; the second time in this process
+    run_main(*args, cwd=run.parents[2], ok=True)
     new = sorted(d for d in (run / "rollouts").iterdir() if "_steps15" in d.name)
     assert len(new) == 2 and all(d.name.endswith(("_steps15", "_steps15_2")) for d in new), new
     for d in new:
@@ -152,10 +153,11 @@ def test_eval_refuses_a_rollout_that_does_not_match_the_dataset(trained, tmp_pat
     assert (run / "eval.csv").read_bytes() == before
 
 
-def test_data_writes_one_dataset(tmp_path):
+def test_data_writes_one_dataset(tmp_path, run_main):
+    """In this process (`run_main`); test_hostile.py's `ctrl-c-during-dataset-write` runs `liedfl data` as one."""
     from liedfl_cli.data.hdf5 import load_dataset
 
-    liedfl("data", "dataset=heavy_se3", *FAST, cwd=tmp_path)
+    run_main("data", "dataset=heavy_se3", *FAST, cwd=tmp_path, ok=True)
     files = [p for p in (tmp_path / "outputs").rglob("*") if p.is_file()]
     assert len(files) == 1 and files[0].parent == tmp_path / "outputs" / "data", files
     assert files[0].suffix == ".h5" and files[0].name.startswith("heavy_se3-")
@@ -163,8 +165,9 @@ def test_data_writes_one_dataset(tmp_path):
     assert ds.n_se3 == 1 and ds.n_trajectories == 6
 
 
-def test_multirun_makes_one_run_dir_per_job(tmp_path):
-    liedfl("train", "-m", *FAST, "eval.plots=false", "seed=0,1", cwd=tmp_path)
+def test_multirun_makes_one_run_dir_per_job(tmp_path, run_main):
+    """Hydra's basic launcher in this process (`run_main`); test_cluster.py's sweeps go through processes."""
+    run_main("train", "-m", *FAST, "eval.plots=false", "seed=0,1", cwd=tmp_path, ok=True)
     sweeps = list((tmp_path / "outputs" / "multirun").iterdir())
     assert len(sweeps) == 1
     jobs = sorted(p for p in sweeps[0].iterdir() if p.is_dir())

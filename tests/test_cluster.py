@@ -30,12 +30,13 @@ pytestmark = pytest.mark.skipif(
 FAST = ["ui.progress=false", "eval.plots=false", "rollout.reference=false"]
 
 
-def liedfl(*args: str, cwd: Path, threads: str | None = "1") -> subprocess.CompletedProcess:
+def liedfl(*args: str, cwd: Path, threads: str | None = "1", prelude: str = "") -> subprocess.CompletedProcess:
+    """`liedfl *args` in a new process; `prelude`: Python run in it before `main()`."""
     env = {k: v for k, v in os.environ.items() if k not in ("LIEDFL_DATA_DIR", "HYDRA_FULL_ERROR", "OMP_NUM_THREADS")}
     env.update(MPLBACKEND="Agg", COLUMNS="200")
     if threads is not None:
         env["OMP_NUM_THREADS"] = threads
-    cmd = [sys.executable, "-c", "from liedfl_cli.cli import main; main()", *args]
+    cmd = [sys.executable, "-c", f"{prelude}from liedfl_cli.cli import main; main()", *args]
     return subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True, timeout=300)
 
 
@@ -73,9 +74,11 @@ def test_submitit_local_runs_every_job_in_its_own_folder(smoke_sweep):
     assert len(logs) == 2 and all("submitit INFO" in p.read_text() for p in logs)
 
 
-def test_report_over_a_submitit_sweep_lists_both_runs(smoke_sweep, tmp_path):
+def test_report_over_a_submitit_sweep_lists_both_runs(smoke_sweep, tmp_path, run_main):
     _, sweep_dir = smoke_sweep
-    proc = liedfl("report", f"sweep={sweep_dir}", "plots=false", cwd=tmp_path)
+    proc = run_main(
+        "report", f"sweep={sweep_dir}", "plots=false", cwd=tmp_path
+    )  # (in this process: test_report.py runs it as one)
     assert proc.returncode == 0, proc.stderr
     md = (sweep_dir / "report.md").read_text()
     assert "\n2 runs.\n" in md and "Failed runs" not in md
@@ -121,9 +124,9 @@ def test_liedfl_local_runs_one_thread_per_job(failing_sweep):
     assert _status(sweep_dir / "1")["threads"] == 1
 
 
-def test_report_lists_the_failed_submitit_job(failing_sweep, tmp_path):
+def test_report_lists_the_failed_submitit_job(failing_sweep, tmp_path, run_main):
     _, sweep_dir = failing_sweep
-    proc = liedfl("report", f"sweep={sweep_dir}", "plots=false", cwd=tmp_path)
+    proc = run_main("report", f"sweep={sweep_dir}", "plots=false", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
     assert "failed runs (1)" in proc.stdout and "0: train.epochs=0: must be a positive integer" in proc.stdout
     assert "1 runs, 1 failed." in (sweep_dir / "report.md").read_text()
@@ -132,9 +135,11 @@ def test_report_lists_the_failed_submitit_job(failing_sweep, tmp_path):
 def test_a_job_that_dies_outside_liedfl_is_one_line_and_a_nonzero_exit(tmp_path):
     """A job that never returns (here its shell set-up exits; on a cluster: killed, out of memory, out of
     time) makes submitit raise in the launching process: one line, the sweep summary, exit code >= 1."""
+    # submitit waits 15 s (`Job._results_timeout_s`, for slow network file systems) for the result of a
+    # job that has ended before it gives up; the local file system here needs no such grace
     proc = liedfl(
         "train", "-m", "seed=0", "budget=smoke", "hydra/launcher=liedfl_local", "hydra.launcher.setup=[exit 3]",
-        *FAST, cwd=tmp_path,
+        *FAST, cwd=tmp_path, prelude="import submitit.core.core as c; c.Job._results_timeout_s = 0; ",
     )  # fmt: skip
     assert proc.returncode == 1, proc.stderr
     assert "Traceback" not in proc.stderr, proc.stderr
