@@ -25,6 +25,20 @@ def compose_config(name: str = "train", overrides=(), conf_dir: Path = CONF_DIR)
         return compose(config_name=name, overrides=list(overrides))
 
 
+def train_run(root: Path, *overrides: str, name: str = "run") -> Path:
+    """`run_train` of the train config with `overrides`, output in root/name, data in root/data (in
+    this process): the run folder. For module fixtures that need one finished run."""
+    from hydra.core.global_hydra import GlobalHydra
+
+    from liedfl_cli.commands.train import run_train
+
+    run_train(
+        compose_config("train", (*overrides, f"paths.output_dir={root / name}", f"paths.data_dir={root / 'data'}"))
+    )
+    GlobalHydra.instance().clear()
+    return root / name
+
+
 def cli_command() -> list[str]:
     exe = shutil.which("liedfl", path=str(Path(sys.executable).parent)) or shutil.which("liedfl")
     return [exe] if exe else [sys.executable, "-c", "from liedfl_cli.cli import main; main()"]
@@ -47,22 +61,17 @@ def run_cli(*args: str, cwd: Path, ok: bool = False, timeout: int = 300) -> subp
     return proc
 
 
-def run_main(*args: str, cwd: Path, capfd, monkeypatch, ok: bool = False) -> subprocess.CompletedProcess:
-    """`liedfl *args` as `liedfl_cli.cli.main` called in this process (what the `liedfl` entry point runs),
-    in cwd, with the environment of `cli_env()`; returns a CompletedProcess like `run_cli` (returncode
-    from SystemExit; an escaping exception: returncode 1 and its traceback appended to stderr). Saves
-    the seconds of a new interpreter per call, for tests of a command's behaviour; tests of the process
-    boundary (signals, the installed script, exit on a closed pipe) keep `run_cli`."""
+def main_in_process(*args: str, cwd: Path) -> tuple[int, str]:
+    """`liedfl_cli.cli.main` with argv `liedfl *args`, run in this process in `cwd`: (exit code, the
+    traceback of an escaping exception or ""; such an exception counts as exit 1, as in a process).
+    Restores argv, the working directory, Hydra's global state and the runtime settings; captures
+    nothing (`run_main` does, with capfd)."""
     from hydra.core.global_hydra import GlobalHydra
 
     from liedfl_cli.cli import main
+    from liedfl_cli.solvers import runtime
 
-    for key in ("LIEDFL_DATA_DIR", "HYDRA_FULL_ERROR"):
-        monkeypatch.delenv(key, raising=False)
-    for key, value in (("MPLBACKEND", "Agg"), ("COLUMNS", "200")):
-        monkeypatch.setenv(key, value)
-    capfd.readouterr()
-    argv, here = sys.argv, os.getcwd()
+    argv, here, settings = sys.argv, os.getcwd(), runtime._current
     sys.argv = ["liedfl", *args]
     os.chdir(cwd)
     extra = ""
@@ -74,9 +83,24 @@ def run_main(*args: str, cwd: Path, capfd, monkeypatch, ok: bool = False) -> sub
     except BaseException:  # what the process would print as a traceback
         code, extra = 1, traceback.format_exc()
     finally:
-        sys.argv = argv
+        sys.argv, runtime._current = argv, settings
         os.chdir(here)
         GlobalHydra.instance().clear()
+    return code, extra
+
+
+def run_main(*args: str, cwd: Path, capfd, monkeypatch, ok: bool = False) -> subprocess.CompletedProcess:
+    """`liedfl *args` as `liedfl_cli.cli.main` called in this process (what the `liedfl` entry point runs),
+    in cwd, with the environment of `cli_env()`; returns a CompletedProcess like `run_cli` (returncode
+    from SystemExit; an escaping exception: returncode 1 and its traceback appended to stderr). Saves
+    the seconds of a new interpreter per call, for tests of a command's behaviour; tests of the process
+    boundary (signals, the installed script, exit on a closed pipe) keep `run_cli`."""
+    for key in ("LIEDFL_DATA_DIR", "HYDRA_FULL_ERROR"):
+        monkeypatch.delenv(key, raising=False)
+    for key, value in (("MPLBACKEND", "Agg"), ("COLUMNS", "200")):
+        monkeypatch.setenv(key, value)
+    capfd.readouterr()
+    code, extra = main_in_process(*args, cwd=cwd)
     out, err = capfd.readouterr()
     proc = subprocess.CompletedProcess(["liedfl", *args], code, out, err + extra)
     if ok:

@@ -95,3 +95,32 @@ def write_csv(
                     row += [f"{v:.12f}" for v in rot] + [f"{v:.12f}" for v in ps[i, k]]
                 w.writerow(row)
     return path, R, p
+
+
+# the `dataset` section of `dataset=import` (conf/dataset/import.yaml's keys; tests/test_own_data.py checks
+# them against the import's key list), for calling `get_dataset` directly
+IMPORT = {
+    "name": "import",
+    "rotation": "wxyz",
+    "bodies": None,
+    "time_column": "t",
+    "trajectory_column": "trajectory",
+    "time_scale": 1.0,
+    "time_tolerance": 0.01,
+    "resample": False,
+    "h": None,
+    "smoothing": None,
+    "noise": {"rotation": 0.0, "position": 0.0},
+    "length_scale": 1.0,
+    "chunk_steps": None,
+    "time_unit": None,
+    "columns": None,
+    "gravity": None,
+    "n_trajectories": None,
+    "steps": None,
+    "train_steps": None,
+    "rollout_steps": None,
+    "test_fraction": 0.2,
+    "n_test": None,
+    "seed": 0,
+}

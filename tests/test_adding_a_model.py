@@ -12,7 +12,6 @@ import importlib.util
 import sys
 
 import pytest
-from hydra.core.global_hydra import GlobalHydra
 
 MODEL_FILE = '''
 import torch
@@ -57,7 +56,7 @@ class ToyVelocity(ExplicitModel):
         return (cur, self._next(prev, cur)), None
 
     def components(self):
-        return [f"s ({float(self.s):.3f})"]
+        return [f"s ({float(self.s.detach()):.3f})"]
 '''
 
 CONFIG_FILE = """_target_: liedfl_cli.models.toy_velocity.ToyVelocity
@@ -82,31 +81,13 @@ def toy_model(tmp_path, monkeypatch):
     return tmp_path / "conf"
 
 
-def _cli(*args: str) -> int:
-    from liedfl_cli.cli import main
-
-    saved = sys.argv
-    sys.argv = ["liedfl", *args]
-    try:
-        main()
-        return 0
-    except SystemExit as e:
-        return e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
-    finally:
-        sys.argv = saved
-        GlobalHydra.instance().clear()
-
-
-def test_one_model_file_and_one_config_file_train_roll_out_and_evaluate(toy_model, tmp_path, monkeypatch):
+def test_one_model_file_and_one_config_file_train_roll_out_and_evaluate(toy_model, tmp_path, run_main):
     import csv
     import json
 
-    from liedfl_cli.solvers import runtime
-
-    monkeypatch.setattr(runtime, "_current", runtime._current)  # the commands set the process's settings
     run = tmp_path / "run"
     common = ["ui.progress=false", "runtime.threads=1", f"hydra.searchpath=[file://{toy_model}]"]
-    code = _cli(
+    run_main(
         "train",
         "model=toy_velocity",
         "budget=smoke",
@@ -115,8 +96,9 @@ def test_one_model_file_and_one_config_file_train_roll_out_and_evaluate(toy_mode
         f"paths.data_dir={tmp_path / 'data'}",
         f"hydra.run.dir={run}",
         *common,
+        cwd=tmp_path,
+        ok=True,
     )
-    assert code == 0
     components = json.loads((run / "components.json").read_text())
     assert any(c.startswith("s (") for c in components["components"]), components
     rows = list(csv.DictReader((run / "train_metrics.csv").open()))
@@ -126,8 +108,8 @@ def test_one_model_file_and_one_config_file_train_roll_out_and_evaluate(toy_mode
 
     s = float(api.load_run(run).model.s)
     assert 0.55 < s < 1.5, s
-    assert _cli("rollout", f"run={run}", "steps=6", "eval.plots=false", *common) == 0
+    run_main("rollout", f"run={run}", "steps=6", "eval.plots=false", *common, cwd=tmp_path, ok=True)
     assert len(list((run / "rollouts").glob("*/rollout.h5"))) == 1
-    assert _cli("eval", f"run={run}", "eval.plots=false", *common) == 0
+    run_main("eval", f"run={run}", "eval.plots=false", *common, cwd=tmp_path, ok=True)
     table = list(csv.DictReader((run / "eval.csv").open()))
     assert {r["name"] for r in table} >= {"toy_velocity", "constant velocity"}, table

@@ -44,7 +44,7 @@ from fuzz_strategies import (
 )
 from hypothesis import example, given, seed, settings
 from hypothesis import strategies as st
-from own_data import H, motion, write_csv
+from own_data import IMPORT, H, motion, write_csv
 
 from liedfl_cli.data.hdf5 import Dataset, load_dataset, save_dataset
 from liedfl_cli.data.scenes import get_dataset
@@ -180,28 +180,6 @@ def _run_slow(prop, **strategies) -> int:
 
 
 # ----------------------------------------------------------------------------- CSV / NPZ import
-IMPORT = {
-    "name": "import",
-    "rotation": "wxyz",
-    "bodies": None,
-    "time_column": "t",
-    "trajectory_column": "trajectory",
-    "time_scale": 1.0,
-    "time_tolerance": 0.01,
-    "resample": False,
-    "h": None,
-    "smoothing": None,
-    "noise": {"rotation": 0.0, "position": 0.0},
-    "length_scale": 1.0,
-    "chunk_steps": None,
-    "n_trajectories": None,
-    "steps": None,
-    "train_steps": None,
-    "rollout_steps": None,
-    "test_fraction": 0.2,
-    "n_test": None,
-    "seed": 0,
-}
 
 
 @pytest.fixture(scope="module")

@@ -24,7 +24,6 @@ import signal
 import subprocess
 import sys
 import textwrap
-import traceback
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,9 +32,8 @@ import h5py
 import numpy as np
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
-from hydra.core.global_hydra import GlobalHydra
 
+from helpers import main_in_process, train_run
 from liedfl_cli.cli import CONF_DIR
 
 FAST = ("budget=smoke", "ui.progress=false", "eval.plots=false")
@@ -47,18 +45,7 @@ CMU = REPO / "data" / "cmu_mocap" / "49_06.bvh"
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory) -> Path:
     """One finished smoke run (trained in-process); its dataset is the smoke cache file."""
-    from liedfl_cli.commands.train import run_train
-
-    root = tmp_path_factory.mktemp("hostile_run")
-    GlobalHydra.instance().clear()
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        cfg = compose(
-            config_name="train",
-            overrides=[*FAST, f"paths.output_dir={root / 'run'}", f"paths.data_dir={root / 'data'}"],
-        )
-    run_train(cfg)
-    GlobalHydra.instance().clear()
-    return root / "run"
+    return train_run(tmp_path_factory.mktemp("hostile_run"), *FAST)
 
 
 @pytest.fixture(scope="module")
@@ -1154,23 +1141,8 @@ def _env() -> dict:
 
 
 def _in_process(args: list[str], capfd) -> tuple[int, str]:
-    from liedfl_cli.cli import main
-
     capfd.readouterr()
-    saved = sys.argv
-    sys.argv = ["liedfl", *args]
-    code: int
-    extra = ""
-    try:
-        main()
-        code = 0
-    except SystemExit as e:
-        code = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
-    except BaseException:  # what a process would print as a traceback
-        code, extra = -1, traceback.format_exc()
-    finally:
-        sys.argv = saved
-        GlobalHydra.instance().clear()
+    code, extra = main_in_process(*args, cwd=Path.cwd())
     return code, capfd.readouterr().err + extra
 
 

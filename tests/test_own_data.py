@@ -11,38 +11,13 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-from own_data import H, motion, write_csv, write_h5
+from own_data import IMPORT, H, motion, write_csv, write_h5
 
 from liedfl_cli.data.files import complete_steps, default_split, resample
 from liedfl_cli.data.hdf5 import load_dataset
 from liedfl_cli.data.scenes import dataset_path, get_dataset
 from liedfl_cli.errors import ConfigError, DatasetError
 
-IMPORT = {
-    "name": "import",
-    "rotation": "wxyz",
-    "bodies": None,
-    "time_column": "t",
-    "trajectory_column": "trajectory",
-    "time_scale": 1.0,
-    "time_tolerance": 0.01,
-    "resample": False,
-    "h": None,
-    "smoothing": None,
-    "noise": {"rotation": 0.0, "position": 0.0},
-    "length_scale": 1.0,
-    "chunk_steps": None,
-    "time_unit": None,
-    "columns": None,
-    "gravity": None,
-    "n_trajectories": None,
-    "steps": None,
-    "train_steps": None,
-    "rollout_steps": None,
-    "test_fraction": 0.2,
-    "n_test": None,
-    "seed": 0,
-}
 FILE = {
     "name": "file",
     "n_trajectories": None,

@@ -8,17 +8,13 @@ from __future__ import annotations
 import hashlib
 import json
 import shutil
-import sys
-import traceback
 from pathlib import Path
 
 import h5py
 import numpy as np
 import pytest
-from hydra import compose, initialize_config_dir
-from hydra.core.global_hydra import GlobalHydra
 
-from liedfl_cli.cli import CONF_DIR
+from helpers import main_in_process, train_run
 from liedfl_cli.files.checkpoint import file_sha256, load_checkpoint
 from liedfl_cli.files.rollout_file import PROVENANCE
 
@@ -26,17 +22,7 @@ FAST = ("budget=smoke", "ui.progress=false", "eval.plots=false", "runtime.thread
 
 
 def _train(root: Path, name: str, *overrides: str) -> Path:
-    from liedfl_cli.commands.train import run_train
-
-    GlobalHydra.instance().clear()
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        cfg = compose(
-            config_name="train",
-            overrides=[*FAST, *overrides, f"paths.output_dir={root / name}", f"paths.data_dir={root / 'data'}"],
-        )
-    run_train(cfg)
-    GlobalHydra.instance().clear()
-    return root / name
+    return train_run(root, *FAST, *overrides, name=name)
 
 
 @pytest.fixture(scope="module")
@@ -48,22 +34,8 @@ def runs(tmp_path_factory) -> tuple[Path, Path]:
 
 def _cli(capfd, *args: str) -> tuple[int, str, str]:
     """`liedfl *args` in-process: (exit code, stdout, stderr)."""
-    from liedfl_cli.cli import main
-
     capfd.readouterr()
-    saved = sys.argv
-    sys.argv = ["liedfl", *args]
-    extra = ""
-    try:
-        main()
-        code = 0
-    except SystemExit as e:
-        code = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
-    except BaseException:
-        code, extra = -1, traceback.format_exc()
-    finally:
-        sys.argv = saved
-        GlobalHydra.instance().clear()
+    code, extra = main_in_process(*args, cwd=Path.cwd())
     cap = capfd.readouterr()
     return code, cap.out, cap.err + extra
 

@@ -4,12 +4,8 @@ against the rollout's rotations, the exported file imported again, and the rollo
 
 from __future__ import annotations
 
-import contextlib
 import csv
-import io
 import json
-import os
-import sys
 
 import h5py
 import numpy as np
@@ -17,6 +13,7 @@ import pytest
 import torch
 from own_data import H, write_csv
 
+from helpers import main_in_process
 from liedfl_cli.data.hdf5 import load_dataset
 from liedfl_cli.lie import so3
 
@@ -25,39 +22,13 @@ IMPORT = ["dataset=import", "dataset.path=log.csv", "dataset.rotation=xyzw"]  # 
 WXYZ = [3, 0, 1, 2]  # the export follows the import's convention: q0..q3 = x, y, z, w
 
 
-def in_process(*args: str, cwd, code: int = 0) -> str:
-    """`liedfl *args` run in this process in `cwd` (the CLI's own code path, without an interpreter
-    start per command; the subprocess path is tested in test_cli.py): its stdout and stderr; asserts
-    the exit code `code`."""
-    from hydra.core.global_hydra import GlobalHydra
-
-    from liedfl_cli.cli import main
-    from liedfl_cli.solvers import runtime
-
-    saved = sys.argv, os.getcwd(), runtime._current
-    buf = io.StringIO()
-    sys.argv = ["liedfl", *args]
-    os.chdir(cwd)
-    got = 0
-    try:
-        with contextlib.redirect_stdout(buf), contextlib.redirect_stderr(buf):
-            main()
-    except SystemExit as e:
-        got = 0 if e.code is None else e.code
-    finally:
-        sys.argv, runtime._current = saved[0], saved[2]
-        os.chdir(saved[1])
-        GlobalHydra.instance().clear()
-    assert got == code, f"liedfl {' '.join(args)}: exit {got}\n{buf.getvalue()}"
-    return buf.getvalue()
-
-
 @pytest.fixture(scope="module")
 def trained_on_two_recordings(tmp_path_factory):
     """(cwd, run dir): a CSV with two recordings imported and trained on (tiny budget)."""
     cwd = tmp_path_factory.mktemp("export")
     write_csv(cwd / "log.csv", n_traj=2, n_samples=21, rotation="xyzw")
-    in_process("train", *IMPORT, *FAST, "dataset.n_test=1", "eval.plots=false", cwd=cwd)
+    code, trace = main_in_process("train", *IMPORT, *FAST, "dataset.n_test=1", "eval.plots=false", cwd=cwd)
+    assert code == 0, trace
     (run,) = (cwd / "outputs" / "runs").iterdir()
     return cwd, run
 
@@ -67,11 +38,11 @@ def _rows(path):
         return list(csv.DictReader(f))
 
 
-def test_both_recordings_rolled_out_exported_as_csv_and_imported_again(trained_on_two_recordings):
+def test_both_recordings_rolled_out_exported_as_csv_and_imported_again(trained_on_two_recordings, run_main):
     cwd, run = trained_on_two_recordings
     ds_run = load_dataset(cwd / json.loads((run / "summary.json").read_text())["dataset_path"])
     assert len(ds_run.test_idx) == 1  # the run's own rollout covers its test split only
-    out = in_process(
+    out = run_main(
         "rollout",
         f"run={run}",
         *IMPORT,
@@ -80,7 +51,8 @@ def test_both_recordings_rolled_out_exported_as_csv_and_imported_again(trained_o
         "runtime.threads=1",
         "eval.plots=false",
         cwd=cwd,
-    )
+        ok=True,
+    ).stdout
     assert "split=all" in out and "re-import: liedfl data dataset=import" in out
     (folder,) = (run / "rollouts").iterdir()
     with h5py.File(folder / "rollout.h5", "r") as f:
@@ -104,9 +76,14 @@ def test_both_recordings_rolled_out_exported_as_csv_and_imported_again(trained_o
     assert np.abs(back - R).max() <= 1e-12 * np.abs(R).max()
     assert np.abs(xyz - p).max() <= 1e-12 * np.abs(p).max()
     # the exported file is a recording again: imported, it holds the predictions
-    again = in_process(
-        "data", "dataset=import", f"dataset.path={folder / 'predictions.csv'}", "dataset.rotation=xyzw", cwd=cwd
-    )
+    again = run_main(
+        "data",
+        "dataset=import",
+        f"dataset.path={folder / 'predictions.csv'}",
+        "dataset.rotation=xyzw",
+        cwd=cwd,
+        ok=True,
+    ).stdout
     assert "2 trajectories x 20 steps on SE(3)" in again
     (cached,) = [
         c
@@ -116,11 +93,11 @@ def test_both_recordings_rolled_out_exported_as_csv_and_imported_again(trained_o
     ds = load_dataset(cached)
     assert np.abs(ds.R - R).max() <= 1e-12 and np.abs(ds.p - p).max() <= 1e-12 * np.abs(p).max()
     # and `liedfl eval` evaluates the rollout over the same trajectories
-    in_process("eval", f"run={run}", f"rollout={folder}", "ui.progress=false", "eval.plots=false", cwd=cwd)
+    run_main("eval", f"run={run}", f"rollout={folder}", "ui.progress=false", "eval.plots=false", cwd=cwd, ok=True)
     assert (folder / "eval.csv").is_file()
 
 
-def test_rollout_split_options_and_npz_export(trained_on_two_recordings):
+def test_rollout_split_options_and_npz_export(trained_on_two_recordings, run_main):
     cwd, run = trained_on_two_recordings
     before = set((run / "rollouts").iterdir()) if (run / "rollouts").exists() else set()
     # a rollout trains nothing: dataset.test_fraction=1.0 and dataset.n_test=T are accepted (every trajectory);
@@ -128,7 +105,9 @@ def test_rollout_split_options_and_npz_export(trained_on_two_recordings):
     write_csv(cwd / "new.csv", n_traj=3, n_samples=21, rotation="xyzw")
     new_file = ["dataset=import", "dataset.path=new.csv", "dataset.rotation=xyzw"]
     for args in ([*IMPORT, "dataset.test_fraction=1.0", "split=test"], [*new_file, "dataset.n_test=3"]):
-        in_process("rollout", f"run={run}", *args, "export=npz", "ui.progress=false", "eval.plots=false", cwd=cwd)
+        run_main(
+            "rollout", f"run={run}", *args, "export=npz", "ui.progress=false", "eval.plots=false", cwd=cwd, ok=True
+        )
     new = sorted(set((run / "rollouts").iterdir()) - before)
     assert len(new) == 2
     for folder, want in zip(new, ([0, 1], [0, 1, 2])):
@@ -140,15 +119,17 @@ def test_rollout_split_options_and_npz_export(trained_on_two_recordings):
         back = so3.from_quaternion(torch.from_numpy(z["q"][..., WXYZ])).numpy()
         assert np.abs(back - R).max() <= 1e-12
     # the run's own data: test by default; split=train / all on request (recorded for `liedfl eval`)
-    in_process("rollout", f"run={run}", "split=train", "steps=5", "ui.progress=false", "eval.plots=false", cwd=cwd)
+    run_main(
+        "rollout", f"run={run}", "split=train", "steps=5", "ui.progress=false", "eval.plots=false", cwd=cwd, ok=True
+    )
     (folder,) = sorted(set((run / "rollouts").iterdir()) - before - set(new))
     assert folder.name.endswith("_train_steps5")
     with h5py.File(folder / "rollout.h5", "r") as f:
         ds_run = load_dataset(cwd / json.loads((run / "summary.json").read_text())["dataset_path"])
         assert f["traj_index"][:].tolist() == ds_run.train_idx.tolist()
     assert json.loads((folder / "source.json").read_text())["split"] == "train"
-    in_process("eval", f"run={run}", f"rollout={folder}", "ui.progress=false", "eval.plots=false", cwd=cwd)
-    bad = in_process("rollout", f"run={run}", "split=some", cwd=cwd, code=2)
-    assert "split='some'" in bad and "Traceback" not in bad
-    bad = in_process("rollout", f"run={run}", "export=xls", cwd=cwd, code=2)
-    assert "export='xls'" in bad and "Traceback" not in bad
+    run_main("eval", f"run={run}", f"rollout={folder}", "ui.progress=false", "eval.plots=false", cwd=cwd, ok=True)
+    bad = run_main("rollout", f"run={run}", "split=some", cwd=cwd)
+    assert bad.returncode == 2 and "split='some'" in bad.stderr and "Traceback" not in bad.stderr
+    bad = run_main("rollout", f"run={run}", "export=xls", cwd=cwd)
+    assert bad.returncode == 2 and "export='xls'" in bad.stderr and "Traceback" not in bad.stderr

@@ -14,28 +14,14 @@ import time
 from pathlib import Path
 
 import pytest
-from hydra import compose, initialize_config_dir
-from hydra.core.global_hydra import GlobalHydra
 
-from helpers import SMOKE, cli_env
-from liedfl_cli.cli import CONF_DIR
+from helpers import SMOKE, cli_env, train_run
 
 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory) -> Path:
     """One finished smoke run (trained in-process)."""
-    from liedfl_cli.commands.train import run_train
-
-    root = tmp_path_factory.mktemp("signals_run")
-    GlobalHydra.instance().clear()
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        cfg = compose(
-            config_name="train",
-            overrides=[*SMOKE, f"paths.output_dir={root / 'run'}", f"paths.data_dir={root / 'data'}"],
-        )
-    run_train(cfg)
-    GlobalHydra.instance().clear()
-    return root / "run"
+    return train_run(tmp_path_factory.mktemp("signals_run"), *SMOKE)
 
 
 def hook(target: str, sig: str = "SIGTERM") -> str:
