@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from .config import resolvers  # noqa: F401  (registers the config resolvers)
-from .errors import InputError
+from .errors import ConfigError, InputError
 from .lie import Pose, ProductGroup, so3
 from .models.base import Model
 from .solvers.options import SolverOptions
@@ -359,9 +359,11 @@ def _solver(solver) -> SolverOptions:
     if isinstance(solver, SolverOptions):
         return solver
     if isinstance(solver, Mapping):
-        try:
-            return SolverOptions.from_mapping(dict(solver))
-        except (TypeError, ValueError) as e:
+        from .config.typed import section
+
+        try:  # the `solver` section's schema: unknown keys and wrong types refused
+            return section(SolverOptions, dict(solver), "solver")
+        except ConfigError as e:
             raise InputError(f"solver={dict(solver)}: {e}") from None
     raise InputError(f"solver: give a mapping such as {{'tol': 1e-5, 'max_iter': 10}}, got {type(solver).__name__}")
 

@@ -75,7 +75,7 @@ def _dispatch(command: str, cfg):
 
         return run_resume(cfg)
     if command == "data":
-        from .data.command import run_data
+        from .commands.data import run_data
         from .files.signals import set_phase
 
         set_phase("data generation", "nothing written")

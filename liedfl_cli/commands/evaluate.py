@@ -23,6 +23,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
+from ..config.typed import RunConfig, section, typed
 from ..display import plots
 from ..display.ui import console, print_table, warning_line
 from ..errors import ConfigError
@@ -260,7 +261,7 @@ def rollout_path_arg(value, run_dir) -> Path:
 
 
 def run_eval_from_objects(
-    cfg: DictConfig,
+    run: RunConfig,
     dataset,
     run_dir,
     timings: dict | None = None,
@@ -270,13 +271,13 @@ def run_eval_from_objects(
 ) -> list[dict]:
     """Evaluate a rollout file against `dataset` (`compute_eval`) and write eval.csv, eval.md,
     eval_curves.json and plots/ next to the file (`outputs.write_outputs`); returns the rows."""
-    result = compute_eval(cfg, dataset, run_dir, timings, rollout_path, model_name, checkpoint)
+    result = compute_eval(run, dataset, run_dir, timings, rollout_path, model_name, checkpoint)
     write_outputs(result)
     return result.summary["rows"]
 
 
 def compute_eval(
-    cfg: DictConfig,
+    run: RunConfig,
     dataset,
     run_dir,
     timings: dict | None = None,
@@ -288,7 +289,7 @@ def compute_eval(
     and the files eval.csv, eval.md, eval_curves.json and plots/ (drawn figures) to go next to the
     file. rollout_path: default `<run_dir>/rollout.h5`. The run's parameter recovery (recovery.json)
     goes into eval.md of any rollout of the run, the loss curve only into the run's own plots.
-    model_name: what the `model` entry is (default: `cfg.model.name`). checkpoint: which checkpoint the
+    model_name: what the `model` entry is (default: `run.model['name']`). checkpoint: which checkpoint the
     model's rollout came from (`checkpoint.checkpoint_record`): columns `checkpoint`, `checkpoint_epoch`."""
     run_dir = Path(run_dir)
     path = Path(rollout_path) if rollout_path is not None else run_dir / FILE_NAME
@@ -296,9 +297,7 @@ def compute_eval(
     rf = load_rollout(path, dataset)
     idx = rf.traj_index
     truth = dataset.pose(idx)
-    from omegaconf import OmegaConf
-
-    model_name = model_name or OmegaConf.select(cfg, "model.name", default=None)
+    model_name = model_name or (run.model or {}).get("name")
     names = plots.display_names([*rf.models, CONSTANT_VELOCITY], model_name)
     rows, curves = _rows(rf, truth, timings, names, group=dataset.group)
     for r in rows:  # which checkpoint rolled out (docs/validation.md)
@@ -349,7 +348,7 @@ def compute_eval(
             "errors cover the steps with ground truth only"
         )
     print_eval_table(rows, cols, f"{dataset.scene}: test rollout ({len(idx)} x {rf.steps} steps)")
-    if cfg.eval.plots:
+    if run.eval.plots:
         h = dataset.h
         unit = length_unit(dataset)
         result.add("plots/error_vs_step.png", plots.draw_error_vs_step(curves, h, names, length_unit=unit))
@@ -455,13 +454,17 @@ def run_eval(cfg: DictConfig) -> list[dict]:
     from ..files.checkpoint import load_checkpoint
     from ..files.signals import set_phase
 
-    configure_runtime(cfg)  # this command's runtime section (the model of the scene's extra evaluation)
+    command = typed(cfg, "eval")  # this command's settings, typed once
+    configure_runtime(command.runtime)  # this command's runtime section (the model of the scene's extra evaluation)
     from ..files.dataset_identity import accept_option
 
     run_cfg, model, dataset, run_dir, used = load_run_checkpoint(
-        cfg.run, cfg.paths.data_dir, cfg.get("checkpoint") or "best", accept_option(cfg)
+        command.top["run"],
+        command.paths.data_dir,
+        command.top.get("checkpoint") or "best",
+        accept_option(command.top.get("accept_changed_dataset")),
     )
-    path = rollout_path_arg(cfg.get("rollout"), run_dir)
+    path = rollout_path_arg(command.top.get("rollout"), run_dir)
     last = load_checkpoint(Path(run_dir) / "checkpoints" / "last.pt")
     check_provenance(path, read_rollout(path).attrs, run_dir, last.get("run_id"))
     own = path.parent.resolve() == Path(run_dir).resolve()
@@ -471,7 +474,7 @@ def run_eval(cfg: DictConfig) -> list[dict]:
     try:
         if not _inside(path, run_dir):
             path = copy_into_run(path, run_dir, made=copied)
-        return _eval_rollout(cfg, run_cfg, model, dataset, run_dir, used, path, last)
+        return _eval_rollout(command, run_cfg, model, dataset, run_dir, used, path, last)
     except BaseException as e:
         _interrupted_eval(e, path.parent, copied[0] if copied else None, run_dir)
         raise
@@ -498,20 +501,22 @@ def _interrupted_eval(e: BaseException, out: Path, copied: Path | None, run_dir)
             mark_interrupted(out, message, code, "evaluation")
 
 
-def _eval_rollout(cfg, run_cfg, model, dataset, run_dir, used, path: Path, last: dict) -> list[dict]:
+def _eval_rollout(command: RunConfig, run_cfg, model, dataset, run_dir, used, path: Path, last: dict) -> list[dict]:
     from omegaconf import OmegaConf
 
     from ..config.other_data import rollout_dataset
+    from ..evaluation import SceneEvalOptions
     from ..files.checkpoint import describe_checkpoint, rollout_checkpoint
+    from ..solvers.options import SolverOptions
     from .outputs import run_scene_eval
     from .status import clear_interruption
 
     used = rollout_checkpoint(path, used)  # the rollout's own record (checkpoint.json) when it has one
     console.print(describe_checkpoint(used), highlight=False)
-    dataset, run_cfg = rollout_dataset(path, model, dataset, run_cfg, run_dir, cfg.paths.data_dir)
+    dataset, run_cfg = rollout_dataset(path, model, dataset, run_cfg, run_dir, command.paths.data_dir)
     timings = last.get("timings")
     rows = run_eval_from_objects(
-        cfg,
+        command,
         dataset,
         run_dir,
         timings,
@@ -519,8 +524,8 @@ def _eval_rollout(cfg, run_cfg, model, dataset, run_dir, used, path: Path, last:
         model_name=OmegaConf.select(run_cfg, "model.name", default=None),
         checkpoint=used,
     )
-    run_scene_eval(
-        OmegaConf.merge(run_cfg, {"eval": cfg.eval, "ui": cfg.ui}), model, dataset, run_dir, rollout_path=path
-    )
+    # the scene evaluation solves with the run's solver settings, draws as this command says
+    opts = SceneEvalOptions(plots=command.eval.plots, solver=section(SolverOptions, run_cfg.get("solver"), "solver"))
+    run_scene_eval(opts, model, dataset, run_dir, rollout_path=path)
     clear_interruption(path.parent, "evaluation")
     return rows

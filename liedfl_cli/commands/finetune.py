@@ -16,9 +16,8 @@ import time
 from collections.abc import Callable
 
 import torch
-from omegaconf import DictConfig
 
-from ..config.factory import loss_options
+from ..config.typed import TrainConfig
 from ..display.ui import console, progress_bar
 from ..lie import Pose
 from ..models.losses import WindowSet, check_loss, rollout_window_loss
@@ -28,7 +27,7 @@ from ..solvers.options import SolverOptions
 def finetune(
     model,
     data: Pose,
-    cfg_train: DictConfig,
+    cfg_train: TrainConfig,
     steps: int,
     solver: SolverOptions,
     seed: int = 0,
@@ -39,21 +38,20 @@ def finetune(
     """Fine-tune `model` on rollout windows of the first `steps` steps of `data` -> {history, seconds}.
     make_optimizer(params, cfg_optimizer): `train.make_optimizer` (passed in: train imports this module)."""
     assert make_optimizer is not None
-    opts = loss_options(cfg_train)
     check_loss(model, "rollout")
-    opts = dataclasses.replace(opts, loss="rollout", solver=solver)
-    cfg_rl = cfg_train.get("rollout_loss") or {}
-    epochs = int(cfg_rl.get("epochs", 100))
+    opts = dataclasses.replace(cfg_train.loss_options(solver), loss="rollout")
+    cfg_rl = cfg_train.rollout_loss
+    epochs = int(cfg_rl.epochs)
     windows = WindowSet(data, int(steps), opts.rollout_horizon)
     n = windows.n
-    bs = n if cfg_train.get("full_batch", False) else min(int(cfg_train.batch_size), n)
+    bs = n if cfg_train.full_batch else min(int(cfg_train.batch_size), n)
     n_batches = math.ceil(n / bs)
     gen = torch.Generator().manual_seed(seed + 1)
     params = [p for p in model.parameters() if p.requires_grad]
-    cfg_opt = dict(cfg_train.optimizer)
-    if cfg_rl.get("lr") is not None:
-        cfg_opt["lr"] = float(cfg_rl["lr"])
-    opt = make_optimizer(params, DictConfig(cfg_opt))
+    cfg_opt = cfg_train.optimizer
+    if cfg_rl.lr is not None:
+        cfg_opt = dataclasses.replace(cfg_opt, lr=float(cfg_rl.lr))
+    opt = make_optimizer(params, cfg_opt)
     history: list[dict] = []
     t0 = time.perf_counter()
     with progress_bar(show_progress) as bar:

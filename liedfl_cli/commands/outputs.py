@@ -10,7 +10,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..display.plots import plt, save_figure
-from ..evaluation import EvalOutputs, run_extra_evals
+from ..evaluation import EvalOutputs, SceneEvalOptions, run_extra_evals
 from ..files.io_utils import write_csv, write_json, write_text
 
 
@@ -40,10 +40,10 @@ def write_outputs(result: EvalOutputs, out_dir: str | Path | None = None) -> lis
     return written
 
 
-def run_scene_eval(cfg, model, dataset, run_dir, rollout_path=None) -> dict | None:
+def run_scene_eval(opts: SceneEvalOptions, model, dataset, run_dir, rollout_path=None) -> dict | None:
     """The dataset scene's evaluation (`evaluation.run_extra_evals`), written next to the rollout
     file; returns its summary (None when the scene has none)."""
-    result = run_extra_evals(cfg, model, dataset, run_dir, rollout_path=rollout_path)
+    result = run_extra_evals(opts, model, dataset, run_dir, rollout_path=rollout_path)
     if result is None:
         return None
     write_outputs(result)

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
-from ..config.factory import solver_options
+from ..config.typed import RunConfig, typed
 from ..display.ui import console, progress_bar, warning_line
 from ..errors import ConfigError, DatasetError
 from ..files.rollout_file import OneStep, RolloutEntry, write_rollout
@@ -104,7 +104,7 @@ def rollout_steps(given) -> int:
     return steps
 
 
-def rollout_and_save(cfg: DictConfig, model, dataset, path, steps=None, provenance: dict | None = None) -> dict:
+def rollout_and_save(run: RunConfig, model, dataset, path, steps=None, provenance: dict | None = None) -> dict:
     """Roll out `model` (and the true scheme, if the scene has one, on the same device and dtype) from
     each test trajectory's first pair; write `path` (CPU float64) with `provenance` (the run, model and
     checkpoint: `checkpoint.run_provenance`) and the rollout's dtype. Returns timing/solver summaries."""
@@ -112,10 +112,11 @@ def rollout_and_save(cfg: DictConfig, model, dataset, path, steps=None, provenan
     from ..data.scenes import dataset_steps
     from ..models.true_scheme import true_model
 
-    steps = rollout_steps(steps if steps is not None else dataset_steps(cfg.dataset, dataset, "rollout_steps"))
-    idx, truth = test_trajectories(dataset, cfg.rollout.max_trajectories)
+    assert run.rollout is not None, "a rollout section"
+    steps = rollout_steps(steps if steps is not None else dataset_steps(run.dataset, dataset, "rollout_steps"))
+    idx, truth = test_trajectories(dataset, run.rollout.max_trajectories)
     runs = {"model": model}
-    if cfg.rollout.reference:
+    if run.rollout.reference:
         ref = true_model(dataset)
         if ref is not None:
             runs["true_scheme"] = place(ref)
@@ -124,9 +125,9 @@ def rollout_and_save(cfg: DictConfig, model, dataset, path, steps=None, provenan
         was_training = m.training
         m.eval()
         label = (getattr(m, "name", "") or name) if name == "model" else name.replace("_", " ")  # liedflnn, true scheme
-        ro = _roll(m, truth, steps, solver_options(cfg.solver), label, cfg.ui.progress)
+        ro = _roll(m, truth, steps, run.solver, label, run.ui.progress)
         entry = RolloutEntry.from_rollout(ro)
-        entry.one_step = one_step(m, truth, steps, solver_options(cfg.solver))
+        entry.one_step = one_step(m, truth, steps, run.solver)
         m.train(was_training)
         rollouts[name] = entry
     prov = {**(provenance or {}), "dtype": str(truth.R.dtype).removeprefix("torch.")}
@@ -197,11 +198,15 @@ def run_rollout(cfg: DictConfig) -> dict:
     from .evaluate import run_eval_from_objects
     from .outputs import run_scene_eval
 
-    configure_runtime(cfg)  # this command's runtime section: threads, device, dtype, ...
+    command = typed(cfg, "rollout")  # this command's settings, typed once
+    configure_runtime(command.runtime)  # this command's runtime section: threads, device, dtype, ...
     from ..files.dataset_identity import accept_option
 
     run_cfg, model, dataset, run_dir, used = load_run_checkpoint(
-        cfg.run, cfg.paths.data_dir, cfg.get("checkpoint") or "best", accept_option(cfg)
+        command.top["run"],
+        command.paths.data_dir,
+        command.top.get("checkpoint") or "best",
+        accept_option(command.top.get("accept_changed_dataset")),
     )
     console.print(describe_checkpoint(used), highlight=False)
     other = other_dataset(cfg, model, run_dir)
@@ -230,9 +235,8 @@ def run_rollout(cfg: DictConfig) -> dict:
         source.update(split=split, test_trajectories=[int(i) for i in idx])
     from ..data.scenes import dataset_steps
 
-    steps = rollout_steps(
-        cfg.steps if cfg.steps is not None else dataset_steps(merged.dataset, dataset, "rollout_steps")
-    )
+    run = typed(merged, "train")  # the run's config with this command's settings, typed once
+    steps = rollout_steps(cfg.steps if cfg.steps is not None else dataset_steps(run.dataset, dataset, "rollout_steps"))
     tag = dataset.scene if other is not None else (split if split != "test" else None)
     from ..files.signals import set_phase
 
@@ -250,12 +254,12 @@ def run_rollout(cfg: DictConfig) -> dict:
         last = load_checkpoint(Path(run_dir) / "checkpoints" / "last.pt")
         model_name = OmegaConf.select(run_cfg, "model.name", default=None)
         provenance = run_provenance(run_dir, last.get("run_id"), model_name, used)
-        results = rollout_and_save(merged, model, dataset, path, steps=steps, provenance=provenance)
+        results = rollout_and_save(run, model, dataset, path, steps=steps, provenance=provenance)
         timings = last.get("timings")
         write_json(out / CHECKPOINT_FILE, used)
         set_phase("evaluation", f"nothing kept ({out} removed)")
-        rows = run_eval_from_objects(merged, dataset, run_dir, timings, rollout_path=path, checkpoint=used)
-        extra = run_scene_eval(merged, model, dataset, run_dir, rollout_path=path)
+        rows = run_eval_from_objects(run, dataset, run_dir, timings, rollout_path=path, checkpoint=used)
+        extra = run_scene_eval(run.scene_eval_options(), model, dataset, run_dir, rollout_path=path)
         exported = None
         if cfg.get("export"):
             from .export import export_layout, export_predictions, reimport_command

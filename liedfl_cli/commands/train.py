@@ -31,7 +31,7 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from ..config.factory import loss_options
+from ..config.typed import OptimizerConfig, RunConfig, TrainConfig, typed
 from ..display.ui import console, err_console, progress_bar, warning_line
 from ..errors import CheckpointError, ConfigError, LiedflError
 from ..files.checkpoint import (
@@ -178,13 +178,13 @@ def checkpoint_interval(value) -> int | None:
     return n
 
 
-def make_optimizer(params, cfg_opt) -> torch.optim.Optimizer:
+def make_optimizer(params, cfg_opt: OptimizerConfig) -> torch.optim.Optimizer:
     name = cfg_opt.name
     if name == "soap":
         from pytorch_optimizer import SOAP
 
-        every = int(cfg_opt.get("precondition_frequency", 10))
-        largest = int(cfg_opt.get("max_precondition_dim", 10000))
+        every = int(cfg_opt.precondition_frequency)
+        largest = int(cfg_opt.max_precondition_dim)
         return SOAP(
             params,
             lr=cfg_opt.lr,
@@ -211,7 +211,7 @@ def make_schedule(opt, name: str, epochs: int):
 def fit(
     model,
     data: Pose,
-    cfg_train: DictConfig,
+    cfg_train: TrainConfig,
     steps: int,
     seed: int = 0,
     show_progress: bool = True,
@@ -236,9 +236,9 @@ def fit(
     (`cfg_train.checkpoint_every`) and when `stop` is set. on_epoch(row): each epoch's metrics.
     """
     # train.loss: newton changes the batches' loss; rollout trains with del here (fine-tuning: finetune.py)
-    opts, samples = training_stage(model, data, int(steps), loss_options(cfg_train))
+    opts, samples = training_stage(model, data, int(steps), cfg_train.loss_options())
     n = samples.n
-    bs = n if cfg_train.get("full_batch", False) else min(int(cfg_train.batch_size), n)
+    bs = n if cfg_train.full_batch else min(int(cfg_train.batch_size), n)
     n_batches = math.ceil(n / bs)
     runtime.plan("train", int(cfg_train.epochs) * n_batches)  # runtime.compile: auto weighs this
     gen = torch.Generator().manual_seed(seed)
@@ -247,8 +247,8 @@ def fit(
         raise ConfigError("the model has no trainable parameters")
     opt = make_optimizer(params, cfg_train.optimizer)
     epochs = int(cfg_train.epochs)
-    sched = make_schedule(opt, cfg_train.optimizer.get("schedule", "constant"), epochs)
-    every = checkpoint_interval(cfg_train.get("checkpoint_every", "auto"))
+    sched = make_schedule(opt, cfg_train.optimizer.schedule, epochs)
+    every = checkpoint_interval(cfg_train.checkpoint_every)
     history: list[dict] = []
     start, offset = 1, 0.0
     if resume is not None:
@@ -367,30 +367,31 @@ def fit(
     }
 
 
-def validation_setup(cfg: DictConfig, dataset, resume: dict | None) -> tuple[ValSplit, Validator | None, Selection]:
+def validation_setup(run: RunConfig, dataset, resume: dict | None) -> tuple[ValSplit, Validator | None, Selection]:
     """The validation split (`dataset.val_fraction`, taken from the train split), the validation
     passes (`train.val_every`, `train.val_horizon`) and the selection (`train.select`,
     `train.early_stopping`), restored from `resume`; prints what was chosen."""
-    from ..config.factory import data_pose, solver_options
+    from ..config.factory import data_pose
     from ..data.scenes import dataset_steps
 
-    steps = dataset_steps(cfg.dataset, dataset, "train_steps")
+    assert run.train is not None and run.dataset is not None, "a train config"
+    steps = dataset_steps(run.dataset, dataset, "train_steps")
     seed = int(dataset.seed) if int(dataset.seed) >= 0 else 0
-    split = make_val_split(dataset.train_idx, steps, val_fraction(cfg.dataset.get("val_fraction")), seed)
-    select, notes = select_option(cfg.train, split)
-    selection = make_selection(cfg.train, select)
+    split = make_val_split(dataset.train_idx, steps, val_fraction(run.dataset.val_fraction), seed)
+    select, notes = select_option(run.train, split)
+    selection = make_selection(run.train, select)
     if resume is not None:
         selection.restore(resume.get("selection"))
     validator = None
     if split.kind != "none":
-        horizon = cfg.train.get("val_horizon", 20)
+        horizon = run.train.val_horizon
         if isinstance(horizon, bool) or not isinstance(horizon, int) or horizon < 2:
             raise ConfigError(f"train.val_horizon={horizon!r}: must be an integer >= 2")
-        every = val_interval(cfg.train.get("val_every", "auto"), int(cfg.train.epochs))
+        every = val_interval(run.train.val_every, int(run.train.epochs))
         if resume is not None and resume.get("val_every"):  # the schedule of the run, also when extended
             every = int(resume["val_every"])
         truth = data_pose(dataset, split.val_idx).index((slice(None), slice(split.val_start, split.val_stop + 1)))
-        validator = Validator(dataset.group, truth, solver_options(cfg.solver), horizon, every)
+        validator = Validator(dataset.group, truth, run.solver, horizon, every)
         console.print(
             f"[bold]validation[/] {split.describe()}; a pass every {every} epochs (and the last): one-step error on "
             f"{validator.n_pairs} pairs (constant velocity: {validator.cv_error:.3e} rad), rollout error over "
@@ -424,7 +425,7 @@ def count_parameters(model) -> int:
     return sum(p.numel() for p in model.parameters() if p.requires_grad)
 
 
-def _train_dataset(cfg: DictConfig, resume: dict | None, accept_changed: bool):
+def _train_dataset(run: RunConfig, resume: dict | None, accept_changed: bool):
     """(dataset, its file) for training. A resumed run reads the file its checkpoint recorded (an
     absolute path: resuming works from any directory), which must still be the file trained on
     (`dataset_identity`); a run whose recorded file is gone gets it again from its config."""
@@ -436,13 +437,14 @@ def _train_dataset(cfg: DictConfig, resume: dict | None, accept_changed: bool):
     recorded = state.get("dataset_path")
     if recorded and Path(str(recorded)).is_absolute() and Path(str(recorded)).is_file():
         path = Path(str(recorded))
-        ckpt = Path(cfg.paths.output_dir) / "checkpoints" / "last.pt"
+        ckpt = Path(run.paths.output_dir) / "checkpoints" / "last.pt"
         check_unchanged(ckpt, state.get("dataset_sha256"), path, accept_changed)
         return load_dataset(path), path
-    return get_dataset(cfg.dataset, cfg.paths.data_dir, console=err_console)
+    assert run.dataset is not None, "a train config"
+    return get_dataset(run.dataset, run.paths.data_dir, console=err_console)
 
 
-def _absolute_user_paths(cfg: DictConfig) -> None:
+def _absolute_user_paths(cfg: DictConfig, run: RunConfig) -> None:
     """`dataset.path` (dataset=file / import) made absolute in the config the run records: a resume
     or rollout from another directory finds the same file (the cache name does not hash the path)."""
     from ..files.dataset_identity import absolute
@@ -451,6 +453,20 @@ def _absolute_user_paths(cfg: DictConfig) -> None:
     if isinstance(path, str) and path and not Path(path).is_absolute():
         with open_dict(cfg.dataset):
             cfg.dataset.path = absolute(path)
+        if run.dataset is not None:
+            run.dataset.scene["path"] = cfg.dataset.path
+
+
+def _record_steps(cfg: DictConfig, run: RunConfig) -> None:
+    """The steps `complete_steps` filled in (a file's null train_steps / rollout_steps) written to the
+    config the run records too; `rollout.steps` follows `dataset.rollout_steps` there."""
+    assert run.dataset is not None and run.rollout is not None
+    for key in ("train_steps", "rollout_steps"):
+        if key in cfg.dataset and cfg.dataset[key] is None:
+            with open_dict(cfg.dataset):
+                cfg.dataset[key] = getattr(run.dataset, key)
+    if run.rollout.steps is None:
+        run.rollout.steps = OmegaConf.select(cfg, "rollout.steps", default=None)
 
 
 def run_train(cfg: DictConfig, resume: dict | None = None, accept_changed_dataset: bool = False) -> dict:
@@ -463,23 +479,26 @@ def run_train(cfg: DictConfig, resume: dict | None = None, accept_changed_datase
     from .evaluate import run_eval_from_objects
     from .rollout import rollout_and_save
 
-    configure_runtime(cfg)  # threads, fused paths, compilation, device, dtype (cfg.runtime)
-    out = Path(cfg.paths.output_dir)
+    run = typed(cfg, "train")  # the one conversion: below here only typed objects travel
+    assert run.train is not None and run.rollout is not None and run.dataset is not None, "a train config"
+    configure_runtime(run.runtime)  # threads, fused paths, compilation, device, dtype
+    out = Path(run.paths.output_dir)
     out.mkdir(parents=True, exist_ok=True)
     ckpt = out / "checkpoints" / "last.pt"
     best = out / "checkpoints" / "best.pt"
-    torch.manual_seed(int(cfg.seed))
+    torch.manual_seed(int(run.seed or 0))
     set_phase("data generation")
-    dataset, data_path = _train_dataset(cfg, resume, accept_changed_dataset)
-    complete_steps(cfg.dataset, dataset)  # a file's null train_steps / rollout_steps: all its steps
-    if cfg.rollout.enabled and len(dataset.test_idx) == 0:  # fail now, not after training
+    dataset, data_path = _train_dataset(run, resume, accept_changed_dataset)
+    complete_steps(run.dataset, dataset)  # a file's null train_steps / rollout_steps: all its steps
+    _record_steps(cfg, run)
+    if run.rollout.enabled and len(dataset.test_idx) == 0:  # fail now, not after training
         raise ConfigError(
             f"{data_path}: the dataset's test split is empty, so there is nothing to roll out after training; "
             "give it test trajectories (dataset=file: dataset.split=default) or set rollout.enabled=false"
         )
     resumable = ckpt.is_file() and resume is not None
     set_phase("training", f"resume with: liedfl train resume={out}" if resumable else None)
-    model = build_model(cfg, dataset)  # on the runtime's device, in its dtype
+    model = build_model(run, dataset)  # on the runtime's device, in its dtype
     if resume is not None:
         load_state(ckpt, model, resume)
     n_params = count_parameters(model)
@@ -499,7 +518,7 @@ def run_train(cfg: DictConfig, resume: dict | None = None, accept_changed_datase
             "notes": list(model.notes),
         },
     )
-    _absolute_user_paths(cfg)
+    _absolute_user_paths(cfg, run)
     config = OmegaConf.to_container(cfg, resolve=True)
     assert isinstance(config, dict)
     dataset_path = str(Path(data_path).resolve())
@@ -516,9 +535,9 @@ def run_train(cfg: DictConfig, resume: dict | None = None, accept_changed_datase
         save_checkpoint(ckpt, model, config, extra)
 
     history = list(resume.get("history", [])) if resume else []
-    log = make_loggers(str(OmegaConf.select(cfg, "logger.name", default="csv")), out, history)
-    epochs = int(cfg.train.epochs)
-    split, validator, selection = validation_setup(cfg, dataset, resume)
+    log = make_loggers(run.logger.name, out, history)
+    epochs = int(run.train.epochs)
+    split, validator, selection = validation_setup(run, dataset, resume)
     if resume is None:
         best.unlink(missing_ok=True)  # a reused run directory: no stale best.pt
 
@@ -550,10 +569,10 @@ def run_train(cfg: DictConfig, resume: dict | None = None, accept_changed_datase
                 result = fit(
                     model,
                     train_data,
-                    cfg.train,
+                    run.train,
                     split.train_steps,
-                    seed=int(cfg.seed),
-                    show_progress=cfg.ui.progress,
+                    seed=int(run.seed or 0),
+                    show_progress=run.ui.progress,
                     resume=resume,
                     save=save,
                     on_epoch=log.log,
@@ -565,12 +584,12 @@ def run_train(cfg: DictConfig, resume: dict | None = None, accept_changed_datase
             except TrainingInterrupted as e:
                 raise TrainingInterrupted(f"{e}; resume with: liedfl train resume={out}", e.exit_code) from None
             except TrainingDiverged as e:
-                raise _diverged(e, cfg, ckpt, resume is not None) from None
+                raise _diverged(e, run.train, ckpt, resume is not None) from None
             finally:
                 log.close()
     done_before = resume is not None and int(resume["epoch"]) >= epochs  # a finished run: evaluation only
-    if str(cfg.train.get("loss", "del")) == "rollout" and not done_before:  # train.loss=rollout: fine-tune
-        result = _finetune_stage(cfg, model, train_data, result, out)
+    if run.train.loss == "rollout" and not done_before:  # train.loss=rollout: fine-tune
+        result = _finetune_stage(run, model, train_data, result, out)
     timings = {
         "train_seconds": result["train_seconds"],
         "seconds_per_epoch": result["seconds_per_epoch"],
@@ -602,7 +621,7 @@ def run_train(cfg: DictConfig, resume: dict | None = None, accept_changed_datase
             "h": dataset.h,
             "trajectories": dataset.n_trajectories,
             "steps": dataset.n_steps,
-            "train_steps": int(cfg.dataset.train_steps),
+            "train_steps": int(run.dataset.train_steps or 0),
             "train": len(dataset.train_idx),
             "test": len(dataset.test_idx),
             "val": len(split.val_idx),
@@ -622,24 +641,24 @@ def run_train(cfg: DictConfig, resume: dict | None = None, accept_changed_datase
         recovery = None
     if recovery is not None:
         write_json(out / "recovery.json", recovery)
-    if cfg.rollout.enabled:
+    if run.rollout.enabled:
         set_phase("rollout", redo)
-        provenance = run_provenance(out, run_id, OmegaConf.select(cfg, "model.name", default=None), used)
-        ro = rollout_and_save(cfg, model, dataset, out / "rollout.h5", steps=cfg.rollout.steps, provenance=provenance)
+        provenance = run_provenance(out, run_id, (run.model or {}).get("name"), used)
+        ro = rollout_and_save(run, model, dataset, out / "rollout.h5", steps=run.rollout.steps, provenance=provenance)
         summary["rollout"] = ro
         set_phase("evaluation", redo)
         write_json(out / CHECKPOINT_FILE, used)  # which checkpoint rolled out (liedfl eval reads it)
-        summary["eval"] = run_eval_from_objects(cfg, dataset, out, timings, checkpoint=used)
+        summary["eval"] = run_eval_from_objects(run, dataset, out, timings, checkpoint=used)
         from .outputs import run_scene_eval
 
-        extra = run_scene_eval(cfg, model, dataset, out)
+        extra = run_scene_eval(run.scene_eval_options(), model, dataset, out)
         if extra is not None:
             summary["extra_eval"] = extra
     write_json(out / "summary.json", summary)
     return summary
 
 
-def _diverged(e: TrainingDiverged, cfg: DictConfig, ckpt: Path, resumed: bool) -> LiedflError:
+def _diverged(e: TrainingDiverged, train: TrainConfig, ckpt: Path, resumed: bool) -> LiedflError:
     """The one-line error of a diverged training: from a resumed checkpoint's own weights, the
     checkpoint is unusable; otherwise the learning rate diverged. last.pt is never overwritten by
     diverged weights: the line names the last good checkpoint (or says there is none)."""
@@ -648,7 +667,7 @@ def _diverged(e: TrainingDiverged, cfg: DictConfig, ckpt: Path, resumed: bool) -
             f"{ckpt}: the training loss at the checkpoint's weights is {e.value}: the weights are unusable "
             "(retrain, or resume an earlier copy of the run)"
         )
-    lr = cfg.train.optimizer.lr
+    lr = train.optimizer.lr
     kept = (
         f"the last good checkpoint {ckpt} (epoch {e.saved}) is kept"
         if e.saved is not None
@@ -657,26 +676,26 @@ def _diverged(e: TrainingDiverged, cfg: DictConfig, ckpt: Path, resumed: bool) -
     if (ckpt.parent / "best.pt").is_file():
         kept += " (best.pt: the best validated epoch)"
     e.args = (
-        f"{e}: the learning rate diverged (train.optimizer.lr={lr:g} with {cfg.train.optimizer.name}); "
+        f"{e}: the learning rate diverged (train.optimizer.lr={lr:g} with {train.optimizer.name}); "
         f"lower train.optimizer.lr; {kept}",
     )
     return e
 
 
-def _finetune_stage(cfg: DictConfig, model, train_data: Pose, result: dict, out: Path) -> dict:
+def _finetune_stage(run: RunConfig, model, train_data: Pose, result: dict, out: Path) -> dict:
     """`finetune.finetune` after the DEL stage; its seconds are added to the training time."""
-    from ..config.factory import solver_options
     from .finetune import finetune
 
+    assert run.train is not None and run.dataset is not None, "a train config"
     log = MetricsLog(out / "finetune_metrics.csv", [])
     tuned = finetune(
         model,
         train_data,
-        cfg.train,
-        int(cfg.dataset.train_steps),
-        solver_options(cfg.solver),
-        seed=int(cfg.seed),
-        show_progress=cfg.ui.progress,
+        run.train,
+        int(run.dataset.train_steps or 0),
+        run.solver,
+        seed=int(run.seed or 0),
+        show_progress=run.ui.progress,
         on_epoch=log.append,
         make_optimizer=make_optimizer,
     )
@@ -723,4 +742,4 @@ def run_resume(cfg: DictConfig) -> dict:
     saved.ui = cfg.ui
     from ..files.dataset_identity import accept_option
 
-    return run_train(saved, resume=payload, accept_changed_dataset=accept_option(cfg))
+    return run_train(saved, resume=payload, accept_changed_dataset=accept_option(cfg.get("accept_changed_dataset")))

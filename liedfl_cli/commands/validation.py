@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from ..config.typed import TrainConfig
 from ..errors import ConfigError
 from ..evaluation.metrics import geodesic_error, position_error
 from ..lie import Pose
@@ -174,18 +175,18 @@ class Selection:
         self.stopped = bool(state.get("stopped", False))
 
 
-def select_option(cfg_train, split: ValSplit) -> tuple[str, list[str]]:
+def select_option(cfg_train: TrainConfig, split: ValSplit) -> tuple[str, list[str]]:
     """`train.select` checked against the split -> (select, notes)."""
-    select = str(cfg_train.get("select", "val_one_step"))
+    select = str(cfg_train.select)
     if select not in SELECT:
         raise ConfigError(f"train.select={select!r}: choose one of {', '.join(SELECT)}")
-    es = cfg_train.get("early_stopping") or {}
+    es = cfg_train.early_stopping
     if split.kind == "none":
         notes = [] if select == "last" else [f"no validation split: train.select={select} -> last"]
-        if es.get("patience") is not None:
+        if es.patience is not None:
             notes.append("no validation split: train.early_stopping is off")
         return "last", notes
-    if select == "last" and es.get("patience") is not None:
+    if select == "last" and es.patience is not None:
         raise ConfigError(
             "train.early_stopping.patience needs a validation metric to watch: set train.select=val_one_step "
             "or val_rollout (or patience=null)"
@@ -193,12 +194,12 @@ def select_option(cfg_train, split: ValSplit) -> tuple[str, list[str]]:
     return select, []
 
 
-def make_selection(cfg_train, select: str) -> Selection:
-    es = cfg_train.get("early_stopping") or {}
-    patience = es.get("patience")
+def make_selection(cfg_train: TrainConfig, select: str) -> Selection:
+    es = cfg_train.early_stopping
+    patience = es.patience
     if patience is not None and (isinstance(patience, bool) or not isinstance(patience, int) or patience < 1):
         raise ConfigError(f"train.early_stopping.patience={patience!r}: must be a positive integer or null")
-    min_delta = es.get("min_delta", 0.0) or 0.0
+    min_delta = es.min_delta or 0.0
     if isinstance(min_delta, bool) or not isinstance(min_delta, (int, float)) or not min_delta >= 0:
         raise ConfigError(f"train.early_stopping.min_delta={min_delta!r}: must be a number >= 0")
     if select == "last":

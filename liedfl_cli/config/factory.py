@@ -11,26 +11,28 @@ model there, `data_pose` converts a dataset's trajectories; nothing below the pi
 from __future__ import annotations
 
 import inspect
-from typing import Any, TypeVar
+from typing import TypeVar
 
 import torch
 from hydra.utils import get_class
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 from torch import nn
 
 from ..errors import ConfigError
 from ..lie import Pose
 from ..models.articulated import ArticulatedLieDFLNN
-from ..models.base import BuildContext, LossOptions, Model
+from ..models.base import BuildContext, Model
 from ..models.liedflnn import LieDFLNN
-from ..solvers.options import SolverOptions
+from ..solvers.runtime import RuntimeOptions
 from . import resolvers  # noqa: F401  (registers the config resolvers)
+from .typed import RunConfig, typed
 
 PACKAGE_PREFIX = "liedfl_cli.models."
 
 
-def _plain(node) -> Any:
-    return OmegaConf.to_container(node, resolve=True) if isinstance(node, DictConfig) else node
+def _typed(run: RunConfig | DictConfig) -> RunConfig:
+    """A command passes its `RunConfig`; scripts and tests may pass a composed config."""
+    return run if isinstance(run, RunConfig) else typed(run)
 
 
 def model_class(target: str) -> type[Model]:
@@ -51,46 +53,49 @@ def model_class(target: str) -> type[Model]:
     return cls
 
 
-def check_group(cfg: DictConfig, dataset) -> None:
+def check_group(run: RunConfig, dataset) -> None:
     """The composed `group` must describe the dataset's bodies (dataset files select it)."""
-    grp = cfg.get("group")
+    grp = run.group
     if grp is None:
         return
     want = (int(grp.n_se3), int(grp.n_so3))
     have = (dataset.group.n_se3, dataset.group.n_so3)
     if want != have:
+        name = run.dataset.name if run.dataset is not None else None
         raise ConfigError(
-            f"group (n_se3={want[0]}, n_so3={want[1]}) does not match dataset '{cfg.dataset.name}' "
+            f"group (n_se3={want[0]}, n_so3={want[1]}) does not match dataset '{name}' "
             f"({dataset.group.name}); drop the group override or pick a matching group"
         )
 
 
-def build_context(cfg: DictConfig, dataset) -> BuildContext:
-    forces = _plain(cfg.force) if cfg.get("force") else {}
+def build_context(run: RunConfig | DictConfig, dataset) -> BuildContext:
+    run = _typed(run)
+    assert run.train is not None and run.seed is not None, "a train config"
     return BuildContext(
         group=dataset.group,
         h=float(dataset.h),
-        seed=int(cfg.seed),
-        epsilon=float(cfg.train.epsilon),
-        forces=forces or {},
+        seed=int(run.seed),
+        epsilon=float(run.train.epsilon),
+        forces=run.force or {},
         physics=(dataset.params or {}).get("physics"),
         metadata=dataset.params or {},
         tree=getattr(dataset, "tree", None),
     )
 
 
-def build_model(cfg: DictConfig, dataset) -> Model:
-    """The model of `cfg.model` for the dataset's group and step; `model.name` names it. Built on the
+def build_model(run: RunConfig | DictConfig, dataset) -> Model:
+    """The model of `run.model` for the dataset's group and step; `model.name` names it. Built on the
     CPU in float64 (the same initial weights whatever the runtime), then moved to the runtime's
     device and dtype (`place`)."""
-    check_group(cfg, dataset)
-    options = dict(_plain(cfg.model))
+    run = _typed(run)
+    check_group(run, dataset)
+    options = dict(run.model or {})
     cls = model_class(options.pop("_target_", None))
     name = str(options.pop("name", cls.__name__.lower()))
     if issubclass(cls, LieDFLNN) and options.get("kinetic") == "articulated":
         cls = ArticulatedLieDFLNN  # the same options on the data's kinematic tree
     try:
-        model = cls.from_config(build_context(cfg, dataset), **options)
+        model = cls.from_config(build_context(run, dataset), **options)
     except ConfigError:
         raise
     except ValueError as e:  # invalid option values: one clear config error
@@ -124,19 +129,8 @@ def data_pose(dataset, traj_idx=None) -> Pose:
     return dataset.pose(traj_idx, dtype=dtype, device=device)
 
 
-def loss_options(cfg_train) -> LossOptions:
-    return LossOptions.from_mapping(_plain(cfg_train))
-
-
-def solver_options(cfg_solver) -> SolverOptions:
-    try:
-        return SolverOptions.from_mapping(_plain(cfg_solver))
-    except ValueError as e:
-        raise ConfigError(str(e)) from None
-
-
-def configure_runtime(cfg: DictConfig):
-    """Apply `cfg.runtime` (threads, fused paths, compilation, device, dtype) to this process; a job
+def configure_runtime(run: RunConfig | RuntimeOptions | DictConfig):
+    """Apply the runtime settings (threads, fused paths, compilation, device, dtype) to this process; a job
     of a joblib sweep runs on one thread (the jobs share the cores). `runtime.device=cuda` without a
     CUDA device: ConfigError."""
     from ..solvers import runtime
@@ -149,4 +143,5 @@ def configure_runtime(cfg: DictConfig):
             parallel = "joblib" in str(HydraConfig.get().launcher.get("_target_", "")).lower()
     except Exception:  # no Hydra context (tests, scripts): not a sweep job
         parallel = False
-    return runtime.configure(_plain(cfg.get("runtime")), parallel_job=parallel)
+    opts = run if isinstance(run, RuntimeOptions) else _typed(run).runtime
+    return runtime.configure(opts, parallel_job=parallel)

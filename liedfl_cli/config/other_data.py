@@ -10,6 +10,7 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from ..errors import ConfigError, DatasetError
+from .typed import dataset_config
 
 SOURCE_FILE = "source.json"
 """Written next to a rollout of a run on other data (or of other trajectories than the test split):
@@ -140,12 +141,12 @@ def other_dataset(cfg: DictConfig, model, run_dir):
     assert isinstance(plain, dict)
     plain, all_asked = relaxed_dataset_config(plain)
     try:
-        dataset, path = get_dataset(plain, cfg.paths.data_dir)
+        dataset, path = get_dataset(dataset_config(plain), cfg.paths.data_dir)
     except ConfigError as e:  # dataset.n_test = every trajectory: refused for training, not for a rollout
         n_test = plain.get("n_test")
         if n_test is None or "dataset.n_test" not in str(e):
             raise
-        dataset, path = get_dataset({**plain, "n_test": None}, cfg.paths.data_dir)
+        dataset, path = get_dataset(dataset_config({**plain, "n_test": None}), cfg.paths.data_dir)
         if int(n_test) != dataset.n_trajectories:
             raise
         plain, all_asked = {**plain, "n_test": None}, True
@@ -191,7 +192,7 @@ def rollout_dataset(path: Path, model, dataset, run_cfg, run_dir, data_dir):
     if ds_path.is_file():
         other = load_dataset(ds_path)
     else:
-        other, _ = get_dataset(ds_cfg, data_dir)
+        other, _ = get_dataset(dataset_config(ds_cfg), data_dir)
     check_model_fits_data(model, other, run_dir)
     if src.get("split") not in (None, "test"):  # split=all / train: those trajectories are the ones evaluated
         other = with_test_split(other, src.get("test_trajectories") or [])

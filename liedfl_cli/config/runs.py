@@ -57,6 +57,7 @@ def load_run_checkpoint(run_dir, data_dir=None, checkpoint: str = "best", accept
     from ..data.hdf5 import load_dataset
     from ..data.scenes import get_dataset
     from .factory import build_model, placement
+    from .typed import dataset_config
 
     if run_dir in (None, "", "???"):
         raise ConfigError("run=<run dir> is required (a directory written by `liedfl train`)")
@@ -80,7 +81,7 @@ def load_run_checkpoint(run_dir, data_dir=None, checkpoint: str = "best", accept
             check_unchanged(ckpt, payload.get("dataset_sha256"), ds_path, accept_changed_dataset)
             dataset = load_dataset(ds_path)
     else:  # regenerate from the recorded config (deterministic given its seed)
-        dataset, _ = get_dataset(cfg.dataset, data_dir or cfg.paths.data_dir)
+        dataset, _ = get_dataset(dataset_config(cfg.dataset), data_dir or cfg.paths.data_dir)
     try:
         model = build_model(cfg, dataset)
     except Exception as e:

@@ -5,7 +5,8 @@ Hydra creates the run directory, and again when the job starts):
 
 - **unknown keys** at every level (the top level, every section, `dataset` and its blocks, `force`,
   `model`) are rejected, naming the key and the closest valid one (difflib);
-- **types** of the sections owned by liedfl (dataclass schemas below);
+- **types** of the sections owned by liedfl (their dataclasses in `config/typed.py`, which also
+  builds the typed objects the commands pass on);
 - **values**: positive epochs / batch size / learning rate, an integer seed, rollout lengths,
   a usable `paths.data_dir`, `model._target_` restricted to liedfl's own classes, the dataset's
   numbers and a non-empty train (and, with a rollout, test) split.
@@ -32,86 +33,14 @@ from omegaconf.errors import OmegaConfBaseException
 
 from ..errors import ConfigError
 from . import resolvers  # noqa: F401  (registers the config resolvers)
+from .typed import SECTIONS as TYPED_SECTIONS
+from .typed import PathsConfig
 
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"  # the configs ship inside the package
 
 
 @dataclass
-class OptimizerSchema:
-    name: str = "soap"
-    lr: float = 3e-3
-    weight_decay: float = 0.0
-    schedule: str = "constant"
-    precondition_frequency: int = 10  # SOAP: steps between eigenbasis updates
-    max_precondition_dim: int = 10000  # SOAP: larger dimensions are not preconditioned
-
-
-@dataclass
-class EarlyStoppingSchema:
-    patience: int | None = None  # validation passes without improvement before training stops; null = off
-    min_delta: float = 0.0  # an improvement must exceed this
-
-
-@dataclass
-class RolloutLossSchema:  # train.loss=rollout: the fine-tuning stage (liedfl_cli/commands/finetune.py)
-    horizon: int = 5  # k: steps rolled out per window of k + 2 true poses
-    epochs: int = 100  # fine-tuning epochs after train.epochs of the DEL loss
-    lr: Any = None  # null: train.optimizer.lr
-
-
-@dataclass
-class TrainSchema:
-    epochs: int = 1000
-    batch_size: int = 1024
-    optimizer: OptimizerSchema = field(default_factory=OptimizerSchema)
-    w_del: float = 0.5
-    w_reg: float = 0.5
-    reg_points: int = 10
-    reg_form: str = "relu"
-    epsilon: float = 10.0
-    checkpoint_every: Any = "auto"  # auto | positive int (checked in train.checkpoint_interval)
-    full_batch: bool = False  # one optimiser step per epoch over every sample
-    val_every: Any = "auto"  # auto | positive int (checked in validation.val_interval)
-    val_horizon: int = 20
-    select: str = "val_one_step"
-    early_stopping: EarlyStoppingSchema = field(default_factory=EarlyStoppingSchema)
-    loss: str = "del"  # del | newton | rollout (models/losses.py)
-    rollout_loss: RolloutLossSchema = field(default_factory=RolloutLossSchema)
-
-
-@dataclass
-class RolloutSchema:
-    enabled: bool = True
-    steps: int | None = None
-    max_trajectories: int | None = None
-    reference: bool = True
-
-
-@dataclass
-class EvalSchema:
-    plots: bool = True
-
-
-@dataclass
-class UiSchema:
-    progress: bool = True
-
-
-@dataclass
-class PathsSchema:
-    data_dir: str = "outputs/data"
-    output_dir: str = "."
-
-
-@dataclass
-class SolverSchema:
-    tol: float = 1e-5
-    max_iter: int = 10
-    max_halvings: int = 6
-
-
-@dataclass
-class ModelSchema:
+class ModelSchema:  # LieDFLNN's options (conf/model/liedflnn.yaml), typed for the check below
     _target_: str = "liedfl_cli.models.liedflnn.LieDFLNN"
     name: str = "liedflnn"
     potential: Any = "auto"  # auto | none | mlp | uniform_gravity | a list of mlp, uniform_gravity
@@ -125,36 +54,8 @@ class ModelSchema:
     learn_gravity_direction: bool = False
 
 
-@dataclass
-class RuntimeSchema:  # execution settings, liedfl_cli/solvers/runtime.py
-    threads: Any = "auto"  # auto | positive int (checked in runtime.RuntimeOptions)
-    fused: bool = True
-    compile: Any = "auto"  # auto | true | false
-    device: str = "cpu"  # cpu | cuda | auto (availability checked when the job starts: runtime.configure)
-    dtype: str = "float64"  # float64 | float32
-
-
-@dataclass
-class LoggerSchema:  # the `logger` config group (liedfl_cli/loggers/)
-    name: str = "csv"  # csv | tensorboard (train_metrics.csv plus <run>/tensorboard/)
-
-
-@dataclass
-class GroupSchema:
-    n_se3: int = 0
-    n_so3: int = 1
-
-
-SECTIONS: dict[str, Any] = {
-    "train": TrainSchema,
-    "rollout": RolloutSchema,
-    "eval": EvalSchema,
-    "ui": UiSchema,
-    "solver": SolverSchema,
-    "group": GroupSchema,
-    "runtime": RuntimeSchema,
-    "logger": LoggerSchema,
-}
+SECTIONS: dict[str, Any] = {k: v for k, v in TYPED_SECTIONS.items() if k != "paths"}
+"""The sections whose keys and types are checked against their dataclass (config/typed.py)."""
 CHOICES = {
     ("train", "reg_form"): ("relu", "gaussian"),
     ("train", "select"): ("val_one_step", "val_rollout", "last"),
@@ -608,7 +509,7 @@ def validate(cfg: DictConfig, command: str | None = None) -> None:
             _check_dataclass_keys(cfg[name], schema, name)
             _check_types(cfg, name, schema)
     if "paths" in cfg:
-        _check_keys(cfg.paths, [f.name for f in dataclasses.fields(PathsSchema)], "paths")
+        _check_keys(cfg.paths, [f.name for f in dataclasses.fields(PathsConfig)], "paths")
     _check_dataset_keys(cfg)
     _check_force(cfg)
     for path, allowed in CHOICES.items():

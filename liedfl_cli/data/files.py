@@ -44,6 +44,7 @@ import torch
 
 from ..errors import ConfigError, DatasetError, DataWarning
 from ..lie import so3
+from .dataset_config import DatasetConfig
 from .hdf5 import Dataset, load_dataset
 from .import_options import ColumnFinder, check_columns, check_time_unit, gravity_params, warn_if_milliseconds
 from .scene_common import TRAIN_TIME_KEYS, config_hash, make_split
@@ -134,10 +135,9 @@ def _paths(c: dict) -> list[Path]:
 @functools.cache
 def _shipped_defaults(name: str) -> dict:
     """The values of liedfl_cli/conf/dataset/<name>.yaml, without `defaults` and the required (???) keys."""
-    from omegaconf import OmegaConf
+    import yaml
 
-    raw = OmegaConf.load(Path(__file__).resolve().parent.parent / "conf" / "dataset" / f"{name}.yaml")
-    out = OmegaConf.to_container(raw, resolve=True)
+    out = yaml.safe_load((Path(__file__).resolve().parent.parent / "conf" / "dataset" / f"{name}.yaml").read_text())
     assert isinstance(out, dict)
     return {k: v for k, v in out.items() if k != "defaults" and v != "???" and k not in TRAIN_TIME_KEYS}
 
@@ -239,14 +239,14 @@ def hashed_config(c: dict) -> dict:
 
 
 # --------------------------------------------------------------------------- after loading
-def complete_steps(cfg_dataset, ds: Dataset) -> None:
+def complete_steps(cfg_dataset: DatasetConfig, ds: Dataset) -> None:
     """Fill `train_steps` / `rollout_steps` left null (a `file` or `import` scene: "all the steps")
     with the dataset's step count, in place; ConfigError when train_steps exceeds it."""
     n = ds.n_steps
     for key in ("train_steps", "rollout_steps"):
-        if key in cfg_dataset and cfg_dataset[key] is None:
-            cfg_dataset[key] = n
-    train = cfg_dataset.get("train_steps") if hasattr(cfg_dataset, "get") else None
+        if key in cfg_dataset.present and getattr(cfg_dataset, key) is None:
+            setattr(cfg_dataset, key, n)
+    train = cfg_dataset.get("train_steps")
     if train is not None and int(train) > n:
         raise ConfigError(f"dataset.train_steps={train}: the dataset has only {n} steps per trajectory")
 

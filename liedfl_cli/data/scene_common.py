@@ -49,22 +49,17 @@ REQUIRED_KEYS = (
 
 # --------------------------------------------------------------------------- config handling
 def to_dict(cfg) -> dict[str, Any]:
-    """DictConfig / Mapping -> plain nested dict (interpolations resolved), without TRAIN_TIME_KEYS."""
-    out: dict[str, Any] | None = None
-    try:
-        from omegaconf import DictConfig, OmegaConf
+    """DatasetConfig / plain Mapping -> plain nested dict (a copy), without TRAIN_TIME_KEYS."""
+    from .dataset_config import DatasetConfig
 
-        if isinstance(cfg, DictConfig):
-            out = OmegaConf.to_container(cfg, resolve=True)  # type: ignore[assignment]
-    except ImportError:  # pragma: no cover
-        pass
-    if out is None:
-        if not isinstance(cfg, Mapping):
-            raise ConfigError(f"dataset config must be a mapping, got {type(cfg).__name__}")
+    if isinstance(cfg, DatasetConfig):
+        out = cfg.as_dict()
+    elif isinstance(cfg, Mapping):
         out = copy.deepcopy(dict(cfg))
-    if isinstance(out, dict):
-        for k in TRAIN_TIME_KEYS:
-            out.pop(k, None)
+    else:
+        raise ConfigError(f"dataset config must be a mapping, got {type(cfg).__name__}")
+    for k in TRAIN_TIME_KEYS:
+        out.pop(k, None)
     return out
 
 

@@ -1,6 +1,6 @@
 """The scene registry `SCENES` (name -> generator) and the dataset front door.
 
-Each generator takes a dataset config (omegaconf DictConfig or plain dict, the fields of
+Each generator takes a dataset config (a `DatasetConfig` or plain dict, the fields of
 liedfl_cli/conf/dataset/*.yaml; see `scene_common`) and returns a `Dataset`. The generators live
 beside this module (`scenes_rigid`: Exp 1-3, `scenes_multibody`: two bodies and PD control,
 `mocap`: the CMU recordings, `files`: the user's own data, `file` and `import`) and are listed here

@@ -4,7 +4,7 @@ continuous equations (`physics.py`).
 Config fields (conf/dataset/*.yaml, checked by `scene_common.check_config`): name, h, n_trajectories,
 steps (generated length N), train_steps, rollout_steps, test_fraction, n_test (null or int), seed,
 physics {J (diag), m, rho, g, D (diag, length 3 or 6)}, initial {scene specific}, solver {method, rtol,
-atol}. Each generator takes such a config (DictConfig or plain dict) and returns a `Dataset`; the
+atol}. Each generator takes such a config (a `DatasetConfig` or plain dict) and returns a `Dataset`; the
 registry `scenes.SCENES` maps scene names to them.
 """
 

@@ -2,7 +2,7 @@
 the PD-control scene (Exp 5, `control.py`) and the mocap table (Exp 4, `mocap.py`).
 
 `SCENE_EVALS` is the one registry, keyed by the dataset's declared scene (`Dataset.scene`); nothing
-registers itself at import. Each entry is `fn(cfg, model, dataset, run_dir, rollout_path=None) ->
+registers itself at import. Each entry is `fn(opts: SceneEvalOptions, model, dataset, run_dir, rollout_path=None) ->
 EvalOutputs | None`; it reads the rollout file (default `<run_dir>/rollout.h5`) and computes its
 summary, tables and figures; it writes nothing (the commands do: `commands.outputs.write_outputs`).
 """
@@ -14,7 +14,7 @@ from pathlib import Path
 
 from .control import evaluate_control
 from .mocap import evaluate_mocap
-from .outputs import EvalOutputs
+from .outputs import EvalOutputs, SceneEvalOptions
 
 SCENE_EVALS: dict[str, Callable[..., EvalOutputs | None]] = {
     "cmu_cartwheel": evaluate_mocap,
@@ -22,13 +22,13 @@ SCENE_EVALS: dict[str, Callable[..., EvalOutputs | None]] = {
 }
 
 
-def run_extra_evals(cfg, model, dataset, run_dir, rollout_path=None) -> EvalOutputs | None:
+def run_extra_evals(opts: SceneEvalOptions, model, dataset, run_dir, rollout_path=None) -> EvalOutputs | None:
     """Run the dataset scene's evaluation, if it has one, on `rollout_path` (default the run's
     rollout.h5); returns its outputs, not yet written (None without one)."""
     fn = SCENE_EVALS.get(dataset.scene)
     if fn is None:
         return None
-    return fn(cfg, model, dataset, Path(run_dir), rollout_path=rollout_path)
+    return fn(opts, model, dataset, Path(run_dir), rollout_path=rollout_path)
 
 
-__all__ = ["SCENE_EVALS", "EvalOutputs", "run_extra_evals"]
+__all__ = ["SCENE_EVALS", "EvalOutputs", "SceneEvalOptions", "run_extra_evals"]

@@ -34,7 +34,7 @@ from ..files.rollout_file import FILE_NAME, load_rollout
 from ..lie import Pose
 from ..mechanics.kinetic import velocity_estimate
 from ..models.base import tensor_placement
-from .outputs import EvalOutputs
+from .outputs import EvalOutputs, SceneEvalOptions
 
 
 @torch.no_grad()
@@ -67,7 +67,7 @@ def torque_errors(learned: np.ndarray, true: np.ndarray) -> dict:
     }
 
 
-def evaluate_control(cfg, model, dataset, run_dir, rollout_path=None) -> EvalOutputs | None:
+def evaluate_control(opts: SceneEvalOptions, model, dataset, run_dir, rollout_path=None) -> EvalOutputs | None:
     """Exp 5 torque recovery, computed, not written: the summary and files (None for models without
     forces).
 
@@ -123,7 +123,7 @@ def evaluate_control(cfg, model, dataset, run_dir, rollout_path=None) -> EvalOut
             f"control recovery ({r['split']}): relative torque error mean {r['rel_error_mean']:.3e}, "
             f"max {r['rel_error_max']:.3e}, aggregate {r['rel_error_aggregate']:.3e}"
         )
-    if cfg.eval.plots:
+    if opts.plots:
         key = "test" if "test" in curves else "train"
         out.add("plots/torque.png", plot_torque(curves[key], h, _rollout_R(path, dataset), key))
     return out

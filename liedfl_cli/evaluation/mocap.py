@@ -62,8 +62,7 @@ from ..files.io_utils import fmt, markdown_table
 from ..files.rollout_file import FILE_NAME, RolloutEntry, load_rollout
 from ..lie import Pose
 from ..models.base import Model, tensor_placement
-from ..solvers.options import SolverOptions
-from .outputs import EvalOutputs
+from .outputs import EvalOutputs, SceneEvalOptions
 
 PAPER: dict[str, Any] = {
     "sequences": [
@@ -199,16 +198,6 @@ def one_step_errors(model, truth_R, truth_p, solver, joints=None, stored=None, g
         "solves": 0 if conv is None else int(conv.numel()),
         "from_rollout_file": stored is not None and pred is not None and stored.R.shape[:2] == (T, K),
     }
-
-
-def _solver(cfg) -> SolverOptions:
-    """The `solver` section of a run's config as SolverOptions (defaults without one)."""
-    from omegaconf import OmegaConf
-
-    section = cfg.get("solver") if hasattr(cfg, "get") else None
-    if OmegaConf.is_config(section):
-        section = OmegaConf.to_container(section, resolve=True)
-    return SolverOptions.from_mapping(section if isinstance(section, (dict, SolverOptions)) else None)
 
 
 def constant_velocity_errors(dataset, tR, tp, joints=None) -> dict:
@@ -358,7 +347,7 @@ class MocapNumbers:
     per_joint: dict[str, float]
 
 
-def mocap_numbers(cfg, model, dataset, path: Path) -> MocapNumbers:
+def mocap_numbers(opts: SceneEvalOptions, model, dataset, path: Path) -> MocapNumbers:
     """Read the rollout file `path` and compute the errors, rows and verdicts (writes nothing)."""
     rf = load_rollout(path, dataset)
     ro, idx = rf.model, rf.traj_index
@@ -374,7 +363,7 @@ def mocap_numbers(cfg, model, dataset, path: Path) -> MocapNumbers:
     asf = _asf_per_unit(dataset)
     unit_m = float(dataset.params.get("length_unit_m", float("nan")))
     rows = build_rows(err, disc, idx, dataset, ro, asf, unit_m, n_err, cv=cv_err)
-    onestep = one_step_errors(model, tR, tp, _solver(cfg), joints=joints, stored=ro.one_step, group=dataset.group)
+    onestep = one_step_errors(model, tR, tp, opts.solver, joints=joints, stored=ro.one_step, group=dataset.group)
     per_joint = {
         name: float(v)
         for name, v in zip(dataset.body_names[dataset.n_se3 :], np.nanmean(err["joint_rot_per_joint"], 0))
@@ -611,20 +600,20 @@ def mocap_figures(m: MocapNumbers, dataset) -> dict[str, Any]:
     return figs
 
 
-def evaluate_mocap(cfg, model, dataset, run_dir, rollout_path=None) -> EvalOutputs:
+def evaluate_mocap(opts: SceneEvalOptions, model, dataset, run_dir, rollout_path=None) -> EvalOutputs:
     """Exp 4 table, files and plots of a rollout (see the module docstring), computed, not written:
     the files of the returned `EvalOutputs` go next to the rollout file.
 
     rollout_path: the rollout file (default `<run_dir>/rollout.h5`)."""
     path = Path(rollout_path) if rollout_path is not None else Path(run_dir) / FILE_NAME
-    m = mocap_numbers(cfg, model, dataset, path)
+    m = mocap_numbers(opts, model, dataset, path)
     summary = mocap_summary(m, dataset)
     out = EvalOutputs(summary, path.parent)
     out.add("mocap_eval.json", summary)
     out.add("mocap_eval.csv", m.rows)
     out.add("mocap_eval.md", mocap_markdown(m, summary, dataset))
     print_mocap(m, dataset)
-    if cfg.eval.plots:
+    if opts.plots:
         for name, fig in mocap_figures(m, dataset).items():
             out.add(name, fig)
     return out

@@ -12,7 +12,18 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from ..solvers.options import SolverOptions
+
 SUFFIXES = (".json", ".csv", ".md", ".png")
+
+
+@dataclass(frozen=True)
+class SceneEvalOptions:
+    """What a scene evaluation takes from the run's config (built by liedfl_cli/config/typed.py):
+    plots: draw the figures (`eval.plots`); solver: the Newton settings of its one-step solves."""
+
+    plots: bool = True
+    solver: SolverOptions = field(default_factory=SolverOptions)
 
 
 @dataclass
@@ -37,4 +48,4 @@ class EvalOutputs:
         return {k: v for k, v in self.files.items() if k.endswith(".png")}
 
 
-__all__ = ["EvalOutputs"]
+__all__ = ["EvalOutputs", "SceneEvalOptions"]

@@ -66,13 +66,6 @@ def to_plain(x: Any, where: str = "checkpoint") -> Any:
     if isinstance(x, (list, tuple)):
         items = [to_plain(v, f"{where}[{i}]") for i, v in enumerate(x)]
         return items if isinstance(x, list) else tuple(items)
-    try:  # omegaconf containers (a config passed without to_container)
-        from omegaconf import DictConfig, ListConfig, OmegaConf
-
-        if isinstance(x, (DictConfig, ListConfig)):
-            return to_plain(OmegaConf.to_container(x, resolve=True), where)
-    except ImportError:  # pragma: no cover
-        pass
     raise CheckpointError(
         f"cannot store field '{where}' of type {type(x).__module__}.{type(x).__qualname__} in a checkpoint "
         "(only tensors, numbers, strings, None, lists, tuples and dicts)"

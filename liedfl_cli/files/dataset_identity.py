@@ -30,9 +30,8 @@ def file_sha256(path) -> str:
     return _CACHE[key]
 
 
-def accept_option(cfg) -> bool:
-    """`accept_changed_dataset` of a command's config (false when absent); ConfigError unless a boolean."""
-    value = cfg.get(OVERRIDE_KEY, False) if cfg is not None else False
+def accept_option(value) -> bool:
+    """The value of a command's `accept_changed_dataset` (None: absent, false); ConfigError unless a boolean."""
     if value is None:
         return False
     if not isinstance(value, bool):

@@ -210,19 +210,7 @@ class LossOptions:
     loss: str = "del"
     rollout_horizon: int = 5
     solver: SolverOptions | None = None  # the rollout loss's Newton solves (None: SolverOptions())
-
-    @classmethod
-    def from_mapping(cls, values: Mapping[str, Any]) -> LossOptions:
-        rollout = values.get("rollout_loss") or {}
-        return cls(
-            w_del=float(values.get("w_del", cls.w_del)),
-            w_reg=float(values.get("w_reg", cls.w_reg)),
-            epsilon=float(values.get("epsilon", cls.epsilon)),
-            reg_form=str(values.get("reg_form", cls.reg_form)),
-            reg_points=int(values.get("reg_points", cls.reg_points)),
-            loss=str(values.get("loss", cls.loss)),
-            rollout_horizon=int(rollout.get("horizon", cls.rollout_horizon)),
-        )
+    # built from the `train` section by liedfl_cli/config/typed.py (TrainConfig.loss_options)
 
 
 def oriented_logdet(logabsdet: torch.Tensor, orientation: torch.Tensor | None, epsilon: float) -> torch.Tensor:
@@ -394,7 +382,7 @@ class ImplicitModel(Model):
         """(next state, predicted pose g_{k+1}) from the solution x of `implicit_problem`."""
 
     def rollout(self, g0: Pose, g1: Pose, steps: int, opts: SolverOptions | None = None, progress=None) -> Rollout:
-        return rollout_implicit(self, g0, g1, steps, SolverOptions.from_mapping(opts), progress)
+        return rollout_implicit(self, g0, g1, steps, opts or SolverOptions(), progress)
 
 
 class ExplicitModel(Model):
@@ -420,7 +408,7 @@ class ExplicitModel(Model):
         raise NotImplementedError(f"{type(self).__name__} integrates step by step (see step)")
 
     def rollout(self, g0: Pose, g1: Pose, steps: int, opts: SolverOptions | None = None, progress=None) -> Rollout:
-        return rollout_explicit(self, g0, g1, steps, SolverOptions.from_mapping(opts), progress)
+        return rollout_explicit(self, g0, g1, steps, opts or SolverOptions(), progress)
 
 
 def tensor_placement(module: Any) -> dict[str, Any]:

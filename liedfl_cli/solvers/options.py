@@ -1,10 +1,9 @@
-"""Settings of the implicit-step solver, written once (the `solver` config group mirrors them)."""
+"""Settings of the implicit-step solver, written once: this dataclass is also the schema of the
+`solver` config section (liedfl_cli/config/typed.py builds it from the config)."""
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from dataclasses import dataclass, fields
-from typing import Any
+from dataclasses import dataclass
 
 
 @dataclass(frozen=True)
@@ -24,21 +23,3 @@ class SolverOptions:
     tol: float = 1e-5
     max_iter: int = 10
     max_halvings: int = 6
-
-    @classmethod
-    def from_mapping(cls, values: Mapping[str, Any] | SolverOptions | None) -> SolverOptions:
-        """Options from a plain mapping (a resolved `solver` config); missing keys take defaults,
-        unknown keys raise ValueError naming them."""
-        if values is None:
-            return cls()
-        if isinstance(values, SolverOptions):
-            return values
-        names = {f.name for f in fields(cls)}
-        unknown = sorted(set(values) - names)
-        if unknown:
-            raise ValueError(f"solver: unknown key(s) {unknown}; expected some of {sorted(names)}")
-        return cls(
-            tol=float(values.get("tol", cls.tol)),
-            max_iter=int(values.get("max_iter", cls.max_iter)),
-            max_halvings=int(values.get("max_halvings", cls.max_halvings)),
-        )

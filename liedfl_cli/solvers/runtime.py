@@ -27,8 +27,8 @@ import functools
 import os
 import shutil
 import sys
-from collections.abc import Callable, Iterator, Mapping
-from dataclasses import dataclass, fields, replace
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, replace
 from typing import Any
 
 import torch
@@ -58,33 +58,23 @@ class RuntimeOptions:
     device: str = "cpu"
     dtype: str = "float64"
 
-    @classmethod
-    def from_mapping(cls, values: Mapping[str, Any] | None) -> RuntimeOptions:
-        if values is None:
-            return cls()
-        if isinstance(values, RuntimeOptions):
-            return values
-        names = {f.name for f in fields(cls)}
-        unknown = sorted(set(values) - names)
-        if unknown:
-            raise ConfigError(f"runtime: unknown key '{unknown[0]}'; expected some of {', '.join(sorted(names))}")
-        threads = values.get("threads", "auto")
+    def __post_init__(self) -> None:
+        """Check the values (one-line ConfigError naming the key); `compile` given as a boolean
+        (`runtime.compile=true`) becomes "true" / "false"."""
+        threads = self.threads
         if not (threads == "auto" or (isinstance(threads, int) and not isinstance(threads, bool) and threads >= 1)):
             raise ConfigError(f"runtime.threads={threads!r}: choose auto or a positive integer")
-        comp = values.get("compile", "auto")
+        comp = self.compile
         comp = {True: "true", False: "false"}.get(comp, comp) if isinstance(comp, bool) else str(comp)
         if comp not in COMPILE_CHOICES:
-            raise ConfigError(f"runtime.compile={values.get('compile')!r}: choose one of {', '.join(COMPILE_CHOICES)}")
-        fused = values.get("fused", True)
-        if not isinstance(fused, bool):
-            raise ConfigError(f"runtime.fused={fused!r}: choose true or false")
-        device = values.get("device", "cpu")
-        if device not in DEVICE_CHOICES:
-            raise ConfigError(f"runtime.device={device!r}: choose one of {', '.join(DEVICE_CHOICES)}")
-        dtype = values.get("dtype", "float64")
-        if dtype not in DTYPES:
-            raise ConfigError(f"runtime.dtype={dtype!r}: choose one of {', '.join(DTYPES)}")
-        return cls(threads=threads, fused=fused, compile=comp, device=device, dtype=dtype)
+            raise ConfigError(f"runtime.compile={self.compile!r}: choose one of {', '.join(COMPILE_CHOICES)}")
+        object.__setattr__(self, "compile", comp)
+        if not isinstance(self.fused, bool):
+            raise ConfigError(f"runtime.fused={self.fused!r}: choose true or false")
+        if self.device not in DEVICE_CHOICES:
+            raise ConfigError(f"runtime.device={self.device!r}: choose one of {', '.join(DEVICE_CHOICES)}")
+        if self.dtype not in DTYPES:
+            raise ConfigError(f"runtime.dtype={self.dtype!r}: choose one of {', '.join(DTYPES)}")
 
 
 _current = RuntimeOptions()
@@ -104,11 +94,11 @@ def resolve_threads(threads: int | str, parallel_job: bool = False) -> int:
     return max(1, min(int(threads), os.cpu_count() or 1))
 
 
-def configure(values: Mapping[str, Any] | None, parallel_job: bool = False) -> RuntimeOptions:
-    """Apply the `runtime` config section for this process; returns the options in force.
-    `parallel_job`: this process is one of several sweep jobs run side by side (joblib)."""
+def configure(opts: RuntimeOptions | None = None, parallel_job: bool = False) -> RuntimeOptions:
+    """Apply the runtime settings for this process (None: the defaults); returns the options in
+    force. `parallel_job`: this process is one of several sweep jobs run side by side (joblib)."""
     global _current
-    opts = RuntimeOptions.from_mapping(values)
+    opts = opts if opts is not None else RuntimeOptions()
     resolve_device(opts.device)  # cuda without a CUDA device: fail before any work
     torch.set_num_threads(resolve_threads(opts.threads, parallel_job))
     _current = opts

@@ -1,0 +1,278 @@
+"""A command's config as typed objects, converted once at the command's entry.
+
+`typed(cfg)` turns a composed, validated `DictConfig` (`schema.validate` has run: unknown keys,
+types and values are reported there, one line naming the key) into a `RunConfig`: one dataclass
+per section, built with `OmegaConf.structured` / `OmegaConf.to_object` from the dataclasses below
+(or the option classes of the layer that uses them: `SolverOptions`, `DatasetConfig`). The schemas
+are registered with Hydra's `ConfigStore` under `liedfl_schema/<section>`. Below the commands
+nothing sees the config library: `data/` gets a `DatasetConfig`, the solvers a `SolverOptions`,
+the models their options as plain keywords and a `LossOptions`, the runtime a `RuntimeOptions`,
+the scene evaluations a `SceneEvalOptions` (docs/architecture.md, "How a config travels").
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from omegaconf import DictConfig, ListConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
+
+from ..data.dataset_config import DatasetConfig
+from ..errors import ConfigError
+from ..evaluation.outputs import SceneEvalOptions
+from ..models.base import LossOptions
+from ..solvers.options import SolverOptions
+from ..solvers.runtime import RuntimeOptions
+
+
+@dataclass
+class OptimizerConfig:
+    name: str = "soap"  # soap | adam
+    lr: float = 3e-3
+    weight_decay: float = 0.0
+    schedule: str = "constant"  # constant | cosine
+    precondition_frequency: int = 10  # SOAP: steps between eigenbasis updates
+    max_precondition_dim: int = 10000  # SOAP: larger dimensions are not preconditioned
+
+
+@dataclass
+class EarlyStoppingConfig:
+    patience: int | None = None  # validation passes without improvement before training stops; null = off
+    min_delta: float = 0.0  # an improvement must exceed this
+
+
+@dataclass
+class RolloutLossConfig:  # train.loss=rollout: the fine-tuning stage (liedfl_cli/commands/finetune.py)
+    horizon: int = 5  # k: steps rolled out per window of k + 2 true poses
+    epochs: int = 100  # fine-tuning epochs after train.epochs of the DEL loss
+    lr: Any = None  # null: train.optimizer.lr
+
+
+@dataclass
+class TrainConfig:
+    epochs: int = 1000
+    batch_size: int = 1024
+    optimizer: OptimizerConfig = field(default_factory=OptimizerConfig)
+    w_del: float = 0.5
+    w_reg: float = 0.5
+    reg_points: int = 10
+    reg_form: str = "relu"  # relu | gaussian
+    epsilon: float = 10.0
+    checkpoint_every: Any = "auto"  # auto | positive int (checked in train.checkpoint_interval)
+    full_batch: bool = False  # one optimiser step per epoch over every sample
+    val_every: Any = "auto"  # auto | positive int (checked in validation.val_interval)
+    val_horizon: int = 20
+    select: str = "val_one_step"  # val_one_step | val_rollout | last
+    early_stopping: EarlyStoppingConfig = field(default_factory=EarlyStoppingConfig)
+    loss: str = "del"  # del | newton | rollout (models/losses.py)
+    rollout_loss: RolloutLossConfig = field(default_factory=RolloutLossConfig)
+
+    def loss_options(self, solver: SolverOptions | None = None) -> LossOptions:
+        """The settings `Model.loss` takes (solver: the rollout loss's Newton solves)."""
+        return LossOptions(
+            w_del=float(self.w_del),
+            w_reg=float(self.w_reg),
+            epsilon=float(self.epsilon),
+            reg_form=str(self.reg_form),
+            reg_points=int(self.reg_points),
+            loss=str(self.loss),
+            rollout_horizon=int(self.rollout_loss.horizon),
+            solver=solver,
+        )
+
+
+@dataclass
+class RolloutConfig:
+    enabled: bool = True
+    steps: int | None = None
+    max_trajectories: int | None = None
+    reference: bool = True
+
+
+@dataclass
+class EvalConfig:
+    plots: bool = True
+
+
+@dataclass
+class UiConfig:
+    progress: bool = True
+
+
+@dataclass
+class PathsConfig:
+    data_dir: str = "outputs/data"
+    output_dir: str = "."
+
+
+@dataclass
+class RuntimeConfig:  # execution settings; checked and normalised by solvers/runtime.py `runtime_options`
+    threads: Any = "auto"  # auto | positive int
+    fused: bool = True
+    compile: Any = "auto"  # auto | true | false
+    device: str = "cpu"  # cpu | cuda | auto (availability checked when the job starts: runtime.configure)
+    dtype: str = "float64"  # float64 | float32
+
+
+@dataclass
+class LoggerConfig:  # the `logger` config group (liedfl_cli/loggers/)
+    name: str = "csv"  # csv | tensorboard (train_metrics.csv plus <run>/tensorboard/)
+
+
+@dataclass
+class GroupConfig:
+    n_se3: int = 0
+    n_so3: int = 1
+
+
+SECTIONS: dict[str, Any] = {
+    "train": TrainConfig,
+    "rollout": RolloutConfig,
+    "eval": EvalConfig,
+    "ui": UiConfig,
+    "paths": PathsConfig,
+    "solver": SolverOptions,
+    "group": GroupConfig,
+    "runtime": RuntimeConfig,
+    "logger": LoggerConfig,
+}
+"""Config section -> its dataclass (the types `schema.validate` checks and `typed` builds)."""
+
+
+@dataclass
+class RunConfig:
+    """A command's config, typed. Sections a command's config does not have are None (`liedfl data`
+    has no `train`; `liedfl eval` has no `rollout` section: there `rollout` is a file path, kept in
+    `top`); `model` and `force` are plain mappings, checked by the model's `from_config` and
+    `conf/force/<kind>.yaml`; `top` holds the command's own top-level keys (run, steps, checkpoint,
+    split, export, accept_changed_dataset, resume, epochs, sweep, plots) as plain values."""
+
+    command: str
+    seed: int | None = None
+    train: TrainConfig | None = None
+    rollout: RolloutConfig | None = None
+    eval: EvalConfig = field(default_factory=EvalConfig)
+    ui: UiConfig = field(default_factory=UiConfig)
+    paths: PathsConfig = field(default_factory=PathsConfig)
+    solver: SolverOptions = field(default_factory=SolverOptions)
+    runtime: RuntimeOptions = field(default_factory=RuntimeOptions)
+    logger: LoggerConfig = field(default_factory=LoggerConfig)
+    group: GroupConfig | None = None
+    dataset: DatasetConfig | None = None
+    model: dict[str, Any] | None = None
+    force: dict[str, Any] = field(default_factory=dict)
+    top: dict[str, Any] = field(default_factory=dict)
+
+    def loss_options(self) -> LossOptions:
+        assert self.train is not None, "a train config"
+        return self.train.loss_options()
+
+    def scene_eval_options(self) -> SceneEvalOptions:
+        return SceneEvalOptions(plots=bool(self.eval.plots), solver=self.solver)
+
+
+def _register() -> None:
+    """The section schemas in Hydra's ConfigStore (group `liedfl_schema`), so a user's config can
+    name them (`defaults: [liedfl_schema/train@train]`) and tools can list them."""
+    try:
+        from hydra.core.config_store import ConfigStore
+    except ImportError:  # pragma: no cover (hydra is a dependency; the conversion does not need it)
+        return
+    cs = ConfigStore.instance()
+    for name, schema in SECTIONS.items():
+        cs.store(group="liedfl_schema", name=name, node=schema)
+
+
+_register()
+
+
+def _first_line(e: Exception) -> str:
+    text = str(e).strip()
+    return text.splitlines()[0] if text else type(e).__name__
+
+
+def plain(node, where: str) -> Any:
+    """A config subtree as plain Python (interpolations resolved); ConfigError naming `where`."""
+    if isinstance(node, (DictConfig, ListConfig)):
+        try:
+            return OmegaConf.to_container(node, resolve=True)
+        except OmegaConfBaseException as e:
+            raise ConfigError(f"config key '{where}': {_first_line(e)}") from None
+    return node
+
+
+def section(schema: type, values: Any, where: str) -> Any:
+    """`values` (a config node or plain mapping, None = the defaults) as an instance of the dataclass
+    `schema`, through OmegaConf's structured configs (types converted and checked as in validate)."""
+    values = plain(values, where)
+    try:
+        node = OmegaConf.merge(OmegaConf.structured(schema), values or {})
+        return OmegaConf.to_object(node)
+    except OmegaConfBaseException as e:
+        key = getattr(e, "full_key", None) or ""
+        where_key = f" (key {where}.{key})" if key else ""
+        raise ConfigError(f"config section '{where}': {_first_line(e)}{where_key}") from None
+
+
+def dataset_config(values: Any) -> DatasetConfig:
+    """The `dataset` section (a config node or plain mapping) as a `DatasetConfig`."""
+    return DatasetConfig.from_mapping(plain(values, "dataset"))
+
+
+TOP_KEYS = (
+    *("run", "steps", "checkpoint", "split", "export", "accept_changed_dataset"),
+    *("resume", "epochs", "sweep", "plots"),
+)
+
+
+def typed(cfg: DictConfig, command: str | None = None) -> RunConfig:
+    """The typed form of a composed config (validate it first: this reports only what the section
+    dataclasses refuse). command: default `cfg.task_name`."""
+    command = str(command or cfg.get("task_name") or "")
+    out = RunConfig(command=command)
+    if "seed" in cfg:
+        out.seed = int(plain(cfg.seed, "seed"))
+    for name, schema in SECTIONS.items():
+        if name not in cfg or cfg.get(name) is None:
+            continue
+        if name == "rollout" and not isinstance(cfg.get(name), DictConfig):
+            continue  # `liedfl eval rollout=<file>`: a path (in `top`)
+        value = section(schema, cfg[name], name)
+        if name == "runtime":
+            value = RuntimeOptions(**vars(value))
+        setattr(out, name, value)
+    if cfg.get("dataset") is not None:
+        out.dataset = dataset_config(cfg.dataset)
+    if cfg.get("model") is not None:
+        out.model = dict(plain(cfg.model, "model"))
+    if cfg.get("force") is not None:
+        out.force = dict(plain(cfg.force, "force") or {})
+    for key in TOP_KEYS:
+        if key in cfg:
+            out.top[key] = plain(cfg.get(key), key)
+    if command == "eval" and "rollout" in cfg and not isinstance(cfg.get("rollout"), DictConfig):
+        out.top["rollout"] = plain(cfg.get("rollout"), "rollout")
+    return out
+
+
+__all__ = [
+    "SECTIONS",
+    "DatasetConfig",
+    "EarlyStoppingConfig",
+    "EvalConfig",
+    "GroupConfig",
+    "LoggerConfig",
+    "OptimizerConfig",
+    "PathsConfig",
+    "RolloutConfig",
+    "RolloutLossConfig",
+    "RunConfig",
+    "RuntimeConfig",
+    "TrainConfig",
+    "UiConfig",
+    "dataset_config",
+    "plain",
+    "section",
+    "typed",
+]
