@@ -26,6 +26,7 @@ from liedfl_cli.models.euclidean_dflnn import EuclideanDFLNN
 from liedfl_cli.models.euler_dflnn import EulerDFLNN
 from liedfl_cli.models.glnn import GLNN
 from liedfl_cli.models.true_scheme import physics_model
+from liedfl_cli.solvers.options import SolverOptions
 from liedfl_cli.solvers.rollout import Rollout
 
 CONF = str(Path(__file__).resolve().parents[1] / "liedfl_cli" / "conf")
@@ -270,7 +271,7 @@ def test_rollout_shapes_and_fields(name, free_body, data_dir):
     steps = 6
     g0, g1 = truth.index((slice(None), 0)), truth.index((slice(None), 1))
     seen = []
-    ro = model.rollout(g0, g1, steps, {"tol": 1e-5, "max_iter": 10}, progress=seen.append)
+    ro = model.rollout(g0, g1, steps, SolverOptions(tol=1e-5, max_iter=10), progress=seen.append)
     T = truth.R.shape[0]
     assert isinstance(ro, Rollout)
     assert ro.pose.R.shape == (T, steps + 1, 1, 3, 3) and ro.pose.p.shape == (T, steps + 1, 0, 3)

@@ -16,7 +16,7 @@ from liedfl_cli.commands.outputs import write_outputs
 from liedfl_cli.commands.train import count_parameters
 from liedfl_cli.data import generate
 from liedfl_cli.data.scenes_multibody import pd_torque
-from liedfl_cli.evaluation import EvalOutputs
+from liedfl_cli.evaluation import EvalOutputs, SceneEvalOptions
 from liedfl_cli.evaluation.control import evaluate_control, force_torques, plot_torque, torque_errors
 from liedfl_cli.lie import SO3, Pose, ProductGroup, so3
 from liedfl_cli.mechanics.forces import ControlForce
@@ -179,8 +179,7 @@ def test_evaluate_control_writes_nothing_and_returns_what_is_written(pd_data, tm
     cwd, run = tmp_path / "cwd", tmp_path / "run"
     cwd.mkdir(), run.mkdir()
     monkeypatch.chdir(cwd)
-    cfg = OmegaConf.create({"eval": {"plots": True}})
-    out = evaluate_control(cfg, true_model(ds), ds, run)
+    out = evaluate_control(SceneEvalOptions(plots=True), true_model(ds), ds, run)
     assert _tree(cwd) == {} and _tree(run) == {}
     assert out is not None and out.out_dir == run
     assert set(out.files) == {"control_eval.json", "control_eval.md", "plots/torque.png"}

@@ -226,14 +226,16 @@ def restore_runtime(monkeypatch):
 
 
 def test_device_and_dtype_settings_are_checked(restore_runtime, monkeypatch):
-    opts = runtime.RuntimeOptions.from_mapping({"device": "auto", "dtype": "float32"})
+    from liedfl_cli.config.typed import runtime_options
+
+    opts = runtime_options({"device": "auto", "dtype": "float32"})
     assert (opts.device, opts.dtype) == ("auto", "float32")
-    assert runtime.RuntimeOptions() == runtime.RuntimeOptions.from_mapping({"device": "cpu", "dtype": "float64"})
+    assert runtime.RuntimeOptions() == runtime_options({"device": "cpu", "dtype": "float64"})
     for bad, key in (({"device": "gpu"}, "runtime.device='gpu'"), ({"dtype": "float16"}, "runtime.dtype='float16'")):
         with pytest.raises(ConfigError, match=key):
-            runtime.RuntimeOptions.from_mapping(bad)
+            runtime_options(bad)
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
-    runtime.configure({"device": "auto", "dtype": "float32"})
+    runtime.configure(runtime.RuntimeOptions(device="auto", dtype="float32"))
     assert runtime.placement() == (torch.device("cpu"), torch.float32)
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)  # (nothing is allocated)
     assert runtime.resolve_device("auto") == torch.device("cuda")
@@ -255,7 +257,7 @@ def test_schema_knows_device_and_dtype(compose_cfg, tmp_path):
 def test_cuda_without_a_gpu_is_a_one_line_config_error(restore_runtime, monkeypatch):
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     with pytest.raises(ConfigError) as e:
-        runtime.configure({"device": "cuda"})
+        runtime.configure(runtime.RuntimeOptions(device="cuda"))
     assert str(e.value).startswith("runtime.device=cuda: no CUDA device") and "\n" not in str(e.value)
     assert runtime.current() == runtime.RuntimeOptions()  # nothing applied
 
@@ -330,11 +332,11 @@ def test_float32_run_trains_rolls_out_and_evaluates(smoke_cfg, tmp_path, restore
     monkeypatch.setattr(
         runs, "load_checkpoint", lambda p, map_location: where.append(map_location) or load(p, map_location)
     )
-    runtime.configure({})
+    runtime.configure(runtime.RuntimeOptions())
     _, model, _, _ = runs.load_run(run)
     assert all(p.dtype == torch.float64 for p in model.parameters())
     # ... or in float32, its tensors loaded straight onto the runtime's device (map_location)
-    runtime.configure({"dtype": "float32"})
+    runtime.configure(runtime.RuntimeOptions(dtype="float32"))
     _, model, _, _ = runs.load_run(run)
     assert all(p.dtype == torch.float32 for p in model.parameters())
     assert where == [torch.device("cpu")] * 4  # each load_run reads last.pt (config, checks) and best.pt (weights)

@@ -133,6 +133,7 @@ def test_evaluate_mocap_writes_nothing_and_returns_what_is_written(smoke_run, tm
     command's writer then writes exactly the files the run holds (same bytes for the tables)."""
     from liedfl_cli.commands.outputs import write_outputs
     from liedfl_cli.config.runs import load_run
+    from liedfl_cli.config.typed import typed
     from liedfl_cli.evaluation.mocap import evaluate_mocap
 
     cfg, _, run, data = smoke_run
@@ -143,7 +144,7 @@ def test_evaluate_mocap_writes_nothing_and_returns_what_is_written(smoke_run, tm
 
     before = tree(run)
     monkeypatch.chdir(tmp_path)
-    out = evaluate_mocap(cfg, model, dataset, run)
+    out = evaluate_mocap(typed(cfg).scene_eval_options(), model, dataset, run)
     assert tree(run) == before and tree(tmp_path) == {}
     assert out.out_dir == run and set(out.files) == {"mocap_eval.json", "mocap_eval.csv", "mocap_eval.md"} | {
         f"plots/{n}" for n in PLOTS

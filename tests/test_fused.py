@@ -373,11 +373,13 @@ def test_full_batch_and_precondition_frequency_options(tmp_path):
 
 # ----------------------------------------------------------------------------- runtime switches
 def test_runtime_options_are_checked_with_one_line_errors():
-    assert runtime.RuntimeOptions.from_mapping({"threads": 2, "compile": True}).compile == "true"
-    assert runtime.RuntimeOptions.from_mapping(None) == runtime.RuntimeOptions()
+    from liedfl_cli.config.typed import runtime_options
+
+    assert runtime_options({"threads": 2, "compile": True}).compile == "true"
+    assert runtime_options(None) == runtime.RuntimeOptions()
     for bad in ({"threads": 0}, {"threads": "many"}, {"compile": "sometimes"}, {"fused": "yes"}, {"speed": 1}):
         with pytest.raises(ConfigError) as e:
-            runtime.RuntimeOptions.from_mapping(bad)
+            runtime_options(bad)
         assert "\n" not in str(e.value)
 
 

@@ -235,8 +235,11 @@ def test_config_keys_are_validated(compose_cfg, override, message):
 
 def test_defaults_are_del():
     assert LossOptions().loss == "del"
-    assert LossOptions.from_mapping({}).loss == "del"
-    assert LossOptions.from_mapping({"loss": "rollout", "rollout_loss": {"horizon": 3}}).rollout_horizon == 3
+    from liedfl_cli.config.typed import TrainConfig, section
+
+    assert TrainConfig().loss_options().loss == "del"
+    train = section(TrainConfig, {"loss": "rollout", "rollout_loss": {"horizon": 3}}, "train")
+    assert train.loss_options().rollout_horizon == 3 and train.loss_options().loss == "rollout"
 
 
 def test_training_stage_of_rollout_is_del_and_newton_enables_the_jacobian():

@@ -190,14 +190,15 @@ def test_a_minimal_config_takes_the_shipped_defaults_and_noise_is_cached(tmp_pat
 
 
 def test_null_steps_mean_all_steps(tmp_path):
-    from omegaconf import OmegaConf
+    from liedfl_cli.data.dataset_config import DatasetConfig
 
     ds, _ = get_dataset({**FILE, "path": str(write_h5(tmp_path / "my.h5"))}, tmp_path / "data")
-    cfg = OmegaConf.create({"train_steps": None, "rollout_steps": None})
+    cfg = DatasetConfig.from_mapping({"name": "file", "train_steps": None, "rollout_steps": None})
     complete_steps(cfg, ds)
     assert cfg.train_steps == cfg.rollout_steps == 20
+    assert cfg.as_dict() == {"name": "file", "train_steps": 20, "rollout_steps": 20}
     with pytest.raises(ConfigError, match="train_steps=30"):
-        complete_steps(OmegaConf.create({"train_steps": 30, "rollout_steps": None}), ds)
+        complete_steps(DatasetConfig.from_mapping({"name": "file", "train_steps": 30, "rollout_steps": None}), ds)
 
 
 def test_default_split():

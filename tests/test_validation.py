@@ -18,6 +18,7 @@ from liedfl_cli.cli import CONF_DIR
 from liedfl_cli.commands.train import run_train
 from liedfl_cli.commands.validation import VAL_COLUMNS, Selection, make_val_split, select_option, val_interval
 from liedfl_cli.config.schema import validate
+from liedfl_cli.config.typed import TrainConfig
 from liedfl_cli.errors import ConfigError
 from liedfl_cli.files.checkpoint import load_checkpoint
 
@@ -116,7 +117,7 @@ def test_too_short_or_too_large_splits_are_one_line_config_errors():
 def test_val_fraction_zero_turns_validation_off_and_forces_select_last():
     s = make_val_split(np.arange(10), 10, 0.0, seed=0)
     assert s.kind == "none" and len(s.val_idx) == 0 and len(s.train_idx) == 10
-    select, notes = select_option({"select": "val_rollout"}, s)
+    select, notes = select_option(TrainConfig(select="val_rollout"), s)
     assert select == "last" and notes == ["no validation split: train.select=val_rollout -> last"]
 
 

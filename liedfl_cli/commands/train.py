@@ -31,7 +31,7 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from ..config.typed import OptimizerConfig, RunConfig, TrainConfig, typed
+from ..config.typed import OptimizerConfig, RunConfig, TrainConfig, section, typed
 from ..display.ui import console, err_console, progress_bar, warning_line
 from ..errors import CheckpointError, ConfigError, LiedflError
 from ..files.checkpoint import (
@@ -211,7 +211,7 @@ def make_schedule(opt, name: str, epochs: int):
 def fit(
     model,
     data: Pose,
-    cfg_train: TrainConfig,
+    cfg_train: TrainConfig | DictConfig,
     steps: int,
     seed: int = 0,
     show_progress: bool = True,
@@ -235,6 +235,8 @@ def fit(
     `history`) to continue from. save(state): called with that state at checkpoint times
     (`cfg_train.checkpoint_every`) and when `stop` is set. on_epoch(row): each epoch's metrics.
     """
+    if not isinstance(cfg_train, TrainConfig):  # scripts and tests may pass a `train` section as is
+        cfg_train = section(TrainConfig, cfg_train, "train")
     # train.loss: newton changes the batches' loss; rollout trains with del here (fine-tuning: finetune.py)
     opts, samples = training_stage(model, data, int(steps), cfg_train.loss_options())
     n = samples.n

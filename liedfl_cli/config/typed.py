@@ -103,7 +103,7 @@ class UiConfig:
 @dataclass
 class PathsConfig:
     data_dir: str = "outputs/data"
-    output_dir: str = "."
+    output_dir: str = "."  # Hydra's run folder (`${hydra:runtime.output_dir}`; "." outside a Hydra run)
 
 
 @dataclass
@@ -215,6 +215,24 @@ def section(schema: type, values: Any, where: str) -> Any:
         raise ConfigError(f"config section '{where}': {_first_line(e)}{where_key}") from None
 
 
+def _resolvable(node: DictConfig) -> dict[str, Any]:
+    """The keys of `node` whose values resolve: `paths.output_dir` names Hydra's run folder, which a
+    config composed without a Hydra run (the compose API: tests, scripts) does not have."""
+    out = {}
+    for key in node:
+        try:
+            out[str(key)] = plain(node[key], str(key))
+        except (ConfigError, OmegaConfBaseException, ValueError):
+            continue
+    return out
+
+
+def runtime_options(values: Any) -> RuntimeOptions:
+    """The `runtime` section (a config node or plain mapping, None = the defaults) as the
+    `RuntimeOptions` the solvers apply (values checked there: one-line ConfigError)."""
+    return RuntimeOptions(**vars(section(RuntimeConfig, values, "runtime")))
+
+
 def dataset_config(values: Any) -> DatasetConfig:
     """The `dataset` section (a config node or plain mapping) as a `DatasetConfig`."""
     return DatasetConfig.from_mapping(plain(values, "dataset"))
@@ -238,9 +256,12 @@ def typed(cfg: DictConfig, command: str | None = None) -> RunConfig:
             continue
         if name == "rollout" and not isinstance(cfg.get(name), DictConfig):
             continue  # `liedfl eval rollout=<file>`: a path (in `top`)
-        value = section(schema, cfg[name], name)
         if name == "runtime":
-            value = RuntimeOptions(**vars(value))
+            value = runtime_options(cfg[name])
+        elif name == "paths":
+            value = section(schema, _resolvable(cfg[name]), name)
+        else:
+            value = section(schema, cfg[name], name)
         setattr(out, name, value)
     if cfg.get("dataset") is not None:
         out.dataset = dataset_config(cfg.dataset)
@@ -273,6 +294,7 @@ __all__ = [
     "UiConfig",
     "dataset_config",
     "plain",
+    "runtime_options",
     "section",
     "typed",
 ]

@@ -10,7 +10,7 @@ from __future__ import annotations
 import copy
 import hashlib
 import json
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -48,14 +48,26 @@ REQUIRED_KEYS = (
 
 
 # --------------------------------------------------------------------------- config handling
+def _plain_copy(x):
+    """A deep copy with every mapping a dict and every non-string sequence other than a tuple a list
+    (any Mapping / Sequence implementation a caller passes becomes plain data)."""
+    if isinstance(x, Mapping):
+        return {k: _plain_copy(v) for k, v in x.items()}
+    if isinstance(x, tuple):
+        return tuple(_plain_copy(v) for v in x)
+    if isinstance(x, Sequence) and not isinstance(x, (str, bytes)):
+        return [_plain_copy(v) for v in x]
+    return copy.deepcopy(x)
+
+
 def to_dict(cfg) -> dict[str, Any]:
-    """DatasetConfig / plain Mapping -> plain nested dict (a copy), without TRAIN_TIME_KEYS."""
+    """DatasetConfig / Mapping -> plain nested dict (a copy), without TRAIN_TIME_KEYS."""
     from .dataset_config import DatasetConfig
 
     if isinstance(cfg, DatasetConfig):
         out = cfg.as_dict()
     elif isinstance(cfg, Mapping):
-        out = copy.deepcopy(dict(cfg))
+        out = _plain_copy(cfg)
     else:
         raise ConfigError(f"dataset config must be a mapping, got {type(cfg).__name__}")
     for k in TRAIN_TIME_KEYS:
