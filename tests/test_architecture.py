@@ -202,7 +202,8 @@ def test_no_code_outside_models_tests_a_concrete_model_class_or_probes_its_attri
 
 
 def test_importing_the_core_loads_no_config_system():
-    """`import liedfl_cli.lie` (or mechanics, solvers, models) in a fresh interpreter loads neither
+    """`import liedfl_cli.lie` (or mechanics, solvers, models, data, evaluation, files, loggers,
+    display) in a fresh interpreter loads neither
     hydra nor omegaconf: the package root registers nothing (the config modules import
     `liedfl_cli.config.resolvers`)."""
     import subprocess
@@ -210,7 +211,8 @@ def test_importing_the_core_loads_no_config_system():
 
     code = (
         "import sys, liedfl_cli.lie, liedfl_cli.mechanics, liedfl_cli.solvers, liedfl_cli.models.liedflnn, "
-        "liedfl_cli.models.articulated; "
+        "liedfl_cli.models.articulated, liedfl_cli.data.scenes, liedfl_cli.evaluation, liedfl_cli.files.checkpoint, "
+        "liedfl_cli.loggers, liedfl_cli.display.plots; "
         "print(sorted(m for m in sys.modules if m.split('.')[0] in ('hydra', 'omegaconf')))"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=PKG.parent, check=True)

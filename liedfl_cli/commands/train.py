@@ -178,7 +178,9 @@ def checkpoint_interval(value) -> int | None:
     return n
 
 
-def make_optimizer(params, cfg_opt: OptimizerConfig) -> torch.optim.Optimizer:
+def make_optimizer(params, cfg_opt: OptimizerConfig | DictConfig) -> torch.optim.Optimizer:
+    if not isinstance(cfg_opt, OptimizerConfig):  # scripts and tests may pass the section as is
+        cfg_opt = section(OptimizerConfig, cfg_opt, "train.optimizer")
     name = cfg_opt.name
     if name == "soap":
         from pytorch_optimizer import SOAP

@@ -24,7 +24,6 @@ import functools
 import math
 import os
 import typing
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -37,21 +36,6 @@ from .typed import SECTIONS as TYPED_SECTIONS
 from .typed import PathsConfig
 
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"  # the configs ship inside the package
-
-
-@dataclass
-class ModelSchema:  # LieDFLNN's options (conf/model/liedflnn.yaml), typed for the check below
-    _target_: str = "liedfl_cli.models.liedflnn.LieDFLNN"
-    name: str = "liedflnn"
-    potential: Any = "auto"  # auto | none | mlp | uniform_gravity | a list of mlp, uniform_gravity
-    residual: str = "fast"
-    kinetic: str = "per_body"  # per_body (the paper's) | articulated (a kinematic tree's Lagrangian)
-    mlp_width: int = 64
-    mlp_depth: int = 3
-    init_jitter: float = 0.1
-    known: list[str] = field(default_factory=list)  # parts set to the scene's true values and frozen
-    gravity: Any = "auto"  # field strength of uniform_gravity: auto (the data's g, else 9.81) | a number
-    learn_gravity_direction: bool = False
 
 
 SECTIONS: dict[str, Any] = {k: v for k, v in TYPED_SECTIONS.items() if k != "paths"}
@@ -128,7 +112,7 @@ REQUIRED: dict[str, tuple[str, ...]] = {
     "report": ("sweep", "plots"),
     "resume": ("resume", "ui.progress"),
 }
-DEFAULT_MODEL_TARGET = ModelSchema._target_
+DEFAULT_MODEL_TARGET = "liedfl_cli.models.liedflnn.LieDFLNN"
 TARGET_PREFIX = "liedfl_cli."
 
 
@@ -265,9 +249,12 @@ def _options(group: str) -> list[str]:
 
 
 # ----------------------------------------------------------------------------- sections
-def _check_types(cfg, name: str, schema) -> None:
+def _check_types(cfg, name: str, schema, values=None) -> None:
+    """The section `cfg[name]` (or `values`, a plain mapping of its values) merged into the dataclass
+    `schema`: a wrong type is one line naming the key."""
+    values = _plain(cfg[name], name) if values is None else values
     try:
-        OmegaConf.merge(OmegaConf.structured(schema), _plain(cfg[name], name))
+        OmegaConf.merge(OmegaConf.structured(schema), values)
     except OmegaConfBaseException as e:
         key = getattr(e, "full_key", None) or ""
         raise ConfigError(
@@ -325,7 +312,8 @@ def _check_force(cfg) -> None:
 
 def _check_model(cfg) -> None:
     """`model._target_` names a model class of this package (`factory.model_class`); the keys are
-    those of the model's reference file conf/model/<name>.yaml (LieDFLNN: typed by ModelSchema)."""
+    those of the model's `Options` dataclass (LieDFLNN's: models/liedflnn.py), else of its reference
+    file conf/model/<name>.yaml."""
     model = cfg.get("model")
     if model is None:
         return
@@ -337,14 +325,14 @@ def _check_model(cfg) -> None:
             f"model._target_={target!r}: only liedfl's own model classes may be instantiated "
             f"(a name starting with '{TARGET_PREFIX}models.', e.g. {DEFAULT_MODEL_TARGET})"
         )
-    from ..models.liedflnn import LieDFLNN
     from .factory import model_class
 
     cls = model_class(target)
     name = _value(cfg, "model.name")
-    if issubclass(cls, LieDFLNN):
-        _check_dataclass_keys(model, ModelSchema, "model")
-        _check_types(cfg, "model", ModelSchema)
+    if cls.Options is not None:  # the model's own options dataclass (models/<family>.py)
+        _check_keys(model, ["_target_", "name", *(f.name for f in dataclasses.fields(cls.Options))], "model")
+        options = {k: v for k, v in (_plain(model, "model") or {}).items() if k not in ("_target_", "name")}
+        _check_types(cfg, "model", cls.Options, values=options)
     else:
         # A model whose config lives in this package is checked against that file here; one added on
         # Hydra's search path (hydra.searchpath) is checked by its own from_config (`config_options`).

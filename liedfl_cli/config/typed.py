@@ -109,7 +109,7 @@ class PathsConfig:
 @dataclass
 class RuntimeConfig:  # execution settings; checked and normalised by solvers/runtime.py `runtime_options`
     threads: Any = "auto"  # auto | positive int
-    fused: bool = True
+    fused: Any = True  # true | false (Any: "yes" is refused by RuntimeOptions, not read as true)
     compile: Any = "auto"  # auto | true | false
     device: str = "cpu"  # cpu | cuda | auto (availability checked when the job starts: runtime.configure)
     dtype: str = "float64"  # float64 | float32

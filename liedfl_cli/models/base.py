@@ -316,6 +316,9 @@ class Model(nn.Module, abc.ABC):
     """What the model's `auto` options chose and why (printed by `liedfl train`, kept in the run)."""
     tree: Tree | None = None
     """The kinematic tree the model runs forward kinematics with (None: the model has none)."""
+    Options: type | None = None
+    """A dataclass of the model's config options (keys and types checked against it before a run
+    starts, `config/schema.py`); None: its `from_config` checks them (`config_options`)."""
 
     @classmethod
     @abc.abstractmethod

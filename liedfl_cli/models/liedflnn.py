@@ -17,7 +17,8 @@ not counted as trainable parameters). `components()` lists every active part.
 from __future__ import annotations
 
 import math
-from typing import cast
+from dataclasses import dataclass, field, fields
+from typing import Any, cast
 
 import torch
 from torch import nn
@@ -81,6 +82,22 @@ def potential_parts(potential) -> tuple[str, ...]:
             f"model.potential must be none, one of {POTENTIAL_PARTS} or a list of distinct ones, got {potential!r}"
         )
     return parts
+
+
+@dataclass
+class LieDFLNNOptions:
+    """LieDFLNN's config options (conf/model/liedflnn.yaml; also ArticulatedLieDFLNN's): the schema
+    `config/schema.py` checks the `model` section's keys and types against (`Model.Options`)."""
+
+    potential: Any = "auto"  # auto | none | mlp | uniform_gravity | a list of mlp, uniform_gravity
+    residual: str = "fast"  # fast (closed-form kinetic derivatives) | generic (autodiff of L_d)
+    kinetic: str = "per_body"  # per_body (the paper's) | articulated (a kinematic tree's Lagrangian)
+    mlp_width: int = 64
+    mlp_depth: int = 3
+    init_jitter: float = 0.1
+    known: list[str] = field(default_factory=list)  # parts set to the scene's true values and frozen
+    gravity: Any = "auto"  # field strength of uniform_gravity: auto (the data's g, else 9.81) | a number
+    learn_gravity_direction: bool = False
 
 
 class LieDFLNN(ImplicitModel):
@@ -184,17 +201,8 @@ class LieDFLNN(ImplicitModel):
             ray[0].D.set_matrix(D_true)
             ray[0].requires_grad_(False)
 
-    OPTIONS = (
-        "potential",
-        "residual",
-        "kinetic",
-        "mlp_width",
-        "mlp_depth",
-        "init_jitter",
-        "known",
-        "gravity",
-        "learn_gravity_direction",
-    )
+    Options = LieDFLNNOptions
+    OPTIONS = tuple(f.name for f in fields(LieDFLNNOptions))
 
     @classmethod
     def resolve_options(cls, ctx: BuildContext, options) -> tuple[str, tuple[str, ...], str, dict]:
