@@ -169,7 +169,7 @@ def main() -> None:
     ap.add_argument("--data-dir", default=str(ROOT / "outputs" / "data"))
     args = ap.parse_args()
     threads = args.threads if args.threads == "auto" else int(args.threads)
-    runtime.configure({"threads": threads, "compile": "false"})
+    runtime.configure(runtime.RuntimeOptions(threads=threads, compile="false"))
     q = args.quick
     out: dict = {
         "torch": torch.__version__,

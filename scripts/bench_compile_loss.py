@@ -48,7 +48,7 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=20)
     ap.add_argument("--data-dir", default=str(ROOT / "outputs" / "data"))
     args = ap.parse_args()
-    runtime.configure({"threads": 1, "compile": "false"})
+    runtime.configure(runtime.RuntimeOptions(threads=1, compile="false"))
     cfg = config([f"experiment={args.experiment}"], args.data_dir)
     ds, _ = get_dataset(cfg.dataset, args.data_dir)
     model = build_model(cfg, ds)

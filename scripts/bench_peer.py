@@ -55,7 +55,7 @@ def main() -> None:
     sys.path.insert(0, str(Path(args.peer).resolve()))
     from LieFVIN import SO3FVIN  # the peer's package (it sets torch's default dtype to float64)
 
-    runtime.configure({"threads": args.threads})
+    runtime.configure(runtime.RuntimeOptions(threads=args.threads))
     torch.manual_seed(0)
     peer = SO3FVIN(device=torch.device("cpu"), u_dim=1, time_step=H)
     ours = {

@@ -175,7 +175,7 @@ def test_glnn_potential_torque_with_the_true_gravity_reproduces_the_heavy_body()
         pred = models["dopri5"].integrate_rotations(R[:, 0], w0, 20)
     assert (pred - R).abs().max() < 1e-5
     g = lambda k: truth.index((slice(None), k))
-    ro = models["midpoint"].rollout(g(0), g(1), 20, {"tol": 1e-10, "max_iter": 10})
+    ro = models["midpoint"].rollout(g(0), g(1), 20, SolverOptions(tol=1e-10, max_iter=10))
     assert ro.converged.all() and (ro.pose.R - truth.R).abs().max() < 0.1
 
 
@@ -203,7 +203,7 @@ def test_euler_dflnn_with_true_parameters_tracks_the_motion():
     e.inertia.set_J(J_TRUE[None])
     e.damping.set_matrix(D_TRUE)
     g = lambda k: Pose(truth[:, k, None], truth.new_zeros(2, 0, 3))
-    ro = e.rollout(g(0), g(1), 20, {"tol": 1e-10, "max_iter": 20})
+    ro = e.rollout(g(0), g(1), 20, SolverOptions(tol=1e-10, max_iter=20))
     assert ro.converged.all()
     # the observed start is w0-free: the error is the O(h) start-up plus the scheme's O(h^2)
     assert (ro.pose.R[:, :, 0] - truth).abs().max() < 2e-2
@@ -290,7 +290,7 @@ def test_se3_baselines_and_group_errors(data_dir):
     truth = ds.pose()
     for name in ("euclidean_dflnn", "neural_ode"):
         model = build_model(_cfg(data_dir, name, ["dataset=heavy_se3"]), ds)
-        ro = model.rollout(truth.index((slice(None), 0)), truth.index((slice(None), 1)), 4, {})
+        ro = model.rollout(truth.index((slice(None), 0)), truth.index((slice(None), 1)), 4, SolverOptions())
         assert ro.pose.R.shape == (3, 5, 1, 3, 3) and ro.pose.p.shape == (3, 5, 1, 3)
         assert torch.equal(ro.pose.p[:, 1], truth.p[:, 1])
     for name in ("glnn_rk4", "glnn_lie_midpoint", "glnn_lie_heun", "euler_dflnn"):

@@ -14,9 +14,9 @@ import h5py
 import numpy as np
 import pytest
 import torch
-from omegaconf import OmegaConf
 
 from liedfl_cli.commands.evaluate import run_eval_from_objects
+from liedfl_cli.config.typed import EvalConfig, RunConfig
 from liedfl_cli.data.hdf5 import Dataset
 from liedfl_cli.errors import DatasetError
 from liedfl_cli.files.rollout_file import RolloutEntry, load_rollout, read_rollout, write_rollout
@@ -67,7 +67,7 @@ def replace(path: Path, key: str, value) -> None:
         f.create_dataset(key, data=value)
 
 
-CFG = OmegaConf.create({"eval": {"plots": False}})
+CFG = RunConfig("eval", eval=EvalConfig(plots=False))  # what a command passes on (config/typed.py)
 
 
 # ----------------------------------------------------------------------------- format
@@ -240,8 +240,7 @@ def test_rollout_longer_than_the_dataset(tmp_path):
     e.converged[0, S - 3] = False  # the solve for sample S - 1
     rf = write_rollout(tmp_path / "rollout.h5", steps=S, h=ds.h, scene=ds.scene, traj_index=TEST, rollouts={"model": e})
     assert rf.steps == S
-    cfg = OmegaConf.create({"eval": {"plots": True}})
-    row = run_eval_from_objects(cfg, ds, tmp_path)[0]
+    row = run_eval_from_objects(RunConfig("eval", eval=EvalConfig(plots=True)), ds, tmp_path)[0]
     assert row["rel_rot_error_mean"] == 0.0 and row["rel_rot_error_final"] == 0.0  # exact over 0..N
     assert row["max_orth_drift"] > 1e-6 and row["max_det_drift"] > 1e-6  # the drift at step 2N counts
     assert row["newton_failures"] == 1 and row["first_failure_step"] == S - 1
@@ -411,7 +410,7 @@ def test_an_old_rollout_file_without_one_step_data_still_evaluates(tmp_path):
     path = perfect(ds, tmp_path / "rollout.h5")
     with h5py.File(path) as f:
         assert "one_step" not in f["model"]
-    rows = {r["model"]: r for r in run_eval_from_objects(OmegaConf.create({"eval": {"plots": True}}), ds, tmp_path)}
+    rows = {r["model"]: r for r in run_eval_from_objects(RunConfig("eval", eval=EvalConfig(plots=True)), ds, tmp_path)}
     m, cv = rows["model"], rows["constant_velocity"]
     assert m["one_step_rot_error_mean"] is None and m["one_step_pos_error_mean"] is None and m["one_step_vs_cv"] is None
     assert m["rollout_vs_cv"] < 1e-12 and np.isfinite(cv["one_step_rot_error_mean"])

@@ -164,12 +164,13 @@ def test_compute_eval_writes_nothing_and_returns_what_is_written(smoke_run, tmp_
     from liedfl_cli.commands.evaluate import compute_eval
     from liedfl_cli.commands.outputs import write_outputs
     from liedfl_cli.config.runs import load_run
+    from liedfl_cli.config.typed import typed
 
     cfg, _, run, data = smoke_run
     _, _, dataset, _ = load_run(run, data)
     before = {p: p.stat().st_mtime_ns for p in run.rglob("*")}
     monkeypatch.chdir(tmp_path)
-    out = compute_eval(cfg, dataset, run)
+    out = compute_eval(typed(cfg), dataset, run)
     assert {p: p.stat().st_mtime_ns for p in run.rglob("*")} == before and not list(tmp_path.iterdir())
     assert {"eval.csv", "eval.md", "eval_curves.json", "plots/error_vs_step.png"} <= set(out.files)
     rows = out.table("eval.csv")

@@ -137,9 +137,9 @@ def test_a_users_file_trains_and_rolls_out(run, tmp_path):
     assert len(notes) == 1 and notes[0].startswith("potential: auto: none") and "model.potential=mlp" in notes[0]
     assert summary["rollout"]["model"]["n_failed"] == 0
     with pytest.raises(ConfigError, match="dataset.path"):
-        get_dataset(OmegaConf.create({"name": "file", "path": "???"}), data_dir)
+        get_dataset({"name": "file", "path": "???"}, data_dir)  # (the data layer takes plain mappings)
     with pytest.raises(ConfigError, match="unknown config key 'dataset.omega'"):
-        get_dataset(OmegaConf.create({"name": "file", "path": str(path), "omega": 1}), data_dir)
+        get_dataset({"name": "file", "path": str(path), "omega": 1}, data_dir)
 
 
 # ----------------------------------------------------------------------------- noise and smoothing

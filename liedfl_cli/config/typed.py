@@ -270,8 +270,8 @@ def typed(cfg: DictConfig, command: str | None = None) -> RunConfig:
     if cfg.get("force") is not None:
         out.force = dict(plain(cfg.force, "force") or {})
     for key in TOP_KEYS:
-        if key in cfg:
-            out.top[key] = plain(cfg.get(key), key)
+        if key in cfg.keys():  # a missing mandatory value (`run: ???`) stays "???" (the commands name it)
+            out.top[key] = "???" if OmegaConf.is_missing(cfg, key) else plain(cfg.get(key), key)
     if command == "eval" and "rollout" in cfg and not isinstance(cfg.get("rollout"), DictConfig):
         out.top["rollout"] = plain(cfg.get("rollout"), "rollout")
     return out
