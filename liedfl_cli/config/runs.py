@@ -83,6 +83,9 @@ def load_run_checkpoint(run_dir, data_dir=None, checkpoint: str = "best", accept
     else:  # regenerate from the recorded config (deterministic given its seed)
         dataset, _ = get_dataset(dataset_config(cfg.dataset), data_dir or cfg.paths.data_dir)
     try:
+        # what the model is built from must be in the saved config (the typed sections fill in
+        # defaults, which would hide a damaged checkpoint)
+        _ = (cfg.seed, cfg.train.epsilon, cfg.model)
         model = build_model(cfg, dataset)
     except Exception as e:
         raise CheckpointError(f"{ckpt}: field 'config' does not build a model ({_one_line(e)})") from None

@@ -164,10 +164,6 @@ class RunConfig:
     force: dict[str, Any] = field(default_factory=dict)
     top: dict[str, Any] = field(default_factory=dict)
 
-    def loss_options(self) -> LossOptions:
-        assert self.train is not None, "a train config"
-        return self.train.loss_options()
-
     def scene_eval_options(self) -> SceneEvalOptions:
         return SceneEvalOptions(plots=bool(self.eval.plots), solver=self.solver)
 
@@ -269,8 +265,9 @@ def typed(cfg: DictConfig, command: str | None = None) -> RunConfig:
         out.model = dict(plain(cfg.model, "model"))
     if cfg.get("force") is not None:
         out.force = dict(plain(cfg.force, "force") or {})
+    keys = set(cfg.keys())  # (`key in cfg` is false for a missing mandatory value such as `run: ???`)
     for key in TOP_KEYS:
-        if key in cfg.keys():  # a missing mandatory value (`run: ???`) stays "???" (the commands name it)
+        if key in keys:  # a missing value stays "???" (the commands name it)
             out.top[key] = "???" if OmegaConf.is_missing(cfg, key) else plain(cfg.get(key), key)
     if command == "eval" and "rollout" in cfg and not isinstance(cfg.get("rollout"), DictConfig):
         out.top["rollout"] = plain(cfg.get("rollout"), "rollout")
