@@ -525,11 +525,13 @@ def print_summary_table(summary: list[dict], metrics: list[str], title: str, out
 
 
 def run_report(cfg: DictConfig) -> dict:
-    sweep = Path(str(cfg.sweep))
-    if str(cfg.sweep) in ("", "???") or not sweep.is_dir():
-        raise ConfigError(
-            f"sweep={cfg.sweep}: not a directory (give a multirun directory, e.g. outputs/multirun/<date>)"
-        )
+    from ..config.typed import typed
+
+    command = typed(cfg, "report")  # this command's settings, typed once
+    given = command.top.get("sweep")
+    sweep = Path(str(given))
+    if str(given) in ("", "???") or not sweep.is_dir():
+        raise ConfigError(f"sweep={given}: not a directory (give a multirun directory, e.g. outputs/multirun/<date>)")
     from ..files.signals import set_phase
     from .status import failed_runs
 
@@ -543,7 +545,7 @@ def run_report(cfg: DictConfig) -> dict:
     if rows:
         result.add("report.csv", rows)
     result.add("report.md", report_markdown(sweep, rows, failed))
-    if cfg.plots and rows:
+    if command.top.get("plots") and rows:
         for name, fig in report_figures(sweep, rows).items():
             result.add(name, fig)
     plots = [p for p in write_outputs(result) if p.suffix == ".png"]
