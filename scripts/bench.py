@@ -121,8 +121,11 @@ def learned_so3_model():
 
 def rollout_us(model, G, h, n: int, budget: float, repeats: int, **settings) -> float:
     """Microseconds per step per trajectory (best of `repeats`) of a rollout of about `budget` s;
-    the CPU time of the same rollouts goes to `CPU_US`."""
+    the CPU time of the same rollouts goes to `CPU_US`. `fused=`: the model's path (fixed per model:
+    `with_path`); other settings: `runtime.using`."""
     g0, g1 = start(G, n, h)
+    if "fused" in settings:
+        model = model.with_path("fused" if settings.pop("fused") else "reference")
     with runtime.using(**settings):
         t = time.perf_counter()
         model.rollout(g0, g1, 4)

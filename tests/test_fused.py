@@ -79,8 +79,7 @@ def rel(a: torch.Tensor, b: torch.Tensor) -> float:
 
 
 def both_batches(model, data: Pose, steps: int = 10, reg_points: int = 10):
-    with runtime.using(fused=False):
-        ref_set = model.training_set(data, steps)
+    ref_set = model.with_path("reference").training_set(data, steps)
     fused_set = model.training_set(data, steps)
     assert isinstance(fused_set, fused.IncrementSet) and not isinstance(ref_set, fused.IncrementSet)
     idx = torch.randperm(ref_set.n, generator=torch.Generator().manual_seed(3))
@@ -190,8 +189,7 @@ def test_known_parts_are_evaluated_once_at_load_and_still_equal():
 def test_increment_set_draws_the_same_random_pairs_as_the_triplet_set():
     model = make("free_so3_rayleigh")
     data = trajectories(SO3)
-    with runtime.using(fused=False):
-        ref_set = model.training_set(data, 10)
+    ref_set = model.with_path("reference").training_set(data, 10)
     fused_set = model.training_set(data, 10)
     g1, g2 = torch.Generator().manual_seed(5), torch.Generator().manual_seed(5)
     idx = torch.arange(7)
@@ -219,8 +217,7 @@ def _start(G: ProductGroup, n: int, h: float, seed: int = 0, scale: float = 1.0)
 
 
 def _both_rollouts(model, g0, g1, steps, opts=None):
-    with runtime.using(fused=False):
-        ref = model.rollout(g0, g1, steps, opts)
+    ref = model.with_path("reference").rollout(g0, g1, steps, opts)
     return ref, model.rollout(g0, g1, steps, opts)
 
 
@@ -319,10 +316,11 @@ def _smoke_fit(tmp_path, optimizer: str):
     data = ds.pose(ds.train_idx)
     out = {}
     for use_fused in (False, True):
-        with runtime.using(fused=use_fused):
+        with runtime.using(fused=use_fused):  # decides the path of the model built here
             model = build_model(cfg, ds)
-            result = fit(model, data, cfg.train, int(cfg.dataset.train_steps), show_progress=False, log_epochs=False)
-            out[use_fused] = (result["history"], parameter_recovery(model, ds))
+        assert model.path == ("fused" if use_fused else "reference")
+        result = fit(model, data, cfg.train, int(cfg.dataset.train_steps), show_progress=False, log_epochs=False)
+        out[use_fused] = (result["history"], parameter_recovery(model, ds))
     return out
 
 

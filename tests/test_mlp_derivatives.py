@@ -14,7 +14,6 @@ from liedfl_cli.mechanics.forces import NNForce, force_jacobian_xi
 from liedfl_cli.mechanics.potentials import left_gradient
 from liedfl_cli.models import fused, fused_maps, mlp_derivatives
 from liedfl_cli.models.liedflnn import LieDFLNN
-from liedfl_cli.solvers import runtime
 from liedfl_cli.solvers.options import SolverOptions
 
 ACTIVATIONS = {
@@ -183,8 +182,8 @@ def test_closed_form_rollout_equals_the_autograd_path_to_the_newton_tolerance(na
     model = mlp_model(G, **kw)
     model.requires_grad_(False)
     g0, g1 = start(G, 4, model.h)
-    with runtime.using(fused=False):  # autograd for the potential gradient and the NN force's Jacobian
-        ref = model.rollout(g0, g1, 8)
+    # the reference path: autograd for the potential gradient and the NN force's Jacobian
+    ref = model.with_path("reference").rollout(g0, g1, 8)
     new = model.rollout(g0, g1, 8)
     tol = SolverOptions().tol
     assert bool(new.converged.all()) and torch.equal(ref.iterations, new.iterations)

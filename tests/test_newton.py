@@ -4,7 +4,7 @@ import torch
 
 from liedfl_cli.lie import SE3, SO3, Pose, so3
 from liedfl_cli.models.true_scheme import physics_model
-from liedfl_cli.solvers import newton, runtime
+from liedfl_cli.solvers import newton
 from liedfl_cli.solvers.newton import damped_newton, jacobian
 from liedfl_cli.solvers.options import SolverOptions
 
@@ -103,8 +103,7 @@ FREE = {**PHYS, "g": 0.0, "D": [0.05] * 3}  # the free_rigid_body scene's physic
 
 def _rollouts(model, g0, g1, steps, opts):
     """(fused, reference) rollouts of the same model."""
-    with runtime.using(fused=False):
-        ref = model.rollout(g0, g1, steps, opts)
+    ref = model.with_path("reference").rollout(g0, g1, steps, opts)
     return model.rollout(g0, g1, steps, opts), ref
 
 

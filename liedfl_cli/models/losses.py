@@ -310,7 +310,7 @@ def rollout_window_loss(
     G = model.G
     k = traj.R.shape[1] - 2
     solver = solver or SolverOptions()
-    run = solve if _fused_runtime() else solve_reference
+    run = solve if model.path == "fused" else solve_reference
     g_prev, g = _at(traj, 0), _at(traj, 1)
     alive = torch.ones(traj.R.shape[0], dtype=torch.bool, device=traj.R.device)
     sq_sum = traj.R.new_zeros(())
@@ -368,9 +368,3 @@ def _rot_sq(truth: Pose, pred: Pose) -> torch.Tensor:
 
     w = so3.log(truth.R.transpose(-1, -2) @ pred.R)
     return (w * w).sum((-1, -2))
-
-
-def _fused_runtime() -> bool:
-    from ..solvers import runtime
-
-    return runtime.current().fused

@@ -68,7 +68,7 @@ def rollout_implicit(model: Any, g0: Pose, g1: Pose, steps: int, opts: SolverOpt
     t0 = time.perf_counter()
     runtime.plan("rollout", g0.R.shape[0] * max(steps - 1, 0))
     state = model.implicit_start(g0, g1)
-    solver = solve if runtime.current().fused else solve_reference
+    solver = solve if model.path == "fused" else solve_reference  # fixed when the model was built
     Rs, ps = [g0.R, g1.R], [g0.p, g1.p]
     conv, its, res = [], [], []
     for k in range(1, steps):
