@@ -265,12 +265,8 @@ def _colors(models: list[str]):
     return {m: plt.get_cmap("tab10")(i % 10) for i, m in enumerate(models)}
 
 
-def plot_error_vs_speed(summary: list[dict], path: Path) -> bool:
-    """plots/error_vs_speed.png (speed_figure.py)."""
-    return speed_figure.plot_error_vs_speed(summary, path, ERROR, ERROR_LABEL)
-
-
 def draw_error_vs_speed(summary: list[dict]) -> Figure | None:
+    """plots/error_vs_speed.png (speed_figure.py); None without a point."""
     return speed_figure.draw_error_vs_speed(summary, ERROR, ERROR_LABEL)
 
 
