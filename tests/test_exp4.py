@@ -178,7 +178,7 @@ def test_compute_eval_writes_nothing_and_returns_what_is_written(smoke_run, tmp_
     out = compute_eval(cfg, dataset, run)
     assert {p: p.stat().st_mtime_ns for p in run.rglob("*")} == before and not list(tmp_path.iterdir())
     assert capsys.readouterr() == ("", "")
-    assert str(out.console[0][0]).startswith("columns: rel err")
+    assert str(out.messages[0][0]).startswith("columns: rel err")
     assert out.summary["title"].startswith(f"{dataset.scene}: test rollout (")
     assert {"eval.csv", "eval.md", "eval_curves.json", "plots/error_vs_step.png"} <= set(out.files)
     rows = out.table("eval.csv")

@@ -290,7 +290,7 @@ def compute_eval(
     """The evaluation of a rollout file against `dataset`, computed, neither written nor printed:
     summary {"rows": rows, "columns": the columns with a value, "title": of the console table}, the
     files eval.csv, eval.md, eval_curves.json and plots/ (drawn figures) to go next to the file, and
-    the notes for the console (`EvalOutputs.console`; the command prints them, then the table).
+    the notes for the console (`EvalOutputs.messages`; the command prints them, then the table).
     rollout_path: default `<run_dir>/rollout.h5`. The run's parameter recovery (recovery.json) goes
     into eval.md of any rollout of the run, the loss curve only into the run's own plots.
     model_name: what the `model` entry is (default: `cfg.model.name`). checkpoint: which checkpoint the

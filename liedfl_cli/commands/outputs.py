@@ -44,7 +44,7 @@ def write_outputs(result: EvalOutputs, out_dir: str | Path | None = None) -> lis
 
 def show(result: EvalOutputs) -> None:
     """Print what `result` asked to show (`EvalOutputs.say`), in order."""
-    for what, options in result.console:
+    for what, options in result.messages:
         console.print(what, **options)
 
 

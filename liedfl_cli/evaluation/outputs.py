@@ -21,17 +21,17 @@ SUFFIXES = (".json", ".csv", ".md", ".png")
 class EvalOutputs:
     """summary: the dict the evaluation returns (also the content of its JSON file); out_dir: the
     folder of the rollout file, where the files belong; files: relative path -> content (see above);
-    console: what the command prints, in order: (text or a rich renderable, `Console.print` options)."""
+    messages: what the command prints on the console, in order: (text or a rich renderable, `Console.print` options)."""
 
     summary: dict
     out_dir: Path
     files: dict[str, Any] = field(default_factory=dict)
-    console: list[tuple[Any, dict[str, Any]]] = field(default_factory=list)
+    messages: list[tuple[Any, dict[str, Any]]] = field(default_factory=list)
 
     def say(self, what: Any, **options: Any) -> None:
         """Ask the command to print `what` (text with rich markup, or a rich renderable such as a
         Table) with `Console.print` options, after the entries already asked for."""
-        self.console.append((what, options))
+        self.messages.append((what, options))
 
     def add(self, name: str, content: Any) -> None:
         if Path(name).suffix not in SUFFIXES:
