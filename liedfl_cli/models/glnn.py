@@ -37,8 +37,10 @@ from ..errors import ConfigError
 from ..lie import Pose, ProductGroup, so3
 from ..mechanics.parameterizations import Inertia, SPSDMatrix
 from ..mechanics.potentials import MLPPotential
+from ..solvers import runtime
 from ..solvers.newton import NewtonResult, damped_newton
 from ..solvers.options import SolverOptions
+from . import fused_glnn
 from .base import (
     Batch,
     BuildContext,
@@ -145,9 +147,16 @@ class GLNN(ExplicitModel):
             (dV,) = torch.autograd.grad(V.sum(), eta, create_graph=create)
         return -dV
 
-    def accel(self, R: torch.Tensor, w: torch.Tensor, params: Params) -> torch.Tensor:
-        """A(R, w) = J^{-1}(tau - w x J w), tau = -D w + tau_V(R): R (..., 3, 3), w (..., 3) -> (..., 3)."""
+    def fused_training(self) -> bool:
+        """Whether `loss` takes the fused path (`models.fused_glnn`): `runtime.fused` and no potential."""
+        return runtime.current().fused and self.potential is None
+
+    def accel(self, R: torch.Tensor, w: torch.Tensor, params: Params, fused: bool = False) -> torch.Tensor:
+        """A(R, w) = J^{-1}(tau - w x J w), tau = -D w + tau_V(R): R (..., 3, 3), w (..., 3) -> (..., 3).
+        fused: one autograd node (`fused_glnn.accel`, w (N, 3) only, no potential)."""
         J, Jinv, D = params
+        if fused:
+            return fused_glnn.accel(w, J, Jinv, D)
         tau = torch.cross(J @ w[..., None], w[..., None], dim=-2)[..., 0]  # (J w) x w
         if D is not None:
             tau = tau - w @ D.T
@@ -164,31 +173,40 @@ class GLNN(ExplicitModel):
         return Jinv @ M
 
     # ------------------------------------------------------------------ integrators
-    def heun_step(self, R: torch.Tensor, w: torch.Tensor, params: Params) -> tuple[torch.Tensor, torch.Tensor]:
+    def heun_step(
+        self, R: torch.Tensor, w: torch.Tensor, params: Params, fused: bool = False
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """One Lie-Heun (RKMK2) step: R (..., 3, 3), w (..., 3) -> (R' (..., 3, 3), w' (..., 3)) with
         w' = w + h/2 (A(R, w) + A(R exp(h w), w*)), w* = w + h A(R, w), R' = R exp(h (w + w*)/2)."""
-        A1 = self.accel(R, w, params)
+        A1 = self.accel(R, w, params, fused)
         w_star = w + self.h * A1
-        A2 = self.accel(R @ so3.exp(self.h * w), w_star, params)
+        if fused:  # without a potential A does not read R: the predictor's rotation is not needed
+            A2 = self.accel(R, w_star, params, fused)
+        else:
+            A2 = self.accel(R @ so3.exp(self.h * w), w_star, params)
         return R @ so3.exp(0.5 * self.h * (w + w_star)), w + 0.5 * self.h * (A1 + A2)
 
-    def midpoint_residual(self, R: torch.Tensor, w: torch.Tensor, w_next: torch.Tensor, params: Params) -> torch.Tensor:
+    def midpoint_residual(
+        self, R: torch.Tensor, w: torch.Tensor, w_next: torch.Tensor, params: Params, fused: bool = False
+    ) -> torch.Tensor:
         """w' - w - h A(R exp(h/2 wbar), wbar), wbar = (w + w')/2: R (..., 3, 3), w, w' (..., 3) -> (..., 3);
         zero at the implicit Lie midpoint step."""
         wbar = 0.5 * (w + w_next)
+        if fused:  # no potential: A does not read the midpoint rotation
+            return w_next - w - self.h * self.accel(R, wbar, params, fused)
         return w_next - w - self.h * self.accel(R @ so3.exp(0.5 * self.h * wbar), wbar, params)
 
     def midpoint_step_train(
-        self, R: torch.Tensor, w: torch.Tensor, params: Params
+        self, R: torch.Tensor, w: torch.Tensor, params: Params, fused: bool = False
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Differentiable midpoint step: explicit Euler guess + `train_newton_iters` Newton steps.
 
         R (..., 3, 3), w (..., 3) -> (R' = R exp(h (w + w')/2) (..., 3, 3), w' (..., 3)).
         """
-        w_next = w + self.h * self.accel(R, w, params)
+        w_next = w + self.h * self.accel(R, w, params, fused)
         eye = torch.eye(3, dtype=w.dtype, device=w.device)
         for _ in range(self.train_newton_iters):
-            F = self.midpoint_residual(R, w, w_next, params)
+            F = self.midpoint_residual(R, w, w_next, params, fused)
             Jac = eye - 0.5 * self.h * self.accel_jacobian_w(0.5 * (w + w_next), params)
             w_next = w_next - torch.linalg.solve(Jac, F[..., None])[..., 0]
         return R @ so3.exp(0.5 * self.h * (w + w_next)), w_next
@@ -205,13 +223,17 @@ class GLNN(ExplicitModel):
         w_next = sol.x.detach()
         return R @ so3.exp(0.5 * self.h * (w + w_next)), w_next, sol
 
-    def _odeint(self, R0: torch.Tensor, w0: torch.Tensor, steps: int, params: Params) -> torch.Tensor:
+    def _odeint(
+        self, R0: torch.Tensor, w0: torch.Tensor, steps: int, params: Params, fused: bool = False
+    ) -> torch.Tensor:
         """dopri5 on (R entries, w): R0 (N, 3, 3), w0 (N, 3) -> R (N, steps+1, 3, 3)."""
         from torchdiffeq import odeint
 
         n = R0.shape[0]
 
         def f(t, y):
+            if fused:
+                return fused_glnn.field(y, *params)
             R, w = y[:, :9].reshape(n, 3, 3), y[:, 9:]
             return torch.cat(((R @ so3.hat(w)).reshape(n, 9), self.accel(R, w, params)), -1)
 
@@ -222,15 +244,16 @@ class GLNN(ExplicitModel):
         )
         return ys[..., :9].reshape(steps + 1, n, 3, 3).transpose(0, 1)
 
-    def integrate_rotations(self, R0: torch.Tensor, w0: torch.Tensor, steps: int) -> torch.Tensor:
-        """Differentiable prediction (N, steps+1, 3, 3) from R0 (N, 3, 3), w0 (N, 3)."""
+    def integrate_rotations(self, R0: torch.Tensor, w0: torch.Tensor, steps: int, fused: bool = False) -> torch.Tensor:
+        """Differentiable prediction (N, steps+1, 3, 3) from R0 (N, 3, 3), w0 (N, 3); fused: the
+        training path of `models.fused_glnn` (no potential)."""
         params = self._params()
         if self.integrator == "dopri5":
-            return self._odeint(R0, w0, steps, params)
+            return self._odeint(R0, w0, steps, params, fused)
         Rs, R, w = [R0], R0, w0
         step = self.heun_step if self.integrator == "heun" else self.midpoint_step_train
         for _ in range(steps):
-            R, w = step(R, w, params)
+            R, w = step(R, w, params, fused)
             Rs.append(R)
         return torch.stack(Rs, 1)
 
@@ -246,7 +269,8 @@ class GLNN(ExplicitModel):
         batch: windows R (N, L+1, 1, 3, 3) (`as_sequence`) -> (scalar (), {"mse": scalar ()}).
         """
         R = batch.as_sequence().R[:, :, 0]
-        pred = self.integrate_rotations(R[:, 0], self.initial_velocity(R[:, 0], R[:, 1]), R.shape[1] - 1)
+        w0 = self.initial_velocity(R[:, 0], R[:, 1])
+        pred = self.integrate_rotations(R[:, 0], w0, R.shape[1] - 1, self.fused_training())
         mse = ((pred[:, 1:] - R[:, 1:]) ** 2).mean()
         return mse, {"mse": mse}
 
