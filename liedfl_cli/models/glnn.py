@@ -230,14 +230,16 @@ class GLNN(ExplicitModel):
         from torchdiffeq import odeint
 
         n = R0.shape[0]
+        t = self.h * torch.arange(steps + 1, dtype=R0.dtype, device=R0.device)
+        if fused:  # the same solver, one autograd node per step (models/fused_glnn.py)
+            y0 = torch.cat((R0.reshape(n, 9), w0), -1)
+            ys = fused_glnn.dopri5(y0, t, params, self.rtol, self.atol, self.max_num_steps)
+            return ys[..., :9].reshape(steps + 1, n, 3, 3).transpose(0, 1)
 
         def f(t, y):
-            if fused:
-                return fused_glnn.field(y, *params)
             R, w = y[:, :9].reshape(n, 3, 3), y[:, 9:]
             return torch.cat(((R @ so3.hat(w)).reshape(n, 9), self.accel(R, w, params)), -1)
 
-        t = self.h * torch.arange(steps + 1, dtype=R0.dtype, device=R0.device)
         y0 = torch.cat((R0.reshape(n, 9), w0), -1)
         ys = odeint(
             f, y0, t, rtol=self.rtol, atol=self.atol, method="dopri5", options={"max_num_steps": self.max_num_steps}
