@@ -173,17 +173,12 @@ class GLNN(ExplicitModel):
         return Jinv @ M
 
     # ------------------------------------------------------------------ integrators
-    def heun_step(
-        self, R: torch.Tensor, w: torch.Tensor, params: Params, fused: bool = False
-    ) -> tuple[torch.Tensor, torch.Tensor]:
+    def heun_step(self, R: torch.Tensor, w: torch.Tensor, params: Params) -> tuple[torch.Tensor, torch.Tensor]:
         """One Lie-Heun (RKMK2) step: R (..., 3, 3), w (..., 3) -> (R' (..., 3, 3), w' (..., 3)) with
         w' = w + h/2 (A(R, w) + A(R exp(h w), w*)), w* = w + h A(R, w), R' = R exp(h (w + w*)/2)."""
-        A1 = self.accel(R, w, params, fused)
+        A1 = self.accel(R, w, params)
         w_star = w + self.h * A1
-        if fused:  # without a potential A does not read R: the predictor's rotation is not needed
-            A2 = self.accel(R, w_star, params, fused)
-        else:
-            A2 = self.accel(R @ so3.exp(self.h * w), w_star, params)
+        A2 = self.accel(R @ so3.exp(self.h * w), w_star, params)
         return R @ so3.exp(0.5 * self.h * (w + w_star)), w + 0.5 * self.h * (A1 + A2)
 
     def midpoint_residual(
@@ -197,19 +192,45 @@ class GLNN(ExplicitModel):
         return w_next - w - self.h * self.accel(R @ so3.exp(0.5 * self.h * wbar), wbar, params)
 
     def midpoint_step_train(
-        self, R: torch.Tensor, w: torch.Tensor, params: Params, fused: bool = False
+        self, R: torch.Tensor, w: torch.Tensor, params: Params
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Differentiable midpoint step: explicit Euler guess + `train_newton_iters` Newton steps.
 
         R (..., 3, 3), w (..., 3) -> (R' = R exp(h (w + w')/2) (..., 3, 3), w' (..., 3)).
         """
+        w_next = self.midpoint_velocity_train(R, w, params)
+        return R @ so3.exp(0.5 * self.h * (w + w_next)), w_next
+
+    def midpoint_velocity_train(self, R: torch.Tensor, w: torch.Tensor, params: Params, fused: bool = False):
+        """w' of `midpoint_step_train`: R (..., 3, 3), w (..., 3) -> (..., 3); fused: no potential, R unused."""
         w_next = w + self.h * self.accel(R, w, params, fused)
         eye = torch.eye(3, dtype=w.dtype, device=w.device)
         for _ in range(self.train_newton_iters):
             F = self.midpoint_residual(R, w, w_next, params, fused)
             Jac = eye - 0.5 * self.h * self.accel_jacobian_w(0.5 * (w + w_next), params)
             w_next = w_next - torch.linalg.solve(Jac, F[..., None])[..., 0]
-        return R @ so3.exp(0.5 * self.h * (w + w_next)), w_next
+        return w_next
+
+    def _unroll_fused(self, R0: torch.Tensor, w0: torch.Tensor, steps: int, params: Params) -> torch.Tensor:
+        """heun / midpoint training unroll without a potential: the velocities first (A does not read
+        R), then every step's exp in one call, then the products R_{k+1} = R_k exp(h (w_k + w_k')/2) --
+        the reference steps' operations, regrouped. R0 (N, 3, 3), w0 (N, 3) -> (N, steps+1, 3, 3)."""
+        phis, w = [], w0
+        for _ in range(steps):
+            if self.integrator == "heun":
+                A1 = self.accel(R0, w, params, True)
+                w_star = w + self.h * A1
+                w_next = w + 0.5 * self.h * (A1 + self.accel(R0, w_star, params, True))
+                phis.append(0.5 * self.h * (w + w_star))
+            else:
+                w_next = self.midpoint_velocity_train(R0, w, params, True)
+                phis.append(0.5 * self.h * (w + w_next))
+            w = w_next
+        E = so3.exp(torch.stack(phis, 1))
+        Rs = [R0]
+        for k in range(steps):
+            Rs.append(Rs[-1] @ E[:, k])
+        return torch.stack(Rs, 1)
 
     def midpoint_step_solve(
         self, R: torch.Tensor, w: torch.Tensor, params: Params, opts: SolverOptions
@@ -252,10 +273,12 @@ class GLNN(ExplicitModel):
         params = self._params()
         if self.integrator == "dopri5":
             return self._odeint(R0, w0, steps, params, fused)
+        if fused:
+            return self._unroll_fused(R0, w0, steps, params)
         Rs, R, w = [R0], R0, w0
         step = self.heun_step if self.integrator == "heun" else self.midpoint_step_train
         for _ in range(steps):
-            R, w = step(R, w, params, fused)
+            R, w = step(R, w, params)
             Rs.append(R)
         return torch.stack(Rs, 1)
 
