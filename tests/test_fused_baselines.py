@@ -88,7 +88,7 @@ def _heavy_triplets(n: int, h: float, seed: int = 0) -> TripletBatch:
     w2 = w + 0.3 * torch.randn(n, 3, generator=gen, dtype=F64)
     R1 = R0 @ so3.exp(h * w)
     R2 = R1 @ so3.exp(h * w2)
-    pose = lambda R: Pose(R[:, None], torch.zeros(R.shape[0], 0, 3, dtype=F64))  # noqa: E731
+    pose = lambda R: Pose(R[:, None], torch.zeros(R.shape[0], 0, 3, dtype=F64))
     g0, g1, g2 = pose(R0), pose(R1), pose(R2)
     reg = (g1.index(torch.arange(10)), g2.index(torch.arange(10)))
     return TripletBatch(g0, g1, g2, reg)

@@ -31,6 +31,7 @@ from ..mechanics.mlp import MLP
 from ..mechanics.parameterizations import Inertia, PositiveVector, SPSDMatrix
 from ..solvers import runtime
 from ..solvers.newton import NewtonProblem
+from . import fused_dflnn
 from .base import (
     Batch,
     BuildContext,
@@ -41,7 +42,6 @@ from .base import (
     config_options,
     initial_scale,
 )
-from . import fused_dflnn
 from .del_loss import del_regularity_loss
 
 # rollout state: the pair (x_{k-1}, x_k), each (N, n)
@@ -194,8 +194,8 @@ class EuclideanDFLNN(ImplicitModel):
         assert isinstance(batch, TripletBatch), "EuclideanDFLNN trains on triplets (window = 'triplet')"
         if runtime.current().fused:  # closed form (models/fused_dflnn.py), the same numbers
             n_reg = batch.reg[0].R.shape[0] if batch.reg is not None and opts.w_reg > 0 else 0
-            xs = (self.to_x(g) for g in batch.poses())
-            return del_regularity_loss(*fused_dflnn.euclidean_residual_and_logdet(self, *xs, n_reg), opts)
+            x_prev, x, x_next = (self.to_x(g) for g in batch.poses())
+            return del_regularity_loss(*fused_dflnn.euclidean_residual_and_logdet(self, x_prev, x, x_next, n_reg), opts)
         r = self.residual(*(self.to_x(g) for g in batch.poses()))
         logdet = None
         if batch.reg is not None and opts.w_reg > 0:
