@@ -17,7 +17,8 @@ directions equal LieDFLNN's residual for the same J_d, m, rho, D_ww -- a tested 
 Loss: w_DEL mean |r|^2 + w_reg mean penalty(log|det d^2 L_d / dx_k dx_{k+1}|) (the 12 x 12 mixed
 Hessian by autodiff; it is -(1/h) times the constant kinetic matrix). Rollout: damped Newton on
 x_{k+1} in R^12 from 2 x_k - x_{k-1}; the predicted R is not orthogonal and is returned as is.
-Single-body groups only (SO(3) or SE(3)).
+Single-body groups only (SO(3) or SE(3)). With `runtime.fused` (the default) the training loss is
+computed in closed form by `models.fused_dflnn` (the same numbers; `runtime.fused=false`: autograd).
 """
 
 from __future__ import annotations

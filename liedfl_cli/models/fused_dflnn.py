@@ -1,17 +1,8 @@
-"""Fused training residuals of the Euler-angle and Euclidean DFLNN baselines (`runtime.fused`):
-the forced DEL residual in closed form, with the potential's input gradient from
-`mlp_derivatives.value_and_gradient` (plain tensor expressions), so that the training loss's
-backward differentiates one explicit graph instead of a double backward through `autograd.grad(...,
-create_graph=True)` of the MLP. Both Lagrangians of a triplet are evaluated in one batch.
-
-Euler angles (`EulerDFLNN`), per pair (q0, q1): qd = (q1 - q0)/h, qm = (q0 + q1)/2, w = E(qm) qd,
-p = J w and c_m = p . dw/dq_m at fixed qd, where (ZYX, E depending on phi and theta only)
-dw/dphi = (0, w_2, -w_1), dw/dtheta = -qd_2 (cos theta, sin phi sin theta, cos phi sin theta),
-dw/dpsi = 0. Then D_1 L_d = -E^T p + h/2 (c - dV(qm)), D_2 L_d = E^T p + h/2 (c - dV(qm)), and
-
-    r_k = E_1^T (p_1 - h/2 D w_1) - E_2^T (p_2 + h/2 D w_2) + h/2 (c_1 + c_2 - dV(qm_1) - dV(qm_2))
-
-for the pairs 1 = (q_{k-1}, q_k) and 2 = (q_k, q_{k+1}) (the Rayleigh terms are h/2 Q = -h/2 E^T D w).
+"""Fused training loss of the Euclidean DFLNN baseline (`runtime.fused`): the forced DEL residual
+in closed form, with the potential's input gradient from `mlp_derivatives.value_and_gradient`
+(plain tensor expressions), so that the loss's backward differentiates one explicit graph instead
+of a double backward through `autograd.grad(..., create_graph=True)`, and the regularity term's
+mixed Hessian (constant here) built once instead of by 12 autograd passes per batch.
 
 Euclidean coordinates (`EuclideanDFLNN`): L_d(x0, x1) = h/2 xd^T K xd - h V(x0), xd = (x1 - x0)/h,
 with the constant kinetic matrix K = [[I3 (x) (J_d + m rho rho^T), m I3 (x) rho], [m I3 (x) rho^T, m I3]]
@@ -22,14 +13,15 @@ with the constant kinetic matrix K = [[I3 (x) (J_d + m rho rho^T), m I3 (x) rho]
 and the mixed Hessian is -K/h at every pair: its log-determinant is computed once per batch.
 
 Same numbers as the reference (`runtime.fused=false`: autograd of `lagrangian`) to rounding;
-tests/test_fused_baselines.py checks losses and gradients to 1e-12 relative.
+tests/test_fused_baselines.py checks losses and gradients to 1e-12 relative. (The Euler-angle
+DFLNN has no fused path: the same treatment measured no faster there, its cost being the MLP
+64 x 3's arithmetic at batch 1024, docs/benchmarks.md "Baselines".)
 """
 
 from __future__ import annotations
 
 import torch
 
-from ..lie import euler
 from . import mlp_derivatives
 
 
@@ -43,32 +35,6 @@ def potential_gradient(net: torch.nn.Module, x: torch.Tensor) -> torch.Tensor:
         xg = x.detach().requires_grad_(True) if not x.requires_grad else x
         (g,) = torch.autograd.grad(net(xg)[..., 0].sum(), xg, create_graph=True)
     return g
-
-
-def euler_residual(model, q_prev: torch.Tensor, q: torch.Tensor, q_next: torch.Tensor) -> torch.Tensor:
-    """The forced DEL residual of `EulerDFLNN.residual` in closed form: q_prev, q, q_next (N, 3) -> (N, 3)."""
-    h = model.h
-    q0 = torch.stack((q_prev, q))  # (2, N, 3): the pairs (q_{k-1}, q_k) and (q_k, q_{k+1})
-    q1 = torch.stack((q, q_next))
-    qd = (q1 - q0) / h
-    qm = 0.5 * (q0 + q1)
-    E = euler.rate_matrix(qm)
-    w = (E @ qd[..., None])[..., 0]
-    p = w @ model.inertia.J()[0].T
-    phi, theta = qm[..., 0], qm[..., 1]
-    st, ct, sf, cf = torch.sin(theta), torch.cos(theta), torch.sin(phi), torch.cos(phi)
-    c_phi = p[..., 1] * w[..., 2] - p[..., 2] * w[..., 1]
-    c_theta = -qd[..., 2] * (ct * p[..., 0] + st * (sf * p[..., 1] + cf * p[..., 2]))
-    c = torch.stack((c_phi, c_theta, torch.zeros_like(c_phi)), -1)
-    if model.damping is not None:  # p_1 - h/2 D w_1 and p_2 + h/2 D w_2 in the E^T terms
-        sign = torch.tensor([-1.0, 1.0], dtype=q.dtype, device=q.device)[:, None, None]
-        p = p + (0.5 * h) * sign * (w @ model.damping().T)
-    Etp = (E.transpose(-1, -2) @ p[..., None])[..., 0]
-    extra = c[0] + c[1]
-    if model.potential is not None:
-        gV = potential_gradient(model.potential, qm)
-        extra = extra - gV[0] - gV[1]
-    return Etp[0] - Etp[1] + (0.5 * h) * extra
 
 
 def kinetic_matrix(model) -> torch.Tensor:

@@ -27,6 +27,12 @@ R_2..R_S. In training the implicit midpoint equation is solved by `train_newton_
 differentiable Newton iterations whose Jacobian I - h/2 dA/dw omits the potential's dependence
 on R (exact without a potential); rollouts use the damped Newton solver with the full autodiff
 Jacobian, tolerance and iteration limit of `solver`, and report real convergence flags.
+
+Training without a potential (the Exp 2 scenes) takes the fused path of `models.fused_glnn` when
+`runtime.fused` is on (the default): the vector field as one autograd node with a hand-written
+backward, dopri5 as a copy of torchdiffeq's solver with each step one node, Heun and Midpoint with
+their velocities first and every step's exp in one call. Same losses and gradients to rounding
+(tests/test_fused_baselines.py); `runtime.fused=false` runs the reference path above.
 """
 
 from __future__ import annotations
