@@ -108,3 +108,17 @@ def test_euclidean_dflnn_fused_loss_and_gradients_equal_the_reference(G, potenti
         poses = [Pose(g.R, p) for g, p in zip(batch.poses(), ps)]
         batch = TripletBatch(*poses, (poses[1].index(torch.arange(10)), poses[2].index(torch.arange(10))))
     _assert_same(model, batch)
+
+
+def test_glnn_fused_dopri5_in_float32_matches_the_reference_to_float32_rounding():
+    data = _trajectories(6, 6, 0.1)
+    data = Pose(data.R.float(), data.p.float())
+    model = GLNN(SO3, 0.1, integrator="dopri5", init_jitter=0.2, seed=3).to(torch.float32)
+    batch = TrajectorySet(data, 6).batch(torch.arange(6), torch.Generator(), 0)
+    loss_f, grads_f = _loss_and_grads(model, batch, True)
+    loss_r, grads_r = _loss_and_grads(model, batch, False)
+    assert loss_f.dtype == torch.float32
+    assert abs(loss_f - loss_r) <= 1e-5 * abs(loss_r)
+    scale = max(g.abs().max() for g in grads_r.values())
+    for k in grads_r:  # float32 rounding through an adaptive solve: ~1e-6 of the largest entry
+        assert (grads_f[k] - grads_r[k]).abs().max() <= 1e-4 * scale, k

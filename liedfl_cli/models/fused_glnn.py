@@ -240,8 +240,10 @@ def dopri5(
     def f(y):
         return _Field.apply(y, J, Jinv, D)
 
+    # time-like quantities in float64 at least, the state's arithmetic in its own dtype (as torchdiffeq)
+    t = t.to(torch.promote_types(torch.float64, y0.dtype))
     f0 = f(y0)
-    dt = _first_step(f, y0, f0, rtol, atol)
+    dt = _first_step(f, y0, f0, rtol, atol).to(t.dtype)
     betas = [torch.tensor(b, dtype=y0.dtype, device=y0.device) for b in _BETA]
     mid = torch.tensor(_C_MID, dtype=y0.dtype, device=y0.device)
     c_err = torch.tensor(_C_ERROR, dtype=y0.dtype, device=y0.device)
@@ -258,13 +260,14 @@ def dopri5(
             t0 = t1
             assert t0 + dt > t0, f"underflow in dt {dt.item()}"
             assert torch.isfinite(y).all(), f"non-finite values in state `y`: {y}"
-            k, y1 = _Dopri5Step.apply(y, f0, dt, J, Jinv, D, betas)
+            dty = dt.to(y.dtype)
+            k, y1 = _Dopri5Step.apply(y, f0, dty, J, Jinv, D, betas)
             with torch.no_grad():  # the error only decides acceptance and the next (gradient-free) step size
-                err = torch.sum(k * (dt * c_err), dim=-1)
-                ratio = _rms(err / (atol + rtol * torch.max(y.abs(), y1.abs()))).abs()
+                err = torch.sum(k * (dty * c_err), dim=-1)
+                ratio = _rms(err / (atol + rtol * torch.max(y.abs(), y1.abs()))).abs().to(t.dtype)
             accept = bool(ratio <= 1) or bool(dt <= 0)
             if accept:
-                dtc = dt.type_as(y)
+                dtc = dty
                 y_mid = y + torch.sum(k * (dtc * mid), dim=-1)
                 ka, kb = k[..., 0], k[..., -1]
                 a = 2 * dtc * (kb - ka) - 8 * (y1 + y) + 16 * y_mid
