@@ -8,8 +8,10 @@ import pytest
 import torch
 
 from liedfl_cli.lie import SE3, SO3, Pose, so3
+from liedfl_cli.models import fused_dflnn
 from liedfl_cli.models.base import LossOptions, TrajectorySet, TripletBatch, TripletSet
 from liedfl_cli.models.euclidean_dflnn import EuclideanDFLNN
+from liedfl_cli.models.euler_dflnn import EulerDFLNN
 from liedfl_cli.models.glnn import GLNN
 from liedfl_cli.solvers import runtime
 
@@ -122,3 +124,15 @@ def test_glnn_fused_dopri5_in_float32_matches_the_reference_to_float32_rounding(
     scale = max(g.abs().max() for g in grads_r.values())
     for k in grads_r:  # float32 rounding through an adaptive solve: ~1e-6 of the largest entry
         assert (grads_f[k] - grads_r[k]).abs().max() <= 1e-4 * scale, k
+
+
+@pytest.mark.parametrize(("potential", "damping"), [(True, True), (False, True), (True, False)])
+def test_euler_dflnn_fused_loss_and_gradients_equal_the_reference(potential, damping):
+    model = EulerDFLNN(SO3, 0.05, potential=potential, damping=damping, mlp_width=16, mlp_depth=2, seed=2)
+    with torch.no_grad():  # a non-diagonal J, so that every term of the closed-form Hessian is exercised
+        model.inertia.abc.add_(0.1 * torch.arange(model.inertia.abc.numel(), dtype=F64).reshape_as(model.inertia.abc))
+    _assert_same(model, _heavy_triplets(64, 0.05))
+    a, b = model.angles(*_heavy_triplets(64, 0.05).reg)
+    H = fused_dflnn.euler_mixed_hessian(model, a, b)
+    H_ref = model.mixed_hessian(a, b)
+    assert (H - H_ref).abs().max() <= 1e-12 * H_ref.abs().max()
