@@ -83,15 +83,6 @@ class _Field(torch.autograd.Function):
         return torch.cat((gR.reshape(n, 9), gw), -1), gJ, gJinv, gD
 
 
-def solve3(M: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
-    """M^{-1} r for M (N, 3, 3), r (N, 3) by the adjugate (the columns of det(M) M^{-1} are the cross
-    products of M's rows), differentiable: (N, 3)."""
-    a, b, c = M[..., 0, :], M[..., 1, :], M[..., 2, :]
-    bc, ca, ab = torch.linalg.cross(b, c), torch.linalg.cross(c, a), torch.linalg.cross(a, b)
-    det = (a * bc).sum(-1, keepdim=True)
-    return (bc * r[..., 0:1] + ca * r[..., 1:2] + ab * r[..., 2:3]) / det
-
-
 def accel(w: torch.Tensor, J: torch.Tensor, Jinv: torch.Tensor, D: torch.Tensor | None) -> torch.Tensor:
     """A(w) = J^{-1}((J w) x w - D w): w (N, 3), J, J^{-1}, D (3, 3) -> (N, 3), one autograd node."""
     return _Accel.apply(w, J, Jinv, D)

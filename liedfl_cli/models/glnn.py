@@ -214,10 +214,7 @@ class GLNN(ExplicitModel):
         for _ in range(self.train_newton_iters):
             F = self.midpoint_residual(R, w, w_next, params, fused)
             Jac = eye - 0.5 * self.h * self.accel_jacobian_w(0.5 * (w + w_next), params)
-            if fused:  # 3x3 systems in closed form (LU's batched call and backward cost more at this size)
-                w_next = w_next - fused_glnn.solve3(Jac, F)
-            else:
-                w_next = w_next - torch.linalg.solve(Jac, F[..., None])[..., 0]
+            w_next = w_next - torch.linalg.solve(Jac, F[..., None])[..., 0]
         return w_next
 
     def _unroll_fused(self, R0: torch.Tensor, w0: torch.Tensor, steps: int, params: Params) -> torch.Tensor:
