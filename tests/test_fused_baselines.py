@@ -1,5 +1,5 @@
-"""The baselines' fused training paths (`runtime.fused`, models/fused_glnn.py) against their
-reference paths (`runtime.fused=false`): the same loss (to 1e-12 relative) and the same gradients
+"""The baselines' fused training paths (`runtime.fused`, models/fused_glnn.py and
+models/fused_dflnn.py) against their reference paths (`runtime.fused=false`): the same loss (to 1e-12 relative) and the same gradients
 (to 1e-12 of the gradient's largest entry), on the same parameters and batches."""
 
 from __future__ import annotations
@@ -56,7 +56,7 @@ def _assert_same(model, batch):
 @pytest.mark.parametrize(
     ("integrator", "window", "steps", "damping"),
     [
-        ("dopri5", "trajectory", 6, True),
+        ("dopri5", "trajectory", 6, True),  # 14 dopri5 steps, 2 of them rejected: both branches
         ("heun", "trajectory", 20, True),
         ("heun", "trajectory", 8, False),
         ("midpoint", "triplet", 20, True),
