@@ -1,6 +1,7 @@
 """The baselines' fused training paths (`runtime.fused`, models/fused_glnn.py and
-models/fused_dflnn.py) against their reference paths (`runtime.fused=false`): the same loss (to 1e-12 relative) and the same gradients
-(to 1e-12 of the gradient's largest entry), on the same parameters and batches."""
+models/fused_dflnn.py) against their reference paths (`runtime.fused=false`): the same loss (to
+1e-12 relative) and the same gradients (to 1e-12 of the gradient's largest entry), on the same
+parameters and batches."""
 
 from __future__ import annotations
 
