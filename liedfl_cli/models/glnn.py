@@ -30,7 +30,7 @@ Jacobian, tolerance and iteration limit of `solver`, and report real convergence
 
 Training without a potential (the Exp 2 scenes) takes the fused path of `models.fused_glnn` when
 `runtime.fused` is on (the default): the vector field as one autograd node with a hand-written
-backward, dopri5 as a copy of torchdiffeq's solver with each step one node, Heun and Midpoint with
+backward (dopri5 stays torchdiffeq's own solver over that field), Heun and Midpoint with
 their velocities first and every step's exp in one call. Same losses and gradients to rounding
 (tests/test_fused_baselines.py); `runtime.fused=false` runs the reference path above.
 """
@@ -258,12 +258,10 @@ class GLNN(ExplicitModel):
 
         n = R0.shape[0]
         t = self.h * torch.arange(steps + 1, dtype=R0.dtype, device=R0.device)
-        if fused:  # the same solver, one autograd node per step (models/fused_glnn.py)
-            y0 = torch.cat((R0.reshape(n, 9), w0), -1)
-            ys = fused_glnn.dopri5(y0, t, params, self.rtol, self.atol, self.max_num_steps)
-            return ys[..., :9].reshape(steps + 1, n, 3, 3).transpose(0, 1)
 
         def f(t, y):
+            if fused:  # the field as one autograd node (models/fused_glnn.py), torchdiffeq's own solver
+                return fused_glnn.field(y, *params)
             R, w = y[:, :9].reshape(n, 3, 3), y[:, 9:]
             return torch.cat(((R @ so3.hat(w)).reshape(n, 9), self.accel(R, w, params)), -1)
 
