@@ -286,7 +286,7 @@ class FusedStep:
         return step_jacobian(self.G, self.h, x, self.B, self.maps, extra)
 
     def retract(self, x: Pose, delta: torch.Tensor) -> Pose:
-        return group_retract(self.G, x, delta)
+        return retract_increment(self.G, x, delta)
 
     def restrict(self, rows: torch.Tensor) -> NewtonProblem:
         """The Newton problem of the rows `rows` (for the last iterations of a few rows)."""
@@ -314,10 +314,30 @@ class FusedStep:
         return delta, singular, cand, self.f(cand)
 
 
+def retract_increment(G: ProductGroup, x: Pose, delta: torch.Tensor) -> Pose:
+    """x exp(delta) (`group_retract`); for rotation-only groups without the graph (rollouts) in a
+    few wide kernels: R exp(hat(w)) = R (cos t I + sinc(t) hat(w) + cosc(t) w w^T), with the closed
+    forms at every angle (sin(t)/t and 2 sin^2(t/2)/t^2 are accurate to rounding down to the
+    smallest normal t; at t = 0 w is 0 and the coefficients do not matter), where `group_exp`
+    switches to Taylor polynomials below `taylor`: equal to rounding."""
+    R = x.R
+    if G.n_se3 or (torch.is_grad_enabled() and (delta.requires_grad or R.requires_grad)):
+        return group_retract(G, x, delta)
+    w = delta.view(*R.shape[:-2], 3)
+    t = torch.linalg.vector_norm(w, dim=-1).clamp_(min=torch.finfo(w.dtype).tiny)
+    sinc = torch.sin(t).div_(t)
+    cosc = torch.sin(0.5 * t).div_(t).square_().mul_(2.0)
+    E = (cosc[..., None] * w)[..., :, None] * w[..., None, :]  # cosc w w^T
+    E.view(*E.shape[:-2], 9).add_((sinc[..., None] * w) @ _constants(w.dtype, w.device)["hat"])
+    E.diagonal(dim1=-2, dim2=-1).add_(torch.addcmul(torch.ones_like(t), cosc, t * t, value=-1.0)[..., None])
+    return Pose(R @ E, x.p)
+
+
 def step_residual(G: ProductGroup, h: float, x: Pose, const, B, maps: RolloutMaps) -> torch.Tensor:
     """Residual at the increment x without per-iteration (generic) forces, (T, dim)."""
     if maps.linear is not None:
-        return const + x.R.flatten(-3) @ maps.linear[0]
+        W = x.R.flatten(-3)
+        return torch.addmm(const, W, maps.linear[0]) if W.dim() == 2 else const + W @ maps.linear[0]
     r = const + kinetic_d1(G, x, maps, h)
     if B is not None:
         xi = kinetic.velocity_estimate(G, x, h)
@@ -344,7 +364,7 @@ def step_iterate(G: ProductGroup, h: float, x: Pose, r: torch.Tensor, const, B, 
     tensor code: what `runtime.compile` compiles."""
     sol, singular = solve_small(step_jacobian(G, h, x, B, maps), r)
     delta = -sol
-    cand = group_retract(G, x, delta)
+    cand = retract_increment(G, x, delta)
     return delta, singular, cand, step_residual(G, h, cand, const, B, maps)
 
 
@@ -356,8 +376,8 @@ def rollout_problem(model, state: RolloutState) -> NewtonProblem:
 def rollout_advance(model, state: RolloutState, x: Pose) -> tuple[RolloutState, Pose]:
     """Newton-Schulz-cleaned increment, next pose, next state (`LieDFLNN.implicit_advance`)."""
     W = x.R.detach()
-    eye = _constants(W.dtype, W.device)["eye"]
-    W = 0.5 * W @ (3.0 * eye - W.transpose(-1, -2) @ W)
+    W3 = W.reshape(-1, 3, 3)
+    W = torch.baddbmm(W3, W3, W3.transpose(-1, -2) @ W3, beta=1.5, alpha=-0.5).view(W.shape)  # W (3I - W^T W) / 2
     inc = Pose(W, x.p.detach())
     g_next = compose(model.G, state.g, inc)
     if projects_poses(W.dtype):  # below float64 the composed poses drift off SO(3) too
