@@ -317,7 +317,7 @@ class FusedStep:
 def retract_increment(G: ProductGroup, x: Pose, delta: torch.Tensor) -> Pose:
     """x exp(delta) (`group_retract`); for rotation-only groups without the graph (rollouts) in a
     few wide kernels: R exp(hat(w)) = R (cos t I + sinc(t) hat(w) + cosc(t) w w^T), with the closed
-    forms at every angle (sin(t)/t and 2 sin^2(t/2)/t^2 are accurate to rounding down to the
+    forms at every angle (cos t, sin(t)/t and 2 sin^2(t/2)/t^2 are accurate to rounding down to the
     smallest normal t; at t = 0 w is 0 and the coefficients do not matter), where `group_exp`
     switches to Taylor polynomials below `taylor`: equal to rounding."""
     R = x.R
@@ -329,7 +329,7 @@ def retract_increment(G: ProductGroup, x: Pose, delta: torch.Tensor) -> Pose:
     cosc = torch.sin(0.5 * t).div_(t).square_().mul_(2.0)
     E = (cosc[..., None] * w)[..., :, None] * w[..., None, :]  # cosc w w^T
     E.view(*E.shape[:-2], 9).add_((sinc[..., None] * w) @ _constants(w.dtype, w.device)["hat"])
-    E.diagonal(dim1=-2, dim2=-1).add_(torch.addcmul(torch.ones_like(t), cosc, t * t, value=-1.0)[..., None])
+    E.diagonal(dim1=-2, dim2=-1).add_(torch.cos(t)[..., None])
     return Pose(R @ E, x.p)
 
 
