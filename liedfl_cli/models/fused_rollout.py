@@ -14,6 +14,7 @@ from ..lie import Pose, ProductGroup, so3
 from ..lie.tolerances import projects_poses
 from ..mechanics import kinetic
 from ..mechanics.forces import PDControl, RayleighForce, RayleighNonlinearForce, force_jacobian_xi
+from ..mechanics.potentials import MLPPotential
 from ..solvers import runtime
 from ..solvers.newton import NewtonProblem
 from . import mlp_derivatives
@@ -54,6 +55,7 @@ class RolloutMaps:
     se3_block: torch.Tensor | None
     linear: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None
     block_index: torch.Tensor | None
+    potential_layers: list | None = None
 
 
 @dataclass
@@ -117,7 +119,10 @@ def rollout_maps(model) -> RolloutMaps:
     if not m and all(isinstance(f, RayleighForce) for f in model.forces):
         linear = _linear_maps(model, P)
     block_index = _block_index(G, P.Jd.device) if G.n_bodies > 1 else None
-    return RolloutMaps(P, d1, d2, hess, rho_map, se3_block, linear, block_index)
+    lys = None  # an MLP potential of a rotation-only group: its layers, parsed once per rollout
+    if not m and isinstance(model.potential, MLPPotential):
+        lys = mlp_derivatives.layers(model.potential.net)
+    return RolloutMaps(P, d1, d2, hess, rho_map, se3_block, linear, block_index, lys)
 
 
 def _linear_maps(model, P: Derived) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -242,8 +247,15 @@ class FusedStep:
         g_prev, g, inc = state.g_prev, state.g, state.inc
         self.generic: list[nn.Module] = []
         self.B: torch.Tensor | None = None
+        cov = None
+        if model.potential is not None:
+            cov = self._potential_covector(model, g)
         if maps.linear is not None:
-            const = inc.R.flatten(-3) @ maps.linear[2]
+            W = inc.R.flatten(-3)
+            if cov is not None and W.dim() == 2:
+                const, cov = torch.addmm(cov, W, maps.linear[2]), None
+            else:
+                const = W @ maps.linear[2]
         else:
             xi_prev = kinetic.velocity_estimate(G, inc, h)
             const = kinetic_d2(G, inc, maps, h)
@@ -264,11 +276,19 @@ class FusedStep:
             if half is not None:
                 const = const + 0.5 * h * half
             self.B = B_aff
-        if model.potential is not None:
-            const = const + potential_covector(model, g).detach()
+        if cov is not None:
+            const = const + cov
         self.const = const
         self.compiled_iterate = compiled_iterate if not self.generic else None
         self.forces_at = mlp_derivatives.ForcesAt(G, self.generic, g) if self.generic else None
+
+    def _potential_covector(self, model, g: Pose) -> torch.Tensor:
+        """The potential's covector at g_k (detached: the step's fixed part needs no graph)."""
+        lys = self.maps.potential_layers
+        if lys is None:
+            return potential_covector(model, g).detach()
+        with torch.no_grad():
+            return mlp_derivatives.rotation_potential_covector(lys, model.G, g.R, model.h)
 
     def f(self, x: Pose) -> torch.Tensor:
         """The residual at the increment x, (T, dim)."""

@@ -196,6 +196,12 @@ def gradient_feature_major(lys: list[Layer], x: torch.Tensor, scale: float = 1.0
     return g
 
 
+def rotation_potential_covector(lys: list[Layer], G: ProductGroup, R: torch.Tensor, h: float) -> torch.Tensor:
+    """-h dV(R exp(eta))/d eta at 0, (T, 3 B), of an MLP potential V = net(R.flatten()) with layers
+    `lys` on a rotation-only group, R (T, B, 3, 3) (rank 4: one batch axis), without a graph."""
+    return _rotation_covector(G, R, gradient_feature_major(lys, R.flatten(-3), -h))
+
+
 def _rotation_covector(G: ProductGroup, R: torch.Tensor, dx_t: torch.Tensor) -> torch.Tensor:
     """`left_covector` of a rotation-only group from the feature-major dx_t (9 B, T): (T, 3 B)."""
     T, B = R.shape[0], G.n_bodies
@@ -262,7 +268,7 @@ def potential_covector(model, g: Pose) -> torch.Tensor | None:
     if x.dim() == 2 and not G.n_se3 and not _needs_graph(V.net, x):
         lys = layers(V.net)
         if lys is not None:
-            return _rotation_covector(G, g.R, gradient_feature_major(lys, x, -model.h))
+            return rotation_potential_covector(lys, G, g.R, model.h)
     got = value_and_gradient(V.net, x)
     if got is None:
         return None
