@@ -9,9 +9,12 @@ with no autograd graph.
                                     inputs: F and dF/d(inputs)                       (..., out), (..., out, k)
     left_covector(G, g, dx)         d f(g exp(eta))/d eta at 0 from df/dflatten(g)   (..., dim)
     potential_covector(model, g)    -h dV(g exp(eta))/d eta at 0 of an MLP potential (None: not an MLP)
+    gradient_feature_major(lys, x)  dV/dx without a graph, feature major (n, T): one wide product per
+                                    layer; rotation_potential_covector(lys, G, R, h) builds on it (rollouts)
 
 The backward pass of every activation is ATen's own (`gelu_backward`, `tanh_backward`, ...), the
-kernels autograd runs, so the gradient is autograd's to rounding. Under autograd (training: the
+kernels autograd runs, so the gradient is autograd's to rounding; without a graph an exact GELU's value
+and slope come from one erf and one exp (ATen's formulas, equal to rounding). Under autograd (training: the
 parameters need gradients through the input gradient) the same formulas are written as plain tensor
 expressions, which autograd differentiates once more (cheaper than a double backward).
 
