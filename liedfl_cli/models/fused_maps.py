@@ -44,6 +44,7 @@ def _build_constants(dtype: torch.dtype, device: torch.device | None) -> dict[st
     eye = torch.eye(3, dtype=dtype, device=device)
     return {
         "eye": eye,
+        "three_eye": 3.0 * eye,
         "basis": torch.eye(9, dtype=dtype, device=device).reshape(9, 3, 3),  # matrix units E_(ij)
         "hat": so3.hat(eye).reshape(3, 9),  # w @ hat = hat(w).flatten(): entries +-1, exact
         "taylor_by_degree": tuple(torch.tensor(_EXP_TAYLOR, dtype=dtype, device=device).T.contiguous()),

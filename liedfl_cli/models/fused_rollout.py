@@ -396,8 +396,10 @@ def rollout_problem(model, state: RolloutState) -> NewtonProblem:
 def rollout_advance(model, state: RolloutState, x: Pose) -> tuple[RolloutState, Pose]:
     """Newton-Schulz-cleaned increment, next pose, next state (`LieDFLNN.implicit_advance`)."""
     W = x.R.detach()
-    W3 = W.reshape(-1, 3, 3)
-    W = torch.baddbmm(W3, W3, W3.transpose(-1, -2) @ W3, beta=1.5, alpha=-0.5).view(W.shape)  # W (3I - W^T W) / 2
+    three = _constants(W.dtype, W.device)["three_eye"]
+    # W (3I - W^T W) / 2, the halving last (exact, so bit for bit the textbook order; the algebraically
+    # equal 1.5 W - 0.5 W W^T W rounds differently and, in float32, drifts differently)
+    W = (W @ (three - W.transpose(-1, -2) @ W)).mul_(0.5)
     inc = Pose(W, x.p.detach())
     g_next = compose(model.G, state.g, inc)
     if projects_poses(W.dtype):  # below float64 the composed poses drift off SO(3) too
