@@ -285,7 +285,7 @@ class FusedStep:
     def _potential_covector(self, model, g: Pose) -> torch.Tensor:
         """The potential's covector at g_k (detached: the step's fixed part needs no graph)."""
         lys = self.maps.potential_layers
-        if lys is None:
+        if lys is None or g.R.dim() != 4:
             return potential_covector(model, g).detach()
         with torch.no_grad():
             return mlp_derivatives.rotation_potential_covector(lys, model.G, g.R, model.h)
@@ -343,7 +343,7 @@ def retract_increment(G: ProductGroup, x: Pose, delta: torch.Tensor) -> Pose:
     R = x.R
     if G.n_se3 or (torch.is_grad_enabled() and (delta.requires_grad or R.requires_grad)):
         return group_retract(G, x, delta)
-    w = delta.view(*R.shape[:-2], 3)
+    w = delta.reshape(*R.shape[:-2], 3)
     t = torch.linalg.vector_norm(w, dim=-1).clamp_(min=torch.finfo(w.dtype).tiny)
     sinc = torch.sin(t).div_(t)
     cosc = torch.sin(0.5 * t).div_(t).square_().mul_(2.0)
