@@ -103,7 +103,7 @@ def test_unsupported_networks_are_declined():
     )
 
 
-GROUPS = {"so3": SO3, "se3": SE3, "se3xso3x2": ProductGroup(1, 2)}
+GROUPS = {"so3": SO3, "so3x2": ProductGroup(0, 2), "se3": SE3, "se3xso3x2": ProductGroup(1, 2)}
 
 
 def poses(G: ProductGroup, T: int = 6, seed: int = 3) -> Pose:
@@ -173,6 +173,7 @@ ROLLOUT_MODELS = {
     "so3_mlp_10x2_rayleigh": (SO3, dict(forces=["rayleigh"])),
     "se3_mlp_rayleigh": (SE3, dict(forces=["rayleigh"])),
     "se3xso3x2_mlp_nn_force": (ProductGroup(1, 2), dict(forces={"rayleigh": {}, "nn": {"width": 8, "depth": 2}})),
+    "so3x2_mlp_rayleigh": (ProductGroup(0, 2), dict(forces=["rayleigh"])),
 }
 
 

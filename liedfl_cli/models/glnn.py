@@ -44,7 +44,7 @@ from ..lie import Pose, ProductGroup, so3
 from ..mechanics.parameterizations import Inertia, SPSDMatrix
 from ..mechanics.potentials import MLPPotential
 from ..solvers import runtime
-from ..solvers.newton import NewtonResult, damped_newton
+from ..solvers.newton import NewtonProblem, NewtonResult, solve
 from ..solvers.options import SolverOptions
 from . import fused_glnn
 from .base import (
@@ -246,7 +246,7 @@ class GLNN(ExplicitModel):
         R (N, 3, 3), w (N, 3) -> (R' (N, 3, 3), w' (N, 3), the solver's result for w').
         """
         guess = self.heun_step(R, w, params)[1]
-        sol = damped_newton(lambda x: self.midpoint_residual(R, w, x, params), guess.detach(), opts)
+        sol = solve(NewtonProblem.euclidean(lambda x: self.midpoint_residual(R, w, x, params), guess.detach()), opts)
         w_next = sol.x.detach()
         return R @ so3.exp(0.5 * self.h * (w + w_next)), w_next, sol
 
