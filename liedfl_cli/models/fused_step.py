@@ -1,0 +1,117 @@
+"""The loss and parameter gradient of one training batch of an SO(3)-only LieDFLNN without autograd
+(`RotationalGradient`), for `train.fit`'s fused optimiser step.
+
+`fused_training.rotational_loss` already has a hand-written gradient, and J_d and D have theirs
+(`fused_maps._InertiaJdScalar` / `_InertiaJd`, `_SPSDScalar`); what autograd adds around them (the
+graph, its engine, zeroing and accumulating `.grad`) is about a third of a default-run step. Here
+the same functions' forward and backward run directly in order, under no_grad: the same kernels
+on the same values, so loss and gradients are the autograd path's bit for bit
+(tests/test_fused_step.py)."""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from ..mechanics.forces import RayleighForce
+from ..mechanics.parameterizations import Inertia, SPSDMatrix
+from ..solvers import runtime
+from .fused_maps import SCALAR_BODIES, SCALAR_DIM, _InertiaJd, _InertiaJdScalar, _map_contraction, _SPSDScalar
+from .fused_training import IncrementBatch, IncrementSet, _RotationalLoss
+
+
+class _Ctx:
+    """Stands in for autograd's ctx when a `torch.autograd.Function`'s forward and backward are
+    called directly."""
+
+    saved_tensors: tuple
+
+    def save_for_backward(self, *tensors) -> None:
+        self.saved_tensors = tensors
+
+
+class RotationalGradient:
+    """(loss, {"del_loss", "reg_loss"}, gradients) of a batch for the model's trainable parameters
+    `params` (in that order), as `LieDFLNN.loss` + `backward()` give them. Build with `make`."""
+
+    def __init__(self, model, params: list[nn.Parameter], dampers: list[SPSDMatrix]):
+        self.model, self.params, self.dampers = model, params, dampers
+        inertia = model.inertia
+        scalar = inertia.r.shape[0] <= SCALAR_BODIES and inertia.r.device.type == "cpu"
+        self.jd_fn = _InertiaJdScalar if scalar else _InertiaJd
+        ref = inertia.r
+        self.C = _map_contraction(ref.dtype, float(model.h), ref.device)
+        self.h = float(model.h)
+        # where each computed gradient goes: params index of r, abc, and of each damper's (L, lambda)
+        where = {id(p): i for i, p in enumerate(params)}
+        self.slot_jd = (where.get(id(inertia.r)), where.get(id(inertia.abc)))
+        self.slot_d = [(where.get(id(d.L_entries)), where.get(id(d.lam))) for d in dampers]
+
+    @staticmethod
+    def make(model, samples, opts, params: list[nn.Parameter]) -> RotationalGradient | None:
+        """The fused gradient of `model` on `samples`, or None where it does not apply: the fused
+        paths off or compiled, another loss, SE(3) bodies, a trainable potential or force other than
+        a constant Rayleigh one with a small `SPSDMatrix`, or trainable parameters it does not cover."""
+        from .liedflnn import LieDFLNN
+
+        if type(model) is not LieDFLNN or not isinstance(samples, IncrementSet) or not model._fused():
+            return None
+        if opts.loss != "del" or runtime.want_compile("train") or model.G.n_se3:
+            return None
+        if samples.dynamic_forces or samples.potential_trainable or not isinstance(model.inertia, Inertia):
+            return None
+        dampers = []
+        for f in model.forces:
+            if isinstance(f, RayleighForce):
+                D = f.D
+                if type(D) is not SPSDMatrix or D.dim > SCALAR_DIM or D.lam.device.type != "cpu":
+                    return None
+                dampers.append(D)
+        covered = {id(model.inertia.r), id(model.inertia.abc)}
+        covered |= {id(p) for D in dampers for p in (D.L_entries, D.lam)}
+        if any(id(p) not in covered for p in params):
+            return None
+        return RotationalGradient(model, params, dampers)
+
+    @torch.no_grad()
+    def __call__(self, batch: IncrementBatch, opts) -> tuple[torch.Tensor, dict, list[torch.Tensor | None] | None]:
+        """(loss, parts, gradients per parameter), gradients None where the loss is not finite."""
+        inertia = self.model.inertia
+        c_jd = _Ctx()
+        Jd = self.jd_fn.forward(c_jd, inertia.r, inertia.abc)
+        D = None
+        c_d = []
+        for damper in self.dampers:
+            c = _Ctx()
+            Df = _SPSDScalar.forward(c, damper.L_entries, damper.lam, damper.dim)
+            c_d.append(c)
+            D = Df if D is None else D + Df
+        reg = batch.reg_W if batch.reg_W is not None and opts.w_reg > 0 else None
+        f = batch.fields
+        settings = (self.h, float(opts.w_del), float(opts.w_reg), float(opts.epsilon), str(opts.reg_form))
+        c_loss = _Ctx()
+        loss, del_loss, reg_loss = _RotationalLoss.forward(
+            c_loss, Jd.flatten(-2), D, f["A"], f.get("s"), f.get("static"), reg, self.C, settings
+        )
+        parts = {"del_loss": del_loss, "reg_loss": reg_loss}
+        if not torch.isfinite(loss):  # the caller reports it (the backward of a non-finite loss may raise)
+            return loss, parts, None
+        grads: list[torch.Tensor | None] = [None] * len(self.params)
+        one = torch.ones((), dtype=loss.dtype, device=loss.device)
+        dJd, dD = _RotationalLoss.backward(c_loss, one, None, None)[:2]
+        i_r, i_abc = self.slot_jd
+        if i_r is not None or i_abc is not None:
+            dr, dabc = self.jd_fn.backward(c_jd, dJd.view(Jd.shape))
+            if i_r is not None:
+                grads[i_r] = dr
+            if i_abc is not None:
+                grads[i_abc] = dabc
+        for c, (i_l, i_lam) in zip(c_d, self.slot_d):
+            if i_l is None and i_lam is None:
+                continue
+            d_entries, d_lam, _ = _SPSDScalar.backward(c, dD)
+            if i_l is not None:
+                grads[i_l] = d_entries
+            if i_lam is not None:
+                grads[i_lam] = d_lam
+        return loss, parts, grads
