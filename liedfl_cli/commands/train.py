@@ -98,7 +98,7 @@ def _loss_value(model, batch, opts) -> tuple[torch.Tensor | None, dict, str]:
     return loss, parts, ""
 
 
-def _fused_value(grad_fn, params: list, batch, opts) -> tuple[torch.Tensor | None, dict, str]:
+def _fused_value(grad_fn, params: list, batch, opts) -> tuple[float | None, dict, str]:
     """`_loss_value` plus the backward pass of a fused gradient (`fused_step.RotationalGradient`):
     the gradients are set on `params` (no autograd graph, nothing to zero)."""
     try:
@@ -106,7 +106,7 @@ def _fused_value(grad_fn, params: list, batch, opts) -> tuple[torch.Tensor | Non
     except OverflowError as e:
         return None, {}, f"too large ({e})"
     if grads is None:
-        return None, {}, str(loss.item())
+        return None, {}, str(loss)
     for p, g in zip(params, grads):
         p.grad = g
     return loss, parts, ""
@@ -321,7 +321,7 @@ def fit(
                     loss.backward()
                 opt.step()
                 for k, v in {"loss": loss, **parts}.items():
-                    sums[k] = sums.get(k, 0.0) + float(v.detach()) / n_batches
+                    sums[k] = sums.get(k, 0.0) + (v if isinstance(v, float) else float(v.detach())) / n_batches
             lr = float(opt.param_groups[0]["lr"])  # the rate this epoch's steps used
             if sched is not None:
                 sched.step()

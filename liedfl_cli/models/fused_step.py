@@ -10,6 +10,8 @@ on the same values, so loss and gradients are the autograd path's bit for bit
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import nn
 
@@ -74,8 +76,9 @@ class RotationalGradient:
         return RotationalGradient(model, params, dampers)
 
     @torch.no_grad()
-    def __call__(self, batch: IncrementBatch, opts) -> tuple[torch.Tensor, dict, list[torch.Tensor | None] | None]:
-        """(loss, parts, gradients per parameter), gradients None where the loss is not finite."""
+    def __call__(self, batch: IncrementBatch, opts) -> tuple[float, dict[str, float], list | None]:
+        """(loss, {"del_loss", "reg_loss"} as floats, gradients per parameter); gradients None where
+        the loss is not finite (the caller reports it; the backward of such a loss may raise)."""
         inertia = self.model.inertia
         c_jd = _Ctx()
         Jd = self.jd_fn.forward(c_jd, inertia.r, inertia.abc)
@@ -87,18 +90,11 @@ class RotationalGradient:
             c_d.append(c)
             D = Df if D is None else D + Df
         reg = batch.reg_W if batch.reg_W is not None and opts.w_reg > 0 else None
-        f = batch.fields
-        settings = (self.h, float(opts.w_del), float(opts.w_reg), float(opts.epsilon), str(opts.reg_form))
-        c_loss = _Ctx()
-        loss, del_loss, reg_loss = _RotationalLoss.forward(
-            c_loss, Jd.flatten(-2), D, f["A"], f.get("s"), f.get("static"), reg, self.C, settings
-        )
-        parts = {"del_loss": del_loss, "reg_loss": reg_loss}
-        if not torch.isfinite(loss):  # the caller reports it (the backward of a non-finite loss may raise)
+        loss, parts, backward = _rotational_loss(Jd, D, batch.fields, reg, self.C, self.h, opts)
+        if not math.isfinite(loss):
             return loss, parts, None
+        dJd, dD = backward()
         grads: list[torch.Tensor | None] = [None] * len(self.params)
-        one = torch.ones((), dtype=loss.dtype, device=loss.device)
-        dJd, dD = _RotationalLoss.backward(c_loss, one, None, None)[:2]
         i_r, i_abc = self.slot_jd
         if i_r is not None or i_abc is not None:
             dr, dabc = self.jd_fn.backward(c_jd, dJd.view(Jd.shape))
@@ -115,3 +111,18 @@ class RotationalGradient:
             if i_lam is not None:
                 grads[i_lam] = d_lam
         return loss, parts, grads
+
+
+def _rotational_loss(Jd, D, f: dict, reg, C, h: float, opts):
+    """`fused_training._RotationalLoss`'s forward, and its backward as a closure -> (dJd, dD)."""
+    settings = (h, float(opts.w_del), float(opts.w_reg), float(opts.epsilon), str(opts.reg_form))
+    ctx = _Ctx()
+    loss, del_loss, reg_loss = _RotationalLoss.forward(
+        ctx, Jd.flatten(-2), D, f["A"], f.get("s"), f.get("static"), reg, C, settings
+    )
+    one = torch.ones((), dtype=loss.dtype, device=loss.device)
+
+    def backward():
+        return _RotationalLoss.backward(ctx, one, None, None)[:2]
+
+    return float(loss), {"del_loss": float(del_loss), "reg_loss": float(reg_loss)}, backward
