@@ -19,7 +19,7 @@ from ..mechanics.forces import RayleighForce
 from ..mechanics.parameterizations import Inertia, SPSDMatrix
 from ..solvers import runtime
 from .fused_maps import SCALAR_BODIES, SCALAR_DIM, _InertiaJd, _InertiaJdScalar, _map_contraction, _SPSDScalar
-from .fused_training import IncrementBatch, IncrementSet, _RotationalLoss
+from .fused_training import IncrementBatch, IncrementSet, rotational_backward, rotational_forward
 
 
 class _Ctx:
@@ -114,15 +114,14 @@ class RotationalGradient:
 
 
 def _rotational_loss(Jd, D, f: dict, reg, C, h: float, opts):
-    """`fused_training._RotationalLoss`'s forward, and its backward as a closure -> (dJd, dD)."""
-    settings = (h, float(opts.w_del), float(opts.w_reg), float(opts.epsilon), str(opts.reg_form))
-    ctx = _Ctx()
-    loss, del_loss, reg_loss = _RotationalLoss.forward(
-        ctx, Jd.flatten(-2), D, f["A"], f.get("s"), f.get("static"), reg, C, settings
-    )
-    one = torch.ones((), dtype=loss.dtype, device=loss.device)
+    """`fused_training._RotationalLoss` without autograd: (loss, parts as floats, backward() ->
+    (dJd, dD)); the loss is w_del del_loss + w_reg reg_loss in the same double arithmetic."""
+    w_del, w_reg = float(opts.w_del), float(opts.w_reg)
+    settings = (h, w_del, w_reg, float(opts.epsilon), str(opts.reg_form))
+    del_t, reg_t, saved = rotational_forward(Jd.flatten(-2), D, f["A"], f.get("s"), f.get("static"), reg, C, settings)
+    del_loss, reg_loss = float(del_t), float(reg_t)
 
     def backward():
-        return _RotationalLoss.backward(ctx, one, None, None)[:2]
+        return rotational_backward(saved, w_del, w_reg)  # d loss / d del_loss = w_del exactly
 
-    return float(loss), {"del_loss": float(del_loss), "reg_loss": float(reg_loss)}, backward
+    return w_del * del_loss + w_reg * reg_loss, {"del_loss": del_loss, "reg_loss": reg_loss}, backward
