@@ -14,7 +14,7 @@ from pytorch_optimizer import SOAP
 
 from liedfl_cli.commands import fused_optim
 from liedfl_cli.commands.fused_optim import FusedSOAP
-from liedfl_cli.lie import SO3, SE3, Pose, so3
+from liedfl_cli.lie import SE3, SO3, Pose, so3
 from liedfl_cli.models import fused_step
 from liedfl_cli.models.base import LossOptions, oriented_logdet
 from liedfl_cli.models.fused_step import RotationalGradient

@@ -24,7 +24,7 @@ import math
 import torch
 from pytorch_optimizer import SOAP
 
-_tensordot = torch._C._VariableFunctions.tensordot  # what torch.tensordot calls, without its argument parsing
+_tensordot = torch._C._VariableFunctions.tensordot  # type: ignore[attr-defined]  # torch.tensordot's kernel call
 
 
 def _listable(p: torch.Tensor, state: dict, max_dim: int) -> bool:
@@ -56,7 +56,7 @@ class FusedSOAP(SOAP):
         return group
 
     @torch.no_grad()
-    def step(self, closure=None):  # type: ignore[override]
+    def step(self, closure=None):
         group = self._list_group()
         if group is None:
             return super().step(closure)

@@ -310,17 +310,18 @@ def fit(
             for b in range(n_batches):
                 idx = perm[b * bs : (b + 1) * bs]
                 batch = samples.batch(idx, gen, opts.reg_points)
+                value: float | torch.Tensor | None
                 if grad_fn is not None:  # forward and backward fused, no autograd graph
-                    loss, parts, bad = _fused_value(grad_fn, params, batch, opts)
+                    value, parts, bad = _fused_value(grad_fn, params, batch, opts)
                 else:
                     opt.zero_grad(set_to_none=True)
-                    loss, parts, bad = _loss_value(model, batch, opts)
-                if loss is None:
+                    value, parts, bad = _loss_value(model, batch, opts)
+                    if value is not None:
+                        value.backward()
+                if value is None:
                     raise TrainingDiverged(epoch, b, bad, first=epoch == start and b == 0, saved=saved_epoch)
-                if grad_fn is None:
-                    loss.backward()
                 opt.step()
-                for k, v in {"loss": loss, **parts}.items():
+                for k, v in {"loss": value, **parts}.items():
                     sums[k] = sums.get(k, 0.0) + (v if isinstance(v, float) else float(v.detach())) / n_batches
             lr = float(opt.param_groups[0]["lr"])  # the rate this epoch's steps used
             if sched is not None:
