@@ -18,7 +18,18 @@ from torch import nn
 from ..mechanics.forces import RayleighForce
 from ..mechanics.parameterizations import Inertia, SPSDMatrix
 from ..solvers import runtime
-from .fused_maps import SCALAR_BODIES, SCALAR_DIM, _InertiaJd, _InertiaJdScalar, _map_contraction, _SPSDScalar
+from .fused_maps import (
+    SCALAR_BODIES,
+    SCALAR_DIM,
+    _InertiaJd,
+    _InertiaJdScalar,
+    _map_contraction,
+    _SPSDScalar,
+    inertia_jd_grad_lists,
+    inertia_jd_lists,
+    spsd_grad_lists,
+    spsd_lists,
+)
 from .fused_training import IncrementBatch, IncrementSet, rotational_backward, rotational_forward
 
 
@@ -79,6 +90,8 @@ class RotationalGradient:
     def __call__(self, batch: IncrementBatch, opts) -> tuple[float, dict[str, float], list | None]:
         """(loss, {"del_loss", "reg_loss"} as floats, gradients per parameter); gradients None where
         the loss is not finite (the caller reports it; the backward of such a loss may raise)."""
+        if self.jd_fn is _InertiaJdScalar:
+            return self._scalar_call(batch, opts)
         inertia = self.model.inertia
         c_jd = _Ctx()
         Jd = self.jd_fn.forward(c_jd, inertia.r, inertia.abc)
@@ -111,6 +124,56 @@ class RotationalGradient:
             if i_lam is not None:
                 grads[i_lam] = d_lam
         return loss, parts, grads
+
+    def _scalar_call(self, batch: IncrementBatch, opts) -> tuple[float, dict[str, float], list | None]:
+        """`__call__` for few bodies: J_d and D built in Python floats (`fused_maps.inertia_jd_lists`,
+        `spsd_lists`, the arithmetic of `_InertiaJdScalar` / `_SPSDScalar`) and made tensors in one
+        call, and every gradient likewise (one tensor, viewed per parameter): the same values."""
+        inertia = self.model.inertia
+        B = inertia.r.shape[0]
+        jd, jd_saved = inertia_jd_lists(inertia.r.tolist(), inertia.abc.tolist())
+        flat = [x for body in jd for row in body for x in row]
+        d_saved = []
+        for damper in self.dampers:
+            Dl, saved = spsd_lists(damper.L_entries.tolist(), damper.lam.tolist(), damper.dim)
+            d_saved.append(saved)
+            flat += [x for row in Dl for x in row]
+        values = torch.tensor(flat, dtype=inertia.r.dtype, device=inertia.r.device)
+        Jd = values[: 9 * B].view(B, 3, 3)
+        D = None
+        for k, damper in enumerate(self.dampers):
+            n = damper.dim
+            Df = values[9 * B + k * n * n : 9 * B + (k + 1) * n * n].view(n, n)
+            D = Df if D is None else D + Df
+        reg = batch.reg_W if batch.reg_W is not None and opts.w_reg > 0 else None
+        loss, parts, backward = _rotational_loss(Jd, D, batch.fields, reg, self.C, self.h, opts)
+        if not math.isfinite(loss):
+            return loss, parts, None
+        dJd, dD = backward()
+        pieces: list[tuple[int, list, tuple]] = []  # (slot, values, shape)
+        i_r, i_abc = self.slot_jd
+        if i_r is not None or i_abc is not None:
+            dr, dabc = inertia_jd_grad_lists(jd_saved, dJd.view(B, 3, 3).tolist())
+            pieces += [(i_r, dr, (B, 3)), (i_abc, dabc, (B, 3))]
+        g = dD.tolist() if dD is not None and d_saved else None
+        for saved, (i_l, i_lam) in zip(d_saved, self.slot_d):
+            if i_l is not None or i_lam is not None:
+                d_entries, d_lam = spsd_grad_lists(saved, g)
+                pieces += [(i_l, d_entries, (len(d_entries),)), (i_lam, d_lam, (len(d_lam),))]
+        pieces = [x for x in pieces if x[0] is not None]
+        grads: list[torch.Tensor | None] = [None] * len(self.params)
+        flat_g = [v for _, vals, _ in pieces for v in _flatten(vals)]
+        buffer = torch.tensor(flat_g, dtype=inertia.r.dtype, device=inertia.r.device)
+        start = 0
+        for slot, _, shape in pieces:
+            size = math.prod(shape)
+            grads[slot] = buffer[start : start + size].view(shape)
+            start += size
+        return loss, parts, grads
+
+
+def _flatten(values: list) -> list:
+    return [x for row in values for x in row] if values and isinstance(values[0], list) else values
 
 
 def _rotational_loss(Jd, D, f: dict, reg, C, h: float, opts):

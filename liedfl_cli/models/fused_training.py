@@ -285,12 +285,13 @@ def rotational_forward(Jd_flat, D, A, s, static, reg_W, C, settings) -> tuple[to
     if static is not None:
         r = r + static
     del_loss = (r * r).mean()
-    reg_loss = torch.zeros((), dtype=r.dtype, device=r.device)
     H = slope = None
     if reg_W is not None:
         H = _apply_map(reg_W, maps[:, 27:].unflatten(-1, (9, 9))).unflatten(-1, (3, 3))
         pen, slope = _oriented_penalty_and_slope(torch.linalg.slogdet(H), epsilon, form)
         reg_loss = pen.mean()
+    else:
+        reg_loss = torch.zeros((), dtype=r.dtype, device=r.device)
     return del_loss, reg_loss, (r, A, s, reg_W, H, slope, C, (h, B, D is not None))
 
 
@@ -299,15 +300,29 @@ def rotational_backward(saved: tuple, g_del, g_reg) -> tuple[torch.Tensor, torch
     g_reg of del_loss and reg_loss (tensors or floats: the same values)."""
     r, A, s, reg_W, H, slope, C, (h, B, has_D) = saved
     dr = (2.0 * g_del / r.numel()) * r
+    C_kin_T, C_hess_T = _transposed_parts(C)
     dkin = A.permute(1, 2, 0) @ dr.unflatten(-1, (B, 3)).transpose(0, 1)  # (B, 9, N) @ (B, N, 3)
-    dJd = dkin.flatten(-2) @ C[:, :27].T
+    dJd = dkin.flatten(-2) @ C_kin_T
     dD = -(0.5 * h) * (dr.T @ s) if has_D else None
     if reg_W is not None:
         dlogdet = (g_reg / slope.numel()) * slope  # (P, B)
         dH = dlogdet[..., None, None] * torch.linalg.inv(H).transpose(-1, -2)
         dhess = reg_W.permute(1, 2, 0) @ dH.flatten(-2).transpose(0, 1)  # (B, 9, P) @ (B, P, 9)
-        dJd = dJd + dhess.flatten(-2) @ C[:, 27:].T
+        dJd = dJd + dhess.flatten(-2) @ C_hess_T
     return dJd, dD
+
+
+_TRANSPOSED: dict[int, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
+
+
+def _transposed_parts(C: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(C[:, :27].T, C[:, 27:].T): the same views each step, made once per contraction (the
+    contractions are cached for good, `fused_maps._map_contraction`; C itself is kept alongside so
+    that its id is never reused)."""
+    hit = _TRANSPOSED.get(id(C))
+    if hit is None or hit[0] is not C:
+        hit = _TRANSPOSED[id(C)] = (C, C[:, :27].T, C[:, 27:].T)
+    return hit[1], hit[2]
 
 
 class _RotationalLoss(torch.autograd.Function):
