@@ -150,17 +150,18 @@ class RotationalGradient:
         if not math.isfinite(loss):
             return loss, parts, None
         dJd, dD = backward()
-        pieces: list[tuple[int, list, tuple]] = []  # (slot, values, shape)
+        found: list[tuple[int | None, list, tuple[int, ...]]] = []  # (slot, values, shape)
         i_r, i_abc = self.slot_jd
         if i_r is not None or i_abc is not None:
             dr, dabc = inertia_jd_grad_lists(jd_saved, dJd.view(B, 3, 3).tolist())
-            pieces += [(i_r, dr, (B, 3)), (i_abc, dabc, (B, 3))]
-        g = dD.tolist() if dD is not None and d_saved else None
-        for saved, (i_l, i_lam) in zip(d_saved, self.slot_d):
-            if i_l is not None or i_lam is not None:
-                d_entries, d_lam = spsd_grad_lists(saved, g)
-                pieces += [(i_l, d_entries, (len(d_entries),)), (i_lam, d_lam, (len(d_lam),))]
-        pieces = [x for x in pieces if x[0] is not None]
+            found += [(i_r, dr, (B, 3)), (i_abc, dabc, (B, 3))]
+        if dD is not None and d_saved:
+            g = dD.tolist()
+            for saved, (i_l, i_lam) in zip(d_saved, self.slot_d):
+                if i_l is not None or i_lam is not None:
+                    d_entries, d_lam = spsd_grad_lists(saved, g)
+                    found += [(i_l, d_entries, (len(d_entries),)), (i_lam, d_lam, (len(d_lam),))]
+        pieces = [(slot, vals, shape) for slot, vals, shape in found if slot is not None]
         grads: list[torch.Tensor | None] = [None] * len(self.params)
         flat_g = [v for _, vals, _ in pieces for v in _flatten(vals)]
         buffer = torch.tensor(flat_g, dtype=inertia.r.dtype, device=inertia.r.device)
