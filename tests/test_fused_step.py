@@ -203,3 +203,18 @@ def test_fused_step_is_used_by_the_default_model(tmp_path, monkeypatch):
     monkeypatch.setattr(fused_step.RotationalGradient, "__call__", counting)
     (new, _), _ = _smoke_histories(tmp_path, monkeypatch, "soap", epochs=2)
     assert len(calls) >= 2 and len(new) == 2
+
+
+def test_fused_soap_runs_step_hooks_and_the_profiler_scope():
+    """FusedSOAP keeps torch's step wrapper off (`step.hooked`) but takes it when a hook is
+    registered or the profiler runs: hooks still see every step."""
+    params, opt = _run(FusedSOAP, SHAPES, 2)
+    seen = []
+    handle = opt.register_step_post_hook(lambda o, args, kwargs: seen.append(o))
+    opt.step()
+    handle.remove()
+    opt.step()
+    assert seen == [opt]
+    with torch.profiler.profile() as prof:
+        opt.step()
+    assert any(e.name == "Optimizer.step#FusedSOAP.step" for e in prof.events())
