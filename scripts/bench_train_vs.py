@@ -1,12 +1,14 @@
-"""Default-train triplets/s of two checkouts, interleaved, as a ratio under the same load.
+"""Default-train triplets/s of two checkouts in one process, interleaved: a ratio under the same load.
 
-    python scripts/bench_train_vs.py --base /work/main [--new .] [--rounds 4] [--json FILE]
+    python scripts/bench_train_vs.py --base /work/main [--new .] [--rounds 12] [--json FILE]
 
-Each round runs `fit` of the default `liedfl train` (free rigid body, batch 1024, SOAP; 10 epochs,
-best of 4 in one process, as `scripts/bench.py --quick` times it) in a fresh process per checkout,
-the two alternating, and prints wall and CPU triplets/s with the 1-minute load. The ratio of the
-CPU rates (best of the rounds) is the figure to quote on a shared machine; the final losses show
-whether the two runs trained alike (with SOAP a last-bit difference changes them).
+Both checkouts' `liedfl_cli` are imported into this process (each under its own snapshot of
+`sys.modules`, swapped in before each of its calls, so hydra's `_target_` finds that checkout's
+classes); each round runs `fit` of the default `liedfl train` (free rigid body, batch 1024, SOAP,
+10 epochs, as `scripts/bench.py --quick` times it) once per checkout, alternately. Printed: the
+best wall and CPU triplets/s of each, the median of the per-round new / base ratios (round 1, which
+pays the lazy set-up of both, left out) and the final losses (with SOAP a last-bit difference in a
+gradient changes them). On a shared machine the median CPU ratio is the figure to quote.
 """
 
 from __future__ import annotations
@@ -14,78 +16,91 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
+import statistics
 import sys
 import time
 from pathlib import Path
 
+ROOT = Path(__file__).resolve().parents[1]
 
-def worker(root: str, data_dir: str, epochs: int, repeats: int) -> None:
+
+def _ours(name: str) -> bool:
+    return name == "liedfl_cli" or name.startswith("liedfl_cli.")
+
+
+def _use(snapshot: dict) -> None:
+    for name in [n for n in sys.modules if _ours(n)]:
+        del sys.modules[name]
+    sys.modules.update(snapshot)
+
+
+def _load(root: str) -> tuple[dict, dict]:
+    """(snapshot of sys.modules for `root`'s liedfl_cli, its entry points)."""
+    _use({})
     sys.path.insert(0, root)
-    from omegaconf import OmegaConf
-
-    from liedfl_cli.commands.train import fit
-    from liedfl_cli.config.factory import build_model
-    from liedfl_cli.data.scenes import get_dataset
-    from liedfl_cli.solvers import runtime
-
-    sys.argv = [sys.argv[0]]
-    import scripts.bench as bench
-
-    runtime.configure({"threads": "auto", "compile": "false"})
-    cfg = bench.config([], data_dir)
-    ds, _ = get_dataset(cfg.dataset, data_dir)
-    data = ds.pose(ds.train_idx)
-    tcfg = OmegaConf.merge(cfg.train, {"epochs": epochs, "checkpoint_every": 10**9})
-    wall = cpu = float("inf")
-    out: dict = {}
-    for _ in range(repeats):
-        model = build_model(cfg, ds)
-        t, c = time.perf_counter(), time.process_time()
-        out = fit(model, data, tcfg, int(cfg.dataset.train_steps), show_progress=False, log_epochs=False)
-        wall = min(wall, (time.perf_counter() - t) / epochs)
-        cpu = min(cpu, (time.process_time() - c) / epochs)
-    n = out["n_samples"]
-    print(json.dumps({"wall": n / wall, "cpu": n / cpu, "final_loss": out["history"][-1]["loss"]}))
+    try:
+        from liedfl_cli.cli import CONF_DIR
+        from liedfl_cli.commands.train import fit
+        from liedfl_cli.config.factory import build_model
+        from liedfl_cli.data.scenes import get_dataset
+        from liedfl_cli.solvers import runtime
+    finally:
+        sys.path.remove(root)
+    snapshot = {n: m for n, m in sys.modules.items() if _ours(n)}
+    return snapshot, {"conf": CONF_DIR, "fit": fit, "build": build_model, "data": get_dataset, "runtime": runtime}
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--base", required=True, help="checkout to compare against (e.g. the main branch)")
-    ap.add_argument("--new", default=str(Path(__file__).resolve().parents[1]))
-    ap.add_argument("--rounds", type=int, default=4)
+    ap.add_argument("--new", default=str(ROOT))
+    ap.add_argument("--rounds", type=int, default=12)
     ap.add_argument("--epochs", type=int, default=10)
-    ap.add_argument("--repeats", type=int, default=4)
-    ap.add_argument("--data-dir", default=str(Path(__file__).resolve().parents[1] / "outputs" / "data"))
+    ap.add_argument("--data-dir", default=str(ROOT / "outputs" / "data"))
     ap.add_argument("--json", help="write the rounds and the ratios here")
-    ap.add_argument("--worker", help=argparse.SUPPRESS)
     args = ap.parse_args()
-    if args.worker:
-        worker(args.worker, args.data_dir, args.epochs, args.repeats)
-        return
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+    from omegaconf import OmegaConf
+
     trees = {"base": str(Path(args.base).resolve()), "new": str(Path(args.new).resolve())}
+    loaded = {k: _load(root) for k, root in trees.items()}
+    runs = {}
+    for key, (snapshot, api) in loaded.items():
+        _use(snapshot)
+        api["runtime"].configure({"threads": "auto", "compile": "false"})
+        GlobalHydra.instance().clear()
+        with initialize_config_dir(config_dir=str(api["conf"]), version_base="1.3"):
+            paths = [f"paths.data_dir={args.data_dir}", "paths.output_dir=/tmp/liedfl-bench"]
+            cfg = compose("train", overrides=paths)
+        ds, _ = api["data"](cfg.dataset, args.data_dir)
+        tcfg = OmegaConf.merge(cfg.train, {"epochs": args.epochs, "checkpoint_every": 10**9})
+        runs[key] = (cfg, ds, ds.pose(ds.train_idx), tcfg)
     rounds: dict[str, list[dict]] = {k: [] for k in trees}
     for _ in range(args.rounds):
-        for key, root in trees.items():
-            cmd = [sys.executable, __file__, "--base", args.base, "--worker", root, "--data-dir", args.data_dir,
-                   "--epochs", str(args.epochs), "--repeats", str(args.repeats)]  # fmt: skip
-            done = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "PYTHONPATH": root})
-            lines = [x for x in done.stdout.splitlines() if x.startswith("{")]
-            if done.returncode or not lines:
-                sys.exit(f"{root}: the benchmark failed:\n{done.stderr[-2000:]}")
-            row = {**json.loads(lines[-1]), "load_1min": os.getloadavg()[0]}
-            rounds[key].append(row)
-            print(f"{key:5s} wall {row['wall']:10.0f}  cpu {row['cpu']:10.0f} triplets/s  "
-                  f"load {row['load_1min']:.1f}  final loss {row['final_loss']:.16g}", flush=True)  # fmt: skip
+        for key, (snapshot, api) in loaded.items():
+            _use(snapshot)
+            cfg, ds, data, tcfg = runs[key]
+            model = api["build"](cfg, ds)
+            t, c = time.perf_counter(), time.process_time()
+            out = api["fit"](model, data, tcfg, int(cfg.dataset.train_steps), show_progress=False, log_epochs=False)
+            wall, cpu = time.perf_counter() - t, time.process_time() - c
+            n = out["n_samples"] * args.epochs
+            rounds[key].append({"wall": n / wall, "cpu": n / cpu, "final_loss": out["history"][-1]["loss"],
+                                "load_1min": os.getloadavg()[0]})  # fmt: skip
     best = {k: {q: max(r[q] for r in v) for q in ("wall", "cpu")} for k, v in rounds.items()}
-    ratios = {q: best["new"][q] / best["base"][q] for q in ("wall", "cpu")}
-    print(
-        f"best: base {best['base']}, new {best['new']}; new / base: wall {ratios['wall']:.2f}, cpu {ratios['cpu']:.2f}"
-    )
+    pairs = list(zip(rounds["base"], rounds["new"]))[1:] or list(zip(rounds["base"], rounds["new"]))
+    median = {q: statistics.median(n[q] / b[q] for b, n in pairs) for q in ("wall", "cpu")}
+    loads = [r["load_1min"] for r in rounds["new"]]
+    finals = {k: v[-1]["final_loss"] for k, v in rounds.items()}
+    for key in trees:
+        print(f"{key:4s} best wall {best[key]['wall']:9.0f}  cpu {best[key]['cpu']:9.0f} triplets/s  "
+              f"final loss {finals[key]:.16g}")  # fmt: skip
+    print(f"new / base, median over rounds: cpu {median['cpu']:.2f}, wall {median['wall']:.2f} "
+          f"(1-minute load {min(loads):.1f}-{max(loads):.1f})")  # fmt: skip
     if args.json:
-        Path(args.json).write_text(
-            json.dumps({"trees": trees, "rounds": rounds, "best": best, "ratio": ratios}, indent=1)
-        )
+        record = {"trees": trees, "rounds": rounds, "best": best, "median_ratio": median, "final_loss": finals}
+        Path(args.json).write_text(json.dumps(record, indent=1))
 
 
 if __name__ == "__main__":
