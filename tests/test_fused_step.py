@@ -14,7 +14,7 @@ from pytorch_optimizer import SOAP
 
 from liedfl_cli.commands import fused_optim
 from liedfl_cli.commands.fused_optim import FusedSOAP
-from liedfl_cli.lie import SE3, SO3, Pose, so3
+from liedfl_cli.lie import SE3, SO3, Pose, ProductGroup, so3
 from liedfl_cli.models import fused_step
 from liedfl_cli.models.base import LossOptions, oriented_logdet
 from liedfl_cli.models.fused_step import RotationalGradient
@@ -82,22 +82,28 @@ def test_fused_soap_checkpoints_are_interchangeable_with_the_library():
     assert not torch.equal(runs[0][0], params[0])  # the continued steps moved the parameters
 
 
-def _trajectories(T: int = 4, N: int = 14, h: float = 0.1) -> Pose:
+def _trajectories(T: int = 4, N: int = 14, h: float = 0.1, bodies: int = 1) -> Pose:
     gen = torch.Generator().manual_seed(0)
     k = torch.arange(N + 1, dtype=torch.float64)[None, :, None, None]
-    w0 = torch.randn(T, 1, 1, 3, generator=gen, dtype=torch.float64)
-    w1 = torch.randn(T, 1, 1, 3, generator=gen, dtype=torch.float64)
+    w0 = torch.randn(T, 1, bodies, 3, generator=gen, dtype=torch.float64)
+    w1 = torch.randn(T, 1, bodies, 3, generator=gen, dtype=torch.float64)
     return Pose(so3.exp(w0 + h * k * w1), torch.zeros(T, N + 1, 0, 3, dtype=torch.float64))
 
 
-@pytest.mark.parametrize("form", ["relu", "gaussian"])
-@pytest.mark.parametrize("frozen_inertia", [False, True])
-def test_rotational_gradient_equals_autograd(form, frozen_inertia):
-    model = LieDFLNN(SO3, 0.1, potential="none", forces=["rayleigh"], init_jitter=0.3, seed=0)
-    model.inertia.requires_grad_(not frozen_inertia)  # as model.known=[inertia] leaves it
+@pytest.mark.parametrize(
+    ("form", "frozen_inertia", "bodies"),
+    [("relu", False, 1), ("gaussian", False, 1), ("relu", True, 1), ("relu", False, 2), ("gaussian", False, 5)],
+)
+def test_rotational_gradient_equals_autograd(form, frozen_inertia, bodies):
+    """One body (the default run), frozen inertia (model.known=[inertia]), two bodies (J_d in
+    Python floats) and five (`_InertiaJd`'s tensor path; undamped: a 15x15 D is not covered)."""
+    G = SO3 if bodies == 1 else ProductGroup(0, bodies)
+    forces = ["rayleigh"] if bodies < 5 else []
+    model = LieDFLNN(G, 0.1, potential="none", forces=forces, init_jitter=0.3, seed=0)
+    model.inertia.requires_grad_(not frozen_inertia)
     params = [p for p in model.parameters() if p.requires_grad]
     opts = LossOptions(reg_form=form, epsilon=10.0 if form == "relu" else 5.0)
-    samples = model.training_set(_trajectories(), 10)
+    samples = model.training_set(_trajectories(bodies=bodies), 10)
     grad_fn = RotationalGradient.make(model, samples, opts, params)
     assert grad_fn is not None
     batch = samples.batch(torch.arange(samples.n), torch.Generator().manual_seed(1), 10)
