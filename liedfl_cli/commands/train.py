@@ -194,8 +194,8 @@ def checkpoint_interval(value) -> int | None:
 
 
 def make_optimizer(params, cfg_opt) -> torch.optim.Optimizer:
-    """SOAP or Adam; on the fused paths (`runtime.fused`) their batched updates (`fused_optim.FusedSOAP`,
-    Adam's foreach update): the same arithmetic to rounding without per-tensor Python."""
+    """SOAP or Adam; on the fused paths (`runtime.fused`) without per-tensor Python:
+    `fused_optim.FusedSOAP` (the library's kernels, bit for bit) and Adam's foreach update."""
     name = cfg_opt.name
     fused = runtime.current().fused
     if name == "soap":
