@@ -119,6 +119,7 @@ def jobs(experiments: list[str], extra: list[str]) -> list[Job]:
             job.model = str(cfg.model.name) + (f" ({cfg.model.kinetic})" if "kinetic" in cfg.model else "")
             job.epochs, job.batch = int(cfg.train.epochs), int(cfg.train.batch_size)
             job.train_steps = int(cfg.dataset.train_steps)
+            job.extra = {"window": cfg.model.get("window")}
     return out
 
 
@@ -170,18 +171,17 @@ def measure_one(job: Job, extra: list[str], work: Path, epochs: int = MEASURE_EP
 def measure(experiments: list[str], extra: list[str], path: Path = MEASUREMENTS) -> dict:
     """Time every job for a few epochs (fresh data folder: data generation counts once per dataset,
     as in the real run) and merge the records into `path` under each job's key."""
-    data = _read_json(path)
-    records = data.setdefault("jobs", {})
+    data: dict = {}
     with tempfile.TemporaryDirectory(prefix="paper_plan_") as tmp:
         os.environ["LIEDFL_DATA_DIR"] = str(Path(tmp) / "data")
         for job in jobs(experiments, extra):
             rec = measure_one(job, extra, Path(tmp))
             rec["measured"] = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
-            records[job.key] = rec
             print(f"{job.key}: {rec.get('fit_s_per_epoch', rec.get('error'))}", flush=True)
+            data = _read_json(path)  # (re-read: other measurements may have landed meanwhile)
+            data.setdefault("jobs", {})[job.key] = rec
+            data["machine"] = f"{os.cpu_count()} CPU cores, nice -n 10, shared; load in each record (1-min average)"
             _write_json(path, data)
-    data["machine"] = f"{os.cpu_count()} CPU cores, nice -n 10, shared; load in each record (1-min average)"
-    _write_json(path, data)
     return data
 
 

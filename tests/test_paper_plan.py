@@ -43,6 +43,9 @@ def test_every_job_of_the_reproduction_composes_with_its_budget():
         "glnn_lie_midpoint",
         "glnn_lie_heun",
     }
+    by_model = {m: [j for j in per_exp[ALL[1]] if j.model == m] for m in ("glnn_lie_midpoint", "glnn_lie_heun")}
+    mid, heun = by_model["glnn_lie_midpoint"], by_model["glnn_lie_heun"]  # Midpoint trained as Lie-Heun
+    assert [(j.epochs, j.batch, j.extra["window"]) for j in mid] == [(j.epochs, j.batch, "trajectory") for j in heun]
     assert {j.model for j in per_exp[ALL[3]]} == {"liedflnn (per_body)", "liedflnn (articulated)"}
     assert {j.model.split()[0] for j in per_exp[ALL[2]]} == {"liedflnn", "euclidean_dflnn", "neural_ode"}
     assert all(j.epochs == 2 for j in smoke)  # budget=smoke's epochs
