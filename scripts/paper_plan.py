@@ -155,17 +155,29 @@ def measure_one(job: Job, extra: list[str], work: Path, epochs: int = MEASURE_EP
     summary = _read_json(run / "summary.json")
     status = _read_json(run / "status.json")
     t = summary.get("timings", {})
-    train_s, val_s = float(t.get("train_seconds", 0.0)), float(t.get("val_seconds", 0.0) or 0.0)
-    passes = len(range(0, epochs, max(1, math.ceil(epochs / AUTO_VAL_PASSES)))) if val_s else 0
+    val_s = float(t.get("val_seconds", 0.0) or 0.0)
     rec.update(
         job_seconds=float(status.get("seconds", wall)),
-        train_seconds=round(train_s, 3),
-        fit_s_per_epoch=(train_s - val_s) / epochs,
-        val_s_per_pass=val_s / passes if passes else 0.0,
+        train_seconds=round(float(t.get("train_seconds", 0.0)), 3),  # (validation excluded, train.py)
+        val_s_per_pass=val_s / val_passes(epochs) if val_s else 0.0,
         n_samples=int(t.get("n_samples", 0)),
     )
-    rec["fixed_seconds"] = round(rec["job_seconds"] - train_s, 3)
-    return rec
+    return {**rec, **rates(rec)}
+
+
+def val_passes(epochs: int) -> int:
+    """Validation passes of a run of `epochs` under `train.val_every: auto` (every k-th epoch)."""
+    return len(range(0, epochs, max(1, math.ceil(epochs / AUTO_VAL_PASSES))))
+
+
+def rates(rec: dict) -> dict:
+    """From a measurement's raw times: training s/epoch (validation excluded) and the fixed seconds
+    (the job's seconds less training and validation: data, model building, rollout, evaluation, plots)."""
+    val = rec["val_s_per_pass"] * val_passes(rec["epochs"])
+    return {
+        "fit_s_per_epoch": rec["train_seconds"] / rec["epochs"],
+        "fixed_seconds": round(rec["job_seconds"] - rec["train_seconds"] - val, 3),
+    }
 
 
 def measure(experiments: list[str], extra: list[str], path: Path = MEASUREMENTS) -> dict:
@@ -190,8 +202,8 @@ def project(job: Job, rec: dict | None) -> float | None:
     """Projected seconds of the full job from its measurement (None: not measured or it failed)."""
     if not rec or rec.get("exit_code") != 0:
         return None
-    passes = len(range(0, job.epochs, max(1, math.ceil(job.epochs / AUTO_VAL_PASSES)))) if rec["val_s_per_pass"] else 0
-    return rec["fixed_seconds"] + job.epochs * rec["fit_s_per_epoch"] + passes * rec["val_s_per_pass"]
+    r = rates(rec)
+    return r["fixed_seconds"] + job.epochs * r["fit_s_per_epoch"] + val_passes(job.epochs) * rec["val_s_per_pass"]
 
 
 def plan_table(experiments: list[str], extra: list[str], path: Path = MEASUREMENTS) -> str:
@@ -214,7 +226,7 @@ def plan_table(experiments: list[str], extra: list[str], path: Path = MEASUREMEN
         if sec is None:
             missing.append(job.key)
         totals[job.experiment] = totals.get(job.experiment, 0.0) + (sec or 0.0)
-        per_epoch = f"{rec['fit_s_per_epoch']:.3g}" if rec and sec is not None else "not measured"
+        per_epoch = f"{rates(rec)['fit_s_per_epoch']:.3g}" if rec and sec is not None else "not measured"
         projected = f"{sec:,.0f}" if sec is not None else "–"
         load = f"{rec['load_1min']:.1f}" if rec else "–"
         lines.append(
