@@ -106,7 +106,9 @@ def sweep_params(compose: _Composer, experiment: str, extra: list[str]) -> list[
 
 def jobs(experiments: list[str], extra: list[str]) -> list[Job]:
     """Every job reproduce_paper.sh launches for `experiments`, in its order, with composed budgets
-    (a config that does not compose raises)."""
+    (a config that does not compose or does not validate, e.g. an unknown key, raises)."""
+    from liedfl_cli.config.schema import validate
+
     out = []
     with _Composer() as compose:
         for exp in experiments:
@@ -116,6 +118,7 @@ def jobs(experiments: list[str], extra: list[str]) -> list[Job]:
                 out.append(Job(exp, folder, ov))
         for job in out:
             cfg = compose([f"experiment={job.experiment}", *job.overrides, *extra])
+            validate(cfg, "train")  # (what `liedfl train` checks before a job starts)
             job.model = str(cfg.model.name) + (f" ({cfg.model.kinetic})" if "kinetic" in cfg.model else "")
             job.epochs, job.batch = int(cfg.train.epochs), int(cfg.train.batch_size)
             job.train_steps = int(cfg.dataset.train_steps)
