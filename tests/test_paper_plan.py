@@ -29,10 +29,10 @@ def _plan_module():
 
 
 def test_every_job_of_the_reproduction_composes_with_its_budget():
-    """Every job the script launches (Exps 1-5, every baseline, the articulated Exp 4) composes, and
-    a budget override reaches each of them."""
+    """Every job the script launches (Exps 1-5, every baseline, the articulated Exp 4) composes and
+    validates (as `liedfl train` checks it before the job starts), and a budget override reaches them."""
     plan = _plan_module()
-    full = plan.jobs(ALL, [])
+    full = plan.jobs(ALL, [], check=True)
     smoke = plan.jobs(ALL[3:], ["budget=smoke"])
     assert [j.key for j in full][-3:] == [j.key for j in smoke] and len({j.key for j in full}) == len(full)
     per_exp = {e: [j for j in full if j.experiment == e] for e in ALL}
