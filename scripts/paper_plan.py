@@ -24,6 +24,7 @@ import itertools
 import json
 import math
 import os
+import resource
 import subprocess
 import sys
 import tempfile
@@ -150,10 +151,14 @@ def measure_one(job: Job, extra: list[str], work: Path, epochs: int = MEASURE_EP
     cmd = [sys.executable, "-m", "liedfl_cli", "train", f"experiment={job.experiment}", *job.overrides, *extra]
     cmd += [f"train.epochs={epochs}", "ui.progress=false", f"hydra.run.dir={run}"]
     load = os.getloadavg()[0]
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
     wall = time.perf_counter() - t0
-    rec = {"epochs": epochs, "wall_seconds": round(wall, 3), "exit_code": proc.returncode, "load_1min": load}
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    rec = {"epochs": epochs, "wall_seconds": round(wall, 3), "cpu_seconds": round(cpu, 3)}
+    rec.update(exit_code=proc.returncode, load_1min=load)
     if proc.returncode != 0:
         rec["error"] = (proc.stderr.strip().splitlines() or ["?"])[-1][:300]
         return rec
@@ -204,45 +209,66 @@ def measure(experiments: list[str], extra: list[str], path: Path = MEASUREMENTS)
 
 # ----------------------------------------------------------------------------- projection
 def project(job: Job, rec: dict | None) -> float | None:
-    """Projected seconds of the full job from its measurement (None: not measured or it failed)."""
+    """Projected wall seconds of the full job at the load of its measurement (None: not measured or
+    it failed)."""
     if not rec or rec.get("exit_code") != 0:
         return None
     r = rates(rec)
     return r["fixed_seconds"] + job.epochs * r["fit_s_per_epoch"] + val_passes(job.epochs) * rec["val_s_per_pass"]
 
 
+def project_cpu(job: Job, rec: dict | None) -> float | None:
+    """The projection scaled by the measurement's CPU seconds / wall seconds: what the job would take
+    on a core of its own (one torch thread per job), i.e. on an idle machine. None without CPU times."""
+    sec = project(job, rec)
+    if sec is None or not rec or not rec.get("cpu_seconds") or not rec.get("wall_seconds"):
+        return None
+    return sec * min(1.0, rec["cpu_seconds"] / rec["wall_seconds"])
+
+
+def _h(seconds: float) -> str:
+    return f"{seconds / 3600:.2f}"
+
+
 def plan_table(experiments: list[str], extra: list[str], path: Path = MEASUREMENTS) -> str:
-    """Markdown: every job, its budget, measured s/epoch and projected time; totals per experiment."""
+    """Markdown: every job, its budget, measured s/epoch and projected time; totals per experiment.
+    Two projections: wall time at the load of the measurement, and CPU time (about an idle core)."""
     records = _read_json(path).get("jobs", {})
     lines = [
         "| experiment | job | model | train length | epochs | batch | optimiser steps | s/epoch (measured) "
-        "| projected s | load at measurement |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| projected s at that load | projected CPU s (≈ idle core) | load at measurement |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
-    totals: dict[str, float] = {}
+    totals: dict[str, list[float]] = {}
     missing: list[str] = []
     for job in jobs(experiments, extra):
         rec = records.get(job.key)
-        sec = project(job, rec)
+        sec, cpu = project(job, rec), project_cpu(job, rec)
         steps = "–"
         if rec and rec.get("n_samples"):
             n = math.ceil(rec["n_samples"] / job.batch)
             steps = f"{job.epochs * n:,}" + (" (compiles)" if job.epochs * n >= COMPILE_MIN_STEPS else "")
         if sec is None:
             missing.append(job.key)
-        totals[job.experiment] = totals.get(job.experiment, 0.0) + (sec or 0.0)
+        t = totals.setdefault(job.experiment, [0.0, 0.0])
+        t[0] += sec or 0.0
+        t[1] += cpu if cpu is not None else (sec or 0.0)
         per_epoch = f"{rates(rec)['fit_s_per_epoch']:.3g}" if rec and sec is not None else "not measured"
         projected = f"{sec:,.0f}" if sec is not None else "–"
+        projected_cpu = f"{cpu:,.0f}" if cpu is not None else "–"
         load = f"{rec['load_1min']:.1f}" if rec else "–"
         lines.append(
             f"| {job.experiment} | {' '.join(job.overrides) or '–'} | {job.model} | {job.train_steps} | {job.epochs} "
-            f"| {job.batch} | {steps} | {per_epoch} | {projected} | {load} |"
+            f"| {job.batch} | {steps} | {per_epoch} | {projected} | {projected_cpu} | {load} |"
         )
-    lines += ["", "| experiment | projected hours |", "|---|---|"]
-    lines += [f"| {e} | {s / 3600:.2f} |" for e, s in totals.items()]
-    lines.append(f"| **total** | **{sum(totals.values()) / 3600:.2f}** |")
+    lines += ["", "| experiment | projected hours at the measured load | projected CPU hours (≈ idle, one core) |"]
+    lines.append("|---|---|---|")
+    lines += [f"| {e} | {_h(w)} | {_h(c)} |" for e, (w, c) in totals.items()]
+    wall, cpu = sum(t[0] for t in totals.values()), sum(t[1] for t in totals.values())
+    lines.append(f"| **total** | **{_h(wall)}** | **{_h(cpu)}** (two jobs at a time on 2 cores: ≥ {_h(cpu / 2)}) |")
     if missing:
         lines += ["", f"Not measured (left out of the totals): {len(missing)} job(s): {'; '.join(missing)}"]
+    lines += ["", "(A job measured without CPU times counts with its wall projection in the CPU column.)"]
     return "\n".join(lines)
 
 

@@ -57,15 +57,17 @@ def test_the_projection_follows_the_measurement_and_lists_what_is_unmeasured(tmp
     [job] = plan.jobs(["exp5_control"], [])
     # 3 epochs measured: 1.5 s training, 3 validation passes of 2 s, 37.5 s in all -> 30 s fixed
     rec = {"epochs": 3, "exit_code": 0, "job_seconds": 37.5, "train_seconds": 1.5, "val_s_per_pass": 2.0}
-    rec.update(n_samples=400, load_1min=3.0)
+    rec.update(n_samples=400, load_1min=3.0, wall_seconds=40.0, cpu_seconds=20.0)  # half a core: load
     path = tmp_path / "m.json"
     path.write_text(json.dumps({"jobs": {job.key: rec}}))
     passes = len(range(0, job.epochs, -(-job.epochs // 20)))
     expected = 30.0 + job.epochs * 0.5 + passes * 2.0
     assert plan.project(job, rec) == pytest.approx(expected)
+    assert plan.project_cpu(job, rec) == pytest.approx(expected / 2)
     text = plan.plan_table(["exp5_control", "exp3_manifold"], [], path)
-    assert f"| {expected:,.0f} |" in text
-    assert f"**{expected / 3600:.2f}**" in text  # exp3's jobs have no measurement: left out of the total
+    assert f"| {expected:,.0f} | {expected / 2:,.0f} |" in text
+    # exp3's jobs have no measurement: left out of the totals
+    assert f"| **total** | **{expected / 3600:.2f}** | **{expected / 7200:.2f}** " in text
     assert "Not measured (left out of the totals): 4 job(s)" in text
     assert plan.project(job, {**rec, "exit_code": 1}) is None
 
