@@ -20,6 +20,12 @@ few repeats, so a speed-up is a ratio taken under the same load. Keys:
                                 SO(3) LieDFLNN with an MLP potential 10x2 and Rayleigh damping (the
                                 peer's network size, `scripts/bench_peer.py`) and the SE(3) MLP 64x3
                                 model above (the same figures as in rollout_us_per_step_traj)
+  baseline_models               {baseline: {s_per_epoch_fused, s_per_epoch_reference, cpu_s_per_epoch_fused,
+                                cpu_s_per_epoch_reference, batch, samples_per_epoch, paper_epochs, experiment}}:
+                                one training epoch of each paper baseline (GLNN rk4 / lie_heun / lie_midpoint,
+                                Euler and Euclidean DFLNN, Neural ODE) at its experiment's settings (Exp 2 at
+                                its longest training length, 100 steps), fused (`runtime.fused`) and reference
+                                paths alternately; paper_epochs x s_per_epoch projects a full-budget job
   compile_s                     first compilation of the Newton step (runtime.compile=true)
   compiled_rollout_us_per_step_traj  the free body with the compiled step, batches 1000/10000
   threads, load_avg             torch threads used; `os.getloadavg()` before and after
@@ -30,6 +36,8 @@ few repeats, so a speed-up is a ratio taken under the same load. Keys:
                                 the wall time would be on an idle machine when others share the cores)
 
 --quick (< 3 minutes) runs fewer epochs and steps; datasets are generated (cached) on first use.
+--baselines-only measures `baseline_models` alone (about 2 minutes on an idle machine).
+The fast tier's wall time is not measured here (it is the test suite's, not a benchmark's).
 """
 
 from __future__ import annotations
@@ -94,6 +102,40 @@ def epoch_seconds(overrides: list[str], epochs: int, repeats: int, data_dir: str
     return {"fused": best[True], "reference": best[False], "n_samples": n, "cpu": cpu[True], "cpu_ref": cpu[False]}
 
 
+BASELINES = {  # the paper's settings: experiment file and, for Exp 2, its longest training length
+    "glnn_rk4": ["experiment=exp2_discrete_vs_continuous", "baseline=glnn_rk4", "dataset.train_steps=100"],
+    "glnn_lie_heun": ["experiment=exp2_discrete_vs_continuous", "baseline=glnn_lie_heun", "dataset.train_steps=100"],
+    "glnn_lie_midpoint": [
+        "experiment=exp2_discrete_vs_continuous",
+        "baseline=glnn_lie_midpoint",
+        "dataset.train_steps=100",
+    ],
+    "euler_dflnn": ["experiment=exp1_euler_vs_lie", "baseline=euler_dflnn"],
+    "euclidean_dflnn": ["experiment=exp3_manifold", "baseline=euclidean_dflnn"],
+    "neural_ode": ["experiment=exp3_manifold", "baseline=neural_ode"],
+}
+
+
+def baseline_models(data_dir: str, quick: bool, log) -> dict:
+    """`baseline_models`: seconds per training epoch of every paper baseline, fused and reference."""
+    out = {}
+    for name, overrides in BASELINES.items():
+        cfg = config(overrides, data_dir)
+        r = epoch_seconds(overrides, 1 if quick else 2, 2 if quick else 3, data_dir)
+        out[name] = {
+            "s_per_epoch_fused": r["fused"],
+            "s_per_epoch_reference": r["reference"],
+            "cpu_s_per_epoch_fused": r["cpu"],
+            "cpu_s_per_epoch_reference": r["cpu_ref"],
+            "batch": min(int(cfg.train.batch_size), int(r["n_samples"])),
+            "samples_per_epoch": r["n_samples"],
+            "paper_epochs": int(cfg.train.epochs),
+            "experiment": " ".join(overrides),
+        }
+        log(f"baseline {name}: {r['fused']:.3f} s/epoch (reference {r['reference']:.3f})")
+    return out
+
+
 def start(G, n: int, h: float, seed: int = 0) -> tuple[Pose, Pose]:
     gen = torch.Generator().manual_seed(seed)
     g0 = Pose(
@@ -121,8 +163,11 @@ def learned_so3_model():
 
 def rollout_us(model, G, h, n: int, budget: float, repeats: int, **settings) -> float:
     """Microseconds per step per trajectory (best of `repeats`) of a rollout of about `budget` s;
-    the CPU time of the same rollouts goes to `CPU_US`."""
+    the CPU time of the same rollouts goes to `CPU_US`. `fused=`: the model's path (fixed per model:
+    `with_path`); other settings: `runtime.using`."""
     g0, g1 = start(G, n, h)
+    if "fused" in settings:
+        model = model.with_path("fused" if settings.pop("fused") else "reference")
     with runtime.using(**settings):
         t = time.perf_counter()
         model.rollout(g0, g1, 4)
@@ -166,6 +211,7 @@ def main() -> None:
     ap.add_argument("--threads", default="auto", help="runtime.threads (auto = the engine's default)")
     ap.add_argument("--no-compile", action="store_true", help="skip the compilation figures")
     ap.add_argument("--compare-threads", action="store_true", help="also time 1 against 2 threads (fused paths)")
+    ap.add_argument("--baselines-only", action="store_true", help="only the baseline_models figures")
     ap.add_argument("--data-dir", default=str(ROOT / "outputs" / "data"))
     args = ap.parse_args()
     threads = args.threads if args.threads == "auto" else int(args.threads)
@@ -183,6 +229,15 @@ def main() -> None:
 
     def log(msg: str) -> None:
         print(f"[{time.perf_counter() - t_all:6.1f} s] {msg}", flush=True)
+
+    if args.baselines_only:
+        out["baseline_models"] = baseline_models(args.data_dir, q, log)
+        out["load_avg_end"] = list(os.getloadavg())
+        out["load_avg"] = out["load_avg_start"][0]
+        out["seconds"] = time.perf_counter() - t_all
+        Path(args.json).write_text(json.dumps(out, indent=2) + "\n")
+        log(f"wrote {args.json}")
+        return
 
     # training
     r = epoch_seconds([], 10 if q else 50, 2 if q else 3, args.data_dir)
@@ -223,6 +278,8 @@ def main() -> None:
         f"articulated / per-body epoch: {out['mocap_articulated_over_per_body']:.2f} (del), "
         f"{out['mocap_articulated_newton_over_per_body']:.2f} (newton)"
     )
+
+    out["baseline_models"] = baseline_models(args.data_dir, q, log)
 
     # rollouts
     budget, repeats = (0.3, 2) if q else (1.0, 3)
@@ -291,6 +348,8 @@ def main() -> None:
         speed[f"learned_rollout_so3_mlp_10x2_{n}"] = (
             learned_ref["so3_mlp_10x2"][str(n)] / learned["so3_mlp_10x2"][str(n)]
         )
+    for name, b in out["baseline_models"].items():
+        speed[f"baseline_{name}"] = b["s_per_epoch_reference"] / b["s_per_epoch_fused"]
     out["speedup"] = speed
     out["load_avg_end"] = list(os.getloadavg())
     out["load_avg"] = out["load_avg_start"][0]

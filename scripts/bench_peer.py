@@ -78,9 +78,9 @@ def main() -> None:
         row = {"batch": n, "steps": steps, "peer_us_per_step_traj": t_peer}
         for name, model in ours.items():
             for label, fused in (("", True), ("_reference", False)):
-                with runtime.using(fused=fused):
-                    model.rollout(g0, g1, 3)
-                    t = best_of(lambda model=model, g0=g0, g1=g1, steps=steps: model.rollout(g0, g1, steps + 1))
+                on_path = model.with_path("fused" if fused else "reference")
+                on_path.rollout(g0, g1, 3)
+                t = best_of(lambda model=on_path, g0=g0, g1=g1, steps=steps: model.rollout(g0, g1, steps + 1))
                 t = t / steps / n * 1e6
                 row[f"{name}{label}_us_per_step_traj"] = t
                 row[f"peer_over_{name}{label}"] = t_peer / t

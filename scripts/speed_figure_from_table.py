@@ -16,6 +16,8 @@ import sys
 from pathlib import Path
 
 from liedfl_cli.commands import report
+from liedfl_cli.commands.outputs import write_outputs
+from liedfl_cli.evaluation import EvalOutputs
 
 COLUMNS = {
     "rel. rotation error": report.ERROR,
@@ -62,7 +64,10 @@ def read_summary(path: Path) -> list[dict]:
 def main() -> None:
     src, dst = Path(sys.argv[1]), Path(sys.argv[2])
     summary = read_summary(src)
-    report.plot_error_vs_speed(summary, dst)
+    fig = report.draw_error_vs_speed(summary)
+    if fig is None:
+        raise SystemExit(f"{src}: no point to draw")
+    write_outputs(EvalOutputs({}, dst.parent, {dst.name: fig}))  # the one writer (atomic)
     print(f"{dst}: {len(summary)} points from {src}")
 
 

@@ -1,9 +1,11 @@
-"""Turn the report.csv files of scripts/reproduce_paper.sh into the docs/results.md sections.
+"""Turn the report.csv files and times.csv of scripts/reproduce_paper.sh into the docs/results.md
+sections (Exps 1-5) and the wall time of every experiment.
 
 python scripts/summarize_paper.py outputs/paper > outputs/paper/summary.md
 """
 
 import csv
+import json
 import sys
 from collections import defaultdict
 from pathlib import Path
@@ -21,6 +23,11 @@ def rows(sweep: Path):
         cfg = yaml.safe_load((sweep / r["run"] / ".hydra" / "config.yaml").read_text())
         r["omega_scale"] = cfg["dataset"].get("initial", {}).get("omega_scale")
         r["epochs"] = cfg["train"]["epochs"]
+        r["kinetic"] = cfg["model"].get("kinetic", "")
+        control = sweep / r["run"] / "control_eval.json"
+        if control.is_file():  # Exp 5: the learned torque against the true one
+            test = [c for c in json.loads(control.read_text()).get("rows", []) if c.get("split") == "test"]
+            r["torque_error"] = test[0].get("rel_error_mean") if test else None
     return out
 
 
@@ -129,6 +136,59 @@ def main(root: Path):
             )
             + "\n"
         )
+    e4 = rows(root / "exp4_mocap")
+    if e4:
+        print("### Exp 4: human cartwheels (CMU mocap, SE(3) x SO(3)^22, both recordings reproduced)\n")
+        body = [
+            [
+                r["model"],
+                r["kinetic"],
+                r["epochs"],
+                g(r["rel_rot_error_mean"]),
+                g(r.get("position_error_mean")),
+                r["newton_failures"],
+                g(r["train_seconds"]),
+            ]
+            for r in e4
+        ]
+        header = ["model", "kinetic", "epochs", "rel. rot. error (mean)", "position error (mean)"]
+        print(table(header + ["Newton failures", "train s"], body) + "\n")
+        print("The paper's per-joint table: mocap_eval.md in each run folder.\n")
+    e5 = rows(root / "exp5_control")
+    if e5:
+        print("### Exp 5: learning an unknown PD attitude control on SO(3)\n")
+        body = [
+            [r["model"], r["epochs"], g(r["rel_rot_error_mean"]), g(r.get("torque_error")), g(r["train_seconds"])]
+            for r in e5
+        ]
+        header = ["model", "epochs", "rel. rot. error (mean)", "rel. torque error (test, mean)", "train s"]
+        print(table(header, body) + "\n")
+    times(root / "times.csv")
+
+
+def times(path: Path):
+    """Wall time per experiment from times.csv (one row per job, one per whole sweep)."""
+    if not path.is_file():
+        return
+    with open(path) as f:
+        rows_ = list(csv.DictReader(f))
+    per: dict[str, dict] = defaultdict(lambda: {"jobs": 0, "job_s": 0.0, "sweep_s": None, "failed": 0})
+    for r in rows_:
+        e = per[r["experiment"]]
+        if r["job"] == "(whole sweep)":
+            e["sweep_s"] = float(r["seconds"])
+            continue
+        e["jobs"] += 1
+        e["job_s"] += float(r["seconds"] or 0.0)
+        e["failed"] += r["status"] != "ok"
+    print("### Wall time of the reproduction (times.csv)\n")
+    body = [
+        [k, v["jobs"], v["failed"], g(v["job_s"] / 3600), g(v["sweep_s"] / 3600) if v["sweep_s"] is not None else "–"]
+        for k, v in per.items()
+    ]
+    total = sum(v["sweep_s"] if v["sweep_s"] is not None else v["job_s"] for v in per.values())
+    body.append(["**total**", sum(v["jobs"] for v in per.values()), "", "", f"**{g(total / 3600)}**"])
+    print(table(["experiment", "jobs", "failed", "sum of job hours", "wall hours"], body) + "\n")
 
 
 if __name__ == "__main__":

@@ -12,7 +12,7 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from liedfl_cli.commands.outputs import write_outputs
+from liedfl_cli.commands.outputs import run_scene_eval, show, write_outputs
 from liedfl_cli.commands.train import count_parameters
 from liedfl_cli.data import generate
 from liedfl_cli.data.scenes_multibody import pd_torque
@@ -173,14 +173,21 @@ def _tree(root: Path) -> dict[str, tuple[int, int]]:
     return {str(p.relative_to(root)): (p.stat().st_size, p.stat().st_mtime_ns) for p in root.rglob("*")}
 
 
-def test_evaluate_control_writes_nothing_and_returns_what_is_written(pd_data, tmp_path, monkeypatch):
-    """The evaluation computes (summary, rows, figure); only `commands.outputs.write_outputs` writes."""
+def test_evaluate_control_writes_nothing_and_returns_what_is_written(pd_data, tmp_path, monkeypatch, capsys):
+    """The evaluation computes (summary, rows, figure, console lines) and neither writes nor prints; only
+    `commands.outputs.write_outputs` writes and `commands.outputs.show` prints."""
     ds = pd_data
     cwd, run = tmp_path / "cwd", tmp_path / "run"
     cwd.mkdir(), run.mkdir()
     monkeypatch.chdir(cwd)
+    capsys.readouterr()
     out = evaluate_control(SceneEvalOptions(plots=True), true_model(ds), ds, run)
     assert _tree(cwd) == {} and _tree(run) == {}
+    assert capsys.readouterr() == ("", "")
+    assert out is not None
+    show(out)
+    printed = capsys.readouterr().out
+    assert [x.split(":")[0] for x in printed.splitlines()] == [f"control recovery ({s})" for s in ("train", "test")]
     assert out is not None and out.out_dir == run
     assert set(out.files) == {"control_eval.json", "control_eval.md", "plots/torque.png"}
     rows = out.summary["rows"]
@@ -191,6 +198,22 @@ def test_evaluate_control_writes_nothing_and_returns_what_is_written(pd_data, tm
     md = (run / "control_eval.md").read_text()
     assert all(f"| {r['split']} |" in md for r in rows)
     assert (run / "plots" / "torque.png").stat().st_size > 1000 and _tree(cwd) == {}
+
+
+def test_control_eval_of_a_model_without_forces_is_skipped_saying_so_in_the_command(
+    pd_data, tmp_path, monkeypatch, capsys
+):
+    ds = pd_data
+    monkeypatch.chdir(tmp_path)
+    opts = SceneEvalOptions(plots=True)
+    model = LieDFLNN(ds.group, ds.h, forces=[])
+    capsys.readouterr()
+    out = evaluate_control(opts, model, ds, tmp_path / "run")
+    assert capsys.readouterr() == ("", "") and not list(tmp_path.iterdir())
+    assert out is not None and out.summary == {} and out.files == {}
+    assert run_scene_eval(opts, model, ds, tmp_path / "run") is None  # the command: shown, nothing written
+    assert capsys.readouterr().out.startswith("control eval skipped: the model has no force components")
+    assert not list(tmp_path.iterdir())
 
 
 def test_exp5_smoke_run_end_to_end(tmp_path):

@@ -128,10 +128,11 @@ def test_exp4_smoke_run_end_to_end(smoke_run):
     assert not list(run.glob(".*tmp*")) and not list((run / "plots").glob(".*tmp*"))
 
 
-def test_evaluate_mocap_writes_nothing_and_returns_what_is_written(smoke_run, tmp_path, monkeypatch):
-    """The mocap evaluation computes (summary, rows, markdown, figures) and writes nothing; the
-    command's writer then writes exactly the files the run holds (same bytes for the tables)."""
-    from liedfl_cli.commands.outputs import write_outputs
+def test_evaluate_mocap_writes_nothing_and_returns_what_is_written(smoke_run, tmp_path, monkeypatch, capsys):
+    """The mocap evaluation computes (summary, rows, markdown, figures, console table) and neither
+    writes nor prints; the command's writer then writes exactly the files the run holds (same bytes
+    for the tables) and `show` prints the table."""
+    from liedfl_cli.commands.outputs import show, write_outputs
     from liedfl_cli.config.runs import load_run
     from liedfl_cli.config.typed import typed
     from liedfl_cli.evaluation.mocap import evaluate_mocap
@@ -144,8 +145,12 @@ def test_evaluate_mocap_writes_nothing_and_returns_what_is_written(smoke_run, tm
 
     before = tree(run)
     monkeypatch.chdir(tmp_path)
+    capsys.readouterr()
     out = evaluate_mocap(typed(cfg).scene_eval_options(), model, dataset, run)
     assert tree(run) == before and tree(tmp_path) == {}
+    assert capsys.readouterr() == ("", "")
+    show(out)
+    assert "Exp 4 mocap reproduction" in capsys.readouterr().out
     assert out.out_dir == run and set(out.files) == {"mocap_eval.json", "mocap_eval.csv", "mocap_eval.md"} | {
         f"plots/{n}" for n in PLOTS
     }
@@ -158,9 +163,10 @@ def test_evaluate_mocap_writes_nothing_and_returns_what_is_written(smoke_run, tm
         assert [r["row"] for r in csv.DictReader(f)] == [r["row"] for r in out.summary["rows"]]
 
 
-def test_compute_eval_writes_nothing_and_returns_what_is_written(smoke_run, tmp_path, monkeypatch):
-    """The general evaluation of `liedfl eval` computes its rows, eval.md and figures without writing;
-    `run_eval_from_objects` writes them (the run's eval.csv holds the same rows)."""
+def test_compute_eval_writes_nothing_and_returns_what_is_written(smoke_run, tmp_path, monkeypatch, capsys):
+    """The general evaluation of `liedfl eval` computes its rows, eval.md, figures and console notes
+    without writing or printing; `run_eval_from_objects` prints and writes them (the run's eval.csv
+    holds the same rows)."""
     from liedfl_cli.commands.evaluate import compute_eval
     from liedfl_cli.commands.outputs import write_outputs
     from liedfl_cli.config.runs import load_run
@@ -170,8 +176,12 @@ def test_compute_eval_writes_nothing_and_returns_what_is_written(smoke_run, tmp_
     _, _, dataset, _ = load_run(run, data)
     before = {p: p.stat().st_mtime_ns for p in run.rglob("*")}
     monkeypatch.chdir(tmp_path)
+    capsys.readouterr()
     out = compute_eval(typed(cfg), dataset, run)
     assert {p: p.stat().st_mtime_ns for p in run.rglob("*")} == before and not list(tmp_path.iterdir())
+    assert capsys.readouterr() == ("", "")
+    assert str(out.messages[0][0]).startswith("columns: rel err")
+    assert out.summary["title"].startswith(f"{dataset.scene}: test rollout (")
     assert {"eval.csv", "eval.md", "eval_curves.json", "plots/error_vs_step.png"} <= set(out.files)
     rows = out.table("eval.csv")
     assert rows is out.summary["rows"] and {r["model"] for r in rows} == {"model", "constant_velocity"}

@@ -17,13 +17,13 @@ from liedfl_cli.cli import CONF_DIR
 from liedfl_cli.errors import ConfigError
 from liedfl_cli.lie import SE3, SO3, Pose, ProductGroup, so3
 from liedfl_cli.mechanics import kinetic
-from liedfl_cli.models import fused
+from liedfl_cli.models import fused, fused_rollout
 from liedfl_cli.models.base import LossOptions
 from liedfl_cli.models.del_loss import regularity_penalty
 from liedfl_cli.models.liedflnn import LieDFLNN
 from liedfl_cli.models.true_scheme import physics_model
 from liedfl_cli.solvers import runtime
-from liedfl_cli.solvers.newton import NewtonProblem, newton_solve, newton_solve_reference, solve, solve_reference
+from liedfl_cli.solvers.newton import NewtonProblem, solve
 from liedfl_cli.solvers.options import SolverOptions
 
 PHYS = {"J": [1.521, 1.362, 1.211], "m": 0.5, "rho": [0.0, 0.5, 1.0]}
@@ -79,8 +79,7 @@ def rel(a: torch.Tensor, b: torch.Tensor) -> float:
 
 
 def both_batches(model, data: Pose, steps: int = 10, reg_points: int = 10):
-    with runtime.using(fused=False):
-        ref_set = model.training_set(data, steps)
+    ref_set = model.with_path("reference").training_set(data, steps)
     fused_set = model.training_set(data, steps)
     assert isinstance(fused_set, fused.IncrementSet) and not isinstance(ref_set, fused.IncrementSet)
     idx = torch.randperm(ref_set.n, generator=torch.Generator().manual_seed(3))
@@ -190,8 +189,7 @@ def test_known_parts_are_evaluated_once_at_load_and_still_equal():
 def test_increment_set_draws_the_same_random_pairs_as_the_triplet_set():
     model = make("free_so3_rayleigh")
     data = trajectories(SO3)
-    with runtime.using(fused=False):
-        ref_set = model.training_set(data, 10)
+    ref_set = model.with_path("reference").training_set(data, 10)
     fused_set = model.training_set(data, 10)
     g1, g2 = torch.Generator().manual_seed(5), torch.Generator().manual_seed(5)
     idx = torch.arange(7)
@@ -219,8 +217,7 @@ def _start(G: ProductGroup, n: int, h: float, seed: int = 0, scale: float = 1.0)
 
 
 def _both_rollouts(model, g0, g1, steps, opts=None):
-    with runtime.using(fused=False):
-        ref = model.rollout(g0, g1, steps, opts)
+    ref = model.with_path("reference").rollout(g0, g1, steps, opts)
     return ref, model.rollout(g0, g1, steps, opts)
 
 
@@ -262,6 +259,27 @@ def test_large_batch_finishes_the_last_rows_apart_with_the_same_counts():
     assert float((ref.pose.R - fus.pose.R).abs().max()) <= SolverOptions().tol
 
 
+@pytest.mark.parametrize("G", [SO3, ProductGroup(0, 2), SE3], ids=["so3", "so3x2", "se3"])
+def test_rollout_retraction_equals_the_group_exponential_to_rounding(G):
+    """The rollout's few-kernel rotation retraction (closed forms at every angle) against `G.retract`
+    (Taylor polynomials below the threshold), from a zero step through tiny ones to large angles."""
+    angles = torch.tensor([0.0, 1e-200, 1e-12, 1e-6, 1e-3, 0.05, 0.5, 2.0, 3.1], dtype=torch.float64)
+    n = len(angles)
+    gen = torch.Generator().manual_seed(7)
+    x = Pose(
+        so3.exp(torch.randn(n, G.n_bodies, 3, generator=gen, dtype=torch.float64)),
+        torch.randn(n, G.n_se3, 3, generator=gen, dtype=torch.float64),
+    )
+    axes = torch.nn.functional.normalize(torch.randn(n, G.n_bodies, 3, generator=gen, dtype=torch.float64), dim=-1)
+    w = axes * angles[:, None, None]
+    delta = G.join(w, torch.randn(n, G.n_se3, 3, generator=gen, dtype=torch.float64))
+    got = fused_rollout.retract_increment(G, x, delta)
+    ref = G.retract(x, delta)
+    assert float((got.R - ref.R).abs().max()) <= 1e-14
+    assert float((got.R[0] - x.R[0]).abs().max()) == 0.0  # a zero step leaves the rotation as it is
+    torch.testing.assert_close(got.p, ref.p, rtol=1e-13, atol=1e-13)
+
+
 # ----------------------------------------------------------------------------- the Newton loop itself
 def _cubic(c):
     return lambda x: x**3 + x - c
@@ -283,12 +301,11 @@ def test_lean_newton_equals_the_reference_loop(case):
     x0 = torch.full((n, width), float(x0), dtype=torch.float64)
     problem = NewtonProblem.euclidean(f, x0)
     opts = SolverOptions(tol=tol, max_iter=max_iter)
-    a = newton_solve(problem.f, problem.jac, x0, problem.retract, opts)
-    b = newton_solve_reference(problem.f, problem.jac, x0, problem.retract, opts)
+    a = solve(problem, opts)
+    b = solve(problem, opts, reference=True)
     assert torch.equal(a.converged, b.converged)
     assert torch.equal(a.iterations, b.iterations)
     torch.testing.assert_close(a.x, b.x, rtol=0, atol=0, equal_nan=True)
-    torch.testing.assert_close(solve(problem, opts).x, solve_reference(problem, opts).x, rtol=0, atol=0)
 
 
 # ----------------------------------------------------------------------------- a default run, smoke-sized
@@ -319,10 +336,11 @@ def _smoke_fit(tmp_path, optimizer: str):
     data = ds.pose(ds.train_idx)
     out = {}
     for use_fused in (False, True):
-        with runtime.using(fused=use_fused):
+        with runtime.using(fused=use_fused):  # decides the path of the model built here
             model = build_model(cfg, ds)
-            result = fit(model, data, cfg.train, int(cfg.dataset.train_steps), show_progress=False, log_epochs=False)
-            out[use_fused] = (result["history"], parameter_recovery(model, ds))
+        assert model.path == ("fused" if use_fused else "reference")
+        result = fit(model, data, cfg.train, int(cfg.dataset.train_steps), show_progress=False, log_epochs=False)
+        out[use_fused] = (result["history"], parameter_recovery(model, ds))
     return out
 
 

@@ -13,7 +13,6 @@ from liedfl_cli.lie import SO3, Pose, ProductGroup
 from liedfl_cli.models import fused, losses
 from liedfl_cli.models.base import LossOptions, TrajectoryBatch
 from liedfl_cli.models.euler_dflnn import EulerDFLNN
-from liedfl_cli.solvers import runtime
 from liedfl_cli.solvers.options import SolverOptions
 
 TIGHT = SolverOptions(tol=1e-13, max_iter=30)
@@ -59,8 +58,7 @@ def test_newton_loss_equals_an_independent_autodiff_solve_on_both_paths(name):
     x = independent_newton(model, *ref.poses()).detach()
     expect = float((x * x).sum(-1).mean())
     assert float(x.norm(dim=-1).max()) < losses.NEWTON_CLIP  # nothing clipped: the plain formula applies
-    with runtime.using(fused=False):
-        loss_ref, parts_ref = model.loss(ref, opts)
+    loss_ref, parts_ref = model.with_path("reference").loss(ref, opts)
     fus_set = model.training_set(trajectories(model.G), 10)
     fus_set.enable_jacobian()
     idx = torch.randperm(fus_set.n, generator=torch.Generator().manual_seed(3))
@@ -92,11 +90,11 @@ def test_generic_residual_mode_newton_loss_has_parameter_gradients():
 
     fast, generic = LieDFLNN(G, 0.1, init_jitter=0.3, **kw), LieDFLNN(G, 0.1, init_jitter=0.3, residual="generic", **kw)
     generic.load_state_dict(fast.state_dict())
-    with runtime.using(fused=False):
-        data = trajectories(G)
-        b = fast.training_set(data, 10).batch(torch.arange(20), torch.Generator().manual_seed(0), 10)
-        la, _ = fast.loss(b, LossOptions(loss="newton"))
-        lb, _ = generic.loss(b, LossOptions(loss="newton"))
+    fast, generic = fast.with_path("reference"), generic.with_path("reference")
+    data = trajectories(G)
+    b = fast.training_set(data, 10).batch(torch.arange(20), torch.Generator().manual_seed(0), 10)
+    la, _ = fast.loss(b, LossOptions(loss="newton"))
+    lb, _ = generic.loss(b, LossOptions(loss="newton"))
     assert abs(float(la - lb)) <= 1e-10 * abs(float(la))
     ga = torch.autograd.grad(la, list(fast.parameters()), allow_unused=True)
     gb = torch.autograd.grad(lb, list(generic.parameters()), allow_unused=True)
@@ -166,21 +164,21 @@ def test_rollout_loss_gradient_matches_central_differences(use_fused):
         for p in model.parameters():
             p.add_(1e-2 * torch.randn(p.shape, generator=torch.Generator().manual_seed(5), dtype=p.dtype))
     opts = LossOptions(loss="rollout", w_reg=0.0, solver=TIGHT)
+    model = model.with_path("fused" if use_fused else "reference")
     p = model.inertia.abc
-    with runtime.using(fused=use_fused):
-        loss, parts = model.loss(windows, opts)
-        (g,) = torch.autograd.grad(loss, [p])
-        assert float(parts["not_converged"]) == 0.0
-        eps = 1e-5
-        for i in (0, 2):
-            vals = []
-            for s in (1.0, -1.0):
-                with torch.no_grad():
-                    p[0, i] += s * eps
-                    vals.append(float(model.loss(windows, opts)[0]))
-                    p[0, i] -= s * eps
-            fd = (vals[0] - vals[1]) / (2 * eps)
-            assert abs(float(g[0, i]) - fd) <= 1e-5 * abs(fd), (float(g[0, i]), fd)
+    loss, parts = model.loss(windows, opts)
+    (g,) = torch.autograd.grad(loss, [p])
+    assert float(parts["not_converged"]) == 0.0
+    eps = 1e-5
+    for i in (0, 2):
+        vals = []
+        for s in (1.0, -1.0):
+            with torch.no_grad():
+                p[0, i] += s * eps
+                vals.append(float(model.loss(windows, opts)[0]))
+                p[0, i] -= s * eps
+        fd = (vals[0] - vals[1]) / (2 * eps)
+        assert abs(float(g[0, i]) - fd) <= 1e-5 * abs(fd), (float(g[0, i]), fd)
 
 
 def test_rollout_loss_masks_non_converged_solves():

@@ -14,7 +14,6 @@ from liedfl_cli.mechanics.forces import NNForce, force_jacobian_xi
 from liedfl_cli.mechanics.potentials import left_gradient
 from liedfl_cli.models import fused, fused_maps, mlp_derivatives
 from liedfl_cli.models.liedflnn import LieDFLNN
-from liedfl_cli.solvers import runtime
 from liedfl_cli.solvers.options import SolverOptions
 
 ACTIVATIONS = {
@@ -104,7 +103,7 @@ def test_unsupported_networks_are_declined():
     )
 
 
-GROUPS = {"so3": SO3, "se3": SE3, "se3xso3x2": ProductGroup(1, 2)}
+GROUPS = {"so3": SO3, "so3x2": ProductGroup(0, 2), "se3": SE3, "se3xso3x2": ProductGroup(1, 2)}
 
 
 def poses(G: ProductGroup, T: int = 6, seed: int = 3) -> Pose:
@@ -174,6 +173,7 @@ ROLLOUT_MODELS = {
     "so3_mlp_10x2_rayleigh": (SO3, dict(forces=["rayleigh"])),
     "se3_mlp_rayleigh": (SE3, dict(forces=["rayleigh"])),
     "se3xso3x2_mlp_nn_force": (ProductGroup(1, 2), dict(forces={"rayleigh": {}, "nn": {"width": 8, "depth": 2}})),
+    "so3x2_mlp_rayleigh": (ProductGroup(0, 2), dict(forces=["rayleigh"])),
 }
 
 
@@ -183,8 +183,8 @@ def test_closed_form_rollout_equals_the_autograd_path_to_the_newton_tolerance(na
     model = mlp_model(G, **kw)
     model.requires_grad_(False)
     g0, g1 = start(G, 4, model.h)
-    with runtime.using(fused=False):  # autograd for the potential gradient and the NN force's Jacobian
-        ref = model.rollout(g0, g1, 8)
+    # the reference path: autograd for the potential gradient and the NN force's Jacobian
+    ref = model.with_path("reference").rollout(g0, g1, 8)
     new = model.rollout(g0, g1, 8)
     tol = SolverOptions().tol
     assert bool(new.converged.all()) and torch.equal(ref.iterations, new.iterations)

@@ -4,11 +4,15 @@ import torch
 
 from liedfl_cli.lie import SE3, SO3, Pose, so3
 from liedfl_cli.models.true_scheme import physics_model
-from liedfl_cli.solvers import newton, runtime
-from liedfl_cli.solvers.newton import damped_newton, jacobian
+from liedfl_cli.solvers import newton
+from liedfl_cli.solvers.newton import NewtonProblem, jacobian, solve
 from liedfl_cli.solvers.options import SolverOptions
 
 PHYS = {"J": [1.521, 1.362, 1.211], "m": 0.5, "rho": [0.0, 0.5, 1.0], "g": 9.81}
+
+
+def _solve_euclidean(f, x0, opts):
+    return solve(NewtonProblem.euclidean(f, x0), opts)
 
 
 def cubic(c):
@@ -23,7 +27,7 @@ def test_jacobian_matches_analytic():
 
 def test_newton_solves_each_row_and_counts_iterations():
     c = torch.tensor([[0.0, 1.0], [10.0, -3.0], [1e-3, 2.0]], dtype=torch.float64)
-    sol = damped_newton(cubic(c), torch.zeros_like(c), SolverOptions(tol=1e-12, max_iter=50))
+    sol = _solve_euclidean(cubic(c), torch.zeros_like(c), SolverOptions(tol=1e-12, max_iter=50))
     assert sol.converged.all()
     assert (cubic(c)(sol.xi).abs() < 1e-10).all()
     assert sol.iterations.shape == (3,) and (sol.iterations >= 1).all()
@@ -32,14 +36,14 @@ def test_newton_solves_each_row_and_counts_iterations():
 
 def test_newton_reports_non_convergence():
     c = torch.tensor([[100.0], [0.5]], dtype=torch.float64)
-    sol = damped_newton(cubic(c), torch.zeros_like(c), SolverOptions(tol=1e-14, max_iter=2))
+    sol = _solve_euclidean(cubic(c), torch.zeros_like(c), SolverOptions(tol=1e-14, max_iter=2))
     assert not sol.converged[0]
     assert sol.iterations[0] == 2
 
 
 def test_newton_keeps_going_when_a_row_has_no_root():
     f = lambda x: torch.cat((x[:1] ** 2 + 1.0, x[1:] - 2.0))  # row 0: no real root
-    sol = damped_newton(f, torch.ones(2, 1, dtype=torch.float64), SolverOptions(tol=1e-10, max_iter=10))
+    sol = _solve_euclidean(f, torch.ones(2, 1, dtype=torch.float64), SolverOptions(tol=1e-10, max_iter=10))
     assert not sol.converged[0] and sol.converged[1]
     assert torch.isfinite(sol.xi).all()
     torch.testing.assert_close(sol.xi[1], torch.tensor([2.0], dtype=torch.float64))
@@ -103,8 +107,7 @@ FREE = {**PHYS, "g": 0.0, "D": [0.05] * 3}  # the free_rigid_body scene's physic
 
 def _rollouts(model, g0, g1, steps, opts):
     """(fused, reference) rollouts of the same model."""
-    with runtime.using(fused=False):
-        ref = model.rollout(g0, g1, steps, opts)
+    ref = model.with_path("reference").rollout(g0, g1, steps, opts)
     return model.rollout(g0, g1, steps, opts), ref
 
 

@@ -133,49 +133,29 @@ def test_loss_plot_with_a_part_that_reaches_zero(tmp_path):
     import matplotlib
 
     matplotlib.use("Agg")
+    from liedfl_cli.commands.outputs import write_outputs
     from liedfl_cli.display import plots
+    from liedfl_cli.evaluation import EvalOutputs
 
-    captured = {}
-    real = plots.save_figure
-
-    def keep(fig, path, **kw):
-        ax = fig.axes[0]
-        captured["ylim"] = ax.get_ylim()
-        captured["labels"] = [t.get_text() for t in ax.get_legend().get_texts()]
-        captured["xlabel"], captured["ylabel"] = ax.get_xlabel(), ax.get_ylabel()
-        real(fig, path, **kw)
-
-    plots.save_figure = keep
-    try:
-        history = [
-            {"epoch": e, "loss": 1.0 / e, "del_loss": 0.5 / e, "reg_loss": max(0.0, 0.3 - 0.1 * e)}
-            for e in range(1, 11)
-        ]
-        plots.loss_curve(history, tmp_path / "loss.png")
-    finally:
-        plots.save_figure = real
-    lo, hi = captured["ylim"]
+    history = [
+        {"epoch": e, "loss": 1.0 / e, "del_loss": 0.5 / e, "reg_loss": max(0.0, 0.3 - 0.1 * e)} for e in range(1, 11)
+    ]
+    fig = plots.draw_loss_curve(history)
+    ax = fig.axes[0]
+    lo, hi = ax.get_ylim()
     assert lo > 1e-3 and hi < 10  # not stretched down to 1e-300
-    assert any("reg_loss (0 at 8 of 10 epochs)" in t for t in captured["labels"])
-    assert captured["xlabel"] == "epoch" and "loss" in captured["ylabel"]
+    assert any("reg_loss (0 at 8 of 10 epochs)" in t.get_text() for t in ax.get_legend().get_texts())
+    assert ax.get_xlabel() == "epoch" and "loss" in ax.get_ylabel()
+    write_outputs(EvalOutputs({}, tmp_path, {"loss.png": fig}))  # the one writer of figures
     assert (tmp_path / "loss.png").stat().st_size > 1000
 
 
-def test_every_run_figure_has_labelled_axes_with_units(tmp_path, monkeypatch):
+def test_every_run_figure_has_labelled_axes_with_units():
     import matplotlib
 
     matplotlib.use("Agg")
     from liedfl_cli.display import plots
-    from liedfl_cli.lie import Pose
 
-    axes = []
-    real = plots.save_figure
-
-    def keep(fig, path, **kw):
-        axes.extend((path.name, ax) for ax in fig.axes)
-        real(fig, path, **kw)
-
-    monkeypatch.setattr(plots, "save_figure", keep)
     S = 12
     curves = {
         "model": {
@@ -189,17 +169,23 @@ def test_every_run_figure_has_labelled_axes_with_units(tmp_path, monkeypatch):
     curves["true_scheme"] = dict(curves["model"])
     names = plots.display_names(curves, "liedflnn")
     assert names == {"model": "liedflnn", "true_scheme": "true scheme"}
-    plots.error_vs_step(curves, 0.05, tmp_path / "e.png", names)
-    plots.drift_vs_step(curves, 0.05, tmp_path / "d.png", names)
     from liedfl_cli.lie import so3
 
     R = so3.random((2, S + 1, 1)).numpy()
     p = np.zeros((2, S + 1, 1, 3))
     R_bad = R.copy()
     R_bad[0, 5:] = np.nan  # a diverged prediction leaves a gap, not an error
-    plots.sphere(R, {"model": R_bad, "true_scheme": R}, tmp_path / "s.png", names=names)
-    plots.predicted_vs_true(Pose(R, p), {"model": Pose(R, p)}, 0.05, tmp_path / "p.png", names=names)
-    assert {n for n, _ in axes} == {"e.png", "d.png", "s.png", "p.png"}
+    pose = plots.ArrayPose(R, p)
+    figures = {
+        "e.png": plots.draw_error_vs_step(curves, 0.05, names),
+        "d.png": plots.draw_drift_vs_step(curves, 0.05, names),
+        "s.png": plots.draw_sphere(R, {"model": R_bad, "true_scheme": R}, names=names),
+        "p.png": plots.draw_predicted_vs_true(pose, {"model": pose}, 0.05, names=names),
+    }
+    axes = [(name, ax) for name, fig in figures.items() for ax in fig.axes]
+    for fig in figures.values():
+        fig.canvas.draw()  # a diverged prediction's NaNs render too
+        plots.plt.close(fig)
     unit = re.compile(r"\[(s|rad|m|dimensionless)\]|\(dimensionless\)")
     legends = {}
     for name, ax in axes:

@@ -13,7 +13,7 @@ from report_sweep import fake_sweep
 from rich.console import Console
 
 from liedfl_cli.commands import report
-from liedfl_cli.display import plots, ui
+from liedfl_cli.display import ui
 from liedfl_cli.display.speed_figure import log_bar
 
 SPEED = ("rollout s/step/traj", "train [s]")
@@ -62,14 +62,12 @@ def test_log_bar_never_reaches_zero():
     assert log_bar(2.0, None, [2.0]) == (2.0, 2.0, False)
 
 
-def test_figure_labels_inside_the_axes_and_apart(sweep, monkeypatch):
-    captured = {}
-    monkeypatch.setattr(plots, "save_figure", lambda fig, path: captured.setdefault("fig", fig))
+def test_figure_labels_inside_the_axes_and_apart(sweep):
     keys = report.varying_settings(report.collect(sweep))
     summary = report.summarize(report.collect(sweep), keys)
     assert len(summary) == 16
-    assert report.plot_error_vs_speed(summary, sweep / "plots" / "error_vs_speed.png")
-    fig = captured["fig"]
+    fig = report.draw_error_vs_speed(summary)
+    assert fig is not None
     fig.canvas.draw()
     renderer = fig.canvas.get_renderer()
     panels = [ax for ax in fig.axes if ax.get_xscale() == "log"]

@@ -32,7 +32,7 @@ from ..evaluation.metrics import drift_metrics, error_metrics, one_step_metrics,
 from ..files.io_utils import markdown_table
 from ..files.rollout_file import FILE_NAME, RolloutFile, load_rollout, read_rollout
 from ..lie import Pose, ProductGroup
-from .outputs import write_outputs
+from .outputs import show, write_outputs
 
 SHORT = {
     "rel_rot_error_mean": "rel err",
@@ -269,9 +269,12 @@ def run_eval_from_objects(
     model_name: str | None = None,
     checkpoint: dict | None = None,
 ) -> list[dict]:
-    """Evaluate a rollout file against `dataset` (`compute_eval`) and write eval.csv, eval.md,
-    eval_curves.json and plots/ next to the file (`outputs.write_outputs`); returns the rows."""
+    """Evaluate a rollout file against `dataset` (`compute_eval`), print its notes and table and write
+    eval.csv, eval.md, eval_curves.json and plots/ next to the file (`outputs.write_outputs`); returns
+    the rows."""
     result = compute_eval(run, dataset, run_dir, timings, rollout_path, model_name, checkpoint)
+    show(result)
+    print_eval_table(result.summary["rows"], result.summary["columns"], result.summary["title"])
     write_outputs(result)
     return result.summary["rows"]
 
@@ -285,10 +288,12 @@ def compute_eval(
     model_name: str | None = None,
     checkpoint: dict | None = None,
 ) -> EvalOutputs:
-    """The evaluation of a rollout file against `dataset`, computed, not written: summary {"rows": rows}
-    and the files eval.csv, eval.md, eval_curves.json and plots/ (drawn figures) to go next to the
-    file. rollout_path: default `<run_dir>/rollout.h5`. The run's parameter recovery (recovery.json)
-    goes into eval.md of any rollout of the run, the loss curve only into the run's own plots.
+    """The evaluation of a rollout file against `dataset`, computed, neither written nor printed:
+    summary {"rows": rows, "columns": the columns with a value, "title": of the console table}, the
+    files eval.csv, eval.md, eval_curves.json and plots/ (drawn figures) to go next to the file, and
+    the notes for the console (`EvalOutputs.messages`; the command prints them, then the table).
+    rollout_path: default `<run_dir>/rollout.h5`. The run's parameter recovery (recovery.json) goes
+    into eval.md of any rollout of the run, the loss curve only into the run's own plots.
     model_name: what the `model` entry is (default: `run.model['name']`). checkpoint: which checkpoint the
     model's rollout came from (`checkpoint.checkpoint_record`): columns `checkpoint`, `checkpoint_epoch`."""
     run_dir = Path(run_dir)
@@ -305,9 +310,10 @@ def compute_eval(
             r.update(checkpoint=checkpoint.get("checkpoint"), checkpoint_epoch=checkpoint.get("checkpoint_epoch"))
     own = out.resolve() == run_dir.resolve()
     recovery_path = run_dir / "recovery.json"
-    result = EvalOutputs({"rows": rows}, out)
-    result.add("eval.csv", rows)
     cols = [c for c in COLUMNS if any(r.get(c) is not None for r in rows)]
+    title = f"{dataset.scene}: test rollout ({len(idx)} x {rf.steps} steps)"
+    result = EvalOutputs({"rows": rows, "columns": cols, "title": title}, out)
+    result.add("eval.csv", rows)
     note = span_note(rf, dataset)
     md = (
         f"# Evaluation: {dataset.scene} ({dataset.group.name}, h={dataset.h}), "
@@ -335,7 +341,7 @@ def compute_eval(
         md += "\n## Parameter recovery (normalised by tr J_d)\n\n" + markdown_table([rec], list(rec))
     result.add("eval.md", md)
     result.add("eval_curves.json", {k: {kk: vv.tolist() for kk, vv in v.items()} for k, v in curves.items()})
-    console.print(
+    result.say(
         "columns: rel err = mean ||R^-R||_F/||R||_F over steps; geo err = mean geodesic error (rad); "
         "1-step = teacher-forced one-step error (each step from the true previous pair); "
         "1-step/CV, geo/CV = ratio to the constant-velocity row (< 1: better than repeating the last increment); "
@@ -343,11 +349,10 @@ def compute_eval(
         style="dim",
     )
     if rf.steps > dataset.n_steps:
-        console.print(
+        result.say(
             f"[yellow]note:[/] the rollout ({rf.steps} steps) is longer than the dataset ({dataset.n_steps} steps): "
             "errors cover the steps with ground truth only"
         )
-    print_eval_table(rows, cols, f"{dataset.scene}: test rollout ({len(idx)} x {rf.steps} steps)")
     if run.eval.plots:
         h = dataset.h
         unit = length_unit(dataset)

@@ -265,12 +265,8 @@ def _colors(models: list[str]):
     return {m: plt.get_cmap("tab10")(i % 10) for i, m in enumerate(models)}
 
 
-def plot_error_vs_speed(summary: list[dict], path: Path) -> bool:
-    """plots/error_vs_speed.png (speed_figure.py)."""
-    return speed_figure.plot_error_vs_speed(summary, path, ERROR, ERROR_LABEL)
-
-
 def draw_error_vs_speed(summary: list[dict]) -> Figure | None:
+    """plots/error_vs_speed.png (speed_figure.py); None without a point."""
     return speed_figure.draw_error_vs_speed(summary, ERROR, ERROR_LABEL)
 
 
@@ -389,16 +385,17 @@ def draw_error_vs_training_length(rows: list[dict], keys: list[str]) -> Figure |
     return fig
 
 
-def _sphere_tracks(run: Path) -> tuple[dict, np.ndarray | None]:
+def _sphere_tracks(run: Path, warnings: list[str]) -> tuple[dict, np.ndarray | None]:
     """({entry: R e3 of body 0 along the first rollout trajectory}, truth or None) of a run; ({}, None)
-    with a warning when its files are missing or unreadable (the report does not depend on them)."""
+    when its files are missing or unreadable, with a warning added to `warnings` for an unreadable
+    rollout file (the report does not depend on them)."""
     path = run / FILE_NAME
     if not path.is_file():
         return {}, None
     try:
         rf = read_rollout(path)
     except LiedflError as e:
-        warning_line(f"{e}; its sphere panel is left empty")
+        warnings.append(f"{e}; its sphere panel is left empty")
         return {}, None
     tracks = {name: e.R[0, :, 0, :, 2] for name, e in rf.models.items()}
     truth = None
@@ -415,7 +412,7 @@ def _sphere_tracks(run: Path) -> tuple[dict, np.ndarray | None]:
     return tracks, truth
 
 
-def draw_sphere_per_model(sweep: Path, rows: list[dict]) -> Figure:
+def draw_sphere_per_model(sweep: Path, rows: list[dict], warnings: list[str]) -> Figure:
     from ..display.plots import _on_sphere, draw_unit_sphere, plt
 
     models = sorted({r["model"] for r in rows})
@@ -425,7 +422,7 @@ def draw_sphere_per_model(sweep: Path, rows: list[dict]) -> Figure:
         r = next(r for r in rows if r["model"] == m)
         ax = fig.add_subplot(1, len(models), i + 1, projection="3d")
         draw_unit_sphere(ax)
-        tracks, truth = _sphere_tracks(sweep / r["run"])
+        tracks, truth = _sphere_tracks(sweep / r["run"], warnings)
         if truth is not None:
             ax.plot(*_on_sphere(truth).T, color="black", lw=1.2, label="truth")
         if "true_scheme" in tracks:
@@ -438,8 +435,10 @@ def draw_sphere_per_model(sweep: Path, rows: list[dict]) -> Figure:
     return fig
 
 
-def report_figures(sweep: Path, rows: list[dict]) -> dict[str, Figure]:
-    """{"plots/<name>.png": Figure} of the figures that have something to show (drawn, not saved)."""
+def report_figures(sweep: Path, rows: list[dict], warnings: list[str] | None = None) -> dict[str, Figure]:
+    """{"plots/<name>.png": Figure} of the figures that have something to show (drawn, not saved);
+    what a reader should know (an unreadable rollout file) is added to `warnings`, not printed."""
+    warnings = [] if warnings is None else warnings
     keys = varying_settings(rows)
     summary = summarize(rows, keys)
     out = {}
@@ -447,7 +446,7 @@ def report_figures(sweep: Path, rows: list[dict]) -> dict[str, Figure]:
         ("error_vs_speed", lambda: draw_error_vs_speed(summary)),
         ("error_vs_time", lambda: draw_error_vs_time(sweep, summary)),
         ("error_vs_training_length", lambda: draw_error_vs_training_length(rows, keys)),
-        ("sphere_per_model", lambda: draw_sphere_per_model(sweep, rows)),
+        ("sphere_per_model", lambda: draw_sphere_per_model(sweep, rows, warnings)),
     ):
         fig = draw()
         if fig is not None:
@@ -546,8 +545,11 @@ def run_report(cfg: DictConfig) -> dict:
         result.add("report.csv", rows)
     result.add("report.md", report_markdown(sweep, rows, failed))
     if command.top.get("plots") and rows:
-        for name, fig in report_figures(sweep, rows).items():
+        warnings: list[str] = []
+        for name, fig in report_figures(sweep, rows, warnings).items():
             result.add(name, fig)
+        for w in warnings:
+            warning_line(w)
     plots = [p for p in write_outputs(result) if p.suffix == ".png"]
     if rows:
         keys = varying_settings(rows)

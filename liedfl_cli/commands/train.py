@@ -50,6 +50,7 @@ from ..files.checkpoint import (
 from ..files.io_utils import write_json
 from ..lie import Pose
 from ..loggers import MetricsLog, make_loggers
+from ..models.fused_step import RotationalGradient
 from ..models.losses import training_stage
 from ..solvers import runtime
 from .validation import (
@@ -94,6 +95,20 @@ def _loss_value(model, batch, opts) -> tuple[torch.Tensor | None, dict, str]:
         return None, {}, f"too large ({e})"
     if not torch.isfinite(loss):
         return None, {}, str(loss.item())
+    return loss, parts, ""
+
+
+def _fused_value(grad_fn, params: list, batch, opts) -> tuple[float | None, dict, str]:
+    """`_loss_value` plus the backward pass of a fused gradient (`fused_step.RotationalGradient`):
+    the gradients are set on `params` (no autograd graph, nothing to zero)."""
+    try:
+        loss, parts, grads = grad_fn(batch, opts)
+    except OverflowError as e:
+        return None, {}, f"too large ({e})"
+    if grads is None:
+        return None, {}, str(loss)
+    for p, g in zip(params, grads):
+        p.grad = g
     return loss, parts, ""
 
 
@@ -179,15 +194,20 @@ def checkpoint_interval(value) -> int | None:
 
 
 def make_optimizer(params, cfg_opt: OptimizerConfig | DictConfig) -> torch.optim.Optimizer:
+    """SOAP or Adam; on the fused paths (`runtime.fused`) without per-tensor Python:
+    `fused_optim.FusedSOAP` (the library's kernels, bit for bit) and Adam's foreach update."""
     if not isinstance(cfg_opt, OptimizerConfig):  # scripts and tests may pass the section as is
         cfg_opt = section(OptimizerConfig, cfg_opt, "train.optimizer")
     name = cfg_opt.name
+    fused = runtime.current().fused
     if name == "soap":
         from pytorch_optimizer import SOAP
 
+        from .fused_optim import FusedSOAP
+
         every = int(cfg_opt.precondition_frequency)
         largest = int(cfg_opt.max_precondition_dim)
-        return SOAP(
+        return (FusedSOAP if fused else SOAP)(
             params,
             lr=cfg_opt.lr,
             weight_decay=cfg_opt.weight_decay,
@@ -195,7 +215,7 @@ def make_optimizer(params, cfg_opt: OptimizerConfig | DictConfig) -> torch.optim
             max_precondition_dim=largest,
         )
     if name == "adam":
-        return torch.optim.Adam(params, lr=cfg_opt.lr, weight_decay=cfg_opt.weight_decay)
+        return torch.optim.Adam(params, lr=cfg_opt.lr, weight_decay=cfg_opt.weight_decay, foreach=fused)
     raise ConfigError(f"train.optimizer.name must be 'soap' or 'adam', got {name!r}")
 
 
@@ -250,6 +270,7 @@ def fit(
     if not params:
         raise ConfigError("the model has no trainable parameters")
     opt = make_optimizer(params, cfg_train.optimizer)
+    grad_fn = RotationalGradient.make(model, samples, opts, params)  # None: autograd's backward
     epochs = int(cfg_train.epochs)
     sched = make_schedule(opt, cfg_train.optimizer.schedule, epochs)
     every = checkpoint_interval(cfg_train.checkpoint_every)
@@ -292,14 +313,20 @@ def fit(
             sums: dict[str, float] = {}
             for b in range(n_batches):
                 idx = perm[b * bs : (b + 1) * bs]
-                opt.zero_grad(set_to_none=True)
-                loss, parts, bad = _loss_value(model, samples.batch(idx, gen, opts.reg_points), opts)
-                if loss is None:
+                batch = samples.batch(idx, gen, opts.reg_points)
+                value: float | torch.Tensor | None
+                if grad_fn is not None:  # forward and backward fused, no autograd graph
+                    value, parts, bad = _fused_value(grad_fn, params, batch, opts)
+                else:
+                    opt.zero_grad(set_to_none=True)
+                    value, parts, bad = _loss_value(model, batch, opts)
+                    if value is not None:
+                        value.backward()
+                if value is None:
                     raise TrainingDiverged(epoch, b, bad, first=epoch == start and b == 0, saved=saved_epoch)
-                loss.backward()
                 opt.step()
-                for k, v in {"loss": loss, **parts}.items():
-                    sums[k] = sums.get(k, 0.0) + float(v.detach()) / n_batches
+                for k, v in {"loss": value, **parts}.items():
+                    sums[k] = sums.get(k, 0.0) + (v if isinstance(v, float) else float(v.detach())) / n_batches
             lr = float(opt.param_groups[0]["lr"])  # the rate this epoch's steps used
             if sched is not None:
                 sched.step()

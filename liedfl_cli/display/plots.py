@@ -122,13 +122,6 @@ def draw_error_vs_step(
     return fig
 
 
-def error_vs_step(
-    curves: dict[str, dict], h: float, path: Path, names: dict[str, str] | None = None, length_unit: str | None = "m"
-) -> None:
-    """`draw_error_vs_step` saved to `path` (PNG, atomically) and closed."""
-    save_figure(draw_error_vs_step(curves, h, names=names, length_unit=length_unit), path)
-
-
 def draw_drift_vs_step(curves: dict[str, dict], h: float, names: dict[str, str] | None = None) -> Figure:
     """Distance of the predicted rotations from SO(3) against time (largest over trajectories and bodies)."""
     names = names or display_names(curves)
@@ -145,11 +138,6 @@ def draw_drift_vs_step(curves: dict[str, dict], h: float, names: dict[str, str] 
         ax.legend(fontsize=8)
     fig.tight_layout()
     return fig
-
-
-def drift_vs_step(curves: dict[str, dict], h: float, path: Path, names: dict[str, str] | None = None) -> None:
-    """`draw_drift_vs_step` saved to `path` (PNG, atomically) and closed."""
-    save_figure(draw_drift_vs_step(curves, h, names=names), path)
 
 
 def _positive(y: np.ndarray) -> np.ndarray:
@@ -197,19 +185,6 @@ def draw_sphere(
     return fig
 
 
-def sphere(
-    truth_R: np.ndarray,
-    preds: dict[str, np.ndarray],
-    path: Path,
-    axis: int = 2,
-    n_traj: int = 3,
-    body: int = 0,
-    names: dict[str, str] | None = None,
-) -> None:
-    """`draw_sphere` saved to `path` (PNG, atomically) and closed."""
-    save_figure(draw_sphere(truth_R, preds, axis=axis, n_traj=n_traj, body=body, names=names), path)
-
-
 def draw_predicted_vs_true(
     truth: ArrayPose,
     preds: dict[str, ArrayPose],
@@ -250,22 +225,6 @@ def draw_predicted_vs_true(
     return fig
 
 
-def predicted_vs_true(
-    truth: ArrayPose,
-    preds: dict[str, ArrayPose],
-    h: float,
-    path: Path,
-    traj: int = 0,
-    body: int = 0,
-    names: dict[str, str] | None = None,
-    length_unit: str | None = "m",
-) -> None:
-    """`draw_predicted_vs_true` saved to `path` (PNG, atomically) and closed."""
-    save_figure(
-        draw_predicted_vs_true(truth, preds, h, traj=traj, body=body, names=names, length_unit=length_unit), path
-    )
-
-
 def draw_loss_curve(history: list[dict]) -> Figure:
     """Training loss and its parts against the epoch (log scale). A part that reaches exactly 0 (the
     regularity penalty once every sampled pair is regular) is drawn where positive and marked by
@@ -300,8 +259,3 @@ def draw_loss_curve(history: list[dict]) -> Figure:
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3, which="both")
     return fig
-
-
-def loss_curve(history: list[dict], path: Path) -> None:
-    """`draw_loss_curve` saved to `path` (PNG, atomically) and closed."""
-    save_figure(draw_loss_curve(history), path)

@@ -12,7 +12,6 @@ seed's value instead, marked by an open triangle (said in the caption).
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 FULL_LABELS = 8
 """Sweeps with at most this many points are labelled in full; larger ones by number plus a key."""
@@ -107,17 +106,6 @@ def plain_log_ticks(ax) -> None:
 
 def _seed_values(s: dict, key: str) -> list[float]:
     return [float(r[key]) for r in s.get("runs", []) if r.get(key) is not None and math.isfinite(float(r[key]))]
-
-
-def plot_error_vs_speed(summary: list[dict], path: Path, error: str, error_label: str) -> bool:
-    """`draw_error_vs_speed` saved to `path`; False (nothing written) without a point."""
-    from .plots import save_figure
-
-    fig = draw_error_vs_speed(summary, error, error_label)
-    if fig is None:
-        return False
-    save_figure(fig, path)
-    return True
 
 
 def draw_error_vs_speed(summary: list[dict], error: str, error_label: str):

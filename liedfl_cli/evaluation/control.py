@@ -28,7 +28,6 @@ import torch
 from matplotlib.figure import Figure
 
 from ..display.plots import COLORS, display_names, draw_unit_sphere, plt
-from ..display.ui import console
 from ..files.io_utils import markdown_table
 from ..files.rollout_file import FILE_NAME, load_rollout
 from ..lie import Pose
@@ -68,18 +67,19 @@ def torque_errors(learned: np.ndarray, true: np.ndarray) -> dict:
 
 
 def evaluate_control(opts: SceneEvalOptions, model, dataset, run_dir, rollout_path=None) -> EvalOutputs | None:
-    """Exp 5 torque recovery, computed, not written: the summary and files (None for models without
-    forces).
+    """Exp 5 torque recovery, computed, neither written nor printed: the summary, files and console
+    lines (for a model without forces: an empty summary and the line saying the evaluation is skipped).
 
     rollout_path: the rollout file drawn in the plot (default `<run_dir>/rollout.h5`; the plot goes
     without it when it does not exist); the files go next to it."""
     from ..models.true_scheme import true_model
 
-    if not model.force_terms():
-        console.print("[yellow]control eval skipped:[/] the model has no force components")
-        return None
     path = Path(rollout_path) if rollout_path is not None else Path(run_dir) / FILE_NAME
     out_dir = path.parent
+    if not model.force_terms():
+        skipped = EvalOutputs({}, out_dir)
+        skipped.say("[yellow]control eval skipped:[/] the model has no force components")
+        return skipped
     h = dataset.h
     ref = true_model(dataset)
     rows, curves = [], {}
@@ -119,7 +119,7 @@ def evaluate_control(opts: SceneEvalOptions, model, dataset, run_dir, rollout_pa
     out.add("control_eval.json", summary)
     out.add("control_eval.md", control_markdown(rows))
     for r in rows:
-        console.print(
+        out.say(
             f"control recovery ({r['split']}): relative torque error mean {r['rel_error_mean']:.3e}, "
             f"max {r['rel_error_max']:.3e}, aggregate {r['rel_error_aggregate']:.3e}"
         )

@@ -57,7 +57,6 @@ from rich.table import Table
 
 from ..data.mocap import ASF_UNIT_M, mocap_errors, moving_joints, recording_discrepancy, skeleton_points
 from ..display.plots import draw_unit_sphere, plt
-from ..display.ui import console
 from ..files.io_utils import fmt, markdown_table
 from ..files.rollout_file import FILE_NAME, RolloutEntry, load_rollout
 from ..lie import Pose
@@ -538,8 +537,8 @@ def mocap_markdown(m: MocapNumbers, summary: dict, dataset) -> str:
     return md
 
 
-def print_mocap(m: MocapNumbers, dataset) -> None:
-    """The table and the verdict lines on the console."""
+def mocap_console(m: MocapNumbers, dataset) -> list[tuple[Any, dict[str, Any]]]:
+    """The table and the verdict lines for the console ((renderable, print options), `EvalOutputs.say`)."""
     table = Table(
         title=f"Exp 4 mocap reproduction ({m.ro.steps} steps); ours vs paper; joint rot over {len(m.joints)} "
         "moving joints"
@@ -570,7 +569,7 @@ def print_mocap(m: MocapNumbers, dataset) -> None:
             fmt(r.get("root_pos_paper_asf")),
             fmt(r["newton_failures"]),
         )
-    console.print(table)
+    shown: list[tuple[Any, dict[str, Any]]] = [(table, {})]
     extra = []
     if m.onestep is not None:
         mo, c = m.onestep["model"], m.onestep["const_velocity"]
@@ -581,8 +580,8 @@ def print_mocap(m: MocapNumbers, dataset) -> None:
             + ", ".join(f"{float(v):.3e}" for v in c["joint_rot"])
             + " rad (per sequence)"
         )
-    for x in verdict_lines(m, dataset) + extra:
-        console.print(escape(x), highlight=False)
+    shown += [(escape(x), {"highlight": False}) for x in verdict_lines(m, dataset) + extra]
+    return shown
 
 
 def mocap_figures(m: MocapNumbers, dataset) -> dict[str, Any]:
@@ -612,7 +611,8 @@ def evaluate_mocap(opts: SceneEvalOptions, model, dataset, run_dir, rollout_path
     out.add("mocap_eval.json", summary)
     out.add("mocap_eval.csv", m.rows)
     out.add("mocap_eval.md", mocap_markdown(m, summary, dataset))
-    print_mocap(m, dataset)
+    for what, options in mocap_console(m, dataset):
+        out.say(what, **options)
     if opts.plots:
         for name, fig in mocap_figures(m, dataset).items():
             out.add(name, fig)

@@ -22,11 +22,12 @@ Nothing here knows about Hydra: the pipeline (`liedfl_cli.config.factory`) turns
 from __future__ import annotations
 
 import abc
+import copy
 import itertools
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal, TypeVar
 
 import torch
 from torch import nn
@@ -34,11 +35,15 @@ from torch import nn
 from ..errors import ConfigError
 from ..lie import Pose, ProductGroup
 from ..lie.tree import Tree
+from ..solvers import runtime
 from ..solvers.newton import NewtonProblem, NewtonResult
 from ..solvers.options import SolverOptions
 from ..solvers.rollout import Rollout, rollout_explicit, rollout_implicit
 
 WINDOWS = ("triplet", "trajectory")
+PATHS = ("fused", "reference")
+ModelPath = Literal["fused", "reference"]
+"""Which implementation serves an `ImplicitModel` (`ImplicitModel.path`)."""
 
 
 def initial_scale(h: float, epsilon: float, n: int) -> float:
@@ -368,9 +373,40 @@ class Model(nn.Module, abc.ABC):
         return None
 
 
+ImplicitT = TypeVar("ImplicitT", bound="ImplicitModel")
+
+
+def runtime_path() -> ModelPath:
+    """The path a model built now takes: "fused" unless `runtime.fused` is false."""
+    return "fused" if runtime.current().fused else "reference"
+
+
 class ImplicitModel(Model):
     """A model whose step solves an implicit equation r(g_{k-1}, g_k, g_{k+1}) = 0 (the DEL
-    models). `state` is whatever the model carries from step to step."""
+    models). `state` is whatever the model carries from step to step.
+
+    `path` ("fused" | "reference") is fixed at construction: which implementation serves its
+    training loss and rollouts (the fused hot paths and `solvers.newton.solve`, or the reference
+    ones and `solve_reference`). It defaults to `runtime.fused` as set when the model is built (the
+    pipeline configures the runtime before `factory.build_model`); changing the runtime later does
+    not change it. `with_path` gives the same model, parameters shared, on the other path."""
+
+    path: ModelPath
+
+    def __init__(self, path: ModelPath | None = None):
+        super().__init__()
+        self.path = check_path(path if path is not None else runtime_path())
+
+    def with_path(self: ImplicitT, path: ModelPath) -> ImplicitT:
+        """A copy of this model on `path` sharing every parameter, buffer and submodule (a step of an
+        optimiser on one moves the other)."""
+        twin = copy.copy(self)
+        # the copy's own registries (so attributes set on one do not appear on the other), same tensors
+        twin._parameters = dict(self._parameters)
+        twin._buffers = dict(self._buffers)
+        twin._modules = dict(self._modules)
+        twin.path = check_path(path)
+        return twin
 
     @abc.abstractmethod
     def implicit_start(self, g0: Pose, g1: Pose) -> Any:
@@ -423,6 +459,13 @@ def tensor_placement(module: Any) -> dict[str, Any]:
             if t.is_floating_point():
                 return {"device": t.device, "dtype": t.dtype}
     return {}
+
+
+def check_path(path: Any) -> ModelPath:
+    """`path` if it is one of PATHS, else ValueError naming the choices."""
+    if path not in PATHS:
+        raise ValueError(f"model path must be one of {PATHS}, got {path!r}")
+    return path
 
 
 def config_options(cls: type, options: Mapping[str, Any], allowed: tuple[str, ...]) -> dict[str, Any]:

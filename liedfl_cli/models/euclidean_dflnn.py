@@ -17,7 +17,8 @@ directions equal LieDFLNN's residual for the same J_d, m, rho, D_ww -- a tested 
 Loss: w_DEL mean |r|^2 + w_reg mean penalty(log|det d^2 L_d / dx_k dx_{k+1}|) (the 12 x 12 mixed
 Hessian by autodiff; it is -(1/h) times the constant kinetic matrix). Rollout: damped Newton on
 x_{k+1} in R^12 from 2 x_k - x_{k-1}; the predicted R is not orthogonal and is returned as is.
-Single-body groups only (SO(3) or SE(3)).
+Single-body groups only (SO(3) or SE(3)). With `runtime.fused` (the default) the training loss is
+computed in closed form by `models.fused_dflnn` (the same numbers; `runtime.fused=false`: autograd).
 """
 
 from __future__ import annotations
@@ -29,7 +30,9 @@ from ..errors import ConfigError
 from ..lie import Pose, ProductGroup, so3
 from ..mechanics.mlp import MLP
 from ..mechanics.parameterizations import Inertia, PositiveVector, SPSDMatrix
+from ..solvers import runtime
 from ..solvers.newton import NewtonProblem
+from . import fused_dflnn
 from .base import (
     Batch,
     BuildContext,
@@ -190,6 +193,10 @@ class EuclideanDFLNN(ImplicitModel):
         """w_DEL mean |r_k|^2 + w_reg mean penalty(log|det d^2 L_d/dx0 dx1|) over triplets of poses
         R (N, 1, 3, 3), p (N, m, 3) (regularity pairs (P, ...)) -> (scalar (), {"del_loss", "reg_loss"} scalars ())."""
         assert isinstance(batch, TripletBatch), "EuclideanDFLNN trains on triplets (window = 'triplet')"
+        if runtime.current().fused:  # closed form (models/fused_dflnn.py), the same numbers
+            n_reg = batch.reg[0].R.shape[0] if batch.reg is not None and opts.w_reg > 0 else 0
+            x_prev, x, x_next = (self.to_x(g) for g in batch.poses())
+            return del_regularity_loss(*fused_dflnn.euclidean_residual_and_logdet(self, x_prev, x, x_next, n_reg), opts)
         r = self.residual(*(self.to_x(g) for g in batch.poses()))
         logdet = None
         if batch.reg is not None and opts.w_reg > 0:

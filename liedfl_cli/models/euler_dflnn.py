@@ -18,6 +18,9 @@ Rollouts do the same: before each step the pair (q_{k-1}, q_k) is shifted by the
 only V sees the shift, and it then sees the same range as in training). q_{k+1} is found by
 damped Newton on r_k (solver tolerance / iterations), warm-started at 2 q_k - q_{k-1}, and
 converted back to SO(3) by `euler.to_matrix` for evaluation.
+
+With `runtime.fused` (the default) the regularity term's mixed Hessian is computed in closed form
+(`models.fused_dflnn.euler_mixed_hessian`, the same numbers; `runtime.fused=false`: autograd).
 """
 
 from __future__ import annotations
@@ -27,7 +30,9 @@ import torch
 from ..lie import Pose, ProductGroup, euler
 from ..mechanics.mlp import MLP
 from ..mechanics.parameterizations import Inertia, SPSDMatrix
+from ..solvers import runtime
 from ..solvers.newton import NewtonProblem
+from . import fused_dflnn
 from .base import (
     Batch,
     BuildContext,
@@ -163,7 +168,8 @@ class EulerDFLNN(ImplicitModel):
         logdet = None
         if batch.reg is not None and opts.w_reg > 0:
             a, b = self.angles(*batch.reg)
-            logdet = torch.linalg.slogdet(self.mixed_hessian(a, b)).logabsdet
+            H = fused_dflnn.euler_mixed_hessian(self, a, b) if runtime.current().fused else None
+            logdet = torch.linalg.slogdet(self.mixed_hessian(a, b) if H is None else H).logabsdet
         return del_regularity_loss(r, logdet, opts)
 
     # ------------------------------------------------------------------ implicit step (rollout)

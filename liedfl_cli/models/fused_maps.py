@@ -44,6 +44,7 @@ def _build_constants(dtype: torch.dtype, device: torch.device | None) -> dict[st
     eye = torch.eye(3, dtype=dtype, device=device)
     return {
         "eye": eye,
+        "three_eye": 3.0 * eye,
         "basis": torch.eye(9, dtype=dtype, device=device).reshape(9, 3, 3),  # matrix units E_(ij)
         "hat": so3.hat(eye).reshape(3, 9),  # w @ hat = hat(w).flatten(): entries +-1, exact
         "taylor_by_degree": tuple(torch.tensor(_EXP_TAYLOR, dtype=dtype, device=device).T.contiguous()),
@@ -126,8 +127,8 @@ def solve_small(J: torch.Tensor, r: torch.Tensor) -> tuple[torch.Tensor, torch.T
         return sol[..., 0], info > 0
     a, b, c = J[..., 0, :], J[..., 1, :], J[..., 2, :]
     bc, ca, ab = torch.linalg.cross(b, c), torch.linalg.cross(c, a), torch.linalg.cross(a, b)
-    det = (a * bc).sum(-1)
-    x = (bc * r[..., 0:1] + ca * r[..., 1:2] + ab * r[..., 2:3]) / det[..., None]
+    det = (a[..., None, :] @ bc[..., :, None])[..., 0, 0]  # a batched product: 2x faster than a sum over 3
+    x = (bc * r[..., 0:1]).addcmul_(ca, r[..., 1:2]).addcmul_(ab, r[..., 2:3]) / det[..., None]
     return x, det == 0
 
 
@@ -190,41 +191,52 @@ def _hat3(w):
     return [[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]]
 
 
+def inertia_jd_lists(rs: list, abcs: list) -> tuple[list, list]:
+    """(J_d per body as nested lists (B, 3, 3), what `inertia_jd_grad_lists` needs) from r and abc
+    as lists (`_InertiaJdScalar`'s arithmetic)."""
+    saved, out = [], []
+    for w, (a, b, c) in zip(rs, abcs):
+        e = (_exp(a), _exp(b), _exp(c))
+        d = (e[0] + e[1], e[0] + e[2], e[1] + e[2])
+        s1, s2, s3 = _exp_coefficients_scalar(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
+        K = _hat3(w)
+        K2 = _matmul3(K, K)
+        R = [[(i == j) + s1 * K[i][j] + s2 * K2[i][j] for j in range(3)] for i in range(3)]
+        half = 0.5 * (d[0] + d[1] + d[2])
+        J = [[sum(R[i][k] * d[k] * R[j][k] for k in range(3)) for j in range(3)] for i in range(3)]
+        out.append([[half * (i == j) - J[i][j] for j in range(3)] for i in range(3)])
+        saved.append((e, d, s2, s3, K, K2, R))
+    return out, saved
+
+
+def inertia_jd_grad_lists(saved: list, G: list) -> tuple[list, list]:
+    """(dL/dr, dL/dabc) as lists (B, 3) for G = dL/dJ_d as nested lists (`_InertiaJdScalar`)."""
+    dr_all, dabc_all = [], []
+    for (e, d, s2, s3, K, K2, R), Gb in zip(saved, G):
+        trG = Gb[0][0] + Gb[1][1] + Gb[2][2]
+        RtGR = _matmul3(_transpose3(R), _matmul3(Gb, R))
+        dd = [0.5 * trG - RtGR[k][k] for k in range(3)]
+        dabc_all.append([(dd[0] + dd[1]) * e[0], (dd[0] + dd[2]) * e[1], (dd[1] + dd[2]) * e[2]])
+        S = [[Gb[i][j] + Gb[j][i] for j in range(3)] for i in range(3)]
+        SR = _matmul3(S, R)
+        M = _matmul3(_transpose3(R), [[-SR[i][k] * d[k] for k in range(3)] for i in range(3)])
+        v = (M[2][1] - M[1][2], M[0][2] - M[2][0], M[1][0] - M[0][1])
+        Jl = [[(i == j) + s2 * K[i][j] + s3 * K2[i][j] for j in range(3)] for i in range(3)]
+        dr_all.append([Jl[i][0] * v[0] + Jl[i][1] * v[1] + Jl[i][2] * v[2] for i in range(3)])
+    return dr_all, dabc_all
+
+
 class _InertiaJdScalar(torch.autograd.Function):
     """`_InertiaJd` computed body by body in Python floats (same formulas, float64 rounding)."""
 
     @staticmethod
     def forward(ctx, r, abc):
-        rs, abcs = r.tolist(), abc.tolist()
-        saved, out = [], []
-        for w, (a, b, c) in zip(rs, abcs):
-            e = (_exp(a), _exp(b), _exp(c))
-            d = (e[0] + e[1], e[0] + e[2], e[1] + e[2])
-            s1, s2, s3 = _exp_coefficients_scalar(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
-            K = _hat3(w)
-            K2 = _matmul3(K, K)
-            R = [[(i == j) + s1 * K[i][j] + s2 * K2[i][j] for j in range(3)] for i in range(3)]
-            half = 0.5 * (d[0] + d[1] + d[2])
-            J = [[sum(R[i][k] * d[k] * R[j][k] for k in range(3)) for j in range(3)] for i in range(3)]
-            out.append([[half * (i == j) - J[i][j] for j in range(3)] for i in range(3)])
-            saved.append((e, d, s2, s3, K, K2, R))
-        ctx.saved = saved
+        out, ctx.saved = inertia_jd_lists(r.tolist(), abc.tolist())
         return torch.tensor(out, dtype=r.dtype, device=r.device)
 
     @staticmethod
     def backward(ctx, G):
-        dr_all, dabc_all = [], []
-        for (e, d, s2, s3, K, K2, R), Gb in zip(ctx.saved, G.tolist()):
-            trG = Gb[0][0] + Gb[1][1] + Gb[2][2]
-            RtGR = _matmul3(_transpose3(R), _matmul3(Gb, R))
-            dd = [0.5 * trG - RtGR[k][k] for k in range(3)]
-            dabc_all.append([(dd[0] + dd[1]) * e[0], (dd[0] + dd[2]) * e[1], (dd[1] + dd[2]) * e[2]])
-            S = [[Gb[i][j] + Gb[j][i] for j in range(3)] for i in range(3)]
-            SR = _matmul3(S, R)
-            M = _matmul3(_transpose3(R), [[-SR[i][k] * d[k] for k in range(3)] for i in range(3)])
-            v = (M[2][1] - M[1][2], M[0][2] - M[2][0], M[1][0] - M[0][1])
-            Jl = [[(i == j) + s2 * K[i][j] + s3 * K2[i][j] for j in range(3)] for i in range(3)]
-            dr_all.append([Jl[i][0] * v[0] + Jl[i][1] * v[1] + Jl[i][2] * v[2] for i in range(3)])
+        dr_all, dabc_all = inertia_jd_grad_lists(ctx.saved, G.tolist())
         opts = {"dtype": G.dtype, "device": G.device}
         return torch.tensor(dr_all, **opts), torch.tensor(dabc_all, **opts)
 
@@ -296,32 +308,41 @@ def spsd_matrix(module: SPSDMatrix | PerBodySPSD) -> torch.Tensor:
     return out
 
 
+def spsd_lists(flat: list, lams: list, n: int) -> tuple[list, tuple]:
+    """(D as nested lists (n, n), what `spsd_grad_lists` needs) from L's row-major entries and
+    lambda as lists (`_SPSDScalar`'s arithmetic)."""
+    L = [[0.0] * n for _ in range(n)]
+    k = 0
+    for i in range(n):
+        for j in range(i + 1):
+            L[i][j] = flat[k]
+            k += 1
+    M = [[sum(L[i][t] * L[j][t] for t in range(n)) for j in range(n)] for i in range(n)]
+    D = [[0.5 * (M[i][j] + M[j][i]) + (lams[i] * lams[i] if i == j else 0.0) for j in range(n)] for i in range(n)]
+    return D, (L, lams, n)
+
+
+def spsd_grad_lists(saved: tuple, g: list) -> tuple[list, list]:
+    """(dL/d entries, dL/d lambda) as lists for g = dL/dD as nested lists (`_SPSDScalar`)."""
+    L, lams, n = saved
+    S = [[g[i][j] + g[j][i] for j in range(n)] for i in range(n)]
+    d_entries = [sum(S[i][t] * L[t][j] for t in range(n)) for i in range(n) for j in range(i + 1)]
+    d_lam = [2.0 * lams[i] * g[i][i] for i in range(n)]
+    return d_entries, d_lam
+
+
 class _SPSDScalar(torch.autograd.Function):
     """D = (M + M^T)/2 + diag(lambda^2), M = L L^T, L lower triangular from its row-major entries.
     Gradient for G = dL/dD: dL/dL = (G + G^T) L (lower part), dL/dlambda = 2 lambda diag(G)."""
 
     @staticmethod
     def forward(ctx, entries, lam, n):
-        L = [[0.0] * n for _ in range(n)]
-        flat = entries.tolist()
-        k = 0
-        for i in range(n):
-            for j in range(i + 1):
-                L[i][j] = flat[k]
-                k += 1
-        lams = lam.tolist()
-        M = [[sum(L[i][t] * L[j][t] for t in range(n)) for j in range(n)] for i in range(n)]
-        D = [[0.5 * (M[i][j] + M[j][i]) + (lams[i] * lams[i] if i == j else 0.0) for j in range(n)] for i in range(n)]
-        ctx.saved = (L, lams, n)
+        D, ctx.saved = spsd_lists(entries.tolist(), lam.tolist(), n)
         return torch.tensor(D, dtype=lam.dtype, device=lam.device)
 
     @staticmethod
     def backward(ctx, G):
-        L, lams, n = ctx.saved
-        g = G.tolist()
-        S = [[g[i][j] + g[j][i] for j in range(n)] for i in range(n)]
-        d_entries = [sum(S[i][t] * L[t][j] for t in range(n)) for i in range(n) for j in range(i + 1)]
-        d_lam = [2.0 * lams[i] * g[i][i] for i in range(n)]
+        d_entries, d_lam = spsd_grad_lists(ctx.saved, G.tolist())
         opts = {"dtype": G.dtype, "device": G.device}
         return torch.tensor(d_entries, **opts), torch.tensor(d_lam, **opts), None
 

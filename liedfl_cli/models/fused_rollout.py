@@ -14,6 +14,7 @@ from ..lie import Pose, ProductGroup, so3
 from ..lie.tolerances import projects_poses
 from ..mechanics import kinetic
 from ..mechanics.forces import PDControl, RayleighForce, RayleighNonlinearForce, force_jacobian_xi
+from ..mechanics.potentials import MLPPotential
 from ..solvers import runtime
 from ..solvers.newton import NewtonProblem
 from . import mlp_derivatives
@@ -54,6 +55,7 @@ class RolloutMaps:
     se3_block: torch.Tensor | None
     linear: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None
     block_index: torch.Tensor | None
+    potential_layers: list | None = None
 
 
 @dataclass
@@ -117,7 +119,10 @@ def rollout_maps(model) -> RolloutMaps:
     if not m and all(isinstance(f, RayleighForce) for f in model.forces):
         linear = _linear_maps(model, P)
     block_index = _block_index(G, P.Jd.device) if G.n_bodies > 1 else None
-    return RolloutMaps(P, d1, d2, hess, rho_map, se3_block, linear, block_index)
+    lys = None  # an MLP potential of a rotation-only group: its layers, parsed once per rollout
+    if not m and isinstance(model.potential, MLPPotential):
+        lys = mlp_derivatives.layers(model.potential.net)
+    return RolloutMaps(P, d1, d2, hess, rho_map, se3_block, linear, block_index, lys)
 
 
 def _linear_maps(model, P: Derived) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -242,8 +247,15 @@ class FusedStep:
         g_prev, g, inc = state.g_prev, state.g, state.inc
         self.generic: list[nn.Module] = []
         self.B: torch.Tensor | None = None
+        cov = None
+        if model.potential is not None:
+            cov = self._potential_covector(model, g)
         if maps.linear is not None:
-            const = inc.R.flatten(-3) @ maps.linear[2]
+            W = inc.R.flatten(-3)
+            if cov is not None and W.dim() == 2:
+                const, cov = torch.addmm(cov, W, maps.linear[2]), None
+            else:
+                const = W @ maps.linear[2]
         else:
             xi_prev = kinetic.velocity_estimate(G, inc, h)
             const = kinetic_d2(G, inc, maps, h)
@@ -264,11 +276,19 @@ class FusedStep:
             if half is not None:
                 const = const + 0.5 * h * half
             self.B = B_aff
-        if model.potential is not None:
-            const = const + potential_covector(model, g).detach()
+        if cov is not None:
+            const = const + cov
         self.const = const
         self.compiled_iterate = compiled_iterate if not self.generic else None
         self.forces_at = mlp_derivatives.ForcesAt(G, self.generic, g) if self.generic else None
+
+    def _potential_covector(self, model, g: Pose) -> torch.Tensor:
+        """The potential's covector at g_k (detached: the step's fixed part needs no graph)."""
+        lys = self.maps.potential_layers
+        if lys is None or g.R.dim() != 4:
+            return potential_covector(model, g).detach()
+        with torch.no_grad():
+            return mlp_derivatives.rotation_potential_covector(lys, model.G, g.R, model.h)
 
     def f(self, x: Pose) -> torch.Tensor:
         """The residual at the increment x, (T, dim)."""
@@ -286,7 +306,7 @@ class FusedStep:
         return step_jacobian(self.G, self.h, x, self.B, self.maps, extra)
 
     def retract(self, x: Pose, delta: torch.Tensor) -> Pose:
-        return group_retract(self.G, x, delta)
+        return retract_increment(self.G, x, delta)
 
     def restrict(self, rows: torch.Tensor) -> NewtonProblem:
         """The Newton problem of the rows `rows` (for the last iterations of a few rows)."""
@@ -314,10 +334,30 @@ class FusedStep:
         return delta, singular, cand, self.f(cand)
 
 
+def retract_increment(G: ProductGroup, x: Pose, delta: torch.Tensor) -> Pose:
+    """x exp(delta) (`group_retract`); for rotation-only groups without the graph (rollouts) in a
+    few wide kernels: R exp(hat(w)) = R (cos t I + sinc(t) hat(w) + cosc(t) w w^T), with the closed
+    forms at every angle (cos t, sin(t)/t and 2 sin^2(t/2)/t^2 are accurate to rounding down to the
+    smallest normal t; at t = 0 w is 0 and the coefficients do not matter), where `group_exp`
+    switches to Taylor polynomials below `taylor`: equal to rounding."""
+    R = x.R
+    if G.n_se3 or (torch.is_grad_enabled() and (delta.requires_grad or R.requires_grad)):
+        return group_retract(G, x, delta)
+    w = delta.reshape(*R.shape[:-2], 3)
+    t = torch.linalg.vector_norm(w, dim=-1).clamp_(min=torch.finfo(w.dtype).tiny)
+    sinc = torch.sin(t).div_(t)
+    cosc = torch.sin(0.5 * t).div_(t).square_().mul_(2.0)
+    E = (cosc[..., None] * w)[..., :, None] * w[..., None, :]  # cosc w w^T
+    E.view(*E.shape[:-2], 9).add_((sinc[..., None] * w) @ _constants(w.dtype, w.device)["hat"])
+    E.diagonal(dim1=-2, dim2=-1).add_(torch.cos(t)[..., None])
+    return Pose(R @ E, x.p)
+
+
 def step_residual(G: ProductGroup, h: float, x: Pose, const, B, maps: RolloutMaps) -> torch.Tensor:
     """Residual at the increment x without per-iteration (generic) forces, (T, dim)."""
     if maps.linear is not None:
-        return const + x.R.flatten(-3) @ maps.linear[0]
+        W = x.R.flatten(-3)
+        return torch.addmm(const, W, maps.linear[0]) if W.dim() == 2 else const + W @ maps.linear[0]
     r = const + kinetic_d1(G, x, maps, h)
     if B is not None:
         xi = kinetic.velocity_estimate(G, x, h)
@@ -344,7 +384,7 @@ def step_iterate(G: ProductGroup, h: float, x: Pose, r: torch.Tensor, const, B, 
     tensor code: what `runtime.compile` compiles."""
     sol, singular = solve_small(step_jacobian(G, h, x, B, maps), r)
     delta = -sol
-    cand = group_retract(G, x, delta)
+    cand = retract_increment(G, x, delta)
     return delta, singular, cand, step_residual(G, h, cand, const, B, maps)
 
 
@@ -356,8 +396,10 @@ def rollout_problem(model, state: RolloutState) -> NewtonProblem:
 def rollout_advance(model, state: RolloutState, x: Pose) -> tuple[RolloutState, Pose]:
     """Newton-Schulz-cleaned increment, next pose, next state (`LieDFLNN.implicit_advance`)."""
     W = x.R.detach()
-    eye = _constants(W.dtype, W.device)["eye"]
-    W = 0.5 * W @ (3.0 * eye - W.transpose(-1, -2) @ W)
+    three = _constants(W.dtype, W.device)["three_eye"]
+    # W (3I - W^T W) / 2, the halving last (exact, so bit for bit the textbook order; the algebraically
+    # equal 1.5 W - 0.5 W W^T W rounds differently and, in float32, drifts differently)
+    W = (W @ (three - W.transpose(-1, -2) @ W)).mul_(0.5)
     inc = Pose(W, x.p.detach())
     g_next = compose(model.G, state.g, inc)
     if projects_poses(W.dtype):  # below float64 the composed poses drift off SO(3) too

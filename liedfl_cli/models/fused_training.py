@@ -242,9 +242,87 @@ def _penalty_and_slope(logdet: torch.Tensor, epsilon: float, form: str) -> tuple
 def _oriented_penalty_and_slope(sl, epsilon: float, form: str) -> tuple[torch.Tensor, torch.Tensor]:
     """The penalty of `base.oriented_logdet` of SO(3) blocks (sign det(-H) = -sign det H) from
     their `slogdet` and its derivative with respect to log|det H| (unchanged where det(-H) > 0)."""
+    if form == "relu":
+        return _oriented_relu(sl, epsilon)
     right = sl.sign < 0
     pen, slope = _penalty_and_slope(oriented_logdet(sl.logabsdet, -sl.sign, epsilon), epsilon, form)
     return pen, torch.where(right, slope, -torch.sign(sl.logabsdet - epsilon) * slope)
+
+
+def _oriented_relu(sl, epsilon: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """`_oriented_penalty_and_slope` of the relu form for the few (P, B) regularity blocks in
+    Python floats: the same IEEE operations as the tensor formulas (subtractions, comparisons, abs,
+    signs of zero included), so the same bits, in 4 kernel calls instead of about 15."""
+    pens, slopes = [], []
+    for signs, lads in zip(sl.sign.tolist(), sl.logabsdet.tolist()):
+        pen_row, slope_row = [], []
+        for sign, lad in zip(signs, lads):
+            right = sign < 0  # det(-H) > 0: the normal orientation
+            x = lad if -sign > 0 else epsilon - 1.0 - abs(lad - epsilon)  # base.oriented_logdet
+            gap = epsilon - x
+            slope = -float(gap > 0)
+            if not right:
+                t = lad - epsilon
+                slope = -float((t > 0) - (t < 0)) * slope  # -sign(t) * slope
+            pen_row.append(max(gap, 0.0))  # relu; NaN stays NaN
+            slope_row.append(slope)
+        pens.append(pen_row)
+        slopes.append(slope_row)
+    opts = {"dtype": sl.logabsdet.dtype, "device": sl.logabsdet.device}
+    return torch.tensor(pens, **opts), torch.tensor(slopes, **opts)
+
+
+def rotational_forward(Jd_flat, D, A, s, static, reg_W, C, settings) -> tuple[torch.Tensor, torch.Tensor, tuple]:
+    """(del_loss, reg_loss, saved) of `_RotationalLoss` (see there); `saved` is what
+    `rotational_backward` needs."""
+    h, w_del, w_reg, epsilon, form = settings
+    B = Jd_flat.shape[0]
+    maps = Jd_flat @ C
+    kin = maps[:, :27].unflatten(-1, (9, 3))
+    r = _apply_map(A, kin).flatten(-2)
+    if D is not None:
+        r = r - (0.5 * h) * (s @ D.T)
+    if static is not None:
+        r = r + static
+    del_loss = (r * r).mean()
+    H = slope = None
+    if reg_W is not None:
+        H = _apply_map(reg_W, maps[:, 27:].unflatten(-1, (9, 9))).unflatten(-1, (3, 3))
+        pen, slope = _oriented_penalty_and_slope(torch.linalg.slogdet(H), epsilon, form)
+        reg_loss = pen.mean()
+    else:
+        reg_loss = torch.zeros((), dtype=r.dtype, device=r.device)
+    return del_loss, reg_loss, (r, A, s, reg_W, H, slope, C, (h, B, D is not None))
+
+
+def rotational_backward(saved: tuple, g_del, g_reg) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """(dJd_flat (B, 9), dD (dim, dim) or None) of `_RotationalLoss` for the gradients g_del and
+    g_reg of del_loss and reg_loss (tensors or floats: the same values)."""
+    r, A, s, reg_W, H, slope, C, (h, B, has_D) = saved
+    dr = (2.0 * g_del / r.numel()) * r
+    C_kin_T, C_hess_T = _transposed_parts(C)
+    dkin = A.permute(1, 2, 0) @ dr.unflatten(-1, (B, 3)).transpose(0, 1)  # (B, 9, N) @ (B, N, 3)
+    dJd = dkin.flatten(-2) @ C_kin_T
+    dD = -(0.5 * h) * (dr.T @ s) if has_D else None
+    if reg_W is not None:
+        dlogdet = (g_reg / slope.numel()) * slope  # (P, B)
+        dH = dlogdet[..., None, None] * torch.linalg.inv(H).transpose(-1, -2)
+        dhess = reg_W.permute(1, 2, 0) @ dH.flatten(-2).transpose(0, 1)  # (B, 9, P) @ (B, P, 9)
+        dJd = dJd + dhess.flatten(-2) @ C_hess_T
+    return dJd, dD
+
+
+_TRANSPOSED: dict[int, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
+
+
+def _transposed_parts(C: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(C[:, :27].T, C[:, 27:].T): the same views each step, made once per contraction (the
+    contractions are cached for good, `fused_maps._map_contraction`; C itself is kept alongside so
+    that its id is never reused)."""
+    hit = _TRANSPOSED.get(id(C))
+    if hit is None or hit[0] is not C:
+        hit = _TRANSPOSED[id(C)] = (C, C[:, :27].T, C[:, 27:].T)
+    return hit[1], hit[2]
 
 
 class _RotationalLoss(torch.autograd.Function):
@@ -254,43 +332,21 @@ class _RotationalLoss(torch.autograd.Function):
         H = W_2 @ hessian_map(J_d),                                   reg_loss = mean penalty(log|det H|)
 
     Both maps are J_d.flatten() @ C (`_map_contraction`), so the gradient is
-    dJ_d = (A^T dr) C_r^T + (W_2^T dH) C_H^T with dH = dlogdet H^-T, and dD = -(h/2) dr^T s."""
+    dJ_d = (A^T dr) C_r^T + (W_2^T dH) C_H^T with dH = dlogdet H^-T, and dD = -(h/2) dr^T s.
+    (`rotational_forward` / `rotational_backward`; `models.fused_step` calls them without autograd.)"""
 
     @staticmethod
     def forward(ctx, Jd_flat, D, A, s, static, reg_W, C, settings):
-        h, w_del, w_reg, epsilon, form = settings
-        B = Jd_flat.shape[0]
-        maps = Jd_flat @ C
-        kin = maps[:, :27].unflatten(-1, (9, 3))
-        r = _apply_map(A, kin).flatten(-2)
-        if D is not None:
-            r = r - (0.5 * h) * (s @ D.T)
-        if static is not None:
-            r = r + static
-        del_loss = (r * r).mean()
-        reg_loss = torch.zeros((), dtype=r.dtype, device=r.device)
-        H = slope = None
-        if reg_W is not None:
-            H = _apply_map(reg_W, maps[:, 27:].unflatten(-1, (9, 9))).unflatten(-1, (3, 3))
-            pen, slope = _oriented_penalty_and_slope(torch.linalg.slogdet(H), epsilon, form)
-            reg_loss = pen.mean()
-        ctx.save_for_backward(r, A, s, reg_W, H, slope, C)
-        ctx.settings = (h, w_del, w_reg, B, D is not None)
+        _, w_del, w_reg, _, _ = settings
+        del_loss, reg_loss, saved = rotational_forward(Jd_flat, D, A, s, static, reg_W, C, settings)
+        ctx.save_for_backward(*saved[:7])
+        ctx.settings = (saved[7], w_del, w_reg)
         return w_del * del_loss + w_reg * reg_loss, del_loss, reg_loss
 
     @staticmethod
     def backward(ctx, g_loss, g_del, g_reg):
-        r, A, s, reg_W, H, slope, C = ctx.saved_tensors
-        h, w_del, w_reg, B, has_D = ctx.settings
+        fixed, w_del, w_reg = ctx.settings
         g_del = g_loss * w_del + (g_del if g_del is not None else 0.0)
         g_reg = g_loss * w_reg + (g_reg if g_reg is not None else 0.0)
-        dr = (2.0 * g_del / r.numel()) * r
-        dkin = A.permute(1, 2, 0) @ dr.unflatten(-1, (B, 3)).transpose(0, 1)  # (B, 9, N) @ (B, N, 3)
-        dJd = dkin.flatten(-2) @ C[:, :27].T
-        dD = -(0.5 * h) * (dr.T @ s) if has_D else None
-        if reg_W is not None:
-            dlogdet = (g_reg / slope.numel()) * slope  # (P, B)
-            dH = dlogdet[..., None, None] * torch.linalg.inv(H).transpose(-1, -2)
-            dhess = reg_W.permute(1, 2, 0) @ dH.flatten(-2).transpose(0, 1)  # (B, 9, P) @ (B, P, 9)
-            dJd = dJd + dhess.flatten(-2) @ C[:, 27:].T
+        dJd, dD = rotational_backward((*ctx.saved_tensors, fixed), g_del, g_reg)
         return dJd, dD, None, None, None, None, None, None

@@ -27,6 +27,12 @@ R_2..R_S. In training the implicit midpoint equation is solved by `train_newton_
 differentiable Newton iterations whose Jacobian I - h/2 dA/dw omits the potential's dependence
 on R (exact without a potential); rollouts use the damped Newton solver with the full autodiff
 Jacobian, tolerance and iteration limit of `solver`, and report real convergence flags.
+
+Training without a potential (the Exp 2 scenes) takes the fused path of `models.fused_glnn` when
+`runtime.fused` is on (the default): the vector field as one autograd node with a hand-written
+backward (dopri5 stays torchdiffeq's own solver over that field), Heun and Midpoint with
+their velocities first and every step's exp in one call. Same losses and gradients to rounding
+(tests/test_fused_baselines.py); `runtime.fused=false` runs the reference path above.
 """
 
 from __future__ import annotations
@@ -37,8 +43,10 @@ from ..errors import ConfigError
 from ..lie import Pose, ProductGroup, so3
 from ..mechanics.parameterizations import Inertia, SPSDMatrix
 from ..mechanics.potentials import MLPPotential
-from ..solvers.newton import NewtonResult, damped_newton
+from ..solvers import runtime
+from ..solvers.newton import NewtonProblem, NewtonResult, solve
 from ..solvers.options import SolverOptions
+from . import fused_glnn
 from .base import (
     Batch,
     BuildContext,
@@ -145,9 +153,16 @@ class GLNN(ExplicitModel):
             (dV,) = torch.autograd.grad(V.sum(), eta, create_graph=create)
         return -dV
 
-    def accel(self, R: torch.Tensor, w: torch.Tensor, params: Params) -> torch.Tensor:
-        """A(R, w) = J^{-1}(tau - w x J w), tau = -D w + tau_V(R): R (..., 3, 3), w (..., 3) -> (..., 3)."""
+    def fused_training(self) -> bool:
+        """Whether `loss` takes the fused path (`models.fused_glnn`): `runtime.fused` and no potential."""
+        return runtime.current().fused and self.potential is None
+
+    def accel(self, R: torch.Tensor, w: torch.Tensor, params: Params, fused: bool = False) -> torch.Tensor:
+        """A(R, w) = J^{-1}(tau - w x J w), tau = -D w + tau_V(R): R (..., 3, 3), w (..., 3) -> (..., 3).
+        fused: one autograd node (`fused_glnn.accel`, w (N, 3) only, no potential)."""
         J, Jinv, D = params
+        if fused:
+            return fused_glnn.accel(w, J, Jinv, D)
         tau = torch.cross(J @ w[..., None], w[..., None], dim=-2)[..., 0]  # (J w) x w
         if D is not None:
             tau = tau - w @ D.T
@@ -172,10 +187,14 @@ class GLNN(ExplicitModel):
         A2 = self.accel(R @ so3.exp(self.h * w), w_star, params)
         return R @ so3.exp(0.5 * self.h * (w + w_star)), w + 0.5 * self.h * (A1 + A2)
 
-    def midpoint_residual(self, R: torch.Tensor, w: torch.Tensor, w_next: torch.Tensor, params: Params) -> torch.Tensor:
+    def midpoint_residual(
+        self, R: torch.Tensor, w: torch.Tensor, w_next: torch.Tensor, params: Params, fused: bool = False
+    ) -> torch.Tensor:
         """w' - w - h A(R exp(h/2 wbar), wbar), wbar = (w + w')/2: R (..., 3, 3), w, w' (..., 3) -> (..., 3);
         zero at the implicit Lie midpoint step."""
         wbar = 0.5 * (w + w_next)
+        if fused:  # no potential: A does not read the midpoint rotation
+            return w_next - w - self.h * self.accel(R, wbar, params, fused)
         return w_next - w - self.h * self.accel(R @ so3.exp(0.5 * self.h * wbar), wbar, params)
 
     def midpoint_step_train(
@@ -185,13 +204,39 @@ class GLNN(ExplicitModel):
 
         R (..., 3, 3), w (..., 3) -> (R' = R exp(h (w + w')/2) (..., 3, 3), w' (..., 3)).
         """
-        w_next = w + self.h * self.accel(R, w, params)
+        w_next = self.midpoint_velocity_train(R, w, params)
+        return R @ so3.exp(0.5 * self.h * (w + w_next)), w_next
+
+    def midpoint_velocity_train(self, R: torch.Tensor, w: torch.Tensor, params: Params, fused: bool = False):
+        """w' of `midpoint_step_train`: R (..., 3, 3), w (..., 3) -> (..., 3); fused: no potential, R unused."""
+        w_next = w + self.h * self.accel(R, w, params, fused)
         eye = torch.eye(3, dtype=w.dtype, device=w.device)
         for _ in range(self.train_newton_iters):
-            F = self.midpoint_residual(R, w, w_next, params)
+            F = self.midpoint_residual(R, w, w_next, params, fused)
             Jac = eye - 0.5 * self.h * self.accel_jacobian_w(0.5 * (w + w_next), params)
             w_next = w_next - torch.linalg.solve(Jac, F[..., None])[..., 0]
-        return R @ so3.exp(0.5 * self.h * (w + w_next)), w_next
+        return w_next
+
+    def _unroll_fused(self, R0: torch.Tensor, w0: torch.Tensor, steps: int, params: Params) -> torch.Tensor:
+        """heun / midpoint training unroll without a potential: the velocities first (A does not read
+        R), then every step's exp in one call, then the products R_{k+1} = R_k exp(h (w_k + w_k')/2) --
+        the reference steps' operations, regrouped. R0 (N, 3, 3), w0 (N, 3) -> (N, steps+1, 3, 3)."""
+        phis, w = [], w0
+        for _ in range(steps):
+            if self.integrator == "heun":
+                A1 = self.accel(R0, w, params, True)
+                w_star = w + self.h * A1
+                w_next = w + 0.5 * self.h * (A1 + self.accel(R0, w_star, params, True))
+                phis.append(0.5 * self.h * (w + w_star))
+            else:
+                w_next = self.midpoint_velocity_train(R0, w, params, True)
+                phis.append(0.5 * self.h * (w + w_next))
+            w = w_next
+        E = so3.exp(torch.stack(phis, 1))
+        Rs = [R0]
+        for k in range(steps):
+            Rs.append(Rs[-1] @ E[:, k])
+        return torch.stack(Rs, 1)
 
     def midpoint_step_solve(
         self, R: torch.Tensor, w: torch.Tensor, params: Params, opts: SolverOptions
@@ -201,32 +246,39 @@ class GLNN(ExplicitModel):
         R (N, 3, 3), w (N, 3) -> (R' (N, 3, 3), w' (N, 3), the solver's result for w').
         """
         guess = self.heun_step(R, w, params)[1]
-        sol = damped_newton(lambda x: self.midpoint_residual(R, w, x, params), guess.detach(), opts)
+        sol = solve(NewtonProblem.euclidean(lambda x: self.midpoint_residual(R, w, x, params), guess.detach()), opts)
         w_next = sol.x.detach()
         return R @ so3.exp(0.5 * self.h * (w + w_next)), w_next, sol
 
-    def _odeint(self, R0: torch.Tensor, w0: torch.Tensor, steps: int, params: Params) -> torch.Tensor:
+    def _odeint(
+        self, R0: torch.Tensor, w0: torch.Tensor, steps: int, params: Params, fused: bool = False
+    ) -> torch.Tensor:
         """dopri5 on (R entries, w): R0 (N, 3, 3), w0 (N, 3) -> R (N, steps+1, 3, 3)."""
         from torchdiffeq import odeint
 
         n = R0.shape[0]
+        t = self.h * torch.arange(steps + 1, dtype=R0.dtype, device=R0.device)
 
         def f(t, y):
+            if fused:  # the field as one autograd node (models/fused_glnn.py), torchdiffeq's own solver
+                return fused_glnn.field(y, *params)
             R, w = y[:, :9].reshape(n, 3, 3), y[:, 9:]
             return torch.cat(((R @ so3.hat(w)).reshape(n, 9), self.accel(R, w, params)), -1)
 
-        t = self.h * torch.arange(steps + 1, dtype=R0.dtype, device=R0.device)
         y0 = torch.cat((R0.reshape(n, 9), w0), -1)
         ys = odeint(
             f, y0, t, rtol=self.rtol, atol=self.atol, method="dopri5", options={"max_num_steps": self.max_num_steps}
         )
         return ys[..., :9].reshape(steps + 1, n, 3, 3).transpose(0, 1)
 
-    def integrate_rotations(self, R0: torch.Tensor, w0: torch.Tensor, steps: int) -> torch.Tensor:
-        """Differentiable prediction (N, steps+1, 3, 3) from R0 (N, 3, 3), w0 (N, 3)."""
+    def integrate_rotations(self, R0: torch.Tensor, w0: torch.Tensor, steps: int, fused: bool = False) -> torch.Tensor:
+        """Differentiable prediction (N, steps+1, 3, 3) from R0 (N, 3, 3), w0 (N, 3); fused: the
+        training path of `models.fused_glnn` (no potential)."""
         params = self._params()
         if self.integrator == "dopri5":
-            return self._odeint(R0, w0, steps, params)
+            return self._odeint(R0, w0, steps, params, fused)
+        if fused:
+            return self._unroll_fused(R0, w0, steps, params)
         Rs, R, w = [R0], R0, w0
         step = self.heun_step if self.integrator == "heun" else self.midpoint_step_train
         for _ in range(steps):
@@ -246,7 +298,8 @@ class GLNN(ExplicitModel):
         batch: windows R (N, L+1, 1, 3, 3) (`as_sequence`) -> (scalar (), {"mse": scalar ()}).
         """
         R = batch.as_sequence().R[:, :, 0]
-        pred = self.integrate_rotations(R[:, 0], self.initial_velocity(R[:, 0], R[:, 1]), R.shape[1] - 1)
+        w0 = self.initial_velocity(R[:, 0], R[:, 1])
+        pred = self.integrate_rotations(R[:, 0], w0, R.shape[1] - 1, self.fused_training())
         mse = ((pred[:, 1:] - R[:, 1:]) ** 2).mean()
         return mse, {"mse": mse}
 

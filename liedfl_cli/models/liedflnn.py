@@ -41,6 +41,7 @@ from .base import (
     BuildContext,
     ImplicitModel,
     LossOptions,
+    ModelPath,
     TrajectoryBatch,
     TripletBatch,
     config_options,
@@ -112,6 +113,8 @@ class LieDFLNN(ImplicitModel):
         epsilon: log-det regularity threshold, also used to pick the initial scale.
         known / physics: parts set to the scene's true values and frozen.
         gravity: field strength of the uniform_gravity part; learn_gravity_direction: learn its direction too.
+        path: "fused" (the fused hot paths of `models.fused`, with the fast residual) or "reference";
+            default `runtime.fused` at construction (`ImplicitModel.path`; `with_path` for the other).
     """
 
     window = "triplet"
@@ -134,8 +137,9 @@ class LieDFLNN(ImplicitModel):
         gravity: float = STANDARD_GRAVITY,
         learn_gravity_direction: bool = False,
         gravity_up=None,
+        path: ModelPath | None = None,
     ):
-        super().__init__()
+        super().__init__(path)
         known = check_options(residual, known, physics)
         self.G, self.h, self.residual_mode = G, float(h), residual
         self.known = known
@@ -270,8 +274,8 @@ class LieDFLNN(ImplicitModel):
         return Jd, empty, Jd.new_zeros(0, 3)
 
     def _fused(self) -> bool:
-        """Whether the fused paths (`models.fused`) serve this model (`runtime.fused`, fast residual)."""
-        return self.residual_mode == "fast" and runtime.current().fused
+        """Whether the fused paths (`models.fused`) serve this model: its `path`, with the fast residual."""
+        return self.residual_mode == "fast" and self.path == "fused"
 
     def training_set(self, data: Pose, steps: int):
         """Triplets as precomputed increments (`fused.IncrementSet`) on the fused path."""

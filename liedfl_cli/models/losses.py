@@ -33,7 +33,7 @@ from ..lie import Pose, ProductGroup
 from ..mechanics import kinetic
 from ..mechanics.damping import PerBodySPSD
 from ..mechanics.forces import RayleighForce, RayleighNonlinearForce
-from ..solvers.newton import solve, solve_reference
+from ..solvers.newton import solve
 from ..solvers.options import SolverOptions
 from . import fused
 from .base import ImplicitModel, LossOptions, LossParts, TrajectoryBatch, TripletBatch, oriented_logdet
@@ -310,7 +310,7 @@ def rollout_window_loss(
     G = model.G
     k = traj.R.shape[1] - 2
     solver = solver or SolverOptions()
-    run = solve if _fused_runtime() else solve_reference
+    reference = model.path != "fused"  # fixed when the model was built
     g_prev, g = _at(traj, 0), _at(traj, 1)
     alive = torch.ones(traj.R.shape[0], dtype=torch.bool, device=traj.R.device)
     sq_sum = traj.R.new_zeros(())
@@ -319,7 +319,7 @@ def rollout_window_loss(
     for j in range(k):
         with torch.no_grad():
             gp_d, g_d = Pose(g_prev.R.detach(), g_prev.p.detach()), Pose(g.R.detach(), g.p.detach())
-            sol = run(model.implicit_problem(model.implicit_start(gp_d, g_d)), solver)
+            sol = solve(model.implicit_problem(model.implicit_start(gp_d, g_d)), solver, reference=reference)
         x_star = Pose(sol.x.R.detach(), sol.x.p.detach())
         with torch.enable_grad():
             f = model.residual(g_prev, g, G.compose(g, x_star))
@@ -368,9 +368,3 @@ def _rot_sq(truth: Pose, pred: Pose) -> torch.Tensor:
 
     w = so3.log(truth.R.transpose(-1, -2) @ pred.R)
     return (w * w).sum((-1, -2))
-
-
-def _fused_runtime() -> bool:
-    from ..solvers import runtime
-
-    return runtime.current().fused

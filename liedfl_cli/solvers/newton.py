@@ -2,7 +2,9 @@
 
 `x` lives on a manifold (a Pose of increments, or a plain tensor); steps are taken with
 `retract(x, delta)` and the Jacobian is d f(retract(x, delta)) / d delta at 0. Every
-trajectory of the batch iterates together; a row stops once converged.
+trajectory of the batch iterates together; a row stops once converged. One entry point,
+`solve(problem, opts, reference=False)`; a plain tensor unknown with an autodiff Jacobian is
+`NewtonProblem.euclidean(f, x0)`.
 """
 
 from __future__ import annotations
@@ -91,30 +93,35 @@ def step_tolerance(x, tol: float):
     return torch.clamp(floor * torch.clamp(scale, min=1.0), min=tol)
 
 
-def newton_solve(f, jac, x0, retract, opts: SolverOptions | None = None, iterate=None, restrict=None) -> NewtonResult:
-    """Damped Newton with backtracking on ||f||_2 for a batch of T independent problems.
+def solve(problem: NewtonProblem, opts: SolverOptions | None = None, *, reference: bool = False) -> NewtonResult:
+    """Damped Newton with backtracking on ||f||_2 for a batch of T independent problems: the one
+    Newton entry point of the package.
 
-    f(x) -> (T, n); jac(x) -> (T, n, n) = d f(retract(x, delta)) / d delta; retract(x, delta (T, n)).
     A row converges when the full Newton step of a non-singular Jacobian has max norm <= tol, or
     <= its rounding floor where that is larger (`step_tolerance`; the step is then applied,
-    leaving an error ~ tol^2 by quadratic convergence). Rows with a
-    singular Jacobian take a least-squares step and cannot converge on that iteration; a
-    step that finds no decrease in ||f|| after `max_halvings` halvings is taken in full
-    (tol, max_iter, max_halvings from `opts`). `iterate(x, r)` -> (delta, singular, x', f(x')),
-    one full Newton step, may replace the composition of `jac`, an LU solve, `retract` and `f`;
-    `restrict(rows)` -> the `NewtonProblem` of some rows lets the last iterations run on the
-    few rows still iterating.
+    leaving an error ~ tol^2 by quadratic convergence). Rows with a singular Jacobian take a
+    least-squares step and cannot converge on that iteration; a step that finds no decrease in
+    ||f|| after `max_halvings` halvings is taken in full (tol, max_iter, max_halvings from `opts`).
+    The problem's `iterate` (one full Newton step in one go) replaces the composition of `jac`, an
+    LU solve, `retract` and `f`; its `restrict` lets the last iterations run on the few rows still
+    iterating.
 
     The loop reads one set of flags per iteration from the tensors (no per-row selects): when
     every row's full step decreases ||f|| and no Jacobian is singular (the usual case) the step
-    is taken as is; otherwise the iteration is redone row by row as in `newton_solve_reference`,
-    with the same results, convergence flags and iteration counts (rows are independent, so
-    working on a subset changes nothing either).
+    is taken as is; otherwise the iteration is redone row by row (`_careful_iteration`), with the
+    same results, convergence flags and iteration counts as the original loop (rows are
+    independent, so working on a subset changes nothing either).
+
+    reference=True runs that original loop instead (row-wise selects and a flag read at every
+    halving; `iterate` and `restrict` unused): the baseline of the tests and of the benchmark's
+    reference paths (`runtime.fused=false`), with the same contract.
     """
     opts = opts or SolverOptions()
-    problem = NewtonProblem(f, jac, x0, retract, iterate, restrict)
-    r = f(x0)
-    x, r, converged, iters = _newton_rows(problem, x0, r, torch.linalg.vector_norm(r, dim=-1), opts, opts.max_iter)
+    if reference:
+        return _reference_loop(problem, opts)
+    r = problem.f(problem.x0)
+    rn = torch.linalg.vector_norm(r, dim=-1)
+    x, r, converged, iters = _newton_rows(problem, problem.x0, r, rn, opts, opts.max_iter)
     return NewtonResult(x, converged, iters, r.abs().amax(-1))
 
 
@@ -123,7 +130,7 @@ COMPACT_FRACTION = 0.25  # rows still iterating, as a fraction, below which only
 
 
 def _newton_rows(problem: NewtonProblem, x, r, rn, opts: SolverOptions, max_iter: int):
-    """The loop of `newton_solve` from (x, r = f(x), rn = |r|) for `max_iter` iterations ->
+    """The loop of `solve` from (x, r = f(x), rn = |r|) for `max_iter` iterations ->
     (x, r, converged, iterations)."""
     f, jac, retract = problem.f, problem.jac, problem.retract
     iterate = problem.iterate
@@ -137,7 +144,9 @@ def _newton_rows(problem: NewtonProblem, x, r, rn, opts: SolverOptions, max_iter
 
     tol = opts.tol
     T = r.shape[0]
+    big = torch.finfo(r.dtype).max
     converged = torch.zeros(T, dtype=torch.bool, device=r.device)
+    common = 0  # iterations every row took while all were active (no per-iteration kernel)
     iters = torch.zeros(T, dtype=torch.long, device=r.device)
     any_converged = False
     for it in range(max_iter):
@@ -146,33 +155,38 @@ def _newton_rows(problem: NewtonProblem, x, r, rn, opts: SolverOptions, max_iter
         step_tol = step_tolerance(x, tol)
         delta, singular, cand, rc = iterate(x, r)
         rcn = torch.linalg.vector_norm(rc, dim=-1)
-        finite = torch.isfinite(rcn)
-        ok = finite & (rcn <= rn * (1 - 1e-4) + 1e-300)
-        full_step = delta.abs().amax(-1)  # not finite exactly where delta is not
-        irregular = singular | ~(ok & torch.isfinite(full_step))
-        new_converged = (full_step <= step_tol) & finite
+        full_step = delta.abs().amax(-1)  # NaN/inf where delta is (an inf-norm vector_norm is 10x slower)
+        # decrease with a finite residual: NaN compares false, and the bound is capped so that an
+        # infinite residual never passes
+        ok = rcn <= torch.mul(rn, 1 - 1e-4).add_(1e-300).clamp_(max=big)
+        irregular = singular | ~(ok & (full_step <= big))
+        # used only when no row is irregular, where every active row's residual is finite
+        new_converged = full_step <= step_tol
         if any_converged:  # rows that converged earlier take no part
             active = ~converged
             irregular = irregular & active
             new_converged = converged | (active & new_converged)
         else:
             active = torch.ones_like(converged)
-        flags = torch.stack((irregular.any(), new_converged.sum())).tolist()
-        if flags[0]:  # a singular Jacobian or a step without decrease: redo row by row
-            x, r, rn, singular, full_step = _careful_iteration(f, jac, retract, x, r, rn, active, opts)
+        if bool(irregular.any()):  # a singular Jacobian or a step without decrease: redo row by row
+            x, r, rn, singular, full_step = _careful_iteration(problem, x, r, rn, active, opts)
             iters = iters + active.long()
             converged = converged | (active & ~singular & (full_step <= step_tol) & torch.isfinite(rn))
             n_converged = int(converged.sum())
         else:
-            if any_converged:
-                x, r = select(active, cand, x), select(active, rc, r)
-                rn = torch.where(active, rcn, rn)
-                iters = iters + active.long()
+            if any_converged:  # the few rows that converged earlier keep their iterate
+                rows = converged.nonzero()[:, 0]
+                x, r, rn = (
+                    _put(cand, rows, _take(x, rows)),
+                    rc.index_copy(0, rows, r[rows]),
+                    rcn.index_copy(0, rows, rn[rows]),
+                )
+                iters = iters + active
             else:
                 x, r, rn = cand, rc, rcn
-                iters = iters + 1
+                common += 1
             converged = new_converged
-            n_converged = int(flags[1])
+            n_converged = int(new_converged.sum())
         any_converged = n_converged > 0
         if n_converged == T:
             break
@@ -185,6 +199,8 @@ def _newton_rows(problem: NewtonProblem, x, r, rn, opts: SolverOptions, max_iter
             converged = converged.index_copy(0, rows, cs)
             iters = iters.index_add(0, rows, its)
             break
+    if common:
+        iters = iters + common
     return x, r, converged, iters
 
 
@@ -200,9 +216,10 @@ def _put(x, rows: torch.Tensor, values):
     return x.index_copy(0, rows, values)
 
 
-def _careful_iteration(f, jac, retract, x, r, rn, active, opts: SolverOptions):
-    """One iteration of `newton_solve_reference` (least squares for singular rows, backtracking
-    per row): (x, r, rn, singular, full_step) with inactive rows unchanged."""
+def _careful_iteration(problem: NewtonProblem, x, r, rn, active, opts: SolverOptions):
+    """One iteration of the reference loop (least squares for singular rows, backtracking per
+    row): (x, r, rn, singular, full_step) with inactive rows unchanged."""
+    f, jac, retract = problem.f, problem.jac, problem.retract
     max_halvings = opts.max_halvings
     T = r.shape[0]
     J = jac(x)
@@ -243,24 +260,11 @@ def _careful_iteration(f, jac, retract, x, r, rn, active, opts: SolverOptions):
     return x, r, rn, singular, full_step
 
 
-def newton_solve_reference(f, jac, x0, retract, opts: SolverOptions | None = None) -> NewtonResult:
-    """The original damped Newton loop (row-wise `select` and `.any()` in the loop), kept as the
-    reference of `newton_solve` for the tests and the benchmark's baseline; same contract.
-
-    Damped Newton with backtracking on ||f||_2 for a batch of T independent problems.
-
-    f(x) -> (T, n); jac(x) -> (T, n, n) = d f(retract(x, delta)) / d delta; retract(x, delta (T, n)).
-    A row converges when the full Newton step of a non-singular Jacobian has max norm <= tol, or
-    <= its rounding floor where that is larger (`step_tolerance`; the step is then applied,
-    leaving an error ~ tol^2 by quadratic convergence). Rows with a
-    singular Jacobian take a least-squares step and cannot converge on that iteration; a
-    step that finds no decrease in ||f|| after `max_halvings` halvings is taken in full
-    (tol, max_iter, max_halvings from `opts`).
-    """
-    opts = opts or SolverOptions()
+def _reference_loop(problem: NewtonProblem, opts: SolverOptions) -> NewtonResult:
+    """`solve(..., reference=True)`: the original loop, `_careful_iteration` at every iteration."""
     tol, max_iter = opts.tol, opts.max_iter
-    x = x0
-    r = f(x)
+    x = problem.x0
+    r = problem.f(x)
     T = r.shape[0]
     rn = torch.linalg.vector_norm(r, dim=-1)
     converged = torch.zeros(T, dtype=torch.bool, device=r.device)
@@ -270,22 +274,7 @@ def newton_solve_reference(f, jac, x0, retract, opts: SolverOptions | None = Non
         if not active.any():
             break
         step_tol = step_tolerance(x, tol)
-        x, r, rn, singular, full_step = _careful_iteration(f, jac, retract, x, r, rn, active, opts)
+        x, r, rn, singular, full_step = _careful_iteration(problem, x, r, rn, active, opts)
         iters = iters + active.long()
         converged = converged | (active & ~singular & (full_step <= step_tol) & torch.isfinite(rn))
     return NewtonResult(x, converged, iters, r.abs().amax(-1))
-
-
-def solve(problem: NewtonProblem, opts: SolverOptions | None = None) -> NewtonResult:
-    """`newton_solve` of a `NewtonProblem`."""
-    return newton_solve(problem.f, problem.jac, problem.x0, problem.retract, opts, problem.iterate, problem.restrict)
-
-
-def solve_reference(problem: NewtonProblem, opts: SolverOptions | None = None) -> NewtonResult:
-    """`newton_solve_reference` of a `NewtonProblem` (its `iterate` is not used)."""
-    return newton_solve_reference(problem.f, problem.jac, problem.x0, problem.retract, opts)
-
-
-def damped_newton(f, xi0: torch.Tensor, opts: SolverOptions | None = None) -> NewtonResult:
-    """`newton_solve` for a plain tensor unknown (T, n) with an autodiff Jacobian."""
-    return solve(NewtonProblem.euclidean(f, xi0), opts)

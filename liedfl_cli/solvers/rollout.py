@@ -17,7 +17,7 @@ import torch
 
 from ..lie import Pose
 from . import runtime
-from .newton import NewtonResult, solve, solve_reference
+from .newton import NewtonResult, solve
 from .options import SolverOptions
 
 
@@ -68,11 +68,11 @@ def rollout_implicit(model: Any, g0: Pose, g1: Pose, steps: int, opts: SolverOpt
     t0 = time.perf_counter()
     runtime.plan("rollout", g0.R.shape[0] * max(steps - 1, 0))
     state = model.implicit_start(g0, g1)
-    solver = solve if runtime.current().fused else solve_reference
+    reference = model.path != "fused"  # fixed when the model was built
     Rs, ps = [g0.R, g1.R], [g0.p, g1.p]
     conv, its, res = [], [], []
     for k in range(1, steps):
-        sol = solver(model.implicit_problem(state), opts)
+        sol = solve(model.implicit_problem(state), opts, reference=reference)
         state, g_next = model.implicit_advance(state, sol.x)
         Rs.append(g_next.R)
         ps.append(g_next.p)

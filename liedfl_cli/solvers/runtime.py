@@ -3,7 +3,9 @@ fused paths, compilation, device and dtype.
 
     runtime.threads   auto | N   torch intra-op threads (auto: 1, measured fastest here; 1 per job
                                  under the joblib launcher whatever N says)
-    runtime.fused     true | false   fused hot paths (false: the reference paths, for comparison)
+    runtime.fused     true | false   the path of the models built while it is in force (false: the
+                                 reference paths, for comparison); read once per model, at its
+                                 construction (`models.base.ImplicitModel.path`)
     runtime.compile   auto | true | false   torch.compile (CPU inductor) of the fused hot paths;
                                  auto compiles only work large enough to repay the compilation
                                  (docs/benchmarks.md); without a C++ compiler it falls back to
@@ -13,7 +15,7 @@ fused paths, compilation, device and dtype.
     runtime.dtype     float64 | float32   floating-point type of models and data (float32: poses are
                                  re-orthonormalised every rollout step, README "Runtime settings")
 
-The models and solvers read `current()` for threads, fused paths and compilation only: the device
+The models and solvers read `current()` for threads, compilation and, when a model is built, its path: the device
 and dtype are the pipeline's (`placement()`, used by `factory.build_model` and the commands), and
 models and solvers take them from their inputs. The pipeline calls `configure(cfg.runtime)` once per
 command (`factory.configure_runtime`, which knows about Hydra's launchers; this module does not).
@@ -169,9 +171,10 @@ def plan(kind: str, work: float) -> None:
 
 
 def want_compile(kind: str) -> bool:
-    """Whether to compile the hot path `kind` ("rollout" | "train") under `runtime.compile`."""
+    """Whether to compile the hot path `kind` ("rollout" | "train") under `runtime.compile` (asked by
+    the fused paths only: a model built with `runtime.fused=false` never reaches it)."""
     opts = current()
-    if not opts.fused or opts.compile == "false":
+    if opts.compile == "false":
         return False
     if opts.compile == "auto" and _planned.get(kind, 0.0) < COMPILE_MIN_WORK[kind]:
         return False

@@ -1,0 +1,126 @@
+"""Fused training losses of the DFLNN baselines (`runtime.fused`).
+
+Euclidean DFLNN: the forced DEL residual in closed form, with the potential's input gradient from
+`mlp_derivatives.value_and_gradient` (plain tensor expressions), so that the loss's backward
+differentiates one explicit graph instead of a double backward through `autograd.grad(...,
+create_graph=True)`, and the regularity term's mixed Hessian (constant here) built once instead of
+by 12 autograd passes per batch.
+
+Euler-angle DFLNN: only the regularity term's mixed Hessian is in closed form (`euler_mixed_hessian`:
+E(q)'s first and second derivatives written out, the potential's Hessian by
+`mlp_derivatives.gradient_and_hvp`) instead of four autograd passes; its residual keeps the reference
+autograd path, because a closed-form residual measured no faster (its cost is the MLP 64 x 3's
+arithmetic at batch 1024, docs/benchmarks.md "Baselines").
+
+Euclidean coordinates (`EuclideanDFLNN`): L_d(x0, x1) = h/2 xd^T K xd - h V(x0), xd = (x1 - x0)/h,
+with the constant kinetic matrix K = [[I3 (x) (J_d + m rho rho^T), m I3 (x) rho], [m I3 (x) rho^T, m I3]]
+(the R block alone for an SO(3) body; (x) the Kronecker product over the rows of R). Then
+
+    r_k = K (x_k - x_{k-1})/h - K (x_{k+1} - x_k)/h - h dV(x_k) + F^+(x_{k-1}, x_k) + F^-(x_k, x_{k+1})
+
+and the mixed Hessian is -K/h at every pair: its log-determinant is computed once per batch.
+
+Same numbers as the reference (`runtime.fused=false`: autograd of `lagrangian`) to rounding;
+tests/test_fused_baselines.py checks losses and gradients to 1e-12 relative.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from ..lie import euler
+from . import mlp_derivatives
+
+
+def potential_gradient(net: torch.nn.Module, x: torch.Tensor) -> torch.Tensor:
+    """dV/dx (..., n) of an MLP potential V = net(x)[..., 0], differentiable in the parameters:
+    closed form where `mlp_derivatives` supports the network, else autograd."""
+    vg = mlp_derivatives.value_and_gradient(net, x)
+    if vg is not None:
+        return vg[1]
+    with torch.enable_grad():
+        xg = x.detach().requires_grad_(True) if not x.requires_grad else x
+        (g,) = torch.autograd.grad(net(xg)[..., 0].sum(), xg, create_graph=True)
+    return g
+
+
+def kinetic_matrix(model) -> torch.Tensor:
+    """K (n, n) of `EuclideanDFLNN` (module docstring): h/2 xd^T K xd is its kinetic discrete Lagrangian."""
+    Jd = model.inertia.Jd()[0]
+    eye = torch.eye(3, dtype=Jd.dtype, device=Jd.device)
+    if not model.se3:
+        return torch.kron(eye, Jd)
+    m, rho = model.mass()[0], model.rho
+    KR = torch.kron(eye, Jd + m * rho[:, None] * rho[None, :])
+    KRp = m * torch.kron(eye, rho[:, None])  # (9, 3)
+    return torch.cat((torch.cat((KR, KRp), 1), torch.cat((KRp.T, m * eye), 1)), 0)
+
+
+def euclidean_residual_and_logdet(
+    model, x_prev: torch.Tensor, x: torch.Tensor, x_next: torch.Tensor, n_reg: int
+) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """(`EuclideanDFLNN.residual` (N, n), log|det| of the mixed Hessian at `n_reg` pairs (n_reg,) or
+    None when 0) in closed form from x_prev, x, x_next (N, n)."""
+    h = model.h
+    K = kinetic_matrix(model)
+    r = ((x - x_prev) / h - (x_next - x) / h) @ K.T
+    if model.potential is not None:
+        r = r - h * potential_gradient(model.potential, x)
+    if model.damping is not None:
+        r = r + 0.5 * h * (model.forces(x_prev, x)[1] + model.forces(x, x_next)[0])
+    logdet = None
+    if n_reg > 0:
+        logdet = torch.linalg.slogdet(-K / h).logabsdet.expand(n_reg)
+    return r, logdet
+
+
+# ---------------------------------------------------------------------------- Euler-angle DFLNN
+def _rate_matrix_derivatives(qm: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """First and second derivatives of the ZYX rate matrix E(q) (`euler.rate_matrix`, a function of
+    phi = q_0 and theta = q_1 only): qm (P, 3) -> (dE (P, 3, 3, 3), d2E (P, 3, 3, 3, 3)), dE[:, a] = dE/dq_a,
+    d2E[:, a, b] = d^2 E/dq_a dq_b."""
+    phi, theta = qm[..., 0], qm[..., 1]
+    cf, sf, ct, st = torch.cos(phi), torch.sin(phi), torch.cos(theta), torch.sin(theta)
+    o = torch.zeros_like(phi)
+
+    def mat(*rows):
+        return torch.stack([torch.stack(r, -1) for r in rows], -2)
+
+    d_phi = mat((o, o, o), (o, -sf, cf * ct), (o, -cf, -sf * ct))
+    d_theta = mat((o, o, -ct), (o, o, -sf * st), (o, o, -cf * st))
+    d_pp = mat((o, o, o), (o, -cf, -sf * ct), (o, sf, -cf * ct))
+    d_pt = mat((o, o, o), (o, o, -cf * st), (o, o, sf * st))
+    d_tt = mat((o, o, st), (o, o, -sf * ct), (o, o, -cf * ct))
+    z = torch.zeros_like(d_phi)
+    dE = torch.stack((d_phi, d_theta, z), 1)
+    d2E = torch.stack((torch.stack((d_pp, d_pt, z), 1), torch.stack((d_pt, d_tt, z), 1), torch.stack((z, z, z), 1)), 1)
+    return dE, d2E
+
+
+def euler_mixed_hessian(model, q0: torch.Tensor, q1: torch.Tensor) -> torch.Tensor | None:
+    """d^2 L_d / dq0 dq1 of `EulerDFLNN.lagrangian` in closed form: q0, q1 (P, 3) -> (P, 3, 3) (None when
+    the potential network is not one `mlp_derivatives` supports).
+
+    With w = E(qm) qd, p = J w, W0 = dw/dq0 = -E/h + M/2, W1 = dw/dq1 = E/h + M/2 (M = d(E qd)/dqm at fixed
+    qd), Pd[a] = p^T dE/dq_a and Q_ab = p^T (d^2 E/dq_a dq_b) qd:
+        H = h [W0^T J W1 + (Pd - Pd^T)/(2h) + Q/4] - h/4 d^2 V(qm)."""
+    h = model.h
+    qd, qm = (q1 - q0) / h, 0.5 * (q0 + q1)
+    E = euler.rate_matrix(qm)
+    dE, d2E = _rate_matrix_derivatives(qm)
+    J = model.inertia.J()[0]
+    w = (E @ qd[..., None])[..., 0]
+    p = w @ J.T
+    M = (dE @ qd[:, None, :, None])[..., 0].transpose(-1, -2)  # columns dw/dq_a
+    W0, W1 = -E / h + 0.5 * M, E / h + 0.5 * M
+    Pd = (p[:, None, None, :] @ dE)[..., 0, :]  # (P, a, 3)
+    Q = (p[:, None, None, None, :] @ d2E @ qd[:, None, None, :, None])[..., 0, 0]
+    H = h * (W0.transpose(-1, -2) @ J @ W1 + (Pd - Pd.transpose(-1, -2)) / (2 * h) + 0.25 * Q)
+    if model.potential is not None:
+        n = qm.shape[0]
+        eye = torch.eye(3, dtype=qm.dtype, device=qm.device)
+        gh = mlp_derivatives.gradient_and_hvp(model.potential, qm.repeat(3, 1), eye.repeat_interleave(n, 0))
+        if gh is None:
+            return None
+        H = H - 0.25 * h * gh[1].reshape(3, n, 3).transpose(0, 1)
+    return H

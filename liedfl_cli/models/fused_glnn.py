@@ -1,0 +1,93 @@
+"""Fused training path of the GLNN baselines (`models.glnn`, `runtime.fused`): the vector field
+
+    R' = R hat(w),   w' = A(w) = J^{-1} ((J w) x w - D w)
+
+(no potential: the Exp 2 scenes) as one autograd node per evaluation with a hand-written
+vector-Jacobian product, instead of the ~15 small autograd nodes of the reference `GLNN.accel`
+and `R @ so3.hat(w)`. Training unrolls the integrator over 100-step windows at batch 8-32, so
+the cost is the number of small kernels and autograd nodes (docs/benchmarks.md, "Baselines"),
+not arithmetic. The rows of R hat(w) are the cross products R_i x w, one kernel.
+
+Same numbers as the reference to rounding (tests/test_fused_baselines.py: losses and gradients
+to 1e-12 relative). Only first derivatives (the training loss's backward); rollouts and models
+with a learned potential keep the reference path.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch.autograd.function import once_differentiable
+
+
+def _accel(w: torch.Tensor, J: torch.Tensor, Jinv: torch.Tensor, D: torch.Tensor | None):
+    """(u = J w, tau = (J w) x w - D w, A = J^{-1} tau), each (N, 3), from w (N, 3)."""
+    u = w @ J.T
+    tau = torch.linalg.cross(u, w)
+    if D is not None:
+        tau = tau - w @ D.T
+    return u, tau, tau @ Jinv.T
+
+
+def _accel_backward(gA, w, u, tau, J, Jinv, D):
+    """Vector-Jacobian product of `_accel`: gA (N, 3) -> (gw (N, 3), gJ, gJinv, gD (3, 3) or None)."""
+    gtau = gA @ Jinv
+    gJinv = gA.T @ tau
+    gu = torch.linalg.cross(w, gtau)  # <gtau, u x w> = <u, w x gtau> = <w, gtau x u>
+    gw = torch.linalg.cross(gtau, u) + gu @ J
+    gJ = gu.T @ w
+    gD = None
+    if D is not None:
+        gw = gw - gtau @ D
+        gD = -(gtau.T @ w)
+    return gw, gJ, gJinv, gD
+
+
+class _Accel(torch.autograd.Function):
+    """A(w) (N, 3) from w (N, 3) and J, J^{-1}, D (3, 3) (D optional)."""
+
+    @staticmethod
+    def forward(ctx, w, J, Jinv, D):
+        u, tau, A = _accel(w, J, Jinv, D)
+        ctx.save_for_backward(w, u, tau, J, Jinv, D)
+        return A
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, gA):
+        w, u, tau, J, Jinv, D = ctx.saved_tensors
+        return _accel_backward(gA, w, u, tau, J, Jinv, D)
+
+
+class _Field(torch.autograd.Function):
+    """y' = (R hat(w) entries, A(w)) (N, 12) from y = (R entries, w) (N, 12)."""
+
+    @staticmethod
+    def forward(ctx, y, J, Jinv, D):
+        n = y.shape[0]
+        R, w = y[:, :9].reshape(n, 3, 3), y[:, 9:]
+        Rdot = torch.linalg.cross(R, w[:, None, :].expand(n, 3, 3))  # row i of R hat(w) = R_i x w
+        u, tau, A = _accel(w, J, Jinv, D)
+        ctx.save_for_backward(R, w, u, tau, J, Jinv, D)
+        return torch.cat((Rdot.reshape(n, 9), A), -1)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, g):
+        R, w, u, tau, J, Jinv, D = ctx.saved_tensors
+        n = g.shape[0]
+        gRd = g[:, :9].reshape(n, 3, 3)
+        gw, gJ, gJinv, gD = _accel_backward(g[:, 9:], w, u, tau, J, Jinv, D)
+        # <gRd_i, R_i x w> = <R_i, w x gRd_i> = <w, gRd_i x R_i>
+        gR = torch.linalg.cross(w[:, None, :].expand(n, 3, 3), gRd)
+        gw = gw + torch.linalg.cross(gRd, R).sum(1)
+        return torch.cat((gR.reshape(n, 9), gw), -1), gJ, gJinv, gD
+
+
+def accel(w: torch.Tensor, J: torch.Tensor, Jinv: torch.Tensor, D: torch.Tensor | None) -> torch.Tensor:
+    """A(w) = J^{-1}((J w) x w - D w): w (N, 3), J, J^{-1}, D (3, 3) -> (N, 3), one autograd node."""
+    return _Accel.apply(w, J, Jinv, D)
+
+
+def field(y: torch.Tensor, J: torch.Tensor, Jinv: torch.Tensor, D: torch.Tensor | None) -> torch.Tensor:
+    """The dopri5 state's derivative: y = (R entries, w) (N, 12) -> (R hat(w) entries, A(w)) (N, 12)."""
+    return _Field.apply(y, J, Jinv, D)

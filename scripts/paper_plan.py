@@ -1,0 +1,364 @@
+"""The jobs of scripts/reproduce_paper.sh: list them, time a few epochs of each, project the full run,
+and record the wall time of every job of a finished sweep.
+
+    python scripts/paper_plan.py plan [overrides...]       # table of every job, budget, projected time
+    python scripts/paper_plan.py measure [overrides...]    # time train.epochs=3 of every job (minutes)
+    python scripts/paper_plan.py times <experiment> <sweep dir> <times.csv> [--sweep-seconds S]
+
+The jobs are those reproduce_paper.sh launches for the experiments in LIEDFL_EXPERIMENTS: the
+cartesian product of each experiment's `hydra.sweeper.params`, plus Exp 3 with the structured
+potential. Overrides are the script's own (`budget=...`, `epoch_scale=...`); launcher settings
+(hydra/launcher=..., hydra.*) do not change a job and are ignored here.
+
+Projection of one job (docs/benchmarks.md, "Full paper reproduction: projection"): a run of
+`train.epochs=E` at the job's settings gives the fixed cost (data, rollout, evaluation, plots:
+job seconds - training seconds), the training seconds per epoch without validation and the seconds
+of one validation pass; the full job = fixed + epochs x s/epoch + passes x s/pass, with the passes of
+`train.val_every: auto`. Measurements live in docs/bench/paper_plan.json with the load at the time.
+"""
+
+from __future__ import annotations
+
+import csv
+import itertools
+import json
+import math
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+MEASUREMENTS = ROOT / "docs" / "bench" / "paper_plan.json"
+DEFAULT_EXPERIMENTS = "exp1_euler_vs_lie exp2_discrete_vs_continuous exp3_manifold exp4_mocap exp5_control"
+EXTRA_JOBS = {"exp3_manifold": [("exp3_manifold_structured", ["model.potential=uniform_gravity"])]}
+"""Single runs beyond the sweeps, by the experiment that triggers them: (folder, overrides)."""
+TIMES_HEADER = ["experiment", "job", "overrides", "seconds", "exit_code", "status", "seconds_from"]
+MEASURE_EPOCHS = 3
+AUTO_VAL_PASSES = 20  # liedfl_cli/commands/validation.py: val_every auto = ceil(epochs / 20)
+COMPILE_MIN_STEPS = 1.0e5  # liedfl_cli/solvers/runtime.py: compile auto for training above this
+
+
+@dataclass
+class Job:
+    """One `liedfl train` job of the reproduction: its experiment, sweep folder (or run folder for a
+    single run) and job overrides, and the budget its config composes to."""
+
+    experiment: str
+    folder: str
+    overrides: list[str]
+    model: str = ""
+    epochs: int = 0
+    batch: int = 0
+    train_steps: int = 0
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def key(self) -> str:
+        return " ".join([f"experiment={self.experiment}", *self.overrides])
+
+
+def job_overrides(args: list[str]) -> list[str]:
+    """The script's arguments that change a job's config (launcher settings and --flags left out)."""
+    return [a for a in args if not a.startswith(("hydra/", "hydra.", "--"))]
+
+
+class _Composer:
+    """Hydra's compose API over the train config, initialised once for many compositions."""
+
+    def __enter__(self):
+        from hydra import initialize_config_dir
+        from hydra.core.global_hydra import GlobalHydra
+
+        from liedfl_cli.cli import CONF_DIR
+        from liedfl_cli.config import resolvers
+
+        resolvers.register()
+        GlobalHydra.instance().clear()
+        self._ctx = initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3")
+        self._ctx.__enter__()
+        return self
+
+    def __exit__(self, *exc):
+        from hydra.core.global_hydra import GlobalHydra
+
+        self._ctx.__exit__(*exc)
+        GlobalHydra.instance().clear()
+
+    def __call__(self, overrides: list[str], hydra_node: bool = False):
+        from hydra import compose
+
+        return compose(config_name="train", overrides=overrides, return_hydra_config=hydra_node)
+
+
+def sweep_params(compose: _Composer, experiment: str, extra: list[str]) -> list[list[str]]:
+    """Every job's overrides of `liedfl train -m experiment=<experiment>` (one empty list: one job)."""
+    from omegaconf import OmegaConf
+
+    cfg = compose([f"experiment={experiment}", *extra], hydra_node=True)
+    params = OmegaConf.select(cfg, "hydra.sweeper.params") or {}
+    axes = [[f"{k}={v.strip()}" for v in str(vals).split(",")] for k, vals in params.items()]
+    return [list(p) for p in itertools.product(*axes)]
+
+
+def jobs(experiments: list[str], extra: list[str], check: bool = False) -> list[Job]:
+    """Every job reproduce_paper.sh launches for `experiments`, in its order, with composed budgets
+    (a config that does not compose raises; with `check`, also one that does not validate as
+    `liedfl train` validates it, e.g. an unknown key)."""
+    from liedfl_cli.config.schema import validate
+    from liedfl_cli.config.typed import typed
+
+    out = []
+    with _Composer() as compose:
+        for exp in experiments:
+            for i, ov in enumerate(sweep_params(compose, exp, extra)):
+                out.append(Job(exp, f"{exp}/{i}", ov))
+            for folder, ov in EXTRA_JOBS.get(exp, []):
+                out.append(Job(exp, folder, ov))
+        for job in out:
+            cfg = compose([f"experiment={job.experiment}", *job.overrides, *extra])
+            if check:
+                validate(cfg, "train")
+            run = typed(cfg, "train")  # the job's settings, typed once
+            assert run.train is not None and run.dataset is not None, "a train config"
+            model = run.model or {}
+            job.model = str(model.get("name")) + (f" ({model['kinetic']})" if "kinetic" in model else "")
+            job.epochs, job.batch = int(run.train.epochs), int(run.train.batch_size)
+            job.train_steps = int(run.dataset.train_steps or 0)
+            job.extra = {"window": model.get("window")}
+    return out
+
+
+def experiments_from_env() -> list[str]:
+    return os.environ.get("LIEDFL_EXPERIMENTS", DEFAULT_EXPERIMENTS).split()
+
+
+# ----------------------------------------------------------------------------- measurement
+def _read_json(path: Path) -> dict:
+    return json.loads(path.read_text()) if path.is_file() else {}
+
+
+def _write_json(path: Path, obj) -> None:  # write then rename: never a half-written file
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(obj, indent=1) + "\n")
+    tmp.replace(path)
+
+
+def measure_one(job: Job, extra: list[str], work: Path, epochs: int = MEASURE_EPOCHS) -> dict:
+    """Run `job` with train.epochs=`epochs` (its other settings unchanged) in `work`; its timings."""
+    run = work / job.folder.replace("/", "_")
+    cmd = [sys.executable, "-m", "liedfl_cli", "train", f"experiment={job.experiment}", *job.overrides, *extra]
+    cmd += [f"train.epochs={epochs}", "ui.progress=false", f"hydra.run.dir={run}"]
+    load = os.getloadavg()[0]
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    rec = {"epochs": epochs, "wall_seconds": round(wall, 3), "cpu_seconds": round(cpu, 3)}
+    rec.update(exit_code=proc.returncode, load_1min=load)
+    if proc.returncode != 0:
+        rec["error"] = (proc.stderr.strip().splitlines() or ["?"])[-1][:300]
+        return rec
+    summary = _read_json(run / "summary.json")
+    status = _read_json(run / "status.json")
+    t = summary.get("timings", {})
+    val_s = float(t.get("val_seconds", 0.0) or 0.0)
+    rec.update(
+        job_seconds=float(status.get("seconds", wall)),
+        train_seconds=round(float(t.get("train_seconds", 0.0)), 3),  # (validation excluded, train.py)
+        val_s_per_pass=val_s / val_passes(epochs) if val_s else 0.0,
+        n_samples=int(t.get("n_samples", 0)),
+    )
+    return {**rec, **rates(rec)}
+
+
+def val_passes(epochs: int) -> int:
+    """Validation passes of a run of `epochs` under `train.val_every: auto` (every k-th epoch)."""
+    return len(range(0, epochs, max(1, math.ceil(epochs / AUTO_VAL_PASSES))))
+
+
+def rates(rec: dict) -> dict:
+    """From a measurement's raw times: training s/epoch (validation excluded) and the fixed seconds
+    (the job's seconds less training and validation: data, model building, rollout, evaluation, plots)."""
+    val = rec["val_s_per_pass"] * val_passes(rec["epochs"])
+    return {
+        "fit_s_per_epoch": rec["train_seconds"] / rec["epochs"],
+        "fixed_seconds": round(rec["job_seconds"] - rec["train_seconds"] - val, 3),
+    }
+
+
+def measure(experiments: list[str], extra: list[str], path: Path = MEASUREMENTS) -> dict:
+    """Time every job for a few epochs (fresh data folder: data generation counts once per dataset,
+    as in the real run) and merge the records into `path` under each job's key."""
+    data: dict = {}
+    with tempfile.TemporaryDirectory(prefix="paper_plan_") as tmp:
+        os.environ["LIEDFL_DATA_DIR"] = str(Path(tmp) / "data")
+        for job in jobs(experiments, extra, check=True):
+            rec = measure_one(job, extra, Path(tmp))
+            rec["measured"] = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
+            print(f"{job.key}: {rec.get('fit_s_per_epoch', rec.get('error'))}", flush=True)
+            data = _read_json(path)  # (re-read: other measurements may have landed meanwhile)
+            data.setdefault("jobs", {})[job.key] = rec
+            data["machine"] = f"{os.cpu_count()} CPU cores, nice -n 10, shared; load in each record (1-min average)"
+            _write_json(path, data)
+    return data
+
+
+# ----------------------------------------------------------------------------- projection
+def project(job: Job, rec: dict | None) -> float | None:
+    """Projected wall seconds of the full job at the load of its measurement (None: not measured or
+    it failed)."""
+    if not rec or rec.get("exit_code") != 0:
+        return None
+    r = rates(rec)
+    return r["fixed_seconds"] + job.epochs * r["fit_s_per_epoch"] + val_passes(job.epochs) * rec["val_s_per_pass"]
+
+
+def project_cpu(job: Job, rec: dict | None) -> float | None:
+    """The projection scaled by the measurement's CPU seconds / wall seconds: what the job would take
+    on a core of its own (one torch thread per job), i.e. on an idle machine. None without CPU times."""
+    sec = project(job, rec)
+    if sec is None or not rec or not rec.get("cpu_seconds") or not rec.get("wall_seconds"):
+        return None
+    return sec * min(1.0, rec["cpu_seconds"] / rec["wall_seconds"])
+
+
+def _h(seconds: float) -> str:
+    return f"{seconds / 3600:.2f}"
+
+
+def plan_table(experiments: list[str], extra: list[str], path: Path = MEASUREMENTS) -> str:
+    """Markdown: every job, its budget, measured s/epoch and projected time; totals per experiment.
+    Two projections: wall time at the load of the measurement, and CPU time (about an idle core)."""
+    records = _read_json(path).get("jobs", {})
+    lines = [
+        "| experiment | job | model | train length | epochs | batch | optimiser steps | s/epoch (measured) "
+        "| projected s at that load | projected CPU s (≈ idle core) | load at measurement |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    totals: dict[str, list[float]] = {}
+    missing: list[str] = []
+    for job in jobs(experiments, extra):
+        rec = records.get(job.key)
+        sec, cpu = project(job, rec), project_cpu(job, rec)
+        steps = "–"
+        if rec and rec.get("n_samples"):
+            n = math.ceil(rec["n_samples"] / job.batch)
+            steps = f"{job.epochs * n:,}" + (" (compiles)" if job.epochs * n >= COMPILE_MIN_STEPS else "")
+        if sec is None:
+            missing.append(job.key)
+        t = totals.setdefault(job.experiment, [0.0, 0.0])
+        t[0] += sec or 0.0
+        t[1] += cpu if cpu is not None else (sec or 0.0)
+        per_epoch = f"{rates(rec)['fit_s_per_epoch']:.3g}" if rec and sec is not None else "not measured"
+        projected = f"{sec:,.0f}" if sec is not None else "–"
+        projected_cpu = f"{cpu:,.0f}" if cpu is not None else "–"
+        load = f"{rec['load_1min']:.1f}" if rec else "–"
+        lines.append(
+            f"| {job.experiment} | {' '.join(job.overrides) or '–'} | {job.model} | {job.train_steps} | {job.epochs} "
+            f"| {job.batch} | {steps} | {per_epoch} | {projected} | {projected_cpu} | {load} |"
+        )
+    lines += ["", "| experiment | projected hours at the measured load | projected CPU hours (≈ idle, one core) |"]
+    lines.append("|---|---|---|")
+    lines += [f"| {e} | {_h(w)} | {_h(c)} |" for e, (w, c) in totals.items()]
+    wall, cpu = sum(t[0] for t in totals.values()), sum(t[1] for t in totals.values())
+    lines.append(f"| **total** | **{_h(wall)}** | **{_h(cpu)}** (two jobs at a time on 2 cores: ≥ {_h(cpu / 2)}) |")
+    if missing:
+        lines += ["", f"Not measured (left out of the totals): {len(missing)} job(s): {'; '.join(missing)}"]
+    lines += ["", "(A job measured without CPU times counts with its wall projection in the CPU column.)"]
+    return "\n".join(lines)
+
+
+# ----------------------------------------------------------------------------- times.csv
+def job_times(experiment: str, sweep: Path) -> list[dict]:
+    """One row per job folder of `sweep` (or the single run folder `sweep`): its overrides, its
+    seconds (status.json's; for a failed job, the time from its config to its status file) and exit."""
+    from liedfl_cli.commands.status import job_dirs, read_status
+
+    folders = job_dirs(sweep) or ([sweep] if (sweep / ".hydra").is_dir() else [])
+    rows = []
+    for d in folders:
+        st = read_status(d) or {"status": "unfinished", "exit_code": ""}
+        ov_file = d / ".hydra" / "overrides.yaml"
+        ov = ov_file.read_text().splitlines() if ov_file.is_file() else []
+        overrides = " ".join(line[2:] for line in ov if line.startswith("- "))
+        seconds, src = st.get("seconds"), "status.json"
+        if seconds is None and (d / "status.json").is_file() and (d / ".hydra" / "config.yaml").is_file():
+            seconds = (d / "status.json").stat().st_mtime - (d / ".hydra" / "config.yaml").stat().st_mtime
+            src = "file times"
+        rows.append(
+            {
+                "experiment": experiment,
+                "job": d.name if d != sweep else sweep.name,
+                "overrides": overrides,
+                "seconds": "" if seconds is None else f"{float(seconds):.1f}",
+                "exit_code": st.get("exit_code", ""),
+                "status": st.get("status", ""),
+                "seconds_from": src if seconds is not None else "",
+            }
+        )
+    return rows
+
+
+def record_times(experiment: str, sweep: Path, times_csv: Path, sweep_seconds: float | None = None) -> int:
+    """Replace `experiment`'s rows of times.csv by those of `sweep` (+ the sweep's wall time); the
+    number of job rows written."""
+    old = []
+    if times_csv.is_file():
+        with open(times_csv) as f:
+            old = [r for r in csv.DictReader(f) if r.get("experiment") != experiment]
+    new = job_times(experiment, sweep)
+    if sweep_seconds is not None:
+        new.append(
+            {
+                "experiment": experiment,
+                "job": "(whole sweep)",
+                "overrides": "",
+                "seconds": f"{sweep_seconds:.1f}",
+                "exit_code": "",
+                "status": "",
+                "seconds_from": "script clock",
+            }
+        )
+    times_csv.parent.mkdir(parents=True, exist_ok=True)
+    tmp = times_csv.with_name(times_csv.name + ".tmp")
+    with open(tmp, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=TIMES_HEADER)
+        w.writeheader()
+        w.writerows(old + new)
+    tmp.replace(times_csv)
+    return len(new) - (sweep_seconds is not None)
+
+
+def main(argv: list[str]) -> int:
+    if not argv or argv[0] not in ("plan", "measure", "times"):
+        print(
+            "usage: paper_plan.py plan|measure [overrides...] | times <experiment> <sweep> <times.csv>", file=sys.stderr
+        )
+        return 2
+    sys.path.insert(0, str(ROOT))
+    if argv[0] == "times":
+        if len(argv) not in (4, 6):
+            print("usage: paper_plan.py times <experiment> <sweep> <times.csv> [--sweep-seconds S]", file=sys.stderr)
+            return 2
+        seconds = float(argv[5]) if len(argv) == 6 else None
+        n = record_times(argv[1], Path(argv[2]), Path(argv[3]), seconds)
+        print(f"{argv[3]}: {n} job(s) of {argv[1]}")
+        return 0
+    extra = job_overrides(argv[1:])
+    if argv[0] == "measure":
+        measure(experiments_from_env(), extra)
+    print("PROJECTION from a few measured epochs per job (not a measured full run):\n")
+    print(plan_table(experiments_from_env(), extra))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

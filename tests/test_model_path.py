@@ -1,0 +1,88 @@
+"""An implicit model's path ("fused" | "reference") is chosen once, when it is built: from
+`runtime.fused` at construction, or explicitly with `with_path`; the runtime changed afterwards
+does not switch it. Both paths give the same loss (1e-12 relative) and rollouts (Newton tolerance)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from test_fused import _start, make, rel, trajectories
+
+from liedfl_cli.models import fused
+from liedfl_cli.models.base import LossOptions, check_path
+from liedfl_cli.solvers import rollout as rollout_loop
+from liedfl_cli.solvers import runtime
+from liedfl_cli.solvers.options import SolverOptions
+
+
+@pytest.fixture
+def solver_calls(monkeypatch):
+    """Which Newton loop ("fused" | "reference") each call of the rollout loop's one entry point ran."""
+    calls: list[str] = []
+    real = rollout_loop.solve
+
+    def spy(problem, opts, *, reference=False):
+        calls.append("reference" if reference else "fused")
+        return real(problem, opts, reference=reference)
+
+    monkeypatch.setattr(rollout_loop, "solve", spy)
+    return calls
+
+
+def _path_taken(model, solver_calls: list[str]) -> tuple[bool, bool, set[str]]:
+    """(training set fused, rollout state fused, Newton loops run) of one short rollout."""
+    G = model.G
+    data = trajectories(G)
+    g0, g1 = _start(G, 2, 0.1)
+    solver_calls.clear()
+    model.rollout(g0, g1, 3)
+    is_fused_set = isinstance(model.training_set(data, 10), fused.IncrementSet)
+    is_fused_state = isinstance(model.implicit_start(g0, g1), fused.RolloutState)
+    return is_fused_set, is_fused_state, set(solver_calls)
+
+
+def test_the_path_is_fixed_at_construction_whatever_the_runtime_says_later(solver_calls):
+    with runtime.using(fused=False):
+        ref = make("se3xso3_mlp")
+    with runtime.using(fused=True):
+        fus = make("se3xso3_mlp")
+    assert (ref.path, fus.path) == ("reference", "fused")
+    for later in (True, False):
+        with runtime.using(fused=later):
+            assert _path_taken(ref, solver_calls) == (False, False, {"reference"})
+            assert _path_taken(fus, solver_calls) == (True, True, {"fused"})
+
+
+def test_with_path_shares_the_parameters_and_leaves_the_original_alone():
+    model = make("se3_mlp_rayleigh")
+    twin = model.with_path("reference")
+    assert model.path == "fused" and twin.path == "reference"
+    assert all(a is b for a, b in zip(model.parameters(), twin.parameters()))
+    with torch.no_grad():
+        next(model.parameters()).add_(1.0)  # an optimiser step on one moves the other
+    assert all(torch.equal(a, b) for a, b in zip(model.state_dict().values(), twin.state_dict().values()))
+    with pytest.raises(ValueError, match="model path must be one of"):
+        model.with_path("fast")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="got 'nope'"):
+        check_path("nope")
+
+
+@pytest.mark.parametrize("name", ["free_so3_rayleigh", "se3xso3_mlp"])
+def test_fused_and_reference_models_give_the_same_loss_and_rollout(name):
+    fus = make(name)
+    ref = fus.with_path("reference")
+    data = trajectories(fus.G)
+    idx = torch.randperm(40, generator=torch.Generator().manual_seed(3))
+    losses = [
+        m.loss(m.training_set(data, 10).batch(idx, torch.Generator().manual_seed(1), 10), LossOptions())[0]
+        for m in (ref, fus)
+    ]
+    assert rel(losses[1].detach(), losses[0].detach()) <= 1e-12
+    fus.requires_grad_(False)
+    g0, g1 = _start(fus.G, 4, 0.1)
+    a, b = ref.rollout(g0, g1, 10), fus.rollout(g0, g1, 10)
+    tol = SolverOptions().tol
+    assert bool(a.converged.all()) and torch.equal(a.converged, b.converged)
+    assert float((a.pose.R - b.pose.R).abs().max()) <= tol
+    if a.pose.p.numel():  # SE(3) bodies
+        assert float((a.pose.p - b.pose.p).abs().max()) <= tol * max(1.0, float(a.pose.p.abs().max()))

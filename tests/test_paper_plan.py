@@ -1,0 +1,150 @@
+"""scripts/reproduce_paper.sh's jobs, its plan mode and its times.csv (scripts/paper_plan.py)."""
+
+from __future__ import annotations
+
+import csv
+import importlib.util
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+SCRIPT = ROOT / "scripts" / "reproduce_paper.sh"
+ALL = ["exp1_euler_vs_lie", "exp2_discrete_vs_continuous", "exp3_manifold", "exp4_mocap", "exp5_control"]
+
+
+def _plan_module():
+    if "paper_plan" in sys.modules:
+        return sys.modules["paper_plan"]
+    spec = importlib.util.spec_from_file_location("paper_plan", ROOT / "scripts" / "paper_plan.py")
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["paper_plan"] = mod  # (its dataclass looks its module up there)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_every_job_of_the_reproduction_composes_with_its_budget():
+    """Every job the script launches (Exps 1-5, every baseline, the articulated Exp 4) composes and
+    validates (as `liedfl train` checks it before the job starts), and a budget override reaches them."""
+    plan = _plan_module()
+    full = plan.jobs(ALL, [], check=True)
+    smoke = plan.jobs(ALL[3:], ["budget=smoke"])
+    assert [j.key for j in full][-3:] == [j.key for j in smoke] and len({j.key for j in full}) == len(full)
+    per_exp = {e: [j for j in full if j.experiment == e] for e in ALL}
+    assert {e: len(js) for e, js in per_exp.items()} == {ALL[0]: 6, ALL[1]: 16, ALL[2]: 4, ALL[3]: 2, ALL[4]: 1}
+    assert {j.model.split()[0] for j in per_exp[ALL[1]]} == {
+        "liedflnn",
+        "glnn_rk4",
+        "glnn_lie_midpoint",
+        "glnn_lie_heun",
+    }
+    by_model = {m: [j for j in per_exp[ALL[1]] if j.model == m] for m in ("glnn_lie_midpoint", "glnn_lie_heun")}
+    mid, heun = by_model["glnn_lie_midpoint"], by_model["glnn_lie_heun"]  # Midpoint trained as Lie-Heun
+    assert [(j.epochs, j.batch, j.extra["window"]) for j in mid] == [(j.epochs, j.batch, "trajectory") for j in heun]
+    assert {j.model for j in per_exp[ALL[3]]} == {"liedflnn (per_body)", "liedflnn (articulated)"}
+    assert {j.model.split()[0] for j in per_exp[ALL[2]]} == {"liedflnn", "euclidean_dflnn", "neural_ode"}
+    assert all(j.epochs == 2 for j in smoke)  # budget=smoke's epochs
+    assert min(j.epochs for j in full) >= 500  # the paper's budgets
+
+
+def test_the_projection_follows_the_measurement_and_lists_what_is_unmeasured(tmp_path):
+    plan = _plan_module()
+    [job] = plan.jobs(["exp5_control"], [])
+    # 3 epochs measured: 1.5 s training, 3 validation passes of 2 s, 37.5 s in all -> 30 s fixed
+    rec = {"epochs": 3, "exit_code": 0, "job_seconds": 37.5, "train_seconds": 1.5, "val_s_per_pass": 2.0}
+    rec.update(n_samples=400, load_1min=3.0, wall_seconds=40.0, cpu_seconds=20.0)  # half a core: load
+    path = tmp_path / "m.json"
+    path.write_text(json.dumps({"jobs": {job.key: rec}}))
+    passes = len(range(0, job.epochs, -(-job.epochs // 20)))
+    expected = 30.0 + job.epochs * 0.5 + passes * 2.0
+    assert plan.project(job, rec) == pytest.approx(expected)
+    assert plan.project_cpu(job, rec) == pytest.approx(expected / 2)
+    text = plan.plan_table(["exp5_control", "exp3_manifold"], [], path)
+    assert f"| {expected:,.0f} | {expected / 2:,.0f} |" in text
+    # exp3's jobs have no measurement: left out of the totals
+    assert f"| **total** | **{expected / 3600:.2f}** | **{expected / 7200:.2f}** " in text
+    assert "Not measured (left out of the totals): 4 job(s)" in text
+    assert plan.project(job, {**rec, "exit_code": 1}) is None
+
+
+def test_plan_mode_of_the_script_runs_nothing(tmp_path):
+    env = {**os.environ, "LIEDFL_EXPERIMENTS": "exp5_control", "LIEDFL_PAPER_DIR": str(tmp_path / "paper")}
+    env["PYTHONPATH"] = f"{ROOT}{os.pathsep}{env.get('PYTHONPATH', '')}"
+    env["PYTHON"] = sys.executable
+    proc = subprocess.run(
+        ["bash", str(SCRIPT), "--plan", "budget=smoke", "hydra/launcher=joblib"],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.startswith("PROJECTION") and "| exp5_control | – | liedflnn (per_body) | 8 | 2 |" in proc.stdout
+    assert not (tmp_path / "paper").exists()
+    bad = subprocess.run(["bash", str(SCRIPT), "--plans"], env=env, capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "--plans" in bad.stderr
+
+
+def _job(folder: Path, overrides: list[str], status: dict | None):
+    (folder / ".hydra").mkdir(parents=True)
+    (folder / ".hydra" / "overrides.yaml").write_text("".join(f"- {o}\n" for o in overrides))
+    (folder / ".hydra" / "config.yaml").write_text("{}\n")
+    if status is not None:
+        (folder / "status.json").write_text(json.dumps(status))
+
+
+def test_times_csv_has_a_row_per_job_and_replaces_a_rerun(tmp_path):
+    plan = _plan_module()
+    sweep = tmp_path / "exp2"
+    _job(sweep / "0", ["baseline=none", "dataset.train_steps=10"], {"status": "ok", "exit_code": 0, "seconds": 12.5})
+    _job(sweep / "1", ["baseline=glnn_rk4"], {"status": "failed", "exit_code": 1, "error": "x"})
+    _job(sweep / "2", ["baseline=glnn_lie_heun"], None)  # never finished
+    times = tmp_path / "times.csv"
+    assert plan.record_times("exp2", sweep, times, sweep_seconds=40.0) == 3
+    assert plan.record_times("exp5", sweep / "0", times) == 1  # a single run folder
+    assert plan.record_times("exp2", sweep, times, sweep_seconds=41.0) == 3  # rerun: replaced, not appended
+    with open(times) as f:
+        rows = list(csv.DictReader(f))
+    assert list(rows[0]) == plan.TIMES_HEADER
+    exp2 = {r["job"]: r for r in rows if r["experiment"] == "exp2"}
+    assert set(exp2) == {"0", "1", "2", "(whole sweep)"} and len(rows) == 5
+    assert exp2["0"]["overrides"] == "baseline=none dataset.train_steps=10" and float(exp2["0"]["seconds"]) == 12.5
+    assert exp2["1"]["exit_code"] == "1" and exp2["1"]["seconds_from"] == "file times" and exp2["1"]["seconds"]
+    assert exp2["2"]["status"] == "unfinished" and exp2["2"]["seconds"] == ""
+    assert float(exp2["(whole sweep)"]["seconds"]) == 41.0
+    assert [r["job"] for r in rows if r["experiment"] == "exp5"] == ["0"]
+
+
+@pytest.mark.slow
+def test_a_tiny_reproduction_times_every_job(tmp_path):
+    """The whole script on Exp 5 at budget=smoke: a times.csv row per job and the summary's sections."""
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    (bin_dir / "liedfl").write_text(
+        f'#!/bin/sh\nexec {sys.executable} -c "from liedfl_cli.cli import main; main()" "$@"\n'
+    )
+    (bin_dir / "liedfl").chmod(0o755)
+    env = {**os.environ, "LIEDFL_EXPERIMENTS": "exp5_control", "LIEDFL_PAPER_DIR": str(tmp_path / "paper")}
+    env.update(
+        PATH=f"{bin_dir}{os.pathsep}{env.get('PATH', '')}",
+        PYTHONPATH=f"{ROOT}{os.pathsep}{env.get('PYTHONPATH', '')}",
+        PYTHON=sys.executable,
+        LIEDFL_DATA_DIR=str(tmp_path / "data"),
+        OMP_NUM_THREADS="1",
+        MPLBACKEND="Agg",
+    )
+    proc = subprocess.run(
+        ["bash", str(SCRIPT), "budget=smoke", "eval.plots=false"], env=env, capture_output=True, text=True, timeout=600
+    )
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    with open(tmp_path / "paper" / "times.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["job"] for r in rows] == ["0", "(whole sweep)"] and rows[0]["status"] == "ok"
+    assert float(rows[0]["seconds"]) <= float(rows[1]["seconds"]) + 1
+    summary = (tmp_path / "paper" / "summary.md").read_text()
+    assert "### Exp 5" in summary and "### Wall time of the reproduction" in summary
