@@ -37,7 +37,11 @@ few repeats, so a speed-up is a ratio taken under the same load. Keys:
 
 --quick (< 3 minutes) runs fewer epochs and steps; datasets are generated (cached) on first use.
 --baselines-only measures `baseline_models` alone (about 2 minutes on an idle machine).
-The fast tier's wall time is not measured here (it is the test suite's, not a benchmark's).
+--fast-tier also runs the README's test command (`python -m pytest -m "not slow" -q`) in a child
+process and adds
+  fast_tier                     {wall_s, tests_passed, exit_code, load_avg_start, load_avg_end}
+(about 5 minutes on 2 idle cores; run it alone, `--fast-tier-only`, so the tests and the timed
+figures do not share the cores).
 """
 
 from __future__ import annotations
@@ -114,6 +118,35 @@ BASELINES = {  # the paper's settings: experiment file and, for Exp 2, its longe
     "euclidean_dflnn": ["experiment=exp3_manifold", "baseline=euclidean_dflnn"],
     "neural_ode": ["experiment=exp3_manifold", "baseline=neural_ode"],
 }
+
+
+def fast_tier(log) -> dict:
+    """Wall time of the README's test command (the fast tier), run from the repository root in a
+    child process: {wall_s, tests_passed, exit_code, load_avg_start, load_avg_end}."""
+    import re
+    import subprocess
+
+    start = list(os.getloadavg())
+    t = time.perf_counter()
+    proc = subprocess.run(
+        [sys.executable, "-m", "pytest", "-m", "not slow", "-q", "-p", "no:cacheprovider"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+    )
+    wall = time.perf_counter() - t
+    tail = proc.stdout.strip().splitlines()[-1] if proc.stdout.strip() else ""
+    passed = re.search(r"(\d+) passed", tail)
+    out = {
+        "wall_s": wall,
+        "tests_passed": int(passed.group(1)) if passed else None,
+        "exit_code": proc.returncode,
+        "summary": tail,
+        "load_avg_start": start,
+        "load_avg_end": list(os.getloadavg()),
+    }
+    log(f"fast tier: {wall:.0f} s wall, {tail}")
+    return out
 
 
 def baseline_models(data_dir: str, quick: bool, log) -> dict:
@@ -212,6 +245,8 @@ def main() -> None:
     ap.add_argument("--no-compile", action="store_true", help="skip the compilation figures")
     ap.add_argument("--compare-threads", action="store_true", help="also time 1 against 2 threads (fused paths)")
     ap.add_argument("--baselines-only", action="store_true", help="only the baseline_models figures")
+    ap.add_argument("--fast-tier", action="store_true", help="also time the fast tier of the tests")
+    ap.add_argument("--fast-tier-only", action="store_true", help="only time the fast tier of the tests")
     ap.add_argument("--data-dir", default=str(ROOT / "outputs" / "data"))
     args = ap.parse_args()
     threads = args.threads if args.threads == "auto" else int(args.threads)
@@ -230,8 +265,11 @@ def main() -> None:
     def log(msg: str) -> None:
         print(f"[{time.perf_counter() - t_all:6.1f} s] {msg}", flush=True)
 
-    if args.baselines_only:
-        out["baseline_models"] = baseline_models(args.data_dir, q, log)
+    if args.fast_tier_only or args.baselines_only:
+        if args.baselines_only:
+            out["baseline_models"] = baseline_models(args.data_dir, q, log)
+        if args.fast_tier_only:
+            out["fast_tier"] = fast_tier(log)
         out["load_avg_end"] = list(os.getloadavg())
         out["load_avg"] = out["load_avg_start"][0]
         out["seconds"] = time.perf_counter() - t_all
@@ -351,6 +389,8 @@ def main() -> None:
     for name, b in out["baseline_models"].items():
         speed[f"baseline_{name}"] = b["s_per_epoch_reference"] / b["s_per_epoch_fused"]
     out["speedup"] = speed
+    if args.fast_tier:  # after the timed figures, so that the tests do not share the cores with them
+        out["fast_tier"] = fast_tier(log)
     out["load_avg_end"] = list(os.getloadavg())
     out["load_avg"] = out["load_avg_start"][0]
     out["seconds"] = time.perf_counter() - t_all

@@ -14,7 +14,6 @@ from liedfl_cli.models.base import LossOptions, TrajectorySet, TripletBatch, Tri
 from liedfl_cli.models.euclidean_dflnn import EuclideanDFLNN
 from liedfl_cli.models.euler_dflnn import EulerDFLNN
 from liedfl_cli.models.glnn import GLNN
-from liedfl_cli.solvers import runtime
 
 F64 = torch.float64
 RTOL = 1e-12
@@ -26,15 +25,16 @@ def _trajectories(n: int, steps: int, h: float, seed: int = 0) -> Pose:
     truth = GLNN(SO3, h, integrator="heun", init_jitter=0.3, seed=seed + 1)
     R0 = so3.exp(torch.randn(n, 3, generator=gen, dtype=F64))
     w0 = torch.randn(n, 3, generator=gen, dtype=F64)
-    with torch.no_grad(), runtime.using(fused=False):
-        R = truth.integrate_rotations(R0, w0, steps)
+    with torch.no_grad():
+        R = truth.with_path("reference").integrate_rotations(R0, w0, steps)
     return Pose(R[:, :, None], torch.zeros(n, steps + 1, 0, 3, dtype=F64))
 
 
 def _loss_and_grads(model, batch, fused: bool):
+    """The loss and gradients of `model` on its `fused` or reference path (a twin sharing its parameters)."""
     model.zero_grad(set_to_none=True)
-    with runtime.using(fused=fused):
-        loss, _ = model.loss(batch, LossOptions())
+    twin = model.with_path("fused" if fused else "reference")
+    loss, _ = twin.loss(batch, LossOptions())
     loss.backward()
     grads = {k: p.grad.clone() for k, p in model.named_parameters() if p.grad is not None}
     return loss.detach(), grads
@@ -72,15 +72,13 @@ def test_glnn_fused_loss_and_gradients_equal_the_reference(integrator, window, s
             model.damping.L_entries.add_(0.05 * torch.arange(6, dtype=F64))
     samples = (TrajectorySet if window == "trajectory" else TripletSet)(data, steps)
     batch = samples.batch(torch.arange(min(samples.n, 40)), torch.Generator(), 0)
-    with runtime.using(fused=True):
-        assert model.fused_training()
+    assert model.with_path("fused").fused_training() and not model.with_path("reference").fused_training()
     _assert_same(model, batch)
 
 
 def test_glnn_with_a_potential_keeps_the_reference_path():
     model = GLNN(SO3, 0.1, integrator="heun", potential=True)
-    with runtime.using(fused=True):
-        assert not model.fused_training()
+    assert model.path == "fused" and not model.fused_training()
 
 
 def _heavy_triplets(n: int, h: float, seed: int = 0) -> TripletBatch:

@@ -309,6 +309,9 @@ TrainingSet = TripletSet | TrajectorySet
 
 
 # ---------------------------------------------------------------------------- the contract
+ModelT = TypeVar("ModelT", bound="Model")
+
+
 class Model(nn.Module, abc.ABC):
     """Base class of every model. Subclasses set `G`, `h` and `window` and implement the
     abstract methods; `name` is the config option that built the model (e.g. "glnn_rk4")."""
@@ -324,6 +327,27 @@ class Model(nn.Module, abc.ABC):
     Options: type | None = None
     """A dataclass of the model's config options (keys and types checked against it before a run
     starts, `config/schema.py`); None: its `from_config` checks them (`config_options`)."""
+    path: ModelPath
+    """"fused" | "reference", fixed at construction: which implementation serves the model's training
+    loss and rollouts (its fused hot paths where it has them, or the reference ones). It defaults to
+    `runtime.fused` as set when the model is built (the pipeline configures the runtime before
+    `factory.build_model`); changing the runtime later does not change it. `with_path` gives the same
+    model, parameters shared, on the other path."""
+
+    def __init__(self, path: ModelPath | None = None):
+        super().__init__()
+        self.path = check_path(path if path is not None else runtime_path())
+
+    def with_path(self: ModelT, path: ModelPath) -> ModelT:
+        """A copy of this model on `path` sharing every parameter, buffer and submodule (a step of an
+        optimiser on one moves the other)."""
+        twin = copy.copy(self)
+        # the copy's own registries (so attributes set on one do not appear on the other), same tensors
+        twin._parameters = dict(self._parameters)
+        twin._buffers = dict(self._buffers)
+        twin._modules = dict(self._modules)
+        twin.path = check_path(path)
+        return twin
 
     @classmethod
     @abc.abstractmethod
@@ -373,9 +397,6 @@ class Model(nn.Module, abc.ABC):
         return None
 
 
-ImplicitT = TypeVar("ImplicitT", bound="ImplicitModel")
-
-
 def runtime_path() -> ModelPath:
     """The path a model built now takes: "fused" unless `runtime.fused` is false."""
     return "fused" if runtime.current().fused else "reference"
@@ -385,28 +406,11 @@ class ImplicitModel(Model):
     """A model whose step solves an implicit equation r(g_{k-1}, g_k, g_{k+1}) = 0 (the DEL
     models). `state` is whatever the model carries from step to step.
 
-    `path` ("fused" | "reference") is fixed at construction: which implementation serves its
-    training loss and rollouts (the fused hot paths and `solvers.newton.solve`, or the reference
-    ones and `solve_reference`). It defaults to `runtime.fused` as set when the model is built (the
-    pipeline configures the runtime before `factory.build_model`); changing the runtime later does
-    not change it. `with_path` gives the same model, parameters shared, on the other path."""
-
-    path: ModelPath
+    Its `path` (see `Model`) also picks the Newton loop of its rollouts (`solvers.newton.solve`,
+    `reference=True` on the reference path)."""
 
     def __init__(self, path: ModelPath | None = None):
-        super().__init__()
-        self.path = check_path(path if path is not None else runtime_path())
-
-    def with_path(self: ImplicitT, path: ModelPath) -> ImplicitT:
-        """A copy of this model on `path` sharing every parameter, buffer and submodule (a step of an
-        optimiser on one moves the other)."""
-        twin = copy.copy(self)
-        # the copy's own registries (so attributes set on one do not appear on the other), same tensors
-        twin._parameters = dict(self._parameters)
-        twin._buffers = dict(self._buffers)
-        twin._modules = dict(self._modules)
-        twin.path = check_path(path)
-        return twin
+        super().__init__(path)
 
     @abc.abstractmethod
     def implicit_start(self, g0: Pose, g1: Pose) -> Any:

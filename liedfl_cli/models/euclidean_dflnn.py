@@ -30,7 +30,6 @@ from ..errors import ConfigError
 from ..lie import Pose, ProductGroup, so3
 from ..mechanics.mlp import MLP
 from ..mechanics.parameterizations import Inertia, PositiveVector, SPSDMatrix
-from ..solvers import runtime
 from ..solvers.newton import NewtonProblem
 from . import fused_dflnn
 from .base import (
@@ -193,7 +192,7 @@ class EuclideanDFLNN(ImplicitModel):
         """w_DEL mean |r_k|^2 + w_reg mean penalty(log|det d^2 L_d/dx0 dx1|) over triplets of poses
         R (N, 1, 3, 3), p (N, m, 3) (regularity pairs (P, ...)) -> (scalar (), {"del_loss", "reg_loss"} scalars ())."""
         assert isinstance(batch, TripletBatch), "EuclideanDFLNN trains on triplets (window = 'triplet')"
-        if runtime.current().fused:  # closed form (models/fused_dflnn.py), the same numbers
+        if self.path == "fused":  # closed form (models/fused_dflnn.py), the same numbers
             n_reg = batch.reg[0].R.shape[0] if batch.reg is not None and opts.w_reg > 0 else 0
             x_prev, x, x_next = (self.to_x(g) for g in batch.poses())
             return del_regularity_loss(*fused_dflnn.euclidean_residual_and_logdet(self, x_prev, x, x_next, n_reg), opts)

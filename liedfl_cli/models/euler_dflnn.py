@@ -30,7 +30,6 @@ import torch
 from ..lie import Pose, ProductGroup, euler
 from ..mechanics.mlp import MLP
 from ..mechanics.parameterizations import Inertia, SPSDMatrix
-from ..solvers import runtime
 from ..solvers.newton import NewtonProblem
 from . import fused_dflnn
 from .base import (
@@ -168,7 +167,7 @@ class EulerDFLNN(ImplicitModel):
         logdet = None
         if batch.reg is not None and opts.w_reg > 0:
             a, b = self.angles(*batch.reg)
-            H = fused_dflnn.euler_mixed_hessian(self, a, b) if runtime.current().fused else None
+            H = fused_dflnn.euler_mixed_hessian(self, a, b) if self.path == "fused" else None
             logdet = torch.linalg.slogdet(self.mixed_hessian(a, b) if H is None else H).logabsdet
         return del_regularity_loss(r, logdet, opts)
 

@@ -43,7 +43,6 @@ from ..errors import ConfigError
 from ..lie import Pose, ProductGroup, so3
 from ..mechanics.parameterizations import Inertia, SPSDMatrix
 from ..mechanics.potentials import MLPPotential
-from ..solvers import runtime
 from ..solvers.newton import NewtonProblem, NewtonResult, solve
 from ..solvers.options import SolverOptions
 from . import fused_glnn
@@ -154,8 +153,9 @@ class GLNN(ExplicitModel):
         return -dV
 
     def fused_training(self) -> bool:
-        """Whether `loss` takes the fused path (`models.fused_glnn`): `runtime.fused` and no potential."""
-        return runtime.current().fused and self.potential is None
+        """Whether `loss` takes the fused path (`models.fused_glnn`): the model's path (fixed when it
+        was built) is "fused" and it has no potential."""
+        return self.path == "fused" and self.potential is None
 
     def accel(self, R: torch.Tensor, w: torch.Tensor, params: Params, fused: bool = False) -> torch.Tensor:
         """A(R, w) = J^{-1}(tau - w x J w), tau = -D w + tau_V(R): R (..., 3, 3), w (..., 3) -> (..., 3).
