@@ -68,7 +68,8 @@ def main() -> None:
     runs = {}
     for key, (snapshot, api) in loaded.items():
         _use(snapshot)
-        api["runtime"].configure({"threads": "auto", "compile": "false"})
+        rt = api["runtime"]  # RuntimeOptions: what both the typed and the mapping `configure` accept
+        rt.configure(rt.RuntimeOptions(threads="auto", compile="false"))
         GlobalHydra.instance().clear()
         with initialize_config_dir(config_dir=str(api["conf"]), version_base="1.3"):
             paths = [f"paths.data_dir={args.data_dir}", "paths.output_dir=/tmp/liedfl-bench"]
