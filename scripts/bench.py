@@ -47,6 +47,7 @@ figures do not share the cores).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import platform
@@ -61,11 +62,11 @@ sys.path.insert(0, str(ROOT))
 
 from hydra import compose, initialize_config_dir  # noqa: E402
 from hydra.core.global_hydra import GlobalHydra  # noqa: E402
-from omegaconf import OmegaConf  # noqa: E402
 
 from liedfl_cli.cli import CONF_DIR  # noqa: E402
 from liedfl_cli.commands.train import fit  # noqa: E402
 from liedfl_cli.config.factory import build_model  # noqa: E402
+from liedfl_cli.config.typed import typed  # noqa: E402
 from liedfl_cli.data.scenes import get_dataset  # noqa: E402
 from liedfl_cli.lie import SE3, SO3, Pose, so3  # noqa: E402
 from liedfl_cli.models.liedflnn import LieDFLNN  # noqa: E402
@@ -87,19 +88,19 @@ def config(overrides: list[str], data_dir: str):
 def epoch_seconds(overrides: list[str], epochs: int, repeats: int, data_dir: str, reference: bool = True) -> dict:
     """Seconds per epoch of `fit` (best of `repeats`), fused and reference (`reference=False`: fused
     only, the reference figures NaN), and the sample count."""
-    cfg = config(overrides, data_dir)
-    ds, _ = get_dataset(cfg.dataset, data_dir)
+    run = typed(config(overrides, data_dir), "train")  # as `liedfl train` converts it, once
+    ds, _ = get_dataset(run.dataset, data_dir)
     data = ds.pose(ds.train_idx)
-    tcfg = OmegaConf.merge(cfg.train, {"epochs": epochs, "checkpoint_every": 10**9})
+    tcfg = dataclasses.replace(run.train, epochs=epochs, checkpoint_every=10**9)
     best = {True: float("inf"), False: float("inf") if reference else float("nan")}
     cpu = {True: float("inf"), False: float("inf") if reference else float("nan")}
     n = 0
     for _ in range(repeats):
         for fused in (True, False) if reference else (True,):
             with runtime.using(fused=fused):
-                model = build_model(cfg, ds)
+                model = build_model(run, ds)
                 t, c = time.perf_counter(), time.process_time()
-                out = fit(model, data, tcfg, int(cfg.dataset.train_steps), show_progress=False, log_epochs=False)
+                out = fit(model, data, tcfg, int(run.dataset.train_steps), show_progress=False, log_epochs=False)
                 best[fused] = min(best[fused], (time.perf_counter() - t) / epochs)
                 cpu[fused] = min(cpu[fused], (time.process_time() - c) / epochs)
                 n = out["n_samples"]
