@@ -22,10 +22,10 @@ error, and the rollout's body axis R e3 on the sphere; from the rollout file whe
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
-from matplotlib.figure import Figure
 
 from ..display.plots import COLORS, display_names, draw_unit_sphere, plt
 from ..display.ui import console
@@ -35,6 +35,9 @@ from ..lie import Pose
 from ..mechanics.kinetic import velocity_estimate
 from ..models.base import tensor_placement
 from .outputs import EvalOutputs
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 
 @torch.no_grad()

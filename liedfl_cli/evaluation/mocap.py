@@ -47,11 +47,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
-from matplotlib.figure import Figure
 from rich.markup import escape
 from rich.table import Table
 
@@ -64,6 +63,9 @@ from ..lie import Pose
 from ..models.base import Model, tensor_placement
 from ..solvers.options import SolverOptions
 from .outputs import EvalOutputs
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 PAPER: dict[str, Any] = {
     "sequences": [

@@ -1,0 +1,35 @@
+"""What a `liedfl` start loads: the modules of the commands that draw nothing (train and eval with
+eval.plots=false on a cached dataset, rollout, data) load neither matplotlib nor scipy at import, so
+no process pays for them unless it plots or integrates a dataset (docs/benchmarks.md, "Fast tier")."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+PKG = Path(__file__).resolve().parents[1] / "liedfl_cli"
+
+
+def test_commands_that_draw_nothing_load_no_matplotlib_or_scipy():
+    code = (
+        "import sys, liedfl_cli.cli, liedfl_cli.commands.train, liedfl_cli.commands.evaluate, "
+        "liedfl_cli.commands.rollout, liedfl_cli.commands.outputs, liedfl_cli.data.command, liedfl_cli.evaluation; "
+        "print(sorted({m.split('.')[0] for m in sys.modules} & {'matplotlib', 'scipy'}))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=PKG.parent, check=True)
+    assert out.stdout.strip() == "[]", out.stdout
+
+
+def test_plotting_still_loads_pyplot_on_the_agg_backend():
+    """The lazy `plots.plt` is pyplot itself once touched, on the non-interactive Agg backend."""
+    import matplotlib
+
+    from liedfl_cli.display import plots
+
+    fig = plots.plt.figure()
+    try:
+        assert matplotlib.get_backend().lower() == "agg"
+        assert plots.plt.gcf() is fig
+    finally:
+        plots.plt.close(fig)
