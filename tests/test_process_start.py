@@ -1,12 +1,18 @@
-"""What a `liedfl` start loads: the modules of the commands that draw nothing (train and eval with
-eval.plots=false on a cached dataset, rollout, data) load neither matplotlib nor scipy at import, so
-no process pays for them unless it plots or integrates a dataset (docs/benchmarks.md, "Fast tier")."""
+"""What a `liedfl` process pays at its start and its end (docs/benchmarks.md, "Fast tier of the tests").
+
+The modules of the commands that draw nothing (train and eval with eval.plots=false on a cached dataset,
+rollout, data) load neither matplotlib nor scipy at import; the process skips the garbage collections of
+the interpreter's exit (`gc.freeze` at exit, registered once)."""
 
 from __future__ import annotations
 
+import atexit
+import gc
 import subprocess
 import sys
 from pathlib import Path
+
+from liedfl_cli import cli
 
 PKG = Path(__file__).resolve().parents[1] / "liedfl_cli"
 
@@ -33,3 +39,12 @@ def test_plotting_still_loads_pyplot_on_the_agg_backend():
         assert plots.plt.gcf() is fig
     finally:
         plots.plt.close(fig)
+
+
+def test_the_exit_freeze_is_registered_once_per_process(monkeypatch):
+    registered = []
+    monkeypatch.setattr(cli, "_EXIT_FREEZE", [])
+    monkeypatch.setattr(atexit, "register", registered.append)
+    cli._no_collection_at_exit()
+    cli._no_collection_at_exit()
+    assert registered == [gc.freeze]
