@@ -1,16 +1,31 @@
 """What a `liedfl` process pays at its start and its end (docs/benchmarks.md, "Fast tier of the tests").
 
-The modules of the commands that draw nothing load neither matplotlib nor scipy at import
-(test_architecture.py checks it in a fresh interpreter); the pyplot they load when they draw is the Agg
-one; the process skips the garbage collections of the interpreter's exit (`gc.freeze` at exit,
+The modules of the commands that draw nothing (train and eval with eval.plots=false, rollout, data) load
+neither matplotlib nor scipy at import (checked in a fresh interpreter); the pyplot they load when they
+draw is the Agg one; the process skips the garbage collections of the interpreter's exit (`gc.freeze` at exit,
 registered once)."""
 
 from __future__ import annotations
 
 import atexit
 import gc
+import subprocess
+import sys
+from pathlib import Path
 
 from liedfl_cli import cli
+
+PKG = Path(__file__).resolve().parents[1] / "liedfl_cli"
+
+
+def test_commands_that_draw_nothing_load_no_matplotlib_or_scipy():
+    code = (
+        "import sys, liedfl_cli.cli, liedfl_cli.commands.train, liedfl_cli.commands.evaluate, "
+        "liedfl_cli.commands.rollout, liedfl_cli.commands.outputs, liedfl_cli.data.command, liedfl_cli.evaluation; "
+        "print(sorted({m.split('.')[0] for m in sys.modules} & {'matplotlib', 'scipy'}))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=PKG.parent, check=True)
+    assert out.stdout.strip() == "[]", out.stdout
 
 
 def test_plotting_still_loads_pyplot_on_the_agg_backend():
