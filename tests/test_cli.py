@@ -1,7 +1,8 @@
 """End to end through the installed `liedfl` command (subprocess, cwd = a temporary directory),
 plus `run_train` called in-process on a composed config. Everything runs on the smoke budget. The
-cases about what a command writes or refuses beyond the first train / rollout / eval run `main()`
-in-process (`run_main`, the same code without a new interpreter per call)."""
+cases about what a command writes or refuses beyond the first train run `main()` in-process
+(`run_main`, the same code without a new interpreter per call; test_signals_phases.py and
+test_hostile.py run rollout and eval as processes)."""
 
 from __future__ import annotations
 
@@ -70,8 +71,8 @@ def test_rollout_writes_a_new_folder(trained, run_main):
     with h5py.File(run / "rollout.h5") as f:
         assert int(f.attrs["steps"]) != 15
     args = ("rollout", f"run={run}", "steps=15", "ui.progress=false", "eval.plots=false")
-    liedfl(*args, cwd=run.parents[2])  # through the `liedfl` command once; the second time in this process
-    run_main(*args, cwd=run.parents[2], ok=True)
+    for _ in range(2):  # in this process (`trained` ran the `liedfl` command; test_signals_phases.py rolls out in one)
+        run_main(*args, cwd=run.parents[2], ok=True)
     new = sorted(d for d in (run / "rollouts").iterdir() if "_steps15" in d.name)
     assert len(new) == 2 and all(d.name.endswith(("_steps15", "_steps15_2")) for d in new), new
     for d in new:
@@ -102,10 +103,10 @@ def test_a_failed_rollout_leaves_no_folder(trained, monkeypatch):
     assert after == before
 
 
-def test_eval_rewrites_eval_csv(trained, tmp_path):
+def test_eval_rewrites_eval_csv(trained, tmp_path, run_main):
     run = trained
     (run / "eval.csv").write_text("stale\n")
-    liedfl("eval", f"run={run}", "ui.progress=false", "eval.plots=false", cwd=tmp_path)  # from another cwd
+    run_main("eval", f"run={run}", "ui.progress=false", "eval.plots=false", cwd=tmp_path, ok=True)  # another cwd
     with open(run / "eval.csv") as f:
         rows = list(csv.DictReader(f))
     assert rows and rows[0]["model"] == "model" and math.isfinite(float(rows[0]["rel_rot_error_mean"]))

@@ -1,7 +1,7 @@
 """Edges of the `liedfl` command line (issue 21, item 6): --version, a closed stdout pipe, a misspelt key
 without `+`, --help after overrides, run=latest / resume=latest. Nothing here trains. The misspelt-key and
-run=latest messages come from `main()` run in-process (`run_main`); --version, the pipes and --help through
-a real process."""
+run=latest messages and --help after overrides come from `main()` run in-process (`run_main`); --version,
+the pipes and --help into them through a real process."""
 
 from __future__ import annotations
 
@@ -85,8 +85,8 @@ def test_help_overrides_join_the_users():
 @pytest.mark.parametrize(
     "args", [["dataset=import", "--help"], ["--help", "dataset=import"], ["-h", "model=neural_ode"]]
 )
-def test_help_with_overrides(args, tmp_path):
-    proc = run_cli("train", *args, cwd=tmp_path, ok=True)
+def test_help_with_overrides(args, tmp_path, run_main):
+    proc = run_main("train", *args, cwd=tmp_path, ok=True)  # (the pipe tests above run --help as a process)
     assert proc.stdout.startswith("liedfl train: train and evaluate a model")
     assert "== Configuration groups ==" in proc.stdout and "== Config ==" in proc.stdout
     assert "hydra.help" not in proc.stdout + proc.stderr and "usage:" not in proc.stderr

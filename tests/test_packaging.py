@@ -63,31 +63,16 @@ def test_wheel_ships_the_configs_and_runs_the_smoke_budget(tmp_path):
     work.mkdir()
     env = _env(PYTHONPATH=str(site))
     # the installed copy, not the sources; Exp 4's config paths (data/cmu_mocap/*.bvh, relative) resolve to
-    # the installed recordings (one interpreter for both)
-    where, found = (
-        subprocess.run(
-            [
-                sys.executable,
-                "-c",
-                "import liedfl_cli; print(liedfl_cli.__file__)\n"
-                "from liedfl_cli.data.mocap import _resolve; print(_resolve('data/cmu_mocap/49_07.bvh'))",
-            ],
-            cwd=work,
-            env=env,
-            capture_output=True,
-            text=True,
-            check=True,
-        )
-        .stdout.strip()
-        .splitlines()
+    # the installed recordings; then the smoke budget trains (one interpreter for all three)
+    where_found = (
+        "import liedfl_cli; print(liedfl_cli.__file__)\n"
+        "from liedfl_cli.data.mocap import _resolve; print(_resolve('data/cmu_mocap/49_07.bvh'), flush=True)\n"
     )
-    assert Path(where).is_relative_to(site), where
-    assert Path(found).is_relative_to(site) and Path(found).stat().st_size > 100_000, found
     proc = subprocess.run(
         [
             sys.executable,
             "-c",
-            "from liedfl_cli.cli import main; main()",
+            where_found + "from liedfl_cli.cli import main; main()",
             "train",
             "budget=smoke",
             "ui.progress=false",
@@ -100,6 +85,9 @@ def test_wheel_ships_the_configs_and_runs_the_smoke_budget(tmp_path):
         timeout=300,
     )
     assert proc.returncode == 0, proc.stderr[-2000:]
+    where, found = proc.stdout.splitlines()[:2]
+    assert Path(where).is_relative_to(site), where
+    assert Path(found).is_relative_to(site) and Path(found).stat().st_size > 100_000, found
     (run,) = (work / "outputs" / "runs").iterdir()
     assert (run / "eval.md").is_file() and (run / "train.log").is_file()
     assert "trained 2 epochs" in (run / "train.log").read_text()

@@ -25,10 +25,10 @@ import csv
 import json
 import math
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import yaml
-from matplotlib.figure import Figure
 from omegaconf import DictConfig
 
 from ..config import resolvers  # noqa: F401  (registers the config resolvers)
@@ -41,6 +41,9 @@ from ..files.io_utils import fmt, markdown_table
 from ..files.rollout_file import FILE_NAME, read_rollout
 from .evaluate import CV_COLUMNS, DRIFT_COLUMNS, ERROR_COLUMNS, ONE_STEP_COLUMNS
 from .outputs import write_outputs
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 COLUMNS = [
     "run",

@@ -27,7 +27,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
-from scipy.integrate import solve_ivp
 
 from ..errors import ConfigError, SimulationError
 from ..lie import so3
@@ -304,6 +303,14 @@ class Simulation:
     v: np.ndarray | None = None
     max_drift: float = 0.0
     nfev: int = 0
+
+
+def solve_ivp(*args, **kwargs):
+    """`scipy.integrate.solve_ivp`, imported at the first call: loading scipy.integrate costs ~0.5 s of
+    every `liedfl` start, and only generating a dataset integrates."""
+    from scipy.integrate import solve_ivp as scipy_solve_ivp
+
+    return scipy_solve_ivp(*args, **kwargs)
 
 
 def integrate(

@@ -8,17 +8,39 @@ is black.
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
-from typing import NamedTuple
+from types import ModuleType
+from typing import TYPE_CHECKING, Any, NamedTuple
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 import numpy as np
-from matplotlib.figure import Figure
 
 from ..files.io_utils import atomic_path
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
+
+@functools.cache
+def _pyplot() -> ModuleType:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot
+
+    return matplotlib.pyplot
+
+
+class _LazyPyplot:
+    """`matplotlib.pyplot` on the Agg backend, imported at the first attribute read: loading matplotlib
+    costs ~0.5 s of every `liedfl` start, and most commands (data, rollout, eval.plots=false) draw
+    nothing."""
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(_pyplot(), name)
+
+
+plt: Any = _LazyPyplot()
 
 
 class ArrayPose(NamedTuple):

@@ -22,10 +22,10 @@ error, and the rollout's body axis R e3 on the sphere; from the rollout file whe
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
-from matplotlib.figure import Figure
 
 from ..display.plots import COLORS, display_names, draw_unit_sphere, plt
 from ..files.io_utils import markdown_table
@@ -34,6 +34,9 @@ from ..lie import Pose
 from ..mechanics.kinetic import velocity_estimate
 from ..models.base import tensor_placement
 from .outputs import EvalOutputs, SceneEvalOptions
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 
 @torch.no_grad()

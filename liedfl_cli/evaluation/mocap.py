@@ -47,11 +47,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
-from matplotlib.figure import Figure
 from rich.markup import escape
 from rich.table import Table
 
@@ -62,6 +61,9 @@ from ..files.rollout_file import FILE_NAME, RolloutEntry, load_rollout
 from ..lie import Pose
 from ..models.base import Model, tensor_placement
 from .outputs import EvalOutputs, SceneEvalOptions
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 PAPER: dict[str, Any] = {
     "sequences": [
