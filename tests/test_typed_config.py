@@ -188,3 +188,14 @@ def test_the_layers_below_the_commands_never_see_a_dict_config_in_their_annotati
         if "DictConfig" in p.read_text() or "OmegaConf" in p.read_text()
     ]
     assert not bad, bad
+
+
+def test_an_unresolved_or_null_output_dir_takes_the_default_outside_a_hydra_run():
+    """A config composed by the compose API has no Hydra run folder: `${hydra:runtime.output_dir}`
+    fails to resolve in a fresh process and resolves to None after an in-process Hydra run (the order
+    CI runs the tests in); either way the typed `paths.output_dir` is the dataclass's default."""
+    from liedfl_cli.config.typed import PathsConfig, typed
+
+    for extra in ((), ("paths.output_dir=null",)):
+        run = typed(compose_config("train", (*SMOKE, *extra)))
+        assert run.paths.output_dir == PathsConfig().output_dir

@@ -212,14 +212,17 @@ def section(schema: type, values: Any, where: str) -> Any:
 
 
 def _resolvable(node: DictConfig) -> dict[str, Any]:
-    """The keys of `node` whose values resolve: `paths.output_dir` names Hydra's run folder, which a
-    config composed without a Hydra run (the compose API: tests, scripts) does not have."""
+    """The keys of `node` whose values resolve to something: `paths.output_dir` names Hydra's run
+    folder, which a config composed without a Hydra run (the compose API: tests, scripts) does not
+    have; after an earlier Hydra run in the same process it resolves to None instead of failing."""
     out = {}
     for key in node:
         try:
-            out[str(key)] = plain(node[key], str(key))
+            value = plain(node[key], str(key))
         except (ConfigError, OmegaConfBaseException, ValueError):
             continue
+        if value is not None:
+            out[str(key)] = value
     return out
 
 
