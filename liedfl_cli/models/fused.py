@@ -33,6 +33,7 @@ Files (this module only re-exports them: the rest of the code imports `models.fu
 
 from __future__ import annotations
 
+from ..lie.batched import compose, exp_coefficients, group_exp, group_retract, vee2
 from .fused_maps import (
     SCALAR_BODIES,
     SCALAR_DIM,
@@ -42,11 +43,7 @@ from .fused_maps import (
     _InertiaJdScalar,
     _map_contraction,
     _SPSDScalar,
-    compose,
     derive,
-    exp_coefficients,
-    group_exp,
-    group_retract,
     hessian_map,
     inertia_jd,
     kinetic_residual_map,
@@ -54,7 +51,6 @@ from .fused_maps import (
     solve_small,
     spsd_matrix,
     training_maps,
-    vee2,
     warm_caches,
 )
 from .fused_rollout import (

@@ -1,5 +1,5 @@
-"""Fused hot paths of LieDFLNN, part 1 (see `models.fused`): the small closed forms (exp
-coefficients, group exponential and retraction, 3x3 solves), the constants cached per dtype/device,
+"""Fused hot paths of LieDFLNN, part 1 (see `models.fused`): the small closed forms (3x3 solves; the
+batched group maps live in `lie/batched.py` and are re-exported here), the constants cached per dtype/device,
 the derived parameters built once (`Derived`, `derive`: J_d and the SPSD matrices with
 hand-written gradients), the rotational kinetic-residual and mixed-Hessian maps linear in W, and the
 potential's covector."""
@@ -13,7 +13,9 @@ from typing import Any
 import torch
 from torch import nn
 
-from ..lie import Pose, ProductGroup, so3
+from ..lie import Pose, so3
+from ..lie.batched import EXP_TAYLOR as _EXP_TAYLOR
+from ..lie.batched import exp_coefficients, vee2
 from ..lie.tolerances import tol
 from ..mechanics.damping import PerBodySPSD
 from ..mechanics.forces import RayleighForce
@@ -22,11 +24,6 @@ from ..mechanics.potentials import left_gradient
 from . import mlp_derivatives
 
 # ---------------------------------------------------------------------------- small closed forms
-_EXP_TAYLOR = (
-    (1.0, -1 / 6, 1 / 120, -1 / 5040, 1 / 362880),  # sinc
-    (0.5, -1 / 24, 1 / 720, -1 / 40320, 1 / 3628800),  # cosc
-    (1 / 6, -1 / 120, 1 / 5040, -1 / 362880, 1 / 39916800),  # sinc3
-)
 
 
 _CONSTANTS: dict[tuple, dict[str, Any]] = {}
@@ -55,66 +52,6 @@ def _build_constants(dtype: torch.dtype, device: torch.device | None) -> dict[st
 def _basis(dtype, device=None) -> torch.Tensor:
     """The 9 matrix units E_(ij), shape (9, 3, 3)."""
     return _constants(dtype, device)["basis"]
-
-
-def vee2(M: torch.Tensor) -> torch.Tensor:
-    """(..., 3, 3) -> (..., 3): vee(M - M^T) = (M21 - M12, M02 - M20, M10 - M01)."""
-    return torch.stack((M[..., 2, 1] - M[..., 1, 2], M[..., 0, 2] - M[..., 2, 0], M[..., 1, 0] - M[..., 0, 1]), -1)
-
-
-def exp_coefficients(t2: torch.Tensor) -> torch.Tensor:
-    """(sinc, cosc, sinc3) of `lie.series` as functions of t^2, stacked on a new last axis.
-
-    The same Taylor polynomials, threshold and closed forms as `series.sinc/cosc/sinc3`,
-    evaluated together (one Horner pass over the stacked coefficients)."""
-    small = t2 < tol(t2.dtype, "taylor") ** 2
-    s2 = t2.masked_fill(small, 1.0)
-    t = torch.sqrt(s2)
-    c0, c1, c2, c3, c4 = _constants(t2.dtype, t2.device)["taylor_by_degree"]  # (3,) each
-    x = t2[..., None]
-    taylor = torch.addcmul(c3, c4, x)
-    for c in (c2, c1, c0):
-        taylor = torch.addcmul(c, taylor, x)
-    sin_t = torch.sin(t)
-    half = torch.sin(0.5 * t)
-    closed = torch.stack((sin_t / t, 2.0 * (half * half) / s2, (t - sin_t) / (s2 * t)), -1)
-    return torch.where(small[..., None], taylor, closed)
-
-
-def _split_tangent(G: ProductGroup, xi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """`G.split`, a plain view for SO(3)-only groups."""
-    if not G.n_se3:
-        return xi.unflatten(-1, (G.n_bodies, 3)), xi.new_zeros(*xi.shape[:-1], 0, 3)
-    return G.split(xi)
-
-
-def group_exp(G: ProductGroup, xi: torch.Tensor) -> Pose:
-    """`G.exp` with shared coefficients: R = I + sinc W + cosc W^2, p = (I + cosc W + sinc3 W^2) v."""
-    w, v = _split_tangent(G, xi)
-    t2 = (w * w).sum(-1)
-    c = exp_coefficients(t2)[..., None, None, :]
-    const = _constants(w.dtype, w.device)
-    W = (w @ const["hat"]).unflatten(-1, (3, 3))
-    eye = const["eye"]
-    W2 = w[..., :, None] * w[..., None, :] - t2[..., None, None] * eye  # hat(w)^2 = w w^T - |w|^2 I
-    R = eye + c[..., 0] * W + c[..., 1] * W2
-    m = G.n_se3
-    if not m:
-        return Pose(R, v)
-    V = eye + c[..., :m, :, :, 1] * W[..., :m, :, :] + c[..., :m, :, :, 2] * W2[..., :m, :, :]
-    return Pose(R, (V @ v[..., None])[..., 0])
-
-
-def compose(G: ProductGroup, g: Pose, h: Pose) -> Pose:
-    """`G.compose` (g h body by body); for SO(3)-only groups just the rotation product."""
-    if not G.n_se3:
-        return Pose(g.R @ h.R, g.p)
-    return G.compose(g, h)
-
-
-def group_retract(G: ProductGroup, g: Pose, xi: torch.Tensor) -> Pose:
-    """g exp(xi) (`G.retract` with `group_exp`)."""
-    return compose(G, g, group_exp(G, xi))
 
 
 def solve_small(J: torch.Tensor, r: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -11,6 +11,7 @@ import torch
 from torch import nn
 
 from ..lie import Pose, ProductGroup, so3
+from ..lie.batched import compose, retract_increment
 from ..lie.tolerances import projects_poses
 from ..mechanics import kinetic
 from ..mechanics.forces import PDControl, RayleighForce, RayleighNonlinearForce, force_jacobian_xi
@@ -23,9 +24,7 @@ from .fused_maps import (
     _apply_map,
     _basis,
     _constants,
-    compose,
     derive,
-    group_retract,
     hessian_map,
     potential_covector,
     solve_small,
@@ -332,25 +331,6 @@ class FusedStep:
         delta = -sol
         cand = self.retract(x, delta)
         return delta, singular, cand, self.f(cand)
-
-
-def retract_increment(G: ProductGroup, x: Pose, delta: torch.Tensor) -> Pose:
-    """x exp(delta) (`group_retract`); for rotation-only groups without the graph (rollouts) in a
-    few wide kernels: R exp(hat(w)) = R (cos t I + sinc(t) hat(w) + cosc(t) w w^T), with the closed
-    forms at every angle (cos t, sin(t)/t and 2 sin^2(t/2)/t^2 are accurate to rounding down to the
-    smallest normal t; at t = 0 w is 0 and the coefficients do not matter), where `group_exp`
-    switches to Taylor polynomials below `taylor`: equal to rounding."""
-    R = x.R
-    if G.n_se3 or (torch.is_grad_enabled() and (delta.requires_grad or R.requires_grad)):
-        return group_retract(G, x, delta)
-    w = delta.reshape(*R.shape[:-2], 3)
-    t = torch.linalg.vector_norm(w, dim=-1).clamp_(min=torch.finfo(w.dtype).tiny)
-    sinc = torch.sin(t).div_(t)
-    cosc = torch.sin(0.5 * t).div_(t).square_().mul_(2.0)
-    E = (cosc[..., None] * w)[..., :, None] * w[..., None, :]  # cosc w w^T
-    E.view(*E.shape[:-2], 9).add_((sinc[..., None] * w) @ _constants(w.dtype, w.device)["hat"])
-    E.diagonal(dim1=-2, dim2=-1).add_(torch.cos(t)[..., None])
-    return Pose(R @ E, x.p)
 
 
 def step_residual(G: ProductGroup, h: float, x: Pose, const, B, maps: RolloutMaps) -> torch.Tensor:
