@@ -33,6 +33,7 @@ settings.register_profile(
 )
 settings.register_profile("thorough", deadline=None, max_examples=300)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "default-liedfl"))
+helpers.cache_yaml_parses()  # each config file's YAML parsed once per session (helpers.py says why)
 
 
 # ----------------------------------------------------------------------------- engine state
