@@ -178,6 +178,24 @@ def test_model_configs_name_their_option_and_a_model_class():
         assert f"override /model: {'liedflnn' if name == 'none' else name}" in text
 
 
+def test_every_model_owns_an_options_dataclass_matching_its_config_files():
+    """Each model class of liedfl_cli/conf/model declares `Options`, a dataclass in its own file, and
+    the keys of every config file of that class are its fields (so the schema checks their types)."""
+    import dataclasses
+
+    from liedfl_cli.config.factory import model_class
+
+    for name in _options("model"):
+        raw = OmegaConf.load(CONF_DIR / "model" / f"{name}.yaml")
+        cls = model_class(raw._target_)
+        assert cls.Options is not None and dataclasses.is_dataclass(cls.Options), name
+        assert cls.Options.__module__ == cls.__module__, f"{name}: options not owned by the model's file"
+        fields = {f.name: f for f in dataclasses.fields(cls.Options)}
+        keys = {str(k) for k in raw} - {"_target_", "name"}
+        assert keys <= set(fields), f"{name}: {sorted(keys - set(fields))} missing from {cls.Options.__name__}"
+        assert "mlp_width" in keys and "mlp_depth" in keys  # a file that sets nothing would prove nothing here
+
+
 def test_dataset_options_match_registry():
     from liedfl_cli.data.scenes import FILE_SCENE, SCENES
 

@@ -23,6 +23,9 @@ computed in closed form by `models.fused_dflnn` (the same numbers; `runtime.fuse
 
 from __future__ import annotations
 
+from dataclasses import dataclass, fields
+from typing import Any
+
 import torch
 from torch import nn
 
@@ -46,6 +49,18 @@ from .del_loss import del_regularity_loss
 
 # rollout state: the pair (x_{k-1}, x_k), each (N, n)
 State = tuple[torch.Tensor, torch.Tensor]
+
+
+@dataclass
+class EuclideanDFLNNOptions:
+    """The Euclidean DFLNN's config options (conf/model/euclidean_dflnn.yaml): the schema `config/schema.py` checks the
+    `model` section's keys and types against (`Model.Options`); `from_config` checks the values."""
+
+    potential: Any = "mlp"  # mlp | none | auto
+    damping: Any = "auto"  # auto | true | false
+    mlp_width: int = 64
+    mlp_depth: int = 3
+    init_jitter: float = 0.1
 
 
 class EuclideanDFLNN(ImplicitModel):
@@ -86,7 +101,8 @@ class EuclideanDFLNN(ImplicitModel):
         self.damping = SPSDMatrix(G.dim, init_diag=0.01 * s) if damping else None
         self.potential = MLP(self.n, 1, mlp_width, mlp_depth) if potential else None
 
-    OPTIONS = ("potential", "damping", "mlp_width", "mlp_depth", "init_jitter")
+    Options = EuclideanDFLNNOptions
+    OPTIONS = tuple(f.name for f in fields(EuclideanDFLNNOptions))
 
     @classmethod
     def from_config(cls, ctx: BuildContext, **options) -> EuclideanDFLNN:

@@ -25,6 +25,9 @@ With `runtime.fused` (the default) the regularity term's mixed Hessian is comput
 
 from __future__ import annotations
 
+from dataclasses import dataclass, fields
+from typing import Any
+
 import torch
 
 from ..lie import Pose, ProductGroup, euler
@@ -56,6 +59,18 @@ def _shift_to_principal(q_ref: torch.Tensor) -> torch.Tensor:
 State = tuple[torch.Tensor, torch.Tensor]
 
 
+@dataclass
+class EulerDFLNNOptions:
+    """The Euler-angle DFLNN's config options (conf/model/euler_dflnn.yaml): the schema `config/schema.py` checks the
+    `model` section's keys and types against (`Model.Options`); `from_config` checks the values."""
+
+    potential: Any = "auto"  # auto | mlp | none
+    damping: Any = "auto"  # auto | true | false
+    mlp_width: int = 64
+    mlp_depth: int = 3
+    init_jitter: float = 0.1
+
+
 class EulerDFLNN(ImplicitModel):
     """DEL model in ZYX Euler angles q (..., 3) with M(q) = E^T J E, learned J, D (and V(q))."""
 
@@ -82,7 +97,8 @@ class EulerDFLNN(ImplicitModel):
         self.damping = SPSDMatrix(3, init_diag=0.01 * scale) if damping else None
         self.potential = MLP(3, 1, mlp_width, mlp_depth) if potential else None
 
-    OPTIONS = ("potential", "damping", "mlp_width", "mlp_depth", "init_jitter")
+    Options = EulerDFLNNOptions
+    OPTIONS = tuple(f.name for f in fields(EulerDFLNNOptions))
 
     @classmethod
     def from_config(cls, ctx: BuildContext, **options) -> EulerDFLNN:

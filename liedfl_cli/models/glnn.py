@@ -37,6 +37,9 @@ their velocities first and every step's exp in one call. Same losses and gradien
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Any
+
 import torch
 
 from ..errors import ConfigError
@@ -72,6 +75,25 @@ Params = tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]
 State = tuple[torch.Tensor, torch.Tensor, Params]
 
 
+@dataclass
+class GLNNOptions:
+    """GLNN's config options (conf/model/glnn_*.yaml), every integrator's: the schema `config/schema.py`
+    checks the `model` section's keys and types against (`Model.Options`); `from_config` checks that
+    an integrator-specific option (`INTEGRATOR_OPTIONS`) belongs to the chosen integrator."""
+
+    integrator: str = "dopri5"  # dopri5 | heun | midpoint
+    window: str = "trajectory"  # trajectory | triplet
+    potential: Any = "auto"  # auto | mlp | none
+    damping: Any = "auto"  # auto | true | false
+    mlp_width: int = 64
+    mlp_depth: int = 3
+    init_jitter: float = 0.1
+    rtol: float = 1e-7  # dopri5
+    atol: float = 1e-9  # dopri5
+    max_num_steps: int = 100000  # dopri5
+    train_newton_iters: int = 4  # midpoint
+
+
 class GLNN(ExplicitModel):
     """Continuous-time rigid body on SO(3) with learned J, D (and V), integrated by `integrator`.
 
@@ -81,6 +103,8 @@ class GLNN(ExplicitModel):
         potential / damping: build V and D. rtol, atol, max_num_steps: dopri5 settings.
         train_newton_iters: Newton iterations of the midpoint solve in training.
     """
+
+    Options = GLNNOptions
 
     def __init__(
         self,

@@ -13,6 +13,9 @@ start, the ODE solution sampled every h, with g0, g1 in front. Works for any pro
 
 from __future__ import annotations
 
+from dataclasses import dataclass, fields
+from typing import Any
+
 import torch
 
 from ..errors import ConfigError
@@ -25,6 +28,21 @@ ADAPTIVE_METHODS = ("dopri5", "dopri8", "bosh3", "fehlberg2", "adaptive_heun")
 
 # rollout state: (x (N, n), v (N, n))
 State = tuple[torch.Tensor, torch.Tensor]
+
+
+@dataclass
+class NeuralODEOptions:
+    """The Neural ODE's config options (conf/model/neural_ode.yaml): the schema `config/schema.py` checks the
+    `model` section's keys and types against (`Model.Options`); `from_config` checks the values."""
+
+    window: str = "trajectory"  # trajectory | triplet
+    mlp_width: int = 64
+    mlp_depth: int = 3
+    method: str = "dopri5"  # any torchdiffeq method
+    rtol: float = 1e-7
+    atol: float = 1e-9
+    max_num_steps: int = 100000
+    potential: Any = "auto"  # auto | mlp (the vector field's MLP holds any potential)
 
 
 class NeuralODE(ExplicitModel):
@@ -53,7 +71,8 @@ class NeuralODE(ExplicitModel):
             torch.manual_seed(int(seed))
             self.field = MLP(2 * self.n, self.n, mlp_width, mlp_depth)
 
-    OPTIONS = ("window", "mlp_width", "mlp_depth", "method", "rtol", "atol", "max_num_steps", "potential")
+    Options = NeuralODEOptions
+    OPTIONS = tuple(f.name for f in fields(NeuralODEOptions))
 
     @classmethod
     def from_config(cls, ctx: BuildContext, **options) -> NeuralODE:
