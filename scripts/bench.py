@@ -121,6 +121,15 @@ BASELINES = {  # the paper's settings: experiment file and, for Exp 2, its longe
 }
 
 
+def write_figures(out: dict, path: str, t_all: float, log) -> None:
+    """Close the record (load at the end, total seconds) and write it as JSON to `path`."""
+    out["load_avg_end"] = list(os.getloadavg())
+    out["load_avg"] = out["load_avg_start"][0]
+    out["seconds"] = time.perf_counter() - t_all
+    Path(path).write_text(json.dumps(out, indent=2) + "\n")
+    log(f"wrote {path}")
+
+
 def fast_tier(log) -> dict:
     """Wall time of the README's test command (the fast tier), run from the repository root in a
     child process: {wall_s, tests_passed, exit_code, load_avg_start, load_avg_end}."""
@@ -271,11 +280,7 @@ def main() -> None:
             out["baseline_models"] = baseline_models(args.data_dir, q, log)
         if args.fast_tier_only:
             out["fast_tier"] = fast_tier(log)
-        out["load_avg_end"] = list(os.getloadavg())
-        out["load_avg"] = out["load_avg_start"][0]
-        out["seconds"] = time.perf_counter() - t_all
-        Path(args.json).write_text(json.dumps(out, indent=2) + "\n")
-        log(f"wrote {args.json}")
+        write_figures(out, args.json, t_all, log)
         return
 
     # training
@@ -392,11 +397,7 @@ def main() -> None:
     out["speedup"] = speed
     if args.fast_tier:  # after the timed figures, so that the tests do not share the cores with them
         out["fast_tier"] = fast_tier(log)
-    out["load_avg_end"] = list(os.getloadavg())
-    out["load_avg"] = out["load_avg_start"][0]
-    out["seconds"] = time.perf_counter() - t_all
-    Path(args.json).write_text(json.dumps(out, indent=2) + "\n")
-    log(f"wrote {args.json}")
+    write_figures(out, args.json, t_all, log)
 
 
 if __name__ == "__main__":

@@ -3,6 +3,7 @@ composition, the `liedfl` command in a subprocess and its environment."""
 
 from __future__ import annotations
 
+import ast
 import os
 import pickle
 import shutil
@@ -142,3 +143,17 @@ def cache_yaml_parses() -> None:
 
     if not isinstance(omegaconf.yaml, _ParsedYaml):
         omegaconf.yaml = _ParsedYaml(yaml)  # type: ignore[assignment]
+
+
+def modules_in_fresh_interpreter(code: str, roots: tuple[str, ...]) -> list[str]:
+    """Run `code` (Python source) in a new interpreter from the repository root and return the
+    sorted top-level names among `roots` that it left in `sys.modules` (what an import loads)."""
+    probe = f"{code}\nimport sys\nprint(sorted({{m.split('.')[0] for m in sys.modules}} & {set(roots)!r}))"
+    out = subprocess.run(
+        [sys.executable, "-c", probe],
+        capture_output=True,
+        text=True,
+        cwd=Path(__file__).resolve().parents[1],
+        check=True,
+    )
+    return ast.literal_eval(out.stdout.strip().splitlines()[-1])

@@ -9,10 +9,9 @@ from __future__ import annotations
 
 import atexit
 import gc
-import subprocess
-import sys
 from pathlib import Path
 
+from helpers import modules_in_fresh_interpreter
 from liedfl_cli import cli
 
 PKG = Path(__file__).resolve().parents[1] / "liedfl_cli"
@@ -21,15 +20,13 @@ PKG = Path(__file__).resolve().parents[1] / "liedfl_cli"
 def test_commands_that_draw_nothing_load_no_matplotlib_or_scipy():
     # every module of the commands, the evaluations and the data layer (what `liedfl` may import to run)
     code = (
-        "import importlib, pkgutil, sys, liedfl_cli.cli\n"
+        "import importlib, pathlib, pkgutil, liedfl_cli.cli\n"
         "for pkg in ('commands', 'evaluation', 'data'):\n"
-        "    path = [str(__import__('pathlib').Path(liedfl_cli.cli.__file__).parent / pkg)]\n"
+        "    path = [str(pathlib.Path(liedfl_cli.cli.__file__).parent / pkg)]\n"
         "    for m in pkgutil.iter_modules(path):\n"
-        "        importlib.import_module(f'liedfl_cli.{pkg}.{m.name}')\n"
-        "print(sorted({m.split('.')[0] for m in sys.modules} & {'matplotlib', 'scipy'}))"
+        "        importlib.import_module(f'liedfl_cli.{pkg}.{m.name}')"
     )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=PKG.parent, check=True)
-    assert out.stdout.strip() == "[]", out.stdout
+    assert modules_in_fresh_interpreter(code, ("matplotlib", "scipy")) == []
 
 
 def test_plotting_still_loads_pyplot_on_the_agg_backend():
