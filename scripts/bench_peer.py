@@ -8,8 +8,9 @@ u_dim=1, time_step=h)` (networks of width 10, a fixed 5 Newton iterations per st
 search or convergence check), rolled out by its `predict` from random rotations, unit angular
 velocity scale and zero control. liedfl is timed on (a) the free rigid body with true parameters
 and (b) an SO(3) LieDFLNN with an MLP potential of width 10 x 2 and Rayleigh damping (the peer's
-network size), Newton to tolerance 1e-5 with line search, on the fused paths and on the reference
-paths (`_reference`). Figures: microseconds per step per trajectory (best of 3), peer and liedfl
+network size), Newton to tolerance 1e-5 with line search, on the fused paths (a single SO(3) body
+rolls out in column layout, `models.fused_columns`), on the fused step in the row layout (`_rows`)
+and on the reference paths (`_reference`). Figures: microseconds per step per trajectory (best of 3), peer and liedfl
 alternately, and their ratios (peer_over_X > 1: liedfl is faster).
 """
 
@@ -31,6 +32,8 @@ from liedfl_cli.lie import SO3, Pose, so3  # noqa: E402
 from liedfl_cli.models.liedflnn import LieDFLNN  # noqa: E402
 from liedfl_cli.models.true_scheme import physics_model  # noqa: E402
 from liedfl_cli.solvers import runtime  # noqa: E402
+from liedfl_cli.solvers.options import SolverOptions  # noqa: E402
+from liedfl_cli.solvers.rollout import rollout_implicit  # noqa: E402
 
 H = 0.05
 PHYS = {"J": [1.521, 1.362, 1.211], "m": 0.5, "rho": [0.0, 0.5, 1.0], "g": 0.0, "D": [0.05] * 3}
@@ -77,10 +80,14 @@ def main() -> None:
         t_peer = best_of(lambda x0=x0, steps=steps: peer.predict(steps, x0)) / steps / n * 1e6
         row = {"batch": n, "steps": steps, "peer_us_per_step_traj": t_peer}
         for name, model in ours.items():
-            for label, fused in (("", True), ("_reference", False)):
-                on_path = model.with_path("fused" if fused else "reference")
-                on_path.rollout(g0, g1, 3)
-                t = best_of(lambda model=on_path, g0=g0, g1=g1, steps=steps: model.rollout(g0, g1, steps + 1))
+            for label, path in (("", "fused"), ("_rows", "rows"), ("_reference", "reference")):
+                on_path = model.with_path("reference" if path == "reference" else "fused")
+                if path == "rows":  # the fused step in the row layout (before the column rollout)
+                    run = lambda m=on_path, g0=g0, g1=g1, s=steps: rollout_implicit(m, g0, g1, s + 1, SolverOptions())
+                else:
+                    run = lambda m=on_path, g0=g0, g1=g1, s=steps: m.rollout(g0, g1, s + 1)
+                run()
+                t = best_of(run)
                 t = t / steps / n * 1e6
                 row[f"{name}{label}_us_per_step_traj"] = t
                 row[f"peer_over_{name}{label}"] = t_peer / t

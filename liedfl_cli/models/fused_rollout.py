@@ -281,6 +281,15 @@ class FusedStep:
         self.compiled_iterate = compiled_iterate if not self.generic else None
         self.forces_at = mlp_derivatives.ForcesAt(G, self.generic, g) if self.generic else None
 
+    @classmethod
+    def from_parts(cls, model, maps: RolloutMaps, g: Pose, const: torch.Tensor) -> FusedStep:
+        """The step of a model without per-iteration forces or an affine force Jacobian (constant
+        Rayleigh damping at most: `maps.linear`) from its fixed part `const` (T, dim) at g_k."""
+        step = cls.__new__(cls)
+        step.G, step.h, step.maps, step.g, step.const = model.G, model.h, maps, g, const
+        step.generic, step.B, step.compiled_iterate, step.forces_at = [], None, None, None
+        return step
+
     def _potential_covector(self, model, g: Pose) -> torch.Tensor:
         """The potential's covector at g_k (detached: the step's fixed part needs no graph)."""
         lys = self.maps.potential_layers

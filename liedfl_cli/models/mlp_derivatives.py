@@ -10,7 +10,8 @@ with no autograd graph.
     left_covector(G, g, dx)         d f(g exp(eta))/d eta at 0 from df/dflatten(g)   (..., dim)
     potential_covector(model, g)    -h dV(g exp(eta))/d eta at 0 of an MLP potential (None: not an MLP)
     gradient_feature_major(lys, x)  dV/dx without a graph, feature major (n, T): one wide product per
-                                    layer; rotation_potential_covector(lys, G, R, h) builds on it (rollouts)
+                                    layer; rotation_potential_covector(lys, G, R, h) builds on it (rollouts);
+                                    gradient_columns(lys, a) the same from a feature-major input a (n, T)
 
 The backward pass of every activation is ATen's own (`gelu_backward`, `tanh_backward`, ...), the
 kernels autograd runs, so the gradient is autograd's to rounding; without a graph an exact GELU's value
@@ -176,7 +177,7 @@ def _act_and_slope(act: nn.Module, z: torch.Tensor) -> tuple[torch.Tensor, torch
     if isinstance(act, nn.GELU) and act.approximate == "none":
         cdf = torch.erf(z * _INV_SQRT2).mul_(0.5).add_(0.5)
         a = z * cdf
-        s = torch.square(z).mul_(-0.5).exp_().mul_(_INV_SQRT2PI).mul_(z).add_(cdf)
+        s = torch.mul(z, z).mul_(-0.5).exp_().mul_(_INV_SQRT2PI).mul_(z).add_(cdf)
         return a, s
     a = act(z)
     return a, _act_backward(act, torch.ones_like(z), z, a)
@@ -186,7 +187,11 @@ def gradient_feature_major(lys: list[Layer], x: torch.Tensor, scale: float = 1.0
     """scale * d net(x)[:, 0] / dx of a scalar network (no graph), computed and returned feature
     major: x (T, n) -> (n, T). Every layer is then one wide product (width x T), several times
     faster on CPU than the batch-major (T x width) one at these widths."""
-    a = x.T
+    return gradient_columns(lys, x.T, scale)
+
+
+def gradient_columns(lys: list[Layer], a: torch.Tensor, scale: float = 1.0) -> torch.Tensor:
+    """`gradient_feature_major` from the input already feature major: a (n, T) -> (n, T)."""
     slopes = []
     for lin, act in lys[:-1]:
         assert act is not None
