@@ -29,6 +29,9 @@ Files (this module only re-exports them: the rest of the code imports `models.fu
                        slogdet, the SO(3)-only loss with its hand-written gradient
     fused_rollout.py   `RolloutMaps` / `RolloutState`, the Newton step `FusedStep` (residual,
                        Jacobian, iteration), the rollout's problem and advance
+    fused_columns.py   the whole rollout of a single SO(3) body with at most constant Rayleigh
+                       damping in column layout ((3, 3, T) rotations: 3x3 products as broadcast
+                       multiply-adds over rows of length T), `LieDFLNN.rollout` takes it
 """
 
 from __future__ import annotations

@@ -175,10 +175,11 @@ def _act_and_slope(act: nn.Module, z: torch.Tensor) -> tuple[torch.Tensor, torch
     """(act(z), act'(z)), no graph; exact GELU from one erf and one exp (ATen's formulas for
     `gelu` and `gelu_backward`, which would evaluate erf twice), written in place."""
     if isinstance(act, nn.GELU) and act.approximate == "none":
-        cdf = torch.erf(z * _INV_SQRT2).mul_(0.5).add_(0.5)
+        u = z * _INV_SQRT2
+        cdf = torch.erf(u).mul_(0.5).add_(0.5)  # Phi(z)
         a = z * cdf
-        s = torch.mul(z, z).mul_(-0.5).exp_().mul_(_INV_SQRT2PI).mul_(z).add_(cdf)
-        return a, s
+        # Phi(z) + z phi(z), phi(z) = exp(-u^2) / sqrt(2 pi): nine passes over z where eleven were
+        return a, torch.addcmul(cdf, torch.mul(u, u).neg_().exp_(), z, value=_INV_SQRT2PI)
     a = act(z)
     return a, _act_backward(act, torch.ones_like(z), z, a)
 
