@@ -3,6 +3,7 @@ and record the wall time of every job of a finished sweep.
 
     python scripts/paper_plan.py plan [overrides...]       # table of every job, budget, projected time
     python scripts/paper_plan.py measure [overrides...]    # time train.epochs=3 of every job (minutes)
+    python scripts/paper_plan.py full [--skip TEXT]... [overrides...]   # run jobs at their full budget, timed
     python scripts/paper_plan.py times <experiment> <sweep dir> <times.csv> [--sweep-seconds S]
 
 The jobs are those reproduce_paper.sh launches for the experiments in LIEDFL_EXPERIMENTS: the
@@ -15,6 +16,11 @@ Projection of one job (docs/benchmarks.md, "Full paper reproduction: projection"
 job seconds - training seconds), the training seconds per epoch without validation and the seconds
 of one validation pass; the full job = fixed + epochs x s/epoch + passes x s/pass, with the passes of
 `train.val_every: auto`. Measurements live in docs/bench/paper_plan.json with the load at the time.
+
+`full` runs the jobs (of LIEDFL_EXPERIMENTS, less those whose key contains a --skip text) one after
+the other at their full budget in outputs/paper_full/, and records each job's wall and CPU seconds,
+exit code, load and run folder in docs/bench/paper_full.json as it finishes (a session too short for
+the whole reproduction measures it piece by piece); `plan` then shows those jobs as measured.
 """
 
 from __future__ import annotations
@@ -34,6 +40,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 MEASUREMENTS = ROOT / "docs" / "bench" / "paper_plan.json"
+FULL_RUNS = ROOT / "docs" / "bench" / "paper_full.json"
+FULL_DIR = ROOT / "outputs" / "paper_full"
 DEFAULT_EXPERIMENTS = "exp1_euler_vs_lie exp2_discrete_vs_continuous exp3_manifold exp4_mocap exp5_control"
 EXTRA_JOBS = {"exp3_manifold": [("exp3_manifold_structured", ["model.potential=uniform_gravity"])]}
 """Single runs beyond the sweeps, by the experiment that triggers them: (folder, overrides)."""
@@ -149,11 +157,12 @@ def _write_json(path: Path, obj) -> None:  # write then rename: never a half-wri
     tmp.replace(path)
 
 
-def measure_one(job: Job, extra: list[str], work: Path, epochs: int = MEASURE_EPOCHS) -> dict:
-    """Run `job` with train.epochs=`epochs` (its other settings unchanged) in `work`; its timings."""
+def measure_one(job: Job, extra: list[str], work: Path, epochs: int | None = MEASURE_EPOCHS) -> dict:
+    """Run `job` with train.epochs=`epochs` (None: its full budget; its other settings unchanged) in
+    `work`; its timings."""
     run = work / job.folder.replace("/", "_")
     cmd = [sys.executable, "-m", "liedfl_cli", "train", f"experiment={job.experiment}", *job.overrides, *extra]
-    cmd += [f"train.epochs={epochs}", "ui.progress=false", f"hydra.run.dir={run}"]
+    cmd += [*([f"train.epochs={epochs}"] if epochs is not None else []), "ui.progress=false", f"hydra.run.dir={run}"]
     load = os.getloadavg()[0]
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
@@ -161,8 +170,8 @@ def measure_one(job: Job, extra: list[str], work: Path, epochs: int = MEASURE_EP
     wall = time.perf_counter() - t0
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
-    rec = {"epochs": epochs, "wall_seconds": round(wall, 3), "cpu_seconds": round(cpu, 3)}
-    rec.update(exit_code=proc.returncode, load_1min=load)
+    rec = {"epochs": epochs if epochs is not None else job.epochs, "wall_seconds": round(wall, 3)}
+    rec.update(cpu_seconds=round(cpu, 3), exit_code=proc.returncode, load_1min=load)
     if proc.returncode != 0:
         rec["error"] = (proc.stderr.strip().splitlines() or ["?"])[-1][:300]
         return rec
@@ -211,6 +220,31 @@ def measure(experiments: list[str], extra: list[str], path: Path = MEASUREMENTS)
     return data
 
 
+def run_full(experiments: list[str], extra: list[str], skip: list[str], path: Path = FULL_RUNS) -> dict:
+    """Run every job not skipped at its full budget in FULL_DIR, one after the other, and merge each
+    record (timings, load at start and end, run folder) into `path` as the job finishes."""
+    os.environ.setdefault("LIEDFL_DATA_DIR", str(FULL_DIR / "data"))
+    data: dict = {}
+    for job in jobs(experiments, extra, check=True):
+        if any(text in job.key for text in skip):
+            continue
+        print(f"{job.key}: {job.epochs} epochs ...", flush=True)
+        rec = measure_one(job, extra, FULL_DIR, epochs=None)
+        rec.update(
+            load_1min_end=os.getloadavg()[0],
+            run_dir=str((FULL_DIR / job.folder.replace("/", "_")).relative_to(ROOT)),
+            measured=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        )
+        print(
+            f"  {rec['wall_seconds']:.0f} s wall, {rec['cpu_seconds']:.0f} s CPU, exit {rec['exit_code']}", flush=True
+        )
+        data = _read_json(path)
+        data.setdefault("jobs", {})[job.key] = rec
+        data["machine"] = f"{os.cpu_count()} CPU cores, shared; load at the start and end of each job (1-min average)"
+        _write_json(path, data)
+    return data
+
+
 # ----------------------------------------------------------------------------- projection
 def project(job: Job, rec: dict | None) -> float | None:
     """Projected wall seconds of the full job at the load of its measurement (None: not measured or
@@ -234,15 +268,19 @@ def _h(seconds: float) -> str:
     return f"{seconds / 3600:.2f}"
 
 
-def plan_table(experiments: list[str], extra: list[str], path: Path = MEASUREMENTS) -> str:
+def plan_table(experiments: list[str], extra: list[str], path: Path = MEASUREMENTS, full_path: Path = FULL_RUNS) -> str:
     """Markdown: every job, its budget, measured s/epoch and projected time; totals per experiment.
-    Two projections: wall time at the load of the measurement, and CPU time (about an idle core)."""
+    Two projections: wall time at the load of the measurement, and CPU time (about an idle core).
+    A job run at its full budget (`full`, recorded in `full_path`) counts with its measured times."""
     records = _read_json(path).get("jobs", {})
+    full_runs = {k: r for k, r in _read_json(full_path).get("jobs", {}).items() if r.get("exit_code") == 0}
     lines = [
         "| experiment | job | model | train length | epochs | batch | optimiser steps | s/epoch (measured) "
-        "| projected s at that load | projected CPU s (≈ idle core) | load at measurement |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| projected s at that load | projected CPU s (≈ idle core) | load at measurement "
+        "| full run: wall s / CPU s (load) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
+    n_full = 0
     totals: dict[str, list[float]] = {}
     missing: list[str] = []
     for job in jobs(experiments, extra):
@@ -252,6 +290,12 @@ def plan_table(experiments: list[str], extra: list[str], path: Path = MEASUREMEN
         if rec and rec.get("n_samples"):
             n = math.ceil(rec["n_samples"] / job.batch)
             steps = f"{job.epochs * n:,}" + (" (compiles)" if job.epochs * n >= COMPILE_MIN_STEPS else "")
+        measured = "–"
+        frec = full_runs.get(job.key)
+        if frec is not None:  # measured at the full budget: replaces the projection in the totals
+            n_full += 1
+            measured = f"{frec['wall_seconds']:,.0f} / {frec['cpu_seconds']:,.0f} ({frec['load_1min']:.1f})"
+            sec, cpu = float(frec["wall_seconds"]), float(frec["cpu_seconds"])
         if sec is None:
             missing.append(job.key)
         t = totals.setdefault(job.experiment, [0.0, 0.0])
@@ -263,13 +307,15 @@ def plan_table(experiments: list[str], extra: list[str], path: Path = MEASUREMEN
         load = f"{rec['load_1min']:.1f}" if rec else "–"
         lines.append(
             f"| {job.experiment} | {' '.join(job.overrides) or '–'} | {job.model} | {job.train_steps} | {job.epochs} "
-            f"| {job.batch} | {steps} | {per_epoch} | {projected} | {projected_cpu} | {load} |"
+            f"| {job.batch} | {steps} | {per_epoch} | {projected} | {projected_cpu} | {load} | {measured} |"
         )
     lines += ["", "| experiment | projected hours at the measured load | projected CPU hours (≈ idle, one core) |"]
     lines.append("|---|---|---|")
     lines += [f"| {e} | {_h(w)} | {_h(c)} |" for e, (w, c) in totals.items()]
     wall, cpu = sum(t[0] for t in totals.values()), sum(t[1] for t in totals.values())
     lines.append(f"| **total** | **{_h(wall)}** | **{_h(cpu)}** (two jobs at a time on 2 cores: ≥ {_h(cpu / 2)}) |")
+    if n_full:
+        lines += ["", f"{n_full} job(s) run at the full budget count with their measured wall and CPU seconds."]
     if missing:
         lines += ["", f"Not measured (left out of the totals): {len(missing)} job(s): {'; '.join(missing)}"]
     lines += ["", "(A job measured without CPU times counts with its wall projection in the CPU column.)"]
@@ -338,9 +384,11 @@ def record_times(experiment: str, sweep: Path, times_csv: Path, sweep_seconds: f
 
 
 def main(argv: list[str]) -> int:
-    if not argv or argv[0] not in ("plan", "measure", "times"):
+    if not argv or argv[0] not in ("plan", "measure", "times", "full"):
         print(
-            "usage: paper_plan.py plan|measure [overrides...] | times <experiment> <sweep> <times.csv>", file=sys.stderr
+            "usage: paper_plan.py plan|measure [overrides...] | full [--skip TEXT]... [overrides...] "
+            "| times <experiment> <sweep> <times.csv>",
+            file=sys.stderr,
         )
         return 2
     sys.path.insert(0, str(ROOT))
@@ -351,6 +399,17 @@ def main(argv: list[str]) -> int:
         seconds = float(argv[5]) if len(argv) == 6 else None
         n = record_times(argv[1], Path(argv[2]), Path(argv[3]), seconds)
         print(f"{argv[3]}: {n} job(s) of {argv[1]}")
+        return 0
+    if argv[0] == "full":
+        args, skip = list(argv[1:]), []
+        while "--skip" in args:
+            i = args.index("--skip")
+            if i + 1 >= len(args):
+                print("paper_plan.py full: --skip needs a text", file=sys.stderr)
+                return 2
+            skip.append(args[i + 1])
+            del args[i : i + 2]
+        run_full(experiments_from_env(), job_overrides(args), skip)
         return 0
     extra = job_overrides(argv[1:])
     if argv[0] == "measure":

@@ -64,12 +64,46 @@ def test_the_projection_follows_the_measurement_and_lists_what_is_unmeasured(tmp
     expected = 30.0 + job.epochs * 0.5 + passes * 2.0
     assert plan.project(job, rec) == pytest.approx(expected)
     assert plan.project_cpu(job, rec) == pytest.approx(expected / 2)
-    text = plan.plan_table(["exp5_control", "exp3_manifold"], [], path)
+    text = plan.plan_table(["exp5_control", "exp3_manifold"], [], path, tmp_path / "no_full_runs.json")
     assert f"| {expected:,.0f} | {expected / 2:,.0f} |" in text
     # exp3's jobs have no measurement: left out of the totals
     assert f"| **total** | **{expected / 3600:.2f}** | **{expected / 7200:.2f}** " in text
     assert "Not measured (left out of the totals): 4 job(s)" in text
     assert plan.project(job, {**rec, "exit_code": 1}) is None
+    # the job run at its full budget: its measured seconds replace the projection in the totals
+    full = tmp_path / "full.json"
+    full.write_text(
+        json.dumps({"jobs": {job.key: {"exit_code": 0, "wall_seconds": 90.0, "cpu_seconds": 80.0, "load_1min": 1.0}}})
+    )
+    text = plan.plan_table(["exp5_control"], [], path, full)
+    assert "| 90 / 80 (1.0) |" in text and f"| **total** | **{90 / 3600:.2f}** | **{80 / 3600:.2f}** " in text
+    assert "1 job(s) run at the full budget" in text
+    full.write_text(
+        json.dumps({"jobs": {job.key: {"exit_code": 1, "wall_seconds": 9.0, "cpu_seconds": 8.0, "load_1min": 1.0}}})
+    )
+    assert f"| **total** | **{expected / 3600:.2f}** |" in plan.plan_table(["exp5_control"], [], path, full)
+
+
+def test_full_runs_every_job_not_skipped_and_records_it_as_it_finishes(tmp_path, monkeypatch):
+    plan = _plan_module()
+    ran = []
+
+    def fake(job, extra, work, epochs):
+        ran.append((job.key, epochs))
+        return {"epochs": job.epochs, "wall_seconds": 5.0, "cpu_seconds": 4.0, "exit_code": 0, "load_1min": 0.5}
+
+    monkeypatch.setattr(plan, "measure_one", fake)
+    monkeypatch.setenv("LIEDFL_DATA_DIR", str(tmp_path / "data"))
+    path = tmp_path / "full.json"
+    data = plan.run_full(["exp2_discrete_vs_continuous"], [], ["baseline=glnn_rk4", "baseline=glnn_lie"], path)
+    assert [k for k, _ in ran] == [k for k in data["jobs"]] and all(e is None for _, e in ran)
+    assert len(ran) == 4 and all("baseline=none" in k for k, _ in ran)
+    assert json.loads(path.read_text())["jobs"] == data["jobs"]
+    assert all(r["run_dir"].startswith("outputs/paper_full/") for r in data["jobs"].values())
+    bad = subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / "paper_plan.py"), "full", "--skip"], capture_output=True, text=True
+    )
+    assert bad.returncode == 2 and "--skip needs a text" in bad.stderr
 
 
 def test_plan_mode_of_the_script_runs_nothing(tmp_path):
