@@ -182,7 +182,7 @@ def measure_one(job: Job, extra: list[str], work: Path, epochs: int | None = MEA
     rec.update(
         job_seconds=float(status.get("seconds", wall)),
         train_seconds=round(float(t.get("train_seconds", 0.0)), 3),  # (validation excluded, train.py)
-        val_s_per_pass=val_s / val_passes(epochs) if val_s else 0.0,
+        val_s_per_pass=val_s / val_passes(rec["epochs"]) if val_s else 0.0,
         n_samples=int(t.get("n_samples", 0)),
     )
     return {**rec, **rates(rec)}
