@@ -40,8 +40,8 @@ few repeats, so a speed-up is a ratio taken under the same load. Keys:
 --fast-tier also runs the README's test command (`python -m pytest -m "not slow" -q -n 2 --dist worksteal`,
 with -p no:cacheprovider as in .ci/run) in a child process and adds
   fast_tier                     {wall_s, tests_passed, exit_code, load_avg_start, load_avg_end}
-(about 5 minutes on 2 idle cores; run it alone, `--fast-tier-only`, so the tests and the timed
-figures do not share the cores).
+(271–281 s in one process on 2 idle cores, before it ran in two xdist workers; run it alone,
+`--fast-tier-only`, so the tests and the timed figures do not share the cores).
 """
 
 from __future__ import annotations
