@@ -37,11 +37,11 @@ few repeats, so a speed-up is a ratio taken under the same load. Keys:
 
 --quick (< 3 minutes) runs fewer epochs and steps; datasets are generated (cached) on first use.
 --baselines-only measures `baseline_models` alone (about 2 minutes on an idle machine).
---fast-tier also runs the README's test command (`python -m pytest -m "not slow" -q`) in a child
-process and adds
+--fast-tier also runs the README's test command (`python -m pytest -m "not slow" -q -n 2 --dist worksteal`,
+with -p no:cacheprovider as in .ci/run) in a child process and adds
   fast_tier                     {wall_s, tests_passed, exit_code, load_avg_start, load_avg_end}
-(about 5 minutes on 2 idle cores; run it alone, `--fast-tier-only`, so the tests and the timed
-figures do not share the cores).
+(271–281 s in one process on 2 idle cores, before it ran in two xdist workers; run it alone,
+`--fast-tier-only`, so the tests and the timed figures do not share the cores).
 """
 
 from __future__ import annotations
@@ -58,6 +58,8 @@ from pathlib import Path
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
+# the README's test command runs the fast tier in two pytest-xdist workers (one per core), as .ci/run does
+FAST_TIER_ARGS = ("-n", "2", "--dist", "worksteal")
 sys.path.insert(0, str(ROOT))
 
 from hydra import compose, initialize_config_dir  # noqa: E402
@@ -139,7 +141,7 @@ def fast_tier(log) -> dict:
     start = list(os.getloadavg())
     t = time.perf_counter()
     proc = subprocess.run(
-        [sys.executable, "-m", "pytest", "-m", "not slow", "-q", "-p", "no:cacheprovider"],
+        [sys.executable, "-m", "pytest", "-m", "not slow", "-q", "-p", "no:cacheprovider", *FAST_TIER_ARGS],
         cwd=ROOT,
         capture_output=True,
         text=True,

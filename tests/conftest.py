@@ -21,6 +21,15 @@ import pytest
 import torch
 from hypothesis import HealthCheck, settings
 
+# Under pytest-xdist (`-n 2`) the worker processes start with COLUMNS=80 and LINES=24 in their
+# environment (seen with pytest-xdist 3.8, execnet 2.1), which a single-process run does not have: the
+# console (`display.ui`, imported below) would then wrap its lines at 80 columns instead of 160, and
+# every `liedfl` subprocess would inherit them. Drop them so that a worker sees the environment of the
+# plain `python -m pytest` run.
+if "PYTEST_XDIST_WORKER" in os.environ:
+    for _name in ("COLUMNS", "LINES"):
+        os.environ.pop(_name, None)
+
 import helpers
 import liedfl_cli.config.resolvers  # noqa: F401  (the configs the tests compose use its resolvers)
 from liedfl_cli.solvers import runtime
@@ -34,6 +43,22 @@ settings.register_profile(
 settings.register_profile("thorough", deadline=None, max_examples=300)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "default-liedfl"))
 helpers.cache_yaml_parses()  # each config file's YAML parsed once per session (helpers.py says why)
+
+
+# ----------------------------------------------------------------------------- parallel runs
+# `python -m pytest -n 2` (pytest-xdist, the README's command): two worker processes on two cores. Every
+# thread pool of a worker then gets one thread, not one per core, so that the pools of the two workers
+# (OpenMP in torch, OpenBLAS in numpy/scipy) do not oversubscribe the cores; that covers what runs
+# outside a test's `_fresh_runtime` too (module- and session-scoped fixtures start before it, with torch's
+# default of one thread per core).
+def pytest_configure(config) -> None:
+    if getattr(config.option, "numprocesses", None) and "PYTEST_XDIST_WORKER" not in os.environ:
+        for name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+            os.environ.setdefault(name, "1")  # inherited by the workers this process starts
+
+
+if "PYTEST_XDIST_WORKER" in os.environ:
+    torch.set_num_threads(runtime.DEFAULT_THREADS)
 
 
 # ----------------------------------------------------------------------------- engine state
