@@ -80,9 +80,9 @@ def _index(device: torch.device) -> dict[str, torch.Tensor]:
         rows1 = [3 * k + nxt[i] for k in range(3) for i in range(3)]
         rows2 = [3 * k + nnx[i] for k in range(3) for i in range(3)]
         _INDEX[device] = {
-            "adjugate": torch.tensor(u1 + v2 + u2 + v1, device=device),
-            "next": torch.tensor(rows1, device=device),
-            "after_next": torch.tensor(rows2, device=device),
+            "adjugate": torch.tensor(u1 + v2 + u2 + v1, dtype=torch.long, device=device),
+            "next": torch.tensor(rows1, dtype=torch.long, device=device),
+            "after_next": torch.tensor(rows2, dtype=torch.long, device=device),
         }
     return _INDEX[device]
 
