@@ -28,6 +28,12 @@ MODELS = {
 }
 
 
+@pytest.fixture(autouse=True)
+def _columns_at_every_batch_size(monkeypatch):
+    """The column path at every batch size here (in use it starts at `MIN_ROWS` trajectories)."""
+    monkeypatch.setattr(fused_columns, "MIN_ROWS", 1)
+
+
 def model_named(name: str) -> LieDFLNN:
     if name == "true_scheme":
         return physics_model(SO3, H, PHYS)
@@ -138,6 +144,17 @@ def test_progress_is_called_once_per_step():
     g0, g1 = start(2)
     model_named("free_rayleigh").rollout(g0, g1, 6, progress=seen.append)
     assert seen == [1, 2, 3, 4, 5]
+
+
+def test_small_batches_keep_the_row_layout(monkeypatch):
+    monkeypatch.setattr(fused_columns, "MIN_ROWS", 32)
+    model = model_named("mlp_rayleigh")
+    assert not fused_columns.applies(model, start(31)[0]) and fused_columns.applies(model, start(32)[0])
+    taken = []
+    monkeypatch.setattr(fused_columns, "rollout", lambda *a, **k: taken.append(a))
+    g0, g1 = start(5)
+    model.rollout(g0, g1, 4)
+    assert not taken
 
 
 def test_which_models_take_the_column_path():

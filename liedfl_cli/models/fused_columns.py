@@ -37,17 +37,23 @@ from . import mlp_derivatives
 from .fused_maps import _constants, potential_covector
 from .fused_rollout import FusedStep, RolloutMaps, rollout_maps
 
+MIN_ROWS = 32
+"""Batches below this many trajectories keep the row layout: fewer kernel calls per step, which is
+what counts there (idle, 2026-11-27, SO(3) MLP 10x2: rows 1.37 / 0.13 ms per step at batch 1 / 10
+against 1.87 / 0.16 in columns; columns faster from 32 on; docs/benchmarks.md)."""
+
 
 def applies(model, g0: Pose) -> bool:
     """Whether `model`'s rollout from g0 takes the column path: a LieDFLNN on the fused path of
     one SO(3) body, with no force or only constant Rayleigh damping, poses (T, 1, 3, 3) of a dtype
-    whose poses need no re-projection (float64)."""
+    whose poses need no re-projection (float64), T >= MIN_ROWS."""
     G = model.G
     return (
         model._fused()
         and G.n_bodies == 1
         and G.n_se3 == 0
         and g0.R.dim() == 4
+        and g0.R.shape[0] >= MIN_ROWS
         and not projects_poses(g0.R.dtype)
         and all(isinstance(f, RayleighForce) for f in model.forces)
     )
