@@ -4,6 +4,7 @@ and record the wall time of every job of a finished sweep.
     python scripts/paper_plan.py plan [overrides...]       # table of every job, budget, projected time
     python scripts/paper_plan.py measure [overrides...]    # time train.epochs=3 of every job (minutes)
     python scripts/paper_plan.py full [--skip TEXT]... [overrides...]   # run jobs at their full budget, timed
+    python scripts/paper_plan.py full-table                # markdown: those jobs, their times and errors
     python scripts/paper_plan.py times <experiment> <sweep dir> <times.csv> [--sweep-seconds S]
 
 The jobs are those reproduce_paper.sh launches for the experiments in LIEDFL_EXPERIMENTS: the
@@ -245,6 +246,35 @@ def run_full(experiments: list[str], extra: list[str], skip: list[str], path: Pa
     return data
 
 
+def _fmt(x, spec: str = ".3g") -> str:
+    return "–" if x is None else format(x, spec)
+
+
+def full_table(path: Path = FULL_RUNS) -> str:
+    """Markdown: every job run at its full budget (`full`), its times and load, and the learned model's
+    test errors from its run folder (`summary.json`; "–" where the folder is gone)."""
+    lines = [
+        "| job | epochs | wall s | CPU s | load start → end | mean / final rel. rotation error "
+        "| rollout ÷ const. velocity | true scheme (mean) | Newton failures | checkpoint epoch |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for key, rec in _read_json(path).get("jobs", {}).items():
+        summary = _read_json(ROOT / rec.get("run_dir", "-") / "summary.json") if rec.get("run_dir") else {}
+        rows = {e.get("model"): e for e in summary.get("eval", [])}
+        ev, true = rows.get("model", {}), rows.get("true_scheme", {})
+        err = f"{_fmt(ev.get('rel_rot_error_mean'))} / {_fmt(ev.get('rel_rot_error_final'))}" if ev else "–"
+        wall = f"{rec['wall_seconds']:,.0f}" + (
+            f" ({rec['paused_seconds']:,.0f} paused)" if rec.get("paused_seconds") else ""
+        )
+        lines.append(
+            f"| {key.replace('experiment=', '')} | {rec.get('epochs')} | {wall} | {rec['cpu_seconds']:,.0f} "
+            f"| {_fmt(rec.get('load_1min'), '.1f')} → {_fmt(rec.get('load_1min_end'), '.1f')} | {err} "
+            f"| {_fmt(ev.get('rollout_vs_cv'))} | {_fmt(true.get('rel_rot_error_mean'))} "
+            f"| {ev.get('newton_failures', '–')} | {ev.get('checkpoint_epoch', '–')} |"
+        )
+    return "\n".join(lines)
+
+
 # ----------------------------------------------------------------------------- projection
 def project(job: Job, rec: dict | None) -> float | None:
     """Projected wall seconds of the full job at the load of its measurement (None: not measured or
@@ -384,6 +414,10 @@ def record_times(experiment: str, sweep: Path, times_csv: Path, sweep_seconds: f
 
 
 def main(argv: list[str]) -> int:
+    if argv and argv[0] == "full-table":
+        sys.path.insert(0, str(ROOT))
+        print(full_table())
+        return 0
     if not argv or argv[0] not in ("plan", "measure", "times", "full"):
         print(
             "usage: paper_plan.py plan|measure [overrides...] | full [--skip TEXT]... [overrides...] "

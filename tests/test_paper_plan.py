@@ -182,3 +182,25 @@ def test_a_tiny_reproduction_times_every_job(tmp_path):
     assert float(rows[0]["seconds"]) <= float(rows[1]["seconds"]) + 1
     summary = (tmp_path / "paper" / "summary.md").read_text()
     assert "### Exp 5" in summary and "### Wall time of the reproduction" in summary
+
+
+def test_full_table_joins_the_times_with_each_runs_test_errors(tmp_path):
+    plan = _plan_module()
+    run = tmp_path / "run"
+    run.mkdir()
+    evals = [
+        {"model": "model", "rel_rot_error_mean": 0.0304, "rel_rot_error_final": 0.072, "rollout_vs_cv": 0.0212},
+        {"model": "true_scheme", "rel_rot_error_mean": 0.0401},
+    ]
+    evals[0].update(newton_failures=0, checkpoint_epoch=950)
+    (run / "summary.json").write_text(json.dumps({"eval": evals}))
+    rec = {"epochs": 1000, "wall_seconds": 1848.0, "cpu_seconds": 42.0, "load_1min": 2.2, "load_1min_end": 2.9}
+    gone = {**rec, "run_dir": str(tmp_path / "deleted")}
+    path = tmp_path / "full.json"
+    jobs = {"experiment=exp2 x": {**rec, "run_dir": str(run), "paused_seconds": 1806.0}, "experiment=exp5": gone}
+    path.write_text(json.dumps({"jobs": jobs}))
+    text = plan.full_table(path)
+    assert (
+        "| exp2 x | 1000 | 1,848 (1,806 paused) | 42 | 2.2 → 2.9 | 0.0304 / 0.072 | 0.0212 | 0.0401 | 0 | 950 |" in text
+    )
+    assert "| exp5 | 1000 | 1,848 | 42 | 2.2 → 2.9 | – | – | – | – | – |" in text
