@@ -255,8 +255,9 @@ def full_table(path: Path = FULL_RUNS) -> str:
     test errors from its run folder (`summary.json`; "–" where the folder is gone)."""
     lines = [
         "| job | epochs | wall s | CPU s | load start → end | mean / final rel. rotation error "
-        "| rollout ÷ const. velocity | true scheme (mean) | Newton failures | checkpoint epoch |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| mean position error | rollout ÷ const. velocity | true scheme (mean rotation) | Newton failures "
+        "| checkpoint epoch |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for key, rec in _read_json(path).get("jobs", {}).items():
         summary = _read_json(ROOT / rec.get("run_dir", "-") / "summary.json") if rec.get("run_dir") else {}
@@ -269,7 +270,7 @@ def full_table(path: Path = FULL_RUNS) -> str:
         lines.append(
             f"| {key.replace('experiment=', '')} | {rec.get('epochs')} | {wall} | {rec['cpu_seconds']:,.0f} "
             f"| {_fmt(rec.get('load_1min'), '.1f')} → {_fmt(rec.get('load_1min_end'), '.1f')} | {err} "
-            f"| {_fmt(ev.get('rollout_vs_cv'))} | {_fmt(true.get('rel_rot_error_mean'))} "
+            f"| {_fmt(ev.get('position_error_mean'))} | {_fmt(ev.get('rollout_vs_cv'))} | {_fmt(true.get('rel_rot_error_mean'))} "
             f"| {ev.get('newton_failures', '–')} | {ev.get('checkpoint_epoch', '–')} |"
         )
     return "\n".join(lines)

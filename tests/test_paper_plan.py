@@ -201,6 +201,7 @@ def test_full_table_joins_the_times_with_each_runs_test_errors(tmp_path):
     path.write_text(json.dumps({"jobs": jobs}))
     text = plan.full_table(path)
     assert (
-        "| exp2 x | 1000 | 1,848 (1,806 paused) | 42 | 2.2 → 2.9 | 0.0304 / 0.072 | 0.0212 | 0.0401 | 0 | 950 |" in text
+        "| exp2 x | 1000 | 1,848 (1,806 paused) | 42 | 2.2 → 2.9 | 0.0304 / 0.072 | – | 0.0212 | 0.0401 | 0 | 950 |"
+        in text
     )
-    assert "| exp5 | 1000 | 1,848 | 42 | 2.2 → 2.9 | – | – | – | – | – |" in text
+    assert "| exp5 | 1000 | 1,848 | 42 | 2.2 → 2.9 | – | – | – | – | – | – |" in text
