@@ -270,7 +270,8 @@ def full_table(path: Path = FULL_RUNS) -> str:
         lines.append(
             f"| {key.replace('experiment=', '')} | {rec.get('epochs')} | {wall} | {rec['cpu_seconds']:,.0f} "
             f"| {_fmt(rec.get('load_1min'), '.1f')} → {_fmt(rec.get('load_1min_end'), '.1f')} | {err} "
-            f"| {_fmt(ev.get('position_error_mean'))} | {_fmt(ev.get('rollout_vs_cv'))} | {_fmt(true.get('rel_rot_error_mean'))} "
+            f"| {_fmt(ev.get('position_error_mean'))} | {_fmt(ev.get('rollout_vs_cv'))} "
+            f"| {_fmt(true.get('rel_rot_error_mean'))} "
             f"| {ev.get('newton_failures', '–')} | {ev.get('checkpoint_epoch', '–')} |"
         )
     return "\n".join(lines)
