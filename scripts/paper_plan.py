@@ -18,7 +18,8 @@ job seconds - training seconds), the training seconds per epoch without validati
 of one validation pass; the full job = fixed + epochs x s/epoch + passes x s/pass, with the passes of
 `train.val_every: auto`. Measurements live in docs/bench/paper_plan.json with the load at the time.
 
-`full` runs the jobs (of LIEDFL_EXPERIMENTS, less those whose key contains a --skip text) one after
+`full` runs the jobs (of LIEDFL_EXPERIMENTS, less those whose key holds a --skip text as whole words, so
+`--skip dataset.train_steps=10` leaves `dataset.train_steps=100` alone) one after
 the other at their full budget in outputs/paper_full/, and records each job's wall and CPU seconds,
 exit code, load and run folder in docs/bench/paper_full.json as it finishes (a session too short for
 the whole reproduction measures it piece by piece); `plan` then shows those jobs as measured.
@@ -221,20 +222,28 @@ def measure(experiments: list[str], extra: list[str], path: Path = MEASUREMENTS)
     return data
 
 
+def holds_words(key: str, text: str) -> bool:
+    """Whether `text`'s space-separated words occur in `key` as a run of whole words."""
+    words, part = key.split(), text.split()
+    return bool(part) and any(words[i : i + len(part)] == part for i in range(len(words) - len(part) + 1))
+
+
 def run_full(experiments: list[str], extra: list[str], skip: list[str], path: Path = FULL_RUNS) -> dict:
     """Run every job not skipped at its full budget in FULL_DIR, one after the other, and merge each
     record (timings, load at start and end, run folder) into `path` as the job finishes."""
     os.environ.setdefault("LIEDFL_DATA_DIR", str(FULL_DIR / "data"))
     data: dict = {}
     for job in jobs(experiments, extra, check=True):
-        if any(text in job.key for text in skip):
+        if any(holds_words(job.key, text) for text in skip):
             continue
         print(f"{job.key}: {job.epochs} epochs ...", flush=True)
         rec = measure_one(job, extra, FULL_DIR, epochs=None)
+        run = FULL_DIR / job.folder.replace("/", "_")
         rec.update(
             load_1min_end=os.getloadavg()[0],
-            run_dir=str((FULL_DIR / job.folder.replace("/", "_")).relative_to(ROOT)),
+            run_dir=str(run.relative_to(ROOT)),
             measured=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+            eval=eval_rows(run),
         )
         print(
             f"  {rec['wall_seconds']:.0f} s wall, {rec['cpu_seconds']:.0f} s CPU, exit {rec['exit_code']}", flush=True
@@ -246,13 +255,30 @@ def run_full(experiments: list[str], extra: list[str], skip: list[str], path: Pa
     return data
 
 
+EVAL_KEYS = (
+    "model",
+    "rel_rot_error_mean",
+    "rel_rot_error_final",
+    "position_error_mean",
+    "rollout_vs_cv",
+    "newton_failures",
+    "checkpoint_epoch",
+)
+
+
+def eval_rows(run: Path) -> list[dict]:
+    """The test-error rows of a finished run (`summary.json`'s eval, the keys of EVAL_KEYS), kept in the
+    record because output folders do not outlive the machine; [] where the run wrote none."""
+    return [{k: e[k] for k in EVAL_KEYS if k in e} for e in _read_json(run / "summary.json").get("eval", [])]
+
+
 def _fmt(x, spec: str = ".3g") -> str:
     return "–" if x is None else format(x, spec)
 
 
 def full_table(path: Path = FULL_RUNS) -> str:
     """Markdown: every job run at its full budget (`full`), its times and load, and the learned model's
-    test errors from its run folder (`summary.json`; "–" where the folder is gone)."""
+    test errors kept in the record (older records: read from the run folder; "–" where it is gone)."""
     lines = [
         "| job | epochs | wall s | CPU s | load start → end | mean / final rel. rotation error "
         "| mean position error | rollout ÷ const. velocity | true scheme (mean rotation) | Newton failures "
@@ -260,8 +286,8 @@ def full_table(path: Path = FULL_RUNS) -> str:
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for key, rec in _read_json(path).get("jobs", {}).items():
-        summary = _read_json(ROOT / rec.get("run_dir", "-") / "summary.json") if rec.get("run_dir") else {}
-        rows = {e.get("model"): e for e in summary.get("eval", [])}
+        kept = rec.get("eval") or (eval_rows(ROOT / rec["run_dir"]) if rec.get("run_dir") else [])
+        rows = {e.get("model"): e for e in kept}
         ev, true = rows.get("model", {}), rows.get("true_scheme", {})
         err = f"{_fmt(ev.get('rel_rot_error_mean'))} / {_fmt(ev.get('rel_rot_error_final'))}" if ev else "–"
         wall = f"{rec['wall_seconds']:,.0f}" + (

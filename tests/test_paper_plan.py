@@ -6,6 +6,7 @@ import csv
 import importlib.util
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -95,9 +96,17 @@ def test_full_runs_every_job_not_skipped_and_records_it_as_it_finishes(tmp_path,
     monkeypatch.setattr(plan, "measure_one", fake)
     monkeypatch.setenv("LIEDFL_DATA_DIR", str(tmp_path / "data"))
     path = tmp_path / "full.json"
-    data = plan.run_full(["exp2_discrete_vs_continuous"], [], ["baseline=glnn_rk4", "baseline=glnn_lie"], path)
+    skip = [
+        "baseline=glnn_rk4",
+        "baseline=glnn_lie_midpoint",
+        "baseline=glnn_lie_heun",
+        "baseline=none dataset.train_steps=10",
+    ]
+    data = plan.run_full(["exp2_discrete_vs_continuous"], [], skip, path)
     assert [k for k, _ in ran] == [k for k in data["jobs"]] and all(e is None for _, e in ran)
-    assert len(ran) == 4 and all("baseline=none" in k for k, _ in ran)
+    # whole words: skipping train_steps=10 leaves train_steps=100; "baseline=glnn_lie" would skip nothing
+    assert [k.split("=")[-1] for k, _ in ran] == ["40", "70", "100"] and all("baseline=none" in k for k, _ in ran)
+    assert not plan.holds_words("a baseline=glnn_lie_heun b", "baseline=glnn_lie") and not plan.holds_words("a", "")
     assert json.loads(path.read_text())["jobs"] == data["jobs"]
     assert all(r["run_dir"].startswith("outputs/paper_full/") for r in data["jobs"].values())
     bad = subprocess.run(
@@ -205,3 +214,27 @@ def test_full_table_joins_the_times_with_each_runs_test_errors(tmp_path):
         in text
     )
     assert "| exp5 | 1000 | 1,848 | 42 | 2.2 → 2.9 | – | – | – | – | – | – |" in text
+
+
+def test_full_keeps_each_runs_test_errors_in_its_record(tmp_path, monkeypatch):
+    """Output folders do not outlive the machine: the record keeps the errors, and the table reads them
+    even once the run folder is gone."""
+    plan = _plan_module()
+    monkeypatch.setattr(plan, "FULL_DIR", tmp_path / "outputs" / "paper_full")
+    monkeypatch.setattr(plan, "ROOT", tmp_path)
+    evals = [{"model": "model", "rel_rot_error_mean": 0.25, "rel_rot_error_final": 0.5, "loss": 3.0}]
+
+    def fake(job, extra, work, epochs):
+        run = work / job.folder.replace("/", "_")
+        run.mkdir(parents=True)
+        (run / "summary.json").write_text(json.dumps({"eval": evals}))
+        return {"epochs": job.epochs, "wall_seconds": 5.0, "cpu_seconds": 4.0, "exit_code": 0, "load_1min": 0.5}
+
+    monkeypatch.setattr(plan, "measure_one", fake)
+    monkeypatch.setenv("LIEDFL_DATA_DIR", str(tmp_path / "data"))
+    path = tmp_path / "full.json"
+    data = plan.run_full(["exp5_control"], [], [], path)
+    (rec,) = data["jobs"].values()
+    assert rec["eval"] == [{"model": "model", "rel_rot_error_mean": 0.25, "rel_rot_error_final": 0.5}]
+    shutil.rmtree(tmp_path / "outputs")
+    assert "| 0.25 / 0.5 |" in plan.full_table(path)
