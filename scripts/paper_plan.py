@@ -223,8 +223,9 @@ def measure(experiments: list[str], extra: list[str], path: Path = MEASUREMENTS)
 
 
 def holds_words(key: str, text: str) -> bool:
-    """Whether `text`'s space-separated words occur in `key` as a run of whole words."""
-    words, part = key.split(), text.split()
+    """Whether `text`'s space-separated words occur in `key` as a run of whole words (`experiment=` may
+    be left out, as in the tables)."""
+    words, part = (s.replace("experiment=", "").split() for s in (key, text))
     return bool(part) and any(words[i : i + len(part)] == part for i in range(len(words) - len(part) + 1))
 
 

@@ -107,6 +107,7 @@ def test_full_runs_every_job_not_skipped_and_records_it_as_it_finishes(tmp_path,
     # whole words: skipping train_steps=10 leaves train_steps=100; "baseline=glnn_lie" would skip nothing
     assert [k.split("=")[-1] for k, _ in ran] == ["40", "70", "100"] and all("baseline=none" in k for k, _ in ran)
     assert not plan.holds_words("a baseline=glnn_lie_heun b", "baseline=glnn_lie") and not plan.holds_words("a", "")
+    assert plan.holds_words("experiment=exp2 baseline=none x", "exp2 baseline=none")
     assert json.loads(path.read_text())["jobs"] == data["jobs"]
     assert all(r["run_dir"].startswith("outputs/paper_full/") for r in data["jobs"].values())
     bad = subprocess.run(
