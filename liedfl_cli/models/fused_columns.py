@@ -11,8 +11,8 @@ matrix at a time (measured: 10,000 products, 0.12 ms against 0.8-1.2 ms; docs/be
 What it computes is `fused_rollout`'s step, term by term and in the same order of operations
 where it matters (residual W.flatten() @ lin_f + const, Jacobian W.flatten() @ lin_J, closed-form
 3x3 solve, retraction R exp(hat(delta)), Newton-Schulz cleaning of the increment, g_{k+1} = g_k W),
-and its Newton loop is `solvers.newton._newton_rows` (the same acceptance and convergence tests,
-iteration counts and compaction to the rows still iterating). The rare iteration that needs care
+and its Newton loop is `solvers.newton`'s, in the layout `COLUMNS` (the same acceptance and
+convergence tests, iteration counts and compaction to the rows still iterating). The rare iteration that needs care
 (a singular Jacobian, or a full step without decrease) hands the rows still iterating to the row
 layout's loop (`FusedStep.from_parts`), which takes them to the end: same algorithm, same results.
 
@@ -72,44 +72,36 @@ def matmul(A: torch.Tensor, B: torch.Tensor) -> torch.Tensor:
     return C.addcmul_(A[:, 2:3], B[2:3])
 
 
-def _index(device: torch.device) -> dict[str, torch.Tensor]:
-    """Gather indices of the written-out cross products (built once per device)."""
-    if device not in _INDEX:
-        nxt = [(i + 1) % 3 for i in range(3)]
-        nnx = [(i + 2) % 3 for i in range(3)]
-        # rows of the adjugate of a 3x3 J (9 entries, row major): b x c, c x a, a x b of its rows a, b, c
-        pairs = [(1, 2), (2, 0), (0, 1)]
-        u1 = [3 * p + nxt[i] for p, _ in pairs for i in range(3)]
-        v2 = [3 * q + nnx[i] for _, q in pairs for i in range(3)]
-        u2 = [3 * p + nnx[i] for p, _ in pairs for i in range(3)]
-        v1 = [3 * q + nxt[i] for _, q in pairs for i in range(3)]
-        rows1 = [3 * k + nxt[i] for k in range(3) for i in range(3)]
-        rows2 = [3 * k + nnx[i] for k in range(3) for i in range(3)]
-        _INDEX[device] = {
-            "adjugate": torch.tensor(u1 + v2 + u2 + v1, dtype=torch.long, device=device),
-            "next": torch.tensor(rows1, dtype=torch.long, device=device),
-            "after_next": torch.tensor(rows2, dtype=torch.long, device=device),
-        }
-    return _INDEX[device]
-
-
-_INDEX: dict[torch.device, dict[str, torch.Tensor]] = {}
+def adjugate_index() -> list[int]:
+    """Which of a 3x3 J's 9 entries (row major) `adjugate_rows` reads, in its order: the rows b x c,
+    c x a, a x b of the adjugate from J's rows a, b, c, each cross product's two terms."""
+    nxt = [(i + 1) % 3 for i in range(3)]
+    nnx = [(i + 2) % 3 for i in range(3)]
+    pairs = [(1, 2), (2, 0), (0, 1)]
+    u1 = [3 * p + nxt[i] for p, _ in pairs for i in range(3)]
+    v2 = [3 * q + nnx[i] for _, q in pairs for i in range(3)]
+    u2 = [3 * p + nnx[i] for p, _ in pairs for i in range(3)]
+    v1 = [3 * q + nxt[i] for _, q in pairs for i in range(3)]
+    return u1 + v2 + u2 + v1
 
 
 def adjugate_rows(G: torch.Tensor) -> torch.Tensor:
     """(b x c, c x a, a x b) of the rows a, b, c of a 3x3 J, as (9, T), from G (36, T) = J's
-    entries gathered by `_index()["adjugate"]` (`ColumnMaps.J_gathered` @ W)."""
+    entries gathered by `adjugate_index()` (`ColumnMaps.J_gathered` @ W)."""
     G = G.view(4, 9, -1)
     return torch.addcmul(G[0] * G[1], G[2], G[3], value=-1.0)
 
 
 def row_cross_sum(A: torch.Tensor, B: torch.Tensor) -> torch.Tensor:
-    """sum_k A_k x B_k over the rows k of 3x3 columns A, B (9, T) -> (3, T)."""
-    idx = _index(A.device)
-    n, nn_ = idx["next"], idx["after_next"]
-    c = A.index_select(0, n) * B.index_select(0, nn_)
-    c.addcmul_(A.index_select(0, nn_), B.index_select(0, n), value=-1.0)
-    return c.view(3, 3, -1).sum(0)
+    """sum_k A_k x B_k over the rows k of 3x3 columns A, B (9, T) -> (3, T), as vee(B^T A - A^T B):
+    hat(a x b) = b a^T - a b^T, and B^T A = sum_k b_k a_k^T (one column product, no gathers)."""
+    A3, B3 = A.view(3, 3, -1), B.view(3, 3, -1)
+    M = matmul(B3.transpose(0, 1), A3).view(9, -1)
+    c = A.new_empty(3, A.shape[-1])
+    torch.sub(M[7], M[5], out=c[0])  # vee(X) = (X_21, X_02, X_10) of X = M - M^T
+    torch.sub(M[2], M[6], out=c[1])
+    torch.sub(M[3], M[1], out=c[2])
+    return c
 
 
 def norm(a: torch.Tensor) -> torch.Tensor:
@@ -134,31 +126,45 @@ class ColumnStep:
         adj = adjugate_rows(JG[:36])  # rows: b x c, c x a, a x b of J's rows a, b, c (`fused_maps.solve_small`)
         det = (JG[36:] * adj[0:3]).sum(0)
         delta = (adj.view(3, 3, -1) * r[:, None]).sum(0).div_(det).neg_()
-        cand = retract(W, delta, self.cols)
+        cand = self.retract(W, delta)
         return delta, det == 0, cand, self.f(cand)
 
-    def restrict(self, rows: torch.Tensor) -> ColumnStep:
-        return ColumnStep(self.cols, self.const.index_select(1, rows), self.g.index_select(1, rows))
+    def problem(self) -> newton.NewtonProblem:
+        """This step as `solvers.newton`'s problem in `COLUMNS` (no Jacobian: careful iterations are
+        handed over; x0 unused: the loop starts from the W it is given)."""
+        return newton.NewtonProblem(
+            self.f, None, None, self.retract, self.iterate, self.restrict, layout=COLUMNS, hand_over=self.hand_over
+        )
 
-    def row_problem(self, rows: torch.Tensor) -> newton.NewtonProblem:
-        """The rows' problem in row layout (`fused_rollout.FusedStep`), for the careful iterations."""
+    def retract(self, W: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
+        return retract(W, delta, self.cols)
+
+    def restrict(self, rows: torch.Tensor) -> newton.NewtonProblem:
+        return ColumnStep(self.cols, self.const.index_select(1, rows), self.g.index_select(1, rows)).problem()
+
+    def hand_over(self, rows: torch.Tensor, W: torch.Tensor, r: torch.Tensor, rn: torch.Tensor, opts, max_iter: int):
+        """The rows solved from W (9, k) on in row layout (`fused_rollout.FusedStep`, whose loop does
+        the careful iterations) -> (W, r, converged, iterations) in columns."""
         const = self.const.index_select(1, rows).T.contiguous()
         g = self.g.index_select(1, rows).T.reshape(-1, 1, 3, 3)
         step = FusedStep.from_parts(self.cols.model, self.cols.maps, Pose(g, g.new_zeros(g.shape[0], 0, 3)), const)
-        return step.problem(None)
+        x0 = Pose(W.T.reshape(-1, 1, 3, 3), W.new_zeros(W.shape[1], 0, 3))
+        xs, rs, cs, its = newton._newton_rows(step.problem(None), x0, r.T.contiguous(), rn, opts, max_iter)
+        return xs.R.reshape(-1, 9).T, rs.T, cs, its
 
 
 class ColumnMaps:
-    """The linear maps of `RolloutMaps.linear`, transposed for columns: f (3, 9), J (9, 9),
-    const (3, 9), and the constants of the retraction."""
+    """The linear maps of `RolloutMaps.linear`, transposed for columns: f (3, 9), the Jacobian's
+    gathered entries J_gathered (39, 9), c (3, 9), and the constants of the retraction."""
 
     def __init__(self, model, maps: RolloutMaps):
         assert maps.linear is not None
         lin_f, lin_J, lin_c = maps.linear
         self.model, self.maps = model, maps
-        self.f, self.J, self.c = lin_f.T.contiguous(), lin_J.T.contiguous(), lin_c.T.contiguous()
+        self.f, self.c = lin_f.T.contiguous(), lin_c.T.contiguous()
+        J = lin_J.T  # (9, 9): the Jacobian's entries from W
         # J's entries in the order the adjugate reads them, and its first row: one product per iteration
-        self.J_gathered = torch.cat((self.J.index_select(0, _index(self.J.device)["adjugate"]), self.J[0:3]))
+        self.J_gathered = torch.cat((J[adjugate_index()], J[0:3])).contiguous()
         self.hat_t = _constants(lin_f.dtype, lin_f.device)["hat"].T.contiguous()  # (9, 3): hat(w).flatten() = hat_t @ w
 
 
@@ -197,66 +203,36 @@ def potential_columns(model, maps: RolloutMaps, g: torch.Tensor) -> torch.Tensor
 
 
 # ---------------------------------------------------------------------------- the Newton loop
-COMPACT_MIN_ROWS = newton.COMPACT_MIN_ROWS
-COMPACT_FRACTION = newton.COMPACT_FRACTION
+class Columns(newton.Layout):
+    """The batch on the last axis: W (9, T), r (3, T), delta (3, T); W holds rotation increments,
+    whose entries are at most 1, so the rounding floor of the convergence test is the float's."""
+
+    def size(self, r: torch.Tensor) -> int:
+        return r.shape[1]
+
+    def norm(self, r: torch.Tensor) -> torch.Tensor:
+        return norm(r)
+
+    def step_size(self, delta: torch.Tensor) -> torch.Tensor:
+        return delta.abs().amax(0)
+
+    def step_tolerance(self, x, tol: float):
+        return max(tol, newton.ROUNDING_ULPS * torch.finfo(x.dtype).eps)  # `newton.step_tolerance` of rotations
+
+    def take(self, x, rows: torch.Tensor):
+        return x.index_select(1, rows)
+
+    def put(self, x, rows: torch.Tensor, values):
+        return x.index_copy(1, rows, values)
+
+
+COLUMNS = Columns()
 
 
 def solve(step: ColumnStep, W: torch.Tensor, r: torch.Tensor, rn: torch.Tensor, opts: SolverOptions, max_iter: int):
-    """`solvers.newton._newton_rows` in columns from (W, r = f(W), rn = |r|) ->
+    """`solvers.newton`'s loop in columns from (W, r = f(W), rn = |r|) ->
     (W, r, converged (T,), iterations (T,))."""
-    step_tol = max(opts.tol, newton.ROUNDING_ULPS * torch.finfo(W.dtype).eps)  # `step_tolerance` of rotations
-    T = r.shape[1]
-    big = torch.finfo(r.dtype).max
-    converged = torch.zeros(T, dtype=torch.bool, device=r.device)
-    iters = torch.zeros(T, dtype=torch.long, device=r.device)
-    common, any_converged = 0, False
-    for it in range(max_iter):
-        if T == 0:
-            break
-        delta, singular, cand, rc = step.iterate(W, r)
-        rcn = norm(rc)
-        full_step = delta.abs().amax(0)
-        ok = rcn <= torch.mul(rn, 1 - 1e-4).add_(1e-300).clamp_(max=big)
-        irregular = singular | ~(ok & (full_step <= big))
-        new_converged = full_step <= step_tol
-        if any_converged:
-            active = ~converged
-            irregular = irregular & active
-            new_converged = converged | (active & new_converged)
-        if bool(irregular.any()):  # the rows still iterating finish in the row layout's loop
-            rows = (~converged).nonzero()[:, 0]
-            x0 = Pose(W.index_select(1, rows).T.reshape(-1, 1, 3, 3), W.new_zeros(len(rows), 0, 3))
-            r0 = r.index_select(1, rows).T.contiguous()
-            xs, rs, cs, its = newton._newton_rows(step.row_problem(rows), x0, r0, rn[rows], opts, max_iter - it)
-            W = W.index_copy(1, rows, xs.R.reshape(-1, 9).T)
-            r = r.index_copy(1, rows, rs.T)
-            converged = converged.index_copy(0, rows, cs)
-            iters = iters.index_add(0, rows, its)
-            break
-        if any_converged:  # rows that converged earlier keep their iterate
-            keep = converged[None]
-            W, r, rn = torch.where(keep, W, cand), torch.where(keep, r, rc), torch.where(converged, rn, rcn)
-            iters = iters + active
-        else:
-            W, r, rn = cand, rc, rcn
-            common += 1
-        converged = new_converged
-        n_converged = int(converged.sum())
-        any_converged = n_converged > 0
-        if n_converged == T:
-            break
-        left = max_iter - it - 1
-        if left and T >= COMPACT_MIN_ROWS and T - n_converged <= COMPACT_FRACTION * T:
-            rows = (~converged).nonzero()[:, 0]
-            sub = step.restrict(rows)
-            Ws, rs, cs, its = solve(sub, W.index_select(1, rows), r.index_select(1, rows), rn[rows], opts, left)
-            W, r = W.index_copy(1, rows, Ws), r.index_copy(1, rows, rs)
-            converged = converged.index_copy(0, rows, cs)
-            iters = iters.index_add(0, rows, its)
-            break
-    if common:
-        iters = iters + common
-    return W, r, converged, iters
+    return newton._newton_rows(step.problem(), W, r, rn, opts, max_iter)
 
 
 # ---------------------------------------------------------------------------- the rollout

@@ -9,6 +9,7 @@ trajectory of the batch iterates together; a row stops once converged. One entry
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -17,6 +18,35 @@ import torch
 
 from ..lie import Pose
 from .options import SolverOptions
+
+
+class Layout:
+    """Where a problem's batch lies: here (the default) on the first axis of x (T, n) or a Pose of T
+    rows, of r (T, n) and of delta (T, n). A subclass puts it elsewhere (`models.fused_columns`:
+    (n, T) columns); the loop of `solve` only reaches the batch through these methods."""
+
+    def size(self, r: torch.Tensor) -> int:
+        return r.shape[0]
+
+    def norm(self, r: torch.Tensor) -> torch.Tensor:
+        """The residual's 2-norm per row, (T,)."""
+        return torch.linalg.vector_norm(r, dim=-1)
+
+    def step_size(self, delta: torch.Tensor) -> torch.Tensor:
+        """A step's max norm per row, (T,); NaN/inf where delta is (an inf-norm vector_norm is 10x slower)."""
+        return delta.abs().amax(-1)
+
+    def step_tolerance(self, x, tol: float):
+        return step_tolerance(x, tol)
+
+    def take(self, x, rows: torch.Tensor):
+        return _take(x, rows)
+
+    def put(self, x, rows: torch.Tensor, values):
+        return _put(x, rows, values)
+
+
+ROWS = Layout()
 
 
 @dataclass
@@ -28,14 +58,20 @@ class NewtonProblem:
     iterate(x, r = f(x)) -> (delta, singular (T,) bool, x' = retract(x, delta), f(x')), optional:
     one full Newton step computed in one go (a model's fused step); restrict(rows (k,) long) ->
     the NewtonProblem of those rows (x0 and all per-row data indexed), optional.
+    layout: where the batch lies (`Layout`; shapes above are the default's). hand_over(rows, x, r,
+    rn, opts, max_iter) -> (x, r, converged, iterations) of those rows, optional: solves them from
+    the current iteration on in another problem, where an iteration needs care (a singular Jacobian
+    or a step without decrease) that this one does not implement (then jac may be None).
     """
 
     f: Callable[[Any], torch.Tensor]
-    jac: Callable[[Any], torch.Tensor]
+    jac: Callable[[Any], torch.Tensor] | None
     x0: Any
     retract: Callable[[Any, torch.Tensor], Any]
     iterate: Callable[[Any, torch.Tensor], tuple] | None = None  # optional fused full Newton step
     restrict: Callable[[torch.Tensor], NewtonProblem] | None = None  # optional: the problem of some rows
+    layout: Layout = ROWS
+    hand_over: Callable[..., tuple] | None = None  # optional: careful iterations done elsewhere
 
     @classmethod
     def euclidean(cls, f: Callable[[torch.Tensor], torch.Tensor], x0: torch.Tensor) -> NewtonProblem:
@@ -131,10 +167,11 @@ COMPACT_FRACTION = 0.25  # rows still iterating, as a fraction, below which only
 
 def _newton_rows(problem: NewtonProblem, x, r, rn, opts: SolverOptions, max_iter: int):
     """The loop of `solve` from (x, r = f(x), rn = |r|) for `max_iter` iterations ->
-    (x, r, converged, iterations)."""
-    f, jac, retract = problem.f, problem.jac, problem.retract
+    (x, r, converged, iterations), in the problem's layout."""
+    f, jac, retract, L = problem.f, problem.jac, problem.retract, problem.layout
     iterate = problem.iterate
     if iterate is None:
+        assert jac is not None
 
         def iterate(x, r):
             sol, info = torch.linalg.solve_ex(jac(x), r[..., None])
@@ -143,7 +180,7 @@ def _newton_rows(problem: NewtonProblem, x, r, rn, opts: SolverOptions, max_iter
             return delta, info > 0, cand, f(cand)
 
     tol = opts.tol
-    T = r.shape[0]
+    T = L.size(r)
     big = torch.finfo(r.dtype).max
     converged = torch.zeros(T, dtype=torch.bool, device=r.device)
     common = 0  # iterations every row took while all were active (no per-iteration kernel)
@@ -152,10 +189,10 @@ def _newton_rows(problem: NewtonProblem, x, r, rn, opts: SolverOptions, max_iter
     for it in range(max_iter):
         if T == 0:
             break
-        step_tol = step_tolerance(x, tol)
+        step_tol = L.step_tolerance(x, tol)
         delta, singular, cand, rc = iterate(x, r)
-        rcn = torch.linalg.vector_norm(rc, dim=-1)
-        full_step = delta.abs().amax(-1)  # NaN/inf where delta is (an inf-norm vector_norm is 10x slower)
+        rcn = L.norm(rc)
+        full_step = L.step_size(delta)
         # decrease with a finite residual: NaN compares false, and the bound is capped so that an
         # infinite residual never passes
         ok = rcn <= torch.mul(rn, 1 - 1e-4).add_(1e-300).clamp_(max=big)
@@ -169,6 +206,11 @@ def _newton_rows(problem: NewtonProblem, x, r, rn, opts: SolverOptions, max_iter
         else:
             active = torch.ones_like(converged)
         if bool(irregular.any()):  # a singular Jacobian or a step without decrease: redo row by row
+            if problem.hand_over is not None:  # ... in another problem, from this iteration to the end
+                x, r, converged, iters = _solve_apart(
+                    problem.hand_over, L, x, r, rn, converged, iters, opts, max_iter - it
+                )
+                break
             x, r, rn, singular, full_step = _careful_iteration(problem, x, r, rn, active, opts)
             iters = iters + active.long()
             converged = converged | (active & ~singular & (full_step <= step_tol) & torch.isfinite(rn))
@@ -177,8 +219,8 @@ def _newton_rows(problem: NewtonProblem, x, r, rn, opts: SolverOptions, max_iter
             if any_converged:  # the few rows that converged earlier keep their iterate
                 rows = converged.nonzero()[:, 0]
                 x, r, rn = (
-                    _put(cand, rows, _take(x, rows)),
-                    rc.index_copy(0, rows, r[rows]),
+                    L.put(cand, rows, L.take(x, rows)),
+                    L.put(rc, rows, L.take(r, rows)),
                     rcn.index_copy(0, rows, rn[rows]),
                 )
                 iters = iters + active
@@ -192,16 +234,25 @@ def _newton_rows(problem: NewtonProblem, x, r, rn, opts: SolverOptions, max_iter
             break
         left = max_iter - it - 1
         if left and problem.restrict is not None and T >= COMPACT_MIN_ROWS and T - n_converged <= COMPACT_FRACTION * T:
-            rows = (~converged).nonzero()[:, 0]
-            sub = problem.restrict(rows)
-            xs, rs, cs, its = _newton_rows(sub, _take(x, rows), r[rows], rn[rows], opts, left)
-            x, r = _put(x, rows, xs), r.index_copy(0, rows, rs)
-            converged = converged.index_copy(0, rows, cs)
-            iters = iters.index_add(0, rows, its)
+            compacted = functools.partial(_solve_restricted, problem.restrict)
+            x, r, converged, iters = _solve_apart(compacted, L, x, r, rn, converged, iters, opts, left)
             break
     if common:
         iters = iters + common
     return x, r, converged, iters
+
+
+def _solve_restricted(restrict: Callable[[torch.Tensor], NewtonProblem], rows: torch.Tensor, *args):
+    return _newton_rows(restrict(rows), *args)
+
+
+def _solve_apart(solve_rows, L: Layout, x, r, rn, converged, iters, opts: SolverOptions, max_iter: int):
+    """The rows not yet converged solved by solve_rows(rows, x, r, rn, opts, max_iter) (their own
+    problem: compaction, or a hand-over) and put back -> (x, r, converged, iterations)."""
+    rows = (~converged).nonzero()[:, 0]
+    xs, rs, cs, its = solve_rows(rows, L.take(x, rows), L.take(r, rows), rn[rows], opts, max_iter)
+    x, r = L.put(x, rows, xs), L.put(r, rows, rs)
+    return x, r, converged.index_copy(0, rows, cs), iters.index_add(0, rows, its)
 
 
 def _take(x, rows: torch.Tensor):
@@ -220,6 +271,7 @@ def _careful_iteration(problem: NewtonProblem, x, r, rn, active, opts: SolverOpt
     """One iteration of the reference loop (least squares for singular rows, backtracking per
     row): (x, r, rn, singular, full_step) with inactive rows unchanged."""
     f, jac, retract = problem.f, problem.jac, problem.retract
+    assert jac is not None and problem.layout is ROWS, "careful iterations need a Jacobian, in rows"
     max_halvings = opts.max_halvings
     T = r.shape[0]
     J = jac(x)
