@@ -3,7 +3,7 @@ and record the wall time of every job of a finished sweep.
 
     python scripts/paper_plan.py plan [overrides...]       # table of every job, budget, projected time
     python scripts/paper_plan.py measure [overrides...]    # time train.epochs=3 of every job (minutes)
-    python scripts/paper_plan.py full [--skip TEXT]... [overrides...]   # run jobs at their full budget, timed
+    python scripts/paper_plan.py full [--skip TEXT]... [--parallel N] [overrides...]   # full budget, timed
     python scripts/paper_plan.py full-table                # markdown: those jobs, their times and errors
     python scripts/paper_plan.py times <experiment> <sweep dir> <times.csv> [--sweep-seconds S]
 
@@ -23,6 +23,8 @@ of one validation pass; the full job = fixed + epochs x s/epoch + passes x s/pas
 the other at their full budget in outputs/paper_full/, and records each job's wall and CPU seconds,
 exit code, load and run folder in docs/bench/paper_full.json as it finishes (a session too short for
 the whole reproduction measures it piece by piece); `plan` then shows those jobs as measured.
+`--parallel N` runs N jobs at a time (the longest projected first), each charged its own CPU seconds
+(`wait4`); the run's own wall time is recorded under "runs": with every job in it, the whole paper's.
 """
 
 from __future__ import annotations
@@ -32,11 +34,12 @@ import itertools
 import json
 import math
 import os
-import resource
 import subprocess
 import sys
 import tempfile
+import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -166,12 +169,7 @@ def measure_one(job: Job, extra: list[str], work: Path, epochs: int | None = MEA
     cmd = [sys.executable, "-m", "liedfl_cli", "train", f"experiment={job.experiment}", *job.overrides, *extra]
     cmd += [*([f"train.epochs={epochs}"] if epochs is not None else []), "ui.progress=false", f"hydra.run.dir={run}"]
     load = os.getloadavg()[0]
-    before = resource.getrusage(resource.RUSAGE_CHILDREN)
-    t0 = time.perf_counter()
-    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
-    wall = time.perf_counter() - t0
-    after = resource.getrusage(resource.RUSAGE_CHILDREN)
-    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    proc, wall, cpu = run_child(cmd)
     rec = {"epochs": epochs if epochs is not None else job.epochs, "wall_seconds": round(wall, 3)}
     rec.update(cpu_seconds=round(cpu, 3), exit_code=proc.returncode, load_1min=load)
     if proc.returncode != 0:
@@ -188,6 +186,27 @@ def measure_one(job: Job, extra: list[str], work: Path, epochs: int | None = MEA
         n_samples=int(t.get("n_samples", 0)),
     )
     return {**rec, **rates(rec)}
+
+
+def run_child(cmd: list[str]) -> tuple[subprocess.CompletedProcess, float, float]:
+    """Run cmd in ROOT -> (its completed process with stdout and stderr, wall seconds, CPU seconds of
+    the child and its descendants). The CPU seconds come from the child's own `wait4` record, so jobs
+    run side by side (`full --parallel`) are each charged their own."""
+    with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
+        t0 = time.perf_counter()
+        child = subprocess.Popen(cmd, cwd=ROOT, stdout=out, stderr=err, text=True)
+        try:
+            _, status, usage = os.wait4(child.pid, 0)
+        except BaseException:  # (Ctrl-C: the job goes too, and is reaped)
+            child.kill()
+            child.wait()
+            raise
+        wall = time.perf_counter() - t0
+        child.returncode = os.waitstatus_to_exitcode(status)
+        out.seek(0)
+        err.seek(0)
+        done = subprocess.CompletedProcess(cmd, child.returncode, out.read(), err.read())
+    return done, wall, usage.ru_utime + usage.ru_stime
 
 
 def val_passes(epochs: int) -> int:
@@ -229,15 +248,24 @@ def holds_words(key: str, text: str) -> bool:
     return bool(part) and any(words[i : i + len(part)] == part for i in range(len(words) - len(part) + 1))
 
 
-def run_full(experiments: list[str], extra: list[str], skip: list[str], path: Path = FULL_RUNS) -> dict:
-    """Run every job not skipped at its full budget in FULL_DIR, one after the other, and merge each
-    record (timings, load at start and end, run folder) into `path` as the job finishes."""
+def run_full(
+    experiments: list[str], extra: list[str], skip: list[str], path: Path = FULL_RUNS, parallel: int = 1
+) -> dict:
+    """Run every job not skipped at its full budget in FULL_DIR and merge each record (timings, load
+    at start and end, run folder, test errors) into `path` as the job finishes; then record the run as
+    a whole under "runs" (wall seconds, jobs, `parallel`). parallel = N > 1: N jobs at a time (one torch
+    thread each), the longest projected first (docs/bench/paper_plan.json), which shortens the whole."""
     os.environ.setdefault("LIEDFL_DATA_DIR", str(FULL_DIR / "data"))
-    data: dict = {}
-    for job in jobs(experiments, extra, check=True):
-        if any(holds_words(job.key, text) for text in skip):
-            continue
-        print(f"{job.key}: {job.epochs} epochs ...", flush=True)
+    todo = [job for job in jobs(experiments, extra, check=True) if not any(holds_words(job.key, t) for t in skip)]
+    if parallel > 1:
+        records = _read_json(MEASUREMENTS).get("jobs", {})
+        todo.sort(key=lambda job: -(project_cpu(job, records.get(job.key)) or 0.0))
+    lock = threading.Lock()
+    started, t0 = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), time.perf_counter()
+
+    def one(job: Job) -> None:
+        with lock:
+            print(f"{job.key}: {job.epochs} epochs ...", flush=True)
         rec = measure_one(job, extra, FULL_DIR, epochs=None)
         run = FULL_DIR / job.folder.replace("/", "_")
         rec.update(
@@ -245,13 +273,34 @@ def run_full(experiments: list[str], extra: list[str], skip: list[str], path: Pa
             run_dir=str(run.relative_to(ROOT)),
             measured=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
             eval=eval_rows(run),
+            parallel=parallel,
         )
-        print(
-            f"  {rec['wall_seconds']:.0f} s wall, {rec['cpu_seconds']:.0f} s CPU, exit {rec['exit_code']}", flush=True
+        with lock:
+            print(
+                f"{job.key}: {rec['wall_seconds']:.0f} s wall, {rec['cpu_seconds']:.0f} s CPU, exit {rec['exit_code']}",
+                flush=True,
+            )
+            data = _read_json(path)  # (re-read: another process may have recorded meanwhile)
+            data.setdefault("jobs", {})[job.key] = rec
+            data["machine"] = (
+                f"{os.cpu_count()} CPU cores, shared; load at the start and end of each job (1-min average)"
+            )
+            _write_json(path, data)
+
+    with ThreadPoolExecutor(max_workers=max(1, parallel)) as pool:
+        for _ in pool.map(one, todo):  # (re-raises a job's exception here)
+            pass
+    data = _read_json(path)
+    if todo:
+        data.setdefault("runs", []).append(
+            {
+                "started": started,
+                "wall_seconds": round(time.perf_counter() - t0, 3),
+                "parallel": parallel,
+                "jobs": [job.key for job in todo],
+                "load_1min_end": os.getloadavg()[0],
+            }
         )
-        data = _read_json(path)
-        data.setdefault("jobs", {})[job.key] = rec
-        data["machine"] = f"{os.cpu_count()} CPU cores, shared; load at the start and end of each job (1-min average)"
         _write_json(path, data)
     return data
 
@@ -449,7 +498,7 @@ def main(argv: list[str]) -> int:
         return 0
     if not argv or argv[0] not in ("plan", "measure", "times", "full"):
         print(
-            "usage: paper_plan.py plan|measure [overrides...] | full [--skip TEXT]... [overrides...] "
+            "usage: paper_plan.py plan|measure [overrides...] | full [--skip TEXT]... [--parallel N] [overrides...] "
             "| times <experiment> <sweep> <times.csv>",
             file=sys.stderr,
         )
@@ -472,7 +521,16 @@ def main(argv: list[str]) -> int:
                 return 2
             skip.append(args[i + 1])
             del args[i : i + 2]
-        run_full(experiments_from_env(), job_overrides(args), skip)
+        parallel = 1
+        if "--parallel" in args:
+            i = args.index("--parallel")
+            value = args[i + 1] if i + 1 < len(args) else ""
+            if not value.isdigit() or int(value) < 1:
+                print(f"paper_plan.py full: --parallel needs a number of jobs >= 1, got {value!r}", file=sys.stderr)
+                return 2
+            parallel = int(value)
+            del args[i : i + 2]
+        run_full(experiments_from_env(), job_overrides(args), skip, parallel=parallel)
         return 0
     extra = job_overrides(argv[1:])
     if argv[0] == "measure":

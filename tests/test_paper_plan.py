@@ -9,6 +9,7 @@ import os
 import shutil
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import pytest
@@ -239,3 +240,56 @@ def test_full_keeps_each_runs_test_errors_in_its_record(tmp_path, monkeypatch):
     assert rec["eval"] == [{"model": "model", "rel_rot_error_mean": 0.25, "rel_rot_error_final": 0.5}]
     shutil.rmtree(tmp_path / "outputs")
     assert "| 0.25 / 0.5 |" in plan.full_table(path)
+
+
+def test_full_in_parallel_runs_jobs_side_by_side_longest_first_and_records_the_whole(tmp_path, monkeypatch):
+    plan = _plan_module()
+    monkeypatch.setenv("LIEDFL_DATA_DIR", str(tmp_path / "data"))
+    monkeypatch.setattr(plan, "MEASUREMENTS", tmp_path / "plan.json")
+    keys = [j.key for j in plan.jobs(["exp2_discrete_vs_continuous"], []) if "baseline=none" in j.key]
+    # projections from measurements: the longest training length is the longest job
+    measured = {k: {"exit_code": 0, "epochs": 3, "wall_seconds": 1.0, "cpu_seconds": 1.0} for k in keys}
+    for i, k in enumerate(keys):
+        measured[k].update(job_seconds=1.0 + i, train_seconds=0.3 * (i + 1), val_s_per_pass=0.0, n_samples=10)
+    (tmp_path / "plan.json").write_text(json.dumps({"jobs": measured}))
+    running, most, started = [0], [0], []
+    lock = threading.Lock()
+    both = threading.Barrier(2, timeout=30)
+
+    def fake(job, extra, work, epochs):
+        with lock:
+            running[0] += 1
+            most[0] = max(most[0], running[0])
+            started.append(job.key)
+        if len(started) <= 2:
+            both.wait()  # the first two are running at the same time
+        with lock:
+            running[0] -= 1
+        return {"epochs": job.epochs, "wall_seconds": 5.0, "cpu_seconds": 4.0, "exit_code": 0, "load_1min": 0.5}
+
+    monkeypatch.setattr(plan, "measure_one", fake)
+    path = tmp_path / "full.json"
+    skip = ["baseline=glnn_rk4", "baseline=glnn_lie_midpoint", "baseline=glnn_lie_heun"]
+    data = plan.run_full(["exp2_discrete_vs_continuous"], [], skip, path, parallel=2)
+    assert most[0] == 2 and sorted(data["jobs"]) == sorted(keys)
+    assert started[0] == keys[-1]  # the longest projected job first
+    assert all(r["parallel"] == 2 for r in data["jobs"].values())
+    (whole,) = data["runs"]
+    assert whole["parallel"] == 2 and sorted(whole["jobs"]) == sorted(keys) and whole["wall_seconds"] >= 0
+    bad = subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / "paper_plan.py"), "full", "--parallel", "0"],
+        capture_output=True,
+        text=True,
+    )
+    assert bad.returncode == 2 and "--parallel needs a number of jobs >= 1, got '0'" in bad.stderr
+
+
+def test_a_jobs_cpu_seconds_are_its_own(tmp_path):
+    """run_child charges the child its own CPU time (wait4), whatever else this process ran."""
+    plan = _plan_module()
+    burn = "import time\nwhile time.process_time() < 0.3: pass\nprint('done')"
+    done, wall, cpu = plan.run_child([sys.executable, "-c", burn])
+    assert done.returncode == 0 and done.stdout.strip() == "done"
+    assert cpu >= 0.3 and wall > 0
+    failed, _, _ = plan.run_child([sys.executable, "-c", "import sys; sys.exit('no such thing')"])
+    assert failed.returncode == 1 and "no such thing" in failed.stderr
