@@ -13,9 +13,11 @@ import yaml
 MODELS = ("liedflnn", "euclidean_dflnn", "neural_ode", "glnn_rk4")
 
 
-def fake_sweep(root: Path, points: int = 16, seeds: int = 3, seed: int = 0) -> Path:
+def fake_sweep(root: Path, points: int = 16, seeds: int = 3, seed: int = 0, cv=None) -> Path:
     """Write the sweep under `root / 'sweep'` and return it. Run k = (model k % 4, train_steps
-    setting k // 4); the error and the speeds are drawn log-uniformly, the seeds scattered around them."""
+    setting k // 4); the error and the speeds are drawn log-uniformly, the seeds scattered around them.
+    cv: constant velocity's rel_rot_error_mean, one value for every run or a function of the run's
+    number (None: no constant-velocity row)."""
     rng = np.random.default_rng(seed)
     sweep = root / "sweep"
     job = 0
@@ -35,6 +37,8 @@ def fake_sweep(root: Path, points: int = 16, seeds: int = 3, seed: int = 0) -> P
             e = err * jitter
             header = "model,rel_rot_error_mean,geodesic_error_mean,rollout_s_per_step,rollout_trajectories"
             row = f"model,{e},{2 * e},{roll_s * 10 * rng.uniform(0.9, 1.1)},10"
+            if cv is not None:
+                row += f"\nconstant_velocity,{cv(job) if callable(cv) else cv},,,"
             (run / "eval.csv").write_text(f"{header}\n{row}\n")
             timings = {"train_seconds": train_s * rng.uniform(0.9, 1.1), "seconds_per_epoch": 0.1, "parameters": 15}
             (run / "summary.json").write_text(json.dumps({"timings": timings}))

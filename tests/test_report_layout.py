@@ -90,3 +90,31 @@ def test_figure_labels_inside_the_axes_and_apart(sweep):
     key = [t.get_text() for t in fig.texts]
     assert sum(1 for k in key if k.split()[0].isdigit()) == 16  # the key under the panels
     assert "smallest seed" in fig._suptitle.get_text()  # the fixture has bars with std > mean
+
+
+def _cv_lines(fig):
+    panels = [ax for ax in fig.axes if ax.get_xscale() == "log"]
+    return [[ln for ln in ax.get_lines() if ln.get_label() == "constant velocity"] for ax in panels]
+
+
+def test_constant_velocity_is_the_error_figures_reference_when_the_runs_share_test_data(tmp_path):
+    shared = fake_sweep(tmp_path / "a", points=4, seeds=2, cv=0.7)
+    rows = report.collect(shared)
+    assert all(r[report.CV_ERROR] == 0.7 for r in rows)
+    fig = report.draw_error_vs_speed(report.summarize(rows, report.varying_settings(rows)))
+    lines = _cv_lines(fig)
+    assert len(lines) == 2 and all(len(ls) == 1 for ls in lines)
+    for ax, (line,) in zip([ax for ax in fig.axes if ax.get_xscale() == "log"], lines):
+        assert list(line.get_ydata()) == [0.7, 0.7]
+        lo, hi = ax.get_ylim()
+        assert lo < 0.7 < hi
+    assert "constant velocity" in [t.get_text() for t in fig.legends[0].get_texts()]
+    # runs evaluated on different test data: no single reference, no line
+    mixed = fake_sweep(tmp_path / "b", points=4, seeds=2, cv=lambda job: 0.5 + 0.1 * job)
+    rows = report.collect(mixed)
+    fig = report.draw_error_vs_speed(report.summarize(rows, report.varying_settings(rows)))
+    assert _cv_lines(fig) == [[], []]
+    # without constant-velocity rows (older runs): none either
+    rows = report.collect(fake_sweep(tmp_path / "c", points=4, seeds=2))
+    assert all(r[report.CV_ERROR] is None for r in rows)
+    assert report.shared_reference(report.summarize(rows, report.varying_settings(rows)), report.CV_ERROR) is None

@@ -39,7 +39,7 @@ from ..errors import ConfigError, DatasetError, LiedflError
 from ..evaluation import EvalOutputs
 from ..files.io_utils import fmt, markdown_table
 from ..files.rollout_file import FILE_NAME, read_rollout
-from .evaluate import CV_COLUMNS, DRIFT_COLUMNS, ERROR_COLUMNS, ONE_STEP_COLUMNS
+from .evaluate import CONSTANT_VELOCITY, CV_COLUMNS, DRIFT_COLUMNS, ERROR_COLUMNS, ONE_STEP_COLUMNS
 from .outputs import write_outputs
 
 if TYPE_CHECKING:
@@ -108,6 +108,8 @@ CONSOLE_PRIORITY = ["label", "rel_rot_error_mean", "train_seconds", "rollout_s_p
 """The console table's columns kept first on a narrow terminal: the error and both speeds."""
 ERROR = "rel_rot_error_mean"
 ERROR_LABEL = "mean relative rotation error ‖R̂ − R‖_F/‖R‖_F [dimensionless]"
+CV_ERROR = f"cv_{ERROR}"
+"""report.csv's column of constant velocity's ERROR on each run's test data (its eval.csv row)."""
 NOT_SETTINGS = ("seed", "baseline", "model")
 """Override keys that do not make a setting (the model has its own column; seeds are averaged)."""
 
@@ -188,6 +190,8 @@ def collect(sweep: Path) -> list[dict]:
         }
         for k in COLUMNS[6:]:
             row[k] = _number(run / "eval.csv", k, e.get(k))
+        cv = evals.get(CONSTANT_VELOCITY)  # the same error of constant velocity on this run's test data
+        row[CV_ERROR] = _number(run / "eval.csv", ERROR, cv.get(ERROR)) if cv else None
         t = summary.get("timings", {})
         t = t if isinstance(t, dict) else {}
         row.update({k: t.get(k) for k in ("parameters", "train_seconds", "seconds_per_epoch") if t.get(k) is not None})
@@ -269,8 +273,18 @@ def _colors(models: list[str]):
 
 
 def draw_error_vs_speed(summary: list[dict]) -> Figure | None:
-    """plots/error_vs_speed.png (speed_figure.py); None without a point."""
-    return speed_figure.draw_error_vs_speed(summary, ERROR, ERROR_LABEL)
+    """plots/error_vs_speed.png (speed_figure.py); None without a point. With constant velocity's
+    error, when every run that has it shares it (one test set), as a horizontal reference."""
+    return speed_figure.draw_error_vs_speed(summary, ERROR, ERROR_LABEL, shared_reference(summary, CV_ERROR))
+
+
+def shared_reference(summary: list[dict], key: str) -> float | None:
+    """The value of `key` in the runs of `summary` when they all agree (to 1e-9 relative: the same
+    test data), else None (none has it, or the runs were evaluated on different data)."""
+    values = [float(r[key]) for s in summary for r in s.get("runs", []) if r.get(key) is not None]
+    if not values or max(values) - min(values) > 1e-9 * max(abs(v) for v in values):
+        return None
+    return values[0]
 
 
 def _curves(sweep: Path, row: dict) -> dict:

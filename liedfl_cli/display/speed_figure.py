@@ -108,9 +108,11 @@ def _seed_values(s: dict, key: str) -> list[float]:
     return [float(r[key]) for r in s.get("runs", []) if r.get(key) is not None and math.isfinite(float(r[key]))]
 
 
-def draw_error_vs_speed(summary: list[dict], error: str, error_label: str):
+def draw_error_vs_speed(summary: list[dict], error: str, error_label: str, constant_velocity: float | None = None):
     """The figure for `summary` (report.summarize rows: `label`, `model`, `runs`, and per metric
-    (mean, std, n)); `error`: the metric on the y axis. None without a point."""
+    (mean, std, n)); `error`: the metric on the y axis; `constant_velocity`: that error of the
+    constant-velocity guess on the same test data, drawn as a horizontal line (a model above it
+    predicts worse than repeating the last increment). None without a point."""
     from .plots import plt
 
     axes_spec = [
@@ -152,6 +154,10 @@ def draw_error_vs_speed(summary: list[dict], error: str, error_label: str):
             hi_y.append(y1 if dy else y)
             shown.add(m)
             pts.append((x, y, str(i) if numbered else s["label"], colors[m]))
+        if constant_velocity is not None and constant_velocity > 0 and pts:
+            ax.axhline(constant_velocity, color="0.35", ls=":", lw=1.4, label="constant velocity", zorder=1)
+            lo_y.append(constant_velocity)
+            hi_y.append(constant_velocity)
         front = pareto_front([(x, y) for x, y, _, _ in pts])
         if front:
             fx, fy = zip(*front)
