@@ -134,6 +134,40 @@ def test_per_body_damping_shapes_blocks_symmetry_psd(G):
         assert ((nl(g, xi) * xi).sum(-1) <= 1e-12).all()  # dissipative
 
 
+@pytest.mark.parametrize("G", GROUPS[2:])
+def test_per_body_constant_blocks_built_together_equal_each_blocks_own_matrix(G):
+    """`PerBodySPSD` builds all blocks of a size at once (stacked parameters) and places them with one
+    scatter: the same blocks as each body's `SPSDMatrix()`, the same matrix as assigning them slice by
+    slice, the same force as the dim x dim product, and the same parameter gradients (autograd through
+    the per-block construction as the reference)."""
+    D = PerBodySPSD(G, init_diag=0.05)
+    randomise(D, 1.0, seed=3)
+    se, so = D.block_matrices()
+    own = [blk() for blk in D.blocks]
+    assert se.shape == (G.n_se3, 6, 6) and so.shape == (G.n_so3, 3, 3)
+    for i, M in enumerate(own):
+        got = se[i] if i < G.n_se3 else so[i - G.n_se3]
+        torch.testing.assert_close(got, M, rtol=1e-14, atol=1e-15)
+    slices = torch.zeros(G.dim, G.dim, dtype=torch.float64)
+    for M, s in zip(own, G.body_slices()):
+        slices[s, s] = M
+    torch.testing.assert_close(D(), slices, rtol=1e-14, atol=1e-15)
+    force = RayleighForce(G, coupling="per_body")
+    force.D.load_state_dict(D.state_dict())
+    g = random_pose(G, 7)
+    xi = torch.randn(7, G.dim, dtype=torch.float64)
+    torch.testing.assert_close(force(g, xi), -(xi @ slices.T), rtol=1e-13, atol=1e-15)
+    (force(g, xi) ** 2).sum().backward()
+    got = [p.grad.clone() for p in force.D.parameters()]
+    force.zero_grad()
+    reference = torch.zeros(G.dim, G.dim, dtype=torch.float64)
+    for blk, s in zip(force.D.blocks, G.body_slices()):
+        reference = reference.index_put((torch.arange(s.start, s.stop)[:, None], torch.arange(s.start, s.stop)), blk())
+    ((xi @ reference.T) ** 2).sum().backward()
+    for a, p in zip(got, force.D.parameters()):
+        torch.testing.assert_close(a, p.grad, rtol=1e-12, atol=1e-15)
+
+
 def test_per_body_damping_blocks_depend_on_their_own_body_only():
     G = ProductGroup(1, 3)
     net = PerBodyDampingNet(G, c=0.3, width=16, depth=2)

@@ -52,12 +52,26 @@ def join_bodies(se: torch.Tensor, so: torch.Tensor) -> torch.Tensor:
 
 
 def block_diagonal(G: ProductGroup, se: torch.Tensor, so: torch.Tensor) -> torch.Tensor:
-    """Blocks (..., m, 6, 6) and (..., n, 3, 3) -> the (..., dim, dim) block-diagonal matrix."""
+    """Blocks (..., m, 6, 6) and (..., n, 3, 3) -> the (..., dim, dim) block-diagonal matrix (one
+    scatter of all blocks' entries: one autograd node, whatever the number of bodies)."""
     lead = se.shape[:-3] if G.n_se3 else so.shape[:-3]
-    out = se.new_zeros(*lead, G.dim, G.dim) if G.n_se3 else so.new_zeros(*lead, G.dim, G.dim)
-    for i, s in enumerate(G.body_slices()):
-        out[..., s, s] = se[..., i, :, :] if i < G.n_se3 else so[..., i - G.n_se3, :, :]
-    return out
+    ref = se if G.n_se3 else so
+    entries = torch.cat((se.flatten(-3), so.flatten(-3)), -1)  # (..., 36 m + 9 n), body after body
+    out = ref.new_zeros(*lead, G.dim * G.dim)
+    out = out.index_copy(-1, _block_positions(G, ref.device), entries)
+    return out.view(*lead, G.dim, G.dim)
+
+
+def _block_positions(G: ProductGroup, device: torch.device) -> torch.Tensor:
+    """Positions in the flattened (dim, dim) matrix of every block entry, body after body, row major."""
+    key = (G.n_se3, G.n_so3, device)
+    if key not in _POSITIONS:
+        pos = [i * G.dim + j for s in G.body_slices() for i in range(s.start, s.stop) for j in range(s.start, s.stop)]
+        _POSITIONS[key] = torch.tensor(pos, dtype=torch.long, device=device)
+    return _POSITIONS[key]
+
+
+_POSITIONS: dict[tuple, torch.Tensor] = {}
 
 
 def apply_blocks(G: ProductGroup, se: torch.Tensor, so: torch.Tensor, xi: torch.Tensor) -> torch.Tensor:
@@ -81,10 +95,25 @@ class PerBodySPSD(nn.Module):
 
     def forward(self) -> torch.Tensor:
         """(dim, dim) block-diagonal D."""
-        out = self.blocks[0]().new_zeros(self.dim, self.dim)
-        for blk, s in zip(self.blocks, self.G.body_slices()):
-            out[s, s] = blk()
-        return out
+        return block_diagonal(self.G, *self.block_matrices())
+
+    def block_matrices(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(D_se (m, 6, 6), D_so (n, 3, 3)): each body's block `SPSDMatrix()`, all bodies of a size at
+        once (the blocks' parameters stacked: a few kernels instead of a few per body)."""
+        G = self.G
+        every = [cast(SPSDMatrix, b) for b in self.blocks]  # nn.ModuleList yields nn.Module
+        out = []
+        for first, count, n in ((0, G.n_se3, 6), (G.n_se3, G.n_so3, 3)):
+            blocks = every[first : first + count]
+            if not blocks:
+                out.append(every[0].lam.new_zeros(0, n, n))
+                continue
+            entries = torch.stack([b.L_entries for b in blocks])  # (k, n (n + 1) / 2)
+            lam = torch.stack([b.lam for b in blocks])  # (k, n)
+            rows, cols = blocks[0]._rows, blocks[0]._cols
+            L = entries.new_zeros(count, n * n).index_copy(1, rows * n + cols, entries).view(count, n, n)
+            out.append(_sym(L @ L.transpose(-1, -2)) + torch.diag_embed(lam * lam))
+        return out[0], out[1]
 
     @torch.no_grad()
     def set_matrix(self, D: torch.Tensor) -> None:

@@ -44,6 +44,8 @@ class RayleighForce(nn.Module):
             self.D = SPSDMatrix(G.dim, init_diag=init_diag * scale)
 
     def forward(self, g: Pose, xi: torch.Tensor) -> torch.Tensor:
+        if isinstance(self.D, PerBodySPSD):  # block by block, without the dim x dim matrix
+            return -apply_blocks(self.D.G, *self.D.block_matrices(), xi)
         return -(xi @ self.D().T)
 
     def jacobian_xi(self, g: Pose, xi: torch.Tensor) -> torch.Tensor:
