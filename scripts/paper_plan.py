@@ -281,7 +281,8 @@ def run_full(
                 flush=True,
             )
             data = _read_json(path)  # (re-read: another process may have recorded meanwhile)
-            data.setdefault("jobs", {})[job.key] = rec
+            # overrides (budget=smoke, ...) make another job: its own key, never a full-budget record's
+            data.setdefault("jobs", {})[" ".join([job.key, *extra])] = rec
             data["machine"] = (
                 f"{os.cpu_count()} CPU cores, shared; load at the start and end of each job (1-min average)"
             )
@@ -297,7 +298,7 @@ def run_full(
                 "started": started,
                 "wall_seconds": round(time.perf_counter() - t0, 3),
                 "parallel": parallel,
-                "jobs": [job.key for job in todo],
+                "jobs": [" ".join([job.key, *extra]) for job in todo],
                 "load_1min_end": os.getloadavg()[0],
             }
         )

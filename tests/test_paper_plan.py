@@ -293,3 +293,18 @@ def test_a_jobs_cpu_seconds_are_its_own(tmp_path):
     assert cpu >= 0.3 and wall > 0
     failed, _, _ = plan.run_child([sys.executable, "-c", "import sys; sys.exit('no such thing')"])
     assert failed.returncode == 1 and "no such thing" in failed.stderr
+
+
+def test_full_with_overrides_records_them_in_the_key_and_keeps_the_full_budget_records(tmp_path, monkeypatch):
+    """`full budget=smoke` (a quick try) must not overwrite a full-budget job's record."""
+    plan = _plan_module()
+    monkeypatch.setenv("LIEDFL_DATA_DIR", str(tmp_path / "data"))
+    monkeypatch.setattr(
+        plan, "measure_one", lambda job, extra, work, epochs: {"wall_seconds": 1.0, "cpu_seconds": 1.0, "exit_code": 0}
+    )
+    path = tmp_path / "full.json"
+    full = {"wall_seconds": 99.0, "cpu_seconds": 98.0, "exit_code": 0}
+    path.write_text(json.dumps({"jobs": {"experiment=exp5_control": full}}))
+    data = plan.run_full(["exp5_control"], ["budget=smoke"], [], path)
+    assert data["jobs"]["experiment=exp5_control"] == full
+    assert data["jobs"]["experiment=exp5_control budget=smoke"]["wall_seconds"] == 1.0
