@@ -3,7 +3,7 @@ and record the wall time of every job of a finished sweep.
 
     python scripts/paper_plan.py plan [overrides...]       # table of every job, budget, projected time
     python scripts/paper_plan.py measure [overrides...]    # time train.epochs=3 of every job (minutes)
-    python scripts/paper_plan.py full [--skip TEXT]... [--parallel N] [overrides...]   # full budget, timed
+    python scripts/paper_plan.py full [--skip TEXT]... [--skip-measured] [--parallel N] [--dry-run] [overrides...]
     python scripts/paper_plan.py full-table                # markdown: those jobs, their times and errors
     python scripts/paper_plan.py times <experiment> <sweep dir> <times.csv> [--sweep-seconds S]
 
@@ -25,6 +25,8 @@ exit code, load and run folder in docs/bench/paper_full.json as it finishes (a s
 the whole reproduction measures it piece by piece); `plan` then shows those jobs as measured.
 `--parallel N` runs N jobs at a time (the longest projected first), each charged its own CPU seconds
 (`wait4`); the run's own wall time is recorded under "runs": with every job in it, the whole paper's.
+`--skip-measured` leaves out the jobs already recorded there (exit 0): how a later session goes on.
+`--dry-run` lists the jobs that would run, in order, and runs nothing.
 """
 
 from __future__ import annotations
@@ -248,18 +250,39 @@ def holds_words(key: str, text: str) -> bool:
     return bool(part) and any(words[i : i + len(part)] == part for i in range(len(words) - len(part) + 1))
 
 
+def full_jobs(
+    experiments: list[str], extra: list[str], skip: list[str], parallel: int = 1, skip_measured: bool = False
+) -> list[Job]:
+    """The jobs `run_full` runs, in the order it starts them: those not skipped (and, with
+    skip_measured, not yet recorded at the full budget with exit 0 in FULL_RUNS); with parallel > 1
+    the longest projected first (docs/bench/paper_plan.json; unmeasured ones last)."""
+    done = {k for k, r in _read_json(FULL_RUNS).get("jobs", {}).items() if r.get("exit_code") == 0}
+    todo = [
+        job
+        for job in jobs(experiments, extra, check=True)
+        if not any(holds_words(job.key, t) for t in skip)
+        and not (skip_measured and " ".join([job.key, *extra]) in done)
+    ]
+    if parallel > 1:
+        records = _read_json(MEASUREMENTS).get("jobs", {})
+        todo.sort(key=lambda job: -(project_cpu(job, records.get(job.key)) or 0.0))
+    return todo
+
+
 def run_full(
-    experiments: list[str], extra: list[str], skip: list[str], path: Path = FULL_RUNS, parallel: int = 1
+    experiments: list[str],
+    extra: list[str],
+    skip: list[str],
+    path: Path = FULL_RUNS,
+    parallel: int = 1,
+    skip_measured: bool = False,
 ) -> dict:
     """Run every job not skipped at its full budget in FULL_DIR and merge each record (timings, load
     at start and end, run folder, test errors) into `path` as the job finishes; then record the run as
     a whole under "runs" (wall seconds, jobs, `parallel`). parallel = N > 1: N jobs at a time (one torch
     thread each), the longest projected first (docs/bench/paper_plan.json), which shortens the whole."""
     os.environ.setdefault("LIEDFL_DATA_DIR", str(FULL_DIR / "data"))
-    todo = [job for job in jobs(experiments, extra, check=True) if not any(holds_words(job.key, t) for t in skip)]
-    if parallel > 1:
-        records = _read_json(MEASUREMENTS).get("jobs", {})
-        todo.sort(key=lambda job: -(project_cpu(job, records.get(job.key)) or 0.0))
+    todo = full_jobs(experiments, extra, skip, parallel, skip_measured)
     lock = threading.Lock()
     started, t0 = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), time.perf_counter()
 
@@ -499,7 +522,8 @@ def main(argv: list[str]) -> int:
         return 0
     if not argv or argv[0] not in ("plan", "measure", "times", "full"):
         print(
-            "usage: paper_plan.py plan|measure [overrides...] | full [--skip TEXT]... [--parallel N] [overrides...] "
+            "usage: paper_plan.py plan|measure [overrides...] "
+            "| full [--skip TEXT]... [--skip-measured] [--parallel N] [--dry-run] [overrides...] "
             "| times <experiment> <sweep> <times.csv>",
             file=sys.stderr,
         )
@@ -531,7 +555,15 @@ def main(argv: list[str]) -> int:
                 return 2
             parallel = int(value)
             del args[i : i + 2]
-        run_full(experiments_from_env(), job_overrides(args), skip, parallel=parallel)
+        dry, measured = "--dry-run" in args, "--skip-measured" in args
+        args = [a for a in args if a not in ("--dry-run", "--skip-measured")]
+        if dry:  # what would run, in order, and nothing else
+            todo = full_jobs(experiments_from_env(), job_overrides(args), skip, parallel, measured)
+            for job in todo:
+                print(f"{job.key} ({job.epochs} epochs)")
+            print(f"{len(todo)} job(s), {parallel} at a time")
+            return 0
+        run_full(experiments_from_env(), job_overrides(args), skip, parallel=parallel, skip_measured=measured)
         return 0
     extra = job_overrides(argv[1:])
     if argv[0] == "measure":

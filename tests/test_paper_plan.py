@@ -308,3 +308,28 @@ def test_full_with_overrides_records_them_in_the_key_and_keeps_the_full_budget_r
     data = plan.run_full(["exp5_control"], ["budget=smoke"], [], path)
     assert data["jobs"]["experiment=exp5_control"] == full
     assert data["jobs"]["experiment=exp5_control budget=smoke"]["wall_seconds"] == 1.0
+
+
+def test_skip_measured_leaves_out_recorded_jobs_and_dry_run_runs_nothing(tmp_path, monkeypatch):
+    plan = _plan_module()
+    full = tmp_path / "full.json"
+    monkeypatch.setattr(plan, "FULL_RUNS", full)
+    keys = [j.key for j in plan.jobs(["exp2_discrete_vs_continuous"], []) if "baseline=none" in j.key]
+    done = {keys[0]: {"exit_code": 0}, keys[1]: {"exit_code": 1}}  # a failed job is not measured
+    done[keys[2] + " budget=smoke"] = {"exit_code": 0}  # nor is a try with other overrides
+    full.write_text(json.dumps({"jobs": done}))
+    skip = ["baseline=glnn_rk4", "baseline=glnn_lie_midpoint", "baseline=glnn_lie_heun"]
+    got = [j.key for j in plan.full_jobs(["exp2_discrete_vs_continuous"], [], skip, 1, skip_measured=True)]
+    assert got == keys[1:]
+    assert [j.key for j in plan.full_jobs(["exp2_discrete_vs_continuous"], [], skip)] == keys
+    env = {**os.environ, "LIEDFL_EXPERIMENTS": "exp5_control", "LIEDFL_DATA_DIR": str(tmp_path / "data")}
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / "paper_plan.py"), "full", "--dry-run", "--parallel", "2"],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=tmp_path,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.splitlines() == ["experiment=exp5_control (2000 epochs)", "1 job(s), 2 at a time"]
+    assert not (tmp_path / "data").exists()
