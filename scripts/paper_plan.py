@@ -374,6 +374,10 @@ def full_table(path: Path = FULL_RUNS) -> str:
             f"| {_fmt(true.get('rel_rot_error_mean'))} "
             f"| {ev.get('newton_failures', '–')} | {ev.get('checkpoint_epoch', '–')} |"
         )
+    runs = _read_json(path).get("runs", [])
+    if runs:  # each `full` invocation as a whole: with every job in one of them, the paper's wall time
+        lines += ["", "| run started | jobs | at a time | wall s |", "|---|---|---|---|"]
+        lines += [f"| {r['started']} | {len(r['jobs'])} | {r['parallel']} | {r['wall_seconds']:,.0f} |" for r in runs]
     return "\n".join(lines)
 
 

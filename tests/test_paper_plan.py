@@ -276,6 +276,7 @@ def test_full_in_parallel_runs_jobs_side_by_side_longest_first_and_records_the_w
     assert all(r["parallel"] == 2 for r in data["jobs"].values())
     (whole,) = data["runs"]
     assert whole["parallel"] == 2 and sorted(whole["jobs"]) == sorted(keys) and whole["wall_seconds"] >= 0
+    assert f"| {whole['started']} | 4 | 2 | " in plan.full_table(path)
     bad = subprocess.run(
         [sys.executable, str(ROOT / "scripts" / "paper_plan.py"), "full", "--parallel", "0"],
         capture_output=True,
