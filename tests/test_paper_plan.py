@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import csv
 import importlib.util
 import json
@@ -28,6 +29,27 @@ def _plan_module():
     sys.modules["paper_plan"] = mod  # (its dataclass looks its module up there)
     spec.loader.exec_module(mod)
     return mod
+
+
+@pytest.fixture(scope="module")
+def exp2_jobs():
+    """Exp 2's jobs, composed and validated once for the tests of `full` (composition takes seconds)."""
+    return _plan_module().jobs(["exp2_discrete_vs_continuous"], [], check=True)
+
+
+@pytest.fixture
+def cached_jobs(exp2_jobs, monkeypatch):
+    """`paper_plan.jobs` answering Exp 2 from the cache (copies: callers may change a job)."""
+    plan = _plan_module()
+    real = plan.jobs
+
+    def jobs(experiments, extra, check=False):
+        if list(experiments) == ["exp2_discrete_vs_continuous"] and not extra:
+            return [copy.deepcopy(j) for j in exp2_jobs]
+        return real(experiments, extra, check)
+
+    monkeypatch.setattr(plan, "jobs", jobs)
+    return plan
 
 
 def test_every_job_of_the_reproduction_composes_with_its_budget():
@@ -86,8 +108,8 @@ def test_the_projection_follows_the_measurement_and_lists_what_is_unmeasured(tmp
     assert f"| **total** | **{expected / 3600:.2f}** |" in plan.plan_table(["exp5_control"], [], path, full)
 
 
-def test_full_runs_every_job_not_skipped_and_records_it_as_it_finishes(tmp_path, monkeypatch):
-    plan = _plan_module()
+def test_full_runs_every_job_not_skipped_and_records_it_as_it_finishes(tmp_path, monkeypatch, cached_jobs):
+    plan = cached_jobs
     ran = []
 
     def fake(job, extra, work, epochs):
@@ -242,8 +264,10 @@ def test_full_keeps_each_runs_test_errors_in_its_record(tmp_path, monkeypatch):
     assert "| 0.25 / 0.5 |" in plan.full_table(path)
 
 
-def test_full_in_parallel_runs_jobs_side_by_side_longest_first_and_records_the_whole(tmp_path, monkeypatch):
-    plan = _plan_module()
+def test_full_in_parallel_runs_jobs_side_by_side_longest_first_and_records_the_whole(
+    tmp_path, monkeypatch, cached_jobs
+):
+    plan = cached_jobs
     monkeypatch.setenv("LIEDFL_DATA_DIR", str(tmp_path / "data"))
     monkeypatch.setattr(plan, "MEASUREMENTS", tmp_path / "plan.json")
     keys = [j.key for j in plan.jobs(["exp2_discrete_vs_continuous"], []) if "baseline=none" in j.key]
@@ -311,8 +335,8 @@ def test_full_with_overrides_records_them_in_the_key_and_keeps_the_full_budget_r
     assert data["jobs"]["experiment=exp5_control budget=smoke"]["wall_seconds"] == 1.0
 
 
-def test_skip_measured_leaves_out_recorded_jobs_and_dry_run_runs_nothing(tmp_path, monkeypatch):
-    plan = _plan_module()
+def test_skip_measured_leaves_out_recorded_jobs_and_dry_run_runs_nothing(tmp_path, monkeypatch, cached_jobs):
+    plan = cached_jobs
     full = tmp_path / "full.json"
     monkeypatch.setattr(plan, "FULL_RUNS", full)
     keys = [j.key for j in plan.jobs(["exp2_discrete_vs_continuous"], []) if "baseline=none" in j.key]
