@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from liedfl_cli.lie import SE3, SO3, Pose, ProductGroup, so3
-from liedfl_cli.models import fused_columns
+from liedfl_cli.models import fused_columns, fused_scalar
 from liedfl_cli.models.liedflnn import LieDFLNN
 from liedfl_cli.models.true_scheme import physics_model
 from liedfl_cli.solvers import newton, runtime
@@ -30,8 +30,10 @@ MODELS = {
 
 @pytest.fixture(autouse=True)
 def _columns_at_every_batch_size(monkeypatch):
-    """The column path at every batch size here (in use it starts at `MIN_ROWS` trajectories)."""
+    """The column path at every batch size here (in use it starts at `MIN_ROWS` trajectories, and a
+    few trajectories take `fused_scalar`)."""
     monkeypatch.setattr(fused_columns, "MIN_ROWS", 1)
+    monkeypatch.setattr(fused_scalar, "MAX_ROWS", 0)
 
 
 def model_named(name: str) -> LieDFLNN:

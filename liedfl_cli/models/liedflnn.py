@@ -36,7 +36,7 @@ from ..solvers import runtime
 from ..solvers.newton import NewtonProblem, jacobian
 from ..solvers.options import SolverOptions
 from ..solvers.rollout import Rollout
-from . import fused, fused_columns
+from . import fused, fused_columns, fused_scalar
 from .base import (
     POTENTIAL_PARTS,
     Batch,
@@ -427,7 +427,9 @@ class LieDFLNN(ImplicitModel):
     def rollout(self, g0: Pose, g1: Pose, steps: int, opts: SolverOptions | None = None, progress=None) -> Rollout:
         """`ImplicitModel.rollout`; a single SO(3) body with at most constant Rayleigh damping rolls
         out in column layout on the fused path (`fused_columns`: the same steps, several times faster
-        at large batches)."""
+        at large batches); one or two trajectories of such a model in Python floats (`fused_scalar`)."""
+        if fused_scalar.applies(self, g0):
+            return fused_scalar.rollout(self, g0, g1, steps, opts or SolverOptions(), progress)
         if fused_columns.applies(self, g0):
             return fused_columns.rollout(self, g0, g1, steps, opts or SolverOptions(), progress)
         return super().rollout(g0, g1, steps, opts, progress)
