@@ -32,6 +32,8 @@ Files (this module only re-exports them: the rest of the code imports `models.fu
     fused_columns.py   the whole rollout of a single SO(3) body with at most constant Rayleigh
                        damping in column layout ((3, 3, T) rotations: 3x3 products as broadcast
                        multiply-adds over rows of length T), `LieDFLNN.rollout` takes it
+    fused_scalar.py    the same rollout for one to six trajectories in Python floats (a batch-1
+                       step is torch's per-call cost, not arithmetic), `LieDFLNN.rollout` takes it
 """
 
 from __future__ import annotations
