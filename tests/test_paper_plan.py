@@ -102,6 +102,13 @@ def test_the_projection_follows_the_measurement_and_lists_what_is_unmeasured(tmp
     text = plan.plan_table(["exp5_control"], [], path, full)
     assert "| 90 / 80 (1.0) |" in text and f"| **total** | **{90 / 3600:.2f}** | **{80 / 3600:.2f}** " in text
     assert "1 job(s) run at the full budget" in text
+    assert "| ≥ " not in text and plan.ADAPTIVE_NOTE not in text  # no adaptive-solver job projected here
+    # an adaptive-solver job's projection is a lower bound, and so is the total it enters
+    node = next(j for j in plan.jobs(["exp3_manifold"], []) if j.model == "neural_ode")
+    records = {node.key: {**rec, "epochs": 3}}
+    (tmp_path / "node.json").write_text(json.dumps({"jobs": records}))
+    text = plan.plan_table(["exp3_manifold"], [], tmp_path / "node.json", tmp_path / "none.json")
+    assert "| ≥ " in text and "| **total** | **≥ " in text and plan.ADAPTIVE_NOTE in text
     full.write_text(
         json.dumps({"jobs": {job.key: {"exit_code": 1, "wall_seconds": 9.0, "cpu_seconds": 8.0, "load_1min": 1.0}}})
     )
