@@ -47,14 +47,19 @@ def applies(model, g0: Pose) -> bool:
     """Whether `model`'s rollout from g0 takes the column path: a LieDFLNN on the fused path of
     one SO(3) body, with no force or only constant Rayleigh damping, poses (T, 1, 3, 3) of a dtype
     whose poses need no re-projection (float64), T >= MIN_ROWS."""
+    return single_linear_so3(model, g0) and g0.R.shape[0] >= MIN_ROWS and not projects_poses(g0.R.dtype)
+
+
+def single_linear_so3(model, g0: Pose) -> bool:
+    """A LieDFLNN on the fused path of one SO(3) body whose Newton residual is linear in the increment
+    (no force, or only constant Rayleigh damping), poses (T, 1, 3, 3): what the column layout and the
+    float path (`fused_scalar`) both need."""
     G = model.G
     return (
         model._fused()
         and G.n_bodies == 1
         and G.n_se3 == 0
         and g0.R.dim() == 4
-        and g0.R.shape[0] >= MIN_ROWS
-        and not projects_poses(g0.R.dtype)
         and all(isinstance(f, RayleighForce) for f in model.forces)
     )
 

@@ -28,7 +28,6 @@ import torch
 from torch import nn
 
 from ..lie import Pose
-from ..mechanics.forces import RayleighForce
 from ..mechanics.potentials import MLPPotential
 from ..solvers import newton, runtime
 from ..solvers.options import SolverOptions
@@ -65,16 +64,11 @@ def applies(model, g0: Pose) -> bool:
     """Whether `model`'s rollout from g0 takes this path: `fused_columns.applies` but for at most
     MAX_ROWS trajectories, and a potential that is none or an MLP of Linear layers with exact GELU or
     tanh activations, small enough for the batch (BUDGET)."""
-    G = model.G
     if not (
-        model._fused()
-        and G.n_bodies == 1
-        and G.n_se3 == 0
-        and g0.R.dim() == 4
+        fused_columns.single_linear_so3(model, g0)
         and 1 <= g0.R.shape[0] <= MAX_ROWS
         and _doubles(g0.R.dtype)
         and g0.R.device.type == "cpu"
-        and all(isinstance(f, RayleighForce) for f in model.forces)
     ):
         return False
     T = g0.R.shape[0]
