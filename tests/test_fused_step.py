@@ -54,11 +54,62 @@ def test_fused_soap_takes_the_library_steps_bit_for_bit(weight_decay):
             torch.testing.assert_close(new_opt.state[a][key], ref_opt.state[b][key], rtol=1e-13, atol=0)
 
 
+def test_fused_soap_lists_3d_tensors_and_leaves_parameters_without_a_gradient_alone():
+    """Exp 4's shapes: per-body force heads (3-D) and a potential's last bias, which gets no
+    gradient (a constant shift of V is not in the DEL equations): the library skips it."""
+    shapes = [*SHAPES, (2, 3, 4), (1, 5, 2), (1,)]
+    runs = []
+    for cls in (SOAP, FusedSOAP):
+        params = _params(shapes)
+        opt = cls(params, lr=3e-3, precondition_frequency=4)
+        gen = torch.Generator().manual_seed(2)
+        for _ in range(13):
+            for p in params[:-1]:
+                p.grad = torch.randn(p.shape, generator=gen, dtype=torch.float64)
+            opt.step()
+        runs.append((params, opt))
+    (ref, ref_opt), (new, new_opt) = runs
+    assert new_opt._list_group() is not None  # the list step was taken, not the fallback
+    assert new[-1].grad is None and torch.equal(new[-1], _params(shapes)[-1]) and not new_opt.state[new[-1]]
+    for a, b in zip(new, ref):
+        torch.testing.assert_close(a, b, rtol=1e-13, atol=0)
+        for key in ("exp_avg", "exp_avg_sq"):
+            if key in ref_opt.state[b]:
+                torch.testing.assert_close(new_opt.state[a][key], ref_opt.state[b][key], rtol=1e-13, atol=0)
+        for qa, qb in zip(new_opt.state[a].get("Q", []), ref_opt.state[b].get("Q", [])):
+            if len(qb):
+                torch.testing.assert_close(qa, qb, rtol=1e-13, atol=0)
+
+
 def test_fused_soap_falls_back_to_the_library_for_other_tensors():
-    shapes = [*SHAPES, (2, 3, 4)]  # a 3-D tensor: the library's step for the whole group
-    ref, _ = _run(SOAP, shapes, 6)
-    new, new_opt = _run(FusedSOAP, shapes, 6)
+    """A dimension above max_precondition_dim (no preconditioner on it): the library's step for
+    the whole group."""
+    ref, _ = _run(SOAP, SHAPES, 6, max_precondition_dim=4)
+    new, new_opt = _run(FusedSOAP, SHAPES, 6, max_precondition_dim=4)
     assert new_opt._list_group() is None
+    for a, b in zip(new, ref):
+        torch.testing.assert_close(a, b, rtol=1e-13, atol=0)
+
+
+def test_fused_soap_falls_back_when_a_gradient_appears_after_the_first_step():
+    """A parameter whose first gradient comes late has no state yet: the library creates it, so
+    that step is the library's; the next ones are listed again."""
+    shapes = [*SHAPES, (2, 3)]
+    runs = []
+    for cls in (SOAP, FusedSOAP):
+        params = _params(shapes)
+        opt = cls(params, lr=3e-3, precondition_frequency=4)
+        gen = torch.Generator().manual_seed(2)
+        listed = []
+        for step in range(9):
+            for p in params if step >= 3 else params[:-1]:
+                p.grad = torch.randn(p.shape, generator=gen, dtype=torch.float64)
+            if cls is FusedSOAP:
+                listed.append(opt._list_group() is not None)
+            opt.step()
+        runs.append((params, listed))
+    (ref, _), (new, listed) = runs
+    assert listed == [False, True, True, False, True, True, True, True, True]
     for a, b in zip(new, ref):
         torch.testing.assert_close(a, b, rtol=1e-13, atol=0)
 

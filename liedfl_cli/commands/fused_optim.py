@@ -11,10 +11,12 @@ so a last-bit difference in one step changes a whole training run (the merged ke
 stacked buffer did, by 2 % of the final loss after 1000 epochs). State, checkpoints and the
 eigenbasis refresh (`precondition_frequency`) are the library's own.
 
-The list step covers 1-D tensors without a preconditioner and 2-D tensors with both dimensions
-preconditioned; anything else (3-D+ tensors, a dimension above `max_precondition_dim`, merge_dims,
-precondition_1d, normalize_gradient, maximize, several parameter groups, a parameter without a
-gradient, the first step) takes the library's step unchanged.
+The list step covers 1-D tensors without a preconditioner and tensors of 2 or more dimensions with
+every dimension preconditioned (Exp 4's per-body force heads are 3-D); a parameter without a gradient
+is left alone, as the library's step leaves it (Exp 4's potential's last bias: a constant shift of V
+does not enter the forced DEL equations). Anything else (a dimension above `max_precondition_dim`,
+merge_dims, precondition_1d, normalize_gradient, maximize, several parameter groups, a gradient
+whose state the library has yet to create, the first step) takes the library's step unchanged.
 """
 
 from __future__ import annotations
@@ -29,12 +31,12 @@ _tensordot = torch._C._VariableFunctions.tensordot  # type: ignore[attr-defined]
 
 def _listable(p: torch.Tensor, state: dict, max_dim: int) -> bool:
     """Whether the list step reproduces the library's for `p`: 1-D without a preconditioner, or 2-D
-    with both dimensions preconditioned."""
+    and more with every dimension preconditioned."""
     if not state or state.get("Q") is None:
         return False
     if p.dim() == 1:
         return len(state["GG"][0]) == 0
-    return p.dim() == 2 and max(p.shape) <= max_dim
+    return p.dim() >= 2 and max(p.shape) <= max_dim and len(state["GG"]) == p.dim()
 
 
 class FusedSOAP(SOAP):
@@ -51,7 +53,7 @@ class FusedSOAP(SOAP):
             return None
         top = group["max_precondition_dim"]
         for p in group["params"]:
-            if p.grad is None or p.grad.is_sparse or not _listable(p, self.state.get(p, {}), top):
+            if p.grad is not None and (p.grad.is_sparse or not _listable(p, self.state.get(p, {}), top)):
                 return None
         return group
 
@@ -81,10 +83,10 @@ class FusedSOAP(SOAP):
         step_size = group["lr"]
         if group["correct_bias"]:
             step_size *= math.sqrt(self.debias(beta2, step)) / self.debias(beta1, step)
-        params = group["params"]
+        params = [p for p in group["params"] if p.grad is not None]  # the library skips the others
         states = [self.state[p] for p in params]
         grads = [p.grad for p in params]
-        mats = [i for i, p in enumerate(params) if p.dim() == 2]
+        mats = [i for i, p in enumerate(params) if p.dim() >= 2]
         exp_avg = [s["exp_avg"] for s in states]
         exp_avg_sq = [s["exp_avg_sq"] for s in states]
         projected = list(grads)  # 1-D: the identity projection (the library's permute of one dimension)
@@ -104,13 +106,14 @@ class FusedSOAP(SOAP):
         if group["weight_decay"] != 0.0:  # decoupled, as the library's apply_weight_decay
             torch._foreach_mul_(params, 1.0 - group["weight_decay"] * group["lr"])
         if mats:
-            gg = [states[i]["GG"][k] for i in mats for k in (0, 1)]
-            outer = [_tensordot(grads[i], grads[i], [1 - k], [1 - k]) for i in mats for k in (0, 1)]
+            pairs = [(i, k) for i in mats for k in range(params[i].dim())]
+            gg = [states[i]["GG"][k] for i, k in pairs]
+            outer = [_tensordot(grads[i], grads[i], *[_others(params[i].dim(), k)] * 2) for i, k in pairs]
             shampoo = {states[i]["shampoo_beta"] for i in mats}
             if len(shampoo) == 1:
                 torch._foreach_lerp_(gg, outer, 1.0 - shampoo.pop())
             else:
-                for g, o, i in zip(gg, outer, [i for i in mats for _ in (0, 1)]):
+                for g, o, (i, _) in zip(gg, outer, pairs):
                     g.lerp_(o, weight=1.0 - states[i]["shampoo_beta"])
             for i in mats:
                 if step > 0 and step % states[i]["precondition_frequency"] == 0:
@@ -119,9 +122,17 @@ class FusedSOAP(SOAP):
 
     @staticmethod
     def _project(x: torch.Tensor, Q: list, back: int) -> torch.Tensor:
-        """The library's `project` of a 2-D tensor (Q0^T x Q1, or Q0 x Q1^T with back = 1): the
-        same two tensordots."""
-        return _tensordot(_tensordot(x, Q[0], [0], [back]), Q[1], [0], [back])
+        """The library's `project` of a tensor with every dimension preconditioned (2-D: Q0^T x Q1,
+        or Q0 x Q1^T with back = 1): the same tensordots, one per dimension, each contracting the
+        leading one and appending its image last."""
+        for q in Q:
+            x = _tensordot(x, q, [0], [back])
+        return x
+
+
+def _others(ndim: int, k: int) -> list[int]:
+    """Every dimension but k: the library's contraction for the preconditioner statistic GG[k]."""
+    return [d for d in range(ndim) if d != k]
 
 
 def _global_hooks() -> bool:
