@@ -229,7 +229,7 @@ def rollout(model, g0: Pose, g1: Pose, steps: int, opts: SolverOptions, progress
     if runtime.want_compile("rollout"):
         return rollout_implicit(model, g0, g1, steps, opts, progress)
     maps = rollout_maps(model)
-    cols = fused_columns.ColumnMaps(model, maps)
+    cols: list[fused_columns.ColumnMaps] = []  # the column maps, built by the first hand-over only
     fmaps = _Maps(maps)
     potential = _Potential(maps.potential_layers, -float(model.h)) if model.potential is not None else None
     step_tol = max(opts.tol, newton.ROUNDING_ULPS * sys.float_info.epsilon)  # rotations: entries <= 1
@@ -250,7 +250,9 @@ def rollout(model, g0: Pose, g1: Pose, steps: int, opts: SolverOptions, progress
             def hand_over(W, r, rn, left, done, g=g, const=const):
                 """The row layout's loop (careful iterations) from this iteration on."""
                 like = g0.R
-                step = fused_columns.ColumnStep(cols, _col(like, const), _col(like, g))
+                if not cols:
+                    cols.append(fused_columns.ColumnMaps(model, maps))
+                step = fused_columns.ColumnStep(cols[0], _col(like, const), _col(like, g))
                 rows = like.new_zeros(1, dtype=torch.long)
                 Ws, rs, cs, n_it = step.hand_over(rows, _col(like, W), _col(like, r), like.new_tensor([rn]), opts, left)
                 return Ws[:, 0].tolist(), rs[:, 0].tolist(), bool(cs[0]), done + int(n_it[0])
