@@ -390,8 +390,11 @@ def _main() -> None:
     user_full_error = os.environ.get("HYDRA_FULL_ERROR")
     os.environ["HYDRA_FULL_ERROR"] = "1"
     launcher_error = None
+    from .config.hydra_mode import without_mode_composition
+
     try:
-        _hydra_main()
+        with without_mode_composition(CONF_DIR, sys.argv[1:]):  # one composition instead of two
+            _hydra_main()
     except KeyboardInterrupt:
         _interrupted_sweep()
         raise
