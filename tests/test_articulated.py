@@ -75,6 +75,39 @@ def test_fast_residual_and_jacobian_equal_autodiff_through_fk(rotations, free_ro
     torch.testing.assert_close(J_fast, J_gen, atol=1e-8 * float(J_gen.detach().abs().max()), rtol=0)
 
 
+@pytest.mark.parametrize("free_root", [True, False])
+def test_the_coordinate_mlp_potential_takes_the_closed_form_and_equals_autodiff(free_root, monkeypatch):
+    """Exp 4's articulated potential (an MLP of the joint coordinates): its covector and the
+    parameters' gradients through it, closed form (`mlp_derivatives`) against autograd."""
+    from torch.func import grad
+
+    from liedfl_cli.models import mlp_derivatives
+
+    tree = _tree("parent", free_root)
+    model = _model(tree, "fast", {}, potential=("mlp",))
+    assert model.potential_coord is not None
+    g = _trajectories(tree).index((slice(None), 2))
+    G = tree.group
+    taken = []
+    closed_form = mlp_derivatives.mlp_potential_covector
+    monkeypatch.setattr(mlp_derivatives, "mlp_potential_covector", lambda *a: taken.append(1) or closed_form(*a))
+    world, A = None, None
+    cov = model.potential_covector(g, world, A)
+    assert taken == [1]
+    eta = g.R.new_zeros(*g.R.shape[:-3], G.dim)
+    ref = -H * grad(lambda e: model.potential_coord(G.perturb(g, e)).sum())(eta)
+    assert ref.detach().abs().max() > 1e-4
+    torch.testing.assert_close(cov, ref, rtol=1e-12, atol=1e-14)
+    params = [p for p in model.potential_coord.parameters() if p.requires_grad]
+    weights = torch.randn_like(ref)
+    d_closed = torch.autograd.grad((cov * weights).sum(), params, allow_unused=True)
+    d_ref = torch.autograd.grad((ref * weights).sum(), params, allow_unused=True)
+    for x, y in zip(d_closed, d_ref):
+        assert (x is None) == (y is None)
+        if x is not None:
+            torch.testing.assert_close(x, y, rtol=1e-11, atol=1e-13)
+
+
 @pytest.mark.parametrize(("rotations", "free_root", "forces"), CASES[:2])
 def test_training_batches_give_the_residual_and_its_gradient(rotations, free_root, forces):
     """The precomputed training set (FK done once) gives the same loss and gradients as the generic path."""

@@ -41,6 +41,7 @@ from ..mechanics.forces import RayleighForce, build_forces, force_jacobian_xi
 from ..mechanics.parameterizations import Inertia, PositiveVector
 from ..mechanics.potentials import STANDARD_GRAVITY, GravityPotential, MLPPotential, UniformGravityPotential
 from ..solvers.newton import NewtonProblem, jacobian
+from . import mlp_derivatives
 from .base import (
     Batch,
     ImplicitModel,
@@ -394,6 +395,11 @@ class ArticulatedLieDFLNN(ImplicitModel):
             out = out - self.h * art.to_coordinates(A, dw)
         Vc = self.potential_coord
         if Vc is not None:
+            # an MLP in closed form (`mlp_derivatives`): no autograd pass inside the loss, whose own
+            # backward then runs once instead of through a double backward
+            closed = mlp_derivatives.mlp_potential_covector(Vc, self.G, g, float(self.h))
+            if closed is not None:
+                return out + closed
             eta = g.R.new_zeros(*g.R.shape[:-3], self.G.dim)
             out = out - self.h * grad(lambda e: Vc(self.G.perturb(g, e)).sum())(eta)
         return out

@@ -267,21 +267,25 @@ def left_covector(G: ProductGroup, g: Pose, dx: torch.Tensor) -> torch.Tensor:
 def potential_covector(model, g: Pose) -> torch.Tensor | None:
     """-h dV(g exp(eta))/d eta at 0 (..., dim) of a model whose potential is an `MLPPotential`
     of a supported network; None otherwise."""
+    return mlp_potential_covector(model.potential, model.G, g, float(model.h))
+
+
+def mlp_potential_covector(V, G: ProductGroup, g: Pose, h: float) -> torch.Tensor | None:
+    """-h dV(g exp(eta))/d eta at 0 (..., dim) for V an `MLPPotential` on G of a supported network,
+    in closed form (differentiable in the parameters and in g); None for any other V."""
     from ..mechanics.potentials import MLPPotential
 
-    V = model.potential
     if not isinstance(V, MLPPotential):
         return None
-    G = model.G
     x = g.R.flatten(-3) if not G.n_se3 else G.flatten(g)  # no copy for rotation-only groups
     if x.dim() == 2 and not G.n_se3 and not _needs_graph(V.net, x):
         lys = layers(V.net)
         if lys is not None:
-            return rotation_potential_covector(lys, G, g.R, model.h)
+            return rotation_potential_covector(lys, G, g.R, h)
     got = value_and_gradient(V.net, x)
     if got is None:
         return None
-    return -model.h * left_covector(G, g, got[1])
+    return -h * left_covector(G, g, got[1])
 
 
 class ForcesAt:
