@@ -108,7 +108,14 @@ def test_the_coordinate_mlp_potential_takes_the_closed_form_and_equals_autodiff(
             torch.testing.assert_close(x, y, rtol=1e-11, atol=1e-13)
 
 
-@pytest.mark.parametrize(("rotations", "free_root", "forces"), CASES[:2])
+EXP4_FORCES = {  # Exp 4's three forces at once (each called once on both time levels, stacked)
+    "rayleigh": {"coupling": "per_body"},
+    "rayleigh_nonlinear": {"coupling": "per_body", "width": 8, "depth": 2},
+    "nn": {"width": 8, "depth": 2},
+}
+
+
+@pytest.mark.parametrize(("rotations", "free_root", "forces"), [*CASES[:2], ("parent", True, EXP4_FORCES)])
 def test_training_batches_give_the_residual_and_its_gradient(rotations, free_root, forces):
     """The precomputed training set (FK done once) gives the same loss and gradients as the generic path."""
     tree = _tree(rotations, free_root)
