@@ -3,7 +3,8 @@ and record the wall time of every job of a finished sweep.
 
     python scripts/paper_plan.py plan [overrides...]       # table of every job, budget, projected time
     python scripts/paper_plan.py measure [overrides...]    # time train.epochs=3 of every job (minutes)
-    python scripts/paper_plan.py full [--skip TEXT]... [--skip-measured] [--parallel N] [--dry-run] [overrides...]
+    python scripts/paper_plan.py full [--skip TEXT]... [--skip-measured] [--parallel N] [--stop-after DURATION]
+                                      [--dry-run] [overrides...]
     python scripts/paper_plan.py full-table                # markdown: those jobs, their times and errors
     python scripts/paper_plan.py times <experiment> <sweep dir> <times.csv> [--sweep-seconds S]
 
@@ -27,15 +28,31 @@ the whole reproduction measures it piece by piece); `plan` then shows those jobs
 (`wait4`); the run's own wall time is recorded under "runs": with every job in it, the whole paper's.
 `--skip-measured` leaves out the jobs already recorded there (exit 0): how a later session goes on.
 `--dry-run` lists the jobs that would run, in order, and runs nothing.
+
+Jobs longer than a session run in pieces. `--stop-after 2.5h` (or `9000`, `150m`), or SIGTERM / Ctrl-C
+to the runner, stops the run: no new job starts, and each running `liedfl train` gets SIGTERM, finishes
+its epoch, saves `checkpoints/last.pt` and exits 143; its record says `interrupted` (with `epochs_done`)
+and the runner exits 75. `full --skip-measured` then resumes those jobs first (`liedfl train
+resume=<run>`, which ends with the same weights as an uninterrupted run), and the finished record sums
+the wall and CPU seconds of its `pieces`. While a job runs its record says `running` with the runner's
+host and pid: another runner leaves it alone, and if the runner died (a machine or session that ended
+without the stop) the next `--skip-measured` resumes from the last checkpoint (written every minute)
+and counts that piece under `lost_pieces`: its seconds are unknown, so the sums are lower bounds. A job
+whose run folder a live `liedfl` command holds (`<run>/.lock`) is never cleared or resumed; a job
+started afresh gets an empty folder.
 """
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import itertools
 import json
 import math
 import os
+import shutil
+import signal
+import socket
 import subprocess
 import sys
 import tempfile
@@ -164,14 +181,173 @@ def _write_json(path: Path, obj) -> None:  # write then rename: never a half-wri
     tmp.replace(path)
 
 
-def measure_one(job: Job, extra: list[str], work: Path, epochs: int | None = MEASURE_EPOCHS) -> dict:
+RESUMABLE_EXITS = (130, 143)
+"""Exit codes of a `liedfl train` stopped by SIGINT / SIGTERM: it finished its epoch, saved
+`checkpoints/last.pt` and can be resumed (README, "Interruptions and resume")."""
+STOPPED_EXIT = 75  # (EX_TEMPFAIL) `full` stopped with jobs left to resume: run it again with --skip-measured
+
+
+class Stop:
+    """A request to stop `full`: no new job starts, and each running one gets SIGTERM, so it
+    finishes its epoch, saves its checkpoint and exits 143 (a piece the next `full --skip-measured`
+    resumes). Raised by the --stop-after deadline or by the runner's own SIGTERM / SIGINT."""
+
+    def __init__(self) -> None:
+        self.reason: str | None = None
+        self._lock = threading.Lock()
+        self._children: set[subprocess.Popen] = set()
+
+    @property
+    def requested(self) -> bool:
+        return self.reason is not None
+
+    def request(self, reason: str) -> None:
+        with self._lock:
+            if self.reason is not None:
+                return
+            self.reason = reason
+            children = list(self._children)
+        for child in children:
+            _terminate(child)
+
+    def add(self, child: subprocess.Popen) -> None:
+        with self._lock:
+            self._children.add(child)
+            late = self.reason is not None
+        if late:  # (the request came while it was starting)
+            _terminate(child)
+
+    def discard(self, child: subprocess.Popen) -> None:
+        with self._lock:
+            self._children.discard(child)
+
+
+def _terminate(child: subprocess.Popen) -> None:
+    # os.kill, not Popen.send_signal: that one polls, which could reap the child before run_child's
+    # wait4 has read its CPU seconds
+    with contextlib.suppress(ProcessLookupError):  # (already gone)
+        os.kill(child.pid, signal.SIGTERM)
+
+
+def parse_duration(text: str) -> float:
+    """'9000', '9000s', '150m', '2.5h' -> seconds (> 0); ValueError otherwise."""
+    units = {"s": 1.0, "m": 60.0, "h": 3600.0}
+    unit = units.get(text[-1:].lower()) if text else None
+    number = text[:-1] if unit is not None else text
+    seconds = float(number) * (unit or 1.0)  # (ValueError for anything else)
+    if not math.isfinite(seconds) or seconds <= 0:
+        raise ValueError(text)
+    return seconds
+
+
+def runner_id() -> str:
+    """This runner, as a `running` record names it: host and process id."""
+    return f"{socket.gethostname()}:{os.getpid()}"
+
+
+def runner_alive(runner: str | None) -> bool:
+    """Whether the runner a `running` record names still runs (only knowable on its own host)."""
+    host, _, pid = (runner or "").rpartition(":")
+    if host != socket.gethostname() or not pid.isdigit():
+        return False
+    try:
+        os.kill(int(pid), 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # (someone else's process of that number)
+        return True
+    return True
+
+
+def last_epoch(run: Path) -> int | None:
+    """The last epoch `train_metrics.csv` of a run folder records (None: no such row)."""
+    path = run / "train_metrics.csv"
+    if not path.is_file():
+        return None
+    rows = path.read_text().strip().splitlines()
+    if len(rows) < 2:
+        return None
+    head, last = rows[0].split(","), rows[-1].split(",")
+    try:
+        return int(float(last[head.index("epoch")]))
+    except (ValueError, IndexError):
+        return None
+
+
+def resumable(rec: dict | None) -> bool:
+    """Whether a `full` record is a job to resume rather than to start: stopped by a signal (exit
+    130 / 143) or left `running` by a runner that is gone, with the run's checkpoint still there."""
+    if not rec or not rec.get("run_dir"):
+        return False
+    stopped = rec.get("exit_code") in RESUMABLE_EXITS
+    orphaned = rec.get("status") == "running" and not runner_alive(rec.get("runner"))
+    return (stopped or orphaned) and (ROOT / rec["run_dir"] / "checkpoints" / "last.pt").is_file()
+
+
+def folder_held(run: Path) -> str | None:
+    """Who holds a run folder's lock (`liedfl_cli.files.locks`: a `liedfl` command of this host that
+    still runs, or one of another host), or None. `full` never clears or resumes a folder in use."""
+    from liedfl_cli.files import locks
+
+    try:
+        holder = json.loads((run / locks.LOCK_FILE).read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(holder, dict) or locks.holder_alive(holder) is False:
+        return None
+    return locks.describe(holder)
+
+
+PIECE_KEYS = ("wall_seconds", "cpu_seconds", "exit_code", "load_1min", "load_1min_end", "measured", "epochs_done")
+
+
+def pieces_of(prev: dict | None) -> list[dict]:
+    """The pieces a record holds: its `pieces`, or the record itself as one piece (a job stopped once)."""
+    if not prev:
+        return []
+    if "pieces" in prev:
+        return [dict(p) for p in prev["pieces"]]
+    return [{k: prev[k] for k in PIECE_KEYS if k in prev}] if "wall_seconds" in prev else []
+
+
+def merge_pieces(prev: dict | None, rec: dict) -> dict:
+    """The record of a job run in pieces: `rec` (the latest piece) with wall and CPU seconds summed
+    over every piece and each piece under `pieces`. A piece lost with its runner (a `running` record)
+    counts as lost: its seconds are unknown, so the sums are lower bounds (`lost_pieces`)."""
+    if prev is None:
+        return rec
+    pieces = pieces_of(prev)
+    lost = int(prev.get("lost_pieces", 0)) + (1 if prev.get("status") == "running" else 0)
+    pieces.append({k: rec[k] for k in PIECE_KEYS if k in rec})
+    out = {**rec, "pieces": pieces}
+    out["wall_seconds"] = round(sum(float(p["wall_seconds"]) for p in pieces), 3)
+    out["cpu_seconds"] = round(sum(float(p["cpu_seconds"]) for p in pieces), 3)
+    if lost:
+        out["lost_pieces"] = lost
+    return out
+
+
+def measure_one(
+    job: Job,
+    extra: list[str],
+    work: Path,
+    epochs: int | None = MEASURE_EPOCHS,
+    resume: bool = False,
+    stop: Stop | None = None,
+) -> dict:
     """Run `job` with train.epochs=`epochs` (None: its full budget; its other settings unchanged) in
-    `work`; its timings."""
+    `work`; its timings. resume: continue the interrupted run in its folder from `checkpoints/last.pt`
+    (`liedfl train resume=<run>`, the run's own config) instead of starting it. stop: asks the job to
+    stop early (see `Stop`)."""
     run = work / job.folder.replace("/", "_")
-    cmd = [sys.executable, "-m", "liedfl_cli", "train", f"experiment={job.experiment}", *job.overrides, *extra]
-    cmd += [*([f"train.epochs={epochs}"] if epochs is not None else []), "ui.progress=false", f"hydra.run.dir={run}"]
+    if resume:
+        cmd = [sys.executable, "-m", "liedfl_cli", "train", f"resume={run}", "ui.progress=false"]
+    else:
+        cmd = [sys.executable, "-m", "liedfl_cli", "train", f"experiment={job.experiment}", *job.overrides, *extra]
+        cmd += [*([f"train.epochs={epochs}"] if epochs is not None else [])]
+        cmd += ["ui.progress=false", f"hydra.run.dir={run}"]
     load = os.getloadavg()[0]
-    proc, wall, cpu = run_child(cmd)
+    proc, wall, cpu = run_child(cmd, stop)
     rec = {"epochs": epochs if epochs is not None else job.epochs, "wall_seconds": round(wall, 3)}
     rec.update(cpu_seconds=round(cpu, 3), exit_code=proc.returncode, load_1min=load)
     if proc.returncode != 0:
@@ -190,19 +366,25 @@ def measure_one(job: Job, extra: list[str], work: Path, epochs: int | None = MEA
     return {**rec, **rates(rec)}
 
 
-def run_child(cmd: list[str]) -> tuple[subprocess.CompletedProcess, float, float]:
+def run_child(cmd: list[str], stop: Stop | None = None) -> tuple[subprocess.CompletedProcess, float, float]:
     """Run cmd in ROOT -> (its completed process with stdout and stderr, wall seconds, CPU seconds of
     the child and its descendants). The CPU seconds come from the child's own `wait4` record, so jobs
-    run side by side (`full --parallel`) are each charged their own."""
+    run side by side (`full --parallel`) are each charged their own. stop: the child is registered
+    with it while it runs, so that a stop request reaches it (SIGTERM)."""
     with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
         t0 = time.perf_counter()
         child = subprocess.Popen(cmd, cwd=ROOT, stdout=out, stderr=err, text=True)
+        if stop is not None:
+            stop.add(child)
         try:
             _, status, usage = os.wait4(child.pid, 0)
-        except BaseException:  # (Ctrl-C: the job goes too, and is reaped)
+        except BaseException:  # (an exception in the runner itself: the job goes too, and is reaped)
             child.kill()
             child.wait()
             raise
+        finally:
+            if stop is not None:
+                stop.discard(child)
         wall = time.perf_counter() - t0
         child.returncode = os.waitstatus_to_exitcode(status)
         out.seek(0)
@@ -251,21 +433,42 @@ def holds_words(key: str, text: str) -> bool:
 
 
 def full_jobs(
-    experiments: list[str], extra: list[str], skip: list[str], parallel: int = 1, skip_measured: bool = False
+    experiments: list[str],
+    extra: list[str],
+    skip: list[str],
+    parallel: int = 1,
+    skip_measured: bool = False,
+    path: Path | None = None,
 ) -> list[Job]:
-    """The jobs `run_full` runs, in the order it starts them: those not skipped (and, with
-    skip_measured, not yet recorded at the full budget with exit 0 in FULL_RUNS); with parallel > 1
-    the longest projected first (docs/bench/paper_plan.json; unmeasured ones last)."""
-    done = {k for k, r in _read_json(FULL_RUNS).get("jobs", {}).items() if r.get("exit_code") == 0}
+    """The jobs `run_full` runs, in the order it starts them: those not skipped and not held by another
+    runner (a `running` record of a live one); with skip_measured, not those recorded at the full budget
+    with exit 0 in `path` (FULL_RUNS), and the interrupted ones (`resumable`) first. With parallel > 1
+    the longest projected first (docs/bench/paper_plan.json; an interrupted job by what it has left;
+    unmeasured ones last)."""
+    recorded = _read_json(path or FULL_RUNS).get("jobs", {})
+    done = {k for k, r in recorded.items() if r.get("exit_code") == 0}
+    held = {k for k, r in recorded.items() if r.get("status") == "running" and runner_alive(r.get("runner"))}
     todo = [
         job
         for job in jobs(experiments, extra, check=True)
         if not any(holds_words(job.key, t) for t in skip)
         and not (skip_measured and " ".join([job.key, *extra]) in done)
+        and " ".join([job.key, *extra]) not in held
     ]
+
+    def left(job: Job) -> float:  # the fraction of its epochs a job has still to train
+        rec = recorded.get(" ".join([job.key, *extra]))
+        if not (skip_measured and resumable(rec)):
+            return 1.0
+        assert rec is not None
+        done_epochs = rec.get("epochs_done") or last_epoch(ROOT / rec["run_dir"]) or 0
+        return max(0.0, 1.0 - done_epochs / max(job.epochs, 1))
+
     if parallel > 1:
         records = _read_json(MEASUREMENTS).get("jobs", {})
-        todo.sort(key=lambda job: -(project_cpu(job, records.get(job.key)) or 0.0))
+        todo.sort(key=lambda job: -(project_cpu(job, records.get(job.key)) or 0.0) * left(job))
+    elif skip_measured:
+        todo.sort(key=lambda job: left(job) == 1.0)  # (stable: interrupted jobs first, then the list's order)
     return todo
 
 
@@ -276,21 +479,59 @@ def run_full(
     path: Path = FULL_RUNS,
     parallel: int = 1,
     skip_measured: bool = False,
+    stop_after: float | None = None,
 ) -> dict:
     """Run every job not skipped at its full budget in FULL_DIR and merge each record (timings, load
     at start and end, run folder, test errors) into `path` as the job finishes; then record the run as
     a whole under "runs" (wall seconds, jobs, `parallel`). parallel = N > 1: N jobs at a time (one torch
-    thread each), the longest projected first (docs/bench/paper_plan.json), which shortens the whole."""
+    thread each), the longest projected first (docs/bench/paper_plan.json), which shortens the whole.
+
+    Pieces: with skip_measured, a job stopped earlier (`resumable`) continues from its checkpoint
+    (`liedfl train resume=`) and its record sums the pieces' seconds. stop_after (seconds) or the
+    runner's own SIGTERM / SIGINT stops the run (`Stop`): no new job starts and the running ones
+    checkpoint and are recorded as interrupted. A job's record reads `running` while it runs."""
     os.environ.setdefault("LIEDFL_DATA_DIR", str(FULL_DIR / "data"))
-    todo = full_jobs(experiments, extra, skip, parallel, skip_measured)
+    todo = full_jobs(experiments, extra, skip, parallel, skip_measured, path)
     lock = threading.Lock()
+    stop = Stop()
     started, t0 = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), time.perf_counter()
+    ran: list[str] = []
+    interrupted: list[str] = []
+
+    def write(key: str, rec: dict) -> None:  # (under `lock`)
+        data = _read_json(path)  # (re-read: another process may have recorded meanwhile)
+        # overrides (budget=smoke, ...) make another job: its own key, never a full-budget record's
+        data.setdefault("jobs", {})[key] = rec
+        data["machine"] = f"{os.cpu_count()} CPU cores, shared; load at the start and end of each job (1-min average)"
+        _write_json(path, data)
 
     def one(job: Job) -> None:
-        with lock:
-            print(f"{job.key}: {job.epochs} epochs ...", flush=True)
-        rec = measure_one(job, extra, FULL_DIR, epochs=None)
+        key = " ".join([job.key, *extra])
         run = FULL_DIR / job.folder.replace("/", "_")
+        with lock:
+            if stop.requested:
+                return
+            holder = folder_held(run)
+            if holder is not None:
+                print(f"{job.key}: skipped, its folder {run} is in use by {holder}", flush=True)
+                return
+            prev = _read_json(path).get("jobs", {}).get(key)
+            resume = skip_measured and resumable(prev)
+            if not resume:
+                prev = None
+                if run.exists():  # (a fresh start: nothing of an earlier run of this job may stay)
+                    shutil.rmtree(run)
+            at = f" from epoch {(prev or {}).get('epochs_done') or last_epoch(run)}" if resume else ""
+            print(f"{job.key}: {job.epochs} epochs{' (resumed' + at + ')' if resume else ''} ...", flush=True)
+            mark: dict = {
+                "status": "running",
+                "runner": runner_id(),
+                "started": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+            }
+            mark.update(epochs=job.epochs, run_dir=str(run.relative_to(ROOT)), pieces=pieces_of(prev))
+            write(key, mark)
+            ran.append(key)
+        rec = measure_one(job, extra, FULL_DIR, epochs=None, resume=resume, stop=stop)
         rec.update(
             load_1min_end=os.getloadavg()[0],
             run_dir=str(run.relative_to(ROOT)),
@@ -298,35 +539,83 @@ def run_full(
             eval=eval_rows(run),
             parallel=parallel,
         )
+        if rec["exit_code"] in RESUMABLE_EXITS and (run / "checkpoints" / "last.pt").is_file():
+            rec.update(status="interrupted", epochs_done=last_epoch(run))
+        rec = merge_pieces(prev, rec)
         with lock:
+            state = f", interrupted after epoch {rec['epochs_done']}" if rec.get("status") == "interrupted" else ""
             print(
-                f"{job.key}: {rec['wall_seconds']:.0f} s wall, {rec['cpu_seconds']:.0f} s CPU, exit {rec['exit_code']}",
+                f"{job.key}: {rec['wall_seconds']:.0f} s wall, {rec['cpu_seconds']:.0f} s CPU, exit {rec['exit_code']}"
+                + (f" ({len(rec['pieces'])} pieces)" if len(rec.get("pieces", [])) > 1 else "")
+                + state,
                 flush=True,
             )
-            data = _read_json(path)  # (re-read: another process may have recorded meanwhile)
-            # overrides (budget=smoke, ...) make another job: its own key, never a full-budget record's
-            data.setdefault("jobs", {})[" ".join([job.key, *extra])] = rec
-            data["machine"] = (
-                f"{os.cpu_count()} CPU cores, shared; load at the start and end of each job (1-min average)"
-            )
-            _write_json(path, data)
+            if state:
+                interrupted.append(key)
+            write(key, rec)
 
-    with ThreadPoolExecutor(max_workers=max(1, parallel)) as pool:
-        for _ in pool.map(one, todo):  # (re-raises a job's exception here)
-            pass
+    timer = threading.Timer(stop_after, stop.request, args=(f"--stop-after {stop_after:g} s",)) if stop_after else None
+    with _stop_on_signals(stop):
+        if timer is not None:
+            timer.daemon = True
+            timer.start()
+        try:
+            with ThreadPoolExecutor(max_workers=max(1, parallel)) as pool:
+                for _ in pool.map(one, todo):  # (re-raises a job's exception here)
+                    pass
+        finally:
+            if timer is not None:
+                timer.cancel()
     data = _read_json(path)
-    if todo:
-        data.setdefault("runs", []).append(
-            {
-                "started": started,
-                "wall_seconds": round(time.perf_counter() - t0, 3),
-                "parallel": parallel,
-                "jobs": [" ".join([job.key, *extra]) for job in todo],
-                "load_1min_end": os.getloadavg()[0],
-            }
-        )
+    if ran:
+        whole = {
+            "started": started,
+            "wall_seconds": round(time.perf_counter() - t0, 3),
+            "parallel": parallel,
+            "jobs": ran,
+            "load_1min_end": os.getloadavg()[0],
+        }
+        if stop.requested:
+            whole.update(stopped=stop.reason, interrupted=interrupted)
+        data.setdefault("runs", []).append(whole)
         _write_json(path, data)
+    if stop.requested:
+        left = len(interrupted) + len(todo) - len(ran)
+        print(
+            f"stopped ({stop.reason}): {len(interrupted)} job(s) interrupted with a checkpoint, {left} job(s) left; "
+            "the same command with --skip-measured goes on from there",
+            flush=True,
+        )
+        data["stopped"] = stop.reason  # (for the caller; not written)
     return data
+
+
+class _stop_on_signals:
+    """While `full` runs in the main thread: SIGTERM, and SIGINT unless it is ignored (nohup), ask
+    `stop` to stop (the jobs checkpoint) instead of ending the runner with its jobs orphaned."""
+
+    def __init__(self, stop: Stop) -> None:
+        self.stop = stop
+        self.saved: dict = {}
+
+    def __enter__(self):
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGTERM, signal.SIGINT):
+                old = signal.getsignal(sig)
+                if sig == signal.SIGINT and old == signal.SIG_IGN:
+                    continue
+                self.saved[sig] = old
+                signal.signal(sig, self._handle)
+        return self
+
+    def _handle(self, signum, frame) -> None:
+        self.stop.request(signal.Signals(signum).name)
+        self.__exit__()  # (a second signal acts as it would have: SIGINT raises, SIGTERM ends the runner)
+
+    def __exit__(self, *exc):
+        for sig, old in self.saved.items():
+            signal.signal(sig, old)
+        self.saved = {}
 
 
 EVAL_KEYS = (
@@ -364,11 +653,19 @@ def full_table(path: Path = FULL_RUNS) -> str:
         rows = {e.get("model"): e for e in kept}
         ev, true = rows.get("model", {}), rows.get("true_scheme", {})
         err = f"{_fmt(ev.get('rel_rot_error_mean'))} / {_fmt(ev.get('rel_rot_error_final'))}" if ev else "–"
-        wall = f"{rec['wall_seconds']:,.0f}" + (
-            f" ({rec['paused_seconds']:,.0f} paused)" if rec.get("paused_seconds") else ""
-        )
+        notes = [f"{rec['paused_seconds']:,.0f} paused"] if rec.get("paused_seconds") else []
+        if len(rec.get("pieces", [])) > 1 or rec.get("lost_pieces"):
+            notes.append(f"{len(rec['pieces'])} pieces")
+        if rec.get("lost_pieces"):  # (their seconds are unknown: the sums are lower bounds)
+            notes.append(f"≥: {rec['lost_pieces']} lost")
+        if rec.get("status") == "interrupted":
+            notes.append(f"interrupted after epoch {rec.get('epochs_done')}")
+        elif rec.get("status") == "running":
+            notes.append(f"running since {rec.get('started')}")
+        wall = _fmt(rec.get("wall_seconds"), ",.0f") + (f" ({'; '.join(notes)})" if notes else "")
         lines.append(
-            f"| {key.replace('experiment=', '')} | {rec.get('epochs')} | {wall} | {rec['cpu_seconds']:,.0f} "
+            f"| {key.replace('experiment=', '')} | {rec.get('epochs')} | {wall} "
+            f"| {_fmt(rec.get('cpu_seconds'), ',.0f')} "
             f"| {_fmt(rec.get('load_1min'), '.1f')} → {_fmt(rec.get('load_1min_end'), '.1f')} | {err} "
             f"| {_fmt(ev.get('position_error_mean'))} | {_fmt(ev.get('rollout_vs_cv'))} "
             f"| {_fmt(true.get('rel_rot_error_mean'))} "
@@ -377,7 +674,12 @@ def full_table(path: Path = FULL_RUNS) -> str:
     runs = _read_json(path).get("runs", [])
     if runs:  # each `full` invocation as a whole: with every job in one of them, the paper's wall time
         lines += ["", "| run started | jobs | at a time | wall s |", "|---|---|---|---|"]
-        lines += [f"| {r['started']} | {len(r['jobs'])} | {r['parallel']} | {r['wall_seconds']:,.0f} |" for r in runs]
+        lines += [
+            f"| {r['started']} | {len(r['jobs'])} | {r['parallel']} | {r['wall_seconds']:,.0f}"
+            + (f" (stopped: {r['stopped']})" if r.get("stopped") else "")
+            + " |"
+            for r in runs
+        ]
     return "\n".join(lines)
 
 
@@ -545,7 +847,8 @@ def main(argv: list[str]) -> int:
     if not argv or argv[0] not in ("plan", "measure", "times", "full"):
         print(
             "usage: paper_plan.py plan|measure [overrides...] "
-            "| full [--skip TEXT]... [--skip-measured] [--parallel N] [--dry-run] [overrides...] "
+            "| full [--skip TEXT]... [--skip-measured] [--parallel N] [--stop-after DURATION] [--dry-run] "
+            "[overrides...] "
             "| times <experiment> <sweep> <times.csv>",
             file=sys.stderr,
         )
@@ -577,16 +880,41 @@ def main(argv: list[str]) -> int:
                 return 2
             parallel = int(value)
             del args[i : i + 2]
+        stop_after = None
+        if "--stop-after" in args:
+            i = args.index("--stop-after")
+            value = args[i + 1] if i + 1 < len(args) else ""
+            try:
+                stop_after = parse_duration(value)
+            except ValueError:
+                print(
+                    f"paper_plan.py full: --stop-after needs a duration > 0 (9000, 9000s, 150m, 2.5h), got {value!r}",
+                    file=sys.stderr,
+                )
+                return 2
+            del args[i : i + 2]
         dry, measured = "--dry-run" in args, "--skip-measured" in args
         args = [a for a in args if a not in ("--dry-run", "--skip-measured")]
         if dry:  # what would run, in order, and nothing else
-            todo = full_jobs(experiments_from_env(), job_overrides(args), skip, parallel, measured)
+            extra = job_overrides(args)
+            todo = full_jobs(experiments_from_env(), extra, skip, parallel, measured)
+            recorded = _read_json(FULL_RUNS).get("jobs", {})
             for job in todo:
-                print(f"{job.key} ({job.epochs} epochs)")
+                rec = recorded.get(" ".join([job.key, *extra]))
+                at = (rec or {}).get("epochs_done") or (last_epoch(ROOT / rec["run_dir"]) if rec else None)
+                more = f", resumed from epoch {at}" if measured and resumable(rec) else ""
+                print(f"{job.key} ({job.epochs} epochs{more})")
             print(f"{len(todo)} job(s), {parallel} at a time")
             return 0
-        run_full(experiments_from_env(), job_overrides(args), skip, parallel=parallel, skip_measured=measured)
-        return 0
+        data = run_full(
+            experiments_from_env(),
+            job_overrides(args),
+            skip,
+            parallel=parallel,
+            skip_measured=measured,
+            stop_after=stop_after,
+        )
+        return STOPPED_EXIT if data.get("stopped") else 0
     extra = job_overrides(argv[1:])
     if argv[0] == "measure":
         measure(experiments_from_env(), extra)

@@ -8,6 +8,7 @@ import importlib.util
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import threading
@@ -29,6 +30,15 @@ def _plan_module():
     sys.modules["paper_plan"] = mod  # (its dataclass looks its module up there)
     spec.loader.exec_module(mod)
     return mod
+
+
+@pytest.fixture(autouse=True)
+def own_output_folder(tmp_path, monkeypatch):
+    """`full` writes its runs under ROOT/outputs/paper_full and clears a job's folder before a fresh
+    start: every test here gets a ROOT of its own, never the checkout's outputs."""
+    plan = _plan_module()
+    monkeypatch.setattr(plan, "ROOT", tmp_path)
+    monkeypatch.setattr(plan, "FULL_DIR", tmp_path / "outputs" / "paper_full")
 
 
 @pytest.fixture(scope="module")
@@ -119,7 +129,7 @@ def test_full_runs_every_job_not_skipped_and_records_it_as_it_finishes(tmp_path,
     plan = cached_jobs
     ran = []
 
-    def fake(job, extra, work, epochs):
+    def fake(job, extra, work, epochs, **_):
         ran.append((job.key, epochs))
         return {"epochs": job.epochs, "wall_seconds": 5.0, "cpu_seconds": 4.0, "exit_code": 0, "load_1min": 0.5}
 
@@ -251,11 +261,9 @@ def test_full_keeps_each_runs_test_errors_in_its_record(tmp_path, monkeypatch):
     """Output folders do not outlive the machine: the record keeps the errors, and the table reads them
     even once the run folder is gone."""
     plan = _plan_module()
-    monkeypatch.setattr(plan, "FULL_DIR", tmp_path / "outputs" / "paper_full")
-    monkeypatch.setattr(plan, "ROOT", tmp_path)
     evals = [{"model": "model", "rel_rot_error_mean": 0.25, "rel_rot_error_final": 0.5, "loss": 3.0}]
 
-    def fake(job, extra, work, epochs):
+    def fake(job, extra, work, epochs, **_):
         run = work / job.folder.replace("/", "_")
         run.mkdir(parents=True)
         (run / "summary.json").write_text(json.dumps({"eval": evals}))
@@ -287,7 +295,7 @@ def test_full_in_parallel_runs_jobs_side_by_side_longest_first_and_records_the_w
     lock = threading.Lock()
     both = threading.Barrier(2, timeout=30)
 
-    def fake(job, extra, work, epochs):
+    def fake(job, extra, work, epochs, **_):
         with lock:
             running[0] += 1
             most[0] = max(most[0], running[0])
@@ -332,7 +340,9 @@ def test_full_with_overrides_records_them_in_the_key_and_keeps_the_full_budget_r
     plan = _plan_module()
     monkeypatch.setenv("LIEDFL_DATA_DIR", str(tmp_path / "data"))
     monkeypatch.setattr(
-        plan, "measure_one", lambda job, extra, work, epochs: {"wall_seconds": 1.0, "cpu_seconds": 1.0, "exit_code": 0}
+        plan,
+        "measure_one",
+        lambda job, extra, work, epochs, **_: {"wall_seconds": 1.0, "cpu_seconds": 1.0, "exit_code": 0},
     )
     path = tmp_path / "full.json"
     full = {"wall_seconds": 99.0, "cpu_seconds": 98.0, "exit_code": 0}
@@ -365,3 +375,176 @@ def test_skip_measured_leaves_out_recorded_jobs_and_dry_run_runs_nothing(tmp_pat
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.splitlines() == ["experiment=exp5_control (2000 epochs)", "1 job(s), 2 at a time"]
     assert not (tmp_path / "data").exists()
+
+
+# ----------------------------------------------------------------------------- pieces: stop and resume
+def _interruptible(plan, ran: list, epochs_done: int = 7, block: bool = True):
+    """A `measure_one` stand-in: a fresh job trains until `full` asks it to stop, then leaves what
+    `liedfl train` leaves after SIGTERM (a checkpoint, metrics up to its epoch, exit 143); a resumed
+    one, or any with block=False, finishes (exit 0)."""
+
+    def fake(job, extra, work, epochs, resume=False, stop=None):
+        run = work / job.folder.replace("/", "_")
+        ran.append((job.key, resume))
+        assert resume == (run / "checkpoints" / "last.pt").is_file()  # (a fresh start: a cleared folder)
+        if resume or not block:
+            return {"epochs": job.epochs, "wall_seconds": 3.0, "cpu_seconds": 2.0, "exit_code": 0, "load_1min": 0.5}
+        (run / "checkpoints").mkdir(parents=True)
+        (run / "checkpoints" / "last.pt").write_bytes(b"")
+        rows = "\n".join(f"{e},0.5" for e in range(1, epochs_done + 1))
+        (run / "train_metrics.csv").write_text("epoch,loss\n" + rows + "\n")
+        assert stop is not None
+        for _ in range(3000):  # (until --stop-after asks)
+            if stop.requested:
+                break
+            threading.Event().wait(0.01)
+        assert stop.requested, "the stop never came"
+        return {"epochs": job.epochs, "wall_seconds": 5.0, "cpu_seconds": 4.0, "exit_code": 143, "load_1min": 0.5}
+
+    return fake
+
+
+def test_a_stopped_full_run_records_its_jobs_as_interrupted_and_the_next_one_resumes_them(
+    tmp_path, monkeypatch, cached_jobs
+):
+    plan = cached_jobs
+    monkeypatch.setenv("LIEDFL_DATA_DIR", str(tmp_path / "data"))
+    ran: list = []
+    monkeypatch.setattr(plan, "measure_one", _interruptible(plan, ran))
+    path = tmp_path / "full.json"
+    skip = ["baseline=glnn_rk4", "baseline=glnn_lie_midpoint", "baseline=glnn_lie_heun"]
+    keys = [j.key for j in plan.jobs(["exp2_discrete_vs_continuous"], []) if "baseline=none" in j.key]
+    # stale folders of an earlier run: a fresh start must not leave their checkpoints
+    stale = [plan.FULL_DIR / f"exp2_discrete_vs_continuous_{i}" / "checkpoints" / "best.pt" for i in range(4)]
+    for old in stale:
+        old.parent.mkdir(parents=True)
+        old.write_bytes(b"old")
+
+    data = plan.run_full(["exp2_discrete_vs_continuous"], [], skip, path, parallel=2, stop_after=0.3)
+    assert data["stopped"] == "--stop-after 0.3 s"
+    assert sum(old.exists() for old in stale) == 2  # the two started, of four
+    first = [k for k, _ in ran]
+    assert len(first) == 2 and not any(r for _, r in ran)  # two at a time; none started after the stop
+    recs = json.loads(path.read_text())["jobs"]
+    assert sorted(recs) == sorted(first)
+    for rec in recs.values():
+        assert rec["status"] == "interrupted" and rec["epochs_done"] == 7 and rec["exit_code"] == 143
+    (whole,) = json.loads(path.read_text())["runs"]
+    assert whole["stopped"] == "--stop-after 0.3 s" and sorted(whole["interrupted"]) == sorted(first)
+    table = plan.full_table(path)
+    assert "| 5 (interrupted after epoch 7) | 4 |" in table and "(stopped: --stop-after 0.3 s) |" in table
+    # the interrupted jobs first (by what they have left), then the others
+    order = [j.key for j in plan.full_jobs(["exp2_discrete_vs_continuous"], [], skip, 1, True, path)]
+    assert sorted(order[:2]) == sorted(first) and sorted(order) == sorted(keys)
+
+    ran.clear()
+    monkeypatch.setattr(plan, "measure_one", _interruptible(plan, ran, block=False))
+    data = plan.run_full(["exp2_discrete_vs_continuous"], [], skip, path, parallel=1, skip_measured=True)
+    assert "stopped" not in data and not any(old.exists() for old in stale)
+    assert [k for k, r in ran if r] == order[:2]  # resumed first, then the two never started, afresh
+    assert [k for k, r in ran if not r] == order[2:]
+    for key in first:
+        rec = data["jobs"][key]
+        assert rec["exit_code"] == 0 and "status" not in rec
+        assert [p["exit_code"] for p in rec["pieces"]] == [143, 0]
+        assert rec["wall_seconds"] == 8.0 and rec["cpu_seconds"] == 6.0 and "lost_pieces" not in rec
+        assert "(2 pieces)" in plan.full_table(path)
+
+
+def test_a_job_left_running_by_a_dead_runner_resumes_with_its_piece_counted_lost(tmp_path, monkeypatch):
+    plan = _plan_module()
+    monkeypatch.setenv("LIEDFL_DATA_DIR", str(tmp_path / "data"))
+    ran: list = []
+    monkeypatch.setattr(plan, "measure_one", _interruptible(plan, ran))
+    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    dead = f"{plan.socket.gethostname()}:{gone.stdout.strip()}"
+    run = plan.FULL_DIR / "exp5_control_0"
+    (run / "checkpoints").mkdir(parents=True)
+    (run / "checkpoints" / "last.pt").write_bytes(b"")
+    path = tmp_path / "full.json"
+    piece = {"wall_seconds": 10.0, "cpu_seconds": 9.0, "exit_code": 143}
+    rec = {"status": "running", "runner": dead, "run_dir": "outputs/paper_full/exp5_control_0", "pieces": [piece]}
+    path.write_text(json.dumps({"jobs": {"experiment=exp5_control": rec}}))
+    assert plan.resumable(rec) and not plan.runner_alive(dead)
+    # while its runner lives, another runner leaves the job alone
+    alive = {**rec, "runner": plan.runner_id()}
+    path.write_text(json.dumps({"jobs": {"experiment=exp5_control": alive}}))
+    assert plan.full_jobs(["exp5_control"], [], [], 1, True, path) == [] and not plan.resumable(alive)
+    path.write_text(json.dumps({"jobs": {"experiment=exp5_control": rec}}))
+    data = plan.run_full(["exp5_control"], [], [], path, skip_measured=True)
+    assert ran == [("experiment=exp5_control", True)]
+    out = data["jobs"]["experiment=exp5_control"]
+    assert out["exit_code"] == 0 and out["lost_pieces"] == 1 and out["wall_seconds"] == 13.0
+    assert "(2 pieces; ≥: 1 lost)" in plan.full_table(path)
+
+
+def test_stop_after_reads_durations_and_refuses_others():
+    plan = _plan_module()
+    assert [plan.parse_duration(t) for t in ("90", "90s", "1.5m", "2.5h")] == [90.0, 90.0, 90.0, 9000.0]
+    for bad in ("", "h", "-1h", "0", "soon", "nan"):
+        with pytest.raises(ValueError):
+            plan.parse_duration(bad)
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / "paper_plan.py"), "full", "--stop-after", "soon"],
+        capture_output=True,
+        text=True,
+    )
+    assert (
+        proc.returncode == 2
+        and "--stop-after needs a duration > 0 (9000, 9000s, 150m, 2.5h), got 'soon'" in proc.stderr
+    )
+
+
+def test_sigterm_to_the_runner_stops_a_real_job_with_a_checkpoint_and_the_next_run_finishes_it(tmp_path, monkeypatch):
+    """End to end with `liedfl train`: SIGTERM to the runner reaches the job, which checkpoints and
+    exits 143; `--skip-measured` resumes it (`liedfl train resume=`) to the end of its epochs."""
+    plan = _plan_module()
+    monkeypatch.setenv("LIEDFL_DATA_DIR", str(tmp_path / "data"))
+    extra = ["budget=smoke", "train.epochs=300", "eval.plots=false", "runtime.threads=1"]
+    path = tmp_path / "full.json"
+    metrics = plan.FULL_DIR / "exp5_control_0" / "train_metrics.csv"
+
+    def signal_when_training() -> None:
+        for _ in range(6000):
+            if metrics.is_file() and len(metrics.read_text().splitlines()) > 2:
+                os.kill(os.getpid(), signal.SIGTERM)
+                return
+            threading.Event().wait(0.01)
+
+    watcher = threading.Thread(target=signal_when_training, daemon=True)
+    watcher.start()
+    before = signal.getsignal(signal.SIGTERM)
+    data = plan.run_full(["exp5_control"], extra, [], path)
+    watcher.join(timeout=5)
+    assert signal.getsignal(signal.SIGTERM) == before  # (the runner's handler is gone again)
+    key = "experiment=exp5_control " + " ".join(extra)
+    rec = data["jobs"][key]
+    assert data["stopped"] == "SIGTERM", rec
+    assert rec["status"] == "interrupted" and rec["exit_code"] == 143, rec
+    assert 1 <= rec["epochs_done"] < 300
+    data = plan.run_full(["exp5_control"], extra, [], path, skip_measured=True)
+    rec = data["jobs"][key]
+    assert rec["exit_code"] == 0 and [p["exit_code"] for p in rec["pieces"]] == [143, 0], rec
+    epochs = [int(r["epoch"]) for r in csv.DictReader(metrics.open())]
+    assert epochs == list(range(1, 301))  # every epoch once: the second piece went on from the first
+    assert rec["eval"] and rec["cpu_seconds"] == pytest.approx(sum(p["cpu_seconds"] for p in rec["pieces"]))
+
+
+def test_full_leaves_a_job_alone_whose_folder_a_live_command_holds(tmp_path, monkeypatch):
+    """A job a `liedfl` command still writes (another runner's, started by hand): never cleared."""
+    from liedfl_cli.files import locks
+
+    plan = _plan_module()
+    ran: list = []
+    monkeypatch.setattr(plan, "measure_one", _interruptible(plan, ran, block=False))
+    run = plan.FULL_DIR / "exp5_control_0"
+    run.mkdir(parents=True)
+    (run / "train.log").write_text("theirs")
+    path = tmp_path / "full.json"
+    with locks.run_lock(run, "train"):
+        assert "pid" in (plan.folder_held(run) or "")
+        data = plan.run_full(["exp5_control"], [], [], path)
+    assert ran == [] and (run / "train.log").read_text() == "theirs" and not data.get("jobs")
+    assert plan.folder_held(run) is None
+    plan.run_full(["exp5_control"], [], [], path)
+    assert ran == [("experiment=exp5_control", False)] and not (run / "train.log").exists()
