@@ -442,9 +442,9 @@ def full_jobs(
 ) -> list[Job]:
     """The jobs `run_full` runs, in the order it starts them: those not skipped and not held by another
     runner (a `running` record of a live one); with skip_measured, not those recorded at the full budget
-    with exit 0 in `path` (FULL_RUNS), and the interrupted ones (`resumable`) first. With parallel > 1
-    the longest projected first (docs/bench/paper_plan.json; an interrupted job by what it has left;
-    unmeasured ones last)."""
+    with exit 0 in `path` (FULL_RUNS), and the interrupted ones (`resumable`) first, so that what was
+    started gets finished. With parallel > 1 the longest projected first within each part
+    (docs/bench/paper_plan.json; an interrupted job by what it has left; unmeasured ones last)."""
     recorded = _read_json(path or FULL_RUNS).get("jobs", {})
     done = {k for k, r in recorded.items() if r.get("exit_code") == 0}
     held = {k for k, r in recorded.items() if r.get("status") == "running" and runner_alive(r.get("runner"))}
@@ -467,8 +467,8 @@ def full_jobs(
     if parallel > 1:
         records = _read_json(MEASUREMENTS).get("jobs", {})
         todo.sort(key=lambda job: -(project_cpu(job, records.get(job.key)) or 0.0) * left(job))
-    elif skip_measured:
-        todo.sort(key=lambda job: left(job) == 1.0)  # (stable: interrupted jobs first, then the list's order)
+    if skip_measured:  # (stable: the interrupted jobs first, so what was started gets finished)
+        todo.sort(key=lambda job: not resumable(recorded.get(" ".join([job.key, *extra]))))
     return todo
 
 

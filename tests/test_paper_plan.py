@@ -548,3 +548,25 @@ def test_full_leaves_a_job_alone_whose_folder_a_live_command_holds(tmp_path, mon
     assert plan.folder_held(run) is None
     plan.run_full(["exp5_control"], [], [], path)
     assert ran == [("experiment=exp5_control", False)] and not (run / "train.log").exists()
+
+
+def test_interrupted_jobs_come_first_also_when_shorter(tmp_path, monkeypatch, cached_jobs):
+    """What was started gets finished: an interrupted job before longer fresh ones, with --parallel too."""
+    plan = cached_jobs
+    monkeypatch.setattr(plan, "MEASUREMENTS", tmp_path / "plan.json")
+    keys = [j.key for j in plan.jobs(["exp2_discrete_vs_continuous"], []) if "baseline=none" in j.key]
+    measured = {k: {"exit_code": 0, "epochs": 3, "wall_seconds": 1.0, "cpu_seconds": 1.0} for k in keys}
+    for i, k in enumerate(keys):  # the longest training length is the longest job
+        measured[k].update(job_seconds=1.0 + i, train_seconds=0.3 * (i + 1), val_s_per_pass=0.0, n_samples=10)
+    (tmp_path / "plan.json").write_text(json.dumps({"jobs": measured}))
+    run = plan.FULL_DIR / "exp2_discrete_vs_continuous_0"
+    (run / "checkpoints").mkdir(parents=True)
+    (run / "checkpoints" / "last.pt").write_bytes(b"")
+    stopped = {"exit_code": 143, "wall_seconds": 1.0, "cpu_seconds": 1.0, "run_dir": str(run.relative_to(tmp_path))}
+    path = tmp_path / "full.json"
+    path.write_text(json.dumps({"jobs": {keys[0]: stopped}}))
+    skip = ["baseline=glnn_rk4", "baseline=glnn_lie_midpoint", "baseline=glnn_lie_heun"]
+    order = [j.key for j in plan.full_jobs(["exp2_discrete_vs_continuous"], [], skip, 2, True, path)]
+    assert order == [keys[0], *reversed(keys[1:])]
+    fresh = [j.key for j in plan.full_jobs(["exp2_discrete_vs_continuous"], [], skip, 2, False, path)]
+    assert fresh == list(reversed(keys))  # (without --skip-measured nothing is resumed: longest first)
