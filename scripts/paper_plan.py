@@ -495,8 +495,9 @@ def run_full(
     lock = threading.Lock()
     stop = Stop()
     started, t0 = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), time.perf_counter()
-    ran: list[str] = []
-    interrupted: list[str] = []
+    ran: list[str] = []  # (started here)
+    interrupted: list[str] = []  # (stopped with a checkpoint)
+    finished: list[str] = []  # (exit 0)
 
     def write(key: str, rec: dict) -> None:  # (under `lock`)
         data = _read_json(path)  # (re-read: another process may have recorded meanwhile)
@@ -552,6 +553,8 @@ def run_full(
             )
             if state:
                 interrupted.append(key)
+            if rec["exit_code"] == 0:
+                finished.append(key)
             write(key, rec)
 
     timer = threading.Timer(stop_after, stop.request, args=(f"--stop-after {stop_after:g} s",)) if stop_after else None
@@ -580,9 +583,10 @@ def run_full(
         data.setdefault("runs", []).append(whole)
         _write_json(path, data)
     if stop.requested:
-        left = len(interrupted) + len(todo) - len(ran)
+        left = len(todo) - len(finished)
         print(
-            f"stopped ({stop.reason}): {len(interrupted)} job(s) interrupted with a checkpoint, {left} job(s) left; "
+            f"stopped ({stop.reason}): {len(interrupted)} job(s) interrupted with a checkpoint, {left} job(s) left "
+            "to finish; "
             "the same command with --skip-measured goes on from there",
             flush=True,
         )

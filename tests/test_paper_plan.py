@@ -405,7 +405,7 @@ def _interruptible(plan, ran: list, epochs_done: int = 7, block: bool = True):
 
 
 def test_a_stopped_full_run_records_its_jobs_as_interrupted_and_the_next_one_resumes_them(
-    tmp_path, monkeypatch, cached_jobs
+    tmp_path, monkeypatch, cached_jobs, capsys
 ):
     plan = cached_jobs
     monkeypatch.setenv("LIEDFL_DATA_DIR", str(tmp_path / "data"))
@@ -422,6 +422,8 @@ def test_a_stopped_full_run_records_its_jobs_as_interrupted_and_the_next_one_res
 
     data = plan.run_full(["exp2_discrete_vs_continuous"], [], skip, path, parallel=2, stop_after=0.3)
     assert data["stopped"] == "--stop-after 0.3 s"
+    said = capsys.readouterr().out
+    assert "stopped (--stop-after 0.3 s): 2 job(s) interrupted with a checkpoint, 4 job(s) left to finish" in said
     assert sum(old.exists() for old in stale) == 2  # the two started, of four
     first = [k for k, _ in ran]
     assert len(first) == 2 and not any(r for _, r in ran)  # two at a time; none started after the stop
