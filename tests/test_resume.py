@@ -62,12 +62,29 @@ def _stop_at(monkeypatch, epoch: int) -> None:
     monkeypatch.setattr(train_mod, "graceful_stop", fake)
 
 
-@pytest.mark.parametrize("baseline", ["none", "glnn_lie_heun"])
-def test_interrupted_then_resumed_equals_uninterrupted(tmp_path, monkeypatch, baseline):
-    full = run_train(_cfg(tmp_path, "full", [f"baseline={baseline}"]))
+SLOW = pytest.mark.slow
+EVERY_PAPER_MODEL = [  # (`paper_plan.py full` runs long jobs in pieces through resume: each must equal one piece)
+    pytest.param(["baseline=none"], id="none"),
+    pytest.param(["baseline=glnn_lie_heun"], id="glnn_lie_heun"),
+    pytest.param(["baseline=glnn_rk4"], id="glnn_rk4", marks=SLOW),
+    pytest.param(["baseline=glnn_lie_midpoint"], id="glnn_lie_midpoint", marks=SLOW),
+    pytest.param(["baseline=euler_dflnn"], id="euler_dflnn", marks=SLOW),
+    pytest.param(["baseline=euclidean_dflnn"], id="euclidean_dflnn", marks=SLOW),
+    pytest.param(["baseline=neural_ode"], id="neural_ode", marks=SLOW),
+    pytest.param(["experiment=exp4_mocap"], id="exp4_per_body", marks=SLOW),
+    pytest.param(["experiment=exp4_mocap", "model.kinetic=articulated"], id="exp4_articulated", marks=SLOW),
+]
+
+
+@pytest.mark.parametrize("overrides", EVERY_PAPER_MODEL)
+def test_interrupted_then_resumed_equals_uninterrupted(tmp_path, monkeypatch, overrides):
+    """Bit for bit: the fast tier for LieDFLNN and one baseline, the slow tier for every other model of
+    the paper's jobs (the adaptive dopri5 of GLNN-RK4 and the Neural ODE, Exp 4's three forces, the
+    articulated model)."""
+    full = run_train(_cfg(tmp_path, "full", overrides))
     _stop_at(monkeypatch, 3)
     with pytest.raises(TrainingInterrupted, match=r"after epoch 3/6; checkpoint saved; resume with") as e:
-        run_train(_cfg(tmp_path, "cut", [f"baseline={baseline}"]))
+        run_train(_cfg(tmp_path, "cut", overrides))
     assert e.value.exit_code == 128 + signal.SIGINT
     cut = tmp_path / "cut"
     ck = load_checkpoint(cut / "checkpoints" / "last.pt")
