@@ -530,6 +530,10 @@ def run_full(
                 "started": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
             }
             mark.update(epochs=job.epochs, run_dir=str(run.relative_to(ROOT)), pieces=pieces_of(prev))
+            if mark["pieces"]:  # (the seconds of the pieces before this one)
+                mark.update(
+                    {k: round(sum(float(p[k]) for p in mark["pieces"]), 3) for k in ("wall_seconds", "cpu_seconds")}
+                )
             write(key, mark)
             ran.append(key)
         rec = measure_one(job, extra, FULL_DIR, epochs=None, resume=resume, stop=stop)
@@ -665,7 +669,8 @@ def full_table(path: Path = FULL_RUNS) -> str:
         if rec.get("status") == "interrupted":
             notes.append(f"interrupted after epoch {rec.get('epochs_done')}")
         elif rec.get("status") == "running":
-            notes.append(f"running since {rec.get('started')}")
+            at = last_epoch(ROOT / rec["run_dir"]) if rec.get("run_dir") else None
+            notes.append(f"running since {rec.get('started')}" + (f", at epoch {at}" if at else ""))
         wall = _fmt(rec.get("wall_seconds"), ",.0f") + (f" ({'; '.join(notes)})" if notes else "")
         lines.append(
             f"| {key.replace('experiment=', '')} | {rec.get('epochs')} | {wall} "

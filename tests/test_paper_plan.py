@@ -472,6 +472,10 @@ def test_a_job_left_running_by_a_dead_runner_resumes_with_its_piece_counted_lost
     alive = {**rec, "runner": plan.runner_id()}
     path.write_text(json.dumps({"jobs": {"experiment=exp5_control": alive}}))
     assert plan.full_jobs(["exp5_control"], [], [], 1, True, path) == [] and not plan.resumable(alive)
+    (run / "train_metrics.csv").write_text("epoch,loss\n1,0.5\n2,0.4\n")
+    alive.update(started="2026-11-27 21:51 UTC", wall_seconds=10.0, cpu_seconds=9.0, epochs=2000)
+    path.write_text(json.dumps({"jobs": {"experiment=exp5_control": alive}}))
+    assert "| exp5_control | 2000 | 10 (running since 2026-11-27 21:51 UTC, at epoch 2) | 9 |" in plan.full_table(path)
     path.write_text(json.dumps({"jobs": {"experiment=exp5_control": rec}}))
     data = plan.run_full(["exp5_control"], [], [], path, skip_measured=True)
     assert ran == [("experiment=exp5_control", True)]
