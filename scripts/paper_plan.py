@@ -53,6 +53,7 @@ import os
 import shutil
 import signal
 import socket
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -739,6 +740,9 @@ def plan_table(experiments: list[str], extra: list[str], path: Path = MEASUREMEN
         "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     n_full, any_lower = 0, False
+    factors: list[float] = []  # full-budget CPU seconds / projected CPU seconds, per job run both ways
+    run_cpu = unrun_cpu = 0.0
+    unrun_adaptive = False
     totals: dict[str, list[float]] = {}
     missing: list[str] = []
     for job in jobs(experiments, extra):
@@ -750,8 +754,14 @@ def plan_table(experiments: list[str], extra: list[str], path: Path = MEASUREMEN
             steps = f"{job.epochs * n:,}" + (" (compiles)" if job.epochs * n >= COMPILE_MIN_STEPS else "")
         measured = "–"
         frec = full_runs.get(job.key)
+        if frec is None and cpu is not None:
+            unrun_cpu += cpu
+            unrun_adaptive = unrun_adaptive or job.model in ADAPTIVE
         if frec is not None:  # measured at the full budget: replaces the projection in the totals
             n_full += 1
+            run_cpu += float(frec["cpu_seconds"])
+            if cpu:  # (how much slower the full run's machine was than the projection's)
+                factors.append(float(frec["cpu_seconds"]) / cpu)
             measured = f"{frec['wall_seconds']:,.0f} / {frec['cpu_seconds']:,.0f} ({frec['load_1min']:.1f})"
             sec, cpu = float(frec["wall_seconds"]), float(frec["cpu_seconds"])
         if sec is None:
@@ -779,6 +789,17 @@ def plan_table(experiments: list[str], extra: list[str], path: Path = MEASUREMEN
     )
     if n_full:
         lines += ["", f"{n_full} job(s) run at the full budget count with their measured wall and CPU seconds."]
+    if factors and unrun_cpu:
+        f = statistics.median(factors)
+        lo = ADAPTIVE_MARK if unrun_adaptive else ""
+        whole = run_cpu + f * unrun_cpu
+        lines += [
+            "",
+            f"On the machine of the full-budget runs, their {len(factors)} job(s) took a median {f:.2f}x the "
+            f"projected CPU seconds (range {min(factors):.2f}-{max(factors):.2f}x). At that factor the jobs not "
+            f"yet run take {lo}{_h(f * unrun_cpu)} CPU hours there, and the whole paper {lo}{_h(whole)} CPU hours "
+            f"({lo}{_h(whole / 2)} h on two cores).",
+        ]
     if missing:
         lines += ["", f"Not measured (left out of the totals): {len(missing)} job(s): {'; '.join(missing)}"]
     lines += ["", "(A job measured without CPU times counts with its wall projection in the CPU column.)"]

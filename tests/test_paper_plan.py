@@ -123,6 +123,18 @@ def test_the_projection_follows_the_measurement_and_lists_what_is_unmeasured(tmp
         json.dumps({"jobs": {job.key: {"exit_code": 1, "wall_seconds": 9.0, "cpu_seconds": 8.0, "load_1min": 1.0}}})
     )
     assert f"| **total** | **{expected / 3600:.2f}** |" in plan.plan_table(["exp5_control"], [], path, full)
+    # the machine of the full runs: its factor over the projection scales the jobs not yet run
+    records[job.key] = rec
+    (tmp_path / "both.json").write_text(json.dumps({"jobs": records}))
+    slow = {"exit_code": 0, "wall_seconds": 9.0, "cpu_seconds": 2.5 * expected / 2, "load_1min": 1.0}
+    full.write_text(json.dumps({"jobs": {job.key: slow}}))
+    text = plan.plan_table(["exp5_control", "exp3_manifold"], [], tmp_path / "both.json", full)
+    rest = 2.5 * plan.project_cpu(node, records[node.key])  # (the one measured job not run)
+    whole = slow["cpu_seconds"] + rest
+    assert (
+        "their 1 job(s) took a median 2.50x the projected CPU seconds (range 2.50-2.50x). At that factor the jobs "
+        f"not yet run take ≥ {rest / 3600:.2f} CPU hours there, and the whole paper ≥ {whole / 3600:.2f} CPU hours"
+    ) in text
 
 
 def test_full_runs_every_job_not_skipped_and_records_it_as_it_finishes(tmp_path, monkeypatch, cached_jobs):
