@@ -669,6 +669,8 @@ def full_table(path: Path = FULL_RUNS) -> str:
             notes.append(f"≥: {rec['lost_pieces']} lost")
         if rec.get("status") == "interrupted":
             notes.append(f"interrupted after epoch {rec.get('epochs_done')}")
+        elif rec.get("exit_code") not in (0, None) and rec.get("status") != "running":
+            notes.append(f"failed: exit {rec['exit_code']}")  # (no result; --skip-measured runs it again)
         elif rec.get("status") == "running":
             at = last_epoch(ROOT / rec["run_dir"]) if rec.get("run_dir") else None
             notes.append(f"running since {rec.get('started')}" + (f", at epoch {at}" if at else ""))

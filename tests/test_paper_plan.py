@@ -267,6 +267,9 @@ def test_full_table_joins_the_times_with_each_runs_test_errors(tmp_path):
         in text
     )
     assert "| exp5 | 1000 | 1,848 | 42 | 2.2 → 2.9 | – | – | – | – | – | – |" in text
+    jobs["experiment=exp5"]["exit_code"] = -15  # (killed before it trained: no result, not a 1-s job)
+    path.write_text(json.dumps({"jobs": jobs}))
+    assert "| exp5 | 1000 | 1,848 (failed: exit -15) | 42 |" in plan.full_table(path)
 
 
 def test_full_keeps_each_runs_test_errors_in_its_record(tmp_path, monkeypatch):
