@@ -52,7 +52,6 @@ import math
 import os
 import shutil
 import signal
-import socket
 import statistics
 import subprocess
 import sys
@@ -241,23 +240,21 @@ def parse_duration(text: str) -> float:
     return seconds
 
 
-def runner_id() -> str:
-    """This runner, as a `running` record names it: host and process id."""
-    return f"{socket.gethostname()}:{os.getpid()}"
+def runner_id() -> dict:
+    """This runner, as a `running` record names it: the fields of a run-folder lock's holder (host,
+    pid, the process's start time), so `runner_alive` is the locks' own test."""
+    from liedfl_cli.files import locks
+    from liedfl_cli.files.io_utils import host_id
+
+    return {"host": host_id(), "pid": os.getpid(), "start": locks.process_start(os.getpid())}
 
 
-def runner_alive(runner: str | None) -> bool:
-    """Whether the runner a `running` record names still runs (only knowable on its own host)."""
-    host, _, pid = (runner or "").rpartition(":")
-    if host != socket.gethostname() or not pid.isdigit():
-        return False
-    try:
-        os.kill(int(pid), 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # (someone else's process of that number)
-        return True
-    return True
+def runner_alive(runner) -> bool:
+    """Whether the runner a `running` record names still runs: `locks.holder_alive` (a reused pid is
+    not the runner; another host's runner counts as gone, its folder's `.lock` still guards the job)."""
+    from liedfl_cli.files import locks
+
+    return isinstance(runner, dict) and locks.holder_alive(runner) is True
 
 
 def last_epoch(run: Path) -> int | None:

@@ -435,10 +435,10 @@ def test_a_stopped_full_run_records_its_jobs_as_interrupted_and_the_next_one_res
         old.parent.mkdir(parents=True)
         old.write_bytes(b"old")
 
-    data = plan.run_full(["exp2_discrete_vs_continuous"], [], skip, path, parallel=2, stop_after=0.3)
-    assert data["stopped"] == "--stop-after 0.3 s"
+    data = plan.run_full(["exp2_discrete_vs_continuous"], [], skip, path, parallel=2, stop_after=1.5)
+    assert data["stopped"] == "--stop-after 1.5 s"
     said = capsys.readouterr().out
-    assert "stopped (--stop-after 0.3 s): 2 job(s) interrupted with a checkpoint, 4 job(s) left to finish" in said
+    assert "stopped (--stop-after 1.5 s): 2 job(s) interrupted with a checkpoint, 4 job(s) left to finish" in said
     assert sum(old.exists() for old in stale) == 2  # the two started, of four
     first = [k for k, _ in ran]
     assert len(first) == 2 and not any(r for _, r in ran)  # two at a time; none started after the stop
@@ -447,9 +447,9 @@ def test_a_stopped_full_run_records_its_jobs_as_interrupted_and_the_next_one_res
     for rec in recs.values():
         assert rec["status"] == "interrupted" and rec["epochs_done"] == 7 and rec["exit_code"] == 143
     (whole,) = json.loads(path.read_text())["runs"]
-    assert whole["stopped"] == "--stop-after 0.3 s" and sorted(whole["interrupted"]) == sorted(first)
+    assert whole["stopped"] == "--stop-after 1.5 s" and sorted(whole["interrupted"]) == sorted(first)
     table = plan.full_table(path)
-    assert "| 5 (interrupted after epoch 7) | 4 |" in table and "(stopped: --stop-after 0.3 s) |" in table
+    assert "| 5 (interrupted after epoch 7) | 4 |" in table and "(stopped: --stop-after 1.5 s) |" in table
     # the interrupted jobs first (by what they have left), then the others
     order = [j.key for j in plan.full_jobs(["exp2_discrete_vs_continuous"], [], skip, 1, True, path)]
     assert sorted(order[:2]) == sorted(first) and sorted(order) == sorted(keys)
@@ -474,7 +474,7 @@ def test_a_job_left_running_by_a_dead_runner_resumes_with_its_piece_counted_lost
     ran: list = []
     monkeypatch.setattr(plan, "measure_one", _interruptible(plan, ran))
     gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
-    dead = f"{plan.socket.gethostname()}:{gone.stdout.strip()}"
+    dead = {**plan.runner_id(), "pid": int(gone.stdout.strip())}
     run = plan.FULL_DIR / "exp5_control_0"
     (run / "checkpoints").mkdir(parents=True)
     (run / "checkpoints" / "last.pt").write_bytes(b"")
