@@ -39,6 +39,8 @@ def own_output_folder(tmp_path, monkeypatch):
     plan = _plan_module()
     monkeypatch.setattr(plan, "ROOT", tmp_path)
     monkeypatch.setattr(plan, "FULL_DIR", tmp_path / "outputs" / "paper_full")
+    # run_full sets LIEDFL_DATA_DIR when it is unset: here through monkeypatch, so no later test inherits it
+    monkeypatch.setenv("LIEDFL_DATA_DIR", str(tmp_path / "data"))
 
 
 @pytest.fixture(scope="module")
