@@ -135,3 +135,26 @@ def test_euler_dflnn_fused_loss_and_gradients_equal_the_reference(potential, dam
     H = fused_dflnn.euler_mixed_hessian(model, a, b)
     H_ref = model.mixed_hessian(a, b)
     assert (H - H_ref).abs().max() <= 1e-12 * H_ref.abs().max()
+
+
+@pytest.mark.parametrize(("potential", "damping"), [(True, True), (False, False)])
+def test_euler_dflnn_closed_form_residual_and_its_jacobian_equal_autograd(potential, damping):
+    """The closed-form residual (`fused_dflnn.euler_residual`) against autograd of `lagrangian`, and its
+    Jacobian in q_next (what Newton uses in rollouts) against the reference residual's, near gimbal lock
+    too (theta = pi/2 - 1e-3, where E is nearly singular)."""
+    model = EulerDFLNN(SO3, 0.05, potential=potential, damping=damping, mlp_width=16, mlp_depth=2, seed=3)
+    with torch.no_grad():
+        model.inertia.abc.add_(0.1 * torch.arange(model.inertia.abc.numel(), dtype=F64).reshape_as(model.inertia.abc))
+    q_prev, q, q_next = model.angles(*_heavy_triplets(32, 0.05, seed=4).poses())
+    q = q.clone()
+    q[:4, 1] = torch.pi / 2 - 1e-3
+    fused, ref = model.with_path("fused"), model.with_path("reference")
+    r_f, r_r = fused.residual(q_prev, q, q_next), ref.residual(q_prev, q, q_next)
+    assert r_r.abs().max() > 0
+    assert (r_f - r_r).abs().max() <= 1e-12 * r_r.abs().max()
+    from liedfl_cli.solvers.newton import jacobian
+
+    with torch.no_grad():
+        J_f = jacobian(lambda x: fused.residual(q_prev, q, x), q_next)
+        J_r = jacobian(lambda x: ref.residual(q_prev, q, x), q_next)
+    assert (J_f - J_r).abs().max() <= 1e-12 * J_r.abs().max()

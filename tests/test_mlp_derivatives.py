@@ -66,6 +66,37 @@ def test_value_and_gradient_equal_autograd(act, graph):
 
 
 @pytest.mark.parametrize("act", sorted(ACTIVATIONS))
+def test_the_differentiable_gradient_backpropagates_as_a_double_backward(act):
+    """Training differentiates dV/dx for the parameters and x: the one-node activation (`_ActAndSlope`)
+    gives the gradients of a double backward through autograd, and its own derivative matches finite
+    differences (gradcheck); a second backward through it raises instead of returning zeros."""
+    f, x = net(act), inputs()
+    c = torch.randn(x.shape, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    params = list(f.parameters())
+
+    def loss_closed(xx):
+        value, grad = mlp_derivatives.value_and_gradient(f, xx)
+        return (grad * c).sum() + (value * value).sum()
+
+    def loss_autograd(xx):
+        (grad,) = torch.autograd.grad(f(xx)[..., 0].sum(), xx, create_graph=True)
+        return (grad * c).sum() + (f(xx)[..., 0] ** 2).sum()
+
+    xa, xb = x.clone().requires_grad_(True), x.clone().requires_grad_(True)
+    got = torch.autograd.grad(loss_closed(xa), [xa, *params])
+    want = torch.autograd.grad(loss_autograd(xb), [xb, *params])
+    for g, w in zip(got, want):
+        assert rel(g, w) <= 1e-10
+    z = inputs(n_in=5, T=4, seed=7).requires_grad_(True)
+    act_mod = ACTIVATIONS[act]()
+    assert torch.autograd.gradcheck(lambda zz: mlp_derivatives._ActAndSlope.apply(zz, act_mod), (z,))
+    a, s = mlp_derivatives._ActAndSlope.apply(z, act_mod)
+    (dz,) = torch.autograd.grad(s.sum(), z, create_graph=True)
+    with pytest.raises(RuntimeError):
+        dz.sum().backward()
+
+
+@pytest.mark.parametrize("act", sorted(ACTIVATIONS))
 def test_hessian_vector_product_equals_autograd_and_finite_differences(act):
     f, x = net(act), inputs()
     v = torch.randn(x.shape, generator=torch.Generator().manual_seed(2), dtype=torch.float64)

@@ -19,9 +19,9 @@ only V sees the shift, and it then sees the same range as in training). q_{k+1} 
 damped Newton on r_k (solver tolerance / iterations), warm-started at 2 q_k - q_{k-1}, and
 converted back to SO(3) by `euler.to_matrix` for evaluation.
 
-With `runtime.fused` (the default) the regularity term's mixed Hessian is computed in closed form
-(`models.fused_dflnn.euler_mixed_hessian`, the same numbers; `runtime.fused=false`: autograd).
-"""
+With `runtime.fused` (the default) the residual and the regularity term's mixed Hessian are computed
+in closed form (`models.fused_dflnn.euler_residual` and `euler_mixed_hessian`, the same numbers to
+rounding; `runtime.fused=false`: autograd of `lagrangian`)."""
 
 from __future__ import annotations
 
@@ -144,6 +144,10 @@ class EulerDFLNN(ImplicitModel):
     def residual(self, q_prev: torch.Tensor, q: torch.Tensor, q_next: torch.Tensor) -> torch.Tensor:
         """Forced DEL residual r_k = D_2 L_d(q_prev, q) + D_1 L_d(q, q_next) + h/2 (Q(q_prev, q) + Q(q, q_next)):
         q_prev, q, q_next (..., 3) -> (..., 3); differentiable w.r.t. q_prev, q_next and the parameters."""
+        if self.path == "fused" and q.dim() == 2:
+            r = fused_dflnn.euler_residual(self, q_prev, q, q_next)
+            if r is not None:
+                return r
         create = torch.is_grad_enabled()
         with torch.enable_grad():
             qk = q.detach().requires_grad_(True)

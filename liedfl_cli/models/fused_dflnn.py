@@ -6,11 +6,12 @@ differentiates one explicit graph instead of a double backward through `autograd
 create_graph=True)`, and the regularity term's mixed Hessian (constant here) built once instead of
 by 12 autograd passes per batch.
 
-Euler-angle DFLNN: only the regularity term's mixed Hessian is in closed form (`euler_mixed_hessian`:
-E(q)'s first and second derivatives written out, the potential's Hessian by
-`mlp_derivatives.gradient_and_hvp`) instead of four autograd passes; its residual keeps the reference
-autograd path, because a closed-form residual measured no faster (its cost is the MLP 64 x 3's
-arithmetic at batch 1024, docs/benchmarks.md "Baselines").
+Euler-angle DFLNN: the forced DEL residual in closed form (`euler_residual`: both pairs of a triplet
+in one batch, so the potential MLP runs once on 2N midpoints, its input gradient from
+`mlp_derivatives.value_and_gradient`), so that the loss's backward is one pass instead of a double
+backward through `autograd.grad(..., create_graph=True)`; and the regularity term's mixed Hessian
+(`euler_mixed_hessian`: E(q)'s first and second derivatives written out, the potential's Hessian by
+`mlp_derivatives.gradient_and_hvp`) instead of four autograd passes.
 
 Euclidean coordinates (`EuclideanDFLNN`): L_d(x0, x1) = h/2 xd^T K xd - h V(x0), xd = (x1 - x0)/h,
 with the constant kinetic matrix K = [[I3 (x) (J_d + m rho rho^T), m I3 (x) rho], [m I3 (x) rho^T, m I3]]
@@ -124,3 +125,46 @@ def euler_mixed_hessian(model, q0: torch.Tensor, q1: torch.Tensor) -> torch.Tens
             return None
         H = H - 0.25 * h * gh[1].reshape(3, n, 3).transpose(0, 1)
     return H
+
+
+def euler_residual(model, q_prev: torch.Tensor, q: torch.Tensor, q_next: torch.Tensor) -> torch.Tensor | None:
+    """`EulerDFLNN.residual` in closed form: q_prev, q, q_next (N, 3) -> r (N, 3) (None when the potential
+    network is not one `mlp_derivatives` supports). Differentiable in the inputs and the parameters.
+
+    For a pair (q0, q1) with qd = (q1 - q0)/h, qm = (q0 + q1)/2, w = E(qm) qd, p = J w and
+    c_a = p^T (dE/dq_a) qd (E depends on phi and theta only, so c_psi = 0):
+        D1 L_d = -E^T p + h/2 (c - dV(qm)),   D2 L_d = E^T p + h/2 (c - dV(qm)),
+        h/2 Q = -h/2 E^T D w.
+    With X = h/2 (c - dV(qm) - E^T D w) and Y = E^T p of the pairs (q_prev, q) [first] and (q, q_next)
+    [second]: r = Y_first - Y_second + X_first + X_second. Both pairs go through the potential MLP as
+    one batch of 2N midpoints."""
+    h, n = model.h, q.shape[0]
+    q0, q1 = torch.cat((q_prev, q), 0), torch.cat((q, q_next), 0)
+    qd, qm = (q1 - q0) / h, 0.5 * (q0 + q1)
+    phi, theta = qm[..., 0], qm[..., 1]
+    cf, sf, ct, st = torch.cos(phi), torch.sin(phi), torch.cos(theta), torch.sin(theta)
+    d0, d1, d2 = qd.unbind(-1)
+    # w = E qd, E = [[1, 0, -st], [0, cf, sf ct], [0, -sf, cf ct]] (`euler.rate_matrix`)
+    sct, cct = sf * ct, cf * ct
+    w = torch.stack((d0 - st * d2, cf * d1 + sct * d2, cct * d2 - sf * d1), -1)
+
+    def et(v: torch.Tensor) -> torch.Tensor:  # E^T v
+        v0, v1, v2 = v.unbind(-1)
+        return torch.stack((v0, cf * v1 - sf * v2, sct * v1 + cct * v2 - st * v0), -1)
+
+    p = w @ model.inertia.J()[0].T
+    p0, p1, p2 = p.unbind(-1)
+    # (dE/dphi) qd = (0, cf ct d2 - sf d1, -cf d1 - sf ct d2);  (dE/dtheta) qd = d2 (-ct, -sf st, -cf st)
+    c_phi = p1 * (cct * d2 - sf * d1) - p2 * (cf * d1 + sct * d2)
+    c_theta = -d2 * (ct * p0 + st * (sf * p1 + cf * p2))
+    X = torch.stack((c_phi, c_theta, torch.zeros_like(c_phi)), -1)
+    if model.potential is not None:
+        got = mlp_derivatives.value_and_gradient(model.potential, qm)
+        if got is None:
+            return None
+        X = X - got[1]
+    if model.damping is not None:
+        X = X - et(w @ model.damping().T)
+    X = (0.5 * h) * X
+    Y = et(p)
+    return Y[:n] - Y[n:] + X[:n] + X[n:]

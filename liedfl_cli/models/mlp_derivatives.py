@@ -16,8 +16,10 @@ with no autograd graph.
 The backward pass of every activation is ATen's own (`gelu_backward`, `tanh_backward`, ...), the
 kernels autograd runs, so the gradient is autograd's to rounding; without a graph an exact GELU's value
 and slope come from one erf and one exp (ATen's formulas, equal to rounding). Under autograd (training: the
-parameters need gradients through the input gradient) the same formulas are written as plain tensor
-expressions, which autograd differentiates once more (cheaper than a double backward).
+parameters need gradients through the input gradient) `value_and_gradient` runs feature major and makes each
+activation's value and slope one autograd node (`_ActAndSlope`, whose backward uses act'' kept from the
+forward), so the loss's backward is one pass with no double backward; while `torch.compile` traces, the
+slope is the plain tensor expression (`_act_slope`), which inductor fuses.
 
 Activations: GELU (exact or tanh form), Tanh, Softplus, SiLU; `layers(net)` is None for anything
 else, and the callers then use autograd.
@@ -124,19 +126,75 @@ def _forward(lys: list[Layer], x: torch.Tensor) -> tuple[torch.Tensor, list[tupl
     return nn.functional.linear(a, last.weight, last.bias), saved
 
 
+class _ActAndSlope(torch.autograd.Function):
+    """(act(z), act'(z)) as one autograd node: the forward from `_act_and_slope` (exact GELU: one erf and
+    one exp), the backward d/dz = grad_a act'(z) + grad_s act''(z) (`_act_curvature`). Autograd of the
+    same formulas written as tensor expressions records ~10 nodes per layer whose backward passes cost
+    1.8x as much (MLP 64 x 3 at 2048 points, docs/benchmarks.md round 8). Once differentiable: a second
+    backward through it raises instead of returning zeros."""
+
+    @staticmethod
+    def forward(ctx, z: torch.Tensor, act: nn.Module) -> tuple[torch.Tensor, torch.Tensor]:
+        if isinstance(act, nn.GELU) and act.approximate == "none":
+            # act'' = phi(z) (2 - z^2) from the same exp as act', kept for the backward
+            u = z * _INV_SQRT2
+            cdf = torch.erf(u).mul_(0.5).add_(0.5)
+            pdf = torch.mul(u, u).neg_().exp_().mul_(_INV_SQRT2PI)
+            a, s = z * cdf, torch.addcmul(cdf, z, pdf)
+            curv = torch.mul(z, z).neg_().add_(2.0).mul_(pdf)
+        else:
+            a, s = _act_and_slope(act, z)
+            curv = _act_curvature(act, z, a)
+        ctx.save_for_backward(s, curv)
+        return a, s
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_a: torch.Tensor | None, grad_s: torch.Tensor | None):
+        s, curv = ctx.saved_tensors
+        if grad_a is None:
+            return None if grad_s is None else grad_s * curv, None
+        out = grad_a * s
+        return out if grad_s is None else out.addcmul_(grad_s, curv), None
+
+
+def _act_and_slope_differentiable(act: nn.Module, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(act(z), act'(z)) under autograd: one `_ActAndSlope` node, or the plain expressions while
+    `torch.compile` traces (inductor fuses those itself)."""
+    if torch.compiler.is_compiling():
+        a = act(z)
+        return a, _act_slope(act, z, a)
+    out = _ActAndSlope.apply(z, act)
+    return out[0], out[1]
+
+
 def value_and_gradient(net: nn.Module, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
     """(net(x)[..., 0] (...,), d sum(net(x)[..., 0]) / dx (..., n)) of a network with one output;
     None when `layers(net)` is None."""
     lys = layers(net)
     if lys is None:
         return None
-    out, saved = _forward(lys, x)
     g = lys[-1][0].weight[0]  # broadcast against the batch by the first product below
     differentiable = torch.is_grad_enabled() and (x.requires_grad or any(p.requires_grad for p in net.parameters()))
+    if differentiable and len(lys) > 1:
+        # feature major (width, T): each layer one wide product, as in `gradient_columns`
+        slopes = []
+        a = x.reshape(-1, x.shape[-1]).T
+        for lin, act in lys[:-1]:
+            assert act is not None
+            z = lin.weight @ a if lin.bias is None else torch.addmm(lin.bias[:, None], lin.weight, a)
+            a, s = _act_and_slope_differentiable(act, z)
+            slopes.append(s)
+        last = lys[-1][0]
+        out = last.weight[:1] @ a if last.bias is None else torch.addmm(last.bias[:1, None], last.weight[:1], a)
+        g = g[:, None]
+        for (lin, _), s in zip(reversed(lys[:-1]), reversed(slopes)):
+            g = lin.weight.T @ (g * s)
+        return out[0].reshape(x.shape[:-1]), g.T.reshape(x.shape)
+    out, saved = _forward(lys, x)
     for (lin, act), (z, a) in zip(reversed(lys[:-1]), reversed(saved)):
         assert act is not None
-        g = g * _act_slope(act, z, a) if differentiable else _act_backward(act, g, z, a)
-        g = g @ lin.weight
+        g = _act_backward(act, g, z, a) @ lin.weight
     return out[..., 0], g.expand(*x.shape[:-1], -1)
 
 
