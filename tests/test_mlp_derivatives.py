@@ -96,6 +96,22 @@ def test_the_differentiable_gradient_backpropagates_as_a_double_backward(act):
         dz.sum().backward()
 
 
+def test_the_differentiable_gradient_works_under_torch_func_transforms():
+    """`losses.autodiff_jacobian_var` takes vmap(jacrev(...)) of residuals that hold dV/dx, and the loss then
+    differentiates that Jacobian for the parameters: a second derivative through the slope."""
+    f, x = net("gelu"), inputs()
+    row = lambda xi: mlp_derivatives.value_and_gradient(f, xi[None])[1][0]
+    hess = torch.vmap(torch.func.jacrev(row))(x)
+    want = torch.stack([torch.autograd.functional.hessian(lambda xi: f(xi[None])[0, 0], xi) for xi in x])
+    assert rel(hess, want) <= 1e-10
+    (g_w,) = torch.autograd.grad(hess.sum(), f[0].weight)
+    xx = x.clone().requires_grad_(True)
+    (g,) = torch.autograd.grad(f(xx)[..., 0].sum(), xx, create_graph=True)
+    ref_hess_sum = sum(torch.autograd.grad(g[:, i].sum(), xx, create_graph=True)[0].sum() for i in range(x.shape[1]))
+    (g_w_ref,) = torch.autograd.grad(ref_hess_sum, f[0].weight)
+    assert rel(g_w, g_w_ref) <= 1e-10
+
+
 @pytest.mark.parametrize("act", sorted(ACTIVATIONS))
 def test_hessian_vector_product_equals_autograd_and_finite_differences(act):
     f, x = net(act), inputs()

@@ -160,8 +160,10 @@ class _ActAndSlope(torch.autograd.Function):
 
 def _act_and_slope_differentiable(act: nn.Module, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(act(z), act'(z)) under autograd: one `_ActAndSlope` node, or the plain expressions while
-    `torch.compile` traces (inductor fuses those itself)."""
-    if torch.compiler.is_compiling():
+    `torch.compile` traces (inductor fuses those itself) and under torch.func transforms (vmap, jacrev:
+    the reference path's Newton Jacobian, `losses.autodiff_jacobian_var`, differentiates through the
+    slope twice, which the once-differentiable node cannot)."""
+    if torch.compiler.is_compiling() or torch._C._are_functorch_transforms_active():
         a = act(z)
         return a, _act_slope(act, z, a)
     out = _ActAndSlope.apply(z, act)
