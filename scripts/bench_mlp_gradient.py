@@ -33,13 +33,7 @@ from liedfl_cli.models import mlp_derivatives as md
 
 def expressions(lys: list[md.Layer], x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """The gradient as the batch-major tensor expressions `value_and_gradient` used before round 8."""
-    saved, a = [], x
-    for lin, act in lys[:-1]:
-        z = nn.functional.linear(a, lin.weight, lin.bias)
-        assert act is not None
-        a = act(z)
-        saved.append((z, a))
-    out = nn.functional.linear(a, lys[-1][0].weight, lys[-1][0].bias)
+    out, saved = md._forward(lys, x)
     g = lys[-1][0].weight[0]
     for (lin, act), (z, a) in zip(reversed(lys[:-1]), reversed(saved)):
         assert act is not None

@@ -14,6 +14,7 @@ from liedfl_cli.models.base import LossOptions, TrajectorySet, TripletBatch, Tri
 from liedfl_cli.models.euclidean_dflnn import EuclideanDFLNN
 from liedfl_cli.models.euler_dflnn import EulerDFLNN
 from liedfl_cli.models.glnn import GLNN
+from liedfl_cli.solvers.newton import jacobian
 
 F64 = torch.float64
 RTOL = 1e-12
@@ -152,8 +153,6 @@ def test_euler_dflnn_closed_form_residual_and_its_jacobian_equal_autograd(potent
     r_f, r_r = fused.residual(q_prev, q, q_next), ref.residual(q_prev, q, q_next)
     assert r_r.abs().max() > 0
     assert (r_f - r_r).abs().max() <= 1e-12 * r_r.abs().max()
-    from liedfl_cli.solvers.newton import jacobian
-
     with torch.no_grad():
         J_f = jacobian(lambda x: fused.residual(q_prev, q, x), q_next)
         J_r = jacobian(lambda x: ref.residual(q_prev, q, x), q_next)

@@ -145,9 +145,7 @@ class EulerDFLNN(ImplicitModel):
         """Forced DEL residual r_k = D_2 L_d(q_prev, q) + D_1 L_d(q, q_next) + h/2 (Q(q_prev, q) + Q(q, q_next)):
         q_prev, q, q_next (..., 3) -> (..., 3); differentiable w.r.t. q_prev, q_next and the parameters."""
         if self.path == "fused" and q.dim() == 2:
-            r = fused_dflnn.euler_residual(self, q_prev, q, q_next)
-            if r is not None:
-                return r
+            return fused_dflnn.euler_residual(self, q_prev, q, q_next)
         create = torch.is_grad_enabled()
         with torch.enable_grad():
             qk = q.detach().requires_grad_(True)

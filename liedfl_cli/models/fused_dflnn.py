@@ -76,26 +76,33 @@ def euclidean_residual_and_logdet(
 
 
 # ---------------------------------------------------------------------------- Euler-angle DFLNN
+def _mat(*rows: tuple[torch.Tensor, ...]) -> torch.Tensor:
+    return torch.stack([torch.stack(r, -1) for r in rows], -2)
+
+
+def _rate_matrix_first_derivatives(qm: torch.Tensor) -> torch.Tensor:
+    """dE (P, 3, 3, 3) of the ZYX rate matrix E(q) (`euler.rate_matrix`, a function of phi = q_0 and
+    theta = q_1 only) at qm (P, 3): dE[:, a] = dE/dq_a."""
+    phi, theta = qm[..., 0], qm[..., 1]
+    cf, sf, ct, st = torch.cos(phi), torch.sin(phi), torch.cos(theta), torch.sin(theta)
+    o = torch.zeros_like(phi)
+    d_phi = _mat((o, o, o), (o, -sf, cf * ct), (o, -cf, -sf * ct))
+    d_theta = _mat((o, o, -ct), (o, o, -sf * st), (o, o, -cf * st))
+    return torch.stack((d_phi, d_theta, torch.zeros_like(d_phi)), 1)
+
+
 def _rate_matrix_derivatives(qm: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """First and second derivatives of the ZYX rate matrix E(q) (`euler.rate_matrix`, a function of
-    phi = q_0 and theta = q_1 only): qm (P, 3) -> (dE (P, 3, 3, 3), d2E (P, 3, 3, 3, 3)), dE[:, a] = dE/dq_a,
+    """First and second derivatives of E(q): qm (P, 3) -> (dE (P, 3, 3, 3), d2E (P, 3, 3, 3, 3)),
     d2E[:, a, b] = d^2 E/dq_a dq_b."""
     phi, theta = qm[..., 0], qm[..., 1]
     cf, sf, ct, st = torch.cos(phi), torch.sin(phi), torch.cos(theta), torch.sin(theta)
     o = torch.zeros_like(phi)
-
-    def mat(*rows):
-        return torch.stack([torch.stack(r, -1) for r in rows], -2)
-
-    d_phi = mat((o, o, o), (o, -sf, cf * ct), (o, -cf, -sf * ct))
-    d_theta = mat((o, o, -ct), (o, o, -sf * st), (o, o, -cf * st))
-    d_pp = mat((o, o, o), (o, -cf, -sf * ct), (o, sf, -cf * ct))
-    d_pt = mat((o, o, o), (o, o, -cf * st), (o, o, sf * st))
-    d_tt = mat((o, o, st), (o, o, -sf * ct), (o, o, -cf * ct))
-    z = torch.zeros_like(d_phi)
-    dE = torch.stack((d_phi, d_theta, z), 1)
+    d_pp = _mat((o, o, o), (o, -cf, -sf * ct), (o, sf, -cf * ct))
+    d_pt = _mat((o, o, o), (o, o, -cf * st), (o, o, sf * st))
+    d_tt = _mat((o, o, st), (o, o, -sf * ct), (o, o, -cf * ct))
+    z = torch.zeros_like(d_pp)
     d2E = torch.stack((torch.stack((d_pp, d_pt, z), 1), torch.stack((d_pt, d_tt, z), 1), torch.stack((z, z, z), 1)), 1)
-    return dE, d2E
+    return _rate_matrix_first_derivatives(qm), d2E
 
 
 def euler_mixed_hessian(model, q0: torch.Tensor, q1: torch.Tensor) -> torch.Tensor | None:
@@ -127,12 +134,12 @@ def euler_mixed_hessian(model, q0: torch.Tensor, q1: torch.Tensor) -> torch.Tens
     return H
 
 
-def euler_residual(model, q_prev: torch.Tensor, q: torch.Tensor, q_next: torch.Tensor) -> torch.Tensor | None:
-    """`EulerDFLNN.residual` in closed form: q_prev, q, q_next (N, 3) -> r (N, 3) (None when the potential
-    network is not one `mlp_derivatives` supports). Differentiable in the inputs and the parameters.
+def euler_residual(model, q_prev: torch.Tensor, q: torch.Tensor, q_next: torch.Tensor) -> torch.Tensor:
+    """`EulerDFLNN.residual` in closed form: q_prev, q, q_next (N, 3) -> r (N, 3), differentiable in the
+    inputs and the parameters.
 
     For a pair (q0, q1) with qd = (q1 - q0)/h, qm = (q0 + q1)/2, w = E(qm) qd, p = J w and
-    c_a = p^T (dE/dq_a) qd (E depends on phi and theta only, so c_psi = 0):
+    c_a = p^T (dE/dq_a) qd:
         D1 L_d = -E^T p + h/2 (c - dV(qm)),   D2 L_d = E^T p + h/2 (c - dV(qm)),
         h/2 Q = -h/2 E^T D w.
     With X = h/2 (c - dV(qm) - E^T D w) and Y = E^T p of the pairs (q_prev, q) [first] and (q, q_next)
@@ -141,30 +148,16 @@ def euler_residual(model, q_prev: torch.Tensor, q: torch.Tensor, q_next: torch.T
     h, n = model.h, q.shape[0]
     q0, q1 = torch.cat((q_prev, q), 0), torch.cat((q, q_next), 0)
     qd, qm = (q1 - q0) / h, 0.5 * (q0 + q1)
-    phi, theta = qm[..., 0], qm[..., 1]
-    cf, sf, ct, st = torch.cos(phi), torch.sin(phi), torch.cos(theta), torch.sin(theta)
-    d0, d1, d2 = qd.unbind(-1)
-    # w = E qd, E = [[1, 0, -st], [0, cf, sf ct], [0, -sf, cf ct]] (`euler.rate_matrix`)
-    sct, cct = sf * ct, cf * ct
-    w = torch.stack((d0 - st * d2, cf * d1 + sct * d2, cct * d2 - sf * d1), -1)
-
-    def et(v: torch.Tensor) -> torch.Tensor:  # E^T v
-        v0, v1, v2 = v.unbind(-1)
-        return torch.stack((v0, cf * v1 - sf * v2, sct * v1 + cct * v2 - st * v0), -1)
-
+    E = euler.rate_matrix(qm)
+    Et = E.transpose(-1, -2)
+    w = (E @ qd[..., None])[..., 0]
     p = w @ model.inertia.J()[0].T
-    p0, p1, p2 = p.unbind(-1)
-    # (dE/dphi) qd = (0, cf ct d2 - sf d1, -cf d1 - sf ct d2);  (dE/dtheta) qd = d2 (-ct, -sf st, -cf st)
-    c_phi = p1 * (cct * d2 - sf * d1) - p2 * (cf * d1 + sct * d2)
-    c_theta = -d2 * (ct * p0 + st * (sf * p1 + cf * p2))
-    X = torch.stack((c_phi, c_theta, torch.zeros_like(c_phi)), -1)
+    c = (p[:, None, None, :] @ _rate_matrix_first_derivatives(qm) @ qd[:, None, :, None])[..., 0, 0]
+    X = c
     if model.potential is not None:
-        got = mlp_derivatives.value_and_gradient(model.potential, qm)
-        if got is None:
-            return None
-        X = X - got[1]
+        X = X - potential_gradient(model.potential, qm)
     if model.damping is not None:
-        X = X - et(w @ model.damping().T)
+        X = X - (Et @ (w @ model.damping().T)[..., None])[..., 0]
     X = (0.5 * h) * X
-    Y = et(p)
+    Y = (Et @ p[..., None])[..., 0]
     return Y[:n] - Y[n:] + X[:n] + X[n:]
