@@ -77,6 +77,20 @@ def test_glnn_fused_loss_and_gradients_equal_the_reference(integrator, window, s
     _assert_same(model, batch)
 
 
+def test_glnn_dopri5_fused_rollout_equals_the_reference():
+    """GLNN-RK4's rollout (`integrate`, no graph) through `solvers.dopri5` against torchdiffeq's."""
+    data = _trajectories(4, 3, 0.1)
+    model = GLNN(SO3, 0.1, integrator="dopri5", init_jitter=0.2, seed=3)
+    g0, g1 = (Pose(data.R[:, k], data.p[:, k]) for k in (0, 1))
+    with torch.no_grad():
+        fused, ref = (
+            m.integrate(m.initial_state(g0, g1), 40).R for m in (model.with_path(p) for p in ("fused", "reference"))
+        )
+    assert model.with_path("fused").fused_training()
+    assert fused.shape == ref.shape == (4, 41, 1, 3, 3)
+    assert (fused - ref).abs().max() <= 1e-12
+
+
 def test_glnn_with_a_potential_keeps_the_reference_path():
     model = GLNN(SO3, 0.1, integrator="heun", potential=True)
     assert model.path == "fused" and not model.fused_training()

@@ -8,9 +8,12 @@ and `R @ so3.hat(w)`. Training unrolls the integrator over 100-step windows at b
 the cost is the number of small kernels and autograd nodes (docs/benchmarks.md, "Baselines"),
 not arithmetic. The rows of R hat(w) are the cross products R_i x w, one kernel.
 
-Same numbers as the reference to rounding (tests/test_fused_baselines.py: losses and gradients
-to 1e-12 relative). Only first derivatives (the training loss's backward); rollouts and models
-with a learned potential keep the reference path.
+`Dopri5Field` is the same field for `solvers.dopri5`, which runs a whole adaptive solve as one
+autograd node (GLNN-RK4's training and rollouts).
+
+Same numbers as the reference to rounding (tests/test_fused_baselines.py, tests/test_dopri5.py:
+losses and gradients to 1e-12 relative). Only first derivatives (the training loss's backward);
+models with a learned potential, and the Heun / Midpoint rollouts, keep the reference path.
 """
 
 from __future__ import annotations
@@ -91,3 +94,40 @@ def accel(w: torch.Tensor, J: torch.Tensor, Jinv: torch.Tensor, D: torch.Tensor 
 def field(y: torch.Tensor, J: torch.Tensor, Jinv: torch.Tensor, D: torch.Tensor | None) -> torch.Tensor:
     """The dopri5 state's derivative: y = (R entries, w) (N, 12) -> (R hat(w) entries, A(w)) (N, 12)."""
     return _Field.apply(y, J, Jinv, D)
+
+
+class Dopri5Field:
+    """The same field for `solvers.dopri5` (one autograd node per solve): y = (R entries, w) (N, 12),
+    params (J, J^{-1}, D or None). `vjp` keeps each stage's pieces of the parameters' gradients and
+    `param_grads` sums them with one product per parameter."""
+
+    def forward(self, y: torch.Tensor, params) -> tuple[torch.Tensor, tuple]:
+        """y (N, 12) -> (y' (N, 12), what `vjp` needs); no graph."""
+        J, Jinv, D = params
+        n = y.shape[0]
+        R, w = y[:, :9].reshape(n, 3, 3), y[:, 9:]
+        Rdot = torch.linalg.cross(R, w[:, None, :].expand(n, 3, 3))
+        u, tau, A = _accel(w, J, Jinv, D)
+        return torch.cat((Rdot.reshape(n, 9), A), -1), (R, w, u, tau)
+
+    def vjp(self, saved: tuple, g: torch.Tensor, params, acc: list) -> torch.Tensor:
+        """g = dL/dy' (N, 12) -> dL/dy (N, 12); appends this evaluation's parameter pieces to acc."""
+        R, w, u, tau = saved
+        J, Jinv, D = params
+        n = g.shape[0]
+        gRd, gA = g[:, :9].reshape(n, 3, 3), g[:, 9:]
+        gtau = gA @ Jinv
+        gu = torch.linalg.cross(w, gtau)
+        gw = torch.linalg.cross(gtau, u) + gu @ J
+        if D is not None:
+            gw = gw - gtau @ D
+        gR = torch.linalg.cross(w[:, None, :].expand(n, 3, 3), gRd)
+        gw = gw + torch.linalg.cross(gRd, R).sum(1)
+        acc.append((gA, tau, gu, w, gtau))
+        return torch.cat((gR.reshape(n, 9), gw), -1)
+
+    def param_grads(self, acc: list, params) -> tuple:
+        """(dL/dJ, dL/dJ^{-1}, dL/dD or None), each (3, 3), from every evaluation's pieces."""
+        D = params[2]
+        gA, tau, gu, w, gtau = (torch.cat(parts) for parts in zip(*acc))
+        return gu.T @ w, gA.T @ tau, (-(gtau.T @ w) if D is not None else None)

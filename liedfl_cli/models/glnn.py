@@ -28,11 +28,12 @@ differentiable Newton iterations whose Jacobian I - h/2 dA/dw omits the potentia
 on R (exact without a potential); rollouts use the damped Newton solver with the full autodiff
 Jacobian, tolerance and iteration limit of `solver`, and report real convergence flags.
 
-Training without a potential (the Exp 2 scenes) takes the fused path of `models.fused_glnn` when
-`runtime.fused` is on (the default): the vector field as one autograd node with a hand-written
-backward (dopri5 stays torchdiffeq's own solver over that field), Heun and Midpoint with
-their velocities first and every step's exp in one call. Same losses and gradients to rounding
-(tests/test_fused_baselines.py); `runtime.fused=false` runs the reference path above.
+Without a potential (the Exp 2 scenes) the model takes the fused path of `models.fused_glnn` when
+`runtime.fused` is on (the default): dopri5 as one autograd node per solve (`solvers.dopri5`:
+torchdiffeq's algorithm step for step, the backward its discrete adjoint; rollouts too), Heun and
+Midpoint with their velocities first and every step's exp in one call. Same losses and gradients to
+rounding (tests/test_fused_baselines.py, tests/test_dopri5.py); `runtime.fused=false` runs the
+reference path above (torchdiffeq, autograd through every step).
 """
 
 from __future__ import annotations
@@ -46,6 +47,7 @@ from ..errors import ConfigError
 from ..lie import Pose, ProductGroup, so3
 from ..mechanics.parameterizations import Inertia, SPSDMatrix
 from ..mechanics.potentials import MLPPotential
+from ..solvers import dopri5
 from ..solvers.newton import NewtonProblem, NewtonResult, solve
 from ..solvers.options import SolverOptions
 from . import fused_glnn
@@ -290,6 +292,18 @@ class GLNN(ExplicitModel):
             return torch.cat(((R @ so3.hat(w)).reshape(n, 9), self.accel(R, w, params)), -1)
 
         y0 = torch.cat((R0.reshape(n, 9), w0), -1)
+        if fused:  # the whole solve as one autograd node (solvers/dopri5.py), torchdiffeq's steps
+            ys = dopri5.odeint(
+                fused_glnn.Dopri5Field(),
+                lambda y: fused_glnn.field(y, *params),
+                y0,
+                t.double().tolist(),
+                params,
+                self.rtol,
+                self.atol,
+                self.max_num_steps,
+            )
+            return ys[..., :9].reshape(steps + 1, n, 3, 3).transpose(0, 1)
         ys = odeint(
             f, y0, t, rtol=self.rtol, atol=self.atol, method="dopri5", options={"max_num_steps": self.max_num_steps}
         )
@@ -351,4 +365,4 @@ class GLNN(ExplicitModel):
         """dopri5 over the whole grid: state (R0 (N, 3, 3), w0 (N, 3), params) -> Pose R (N, steps+1, 1, 3, 3),
         p (N, steps+1, 0, 3)."""
         R0, w0, params = state
-        return so3_pose(self._odeint(R0, w0, steps, params))
+        return so3_pose(self._odeint(R0, w0, steps, params, self.fused_training()))
