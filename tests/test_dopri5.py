@@ -171,3 +171,87 @@ def test_a_second_backward_raises():
     (g,) = torch.autograd.grad(Y.sum(), params[0], create_graph=True)
     with pytest.raises(RuntimeError, match="twice"):
         g.sum().backward()
+
+
+def _tableau():
+    A = torch.zeros(7, 7, dtype=F64)
+    for i, row in enumerate(dopri5._A):
+        A[i, : len(row)] = torch.tensor(row, dtype=F64)
+    return A, A.sum(1)
+
+
+def _order_conditions(w: torch.Tensor, theta: float) -> dict[int, float]:
+    """Largest violation of the Runge-Kutta order conditions of each order 1..5 (all 17 rooted trees) for
+    weights w (7,) of a solution at theta (1: the step's end)."""
+    A, c = _tableau()
+    Ac = A @ c
+    trees = {
+        1: [(w.sum(), theta)],
+        2: [(w @ c, theta**2 / 2)],
+        3: [(w @ c**2, theta**3 / 3), (w @ Ac, theta**3 / 6)],
+        4: [(w @ c**3, theta**4 / 4), (w @ (c * Ac), theta**4 / 8), (w @ (A @ c**2), theta**4 / 12)]
+        + [(w @ (A @ Ac), theta**4 / 24)],
+        5: [(w @ c**4, theta**5 / 5), (w @ (c**2 * Ac), theta**5 / 10), (w @ Ac**2, theta**5 / 20)]
+        + [(w @ (c * (A @ c**2)), theta**5 / 15), (w @ (A @ c**3), theta**5 / 20), (w @ (c * (A @ Ac)), theta**5 / 30)]
+        + [
+            (w @ (A @ (c * Ac)), theta**5 / 40),
+            (w @ (A @ A @ c**2), theta**5 / 60),
+            (w @ (A @ A @ Ac), theta**5 / 120),
+        ],
+    }
+    return {p: max(abs(float(a) - b) for a, b in conds) for p, conds in trees.items()}
+
+
+def test_the_tableau_meets_the_order_conditions():
+    """The constants are what they claim: nodes (0, 1/5, 3/10, 4/5, 8/9, 1, 1); a 5th-order solution, an
+    embedded 4th-order one (so the error estimate is of 5th order), a 4th-order midpoint."""
+    A, c = _tableau()
+    assert torch.allclose(c, torch.tensor([0, 1 / 5, 3 / 10, 4 / 5, 8 / 9, 1, 1], dtype=F64), rtol=0, atol=1e-15)
+    b = A[6]
+    assert max(_order_conditions(b, 1.0).values()) < 1e-14
+    low = _order_conditions(b - torch.tensor(dopri5._E, dtype=F64), 1.0)
+    assert max(low[p] for p in range(1, 5)) < 1e-14 and low[5] > 1e-4
+    mid = _order_conditions(torch.tensor(dopri5._MID, dtype=F64), 0.5)
+    assert max(mid[p] for p in range(1, 5)) < 1e-14 and mid[5] > 1e-4
+
+
+def test_the_dense_output_is_the_quartic_through_the_five_conditions():
+    """_FIT maps (y0, y1, ymid, dt f0, dt f1) to the coefficients of p(x) = sum_p C_p x^p with p(0) = y0,
+    p(1) = y1, p(1/2) = ymid, p'(0) = dt f0, p'(1) = dt f1: the inverse of that conditions matrix."""
+    x = torch.tensor([0.0, 1.0, 0.5], dtype=F64)
+    values = x[:, None] ** torch.arange(5, dtype=F64)  # p(x) rows
+    slopes = torch.tensor([[0, 1, 0, 0, 0], [0, 1, 2, 3, 4]], dtype=F64)  # p'(0), p'(1) rows
+    conditions = torch.cat((values, slopes))
+    assert torch.allclose(torch.tensor(dopri5._FIT, dtype=F64), torch.linalg.inv(conditions), rtol=0, atol=1e-13)
+
+
+def test_the_error_follows_the_tolerance_against_scipy():
+    """A damped free body over 5 s against scipy's DOP853 at rtol 1e-13: the error is within a small multiple
+    of the tolerance and falls ~ with it (1e-5 -> 1e-9: at least 1,000x)."""
+    from scipy.integrate import solve_ivp
+
+    y0, params, _ = _problem(4, 3, 1.5, 0.2)
+    y0, params = y0.detach(), tuple(p.detach() for p in params)
+    times = [0.5 * k for k in range(11)]
+
+    def rhs(_t, flat):
+        y = torch.from_numpy(flat).reshape(3, 12)
+        return _plain_field(y, *params).reshape(-1).numpy()
+
+    exact = solve_ivp(rhs, (0, 5), y0.reshape(-1).numpy(), method="DOP853", rtol=1e-13, atol=1e-14, t_eval=times)
+    truth = torch.from_numpy(exact.y.T).reshape(11, 3, 12)
+    errors = {}
+    for rtol in (1e-5, 1e-9):
+        Y = dopri5.odeint(
+            fused_glnn.Dopri5Field(),
+            lambda y: fused_glnn.field(y, *params),
+            y0,
+            times,
+            params,
+            rtol,
+            rtol * 1e-2,
+            10**5,
+        )
+        errors[rtol] = float((Y - truth).abs().max())
+    assert errors[1e-5] < 1e-3 and errors[1e-9] < 1e-7
+    assert errors[1e-9] < errors[1e-5] / 1e3

@@ -2,22 +2,27 @@
 
     y' = F(y),   y(t_0) = y_0,   returns y(t_j) for every requested time t_j   (T, N, D)
 
-The GLNN-RK4 and Neural ODE baselines train by back-propagating through an unrolled adaptive solve.
-Through torchdiffeq (the reference path, `runtime.fused=false`) every step leaves ~100 small autograd
+The GLNN-RK4 baseline trains by back-propagating through an unrolled adaptive solve (the Neural ODE too;
+it still goes through torchdiffeq). Through torchdiffeq (`runtime.fused=false`) every step leaves ~100 autograd
 nodes and ~30 Python-level tensor checks; at the paper's batch sizes (8-32 trajectories of 12 numbers)
 that bookkeeping, not arithmetic, is the cost. Here the forward runs without a graph and the backward is
 the exact discrete adjoint of the same computation, written out stage by stage.
 
-The algorithm is torchdiffeq's `dopri5` (0.2.x) step for step, so the same steps are accepted and
-rejected and the outputs agree to rounding (tests/test_dopri5.py):
-- first step: Hairer, Norsett & Wanner, *Solving ODEs I*, II.4 (`initial_step`), computed with
-  autograd outside the node, because torchdiffeq's gradient flows through it: the first step's size
-  depends on F, and when that step is accepted every later step boundary t_0, t_1 moves with it;
-- error: RMS over every entry of the batch of err / (atol + rtol max(|y_0|, |y_1|)), one step size
-  for the whole batch; accept iff <= 1; next step dt * min(10, max(0.9 ratio^(-1/5), 0.2 or 1));
-- output at t in [t_0, t_1]: the 4th-order dense-output polynomial in x = (t - t_0)/(t_1 - t_0)
-  fitted to y_0, y_1, the midpoint estimate and F at both ends.
-Step-size control after the first step carries no gradient (torchdiffeq's does not either).
+The method is the textbook one, written here from the references, and its constants are the ones
+torchdiffeq's `dopri5` uses (its defaults), so both accept and reject the same steps and their outputs
+agree to rounding (tests/test_dopri5.py checks it against torchdiffeq; no code of it is used here):
+- the Dormand-Prince 5(4) pair (Dormand & Prince, J. Comput. Appl. Math. 6, 1980), 5th-order solution
+  propagated, FSAL; the midpoint weights of Shampine's dense output (Math. Comp. 46, 1986);
+- first step: Hairer, Norsett & Wanner, *Solving ODEs I*, II.4 (`initial_step`), computed with autograd
+  outside the node: the first step's size depends on F, and when that step is accepted every later step
+  boundary moves with it, so its gradient is part of the reference's (and of this node's);
+- error: RMS over every entry of the batch of err / (atol + rtol max(|y_0|, |y_1|)), one step size for the
+  whole batch; accept iff <= 1; next step dt min(10, max(0.9 ratio^(-1/5), 0.2, or 1 after an accepted
+  step)) (HNW II.4, safety 0.9, facmax 10, facmin 0.2);
+- output at t in [t_0, t_1]: the quartic p(x), x = (t - t_0)/(t_1 - t_0), with p(0) = y_0, p(1) = y_1,
+  p(1/2) = the midpoint estimate, p'(0) = dt F(y_0), p'(1) = dt F(y_1) (`_FIT` is that interpolation
+  problem solved once; a test re-derives it).
+Step-size control after the first step carries no gradient (the reference's does not either).
 
 A vector field is an object with `forward(y, params) -> (F(y), saved)` (no graph) and
 `vjp(saved, g, params, acc) -> g_y`, which adds its parameters' pieces to `acc`;
