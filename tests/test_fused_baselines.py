@@ -14,6 +14,7 @@ from liedfl_cli.models.base import LossOptions, TrajectorySet, TripletBatch, Tri
 from liedfl_cli.models.euclidean_dflnn import EuclideanDFLNN
 from liedfl_cli.models.euler_dflnn import EulerDFLNN
 from liedfl_cli.models.glnn import GLNN
+from liedfl_cli.models.neural_ode import NeuralODE
 from liedfl_cli.solvers.newton import jacobian
 
 F64 = torch.float64
@@ -89,6 +90,28 @@ def test_glnn_dopri5_fused_rollout_equals_the_reference():
     assert model.with_path("fused").fused_training()
     assert fused.shape == ref.shape == (4, 41, 1, 3, 3)
     assert (fused - ref).abs().max() <= 1e-12
+
+
+@pytest.mark.parametrize("G", [SO3, SE3])
+def test_neural_ode_fused_loss_gradients_and_rollout_equal_the_reference(G):
+    """The Neural ODE's dopri5 through `solvers.dopri5` with the MLP field of `models.fused_neural_ode`
+    against torchdiffeq over the module: loss, every weight's and bias's gradient, and a rollout."""
+    steps, h = 6, 0.1
+    rot = _trajectories(5, steps, h)
+    gen = torch.Generator().manual_seed(7)
+    p = torch.cumsum(0.05 * torch.randn(5, steps + 1, 1, 3, generator=gen, dtype=F64), 1)
+    data = rot if G is SO3 else Pose(rot.R, p)
+    model = NeuralODE(G, h, mlp_width=16, mlp_depth=2, seed=3)
+    assert model.with_path("fused").fused_solve() and not model.with_path("reference").fused_solve()
+    batch = TrajectorySet(data, steps).batch(torch.arange(5), torch.Generator(), 0)
+    _assert_same(model, batch)
+    g0, g1 = (Pose(data.R[:, k], data.p[:, k]) for k in (0, 1))
+    with torch.no_grad():
+        fused, ref = (
+            m.integrate(m.initial_state(g0, g1), 30) for m in (model.with_path(q) for q in ("fused", "reference"))
+        )
+    assert fused.R.shape == (5, 31, 1, 3, 3) and (fused.R - ref.R).abs().max() <= 1e-12
+    assert fused.p.shape == ref.p.shape and torch.allclose(fused.p, ref.p, rtol=0, atol=1e-12)
 
 
 def test_glnn_with_a_potential_keeps_the_reference_path():

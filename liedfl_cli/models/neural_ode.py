@@ -21,7 +21,9 @@ import torch
 from ..errors import ConfigError
 from ..lie import Pose, ProductGroup
 from ..mechanics.mlp import MLP
+from ..solvers import dopri5
 from .base import Batch, BuildContext, ExplicitModel, LossOptions, LossParts, config_options
+from .fused_neural_ode import MLPField
 
 ADAPTIVE_METHODS = ("dopri5", "dopri8", "bosh3", "fehlberg2", "adaptive_heun")
 
@@ -111,11 +113,28 @@ class NeuralODE(ExplicitModel):
             return torch.cat((y[:, n:], self.field(y)), -1)
 
         t = self.h * torch.arange(steps + 1, dtype=x0.dtype, device=x0.device)
+        if self.fused_solve():  # the whole solve as one autograd node (solvers/dopri5.py)
+            ys = dopri5.odeint(
+                MLPField(self.field, n),
+                lambda y: f(None, y),
+                torch.cat((x0, v0), -1),
+                t.double().tolist(),
+                MLPField.params_of(self.field),
+                self.rtol,
+                self.atol,
+                self.max_num_steps,
+            )
+            return ys[..., :n].transpose(0, 1)
         opts = {"max_num_steps": self.max_num_steps} if self.method in ADAPTIVE_METHODS else {}
         ys = odeint(
             f, torch.cat((x0, v0), -1), t, rtol=self.rtol, atol=self.atol, method=self.method, options=opts or None
         )
         return ys[..., :n].transpose(0, 1)
+
+    def fused_solve(self) -> bool:
+        """Whether `integrate_x` runs `solvers.dopri5` (one autograd node per solve): the model's path is
+        "fused" and its method dopri5; otherwise torchdiffeq (any method)."""
+        return self.path == "fused" and self.method == "dopri5"
 
     def loss(self, batch: Batch, opts: LossOptions) -> tuple[torch.Tensor, LossParts]:
         """Unroll each window from (x_0, (x_1 - x_0)/h) -> (mean squared error of the predicted
