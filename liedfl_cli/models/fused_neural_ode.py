@@ -26,7 +26,8 @@ class MLPField:
         lys = mlp_derivatives.layers(net)
         if lys is None:
             raise ValueError("MLPField needs a Sequential of Linear layers and supported activations")
-        self.acts = [act for _, act in lys[:-1]]
+        # every hidden Linear has its activation (`layers` guarantees it); the last has none
+        self.acts: list[nn.Module] = [act for _, act in lys[:-1] if act is not None]
         self.n = n
 
     @staticmethod
