@@ -7,7 +7,8 @@ commits), arms interleaved, each in its own process (so each imports its own cod
 For each Exp 2 training length (or the experiment's own setting when --lengths is not given): `--rounds`
 rounds of [old, new] (or [new, old], alternating), each arm `bench.epoch_seconds` (fused path, best of
 `--repeats` fits of `--epochs` epochs, one torch thread). Prints median wall and CPU seconds per epoch
-and new ÷ old; `--reference` adds this checkout's reference path (`runtime.fused=false`).
+and new ÷ old; `--reference` adds this checkout's reference path (`runtime.fused=false`); `--from-run RUN`
+starts every fit from that run's last weights (an adaptive solver's cost grows as the field is trained).
 Take the figures on an idle machine (the 1-minute load is printed beside them).
 """
 
@@ -26,12 +27,21 @@ ROOT = Path(__file__).resolve().parent.parent
 # the arm: run in a child process with the checkout's root first on sys.path
 ARM = """
 import json, sys
-root, base, length, epochs, repeats, data, reference = sys.argv[1:8]
+root, base, length, epochs, repeats, data, reference, run = sys.argv[1:9]
 sys.path[:0] = [root, root + "/scripts"]
 import torch
 torch.set_num_threads(1)
 import bench, liedfl_cli
 assert liedfl_cli.__file__.startswith(root), liedfl_cli.__file__
+if run != "-":  # start every fit from that run's last weights (a trained, stiffer field)
+    from liedfl_cli import api
+    weights = api.load_run(run, data_dir=data, checkpoint="last").model.state_dict()
+    build = bench.build_model
+    def build_model(*a, **k):
+        model = build(*a, **k)
+        model.load_state_dict(weights)
+        return model
+    bench.build_model = build_model
 ov = list(bench.BASELINES[base])
 if length != "-":
     ov = [o for o in ov if not o.startswith("dataset.train_steps")] + ["dataset.train_steps=" + length]
@@ -43,7 +53,7 @@ print(json.dumps(r))
 def arm(root: Path, args, length: str, reference: bool) -> dict:
     out = subprocess.run(
         [sys.executable, "-c", ARM, str(root), args.baseline, length, str(args.epochs), str(args.repeats)]
-        + [str(Path(args.data_dir).resolve()), "1" if reference else "0"],
+        + [str(Path(args.data_dir).resolve()), "1" if reference else "0", args.from_run or "-"],
         capture_output=True,
         text=True,
         check=False,
@@ -63,6 +73,7 @@ def main() -> None:
     ap.add_argument("--epochs", type=int, default=2)
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--reference", action="store_true", help="also this checkout's reference path")
+    ap.add_argument("--from-run", help="a run folder of this baseline: every fit starts from its last weights")
     ap.add_argument("--data-dir", default=str(ROOT / "outputs" / "data"))
     ap.add_argument("--json", help="also write the figures here")
     args = ap.parse_args()

@@ -3,7 +3,9 @@ x = flatten(g) of the configuration (9 per body for R, then 3 per SE(3) body for
 
     x' = v,   v' = f_theta(x, v)   (MLP, GELU, width x depth),
 
-integrated with torchdiffeq (`method`, rtol / atol). No geometric structure: predicted R are
+integrated with torchdiffeq (`method`, rtol / atol); with `method: dopri5` on the fused path (the
+default, `runtime.fused`) the same dopri5 runs as one autograd node per solve (`solvers.dopri5`, field
+`models.fused_neural_ode`), same numbers to rounding. No geometric structure: predicted R are
 not orthogonal, and the drift is the result. Training unrolls the ODE over each window from
 x_0 with v_0 = (x_1 - x_0)/h and minimises the mean squared error of the predicted positions
 x_1..x_L (window "trajectory": the whole training window of each trajectory; "triplet": each
