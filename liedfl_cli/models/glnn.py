@@ -297,7 +297,7 @@ class GLNN(ExplicitModel):
                 fused_glnn.Dopri5Field(),
                 lambda y: fused_glnn.field(y, *params),
                 y0,
-                t.double().tolist(),
+                t.tolist(),
                 params,
                 self.rtol,
                 self.atol,

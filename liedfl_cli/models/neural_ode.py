@@ -120,7 +120,7 @@ class NeuralODE(ExplicitModel):
                 MLPField(self.field, n),
                 lambda y: f(None, y),
                 torch.cat((x0, v0), -1),
-                t.double().tolist(),
+                t.tolist(),
                 MLPField.params_of(self.field),
                 self.rtol,
                 self.atol,
