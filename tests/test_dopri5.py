@@ -255,3 +255,19 @@ def test_the_error_follows_the_tolerance_against_scipy():
         errors[rtol] = float((Y - truth).abs().max())
     assert errors[1e-5] < 1e-3 and errors[1e-9] < 1e-7
     assert errors[1e-9] < errors[1e-5] / 1e3
+
+
+def test_a_solve_nothing_differentiates_keeps_no_step_and_gives_the_same_outputs():
+    """Rollouts (no gradient) hold only the current step, not the whole solve: same outputs."""
+    y0, params, _ = _problem(0, 4, 1.0, 0.1)
+    times = [0.1 * k for k in range(8)]
+    args = (fused_glnn.Dopri5Field(), lambda y: fused_glnn.field(y, *params))
+    Y = dopri5.odeint(*args, y0, times, params, 1e-7, 1e-9, 100)
+    with torch.no_grad():
+        Y_free = dopri5.odeint(*args, y0, times, params, 1e-7, 1e-9, 100)
+        dt0 = float(dopri5.initial_step(args[1], y0, args[1](y0), 1e-7, 1e-9))
+        kept = dopri5._solve_forward(args[0], params, y0, dt0, times, 1e-7, 1e-9, 100, keep=True)
+        free = dopri5._solve_forward(args[0], params, y0, dt0, times, 1e-7, 1e-9, 100, keep=False)
+    assert Y.requires_grad and not Y_free.requires_grad
+    assert torch.equal(Y.detach(), Y_free) and torch.equal(kept[0], free[0])
+    assert len(kept[1]) > 7 and free[1] == []

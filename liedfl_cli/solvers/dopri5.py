@@ -146,8 +146,9 @@ def _combine(y: torch.Tensor, dt: float, w: torch.Tensor, K: torch.Tensor) -> to
     return torch.addmv(y.reshape(-1), K[:n].reshape(n, -1).T, w, alpha=dt).view_as(y)
 
 
-def _solve_forward(field: Field, params, y0, dt0, times, rtol, atol, max_num_steps):
-    """The solve without a graph: -> (Y (T, N, D), accepted steps, f0's saved values)."""
+def _solve_forward(field: Field, params, y0, dt0, times, rtol, atol, max_num_steps, keep: bool = True):
+    """The solve without a graph: -> (Y (T, N, D), accepted steps, f0's saved values). keep=False: keep no
+    step (a solve nothing differentiates, e.g. a long rollout, holds only the current step)."""
     tab = _Tableau(y0)
     T = len(times)
     Y = y0.new_empty(T, *y0.shape)
@@ -182,7 +183,8 @@ def _solve_forward(field: Field, params, y0, dt0, times, rtol, atol, max_num_ste
                 basis = torch.stack((y, y1, _combine(y, dt, tab.MID, K), dt * K[0], dt * K[6]))
                 C = torch.tensordot(tab.FIT, basis, 1)
                 last = _Step(y, K, saved, dt, t, t + dt, C, first)
-                steps.append(last)
+                if keep:
+                    steps.append(last)
                 y, f, t = y1, K[6], t + dt
             first = False
             dt = next_step(dt, ratio)
@@ -276,5 +278,11 @@ def odeint(
     """y(t_j) for the increasing `times` (T floats, y(times[0]) = y0 (N, D)) -> (T, N, D), differentiable
     in y0 and `params` (tensors; None entries allowed). f: the same field as an autograd function of y
     (for the first step's size only)."""
-    dt0 = initial_step(f, y0, f(y0), rtol, atol)
-    return _Dopri5.apply(y0, dt0, field, list(times), float(rtol), float(atol), int(max_num_steps), *params)
+    tensors = [y0, *(p for p in params if p is not None)]
+    if not (torch.is_grad_enabled() and any(t.requires_grad for t in tensors)):
+        with torch.no_grad():
+            dt0 = float(initial_step(f, y0, f(y0), rtol, atol))
+            args = (float(rtol), float(atol), int(max_num_steps))
+            return _solve_forward(field, params, y0, dt0, list(times), *args, keep=False)[0]
+    dt0_t = initial_step(f, y0, f(y0), rtol, atol)
+    return _Dopri5.apply(y0, dt0_t, field, list(times), float(rtol), float(atol), int(max_num_steps), *params)
