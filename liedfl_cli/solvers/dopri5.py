@@ -120,14 +120,14 @@ def next_step(dt: float, ratio: float) -> float:
 
 
 class _Step:
-    """An accepted step: start y0 (N, D), stages K (7, N, D), their fields' saved values, size dt,
-    interval [t0, t1], dense-output coefficients C (5, N, D), whether it is the first step (whose size
-    carries a gradient), and the outputs it produced: [(j, x)]."""
+    """An accepted step: stages K (7, N, D), their fields' saved values, size dt, interval [t0, t1],
+    dense-output coefficients C (5, N, D), whether it is the first step (whose size carries a gradient),
+    and the outputs it produced: [(j, x)]."""
 
-    __slots__ = ("y0", "K", "saved", "dt", "t0", "t1", "C", "first", "outputs")
+    __slots__ = ("K", "saved", "dt", "t0", "t1", "C", "first", "outputs")
 
-    def __init__(self, y0, K, saved, dt, t0, t1, C, first):
-        self.y0, self.K, self.saved, self.dt, self.t0, self.t1, self.C, self.first = y0, K, saved, dt, t0, t1, C, first
+    def __init__(self, K, saved, dt, t0, t1, C, first):
+        self.K, self.saved, self.dt, self.t0, self.t1, self.C, self.first = K, saved, dt, t0, t1, C, first
         self.outputs: list[tuple[int, float]] = []
 
 
@@ -182,7 +182,7 @@ def _solve_forward(field: Field, params, y0, dt0, times, rtol, atol, max_num_ste
             if ratio <= 1:
                 basis = torch.stack((y, y1, _combine(y, dt, tab.MID, K), dt * K[0], dt * K[6]))
                 C = torch.tensordot(tab.FIT, basis, 1)
-                last = _Step(y, K, saved, dt, t, t + dt, C, first)
+                last = _Step(K, saved, dt, t, t + dt, C, first)
                 if keep:
                     steps.append(last)
                 y, f, t = y1, K[6], t + dt
