@@ -30,7 +30,7 @@ Jacobian, tolerance and iteration limit of `solver`, and report real convergence
 
 Without a potential (the Exp 2 scenes) the model takes the fused path of `models.fused_glnn` when
 `runtime.fused` is on (the default): dopri5 as one autograd node per solve (`solvers.dopri5`:
-torchdiffeq's algorithm step for step, the backward its discrete adjoint; rollouts too), Heun and
+the same steps as torchdiffeq's dopri5, the backward the solve's discrete adjoint; rollouts too), Heun and
 Midpoint with their velocities first and every step's exp in one call. Same losses and gradients to
 rounding (tests/test_fused_baselines.py, tests/test_dopri5.py); `runtime.fused=false` runs the
 reference path above (torchdiffeq, autograd through every step).

@@ -24,6 +24,7 @@ from ..errors import ConfigError
 from ..lie import Pose, ProductGroup
 from ..mechanics.mlp import MLP
 from ..solvers import dopri5
+from . import mlp_derivatives
 from .base import Batch, BuildContext, ExplicitModel, LossOptions, LossParts, config_options
 from .fused_neural_ode import MLPField
 
@@ -135,8 +136,8 @@ class NeuralODE(ExplicitModel):
 
     def fused_solve(self) -> bool:
         """Whether `integrate_x` runs `solvers.dopri5` (one autograd node per solve): the model's path is
-        "fused" and its method dopri5; otherwise torchdiffeq (any method)."""
-        return self.path == "fused" and self.method == "dopri5"
+        "fused", its method dopri5 and its field a plain MLP; otherwise torchdiffeq (any method)."""
+        return self.path == "fused" and self.method == "dopri5" and mlp_derivatives.layers(self.field) is not None
 
     def loss(self, batch: Batch, opts: LossOptions) -> tuple[torch.Tensor, LossParts]:
         """Unroll each window from (x_0, (x_1 - x_0)/h) -> (mean squared error of the predicted
