@@ -38,6 +38,15 @@ class _Counted(fused_glnn.Dopri5Field):
         return super().forward(y, params)
 
 
+def _odeint(y0, times, params, rtol, atol, limit, field=None, f=None):
+    """`dopri5.odeint` over GLNN's field, feature major as the model runs it: y0 (N, 12) -> (T, N, 12).
+    f: the autograd field on rows (default `fused_glnn.field`)."""
+    field = field if field is not None else fused_glnn.Dopri5Field()
+    f = f if f is not None else (lambda y: fused_glnn.field(y, *params))
+    Y = dopri5.odeint(field, lambda y: f(y.T).T, y0.T, list(times), params, rtol, atol, limit)
+    return Y.transpose(1, 2)
+
+
 def _problem(seed: int, n: int, w_scale: float, d_scale: float | None, dtype=F64):
     gen = torch.Generator().manual_seed(seed)
     A = torch.randn(3, 3, generator=gen, dtype=F64)
@@ -83,7 +92,7 @@ def test_solve_and_gradients_equal_torchdiffeq(case):
 
     Y_ref = torchdiffeq_odeint(ref_f, y0, t, rtol=rtol, atol=atol, method="dopri5")
     field = _Counted()
-    Y = dopri5.odeint(field, lambda y: _plain_field(y, *params), y0, t.tolist(), params, rtol, atol, 10**5)
+    Y = _odeint(y0, t.tolist(), params, rtol, atol, 10**5, field, lambda y: _plain_field(y, *params))
 
     assert Y.shape == Y_ref.shape == (T, n, 12)
     assert (Y - Y_ref).abs().max() <= 1e-12 * Y_ref.abs().max()
@@ -105,7 +114,8 @@ def test_the_cases_reach_the_branches_they_name():
             f0 = fused_glnn.field(y0, *params)
             dt0 = float(dopri5.initial_step(lambda y: fused_glnn.field(y, *params), y0, f0, rtol, atol))
             times = (h * torch.arange(T, dtype=F64)).tolist()
-            return dopri5._solve_forward(fused_glnn.Dopri5Field(), params, y0, dt0, times, rtol, atol, 10**5)[1]
+            field = fused_glnn.Dopri5Field()
+            return dopri5._solve_forward(field, params, y0.T.contiguous(), dt0, times, rtol, atol, 10**5)[1]
 
     assert not steps("first step rejected")[0].first
     assert steps("paper tolerances")[0].first
@@ -120,9 +130,7 @@ def test_float32_matches_torchdiffeq_to_float32_rounding():
     y0, params, weights = _problem(0, 5, 1.0, 0.1, torch.float32)
     t = 0.1 * torch.arange(6, dtype=torch.float32)
     Y_ref = torchdiffeq_odeint(lambda _t, y: _plain_field(y, *params), y0, t, rtol=1e-5, atol=1e-7, method="dopri5")
-    Y = dopri5.odeint(
-        fused_glnn.Dopri5Field(), lambda y: _plain_field(y, *params), y0, t.double().tolist(), params, 1e-5, 1e-7, 100
-    )
+    Y = _odeint(y0, t.tolist(), params, 1e-5, 1e-7, 100, f=lambda y: _plain_field(y, *params))
     assert Y.dtype == torch.float32
     assert (Y - Y_ref).abs().max() <= 1e-5 * Y_ref.abs().max()
     g_ref = _grads((Y_ref * weights[:6]).sum(), y0, params)
@@ -150,24 +158,13 @@ def test_step_limit_and_non_finite_start_raise_as_torchdiffeq_does():
                 options={"max_num_steps": limit},
             )
         with pytest.raises(AssertionError, match=message):
-            dopri5.odeint(
-                fused_glnn.Dopri5Field(),
-                lambda y: fused_glnn.field(y, *params),
-                start,
-                [0.0, 1.0],
-                params,
-                rtol,
-                1e-12,
-                limit,
-            )
+            _odeint(start, [0.0, 1.0], params, rtol, 1e-12, limit)
 
 
 def test_a_second_backward_raises():
     """One node per solve, differentiable once (training needs one backward)."""
     y0, params, _ = _problem(0, 2, 1.0, 0.1)
-    Y = dopri5.odeint(
-        fused_glnn.Dopri5Field(), lambda y: fused_glnn.field(y, *params), y0, [0.0, 0.1], params, 1e-7, 1e-9, 100
-    )
+    Y = _odeint(y0, [0.0, 0.1], params, 1e-7, 1e-9, 100)
     (g,) = torch.autograd.grad(Y.sum(), params[0], create_graph=True)
     with pytest.raises(RuntimeError, match="twice"):
         g.sum().backward()
@@ -242,16 +239,7 @@ def test_the_error_follows_the_tolerance_against_scipy():
     truth = torch.from_numpy(exact.y.T).reshape(11, 3, 12)
     errors = {}
     for rtol in (1e-5, 1e-9):
-        Y = dopri5.odeint(
-            fused_glnn.Dopri5Field(),
-            lambda y: fused_glnn.field(y, *params),
-            y0,
-            times,
-            params,
-            rtol,
-            rtol * 1e-2,
-            10**5,
-        )
+        Y = _odeint(y0, times, params, rtol, rtol * 1e-2, 10**5)
         errors[rtol] = float((Y - truth).abs().max())
     assert errors[1e-5] < 1e-3 and errors[1e-9] < 1e-7
     assert errors[1e-9] < errors[1e-5] / 1e3
@@ -261,13 +249,14 @@ def test_a_solve_nothing_differentiates_keeps_no_step_and_gives_the_same_outputs
     """Rollouts (no gradient) hold only the current step, not the whole solve: same outputs."""
     y0, params, _ = _problem(0, 4, 1.0, 0.1)
     times = [0.1 * k for k in range(8)]
-    args = (fused_glnn.Dopri5Field(), lambda y: fused_glnn.field(y, *params))
-    Y = dopri5.odeint(*args, y0, times, params, 1e-7, 1e-9, 100)
+    Y = _odeint(y0, times, params, 1e-7, 1e-9, 100)
     with torch.no_grad():
-        Y_free = dopri5.odeint(*args, y0, times, params, 1e-7, 1e-9, 100)
-        dt0 = float(dopri5.initial_step(args[1], y0, args[1](y0), 1e-7, 1e-9))
-        kept = dopri5._solve_forward(args[0], params, y0, dt0, times, 1e-7, 1e-9, 100, keep=True)
-        free = dopri5._solve_forward(args[0], params, y0, dt0, times, 1e-7, 1e-9, 100, keep=False)
+        Y_free = _odeint(y0, times, params, 1e-7, 1e-9, 100)
+        f = lambda y: fused_glnn.field(y, *params)
+        dt0 = float(dopri5.initial_step(f, y0, f(y0), 1e-7, 1e-9))
+        field, cols = fused_glnn.Dopri5Field(), y0.T.contiguous()
+        kept = dopri5._solve_forward(field, params, cols, dt0, times, 1e-7, 1e-9, 100, keep=True)
+        free = dopri5._solve_forward(field, params, cols, dt0, times, 1e-7, 1e-9, 100, keep=False)
     assert Y.requires_grad and not Y_free.requires_grad
     assert torch.equal(Y.detach(), Y_free) and torch.equal(kept[0], free[0])
     assert len(kept[1]) > 7 and free[1] == []

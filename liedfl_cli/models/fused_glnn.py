@@ -97,37 +97,42 @@ def field(y: torch.Tensor, J: torch.Tensor, Jinv: torch.Tensor, D: torch.Tensor 
 
 
 class Dopri5Field:
-    """The same field for `solvers.dopri5` (one autograd node per solve): y = (R entries, w) (N, 12),
-    params (J, J^{-1}, D or None). `vjp` keeps each stage's pieces of the parameters' gradients and
-    `param_grads` sums them with one product per parameter."""
+    """The same field for `solvers.dopri5` (one autograd node per solve), feature major: y = (R entries,
+    w) as columns, (12, N), R_i. = y[3i:3i+3], w = y[9:]; params (J, J^{-1}, D or None). Feature major
+    because every operand is then contiguous: at N = 32 a field evaluation and its vector-Jacobian product
+    take ~30 % / ~15 % less time than in rows (per-call cost). `vjp` keeps each stage's pieces of the
+    parameters' gradients and `param_grads` sums them with one product per parameter."""
 
     def forward(self, y: torch.Tensor, params) -> tuple[torch.Tensor, tuple]:
-        """y (N, 12) -> (y' (N, 12), what `vjp` needs); no graph."""
+        """y (12, N) -> (y' (12, N), what `vjp` needs); no graph."""
         J, Jinv, D = params
-        n = y.shape[0]
-        R, w = y[:, :9].reshape(n, 3, 3), y[:, 9:]
-        Rdot = torch.linalg.cross(R, w[:, None, :].expand(n, 3, 3))
-        u, tau, A = _accel(w, J, Jinv, D)
-        return torch.cat((Rdot.reshape(n, 9), A), -1), (R, w, u, tau)
+        n = y.shape[1]
+        R, w = y[:9].view(3, 3, n), y[9:]
+        Rdot = torch.linalg.cross(R, w.expand(3, 3, n), dim=1)  # row i of R hat(w) = R_i x w
+        u = torch.mm(J, w)
+        tau = torch.linalg.cross(u, w, dim=0)
+        if D is not None:
+            tau = torch.addmm(tau, D, w, alpha=-1)
+        return torch.cat((Rdot.view(9, n), torch.mm(Jinv, tau))), (R, w, u, tau)
 
     def vjp(self, saved: tuple, g: torch.Tensor, params, acc: list) -> torch.Tensor:
-        """g = dL/dy' (N, 12) -> dL/dy (N, 12); appends this evaluation's parameter pieces to acc."""
+        """g = dL/dy' (12, N) -> dL/dy (12, N); appends this evaluation's parameter pieces to acc."""
         R, w, u, tau = saved
         J, Jinv, D = params
-        n = g.shape[0]
-        gRd, gA = g[:, :9].reshape(n, 3, 3), g[:, 9:]
-        gtau = gA @ Jinv
-        gu = torch.linalg.cross(w, gtau)
-        gw = torch.linalg.cross(gtau, u) + gu @ J
+        n = g.shape[1]
+        gRd, gA = g[:9].view(3, 3, n), g[9:]
+        gtau = torch.mm(Jinv.T, gA)
+        gu = torch.linalg.cross(w, gtau, dim=0)
+        gw = torch.addmm(torch.linalg.cross(gtau, u, dim=0), J.T, gu)
         if D is not None:
-            gw = gw - gtau @ D
-        gR = torch.linalg.cross(w[:, None, :].expand(n, 3, 3), gRd)
-        gw = gw + torch.linalg.cross(gRd, R).sum(1)
+            gw = torch.addmm(gw, D.T, gtau, alpha=-1)
+        gR = torch.linalg.cross(w.expand(3, 3, n), gRd, dim=1)
+        gw = gw + torch.linalg.cross(gRd, R, dim=1).sum(0)
         acc.append((gA, tau, gu, w, gtau))
-        return torch.cat((gR.reshape(n, 9), gw), -1)
+        return torch.cat((gR.view(9, n), gw))
 
     def param_grads(self, acc: list, params) -> tuple:
         """(dL/dJ, dL/dJ^{-1}, dL/dD or None), each (3, 3), from every evaluation's pieces."""
         D = params[2]
-        gA, tau, gu, w, gtau = (torch.cat(parts) for parts in zip(*acc))
-        return gu.T @ w, gA.T @ tau, (-(gtau.T @ w) if D is not None else None)
+        gA, tau, gu, w, gtau = (torch.cat(parts, 1) for parts in zip(*acc))
+        return gu @ w.T, gA @ tau.T, (-(gtau @ w.T) if D is not None else None)

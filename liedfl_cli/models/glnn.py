@@ -293,17 +293,17 @@ class GLNN(ExplicitModel):
 
         y0 = torch.cat((R0.reshape(n, 9), w0), -1)
         if fused:  # the whole solve as one autograd node (solvers/dopri5.py), torchdiffeq's steps
-            ys = dopri5.odeint(
+            ys = dopri5.odeint(  # feature major: (12, N) states (fused_glnn.Dopri5Field)
                 fused_glnn.Dopri5Field(),
-                lambda y: fused_glnn.field(y, *params),
-                y0,
+                lambda y: fused_glnn.field(y.T, *params).T,
+                y0.T.contiguous(),
                 t.tolist(),
                 params,
                 self.rtol,
                 self.atol,
                 self.max_num_steps,
             )
-            return ys[..., :9].reshape(steps + 1, n, 3, 3).transpose(0, 1)
+            return ys[:, :9].permute(2, 0, 1).reshape(n, steps + 1, 3, 3)
         ys = odeint(
             f, y0, t, rtol=self.rtol, atol=self.atol, method="dopri5", options={"max_num_steps": self.max_num_steps}
         )

@@ -278,6 +278,7 @@ def odeint(
     """y(t_j) for the increasing `times` (T floats, y(times[0]) = y0 (N, D)) -> (T, N, D), differentiable
     in y0 and `params` (tensors; None entries allowed). f: the same field as an autograd function of y
     (for the first step's size only)."""
+    y0 = y0.contiguous()  # fields view their state's rows
     tensors = [y0, *(p for p in params if p is not None)]
     if not (torch.is_grad_enabled() and any(t.requires_grad for t in tensors)):
         with torch.no_grad():
