@@ -38,13 +38,15 @@ class _Counted(fused_glnn.Dopri5Field):
         return super().forward(y, params)
 
 
-def _odeint(y0, times, params, rtol, atol, limit, field=None, f=None):
-    """`dopri5.odeint` over GLNN's field, feature major as the model runs it: y0 (N, 12) -> (T, N, 12).
-    f: the autograd field on rows (default `fused_glnn.field`)."""
+def _odeint(y0, times, params, rtol, atol, limit, field=None):
+    """`dopri5.odeint` over GLNN's field, feature major as the model runs it: y0 (N, 12) -> (T, N, 12)."""
     field = field if field is not None else fused_glnn.Dopri5Field()
-    f = f if f is not None else (lambda y: fused_glnn.field(y, *params))
-    Y = dopri5.odeint(field, lambda y: f(y.T).T, y0.T, list(times), params, rtol, atol, limit)
-    return Y.transpose(1, 2)
+    return dopri5.odeint(field, y0.T, list(times), params, rtol, atol, limit).transpose(1, 2)
+
+
+def _first_step(y0, params, rtol, atol):
+    """The first step's size as the solver takes it, from rows y0 (N, 12)."""
+    return dopri5.first_step(fused_glnn.Dopri5Field(), y0.T.contiguous(), params, rtol, atol)
 
 
 def _problem(seed: int, n: int, w_scale: float, d_scale: float | None, dtype=F64):
@@ -92,11 +94,12 @@ def test_solve_and_gradients_equal_torchdiffeq(case):
 
     Y_ref = torchdiffeq_odeint(ref_f, y0, t, rtol=rtol, atol=atol, method="dopri5")
     field = _Counted()
-    Y = _odeint(y0, t.tolist(), params, rtol, atol, 10**5, field, lambda y: _plain_field(y, *params))
+    Y = _odeint(y0, t.tolist(), params, rtol, atol, 10**5, field)
 
     assert Y.shape == Y_ref.shape == (T, n, 12)
     assert (Y - Y_ref).abs().max() <= 1e-12 * Y_ref.abs().max()
-    assert field.calls == calls[0] - 1  # torchdiffeq also evaluates F at the initial step's trial point
+    # the same evaluations, plus F(y0) once more: the first step's size is computed through its own node
+    assert field.calls == calls[0] + 1
     g_ref = _grads((Y_ref * weights[:T]).sum(), y0, params)
     g = _grads((Y * weights[:T]).sum(), y0, params)
     for a, b in zip(g, g_ref, strict=True):
@@ -111,8 +114,7 @@ def test_the_cases_reach_the_branches_they_name():
         seed, n, w_scale, d_scale, rtol, atol, h, T = CASES[case]
         y0, params, _ = _problem(seed, n, w_scale, d_scale)
         with torch.no_grad():
-            f0 = fused_glnn.field(y0, *params)
-            dt0 = float(dopri5.initial_step(lambda y: fused_glnn.field(y, *params), y0, f0, rtol, atol))
+            dt0 = float(_first_step(y0, params, rtol, atol))
             times = (h * torch.arange(T, dtype=F64)).tolist()
             field = fused_glnn.Dopri5Field()
             return dopri5._solve_forward(field, params, y0.T.contiguous(), dt0, times, rtol, atol, 10**5)[1]
@@ -122,15 +124,14 @@ def test_the_cases_reach_the_branches_they_name():
     assert max(len(s.outputs) for s in steps("several outputs per step")) >= 3
     assert min(len(s.outputs) for s in steps("many steps per output")) == 0
     y0, params, _ = _problem(*CASES["body at rest (small-field first step)"][:4])
-    f0 = fused_glnn.field(y0, *params)
-    assert float(dopri5.initial_step(lambda y: fused_glnn.field(y, *params), y0, f0, 1e-7, 1e-9).detach()) == 1e-6
+    assert float(_first_step(y0, params, 1e-7, 1e-9).detach()) == 1e-6
 
 
 def test_float32_matches_torchdiffeq_to_float32_rounding():
     y0, params, weights = _problem(0, 5, 1.0, 0.1, torch.float32)
     t = 0.1 * torch.arange(6, dtype=torch.float32)
     Y_ref = torchdiffeq_odeint(lambda _t, y: _plain_field(y, *params), y0, t, rtol=1e-5, atol=1e-7, method="dopri5")
-    Y = _odeint(y0, t.tolist(), params, 1e-5, 1e-7, 100, f=lambda y: _plain_field(y, *params))
+    Y = _odeint(y0, t.tolist(), params, 1e-5, 1e-7, 100)
     assert Y.dtype == torch.float32
     assert (Y - Y_ref).abs().max() <= 1e-5 * Y_ref.abs().max()
     g_ref = _grads((Y_ref * weights[:6]).sum(), y0, params)
@@ -252,8 +253,7 @@ def test_a_solve_nothing_differentiates_keeps_no_step_and_gives_the_same_outputs
     Y = _odeint(y0, times, params, 1e-7, 1e-9, 100)
     with torch.no_grad():
         Y_free = _odeint(y0, times, params, 1e-7, 1e-9, 100)
-        f = lambda y: fused_glnn.field(y, *params)
-        dt0 = float(dopri5.initial_step(f, y0, f(y0), 1e-7, 1e-9))
+        dt0 = float(_first_step(y0, params, 1e-7, 1e-9))
         field, cols = fused_glnn.Dopri5Field(), y0.T.contiguous()
         kept = dopri5._solve_forward(field, params, cols, dt0, times, 1e-7, 1e-9, 100, keep=True)
         free = dopri5._solve_forward(field, params, cols, dt0, times, 1e-7, 1e-9, 100, keep=False)

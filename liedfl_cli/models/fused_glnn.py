@@ -2,14 +2,14 @@
 
     R' = R hat(w),   w' = A(w) = J^{-1} ((J w) x w - D w)
 
-(no potential: the Exp 2 scenes) as one autograd node per evaluation with a hand-written
-vector-Jacobian product, instead of the ~15 small autograd nodes of the reference `GLNN.accel`
-and `R @ so3.hat(w)`. Training unrolls the integrator over 100-step windows at batch 8-32, so
-the cost is the number of small kernels and autograd nodes (docs/benchmarks.md, "Baselines"),
-not arithmetic. The rows of R hat(w) are the cross products R_i x w, one kernel.
+(no potential: the Exp 2 scenes) with hand-written vector-Jacobian products: A(w) as one autograd
+node (`accel`, Heun and Midpoint) instead of the ~15 small autograd nodes of the reference
+`GLNN.accel`, and the whole field for the one-node dopri5 (`Dopri5Field`). Training unrolls the
+integrator over 100-step windows at batch 8-32, so the cost is the number of small kernels and
+autograd nodes (docs/benchmarks.md, "Baselines"), not arithmetic. The rows of R hat(w) are the cross
+products R_i x w, one kernel.
 
-`Dopri5Field` is the same field for `solvers.dopri5`, which runs a whole adaptive solve as one
-autograd node (GLNN-RK4's training and rollouts).
+`solvers.dopri5` runs a whole adaptive solve as one autograd node (GLNN-RK4's training and rollouts).
 
 Same numbers as the reference to rounding (tests/test_fused_baselines.py, tests/test_dopri5.py:
 losses and gradients to 1e-12 relative). Only first derivatives (the training loss's backward);
@@ -61,47 +61,18 @@ class _Accel(torch.autograd.Function):
         return _accel_backward(gA, w, u, tau, J, Jinv, D)
 
 
-class _Field(torch.autograd.Function):
-    """y' = (R hat(w) entries, A(w)) (N, 12) from y = (R entries, w) (N, 12)."""
-
-    @staticmethod
-    def forward(ctx, y, J, Jinv, D):
-        n = y.shape[0]
-        R, w = y[:, :9].reshape(n, 3, 3), y[:, 9:]
-        Rdot = torch.linalg.cross(R, w[:, None, :].expand(n, 3, 3))  # row i of R hat(w) = R_i x w
-        u, tau, A = _accel(w, J, Jinv, D)
-        ctx.save_for_backward(R, w, u, tau, J, Jinv, D)
-        return torch.cat((Rdot.reshape(n, 9), A), -1)
-
-    @staticmethod
-    @once_differentiable
-    def backward(ctx, g):
-        R, w, u, tau, J, Jinv, D = ctx.saved_tensors
-        n = g.shape[0]
-        gRd = g[:, :9].reshape(n, 3, 3)
-        gw, gJ, gJinv, gD = _accel_backward(g[:, 9:], w, u, tau, J, Jinv, D)
-        # <gRd_i, R_i x w> = <R_i, w x gRd_i> = <w, gRd_i x R_i>
-        gR = torch.linalg.cross(w[:, None, :].expand(n, 3, 3), gRd)
-        gw = gw + torch.linalg.cross(gRd, R).sum(1)
-        return torch.cat((gR.reshape(n, 9), gw), -1), gJ, gJinv, gD
-
-
 def accel(w: torch.Tensor, J: torch.Tensor, Jinv: torch.Tensor, D: torch.Tensor | None) -> torch.Tensor:
     """A(w) = J^{-1}((J w) x w - D w): w (N, 3), J, J^{-1}, D (3, 3) -> (N, 3), one autograd node."""
     return _Accel.apply(w, J, Jinv, D)
 
 
-def field(y: torch.Tensor, J: torch.Tensor, Jinv: torch.Tensor, D: torch.Tensor | None) -> torch.Tensor:
-    """The dopri5 state's derivative: y = (R entries, w) (N, 12) -> (R hat(w) entries, A(w)) (N, 12)."""
-    return _Field.apply(y, J, Jinv, D)
-
-
 class Dopri5Field:
-    """The same field for `solvers.dopri5` (one autograd node per solve), feature major: y = (R entries,
-    w) as columns, (12, N), R_i. = y[3i:3i+3], w = y[9:]; params (J, J^{-1}, D or None). Feature major
-    because every operand is then contiguous: at N = 32 a field evaluation and its vector-Jacobian product
-    take ~30 % / ~15 % less time than in rows (per-call cost). `vjp` keeps each stage's pieces of the
-    parameters' gradients and `param_grads` sums them with one product per parameter."""
+    """The dopri5 state's derivative y' = (R hat(w) entries, A(w)) for `solvers.dopri5` (one autograd
+    node per solve), feature major: y = (R entries, w) as columns, (12, N), R_i. = y[3i:3i+3],
+    w = y[9:]; params (J, J^{-1}, D or None). Feature major because every operand is then contiguous:
+    at N = 32 a field evaluation and its vector-Jacobian product take ~30 % / ~15 % less time than in
+    rows (per-call cost). `vjp` keeps each stage's pieces of the parameters' gradients and
+    `param_grads` sums them with one product per parameter."""
 
     def forward(self, y: torch.Tensor, params) -> tuple[torch.Tensor, tuple]:
         """y (12, N) -> (y' (12, N), what `vjp` needs); no graph."""

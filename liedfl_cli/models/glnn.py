@@ -286,8 +286,6 @@ class GLNN(ExplicitModel):
         t = self.h * torch.arange(steps + 1, dtype=R0.dtype, device=R0.device)
 
         def f(t, y):
-            if fused:  # the field as one autograd node (models/fused_glnn.py), torchdiffeq's own solver
-                return fused_glnn.field(y, *params)
             R, w = y[:, :9].reshape(n, 3, 3), y[:, 9:]
             return torch.cat(((R @ so3.hat(w)).reshape(n, 9), self.accel(R, w, params)), -1)
 
@@ -295,7 +293,6 @@ class GLNN(ExplicitModel):
         if fused:  # the whole solve as one autograd node (solvers/dopri5.py), torchdiffeq's steps
             ys = dopri5.odeint(  # feature major: (12, N) states (fused_glnn.Dopri5Field)
                 fused_glnn.Dopri5Field(),
-                lambda y: fused_glnn.field(y.T, *params).T,
                 y0.T.contiguous(),
                 t.tolist(),
                 params,

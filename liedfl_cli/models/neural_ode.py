@@ -119,7 +119,6 @@ class NeuralODE(ExplicitModel):
         if self.fused_solve():  # the whole solve as one autograd node (solvers/dopri5.py)
             ys = dopri5.odeint(
                 MLPField(self.field, n),
-                lambda y: f(None, y),
                 torch.cat((x0, v0), -1),
                 t.tolist(),
                 MLPField.params_of(self.field),

@@ -265,9 +265,38 @@ class _Dopri5(torch.autograd.Function):
         return (g_y0, g_dt0, None, None, None, None, None, *g_params)
 
 
+class _FieldNode(torch.autograd.Function):
+    """F(y) of a `Field` as an autograd node (its own vjp): y (N, D), field, *params -> (N, D). For the first
+    step's size, which the reference differentiates."""
+
+    @staticmethod
+    def forward(ctx, y, field, *params):
+        with torch.no_grad():
+            out, saved = field.forward(y, params)
+        ctx.field, ctx.saved = field, saved
+        ctx.save_for_backward(*params)
+        return out
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, g):
+        params = ctx.saved_tensors
+        acc: list = []
+        g_y = ctx.field.vjp(ctx.saved, g.contiguous(), params, acc)
+        return (g_y, None, *ctx.field.param_grads(acc, params))
+
+
+def first_step(field: Field, y0: torch.Tensor, params: tuple, rtol: float, atol: float) -> torch.Tensor:
+    """`initial_step` with `field` (differentiable in y0 and params when grad mode is on): -> () tensor."""
+
+    def f(y: torch.Tensor) -> torch.Tensor:
+        return _FieldNode.apply(y, field, *params)
+
+    return initial_step(f, y0, f(y0), rtol, atol)
+
+
 def odeint(
     field: Field,
-    f,
     y0: torch.Tensor,
     times: list[float],
     params: tuple,
@@ -276,14 +305,13 @@ def odeint(
     max_num_steps: int,
 ) -> torch.Tensor:
     """y(t_j) for the increasing `times` (T floats, y(times[0]) = y0 (N, D)) -> (T, N, D), differentiable
-    in y0 and `params` (tensors; None entries allowed). f: the same field as an autograd function of y
-    (for the first step's size only)."""
+    in y0 and `params` (tensors; None entries allowed)."""
     y0 = y0.contiguous()  # fields view their state's rows
     tensors = [y0, *(p for p in params if p is not None)]
+    args = (float(rtol), float(atol), int(max_num_steps))
     if not (torch.is_grad_enabled() and any(t.requires_grad for t in tensors)):
         with torch.no_grad():
-            dt0 = float(initial_step(f, y0, f(y0), rtol, atol))
-            args = (float(rtol), float(atol), int(max_num_steps))
+            dt0 = float(first_step(field, y0, params, rtol, atol))
             return _solve_forward(field, params, y0, dt0, list(times), *args, keep=False)[0]
-    dt0_t = initial_step(f, y0, f(y0), rtol, atol)
-    return _Dopri5.apply(y0, dt0_t, field, list(times), float(rtol), float(atol), int(max_num_steps), *params)
+    dt0_t = first_step(field, y0, params, rtol, atol)
+    return _Dopri5.apply(y0, dt0_t, field, list(times), *args, *params)
