@@ -868,20 +868,69 @@ def record_times(experiment: str, sweep: Path, times_csv: Path, sweep_seconds: f
     return len(new) - (sweep_seconds is not None)
 
 
+USAGE = (
+    "usage: paper_plan.py plan|measure [overrides...] "
+    "| full [--skip TEXT]... [--skip-measured] [--parallel N] [--stop-after DURATION] [--dry-run] "
+    "[overrides...] "
+    "| times <experiment> <sweep> <times.csv> [--sweep-seconds S] | full-table"
+)
+# the options each command takes; any other `-x` / `--x` is refused before anything runs, because
+# `full` without `--skip-measured` starts every job afresh (removing its folder): a misspelt
+# `--skip-measure` or a `--help` must never do that
+OPTIONS = {
+    "plan": (),
+    "measure": (),
+    "full": ("--skip", "--skip-measured", "--parallel", "--stop-after", "--dry-run"),
+    "times": ("--sweep-seconds",),
+    "full-table": (),
+}
+
+
+def unknown_option(argv: list[str]) -> str | None:
+    """The first argument of `argv` (command first) that looks like an option (`-x`, `--x`) and is not
+    one its command takes; None if there is none. A value after `--skip` / `--parallel` /
+    `--stop-after` / `--sweep-seconds` is not an option, whatever it starts with."""
+    known, takes_value = OPTIONS.get(argv[0], ()), ("--skip", "--parallel", "--stop-after", "--sweep-seconds")
+    i = 1
+    while i < len(argv):
+        a = argv[i]
+        if a.startswith("-") and not _is_number(a):
+            if a not in known:
+                return a
+            i += 2 if a in takes_value else 1
+            continue
+        i += 1
+    return None
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
 def main(argv: list[str]) -> int:
-    if argv and argv[0] == "full-table":
-        sys.path.insert(0, str(ROOT))
-        print(full_table())
+    if any(a in ("-h", "--help") for a in argv):
+        print(USAGE)
+        print((__doc__ or "").strip())
         return 0
-    if not argv or argv[0] not in ("plan", "measure", "times", "full"):
+    if not argv or argv[0] not in OPTIONS:
+        print(USAGE, file=sys.stderr)
+        return 2
+    bad = unknown_option(argv)
+    if bad is not None:
         print(
-            "usage: paper_plan.py plan|measure [overrides...] "
-            "| full [--skip TEXT]... [--skip-measured] [--parallel N] [--stop-after DURATION] [--dry-run] "
-            "[overrides...] "
-            "| times <experiment> <sweep> <times.csv>",
+            f"paper_plan.py {argv[0]}: unknown option {bad!r} (options: {', '.join(OPTIONS[argv[0]]) or 'none'});"
+            " nothing was run",
             file=sys.stderr,
         )
         return 2
+    if argv[0] == "full-table":
+        sys.path.insert(0, str(ROOT))
+        print(full_table())
+        return 0
     sys.path.insert(0, str(ROOT))
     if argv[0] == "times":
         if len(argv) not in (4, 6):

@@ -593,3 +593,52 @@ def test_interrupted_jobs_come_first_also_when_shorter(tmp_path, monkeypatch, ca
     assert order == [keys[0], *reversed(keys[1:])]
     fresh = [j.key for j in plan.full_jobs(["exp2_discrete_vs_continuous"], [], skip, 2, False, path)]
     assert fresh == list(reversed(keys))  # (without --skip-measured nothing is resumed: longest first)
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["full", "--help"],
+        ["full", "-h", "--parallel", "2"],
+        ["plan", "--help"],
+        ["--help"],
+    ],
+)
+def test_help_prints_the_usage_and_runs_nothing(argv, monkeypatch, capsys):
+    plan = _plan_module()
+    ran: list[str] = []
+    for name in ("run_full", "measure", "plan_table", "full_table", "record_times"):
+        monkeypatch.setattr(plan, name, lambda *a, _n=name, **k: ran.append(_n))
+    assert plan.main(argv) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("usage: paper_plan.py") and "--skip-measured" in out
+    assert ran == []
+
+
+@pytest.mark.parametrize(
+    ("argv", "bad"),
+    [
+        (["full", "--skip-measure"], "--skip-measure"),  # a misspelling would have started every job afresh
+        (["full", "--parallel", "2", "--stop_after", "1h"], "--stop_after"),
+        (["full", "--skip", "exp1", "-n", "2"], "-n"),
+        (["plan", "--dry-run"], "--dry-run"),  # full's option, not plan's
+        (["times", "exp5_control", "s", "t.csv", "--seconds", "3"], "--seconds"),
+    ],
+)
+def test_an_unknown_option_is_refused_before_anything_runs(argv, bad, monkeypatch, capsys):
+    plan = _plan_module()
+    ran: list[str] = []
+    for name in ("run_full", "measure", "plan_table", "full_table", "record_times"):
+        monkeypatch.setattr(plan, name, lambda *a, _n=name, **k: ran.append(_n))
+    assert plan.main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"unknown option {bad!r}" in err[0] and "nothing was run" in err[0]
+    assert ran == []
+
+
+def test_option_values_and_negative_numbers_are_not_taken_for_options():
+    plan = _plan_module()
+    assert plan.unknown_option(["full", "--skip", "--odd-text", "--parallel", "2", "--dry-run"]) is None
+    assert plan.unknown_option(["full", "train.lr=-1e-3", "seed=-1"]) is None
+    assert plan.unknown_option(["times", "exp5_control", "s", "t.csv", "--sweep-seconds", "-1"]) is None
+    assert plan.unknown_option(["full", "--dry-run", "--skip-measured", "--bogus"]) == "--bogus"
