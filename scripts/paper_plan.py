@@ -296,7 +296,16 @@ def folder_held(run: Path) -> str | None:
     return locks.describe(holder)
 
 
-PIECE_KEYS = ("wall_seconds", "cpu_seconds", "exit_code", "load_1min", "load_1min_end", "measured", "epochs_done")
+PIECE_KEYS = (
+    "wall_seconds",
+    "cpu_seconds",
+    "job_seconds",
+    "exit_code",
+    "load_1min",
+    "load_1min_end",
+    "measured",
+    "epochs_done",
+)
 
 
 def pieces_of(prev: dict | None) -> list[dict]:
@@ -320,6 +329,13 @@ def merge_pieces(prev: dict | None, rec: dict) -> dict:
     out = {**rec, "pieces": pieces}
     out["wall_seconds"] = round(sum(float(p["wall_seconds"]) for p in pieces), 3)
     out["cpu_seconds"] = round(sum(float(p["cpu_seconds"]) for p in pieces), 3)
+    if "job_seconds" in rec and "train_seconds" in rec:
+        # the run's train_seconds count every piece (the trainer carries them across a resume) but its
+        # status.json's seconds only the last: the job's seconds are summed too, so that fixed_seconds
+        # stays the job less its training. (A piece recorded without them, before 2026-11-28, counts
+        # with its wall seconds, which hold them.)
+        out["job_seconds"] = round(sum(float(p.get("job_seconds", p["wall_seconds"])) for p in pieces), 3)
+        out.update(rates(out))
     if lost:
         out["lost_pieces"] = lost
     return out

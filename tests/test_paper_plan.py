@@ -642,3 +642,22 @@ def test_option_values_and_negative_numbers_are_not_taken_for_options():
     assert plan.unknown_option(["full", "train.lr=-1e-3", "seed=-1"]) is None
     assert plan.unknown_option(["times", "exp5_control", "s", "t.csv", "--sweep-seconds", "-1"]) is None
     assert plan.unknown_option(["full", "--dry-run", "--skip-measured", "--bogus"]) == "--bogus"
+
+
+def test_a_job_in_pieces_sums_its_seconds_so_its_fixed_seconds_stay_the_job_less_its_training():
+    plan = _plan_module()
+    # first piece: 100 s of job, 90 of them training, stopped; the resumed run's summary counts the
+    # training of both pieces (90 + 40) but its status.json only its own 50 s
+    first = {"wall_seconds": 103.0, "cpu_seconds": 100.0, "job_seconds": 100.0, "exit_code": 143, "epochs": 20}
+    last = {"wall_seconds": 52.0, "cpu_seconds": 50.0, "exit_code": 0, "epochs": 20, "job_seconds": 50.0}
+    last.update(train_seconds=130.0, val_s_per_pass=0.0)
+    out = plan.merge_pieces(first, {**last, **plan.rates(last)})
+    assert out["job_seconds"] == 150.0 and out["wall_seconds"] == 155.0 and out["cpu_seconds"] == 150.0
+    assert out["fixed_seconds"] == pytest.approx(20.0) and out["fit_s_per_epoch"] == pytest.approx(130.0 / 20)
+    # a piece recorded before job_seconds were kept counts with its wall seconds
+    older = {k: v for k, v in first.items() if k != "job_seconds"}
+    out = plan.merge_pieces(older, {**last, **plan.rates(last)})
+    assert out["job_seconds"] == 153.0 and out["fixed_seconds"] == pytest.approx(23.0)
+    # a failed piece has no timings of its own: nothing to recompute
+    failed = {"wall_seconds": 5.0, "cpu_seconds": 4.0, "exit_code": 1, "epochs": 20}
+    assert "fixed_seconds" not in plan.merge_pieces(first, failed)
