@@ -5,7 +5,8 @@ and record the wall time of every job of a finished sweep.
     python scripts/paper_plan.py measure [overrides...]    # time train.epochs=3 of every job (minutes)
     python scripts/paper_plan.py full [--skip TEXT]... [--skip-measured] [--parallel N] [--stop-after DURATION]
                                       [--dry-run] [overrides...]
-    python scripts/paper_plan.py full-table                # markdown: those jobs, their times and errors
+    python scripts/paper_plan.py full-table [records.json] # markdown: those jobs, their times and errors
+                                                           # (default docs/bench/paper_full.json)
     python scripts/paper_plan.py times <experiment> <sweep dir> <times.csv> [--sweep-seconds S]
 
 The jobs are those reproduce_paper.sh launches for the experiments in LIEDFL_EXPERIMENTS: the
@@ -888,7 +889,7 @@ USAGE = (
     "usage: paper_plan.py plan|measure [overrides...] "
     "| full [--skip TEXT]... [--skip-measured] [--parallel N] [--stop-after DURATION] [--dry-run] "
     "[overrides...] "
-    "| times <experiment> <sweep> <times.csv> [--sweep-seconds S] | full-table"
+    "| times <experiment> <sweep> <times.csv> [--sweep-seconds S] | full-table [records.json]"
 )
 # the options each command takes; any other `-x` / `--x` is refused before anything runs, because
 # `full` without `--skip-measured` starts every job afresh (removing its folder): a misspelt
@@ -945,7 +946,14 @@ def main(argv: list[str]) -> int:
         return 2
     if argv[0] == "full-table":
         sys.path.insert(0, str(ROOT))
-        print(full_table())
+        if len(argv) > 2:
+            print("usage: paper_plan.py full-table [records.json]", file=sys.stderr)
+            return 2
+        records = Path(argv[1]) if len(argv) == 2 else FULL_RUNS
+        if not records.is_file():
+            print(f"paper_plan.py full-table: {records}: no such file", file=sys.stderr)
+            return 2
+        print(full_table(records))
         return 0
     sys.path.insert(0, str(ROOT))
     if argv[0] == "times":

@@ -272,6 +272,20 @@ def test_full_table_joins_the_times_with_each_runs_test_errors(tmp_path):
     jobs["experiment=exp5"]["exit_code"] = -15  # (killed before it trained: no result, not a 1-s job)
     path.write_text(json.dumps({"jobs": jobs}))
     assert "| exp5 | 1000 | 1,848 (failed: exit -15) | 42 |" in plan.full_table(path)
+    # the command prints it from any records file (an archived one), and names a missing one
+    done = subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / "paper_plan.py"), "full-table", str(path)],
+        capture_output=True,
+        text=True,
+    )
+    assert done.returncode == 0 and "| exp5 | 1000 | 1,848 (failed: exit -15) | 42 |" in done.stdout
+    missing = tmp_path / "none.json"
+    done = subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / "paper_plan.py"), "full-table", str(missing)],
+        capture_output=True,
+        text=True,
+    )
+    assert done.returncode == 2 and done.stderr.strip() == f"paper_plan.py full-table: {missing}: no such file"
 
 
 def test_full_keeps_each_runs_test_errors_in_its_record(tmp_path, monkeypatch):
