@@ -250,6 +250,40 @@ def runner_id() -> dict:
     return {"host": host_id(), "pid": os.getpid(), "start": locks.process_start(os.getpid())}
 
 
+def provenance() -> dict:
+    """What a job's seconds depend on besides the job, taken as it starts: `commit` (ROOT's git HEAD,
+    short, with `+changes` when liedfl_cli/ or scripts/ differ from it; None outside a checkout),
+    `cpu` (the model name /proc/cpuinfo gives, else `platform.processor()`), `torch` (its version).
+    One VM ran 2-4x faster on some days than on others (docs/benchmarks.md) and records of one job
+    from different code differ by as much, so each record names both."""
+    import importlib.metadata
+    import platform
+
+    def git(*args: str) -> str | None:
+        try:
+            done = subprocess.run(["git", "-C", str(ROOT), *args], capture_output=True, text=True, timeout=30)
+        except (OSError, subprocess.TimeoutExpired):
+            return None
+        return done.stdout.strip() if done.returncode == 0 else None
+
+    commit = git("rev-parse", "--short", "HEAD")
+    if commit and git("status", "--porcelain", "--", "liedfl_cli", "scripts"):
+        commit += "+changes"
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    try:
+        torch_version: str | None = importlib.metadata.version("torch")
+    except importlib.metadata.PackageNotFoundError:
+        torch_version = None
+    return {"commit": commit, "cpu": cpu, "torch": torch_version}
+
+
 def runner_alive(runner) -> bool:
     """Whether the runner a `running` record names still runs: `locks.holder_alive` (a reused pid is
     not the runner; another host's runner counts as gone, its folder's `.lock` still guards the job)."""
@@ -298,6 +332,7 @@ def folder_held(run: Path) -> str | None:
 
 
 PIECE_KEYS = (
+    "provenance",
     "wall_seconds",
     "cpu_seconds",
     "job_seconds",
@@ -430,8 +465,10 @@ def measure(experiments: list[str], extra: list[str], path: Path = MEASUREMENTS)
     with tempfile.TemporaryDirectory(prefix="paper_plan_") as tmp:
         os.environ["LIEDFL_DATA_DIR"] = str(Path(tmp) / "data")
         for job in jobs(experiments, extra, check=True):
+            source = provenance()
             rec = measure_one(job, extra, Path(tmp))
             rec["measured"] = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
+            rec["provenance"] = source
             print(f"{job.key}: {rec.get('fit_s_per_epoch', rec.get('error'))}", flush=True)
             data = _read_json(path)  # (re-read: other measurements may have landed meanwhile)
             data.setdefault("jobs", {})[job.key] = rec
@@ -551,8 +588,10 @@ def run_full(
                 )
             write(key, mark)
             ran.append(key)
+        source = provenance()  # (the code the job imports as it starts)
         rec = measure_one(job, extra, FULL_DIR, epochs=None, resume=resume, stop=stop)
         rec.update(
+            provenance=source,
             load_1min_end=os.getloadavg()[0],
             run_dir=str(run.relative_to(ROOT)),
             measured=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),

@@ -306,6 +306,7 @@ def test_full_keeps_each_runs_test_errors_in_its_record(tmp_path, monkeypatch):
     data = plan.run_full(["exp5_control"], [], [], path)
     (rec,) = data["jobs"].values()
     assert rec["eval"] == [{"model": "model", "rel_rot_error_mean": 0.25, "rel_rot_error_final": 0.5}]
+    assert set(rec["provenance"]) == {"commit", "cpu", "torch"}  # (ROOT is tmp_path here: no commit)
     shutil.rmtree(tmp_path / "outputs")
     assert "| 0.25 / 0.5 |" in plan.full_table(path)
 
@@ -675,3 +676,24 @@ def test_a_job_in_pieces_sums_its_seconds_so_its_fixed_seconds_stay_the_job_less
     # a failed piece has no timings of its own: nothing to recompute
     failed = {"wall_seconds": 5.0, "cpu_seconds": 4.0, "exit_code": 1, "epochs": 20}
     assert "fixed_seconds" not in plan.merge_pieces(first, failed)
+
+
+def test_provenance_names_the_commit_with_its_changes_the_cpu_and_torch(tmp_path, monkeypatch):
+    import torch
+
+    plan = _plan_module()
+    assert plan.provenance()["commit"] is None  # (ROOT is tmp_path: not a checkout)
+    git = ["git", "-C", str(tmp_path), "-c", "user.name=t", "-c", "user.email=t@t"]
+    subprocess.run([*git, "init", "-q"], check=True)
+    (tmp_path / "liedfl_cli").mkdir()
+    (tmp_path / "liedfl_cli" / "a.py").write_text("x = 1\n")
+    (tmp_path / "notes.md").write_text("a\n")
+    subprocess.run([*git, "add", "-A"], check=True)
+    subprocess.run([*git, "commit", "-q", "-m", "c"], check=True)
+    head = subprocess.run([*git, "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    got = plan.provenance()
+    assert got["commit"] == head and got["torch"] == torch.__version__ and got["cpu"]
+    (tmp_path / "notes.md").write_text("b\n")  # (not code: the commit still says what ran)
+    assert plan.provenance()["commit"] == head
+    (tmp_path / "liedfl_cli" / "a.py").write_text("x = 2\n")
+    assert plan.provenance()["commit"] == head + "+changes"
