@@ -7,6 +7,7 @@ and record the wall time of every job of a finished sweep.
                                       [--dry-run] [overrides...]
     python scripts/paper_plan.py full-table [records.json] # markdown: those jobs, their times and errors
                                                            # (default docs/bench/paper_full.json)
+    python scripts/paper_plan.py compare OLD.json [NEW.json] # markdown: CPU s and errors of the jobs in both
     python scripts/paper_plan.py times <experiment> <sweep dir> <times.csv> [--sweep-seconds S]
 
 The jobs are those reproduce_paper.sh launches for the experiments in LIEDFL_EXPERIMENTS: the
@@ -748,6 +749,47 @@ def full_table(path: Path = FULL_RUNS) -> str:
     return "\n".join(lines)
 
 
+def compare_table(old_path: Path, new_path: Path = FULL_RUNS) -> str:
+    """Markdown: each job finished (exit 0) in both records files, its CPU seconds in each and their
+    ratio, and the learned model's mean relative rotation error (mean position error where the job has
+    one) and Newton failures in each; a total over those jobs. Jobs finished in only one file are
+    listed after the table. For runs of one reproduction on other code or another machine: each
+    record's `provenance` says which."""
+    olds, news = (
+        {k: r for k, r in _read_json(p).get("jobs", {}).items() if r.get("exit_code") == 0 and "status" not in r}
+        for p in (old_path, new_path)
+    )
+
+    def model_row(rec: dict) -> dict:
+        return next((e for e in rec.get("eval", []) if e.get("model") == "model"), {})
+
+    lines = [
+        f"| job | CPU s ({old_path.name}) | CPU s ({new_path.name}) | old ÷ new | mean rel. rotation error, old → new "
+        "| mean position error, old → new | Newton failures, old → new |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    both = [k for k in news if k in olds]
+    for key in both:
+        o, n = olds[key], news[key]
+        eo, en = model_row(o), model_row(n)
+        lines.append(
+            f"| {key.replace('experiment=', '')} | {o['cpu_seconds']:,.0f} | {n['cpu_seconds']:,.0f} "
+            f"| {o['cpu_seconds'] / n['cpu_seconds']:.2f} "
+            f"| {_fmt(eo.get('rel_rot_error_mean'))} → {_fmt(en.get('rel_rot_error_mean'))} "
+            f"| {_fmt(eo.get('position_error_mean'))} → {_fmt(en.get('position_error_mean'))} "
+            f"| {eo.get('newton_failures', '–')} → {en.get('newton_failures', '–')} |"
+        )
+    if both:
+        cpu_o, cpu_n = (sum(float(d[k]["cpu_seconds"]) for k in both) for d in (olds, news))
+        lines.append(
+            f"| **total ({len(both)} jobs)** | **{cpu_o:,.0f}** | **{cpu_n:,.0f}** | **{cpu_o / cpu_n:.2f}** | | | |"
+        )
+    for name, only in (("old", [k for k in olds if k not in news]), ("new", [k for k in news if k not in olds])):
+        if only:
+            lines += ["", f"Finished only in the {name} file: " + "; ".join(k.replace("experiment=", "") for k in only)]
+    return "\n".join(lines)
+
+
 # ----------------------------------------------------------------------------- projection
 def project(job: Job, rec: dict | None) -> float | None:
     """Projected wall seconds of the full job at the load of its measurement (None: not measured or
@@ -928,7 +970,8 @@ USAGE = (
     "usage: paper_plan.py plan|measure [overrides...] "
     "| full [--skip TEXT]... [--skip-measured] [--parallel N] [--stop-after DURATION] [--dry-run] "
     "[overrides...] "
-    "| times <experiment> <sweep> <times.csv> [--sweep-seconds S] | full-table [records.json]"
+    "| times <experiment> <sweep> <times.csv> [--sweep-seconds S] | full-table [records.json] "
+    "| compare OLD.json [NEW.json]"
 )
 # the options each command takes; any other `-x` / `--x` is refused before anything runs, because
 # `full` without `--skip-measured` starts every job afresh (removing its folder): a misspelt
@@ -939,6 +982,7 @@ OPTIONS = {
     "full": ("--skip", "--skip-measured", "--parallel", "--stop-after", "--dry-run"),
     "times": ("--sweep-seconds",),
     "full-table": (),
+    "compare": (),
 }
 
 
@@ -983,6 +1027,18 @@ def main(argv: list[str]) -> int:
             file=sys.stderr,
         )
         return 2
+    if argv[0] == "compare":
+        sys.path.insert(0, str(ROOT))
+        files = [Path(a) for a in argv[1:]]
+        if len(files) not in (1, 2):
+            print("usage: paper_plan.py compare OLD.json [NEW.json]", file=sys.stderr)
+            return 2
+        for f in files:
+            if not f.is_file():
+                print(f"paper_plan.py compare: {f}: no such file", file=sys.stderr)
+                return 2
+        print(compare_table(*files))
+        return 0
     if argv[0] == "full-table":
         sys.path.insert(0, str(ROOT))
         if len(argv) > 2:

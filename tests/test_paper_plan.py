@@ -697,3 +697,30 @@ def test_provenance_names_the_commit_with_its_changes_the_cpu_and_torch(tmp_path
     assert plan.provenance()["commit"] == head
     (tmp_path / "liedfl_cli" / "a.py").write_text("x = 2\n")
     assert plan.provenance()["commit"] == head + "+changes"
+
+
+def test_compare_lines_up_the_jobs_finished_in_both_files(tmp_path):
+    plan = _plan_module()
+
+    def rec(cpu: float, err: float, **more) -> dict:
+        row = {"model": "model", "rel_rot_error_mean": err, "newton_failures": 0}
+        return {"exit_code": 0, "cpu_seconds": cpu, "eval": [row], **more}
+
+    old, new = tmp_path / "old.json", tmp_path / "new.json"
+    old_jobs = {"experiment=a": rec(400.0, 0.1), "experiment=b": rec(100.0, 0.2), "experiment=gone": rec(5.0, 0.3)}
+    new_jobs = {"experiment=a": rec(100.0, 0.12), "experiment=b": rec(50.0, 0.2)}
+    new_jobs["experiment=c"] = rec(9.0, 0.4)
+    new_jobs["experiment=gone"] = {"status": "running", "cpu_seconds": 1.0}  # (not finished: not compared)
+    old.write_text(json.dumps({"jobs": old_jobs}))
+    new.write_text(json.dumps({"jobs": new_jobs}))
+    text = plan.compare_table(old, new)
+    assert "| a | 400 | 100 | 4.00 | 0.1 → 0.12 | – → – | 0 → 0 |" in text
+    assert "| b | 100 | 50 | 2.00 | 0.2 → 0.2 |" in text
+    assert "| **total (2 jobs)** | **500** | **150** | **3.33** |" in text
+    assert "Finished only in the old file: gone" in text and "Finished only in the new file: c" in text
+    done = subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / "paper_plan.py"), "compare", str(old), str(tmp_path / "no.json")],
+        capture_output=True,
+        text=True,
+    )
+    assert done.returncode == 2 and "no.json: no such file" in done.stderr
