@@ -343,7 +343,10 @@ def test_full_in_parallel_runs_jobs_side_by_side_longest_first_and_records_the_w
     skip = ["baseline=glnn_rk4", "baseline=glnn_lie_midpoint", "baseline=glnn_lie_heun"]
     data = plan.run_full(["exp2_discrete_vs_continuous"], [], skip, path, parallel=2)
     assert most[0] == 2 and sorted(data["jobs"]) == sorted(keys)
-    assert started[0] == keys[-1]  # the longest projected job first
+    # the longest projected job is submitted first; with two workers it starts in the first pair (which
+    # of the two threads gets the runner's lock first is the scheduler's choice)
+    assert [j.key for j in plan.full_jobs(["exp2_discrete_vs_continuous"], [], skip, 2, False, path)][0] == keys[-1]
+    assert keys[-1] in started[:2]
     assert all(r["parallel"] == 2 for r in data["jobs"].values())
     (whole,) = data["runs"]
     assert whole["parallel"] == 2 and sorted(whole["jobs"]) == sorted(keys) and whole["wall_seconds"] >= 0
