@@ -750,23 +750,27 @@ def full_table(path: Path = FULL_RUNS) -> str:
 
 
 def compare_table(old_path: Path, new_path: Path = FULL_RUNS) -> str:
-    """Markdown: each job finished (exit 0) in both records files, its CPU seconds in each and their
-    ratio, and the learned model's mean relative rotation error (mean position error where the job has
-    one) and Newton failures in each; a total over those jobs. Jobs finished in only one file are
-    listed after the table. For runs of one reproduction on other code or another machine: each
-    record's `provenance` says which."""
+    """Markdown: each job finished (exit 0, with CPU seconds) in both records files, its CPU seconds in
+    each and their ratio, and in each the learned model's mean relative rotation error, mean position
+    error (where the job has one), rollout error over constant velocity's and Newton failures; a total
+    over those jobs. Jobs finished in only one file are listed after the table. For runs of one
+    reproduction on other code or another machine: each record's `provenance` says which."""
     olds, news = (
-        {k: r for k, r in _read_json(p).get("jobs", {}).items() if r.get("exit_code") == 0 and "status" not in r}
+        {
+            k: r
+            for k, r in _read_json(p).get("jobs", {}).items()
+            if r.get("exit_code") == 0 and "status" not in r and r.get("cpu_seconds")  # (older records: no CPU s)
+        }
         for p in (old_path, new_path)
     )
 
     def model_row(rec: dict) -> dict:
-        return next((e for e in rec.get("eval", []) if e.get("model") == "model"), {})
+        return next((e for e in rec.get("eval") or [] if e.get("model") == "model"), {})
 
     lines = [
         f"| job | CPU s ({old_path.name}) | CPU s ({new_path.name}) | old ÷ new | mean rel. rotation error, old → new "
-        "| mean position error, old → new | Newton failures, old → new |",
-        "|---|---|---|---|---|---|---|",
+        "| mean position error, old → new | rollout ÷ const. velocity, old → new | Newton failures, old → new |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     both = [k for k in news if k in olds]
     for key in both:
@@ -777,12 +781,13 @@ def compare_table(old_path: Path, new_path: Path = FULL_RUNS) -> str:
             f"| {o['cpu_seconds'] / n['cpu_seconds']:.2f} "
             f"| {_fmt(eo.get('rel_rot_error_mean'))} → {_fmt(en.get('rel_rot_error_mean'))} "
             f"| {_fmt(eo.get('position_error_mean'))} → {_fmt(en.get('position_error_mean'))} "
+            f"| {_fmt(eo.get('rollout_vs_cv'))} → {_fmt(en.get('rollout_vs_cv'))} "
             f"| {eo.get('newton_failures', '–')} → {en.get('newton_failures', '–')} |"
         )
     if both:
         cpu_o, cpu_n = (sum(float(d[k]["cpu_seconds"]) for k in both) for d in (olds, news))
         lines.append(
-            f"| **total ({len(both)} jobs)** | **{cpu_o:,.0f}** | **{cpu_n:,.0f}** | **{cpu_o / cpu_n:.2f}** | | | |"
+            f"| **total ({len(both)} jobs)** | **{cpu_o:,.0f}** | **{cpu_n:,.0f}** | **{cpu_o / cpu_n:.2f}** | | | | |"
         )
     for name, only in (("old", [k for k in olds if k not in news]), ("new", [k for k in news if k not in olds])):
         if only:

@@ -706,7 +706,7 @@ def test_compare_lines_up_the_jobs_finished_in_both_files(tmp_path):
     plan = _plan_module()
 
     def rec(cpu: float, err: float, **more) -> dict:
-        row = {"model": "model", "rel_rot_error_mean": err, "newton_failures": 0}
+        row = {"model": "model", "rel_rot_error_mean": err, "rollout_vs_cv": err / 2, "newton_failures": 0}
         return {"exit_code": 0, "cpu_seconds": cpu, "eval": [row], **more}
 
     old, new = tmp_path / "old.json", tmp_path / "new.json"
@@ -714,10 +714,11 @@ def test_compare_lines_up_the_jobs_finished_in_both_files(tmp_path):
     new_jobs = {"experiment=a": rec(100.0, 0.12), "experiment=b": rec(50.0, 0.2)}
     new_jobs["experiment=c"] = rec(9.0, 0.4)
     new_jobs["experiment=gone"] = {"status": "running", "cpu_seconds": 1.0}  # (not finished: not compared)
+    new_jobs["experiment=untimed"] = {"exit_code": 0, "wall_seconds": 3.0, "eval": None}  # (no CPU s: left out)
     old.write_text(json.dumps({"jobs": old_jobs}))
     new.write_text(json.dumps({"jobs": new_jobs}))
     text = plan.compare_table(old, new)
-    assert "| a | 400 | 100 | 4.00 | 0.1 → 0.12 | – → – | 0 → 0 |" in text
+    assert "| a | 400 | 100 | 4.00 | 0.1 → 0.12 | – → – | 0.05 → 0.06 | 0 → 0 |" in text
     assert "| b | 100 | 50 | 2.00 | 0.2 → 0.2 |" in text
     assert "| **total (2 jobs)** | **500** | **150** | **3.33** |" in text
     assert "Finished only in the old file: gone" in text and "Finished only in the new file: c" in text
