@@ -31,6 +31,9 @@ from . import so3
 from .product import Pose, ProductGroup
 
 ROTATIONS = ("world", "parent")
+# joint types of a non-root body (and of a pinned root, its joint to the world): degrees of freedom 3, 2, 1, 0
+JOINT_TYPES = ("ball", "universal", "hinge", "weld")
+JOINT_DOF = {"free": 6, "ball": 3, "universal": 2, "hinge": 1, "weld": 0}
 
 
 @dataclass(frozen=True)
@@ -41,6 +44,12 @@ class Tree:
     offsets: tuple[tuple[float, float, float], ...]
     rotations: str = "world"
     free_root: bool = True
+    # per body: "free" (the free root only) or one of JOINT_TYPES; None = every joint a ball (a free
+    # root "free"). axes (B, 2, 3): a hinge's axis in the body (child) frame in row 0; a universal
+    # joint's first axis fixed in the parent frame in row 0 and its second, fixed in the body frame,
+    # in row 1 (R_rel = exp(t1 a1) C exp(t2 a2)); rows of other joints are zeros. `lie.joints`.
+    joints: tuple[str, ...] | None = None
+    axes: tuple[tuple[tuple[float, float, float], tuple[float, float, float]], ...] | None = None
 
     def __post_init__(self):
         B = len(self.parents)
@@ -55,6 +64,34 @@ class Tree:
             raise ValueError(f"offsets must have shape ({B}, 3)")
         if self.rotations not in ROTATIONS:
             raise ValueError(f"rotations must be one of {ROTATIONS}, got {self.rotations!r}")
+        if self.joints is not None:
+            self._check_joints()
+
+    def _check_joints(self) -> None:
+        B = self.n_bodies
+        joints = self.joints
+        assert joints is not None
+        if len(joints) != B:
+            raise ValueError(f"joints has {len(joints)} entries for {B} bodies")
+        root = "free" if self.free_root else None
+        for b, kind in enumerate(joints):
+            allowed = ("free",) if (b == 0 and root) else JOINT_TYPES
+            if kind not in allowed:
+                raise ValueError(f"joints[{b}] = {kind!r}: use one of {list(allowed)}")
+        axes = self.axes
+        needs_axes = any(k in ("hinge", "universal") for k in joints)
+        if axes is None:
+            if needs_axes:
+                raise ValueError("hinge and universal joints need axes (B, 2, 3)")
+            return
+        if len(axes) != B or any(len(a) != 2 or any(len(r) != 3 for r in a) for a in axes):
+            raise ValueError(f"axes must have shape ({B}, 2, 3)")
+        for b, kind in enumerate(joints):
+            rows = {"hinge": (0,), "universal": (0, 1)}.get(kind, ())
+            for r in rows:
+                n = sum(x * x for x in axes[b][r]) ** 0.5
+                if not abs(n - 1.0) < 1e-6:
+                    raise ValueError(f"axes[{b}][{r}] of the {kind} joint must be a unit vector, has norm {n:.6g}")
 
     @classmethod
     def from_lists(
@@ -63,14 +100,45 @@ class Tree:
         offsets: Iterable[Iterable[float]],
         rotations: str = "world",
         free_root: bool = True,
+        joints: Sequence[str] | None = None,
+        axes: Iterable[Iterable[Iterable[float]]] | None = None,
     ) -> Tree:
-        """From plain lists or arrays: parents (B,), offsets (B, 3)."""
+        """From plain lists or arrays: parents (B,), offsets (B, 3), joints (B,) and axes (B, 2, 3) or None."""
         return cls(
             tuple(int(p) for p in parents),
             tuple(tuple(float(x) for x in o) for o in offsets),  # type: ignore[misc]
             str(rotations),
             bool(free_root),
+            None if joints is None else tuple(str(j) for j in joints),
+            None if axes is None else tuple(tuple(tuple(float(x) for x in r) for r in a) for a in axes),  # type: ignore[misc]
         )
+
+    @property
+    def joint_kinds(self) -> tuple[str, ...]:
+        """Every body's joint: the declared `joints`, or "free"/"ball" for the root and "ball" elsewhere."""
+        if self.joints is not None:
+            return self.joints
+        return ("free" if self.free_root else "ball",) + ("ball",) * (self.n_bodies - 1)
+
+    @property
+    def constrained(self) -> bool:
+        """True when some joint has fewer degrees of freedom than a ball (hinge, universal, weld)."""
+        return any(k in ("hinge", "universal", "weld") for k in self.joint_kinds)
+
+    @property
+    def n_dof(self) -> int:
+        """Degrees of freedom of the tree: the sum of its joints' (6 for a free root)."""
+        return sum(JOINT_DOF[k] for k in self.joint_kinds)
+
+    def axes_array(self) -> list[list[list[float]]]:
+        """axes as nested lists (B, 2, 3), zeros where none are declared."""
+        if self.axes is None:
+            return [[[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]] for _ in range(self.n_bodies)]
+        return [[list(r) for r in a] for a in self.axes]
+
+    def with_joints(self, joints: Sequence[str] | None, axes=None) -> Tree:
+        """The same tree with other joints (None: every joint a ball)."""
+        return Tree.from_lists(self.parents, self.offsets, self.rotations, self.free_root, joints, axes)
 
     @property
     def n_bodies(self) -> int:
