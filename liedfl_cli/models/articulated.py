@@ -33,6 +33,7 @@ from torch.func import grad
 
 from ..errors import ConfigError
 from ..lie import Pose, so3
+from ..lie import joints as jt
 from ..lie.tolerances import projects_poses
 from ..lie.tree import Tree, forward_kinematics
 from ..mechanics import articulated as art
@@ -111,6 +112,87 @@ def joint_damping_matrix(tree: Tree, truth: dict[str, torch.Tensor]) -> torch.Te
     return torch.diag(diag)
 
 
+class DofDamping(nn.Module):
+    """Joint damping per degree of freedom: tau = -d * nu (d = lambda^2 >= 0, one per damped DoF),
+    acting on the reduced joint velocities nu (..., n) of a tree (`lie.joints`: the root's DoF first).
+    The free root's six DoF are not damped (`damped` marks the columns that are)."""
+
+    name = "dof_damping"
+
+    def __init__(self, tree: Tree, scale: float = 1.0, init: float = 0.01):
+        super().__init__()
+        cols = jt.joint_slices(tree)
+        mask = torch.ones(tree.n_dof, dtype=torch.bool)
+        if tree.free_root:
+            mask[cols[0]] = False
+        self.register_buffer("damped", mask)
+        self.lam = nn.Parameter(torch.full((int(mask.sum()),), math.sqrt(init * scale), dtype=torch.float64))
+
+    def coefficients(self) -> torch.Tensor:
+        """d (n,): the damping of every reduced coordinate (0 on a free root's)."""
+        d = self.lam.new_zeros(self.damped.shape[0])
+        return d.masked_scatter(self.damped, self.lam**2)
+
+    @torch.no_grad()
+    def set_coefficients(self, d: torch.Tensor) -> None:
+        """Set the damped DoF's coefficients from d (n,) (entries >= 0)."""
+        self.lam.copy_(d.to(self.lam)[self.damped].clamp_min(0.0).sqrt())
+
+    def forward(self, nu: torch.Tensor) -> torch.Tensor:
+        return -self.coefficients() * nu
+
+    def describe(self) -> str:
+        return f"joint damping per DoF ({int(self.damped.sum())} coefficients)"
+
+
+def reduced_velocity(tree: Tree, q: Pose, q_next: Pose, h: float) -> torch.Tensor:
+    """nu (..., n): the reduced joint velocities of the interval (q, q_next) (joint coordinates): the
+    velocity estimate of the joint-coordinate increment in the least-squares coordinates of the mean
+    of the motion bases at both ends (exact DoF rates for hinges: sin(dtheta)/h)."""
+    G = tree.group
+    nu = kinetic.velocity_estimate(G, G.increment(q, q_next), h)
+    S = 0.5 * (jt.motion_basis(tree, q) + jt.motion_basis(tree, q_next))
+    return jt.reduce(S, nu)
+
+
+def reduced_velocity_jacobian(tree: Tree, q: Pose, q_next: Pose, h: float) -> torch.Tensor:
+    """d nu / d delta (..., n, n) under q_next -> advance(q_next, delta) (the bases held fixed)."""
+    G = tree.group
+    inc = G.increment(q, q_next)
+    dnu = kinetic.velocity_estimate_jacobian(G, inc, h)
+    S_next = jt.motion_basis(tree, q_next)
+    S = 0.5 * (jt.motion_basis(tree, q) + S_next)
+    return torch.linalg.pinv(S) @ dnu @ S_next
+
+
+def joint_summary(tree: Tree) -> str:
+    """E.g. "free, 3 hinge, 1 ball (10 DoF)": the joint types of a tree with their counts."""
+    kinds = tree.joint_kinds
+    counts: dict[str, int] = {}
+    for k in kinds[1:]:
+        counts[k] = counts.get(k, 0) + 1
+    parts = [kinds[0] if tree.free_root else f"root {kinds[0]}"] + [f"{n} {k}" for k, n in counts.items()]
+    return ", ".join(parts) + f" ({tree.n_dof} DoF)"
+
+
+def true_dof_damping(tree: Tree, physics: dict) -> torch.Tensor:
+    """The declared damping per reduced coordinate (n,): physics["dof_damping"] (a list per body of
+    per-DoF values) when present, else each joint's `joint_damping` on all its DoF (root_damping on a
+    pinned root's); 0 on a free root."""
+    cols = jt.joint_slices(tree)
+    d = torch.zeros(tree.n_dof, dtype=torch.float64)
+    per_dof = physics.get("dof_damping")
+    jd = physics.get("joint_damping") or [0.0] * (tree.n_bodies - 1)
+    for b, c in enumerate(cols):
+        if tree.free_root and b == 0:
+            continue
+        if per_dof is not None and per_dof[b] is not None and len(per_dof[b]) == c.stop - c.start:
+            d[c] = torch.as_tensor([float(x) for x in per_dof[b]], dtype=torch.float64)
+        else:
+            d[c] = float(jd[b - 1]) if b > 0 else float(physics.get("root_damping") or 0.0)
+    return d
+
+
 # ---------------------------------------------------------------------------- training samples
 @dataclass
 class ArticulatedBatch:
@@ -134,6 +216,10 @@ class ArticulatedBatch:
     A_next: torch.Tensor | None = None
     inc_coord: Pose | None = None
     reg: Pose | None = None
+    T: torch.Tensor | None = None  # reduced trees: T(g_k) (N, dim, n), `lie.joints.coordinate_basis`
+    T_next: torch.Tensor | None = None  # T(g_{k+1}), train.loss=newton only
+    nu_red_prev: torch.Tensor | None = None  # reduced joint velocities of both intervals (N, n)
+    nu_red_next: torch.Tensor | None = None
 
 
 class ArticulatedTriplets(TripletSet):
@@ -155,15 +241,26 @@ class ArticulatedTriplets(TripletSet):
             self.nu_prev = kinetic.velocity_estimate(G, G.increment(q_prev, q_cur), model.h)
             self.nu_next = kinetic.velocity_estimate(G, G.increment(q_cur, q_next), model.h)
             self.C = art.joint_velocity_map(tree, self.cur)
+            self.T: torch.Tensor | None = None
+            self.nu_red_prev: torch.Tensor | None = None
+            self.nu_red_next: torch.Tensor | None = None
+            if model.reduced:
+                self.T = jt.coordinate_basis(tree, self.cur, self.C)
+                self.nu_red_prev = reduced_velocity(tree, q_prev, q_cur, model.h)
+                self.nu_red_next = reduced_velocity(tree, q_cur, q_next, model.h)
         self.A_next: torch.Tensor | None = None  # `enable_jacobian` (train.loss=newton only)
         self.inc_coord: Pose | None = None
+        self.T_next: torch.Tensor | None = None
         self.tree = tree
+        self.reduced = model.reduced
 
     def enable_jacobian(self) -> None:
         """Also keep A(g_{k+1}) and the coordinate increments, which the Newton-normalised loss needs."""
         with torch.no_grad():
             self.A_next = art.fk_jacobian(self.tree, self.nxt)
             self.inc_coord = self.tree.group.increment(self.cur, self.nxt)
+            if self.reduced:
+                self.T_next = jt.coordinate_basis(self.tree, self.nxt, art.joint_velocity_map(self.tree, self.nxt))
 
     def batch(self, idx: torch.Tensor, generator: torch.Generator, reg_points: int) -> ArticulatedBatch:  # type: ignore[override]
         reg = None
@@ -186,6 +283,10 @@ class ArticulatedTriplets(TripletSet):
             None if self.A_next is None else self.A_next[i],
             None if self.inc_coord is None else self.inc_coord.index(i),
             reg,
+            None if self.T is None else self.T[i],
+            None if self.T_next is None else self.T_next[i],
+            None if self.nu_red_prev is None else self.nu_red_prev[i],
+            None if self.nu_red_next is None else self.nu_red_next[i],
         )
 
 
@@ -285,8 +386,21 @@ class ArticulatedLieDFLNN(ImplicitModel):
                     )
                 else:
                     raise ValueError(f"model.potential: unknown part {part!r}")
+        # a tree with hinge, universal or weld joints lives on its joints' DoF (`lie.joints`): its
+        # residual, Newton unknown and damping are reduced, and rayleigh is damping per DoF
+        self.reduced = tree.constrained
+        self.dof_damper: DofDamping | None = None
+        if self.reduced:
+            items = dict(forces.items()) if hasattr(forces, "items") else {f: {} for f in forces}
+            if "rayleigh" in items:
+                items.pop("rayleigh")
+                self.dof_damper = DofDamping(tree, scale)
+            forces = items
         self.forces = nn.ModuleList(build_forces(self.G, forces, scale))
-        if truth is not None and "damping" in known:
+        if truth is not None and "damping" in known and self.dof_damper is not None:
+            self.dof_damper.set_coefficients(true_dof_damping(tree, physics or {}))
+            self.dof_damper.requires_grad_(False)
+        elif truth is not None and "damping" in known:
             ray = [f for f in self.forces if getattr(f, "name", None) == "rayleigh"]
             if not ray:
                 raise ValueError("model.known=[damping] needs the rayleigh force (joint damping)")
@@ -308,7 +422,7 @@ class ArticulatedLieDFLNN(ImplicitModel):
         tag = component_tagger()
         out = [
             f"tree ({self.tree.n_bodies} bodies, {self.tree.rotations} rotations, "
-            f"{'free' if self.tree.free_root else 'pinned'} root)",
+            f"{'free' if self.tree.free_root else 'pinned'} root, joints {joint_summary(self.tree)})",
             tag("J_b", self.inertia),
             tag("m_b", self.mass),
             tag("rho_b", self.rho),
@@ -322,6 +436,8 @@ class ArticulatedLieDFLNN(ImplicitModel):
             describe = getattr(f, "describe", None)
             desc = describe() if describe is not None else getattr(f, "name", type(f).__name__)
             out.append(tag(f"F:{desc} in joint space", f))
+        if self.dof_damper is not None:
+            out.append(tag(f"F:{self.dof_damper.describe()}", self.dof_damper))
         return out
 
     # ------------------------------------------------------------------ contract hooks
@@ -332,7 +448,15 @@ class ArticulatedLieDFLNN(ImplicitModel):
         """Per link: `J_d` (B, 3, 3), `m` (B,), `rho_COM` (B, 3); `D` of a joint-space Rayleigh damping."""
         with torch.no_grad():
             Jd, mass, rho = self._params()
-            return {"J_d": Jd.detach(), "m": mass.detach(), "rho_COM": rho.detach(), **force_parameters(self.forces)}
+            out = {"J_d": Jd.detach(), "m": mass.detach(), "rho_COM": rho.detach(), **force_parameters(self.forces)}
+            if self.dof_damper is not None:
+                out["dof_damping"] = self.dof_damper.coefficients().detach()
+            return out
+
+    def dof_damping(self) -> torch.Tensor | None:
+        """The learned joint damping per reduced coordinate (n,) (root first; 0 on a free root), or
+        None when the model has no per-DoF damping (a ball-joint tree damps through `rayleigh`)."""
+        return None if self.dof_damper is None else self.dof_damper.coefficients().detach()
 
     def parameter_recovery(self, reference, physics) -> dict | None:
         from .recovery import articulated_recovery
@@ -436,8 +560,22 @@ class ArticulatedLieDFLNN(ImplicitModel):
         return art.to_coordinates(A, d1) + self.half_force(g, g_next, at=g)
 
     def residual(self, g_prev: Pose, g: Pose, g_next: Pose) -> torch.Tensor:
-        """Forced DEL residual at g in the tree's coordinates, (..., dim)."""
-        return self.residual_const(g_prev, g) + self.residual_var(g, g_next)
+        """Forced DEL residual at g in the tree's coordinates, (..., dim); on a reduced tree (hinge,
+        universal or weld joints) in its joints' DoF, (..., n): T(g)^T r + (h/2)(tau_{k-1} + tau_k)."""
+        r = self.residual_const(g_prev, g) + self.residual_var(g, g_next)
+        if not self.reduced:
+            return r
+        T = jt.coordinate_basis(self.tree, g, art.joint_velocity_map(self.tree, g))
+        return (T.transpose(-1, -2) @ r[..., None])[..., 0] + self.dof_torques(g_prev, g, g_next)
+
+    def dof_torques(self, g_prev: Pose, g: Pose, g_next: Pose) -> torch.Tensor:
+        """(h/2) (tau(g_prev, g) + tau(g, g_next)) of the per-DoF damping, (..., n); zeros without it."""
+        q0, q1, q2 = (jt.to_joint_coordinates(self.tree, x) for x in (g_prev, g, g_next))
+        if self.dof_damper is None:
+            return q1.R.new_zeros(*q1.R.shape[:-3], self.tree.n_dof)
+        nu = torch.stack((reduced_velocity(self.tree, q0, q1, self.h), reduced_velocity(self.tree, q1, q2, self.h)))
+        tau = self.dof_damper(nu)
+        return 0.5 * self.h * (tau[0] + tau[1])
 
     def _force_jacobian(self, g: Pose, inc: Pose, fixed: tuple[Pose, torch.Tensor | None] | None = None):
         """d/d delta of (h/2) C(g)^T F(q, nu~(q, q_next)) with g_next = g inc exp(delta), (..., dim, dim):
@@ -531,7 +669,18 @@ class ArticulatedLieDFLNN(ImplicitModel):
         Jd, m, rho = self._params()
         Hk = art.newton_jacobian(b.A, b.inc_next, b.A_next, Jd, m, rho, self.h)
         Jf = self._force_jacobian(b.cur, b.inc_coord) if b.inc_coord is not None else None
-        return Hk if Jf is None else Hk + Jf
+        Hk = Hk if Jf is None else Hk + Jf
+        if not self.reduced:
+            return Hk
+        assert b.T is not None and b.T_next is not None
+        Hk = b.T.transpose(-1, -2) @ Hk @ b.T_next
+        if self.dof_damper is not None:
+            assert b.inc_coord is not None
+            q = jt.to_joint_coordinates(self.tree, b.cur)
+            q_next = jt.to_joint_coordinates(self.tree, self.G.compose(b.cur, b.inc_coord))
+            dnu = reduced_velocity_jacobian(self.tree, q, q_next, self.h)
+            Hk = Hk - 0.5 * self.h * self.dof_damper.coefficients()[:, None] * dnu
+        return Hk
 
     def _batch_residual(self, b: ArticulatedBatch) -> torch.Tensor:
         Gw = art.world_group(self.tree)
@@ -542,6 +691,13 @@ class ArticulatedLieDFLNN(ImplicitModel):
         r = art.to_coordinates(b.A, c) + self.potential_covector(b.cur, b.world_cur, b.A)
         if len(self.forces):
             r = r + 0.5 * self.h * self._batch_torques(b)
+        if not self.reduced:
+            return r
+        assert b.T is not None
+        r = (b.T.transpose(-1, -2) @ r[..., None])[..., 0]
+        if self.dof_damper is not None:
+            assert b.nu_red_prev is not None and b.nu_red_next is not None
+            r = r + 0.5 * self.h * (self.dof_damper(b.nu_red_prev) + self.dof_damper(b.nu_red_next))
         return r
 
     def _batch_torques(self, b: ArticulatedBatch) -> torch.Tensor:
@@ -562,7 +718,10 @@ class ArticulatedLieDFLNN(ImplicitModel):
         return ArticulatedState(g0, g1, self.G.increment(g0, g1), world, A)
 
     def implicit_problem(self, state: ArticulatedState) -> NewtonProblem:
-        """Solve the DEL residual for the coordinate increment W_k (updated by W exp(delta))."""
+        """Solve the DEL residual for the coordinate increment W_k (updated by W exp(delta)); on a
+        reduced tree for its joints' DoF (`_reduced_problem`)."""
+        if self.reduced:
+            return self._reduced_problem(state)
         G, Gw, tree = self.G, art.world_group(self.tree), self.tree
         g, world, A = state.g, state.world, state.A
         with torch.enable_grad():
@@ -610,6 +769,69 @@ class ArticulatedLieDFLNN(ImplicitModel):
             return J if Jf is None else J + Jf.detach()
 
         return NewtonProblem(f_fast, jac_fast, state.inc, G.retract)
+
+    def _reduced_problem(self, state: ArticulatedState) -> NewtonProblem:
+        """The DEL equations of a tree with hinge, universal or weld joints on its n DoF: residual
+        T(g_k)^T r + (h/2)(tau_{k-1} + tau_k) (n,), Jacobian T_k^T H T_{k+1} (+ damping), the unknown
+        the coordinate increment moved along the joints (`lie.joints.retract`), so every joint stays
+        on its manifold. The warm start is the last increment's DoF applied at g_k."""
+        G, Gw, tree, h = self.G, art.world_group(self.tree), self.tree, self.h
+        g, world, A = state.g, state.world, state.A
+        generic = self.residual_mode == "generic"
+        C = art.joint_velocity_map(tree, g)
+        Tk = jt.coordinate_basis(tree, g, C)
+        Tk_t = Tk.transpose(-1, -2)
+        q_prev, q = jt.to_joint_coordinates(tree, state.g_prev), jt.to_joint_coordinates(tree, g)
+        damper = self.dof_damper
+        with torch.enable_grad():
+            const = self.residual_const(state.g_prev, g)
+            const = (Tk_t @ const[..., None])[..., 0]
+            if damper is not None:
+                const = const + 0.5 * h * damper(reduced_velocity(tree, q_prev, q, h))
+            const = const.detach()
+        with torch.no_grad():
+            Jd, m, rho = (t.detach() for t in self._params())
+            d = None if damper is None else damper.coefficients().detach()
+        qC = (art.joint_coordinates(tree, g), C)
+
+        def f(x: Pose) -> torch.Tensor:
+            g_next = G.compose(g, x)
+            if generic:
+                with torch.enable_grad():
+                    r = self.residual_var(g, g_next).detach()
+            else:
+                d1 = kinetic.kinetic_d1(Gw, Gw.increment(world, forward_kinematics(tree, g_next)), Jd, m, rho, h)
+                r = art.to_coordinates(A, d1)
+                if len(self.forces):
+                    tau = self.joint_torque(g, g_next, q=qC[0]).detach()
+                    r = r + 0.5 * h * (tau if C is None else (C.transpose(-1, -2) @ tau[..., None])[..., 0])
+            r = const + (Tk_t @ r[..., None])[..., 0]
+            if d is not None:
+                r = r - 0.5 * h * d * reduced_velocity(tree, q, jt.to_joint_coordinates(tree, g_next), h)
+            return r
+
+        def jac(x: Pose) -> torch.Tensor:
+            g_next = G.compose(g, x)
+            if generic:
+                with torch.enable_grad():
+                    J = self.jacobian_var(g, x).detach()
+            else:
+                w_next, A_next = art.fk_and_jacobian(tree, g_next)
+                J = art.newton_jacobian(A, Gw.increment(world, w_next), A_next, Jd, m, rho, h)
+                Jf = self._force_jacobian(g, x, fixed=qC)
+                J = J if Jf is None else J + Jf.detach()
+            T_next = jt.coordinate_basis(tree, g_next, art.joint_velocity_map(tree, g_next))
+            J = Tk_t @ J @ T_next
+            if d is not None:
+                q_next = jt.to_joint_coordinates(tree, g_next)
+                J = J - 0.5 * h * d[:, None] * reduced_velocity_jacobian(tree, q, q_next, h)
+            return J
+
+        # warm start: the last increment's DoF (least squares) applied at g_k, exactly on the joints
+        d0 = jt.reduce(Tk, G.log(state.inc))
+        ident = Pose(torch.eye(3, dtype=g.R.dtype, device=g.R.device).expand_as(g.R).clone(), torch.zeros_like(g.p))
+        x0 = jt.retract(tree, g, ident, d0)
+        return NewtonProblem(f, jac, x0, lambda x, delta: jt.retract(tree, g, x, delta))
 
     def implicit_advance(self, state: ArticulatedState, x: Pose) -> tuple[ArticulatedState, Pose]:
         W = x.R.detach()
