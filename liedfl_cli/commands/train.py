@@ -500,6 +500,22 @@ def _record_steps(cfg: DictConfig, run: RunConfig) -> None:
         run.rollout.steps = OmegaConf.select(cfg, "rollout.steps", default=None)
 
 
+def _store_joints(model, config: dict, out: Path) -> None:
+    """An articulated model's joints, as resolved (declared or inferred), go into the run's saved config
+    (`model.joints` as {kinds, axes}: rollout, eval, resume and export rebuild exactly these) and into
+    joints.json; the inference's table is printed."""
+    tree = getattr(model, "tree", None)
+    if tree is None or not hasattr(model, "dof_damping"):
+        return
+    report = getattr(model, "joint_report", None)
+    if report:
+        console.print(report, highlight=False, markup=False)
+    spec = {"kinds": list(tree.joint_kinds), "axes": tree.axes_array()}
+    if isinstance(config.get("model"), dict):
+        config["model"]["joints"] = spec
+    write_json(out / "joints.json", {**spec, "dof": tree.n_dof, "inference": report})
+
+
 def run_train(cfg: DictConfig, resume: dict | None = None, accept_changed_dataset: bool = False) -> dict:
     """`liedfl train`: data -> model -> fit (with checkpoints) -> checkpoint -> recovery ->
     rollout -> eval. `resume`: a checkpoint payload to continue from. Returns a summary.
@@ -552,6 +568,7 @@ def run_train(cfg: DictConfig, resume: dict | None = None, accept_changed_datase
     _absolute_user_paths(cfg, run)
     config = OmegaConf.to_container(cfg, resolve=True)
     assert isinstance(config, dict)
+    _store_joints(model, config, out)
     dataset_path = str(Path(data_path).resolve())
     from ..files.dataset_identity import file_sha256
 

@@ -80,6 +80,7 @@ def build_context(run: RunConfig | DictConfig, dataset) -> BuildContext:
         physics=(dataset.params or {}).get("physics"),
         metadata=dataset.params or {},
         tree=getattr(dataset, "tree", None),
+        train_poses=(lambda: dataset.pose("train")) if getattr(dataset, "tree", None) is not None else None,
     )
 
 
@@ -92,6 +93,9 @@ def build_model(run: RunConfig | DictConfig, dataset) -> Model:
     options = dict(run.model or {})
     cls = model_class(options.pop("_target_", None))
     name = str(options.pop("name", cls.__name__.lower()))
+    if issubclass(cls, LieDFLNN) and options.get("kinetic", "auto") == "auto":
+        # model only what the scene has: a file that declares a kinematic tree gets the articulated model
+        options["kinetic"] = "articulated" if getattr(dataset, "tree", None) is not None else "per_body"
     if issubclass(cls, LieDFLNN) and options.get("kinetic") == "articulated":
         cls = ArticulatedLieDFLNN  # the same options on the data's kinematic tree
     try:

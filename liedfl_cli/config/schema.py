@@ -51,7 +51,7 @@ CHOICES = {
     ("train", "optimizer", "schedule"): ("constant", "cosine"),
     ("model", "potential"): ("auto", "mlp", "none", "uniform_gravity"),  # or a list of mlp, uniform_gravity
     ("model", "residual"): ("fast", "generic"),
-    ("model", "kinetic"): ("per_body", "articulated"),
+    ("model", "kinetic"): ("auto", "per_body", "articulated"),
     ("runtime", "device"): ("cpu", "cuda", "auto"),
     ("runtime", "dtype"): ("float64", "float32"),
     ("logger", "name"): ("csv", "tensorboard"),

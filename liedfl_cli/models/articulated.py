@@ -24,6 +24,7 @@ A_k^T blockdiag(H_b) A_{k+1}, regular when the blocks are and A has full rank.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -118,6 +119,7 @@ class DofDamping(nn.Module):
     The free root's six DoF are not damped (`damped` marks the columns that are)."""
 
     name = "dof_damping"
+    damped: torch.Tensor  # (n,) bool buffer
 
     def __init__(self, tree: Tree, scale: float = 1.0, init: float = 0.01):
         super().__init__()
@@ -316,6 +318,7 @@ class ArticulatedLieDFLNN(ImplicitModel):
     window = "triplet"
     notes: list[str]
     tree: Tree
+    joint_report: str | None = None  # the joint inference's table, when the joints were inferred
 
     def __init__(
         self,
@@ -854,6 +857,7 @@ def build_articulated(ctx, parts: tuple[str, ...], opt: dict, why: str) -> Artic
         )
     if tree.group != ctx.group:
         raise ConfigError(f"the data's tree is on {tree.group.name} but the dataset's group is {ctx.group.name}")
+    tree, joint_note, joint_report = resolve_joints(ctx, tree, opt.pop("joints", "auto"))
     known = tuple(opt.pop("known", ()) or ())
     physics = dict(ctx.physics) if known and ctx.physics else None
     try:
@@ -870,8 +874,42 @@ def build_articulated(ctx, parts: tuple[str, ...], opt: dict, why: str) -> Artic
         )
     except ValueError as e:
         raise ConfigError(str(e)) from None
-    model.notes = [f"potential: {why}", f"kinetic: articulated ({model.components()[0]})"]
+    model.notes = [f"potential: {why}", f"kinetic: articulated ({model.components()[0]})", joint_note]
+    model.joint_report = joint_report
     return model
+
+
+def resolve_joints(ctx, tree: Tree, joints) -> tuple[Tree, str, str | None]:
+    """`model.joints` against the data: (the tree with its joints, a note saying where they came from,
+    the inference's table when they were inferred, else None).
+    auto: the file's declared joints, else inferred from the training trajectories
+    (`mechanics.joint_inference`); declared: the file's (ConfigError if none); ball: every joint a
+    ball; a mapping {kinds: [...], axes: [...]}: exactly these (how a run stores what it inferred)."""
+    if joints in (None, "ball"):
+        return tree.with_joints(None), "joints: ball (every joint 3 DoF; model.joints=ball)", None
+    if isinstance(joints, Mapping):
+        kinds, axes = joints.get("kinds"), joints.get("axes")
+        try:
+            out = tree.with_joints(list(kinds or []), axes)
+        except (TypeError, ValueError) as e:
+            raise ConfigError(f"model.joints: {e}") from None
+        return out, f"joints: as given ({joint_summary(out)})", None
+    if joints == "declared" or (joints == "auto" and tree.joints is not None):
+        if tree.joints is None:
+            raise ConfigError(
+                "model.joints=declared: the data declare no joints (attribute 'joints'); use auto or ball"
+            )
+        return tree, f"joints: declared by the data ({joint_summary(tree)})", None
+    if joints != "auto":
+        raise ConfigError(f"model.joints={joints!r}: auto, declared, ball or a mapping {{kinds: [...], axes: [...]}}")
+    if ctx.train_poses is None:
+        return tree.with_joints(None), "joints: ball (no training data to infer joints from)", None
+    from ..mechanics.joint_inference import format_inference, infer_joints
+
+    result = infer_joints(tree, ctx.train_poses().R)
+    out = tree.with_joints(list(result.kinds), [[list(r) for r in a] for a in result.axes])
+    note = f"joints: inferred from the training data ({joint_summary(out)}; model.joints=ball for all balls)"
+    return out, note, format_inference(result, None)
 
 
 def articulated_true_model(tree: Tree, h: float, physics: dict, residual: str = "fast") -> ArticulatedLieDFLNN:

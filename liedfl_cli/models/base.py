@@ -25,7 +25,7 @@ import abc
 import copy
 import itertools
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal, TypeVar
 
@@ -91,6 +91,7 @@ class BuildContext:
     physics: Mapping[str, Any] | None = None
     metadata: Mapping[str, Any] | None = None
     tree: Tree | None = None
+    train_poses: Callable[[], Pose] | None = None  # the training trajectories (joint inference reads them)
 
     # -------------------------------------------------------------- what the data declare
     def declared_gravity(self) -> float | None:

@@ -54,7 +54,7 @@ from .components import component_tagger, force_parameters
 from .del_loss import del_regularity_loss
 
 RESIDUAL_MODES = ("fast", "generic")
-KINETIC_KINDS = ("per_body", "articulated")
+KINETIC_KINDS = ("auto", "per_body", "articulated")
 KNOWN_PARTS = ("inertia", "potential", "damping")
 
 
@@ -94,7 +94,8 @@ class LieDFLNNOptions:
 
     potential: Any = "auto"  # auto | none | mlp | uniform_gravity | a list of mlp, uniform_gravity
     residual: str = "fast"  # fast (closed-form kinetic derivatives) | generic (autodiff of L_d)
-    kinetic: str = "per_body"  # per_body (the paper's) | articulated (a kinematic tree's Lagrangian)
+    kinetic: str = "auto"  # auto (articulated where the data declare a tree) | per_body (the paper's) | articulated
+    joints: Any = "auto"  # articulated: auto (declared, else inferred) | declared | ball | {kinds, axes}
     mlp_width: int = 64
     mlp_depth: int = 3
     init_jitter: float = 0.1
@@ -245,6 +246,13 @@ class LieDFLNN(ImplicitModel):
         `notes` (printed by `liedfl train`). `model.kinetic: articulated` is built by the factory as
         `models.articulated.ArticulatedLieDFLNN` (same options)."""
         kinetic_kind, parts, why, opt = cls.resolve_options(ctx, options)
+        joints = opt.pop("joints", "auto")
+        if joints not in ("auto", "ball", None):
+            raise ConfigError(
+                f"model.joints={joints!r} needs an articulated model (model.kinetic=articulated and a tree)"
+            )
+        if kinetic_kind == "auto":
+            kinetic_kind = "per_body"
         if kinetic_kind != "per_body":
             raise ConfigError(f"model.kinetic={kinetic_kind}: build it with ArticulatedLieDFLNN.from_config")
         known, gravity = opt.pop("known"), opt.pop("gravity")
