@@ -391,14 +391,15 @@ class ArticulatedLieDFLNN(ImplicitModel):
                     raise ValueError(f"model.potential: unknown part {part!r}")
         # a tree with hinge, universal or weld joints lives on its joints' DoF (`lie.joints`): its
         # residual, Newton unknown and damping are reduced, and rayleigh is damping per DoF
-        self.reduced = tree.constrained
+        # joint damping is per DoF on every tree (MuJoCo's and a robot's model; the free root undamped):
+        # `rayleigh` in the force group becomes `DofDamping`, which needs the reduced path too
+        items = dict(forces.items()) if hasattr(forces, "items") else {f: {} for f in forces}
         self.dof_damper: DofDamping | None = None
-        if self.reduced:
-            items = dict(forces.items()) if hasattr(forces, "items") else {f: {} for f in forces}
-            if "rayleigh" in items:
-                items.pop("rayleigh")
-                self.dof_damper = DofDamping(tree, scale)
-            forces = items
+        if "rayleigh" in items:
+            items.pop("rayleigh")
+            self.dof_damper = DofDamping(tree, scale)
+        forces = items
+        self.reduced = tree.constrained or self.dof_damper is not None
         self.forces = nn.ModuleList(build_forces(self.G, forces, scale))
         if truth is not None and "damping" in known and self.dof_damper is not None:
             self.dof_damper.set_coefficients(true_dof_damping(tree, physics or {}))
@@ -612,14 +613,36 @@ class ArticulatedLieDFLNN(ImplicitModel):
         G = self.G
         if self.residual_mode == "generic":
             zero = inc.R.new_zeros(*inc.R.shape[:-3], G.dim)
-            return jacobian(lambda d: self.residual_var(g, G.compose(g, G.retract(inc, d))), zero)
+            J = jacobian(lambda d: self.residual_var(g, G.compose(g, G.retract(inc, d))), zero)
+            return self.reduce_jacobian(g, inc, J) if self.reduced else J
         Gw = art.world_group(self.tree)
         world, A = art.fk_and_jacobian(self.tree, g)
         w_next, A_next = art.fk_and_jacobian(self.tree, G.compose(g, inc))
         Jd, m, rho = self._params()
         J = art.newton_jacobian(A, Gw.increment(world, w_next), A_next, Jd, m, rho, self.h)
         Jf = self._force_jacobian(g, inc)
-        return J if Jf is None else J + Jf
+        J = J if Jf is None else J + Jf
+        return self.reduce_jacobian(g, inc, J) if self.reduced else J
+
+    def reduce_jacobian(self, g: Pose, inc: Pose, J: torch.Tensor, damping=None) -> torch.Tensor:
+        """The Jacobian of the reduced residual from the full one J (..., dim, dim) of `residual_var`:
+        T(g)^T J T(g inc) - (h/2) diag(d) d nu / d delta (..., n, n) (`lie.joints`; the damping's
+        term holds a universal joint's basis fixed over the step). `damping`: d (n,) when known."""
+        tree = self.tree
+        g_next = self.G.compose(g, inc)
+        Tk = jt.coordinate_basis(tree, g, art.joint_velocity_map(tree, g))
+        T_next = jt.coordinate_basis(tree, g_next, art.joint_velocity_map(tree, g_next))
+        J = Tk.transpose(-1, -2) @ J @ T_next
+        d = damping if damping is not None else (None if self.dof_damper is None else self.dof_damper.coefficients())
+        if d is not None:
+            q, q_next = jt.to_joint_coordinates(tree, g), jt.to_joint_coordinates(tree, g_next)
+            J = J - 0.5 * self.h * d[:, None] * reduced_velocity_jacobian(tree, q, q_next, self.h)
+        return J
+
+    def step_retract(self, g: Pose, x: Pose, delta: torch.Tensor) -> Pose:
+        """The Newton update of an increment x at g by delta: along the joints on a reduced tree
+        (`lie.joints.retract`, delta (..., n)), else x exp(delta)."""
+        return jt.retract(self.tree, g, x, delta) if self.reduced else self.G.retract(x, delta)
 
     # ------------------------------------------------------------------ training
     def training_set(self, data: Pose, steps: int):
@@ -814,21 +837,13 @@ class ArticulatedLieDFLNN(ImplicitModel):
             return r
 
         def jac(x: Pose) -> torch.Tensor:
-            g_next = G.compose(g, x)
             if generic:
                 with torch.enable_grad():
-                    J = self.jacobian_var(g, x).detach()
-            else:
-                w_next, A_next = art.fk_and_jacobian(tree, g_next)
-                J = art.newton_jacobian(A, Gw.increment(world, w_next), A_next, Jd, m, rho, h)
-                Jf = self._force_jacobian(g, x, fixed=qC)
-                J = J if Jf is None else J + Jf.detach()
-            T_next = jt.coordinate_basis(tree, g_next, art.joint_velocity_map(tree, g_next))
-            J = Tk_t @ J @ T_next
-            if d is not None:
-                q_next = jt.to_joint_coordinates(tree, g_next)
-                J = J - 0.5 * h * d[:, None] * reduced_velocity_jacobian(tree, q, q_next, h)
-            return J
+                    return self.jacobian_var(g, x).detach()
+            w_next, A_next = art.fk_and_jacobian(tree, G.compose(g, x))
+            J = art.newton_jacobian(A, Gw.increment(world, w_next), A_next, Jd, m, rho, h)
+            Jf = self._force_jacobian(g, x, fixed=qC)
+            return self.reduce_jacobian(g, x, J if Jf is None else J + Jf.detach(), damping=d)
 
         # warm start: the last increment's DoF (least squares) applied at g_k, exactly on the joints
         d0 = jt.reduce(Tk, G.log(state.inc))

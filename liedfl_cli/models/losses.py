@@ -134,7 +134,9 @@ def step_jacobian(model: Any, g: Pose, inc: Pose) -> torch.Tensor:
     the parameters (LieDFLNN's generic mode; forces without a closed-form dF/dxi~)."""
     no_closed_form = any(getattr(f, "jacobian_xi", None) is None for f in getattr(model, "forces", ()))
     if getattr(model, "residual_mode", "fast") == "generic" or no_closed_form:
-        return autodiff_jacobian_var(model, g, inc)
+        J = autodiff_jacobian_var(model, g, inc)
+        # a model on reduced coordinates (an articulated tree's joints) maps the full Jacobian
+        return model.reduce_jacobian(g, inc, J) if getattr(model, "reduced", False) else J
     return model.jacobian_var(g, inc)
 
 
@@ -328,7 +330,9 @@ def rollout_window_loss(
         ok = sol.converged & ~bad
         failed += int((alive & ~ok).sum())
         alive = alive & ok
-        g_next = G.compose(g, G.retract(x_star, -step))
+        # the model's own Newton update (along the joints of a reduced articulated tree)
+        retract = getattr(model, "step_retract", None)
+        g_next = G.compose(g, retract(g, x_star, -step) if retract is not None else G.retract(x_star, -step))
         truth = _at(traj, j + 2)
         rot = _rot_sq(truth, g_next)
         pos = ((g_next.p - truth.p) ** 2).sum((-1, -2))
