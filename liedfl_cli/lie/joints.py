@@ -26,9 +26,11 @@ joint_velocity_map`, the identity for parent rotations). T has full column rank 
 
 from __future__ import annotations
 
+import functools
+
 import torch
 
-from . import so3
+from . import se3, so3
 from .product import Pose
 from .tree import JOINT_DOF, Tree
 
@@ -43,76 +45,87 @@ def joint_slices(tree: Tree) -> list[slice]:
     return out
 
 
-def _axes(tree: Tree, like: torch.Tensor) -> torch.Tensor:
-    """The joint axes as a (B, 2, 3) tensor of `like`'s dtype and device."""
-    return torch.tensor(tree.axes_array(), dtype=like.dtype, device=like.device)
+@functools.lru_cache(maxsize=64)
+def _maps(tree: Tree, dtype: torch.dtype, device: torch.device) -> dict[str, torch.Tensor]:
+    """Constant matrices of a tree's joints (cached per tree, dtype, device):
+    E (B, 3, n): each body's right rotation tangent R_b exp(E_b d); U (B, 3, n): a universal joint's
+    first axis (parent frame), its left factor exp(U_b d) R_b; V (3, n): the free root's translation
+    columns; S0 (dim, n): the motion basis where it is constant (every joint but the universal's first
+    column); S0_pinv (n, dim) its pseudo-inverse when no joint is universal."""
+    B, n, G = tree.n_bodies, tree.n_dof, tree.group
+    ax = torch.tensor(tree.axes_array(), dtype=dtype, device=device)
+    E = torch.zeros(B, 3, n, dtype=dtype, device=device)
+    U = torch.zeros(B, 3, n, dtype=dtype, device=device)
+    V = torch.zeros(3, n, dtype=dtype, device=device)
+    S0 = torch.zeros(G.dim, n, dtype=dtype, device=device)
+    eye = torch.eye(3, dtype=dtype, device=device)
+    rows = G.body_slices()
+    for b, (kind, c) in enumerate(zip(tree.joint_kinds, joint_slices(tree))):
+        r0, c0 = rows[b].start, c.start
+        if kind in ("free", "ball"):
+            E[b, :, c0 : c0 + 3] = eye
+            S0[r0 : r0 + 3, c0 : c0 + 3] = eye
+            if kind == "free":
+                V[:, c0 + 3 : c0 + 6] = eye
+                S0[r0 + 3 : r0 + 6, c0 + 3 : c0 + 6] = eye
+        elif kind == "hinge":
+            E[b, :, c0] = ax[b, 0]
+            S0[r0 : r0 + 3, c0] = ax[b, 0]
+        elif kind == "universal":
+            U[b, :, c0] = ax[b, 0]
+            E[b, :, c0 + 1] = ax[b, 1]
+            S0[r0 : r0 + 3, c0 + 1] = ax[b, 1]
+    out = {"E": E, "U": U, "V": V, "S0": S0}
+    if "universal" not in tree.joint_kinds:
+        out["S0_pinv"] = torch.linalg.pinv(S0)
+    return out
+
+
+def _universal(tree: Tree) -> list[tuple[int, int, int]]:
+    """(body, its basis row, its first reduced column) of every universal joint."""
+    rows, cols = tree.group.body_slices(), joint_slices(tree)
+    return [(b, rows[b].start, cols[b].start) for b, k in enumerate(tree.joint_kinds) if k == "universal"]
 
 
 def motion_basis(tree: Tree, q: Pose) -> torch.Tensor:
     """S(q) (..., dim, n): the joints' motion subspaces in joint coordinates q (parent-relative
     rotations), block diagonal over bodies in the layout of `tree.group` (rows) and `joint_slices`
-    (columns)."""
+    (columns). Constant unless a joint is universal (its first column R_rel^T a1)."""
     R = q.R
-    lead, dt, dev = R.shape[:-3], R.dtype, R.device
-    G = tree.group
-    ax = _axes(tree, R)
-    S = R.new_zeros(*lead, G.dim, tree.n_dof)
-    rows, cols = G.body_slices(), joint_slices(tree)
-    eye = torch.eye(6, dtype=dt, device=dev)
-    for b, kind in enumerate(tree.joint_kinds):
-        r0, c0 = rows[b].start, cols[b].start
-        if kind == "free":
-            S[..., r0 : r0 + 6, c0 : c0 + 6] = eye
-        elif kind == "ball":
-            S[..., r0 : r0 + 3, c0 : c0 + 3] = eye[:3, :3]
-        elif kind == "hinge":
-            S[..., r0 : r0 + 3, c0] = ax[b, 0]
-        elif kind == "universal":
-            S[..., r0 : r0 + 3, c0] = so3.act(R[..., b, :, :].transpose(-1, -2), ax[b, 0])
-            S[..., r0 : r0 + 3, c0 + 1] = ax[b, 1]
+    S0 = _maps(tree, R.dtype, R.device)["S0"]
+    uni = _universal(tree)
+    if not uni:
+        return S0.expand(*R.shape[:-3], *S0.shape)
+    S = S0.expand(*R.shape[:-3], *S0.shape).clone()
+    ax = torch.tensor(tree.axes_array(), dtype=R.dtype, device=R.device)
+    for b, r0, c0 in uni:
+        S[..., r0 : r0 + 3, c0] = so3.act(R[..., b, :, :].transpose(-1, -2), ax[b, 0])
     return S
 
 
 def advance(tree: Tree, q: Pose, d: torch.Tensor) -> Pose:
     """Move joint coordinates q along the joints by d (..., n) (module docstring): exact on every
-    joint's manifold; the root by its group's exponential (SE(3): (R exp(w), p + R V(w) v))."""
-    from .product import ProductGroup
-
-    R, p = q.R, q.p
-    ax = _axes(tree, R)
-    cols = joint_slices(tree)
-    Rs, ps = [], p
-    for b, kind in enumerate(tree.joint_kinds):
-        Rb = R[..., b, :, :]
-        c = cols[b]
-        if kind == "free":
-            root = ProductGroup(1, 0).retract(Pose(Rb[..., None, :, :], p[..., :1, :]), d[..., c])
-            Rs.append(root.R[..., 0, :, :])
-            ps = torch.cat((root.p, p[..., 1:, :]), -2)
-        elif kind == "ball":
-            Rs.append(Rb @ so3.exp(d[..., c]))
-        elif kind == "hinge":
-            Rs.append(Rb @ so3.exp(d[..., c] * ax[b, 0]))
-        elif kind == "universal":
-            Rs.append(
-                so3.exp(d[..., c.start : c.start + 1] * ax[b, 0])
-                @ Rb
-                @ so3.exp(d[..., c.start + 1 : c.stop] * ax[b, 1])
-            )
-        else:
-            Rs.append(Rb)
-    return Pose(torch.stack(Rs, -3), ps)
+    joint's manifold; a free root by SE(3)'s exponential (R exp(w), p + R V(w) v)."""
+    maps = _maps(tree, d.dtype, d.device)
+    R = q.R @ so3.exp(torch.einsum("bin,...n->...bi", maps["E"], d))
+    if _universal(tree):
+        R = so3.exp(torch.einsum("bin,...n->...bi", maps["U"], d)) @ R
+    p = q.p
+    if tree.free_root:
+        w, v = d[..., 0:3], d[..., 3:6]
+        root = p[..., 0, :] + so3.act(q.R[..., 0, :, :], so3.act(se3.V_matrix(w), v))
+        p = torch.cat((root[..., None, :], p[..., 1:, :]), -2)
+    return Pose(R, p)
 
 
 def world_from_parent(tree: Tree, R_rel: torch.Tensor) -> torch.Tensor:
-    """Parent-relative attitudes (..., B, 3, 3) -> world attitudes (..., B, 3, 3) (the root as it is)."""
-    out: list[torch.Tensor | None] = [None] * tree.n_bodies
-    out[0] = R_rel[..., 0, :, :]
-    for b in range(1, tree.n_bodies):
-        parent = out[tree.parents[b]]
-        assert parent is not None
-        out[b] = parent @ R_rel[..., b, :, :]
-    return torch.stack(out, -3)  # type: ignore[arg-type]
+    """Parent-relative attitudes (..., B, 3, 3) -> world attitudes (..., B, 3, 3) (the root as it is),
+    one batched product per depth level."""
+    out = R_rel.clone()
+    for level in tree.levels[1:]:
+        par = [tree.parents[b] for b in level]
+        out[..., level, :, :] = out[..., par, :, :] @ R_rel[..., level, :, :]
+    return out
 
 
 def to_joint_coordinates(tree: Tree, g: Pose) -> Pose:
@@ -132,11 +145,24 @@ def from_joint_coordinates(tree: Tree, q: Pose) -> Pose:
     return Pose(world_from_parent(tree, q.R), q.p)
 
 
-def coordinate_basis(tree: Tree, g: Pose, C: torch.Tensor | None) -> torch.Tensor:
-    """T(g) = C(g)^{-1} S(q(g)) (..., dim, n): the admissible variations g exp(T delta) of the tree's
-    coordinates; C = `joint_velocity_map(tree, g)` (None: the identity, parent rotations)."""
+def coordinate_basis(tree: Tree, g: Pose) -> torch.Tensor:
+    """T(g) (..., dim, n): the admissible variations g exp(T delta) of the tree's coordinates, C(g)^{-1}
+    S(q(g)) with C the joint-velocity map (`mechanics.articulated.joint_velocity_map`). For parent
+    rotations T = S; for world rotations a body's world-attitude variation is its parent's carried
+    into its frame plus its joint's: T_b = (R_parent^T R_b)^T T_parent[rotation rows] + S_b, one
+    batched product per depth level."""
     S = motion_basis(tree, to_joint_coordinates(tree, g))
-    return S if C is None else torch.linalg.solve(C, S)
+    if tree.rotations == "parent":
+        return S
+    rows = tree.group.body_slices()
+    rot = torch.tensor([r.start for r in rows], device=g.R.device)[:, None] + torch.arange(3, device=g.R.device)
+    T = S.clone()
+    for level in tree.levels[1:]:
+        par = [tree.parents[b] for b in level]
+        rel = g.R[..., par, :, :].transpose(-1, -2) @ g.R[..., level, :, :]  # (..., L, 3, 3)
+        Tp = T[..., rot[par], :]  # (..., L, 3, n): the parents' rotation rows
+        T[..., rot[level], :] = T[..., rot[level], :] + rel.transpose(-1, -2) @ Tp
+    return T
 
 
 def retract(tree: Tree, g: Pose, x: Pose, d: torch.Tensor) -> Pose:
@@ -155,6 +181,19 @@ def reduce(T: torch.Tensor, xi: torch.Tensor) -> torch.Tensor:
     return torch.linalg.lstsq(T, xi[..., None]).solution[..., 0]
 
 
+def reduce_joint_velocity(tree: Tree, q: Pose, q_next: Pose, nu: torch.Tensor, columns: bool = False) -> torch.Tensor:
+    """nu (..., dim) in joint coordinates -> its DoF rates (..., n) in the least-squares coordinates of
+    the mean motion basis of q and q_next (a constant pseudo-inverse unless a joint is universal).
+    columns=True: nu is a matrix (..., dim, k) reduced column by column -> (..., n, k)."""
+    maps = _maps(tree, nu.dtype, nu.device)
+    if "S0_pinv" in maps:
+        return maps["S0_pinv"] @ nu if columns else nu @ maps["S0_pinv"].T
+    S = 0.5 * (motion_basis(tree, q) + motion_basis(tree, q_next))
+    if columns:
+        return torch.linalg.lstsq(S, nu).solution
+    return reduce(S, nu)
+
+
 __all__ = [
     "joint_slices",
     "motion_basis",
@@ -165,4 +204,5 @@ __all__ = [
     "coordinate_basis",
     "retract",
     "reduce",
+    "reduce_joint_velocity",
 ]

@@ -150,21 +150,17 @@ class DofDamping(nn.Module):
 def reduced_velocity(tree: Tree, q: Pose, q_next: Pose, h: float) -> torch.Tensor:
     """nu (..., n): the reduced joint velocities of the interval (q, q_next) (joint coordinates): the
     velocity estimate of the joint-coordinate increment in the least-squares coordinates of the mean
-    of the motion bases at both ends (exact DoF rates for hinges: sin(dtheta)/h)."""
+    of the motion bases at both ends (`lie.joints.reduce_joint_velocity`; sin(dtheta)/h on a hinge)."""
     G = tree.group
-    nu = kinetic.velocity_estimate(G, G.increment(q, q_next), h)
-    S = 0.5 * (jt.motion_basis(tree, q) + jt.motion_basis(tree, q_next))
-    return jt.reduce(S, nu)
+    return jt.reduce_joint_velocity(tree, q, q_next, kinetic.velocity_estimate(G, G.increment(q, q_next), h))
 
 
 def reduced_velocity_jacobian(tree: Tree, q: Pose, q_next: Pose, h: float) -> torch.Tensor:
     """d nu / d delta (..., n, n) under q_next -> advance(q_next, delta) (the bases held fixed)."""
     G = tree.group
-    inc = G.increment(q, q_next)
-    dnu = kinetic.velocity_estimate_jacobian(G, inc, h)
+    dnu = kinetic.velocity_estimate_jacobian(G, G.increment(q, q_next), h)  # (..., dim, dim)
     S_next = jt.motion_basis(tree, q_next)
-    S = 0.5 * (jt.motion_basis(tree, q) + S_next)
-    return torch.linalg.pinv(S) @ dnu @ S_next
+    return jt.reduce_joint_velocity(tree, q, q_next, dnu @ S_next, columns=True)
 
 
 def joint_summary(tree: Tree) -> str:
@@ -247,7 +243,7 @@ class ArticulatedTriplets(TripletSet):
             self.nu_red_prev: torch.Tensor | None = None
             self.nu_red_next: torch.Tensor | None = None
             if model.reduced:
-                self.T = jt.coordinate_basis(tree, self.cur, self.C)
+                self.T = jt.coordinate_basis(tree, self.cur)
                 self.nu_red_prev = reduced_velocity(tree, q_prev, q_cur, model.h)
                 self.nu_red_next = reduced_velocity(tree, q_cur, q_next, model.h)
         self.A_next: torch.Tensor | None = None  # `enable_jacobian` (train.loss=newton only)
@@ -262,7 +258,7 @@ class ArticulatedTriplets(TripletSet):
             self.A_next = art.fk_jacobian(self.tree, self.nxt)
             self.inc_coord = self.tree.group.increment(self.cur, self.nxt)
             if self.reduced:
-                self.T_next = jt.coordinate_basis(self.tree, self.nxt, art.joint_velocity_map(self.tree, self.nxt))
+                self.T_next = jt.coordinate_basis(self.tree, self.nxt)
 
     def batch(self, idx: torch.Tensor, generator: torch.Generator, reg_points: int) -> ArticulatedBatch:  # type: ignore[override]
         reg = None
@@ -569,7 +565,7 @@ class ArticulatedLieDFLNN(ImplicitModel):
         r = self.residual_const(g_prev, g) + self.residual_var(g, g_next)
         if not self.reduced:
             return r
-        T = jt.coordinate_basis(self.tree, g, art.joint_velocity_map(self.tree, g))
+        T = jt.coordinate_basis(self.tree, g)
         return (T.transpose(-1, -2) @ r[..., None])[..., 0] + self.dof_torques(g_prev, g, g_next)
 
     def dof_torques(self, g_prev: Pose, g: Pose, g_next: Pose) -> torch.Tensor:
@@ -624,18 +620,22 @@ class ArticulatedLieDFLNN(ImplicitModel):
         J = J if Jf is None else J + Jf
         return self.reduce_jacobian(g, inc, J) if self.reduced else J
 
-    def reduce_jacobian(self, g: Pose, inc: Pose, J: torch.Tensor, damping=None) -> torch.Tensor:
+    def reduce_jacobian(
+        self, g: Pose, inc: Pose, J: torch.Tensor, damping=None, Tk: torch.Tensor | None = None, q: Pose | None = None
+    ) -> torch.Tensor:
         """The Jacobian of the reduced residual from the full one J (..., dim, dim) of `residual_var`:
         T(g)^T J T(g inc) - (h/2) diag(d) d nu / d delta (..., n, n) (`lie.joints`; the damping's
-        term holds a universal joint's basis fixed over the step). `damping`: d (n,) when known."""
+        term holds a universal joint's basis fixed over the step). `damping`: d (n,) when known;
+        Tk, q: T(g) and g's joint coordinates when known (a rollout step's iterations share them)."""
         tree = self.tree
         g_next = self.G.compose(g, inc)
-        Tk = jt.coordinate_basis(tree, g, art.joint_velocity_map(tree, g))
-        T_next = jt.coordinate_basis(tree, g_next, art.joint_velocity_map(tree, g_next))
+        Tk = jt.coordinate_basis(tree, g) if Tk is None else Tk
+        T_next = jt.coordinate_basis(tree, g_next)
         J = Tk.transpose(-1, -2) @ J @ T_next
         d = damping if damping is not None else (None if self.dof_damper is None else self.dof_damper.coefficients())
         if d is not None:
-            q, q_next = jt.to_joint_coordinates(tree, g), jt.to_joint_coordinates(tree, g_next)
+            q = jt.to_joint_coordinates(tree, g) if q is None else q
+            q_next = jt.to_joint_coordinates(tree, g_next)
             J = J - 0.5 * self.h * d[:, None] * reduced_velocity_jacobian(tree, q, q_next, self.h)
         return J
 
@@ -804,8 +804,8 @@ class ArticulatedLieDFLNN(ImplicitModel):
         G, Gw, tree, h = self.G, art.world_group(self.tree), self.tree, self.h
         g, world, A = state.g, state.world, state.A
         generic = self.residual_mode == "generic"
-        C = art.joint_velocity_map(tree, g)
-        Tk = jt.coordinate_basis(tree, g, C)
+        C = art.joint_velocity_map(tree, g) if len(self.forces) else None  # only other forces need it
+        Tk = jt.coordinate_basis(tree, g)
         Tk_t = Tk.transpose(-1, -2)
         q_prev, q = jt.to_joint_coordinates(tree, state.g_prev), jt.to_joint_coordinates(tree, g)
         damper = self.dof_damper
@@ -843,7 +843,7 @@ class ArticulatedLieDFLNN(ImplicitModel):
             w_next, A_next = art.fk_and_jacobian(tree, G.compose(g, x))
             J = art.newton_jacobian(A, Gw.increment(world, w_next), A_next, Jd, m, rho, h)
             Jf = self._force_jacobian(g, x, fixed=qC)
-            return self.reduce_jacobian(g, x, J if Jf is None else J + Jf.detach(), damping=d)
+            return self.reduce_jacobian(g, x, J if Jf is None else J + Jf.detach(), damping=d, Tk=Tk, q=q)
 
         # warm start: the last increment's DoF (least squares) applied at g_k, exactly on the joints
         d0 = jt.reduce(Tk, G.log(state.inc))
