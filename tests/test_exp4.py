@@ -184,7 +184,11 @@ def test_compute_eval_writes_nothing_and_returns_what_is_written(smoke_run, tmp_
     assert out.summary["title"].startswith(f"{dataset.scene}: test rollout (")
     assert {"eval.csv", "eval.md", "eval_curves.json", "plots/error_vs_step.png"} <= set(out.files)
     rows = out.table("eval.csv")
-    assert rows is out.summary["rows"] and {r["model"] for r in rows} == {"model", "constant_velocity"}
+    assert rows is out.summary["rows"] and {r["model"] for r in rows} == {
+        "model",
+        "constant_velocity",
+        "constant_acceleration",
+    }
     write_outputs(out, tmp_path / "again")
     with open(tmp_path / "again" / "eval.csv") as f, open(run / "eval.csv") as g:
         mine, theirs = list(csv.DictReader(f)), list(csv.DictReader(g))

@@ -35,7 +35,7 @@ def smoke_run(tmp_path_factory):
 def test_train_stores_one_step_predictions_and_reports_them_for_every_row(smoke_run):
     summary, run, _ = smoke_run
     rows = {r["model"]: r for r in summary["eval"]}
-    assert list(rows) == ["model", "true_scheme", "constant_velocity"]
+    assert list(rows) == ["model", "true_scheme", "constant_velocity", "constant_acceleration"]
     n = rows["model"]["error_steps"]
     with h5py.File(run / "rollout.h5") as f:
         T = f["traj_index"].shape[0]
@@ -46,7 +46,11 @@ def test_train_stores_one_step_predictions_and_reports_them_for_every_row(smoke_
                 f[f"{group}/one_step"].attrs["n_pairs"] == T * (n - 1) and f[f"{group}/one_step"].attrs["seconds"] > 0
             )
     for name, r in rows.items():
-        for k in ("one_step_rot_error_mean", "one_step_vs_cv", "rollout_vs_cv", "geodesic_error_mean"):
+        keys = ("one_step_rot_error_mean", "one_step_vs_cv", "rollout_vs_cv", "geodesic_error_mean")
+        if name == "constant_acceleration":  # one-step columns only: from two poses it is constant velocity
+            keys = keys[:2]
+            assert r["rollout_vs_cv"] is None and r.get("geodesic_error_mean") is None
+        for k in keys:
             assert r[k] is not None and math.isfinite(r[k]) and r[k] > 0, (name, k, r[k])
     # the true-parameter scheme beats constant velocity by far, step by step and over the rollout
     assert rows["true_scheme"]["one_step_vs_cv"] < 0.05 and rows["true_scheme"]["rollout_vs_cv"] < 0.05
@@ -93,7 +97,7 @@ def test_eval_of_a_run_whose_rollout_file_has_no_one_step_data(smoke_run, tmp_pa
             compose_config("eval", [f"run={old}", f"paths.data_dir={data}", "ui.progress=false", "eval.plots=false"])
         )
     }
-    assert list(rows) == ["model", "true_scheme", "constant_velocity"]
+    assert list(rows) == ["model", "true_scheme", "constant_velocity", "constant_acceleration"]
     for name in ("model", "true_scheme"):
         assert rows[name]["one_step_rot_error_mean"] is None and rows[name]["one_step_vs_cv"] is None
         assert math.isfinite(rows[name]["rollout_vs_cv"])
@@ -104,3 +108,24 @@ def test_eval_of_a_run_whose_rollout_file_has_no_one_step_data(smoke_run, tmp_pa
         csv_rows["model"]["one_step_rot_error_mean"] == ""
         and float(csv_rows["constant_velocity"]["one_step_rot_error_mean"]) > 0
     )
+
+
+def test_constant_acceleration_is_exact_on_constant_acceleration_motion():
+    """A rotation about a fixed axis with a quadratic angle and a quadratic position: the
+    constant-acceleration guess is exact (to rounding) from its fourth pose on, constant velocity is not."""
+    from liedfl_cli.lie import Pose, ProductGroup, so3
+    from liedfl_cli.solvers.one_step import constant_acceleration_one_step, constant_velocity_one_step
+
+    G = ProductGroup(1, 0)
+    t = 0.1 * torch.arange(8, dtype=torch.float64)
+    a = torch.tensor([0.3, -0.5, 0.8], dtype=torch.float64)
+    a = a / a.norm()
+    R = so3.exp((0.2 + 0.7 * t + 1.3 * t**2)[:, None] * a)[None, :, None]
+    p = (torch.tensor([1.0, 2.0, 3.0], dtype=torch.float64) * t[:, None] + 0.5 * t[:, None] ** 2)[None, :, None]
+    truth = Pose(R, p)
+    ca, cv = constant_acceleration_one_step(G, truth), constant_velocity_one_step(G, truth)
+    assert ca.R.shape == cv.R.shape == (1, 6, 1, 3, 3)
+    assert torch.allclose(ca.R[:, 0], cv.R[:, 0])  # g_2: only two poses before it
+    assert float((ca.R[:, 1:] - R[:, 3:]).abs().max()) < 1e-13
+    assert float((ca.p[:, 1:] - p[:, 3:]).abs().max()) < 1e-13
+    assert float((cv.R[:, 1:] - R[:, 3:]).abs().max()) > 1e-3

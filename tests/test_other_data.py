@@ -71,7 +71,7 @@ def test_rollout_on_other_data_writes_its_own_folder(run):
     assert ds.n_trajectories == 14
     with open(folder / "eval.csv") as f:
         rows = list(csv.DictReader(f))
-    assert [r["model"] for r in rows] == ["model", "true_scheme", "constant_velocity"]
+    assert [r["model"] for r in rows] == ["model", "true_scheme", "constant_velocity", "constant_acceleration"]
     assert int(rows[0]["rollout_steps"]) == 15
     assert {n: (run_dir / n).read_bytes() for n in own} == own  # the run's own files are untouched
     # liedfl eval of that folder evaluates against the same (other) dataset

@@ -70,6 +70,8 @@ CV_COLUMNS = ["one_step_vs_cv", "rollout_vs_cv"]
 """Ratios to the constant-velocity row: one_step_rot_error_mean and geodesic_error_mean (< 1: better than CV)."""
 CONSTANT_VELOCITY = "constant_velocity"
 """The row (and curve) of the constant-velocity reference, computed from the data in every evaluation."""
+CONSTANT_ACCELERATION = "constant_acceleration"
+"""The row of the constant-acceleration reference (one-step columns only), after constant velocity's."""
 DRIFT_COLUMNS = ["max_orth_drift", "max_det_drift"]
 """Distance from the group: over the whole rollout (as are the non-finite step and the Newton columns)."""
 COLUMNS = [
@@ -154,10 +156,26 @@ def _rows(
         )
         row.update({"error_steps": n, "rollout_steps": rf.steps, "rollout_trajectories": int(truth.R.shape[0])})
         rows.append(row)
+        if n >= 3:
+            rows.append(_constant_acceleration_row(group, truth, target, n, names))
         for r in rows:
             r["one_step_vs_cv"] = _ratio(r.get("one_step_rot_error_mean"), row.get("one_step_rot_error_mean"))
             r["rollout_vs_cv"] = _ratio(r.get("geodesic_error_mean"), row.get("geodesic_error_mean"))
     return rows, curves
+
+
+def _constant_acceleration_row(group: ProductGroup, truth: Pose, target: Pose, n: int, names: dict) -> dict:
+    """The constant-acceleration reference (`solvers.one_step.constant_acceleration_one_step`): a
+    zero-parameter guess often stronger than constant velocity on smooth data. One-step columns only:
+    from the two poses every model starts from it is constant velocity, so it has no rollout of its own."""
+    from ..solvers.one_step import constant_acceleration_one_step
+
+    ca = constant_acceleration_one_step(group, truth.index((slice(None), slice(0, n + 1))))
+    row: dict = {"model": CONSTANT_ACCELERATION, "name": names.get(CONSTANT_ACCELERATION, "constant acceleration")}
+    row.update(one_step_metrics(ca, target))
+    row.update(dict.fromkeys(CV_COLUMNS))
+    row.update({"error_steps": n, "rollout_steps": None, "rollout_trajectories": int(truth.R.shape[0])})
+    return row
 
 
 def _errors(

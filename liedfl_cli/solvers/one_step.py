@@ -1,4 +1,5 @@
-"""Teacher-forced one-step predictions and the constant-velocity reference.
+"""Teacher-forced one-step predictions and the zero-parameter references (constant velocity and
+constant acceleration).
 
 A one-step prediction predicts g_{k+1} from the *true* pair (g_{k-1}, g_k) for every interior k of
 every trajectory; it measures what a model learned about one step without the compounding of a
@@ -14,7 +15,7 @@ from typing import Any
 
 import torch
 
-from ..lie import Pose, ProductGroup
+from ..lie import Pose, ProductGroup, so3
 from .options import SolverOptions
 
 
@@ -52,6 +53,29 @@ def constant_velocity_one_step(G: ProductGroup, truth: Pose) -> Pose:
     g_prev, g, (T, n) = _pairs(truth)
     out = constant_velocity_step(G, g_prev, g)
     return Pose(out.R.reshape(T, n, *out.R.shape[1:]), out.p.reshape(T, n, *out.p.shape[1:]))
+
+
+def constant_acceleration_step(G: ProductGroup, g_pp: Pose, g_prev: Pose, g: Pose) -> Pose:
+    """The constant-acceleration guess from three poses: every rotation R exp(2 w_k - w_{k-1}) with
+    w_k = log(R_{k-1}^T R_k), every SE(3) position p + 2 dp_k - dp_{k-1} (Euclidean) -> the next pose."""
+    w1 = so3.log(g_pp.R.transpose(-1, -2) @ g_prev.R)
+    w2 = so3.log(g_prev.R.transpose(-1, -2) @ g.R)
+    R = g.R @ so3.exp(2.0 * w2 - w1)
+    p = g.p + 2.0 * (g.p - g_prev.p) - (g_prev.p - g_pp.p)
+    return Pose(R, p)
+
+
+def constant_acceleration_one_step(G: ProductGroup, truth: Pose) -> Pose:
+    """Constant-acceleration guesses of g_2..g_N from the true poses (`constant_acceleration_step` from
+    (g_{k-2}, g_{k-1}, g_k)); g_2, which has only two poses before it, gets the constant-velocity guess.
+    R (T, N-1, B, 3, 3), p (T, N-1, m, 3), like `constant_velocity_one_step`."""
+    cv = constant_velocity_one_step(G, truth)
+    n1 = truth.R.shape[1]
+    if n1 < 4:
+        return cv
+    at = lambda a, b: truth.index((slice(None), slice(a, n1 - b)))
+    ca = constant_acceleration_step(G, at(0, 3), at(1, 2), at(2, 1))
+    return Pose(torch.cat((cv.R[:, :1], ca.R), 1), torch.cat((cv.p[:, :1], ca.p), 1))
 
 
 @torch.no_grad()
