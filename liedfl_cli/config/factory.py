@@ -11,6 +11,7 @@ model there, `data_pose` converts a dataset's trajectories; nothing below the pi
 from __future__ import annotations
 
 import inspect
+import math
 from typing import TypeVar
 
 import torch
@@ -81,7 +82,22 @@ def build_context(run: RunConfig | DictConfig, dataset) -> BuildContext:
         metadata=dataset.params or {},
         tree=getattr(dataset, "tree", None),
         train_poses=(lambda: dataset.pose("train")) if getattr(dataset, "tree", None) is not None else None,
+        total_mass=_total_mass(run),
     )
+
+
+def _total_mass(run: RunConfig) -> float | None:
+    """dataset.total_mass as a positive number, or None; ConfigError for anything else."""
+    value = run.dataset.total_mass if run.dataset is not None else None
+    if value is None:
+        return None
+    try:
+        m = float(value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"dataset.total_mass={value!r}: a positive number (kg) or null") from None
+    if not (m > 0 and math.isfinite(m)):
+        raise ConfigError(f"dataset.total_mass={value!r}: a positive number (kg) or null")
+    return m
 
 
 def build_model(run: RunConfig | DictConfig, dataset) -> Model:

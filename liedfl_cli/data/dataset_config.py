@@ -32,6 +32,7 @@ class DatasetConfig:
     n_test: int | None = None
     seed: int | None = None
     val_fraction: float | None = None  # read at train time only (commands/validation.py)
+    total_mass: float | None = None  # articulated: the scale gauge (kg), read at train/export time only
     physics: dict[str, Any] | None = None
     initial: dict[str, Any] | None = None
     solver: dict[str, Any] | None = None  # the simulator's tolerances (data/physics.py SolverOptions)

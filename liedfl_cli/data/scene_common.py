@@ -23,10 +23,10 @@ from .physics import SolverOptions
 GENERATOR_VERSION = 1
 """Bump when generated data would change for the same config (it is part of the cache hash)."""
 
-NON_GENERATOR_KEYS = ("train_steps", "rollout_steps", "val_fraction")
+NON_GENERATOR_KEYS = ("train_steps", "rollout_steps", "val_fraction", "total_mass")
 """Config keys that select how data is used, not what is generated (excluded from the hash)."""
 
-TRAIN_TIME_KEYS = ("val_fraction",)
+TRAIN_TIME_KEYS = ("val_fraction", "total_mass")
 """Dataset keys read by the trainer only (the validation split, taken from the train split at train
 time: liedfl_cli/commands/validation.py); `to_dict` drops them, so no generator sees them."""
 

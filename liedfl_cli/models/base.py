@@ -92,6 +92,7 @@ class BuildContext:
     metadata: Mapping[str, Any] | None = None
     tree: Tree | None = None
     train_poses: Callable[[], Pose] | None = None  # the training trajectories (joint inference reads them)
+    total_mass: float | None = None  # dataset.total_mass: the scale gauge of an articulated model (kg)
 
     # -------------------------------------------------------------- what the data declare
     def declared_gravity(self) -> float | None:
