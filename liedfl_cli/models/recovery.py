@@ -38,11 +38,6 @@ def lie_recovery(model: Any, ref: Any, physics: Mapping[str, Any]) -> dict:
             "Jd_over_trace_max_rel_error": rel(Jd / s[:, None, None], Jd_true / s_true[:, None, None]),
             "scale_learned_over_true": float((s / s_true).mean()),
         }
-        d, d_true = getattr(model, "dof_damper", None), getattr(ref, "dof_damper", None)
-        if d is not None and d_true is not None and model.tree.n_dof == ref.tree.n_dof:
-            dl, dt = d.coefficients() / s, d_true.coefficients() / s_true
-            out["dof_damping_over_total_mass"] = {"learned": dl.tolist(), "true": dt.tolist()}
-            out["dof_damping_max_rel_error"] = rel(dl, dt)
         f, f_true = _rayleigh(model), _rayleigh(ref)
         if f is not None and f_true is not None:
             D, D_true = f.D(), f_true.D()
