@@ -171,6 +171,9 @@ def _write(ds: Dataset, path: Path, tmp: Path) -> None:
                 a["parents"] = json.dumps(list(ds.tree.parents))
                 a["rotations"] = ds.tree.rotations
                 f.create_dataset("joint_offsets", data=np.asarray(ds.tree.offsets, dtype=np.float64))
+                if ds.tree.joints is not None:
+                    a["joints"] = json.dumps(list(ds.tree.joints))
+                    f.create_dataset("joint_axes", data=np.asarray(ds.tree.axes_array(), dtype=np.float64))
             e = f.create_group("extras")
             for k, v in ds.extras.items():
                 e.create_dataset(k, data=np.asarray(v))
@@ -262,6 +265,8 @@ def load_dataset(path, require_split: bool = True) -> Dataset:
             parents = _json_attr(f, "parents", src, required=False)
             rotations = _attr(f, "rotations", src, required=False)
             offsets = _array(f, "joint_offsets", src)
+            joints = _json_attr(f, "joints", src, required=False)
+            joint_axes = _array(f, "joint_axes", src)
             R = _array(f, "R", src)
             if R is None:
                 raise DatasetError(f"{src}: dataset 'R' is missing")
@@ -302,7 +307,7 @@ def load_dataset(path, require_split: bool = True) -> Dataset:
                 f"{tuple(np.asarray(split[k]).shape)}"
             )
     input_dtype = torch.float32 if R.dtype == np.float32 else torch.float64
-    tree = read_tree(parents, offsets, rotations, kinds, src)
+    tree = read_tree(parents, offsets, rotations, kinds, src, joints, joint_axes)
     if not isinstance(params, dict):
         raise DatasetError(f"{src}: attribute 'params' must be a JSON object, got a JSON {type(params).__name__}")
     if isinstance(seed, bool) or not isinstance(seed, (int, float)) or not float(seed).is_integer():
@@ -334,15 +339,21 @@ def load_dataset(path, require_split: bool = True) -> Dataset:
     if split is None and ds.R.ndim >= 1:
         ds.split = {"train": np.arange(ds.R.shape[0]), "test": np.zeros(0, dtype=np.int64)}
     ds.R = _validate(ds, src, input_dtype=input_dtype, t_dtype=None if t is None else np.asarray(t).dtype)
+    if tree is not None and tree.joints is not None:
+        check_joint_motion(ds, src)
     if require_split and ds.split["train"].size == 0:
         raise DatasetError(f"{src}: dataset 'split/train' is empty: there is nothing to train on")
     return ds
 
 
-def read_tree(parents, offsets, rotations, kinds: list, src: str) -> Tree | None:
+def read_tree(parents, offsets, rotations, kinds: list, src: str, joints=None, joint_axes=None) -> Tree | None:
     """The kinematic tree of a file from its raw fields (root attributes `parents` (JSON list),
-    `rotations`, dataset `joint_offsets` (B, 3)), or None when the file has none. Every problem is a
-    one-line DatasetError naming the field; `kinds` (the body kinds) fix B and the root's kind."""
+    `rotations`, optional `joints` (JSON list), datasets `joint_offsets` (B, 3) and optional
+    `joint_axes` (B, 2, 3)), or None when the file has none. Every problem is a one-line
+    DatasetError naming the field; `kinds` (the body kinds) fix B and the root's kind."""
+    if parents is None and offsets is None and (joints is not None or joint_axes is not None):
+        what = "attribute 'joints'" if joints is not None else "dataset 'joint_axes'"
+        raise DatasetError(f"{src}: {what} needs a tree (attribute 'parents' and dataset 'joint_offsets')")
     if rotations is not None and (not isinstance(rotations, str) or rotations not in ROTATIONS):
         raise DatasetError(f"{src}: attribute 'rotations' is {rotations!r}; use one of {list(ROTATIONS)}")
     if parents is None and offsets is None:
@@ -388,7 +399,76 @@ def read_tree(parents, offsets, rotations, kinds: list, src: str) -> Tree | None
         raise DatasetError(
             f"{src}: dataset 'joint_offsets' row 0 is {offsets[0].tolist()}; the free (SE(3)) root's row must be zeros"
         )
-    return Tree.from_lists(parents, offsets, rotations or "world", free_root=n_se3 == 1)
+    free = n_se3 == 1
+    if joints is None:
+        if joint_axes is not None:
+            raise DatasetError(f"{src}: dataset 'joint_axes' is given but attribute 'joints' is missing")
+        return Tree.from_lists(parents, offsets, rotations or "world", free_root=free)
+    return Tree.from_lists(
+        parents, offsets, rotations or "world", free, *_read_joints(joints, joint_axes, B, free, src)
+    )
+
+
+def _read_joints(joints, joint_axes, B: int, free: bool, src: str) -> tuple[list[str], list | None]:
+    """(joint types, axes or None) of a file, checked: one-line DatasetErrors naming the field and body."""
+    from ..lie.tree import JOINT_TYPES
+
+    if not isinstance(joints, list) or not all(isinstance(j, str) for j in joints):
+        raise DatasetError(f"{src}: attribute 'joints' must be a JSON list of joint types, got {joints!r:.80}")
+    if len(joints) != B:
+        raise DatasetError(f"{src}: attribute 'joints' has {len(joints)} entries but 'body_kinds' has {B}")
+    for b, j in enumerate(joints):
+        allowed = ("free",) if (b == 0 and free) else JOINT_TYPES
+        if j not in allowed:
+            where = "the free (SE(3)) root" if (b == 0 and free) else f"body {b}"
+            raise DatasetError(f"{src}: attribute 'joints' has {j!r} for {where}; use one of {list(allowed)}")
+    needs = [b for b, j in enumerate(joints) if j in ("hinge", "universal")]
+    if joint_axes is None:
+        if needs:
+            raise DatasetError(
+                f"{src}: dataset 'joint_axes' is missing (body {needs[0]} is a {joints[needs[0]]} joint, "
+                "which needs its axes)"
+            )
+        return list(joints), None
+    axes = _float_array(joint_axes, "joint_axes", src)
+    if axes.shape != (B, 2, 3):
+        raise DatasetError(f"{src}: dataset 'joint_axes' has shape {axes.shape}, expected ({B}, 2, 3)")
+    fin = np.isfinite(axes)
+    if not fin.all():
+        raise DatasetError(f"{src}: dataset 'joint_axes' has non-finite value at index {_first(~fin)}")
+    for b in needs:
+        for r in (0,) if joints[b] == "hinge" else (0, 1):
+            n = float(np.linalg.norm(axes[b, r]))
+            if abs(n - 1.0) > 1e-6:
+                raise DatasetError(
+                    f"{src}: dataset 'joint_axes' row [{b}, {r}] of the {joints[b]} joint has norm {n:.6g}; "
+                    "axes must be unit vectors"
+                )
+    return list(joints), axes.tolist()
+
+
+def check_joint_motion(ds: Dataset, src: str) -> None:
+    """Refuse a file whose motion violates its declared joints by more than
+    `lie.joint_constraints.VIOLATION_TOLERANCE`, naming the body, the trajectory and the violation."""
+    from ..lie.joint_constraints import VIOLATION_TOLERANCE, joint_violation
+    from ..lie.joints import to_joint_coordinates
+
+    tree = ds.tree
+    assert tree is not None
+    R = torch.as_tensor(np.asarray(ds.R), dtype=torch.float64)
+    if R.ndim != 5 or R.shape[1] < 1:
+        return
+    q = to_joint_coordinates(tree, Pose(R, torch.zeros(*R.shape[:2], 0, 3, dtype=torch.float64)))
+    axes = torch.tensor(tree.axes_array(), dtype=torch.float64)
+    for b, kind in enumerate(tree.joint_kinds):
+        v = joint_violation(kind, axes[b], q.R[:, :, b])
+        if v.numel() and float(v.max()) > VIOLATION_TOLERANCE:
+            i = int(v.argmax())
+            raise DatasetError(
+                f"{src}: body {b} ({ds.body_names[b]}) is declared a {kind} joint but trajectory {i} violates it by "
+                f"{float(v.max()):.3g} rad (> {VIOLATION_TOLERANCE:g}); fix 'joints'/'joint_axes' or leave "
+                "'joints' out (model.joints=auto infers them)"
+            )
 
 
 def _float_array(a, name: str, src: str) -> np.ndarray:
@@ -440,7 +520,15 @@ def _validate(
     B, m = len(kinds), kinds.count("se3")
     if ds.tree is not None:
         tr = ds.tree
-        read_tree(list(tr.parents), np.asarray(tr.offsets, dtype=np.float64), tr.rotations, kinds, src)
+        read_tree(
+            list(tr.parents),
+            np.asarray(tr.offsets, dtype=np.float64),
+            tr.rotations,
+            kinds,
+            src,
+            None if tr.joints is None else list(tr.joints),
+            None if tr.axes is None else np.asarray(tr.axes_array(), dtype=np.float64),
+        )
         if tr.free_root != (m == 1):
             raise DatasetError(
                 f"{src}: field 'tree' has free_root={tr.free_root} but 'body_kinds' lists {m} SE(3) bodies"
