@@ -4,6 +4,12 @@ code and file contents: liedfl_cli/data/mujoco_chain.py, docs/data_format.md "Mu
 python scripts/mujoco_chain.py [--links 3] [--joint ball|hinge] [--rotations world|parent]
     [--root free|pinned] [--gravity 0] [--joint-damping 0.05] [--n-trajectories 128] [--steps 100]
     [--h 0.05] [--dt 1e-3] [--speed 5] [--seed 0] [--test-fraction 0.1] [--out chain.h5]
+    [--parents -1,0,0,0,1 --joints free,ball,hinge,universal,weld] [--heavy-root] [--unit m|mm]
+    [--no-declare-joints]
+
+--parents/--joints make a tree (any parents, every joint type; a pinned root's joint is joints[0]);
+--heavy-root a 4 kg root with 0.5-0.7 kg links; --unit mm the same motion in millimetres;
+--no-declare-joints leaves the file's 'joints' out (liedfl then infers them).
 
 then `liedfl train dataset=file dataset.path=chain.h5 model.kinetic=articulated`.
 Prints the chain (masses, joint offsets), the largest per-step rotation and the time taken.
@@ -41,6 +47,11 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--test-fraction", type=float, default=0.1)
     ap.add_argument("--max-step-rotation", type=float, default=math.pi / 4, help="refuse data above this (rad)")
+    ap.add_argument("--parents", default=None, help="a tree: comma-separated parent indices, -1 first")
+    ap.add_argument("--joints", default=None, help="comma-separated joint per body: free|ball|hinge|universal|weld")
+    ap.add_argument("--heavy-root", action="store_true", help="a 4 kg root with light (0.5-0.7 kg) links")
+    ap.add_argument("--unit", choices=("m", "mm"), default="m", help="length unit of the file")
+    ap.add_argument("--no-declare-joints", action="store_true", help="leave the joints out of the file")
     ap.add_argument("--out", default="chain.h5")
     a = ap.parse_args(argv)
     start = time.perf_counter()
@@ -60,15 +71,23 @@ def main(argv=None) -> int:
             speed=a.speed,
             test_fraction=a.test_fraction,
             max_step_rotation=a.max_step_rotation,
+            parents=None if a.parents is None else [int(x) for x in a.parents.split(",")],
+            joints=None if a.joints is None else a.joints.split(","),
+            heavy_root=a.heavy_root,
+            unit=a.unit,
+            declare_joints=not a.no_declare_joints,
         )
-    except ConfigError as e:
+    except (ConfigError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     seconds = time.perf_counter() - start
     path = save_dataset(ds, a.out)
     phys = ds.params["physics"]
     assert ds.tree is not None
-    print(f"{ds.group.name}: {a.links} links, {a.joint} joints, {a.root} root, rotations={a.rotations}, g={a.gravity}")
+    print(
+        f"{ds.group.name}: {ds.n_bodies} bodies, joints {list(ds.tree.joint_kinds)}, rotations={a.rotations}, "
+        f"g={a.gravity}, unit {a.unit}"
+    )
     for b, body in enumerate(phys["bodies"]):
         off = np.round(ds.tree.offsets[b], 4).tolist()
         com = np.round(body["com"], 4).tolist()

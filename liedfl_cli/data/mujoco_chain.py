@@ -45,6 +45,8 @@ from .files import default_split
 from .hdf5 import Dataset
 
 JOINTS = ("ball", "hinge")
+TREE_JOINTS = ("ball", "hinge", "universal", "weld")
+UNITS = {"m": 1.0, "mm": 1e-3}
 ROOTS = ("free", "pinned")
 GENERATOR_VERSION = 1
 
@@ -70,7 +72,8 @@ class Link:
     com: np.ndarray  # (3,) body frame, from the joint
     inertia: np.ndarray  # (3, 3) about the COM, body frame
     offset: np.ndarray  # (3,)
-    axis: np.ndarray | None = None  # hinge axis (body frame), None for ball / free
+    axis: np.ndarray | None = None  # hinge axis (body frame), None for ball / free; a universal's first (parent frame)
+    axis2: np.ndarray | None = None  # a universal joint's second axis (body frame)
     length: float = 0.0  # for drawing: the capsule from the joint along `direction`
     direction: np.ndarray = field(default_factory=lambda: np.array([1.0, 0.0, 0.0]))
 
@@ -83,13 +86,32 @@ class ChainSpec:
     gravity: float
     joint_damping: float
     dt: float
+    tree_parents: list[int] | None = None  # a tree (`tree_spec`); None: a serial chain
+    kinds: list[str] | None = None  # every body's joint (`tree_spec`); None: `joint` everywhere
 
     @property
     def parents(self) -> list[int]:
+        if self.tree_parents is not None:
+            return list(self.tree_parents)
         return [-1] + list(range(len(self.links) - 1))
 
     def joint_kinds(self) -> list[str]:
+        if self.kinds is not None:
+            return list(self.kinds)
         return [("free" if self.root == "free" else self.joint)] + [self.joint] * (len(self.links) - 1)
+
+    def joint_axes(self) -> list[list[list[float]]]:
+        """(B, 2, 3) in liedfl's layout (`lie.tree.Tree.axes`): hinge axis; universal a1, a2; else zeros."""
+        z = [0.0, 0.0, 0.0]
+        out = []
+        for link, kind in zip(self.links, self.joint_kinds()):
+            if kind == "hinge" and link.axis is not None:
+                out.append([[float(x) for x in link.axis], z])
+            elif kind == "universal" and link.axis is not None and link.axis2 is not None:
+                out.append([[float(x) for x in link.axis], [float(x) for x in link.axis2]])
+            else:
+                out.append([z, z])
+        return out
 
 
 def _rotation(rng: np.random.Generator) -> np.ndarray:
@@ -162,13 +184,84 @@ def chain_spec(
     return ChainSpec(out, joint, root, float(gravity), float(joint_damping), float(dt))
 
 
+def tree_spec(
+    parents,
+    joints,
+    gravity: float = 0.0,
+    joint_damping: float = 0.05,
+    dt: float = 1e-3,
+    seed: int = 0,
+    heavy_root: bool = False,
+) -> ChainSpec:
+    """A random but physical kinematic tree: `parents` (B,) (-1 for body 0, every parent earlier) and
+    `joints` (B,): "free" for a free root (else the pinned root's joint), then "ball", "hinge",
+    "universal" or "weld" per body. Links are drawn as in `chain_spec` (mass U(1, 3) kg, length
+    U(0.25, 0.5) m, box inertias turned off their axes, centres of mass off the joint); a child's joint
+    sits at U(0.6, 1) of its parent's length along the parent's direction plus a sideways offset up to
+    0.05 m (siblings apart). Hinge axes are random; a universal joint's two axes are random at least
+    0.5 rad from parallel. heavy_root: a 4 kg root (inertias of its box) with light links of U(0.5, 0.7) kg
+    (link inertias 0.004-0.02 kg m^2): the mass ratios a robot base with light links has."""
+    parents = [int(q) for q in parents]
+    joints = [str(j) for j in joints]
+    B = len(parents)
+    if not 2 <= B <= 12:
+        raise ConfigError(f"parents: a MuJoCo tree has 2 to 12 bodies, got {B}")
+    if parents[0] != -1 or any(not 0 <= q < b for b, q in enumerate(parents[1:], start=1)):
+        raise ConfigError(f"parents={parents}: -1 first, then every parent an earlier body")
+    if len(joints) != B:
+        raise ConfigError(f"joints has {len(joints)} entries for {B} bodies")
+    root = "free" if joints[0] == "free" else "pinned"
+    for b, j in enumerate(joints):
+        ok = TREE_JOINTS + (("free",) if b == 0 else ())
+        if j not in ok:
+            raise ConfigError(f"joints[{b}]={j!r}: use one of {list(ok)}")
+    if not (math.isfinite(gravity) and gravity >= 0):
+        raise ConfigError(f"gravity={gravity}: the magnitude along -e3 must be >= 0")
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 3]))
+    out: list[Link] = []
+    for b in range(B):
+        light = heavy_root and b > 0
+        m = 4.0 if (heavy_root and b == 0) else float(rng.uniform(0.5, 0.7) if light else rng.uniform(1.0, 3.0))
+        L = float(rng.uniform(0.25, 0.5))
+        d = _unit(rng)
+        side = _unit(rng)
+        side -= side.dot(d) * d
+        side /= np.linalg.norm(side)
+        com = rng.uniform(0.35, 0.65) * L * d + rng.uniform(0.0, 0.03) * side
+        a, c = rng.uniform(0.15, 0.25, 2)
+        moments = m / 12 * np.array([a * a + c * c, L * L + c * c, L * L + a * a])
+        frame = np.stack([d, side, np.cross(d, side)], -1)
+        Q = so3.exp(torch.from_numpy(_unit(rng) * rng.uniform(0.2, 0.6))).numpy() @ frame
+        inertia = Q @ np.diag(moments) @ Q.T
+        if b == 0:
+            offset = np.zeros(3) if root == "free" else rng.uniform(-0.5, 0.5, 3)
+        else:
+            par = out[parents[b]]
+            offset = rng.uniform(0.6, 1.0) * par.length * par.direction + rng.uniform(0.0, 0.05) * _unit(rng)
+        axis = axis2 = None
+        if joints[b] == "hinge":
+            axis = _unit(rng)
+        elif joints[b] == "universal":
+            axis = _unit(rng)
+            while True:
+                axis2 = _unit(rng)
+                if abs(float(axis.dot(axis2))) < math.cos(0.5):
+                    break
+        link = Link(f"link{b}", m, com, 0.5 * (inertia + inertia.T), offset, axis, L, d)
+        link.axis2 = axis2
+        out.append(link)
+    return ChainSpec(out, "mixed", root, float(gravity), float(joint_damping), float(dt), parents, joints)
+
+
 def _v(x) -> str:
     return " ".join(repr(float(a)) for a in np.asarray(x).reshape(-1))
 
 
 def chain_mjcf(spec: ChainSpec) -> str:
-    """The MJCF of the chain: nested bodies with the identity `quat`, explicit inertials (no mass from
-    geoms), massless capsule geoms for drawing only, contacts disabled, RK4 at `dt`, energy on."""
+    """The MJCF of the chain or tree: nested bodies with the identity `quat`, explicit inertials (no mass
+    from geoms), massless capsule geoms for drawing only, contacts disabled, RK4 at `dt`, energy on. A
+    universal joint is two hinge joints in one body (axis a1 then a2: R_rel = exp(t1 a1) exp(t2 a2)); a
+    weld body has no joint."""
     lines = [
         '<mujoco model="liedfl_chain">',
         '  <compiler angle="radian" inertiafromgeom="false"/>',
@@ -177,16 +270,21 @@ def chain_mjcf(spec: ChainSpec) -> str:
         "  </option>",
         "  <worldbody>",
     ]
-    close = []
-    for b, link in enumerate(spec.links):
-        ind = "    " + "  " * b
+    parents, kinds = spec.parents, spec.joint_kinds()
+
+    def body(b: int, depth: int) -> None:
+        link, kind = spec.links[b], kinds[b]
+        ind = "    " + "  " * depth
         lines.append(f'{ind}<body name="{link.name}" pos="{_v(link.offset)}">')
-        if b == 0 and spec.root == "free":
+        damping = spec.joint_damping if b > 0 else 0.0  # the root's joint (a pinned root's too) is undamped
+        if kind == "free":
             lines.append(f'{ind}  <freejoint name="root"/>')
-        else:
-            damping = spec.joint_damping if b > 0 else 0.0
-            axis = f' axis="{_v(link.axis)}"' if link.axis is not None else ""
-            lines.append(f'{ind}  <joint name="j{b}" type="{spec.joint}" damping="{damping!r}"{axis}/>')
+        elif kind in ("ball", "hinge"):
+            axis = f' axis="{_v(link.axis)}"' if kind == "hinge" and link.axis is not None else ""
+            lines.append(f'{ind}  <joint name="j{b}" type="{kind}" damping="{damping!r}"{axis}/>')
+        elif kind == "universal":
+            for tag, ax in (("a", link.axis), ("b", link.axis2)):
+                lines.append(f'{ind}  <joint name="j{b}{tag}" type="hinge" damping="{damping!r}" axis="{_v(ax)}"/>')
         I = link.inertia
         full = [I[0, 0], I[1, 1], I[2, 2], I[0, 1], I[0, 2], I[1, 2]]
         lines.append(f'{ind}  <inertial pos="{_v(link.com)}" mass="{link.mass!r}" fullinertia="{_v(full)}"/>')
@@ -194,18 +292,29 @@ def chain_mjcf(spec: ChainSpec) -> str:
             f'{ind}  <geom type="capsule" size="0.02" fromto="0 0 0 {_v(link.length * link.direction)}" '
             'mass="0" contype="0" conaffinity="0"/>'
         )
-        close.append(f"{ind}</body>")
-    lines += close[::-1]
+        for c in range(len(spec.links)):
+            if parents[c] == b:
+                body(c, depth + 1)
+        lines.append(f"{ind}</body>")
+
+    body(0, 0)
     lines += ["  </worldbody>", "</mujoco>"]
     return "\n".join(lines)
+
+
+def body_ids(spec: ChainSpec, model) -> list[int]:
+    """MuJoCo's body id of every link, in liedfl's order (MuJoCo numbers a tree's bodies depth first)."""
+    mujoco = require_mujoco()
+    return [int(mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, link.name)) for link in spec.links]
 
 
 def declared_physics(spec: ChainSpec, model) -> dict[str, Any]:
     """params["physics"] from the compiled MuJoCo model (masses, COMs and inertias as MuJoCo uses them)."""
     mujoco = require_mujoco()
+    ids = body_ids(spec, model)
     bodies = []
     for b, link in enumerate(spec.links):
-        i = b + 1  # MuJoCo's body 0 is the world
+        i = ids[b]  # MuJoCo numbers bodies depth first after the world (0)
         q = model.body_iquat[i]  # (w, x, y, z): principal frame -> body frame
         Rq = so3.from_quaternion(torch.tensor(np.asarray(q), dtype=torch.float64)).numpy()  # liedfl: (w, x, y, z) too
         inertia = Rq @ np.diag(model.body_inertia[i]) @ Rq.T
@@ -217,15 +326,27 @@ def declared_physics(spec: ChainSpec, model) -> dict[str, Any]:
                 "inertia": [[float(x) for x in row] for row in 0.5 * (inertia + inertia.T)],
             }
         )
-    hinge = spec.joint == "hinge"
+    kinds = spec.joint_kinds()
+    hinge = "hinge" in kinds
+    dof = {"free": 6, "ball": 3, "universal": 2, "hinge": 1, "weld": 0}
+    dof_damping = [[0.0] * dof[k] if b == 0 else [spec.joint_damping] * dof[k] for b, k in enumerate(kinds)]
     return {
         "kind": "articulated",
         "g": spec.gravity,
         "bodies": bodies,
         "joint_damping": [spec.joint_damping] * (len(spec.links) - 1),
         "root_damping": 0.0,
-        "joints": spec.joint_kinds(),
-        "hinge_axes": [None if k.axis is None else [float(x) for x in k.axis] for k in spec.links] if hinge else None,
+        "joints": kinds,
+        "hinge_axes": (
+            [
+                [float(x) for x in k.axis] if kd == "hinge" and k.axis is not None else None
+                for k, kd in zip(spec.links, kinds)
+            ]
+            if hinge
+            else None
+        ),
+        "joint_axes": spec.joint_axes(),
+        "dof_damping": dof_damping,
         "engine": f"mujoco {mujoco.__version__}",
         "dt": spec.dt,
         "integrator": "RK4",
@@ -245,20 +366,21 @@ def _initial_state(spec: ChainSpec, model, data, rng: np.random.Generator, speed
     qpos = np.zeros(model.nq)
     qvel = np.zeros(model.nv)
     for b in range(len(spec.links)):
-        jid = model.body_jntadr[b + 1]
-        qa, va = model.jnt_qposadr[jid], model.jnt_dofadr[jid]
-        kind = spec.joint_kinds()[b]
-        if kind == "free":
-            qpos[qa : qa + 3] = rng.uniform(-1.0, 1.0, 3)
-            qpos[qa + 3 : qa + 7] = _quat_wxyz(_rotation(rng))
-            qvel[va : va + 3] = rng.normal(0.0, 0.1, 3)  # world frame
-            qvel[va + 3 : va + 6] = rng.normal(0.0, 1.0, 3)  # body frame
-        elif kind == "ball":
-            qpos[qa : qa + 4] = _quat_wxyz(_rotation(rng))
-            qvel[va : va + 3] = rng.normal(0.0, 1.0, 3)
-        else:
-            qpos[qa] = rng.uniform(-math.pi, math.pi)
-            qvel[va] = rng.normal(0.0, 1.0)
+        i = body_ids(spec, model)[b]
+        first, count = int(model.body_jntadr[i]), int(model.body_jntnum[i])
+        for jid in range(first, first + count):  # none for a weld body, two for a universal joint
+            qa, va, kind = model.jnt_qposadr[jid], model.jnt_dofadr[jid], int(model.jnt_type[jid])
+            if kind == 0:  # free
+                qpos[qa : qa + 3] = rng.uniform(-1.0, 1.0, 3)
+                qpos[qa + 3 : qa + 7] = _quat_wxyz(_rotation(rng))
+                qvel[va : va + 3] = rng.normal(0.0, 0.1, 3)  # world frame
+                qvel[va + 3 : va + 6] = rng.normal(0.0, 1.0, 3)  # body frame
+            elif kind == 1:  # ball
+                qpos[qa : qa + 4] = _quat_wxyz(_rotation(rng))
+                qvel[va : va + 3] = rng.normal(0.0, 1.0, 3)
+            else:  # hinge
+                qpos[qa] = rng.uniform(-math.pi, math.pi)
+                qvel[va] = rng.normal(0.0, 1.0)
     mujoco = require_mujoco()
     data.qpos[:], data.qvel[:] = qpos, qvel
     mujoco.mj_forward(model, data)
@@ -316,6 +438,7 @@ def simulate_chain(
         angular_momentum=np.zeros((T, N1, 3)),
     )
     vel = np.zeros(6)
+    ids = body_ids(spec, model)
     total_mass = float(model.body_subtreemass[1])
     for i in range(T):
         mujoco.mj_resetData(model, data)
@@ -330,10 +453,10 @@ def simulate_chain(
                 mujoco.mj_step(model, data, nstep=sub)
             mujoco.mj_forward(model, data)  # kinematics and energy of the current state
             mujoco.mj_subtreeVel(model, data)
-            rec.Rw[i, k] = data.xmat[1:].reshape(B, 3, 3)
-            rec.pw[i, k] = data.xpos[1:]
+            rec.Rw[i, k] = data.xmat[ids].reshape(B, 3, 3)
+            rec.pw[i, k] = data.xpos[ids]
             for b in range(B):
-                mujoco.mj_objectVelocity(model, data, mujoco.mjtObj.mjOBJ_BODY, b + 1, vel, 1)
+                mujoco.mj_objectVelocity(model, data, mujoco.mjtObj.mjOBJ_BODY, ids[b], vel, 1)
                 rec.omega[i, k, b] = vel[:3]
             rec.qpos[i, k], rec.qvel[i, k] = data.qpos, data.qvel
             rec.potential[i, k], rec.kinetic[i, k] = data.energy
@@ -351,11 +474,16 @@ def step_rotations(R: np.ndarray) -> np.ndarray:
     return np.arccos(c)
 
 
-def chain_coordinates(rec: ChainRecord, rotations: str, free_root: bool) -> tuple[np.ndarray, np.ndarray]:
-    """(R, p) of the dataset from the engine's world poses: world attitudes or R_parent^T R_b."""
+def chain_coordinates(
+    rec: ChainRecord, rotations: str, free_root: bool, parents: list[int] | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """(R, p) of the dataset from the engine's world poses: world attitudes or R_parent^T R_b
+    (`parents`: the tree's; None: a serial chain)."""
     R = rec.Rw.copy()
     if rotations == "parent":
-        R[:, :, 1:] = np.swapaxes(rec.Rw[:, :, :-1], -1, -2) @ rec.Rw[:, :, 1:]
+        B = R.shape[2]
+        par = list(range(-1, B - 1)) if parents is None else list(parents)
+        R[:, :, 1:] = np.swapaxes(rec.Rw[:, :, par[1:]], -1, -2) @ rec.Rw[:, :, 1:]
     p = rec.pw[:, :, :1] if free_root else rec.pw[:, :, :0]
     return R, p
 
@@ -376,6 +504,11 @@ def chain_dataset(
     test_fraction: float = 0.1,
     max_step_rotation: float = 0.5 * math.pi / 2,
     progress: Callable[[float], None] | None = None,
+    parents=None,
+    joints=None,
+    heavy_root: bool = False,
+    unit: str = "m",
+    declare_joints: bool = True,
 ) -> Dataset:
     """A liedfl dataset of a random MuJoCo chain (module docstring). ConfigError when the largest
     per-step rotation of the coordinates or of a world attitude exceeds `max_step_rotation`
@@ -384,11 +517,31 @@ def chain_dataset(
         raise ConfigError(f"rotations={rotations!r}: use 'world' or 'parent'")
     if int(n_trajectories) < 1 or int(steps) < 1:
         raise ConfigError(f"n_trajectories={n_trajectories}, steps={steps}: need at least 1 of each")
-    spec = chain_spec(links, joint, root, gravity, joint_damping, dt, seed)
+    if unit not in UNITS:
+        raise ConfigError(f"unit={unit!r}: use one of {list(UNITS)}")
+    if parents is not None or joints is not None or heavy_root:
+        if parents is None:
+            parents = [-1] + list(range(int(links) - 1))
+        if joints is None:
+            joints = [("free" if root == "free" else joint)] + [joint] * (len(parents) - 1)
+        spec = tree_spec(parents, joints, gravity, joint_damping, dt, seed, heavy_root)
+        root = spec.root
+    else:
+        spec = chain_spec(links, joint, root, gravity, joint_damping, dt, seed)
     rec, model = simulate_chain(spec, n_trajectories, steps, h, seed, speed, progress)
     free = root == "free"
-    R, p = chain_coordinates(rec, rotations, free)
-    tree = Tree.from_lists(spec.parents, [k.offset for k in spec.links], rotations, free_root=free)
+    R, p = chain_coordinates(rec, rotations, free, spec.parents)
+    kinds = spec.joint_kinds()
+    scale = 1.0 / UNITS[unit]  # file units per metre
+    offsets = [scale * k.offset for k in spec.links]
+    tree = Tree.from_lists(
+        spec.parents,
+        offsets,
+        rotations,
+        free_root=free,
+        joints=kinds if declare_joints else None,
+        axes=spec.joint_axes() if declare_joints else None,
+    )
     coord_rot, world_rot = step_rotations(R), step_rotations(rec.Rw)
     worst = max(float(coord_rot.max()), float(world_rot.max()))
     largest = {
@@ -404,6 +557,16 @@ def chain_dataset(
     T = int(n_trajectories)
     split, overlap = default_split(T, float(test_fraction), None, int(seed))
     physics = declared_physics(spec, model)
+    if scale != 1.0:  # the same motion in other length units: lengths x scale, inertias x scale^2
+        for body in physics["bodies"]:
+            body["com"] = [scale * x for x in body["com"]]
+            body["inertia"] = [[scale * scale * x for x in row] for row in body["inertia"]]
+        physics["g"] = scale * physics["g"]
+        physics["dof_damping"] = [[scale * scale * x for x in row] for row in physics["dof_damping"]]
+        physics["joint_damping"] = [scale * scale * x for x in physics["joint_damping"]]
+        physics["root_damping"] = scale * scale * physics["root_damping"]
+        p = scale * p
+        rec.pw = scale * rec.pw
     config = {
         "links": int(links),
         "joint": joint,
@@ -411,6 +574,10 @@ def chain_dataset(
         "root": root,
         "gravity": float(gravity),
         "joint_damping": float(joint_damping),
+        "parents": spec.parents,
+        "joints": kinds,
+        "heavy_root": bool(heavy_root),
+        "unit": unit,
         "n_trajectories": T,
         "steps": int(steps),
         "h": float(h),
@@ -421,14 +588,14 @@ def chain_dataset(
     }
     params: dict[str, Any] = {
         "physics": physics,
-        "gravity": float(gravity),
+        "gravity": float(gravity) * scale,
         "config": config,
         "generator": "liedfl_cli.data.mujoco_chain",
         "generator_version": GENERATOR_VERSION,
         "mjcf": chain_mjcf(spec),
         "split_overlap": overlap,
         "step_rotation": largest,
-        "length_unit_m": 1.0,
+        "length_unit_m": UNITS[unit],
         "bodies": {
             "root": "free (SE(3)) root, world pose" if free else "root pinned at joint_offsets[0] (SO(3))",
             "rotations": rotations,
@@ -459,6 +626,7 @@ def chain_dataset(
         h=float(h),
         scene="mujoco_chain",
         body_names=[k.name for k in spec.links],
+        # MuJoCo's qpos/qvel stay in metres (params["mjcf"] is the metre model)
         body_kinds=(["se3"] if free else ["so3"]) + ["so3"] * (len(spec.links) - 1),
         params=params,
         seed=int(seed),
@@ -476,6 +644,8 @@ __all__ = [
     "ChainRecord",
     "require_mujoco",
     "chain_spec",
+    "tree_spec",
+    "TREE_JOINTS",
     "chain_mjcf",
     "declared_physics",
     "simulate_chain",
