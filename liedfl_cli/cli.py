@@ -22,6 +22,7 @@ COMMANDS = {
     "rollout": "roll a trained run out: liedfl rollout run=<run dir>|latest [steps=N] [split=all] [export=csv|npz]",
     "eval": "metrics table and plots of a run: liedfl eval run=<run dir>|latest",
     "report": "one table and figures over a sweep: liedfl report sweep=<multirun dir>",
+    "export": "the identified articulated model as MJCF: liedfl export run=<run dir>|latest out=model.xml",
 }
 USAGE = (
     "usage: liedfl {"
@@ -94,6 +95,10 @@ def _dispatch(command: str, cfg):
         from .commands.report import run_report
 
         return run_report(cfg)
+    if command == "export":
+        from .commands.export_model import run_export
+
+        return run_export(cfg)
     raise AssertionError(command)
 
 
@@ -299,7 +304,7 @@ def latest_run(root: Path = RUNS_DIR) -> Path | None:
 
 def _resolve_latest(command: str, args: list[str]) -> list[str]:
     """`run=latest` (rollout, eval) and `resume=latest` (train): the newest run under outputs/runs/."""
-    key = {"rollout": "run", "eval": "run", "resume": "resume"}.get(command)
+    key = {"rollout": "run", "eval": "run", "export": "run", "resume": "resume"}.get(command)
     if key is None or f"{key}=latest" not in args:
         return args
     run = latest_run()

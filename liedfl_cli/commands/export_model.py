@@ -1,0 +1,211 @@
+"""`liedfl export run=<run dir>|latest format=mjcf out=model.xml [dataset.total_mass=M]`: the identified
+articulated model of a run as a MuJoCo MJCF file (docs/export.md; the writer: `files/mjcf.py`).
+
+What is written: the run's kinematic tree (the joints and axes it trained with), each body's learned
+mass m_b, centre of mass rho_b and inertia J_b = tr(J_d) I - J_d about the centre of mass (from the
+discrete inertia J_d = tr(J)/2 I - J), the learned joint damping per degree of freedom, and the
+gravity of a `uniform_gravity` potential (g u, acting along -u; none otherwise). The learned model
+has one arbitrary overall scale: masses, inertias and damping are scaled so that the total mass is
+`dataset.total_mass` (the command line's, else the run's config), else 1 kg; the XML's comment and
+the console line say which. Body names: the dataset's. Time step h/20 (`timestep=` to change it),
+MuJoCo's RK4, contacts disabled. The file is checked by compiling it with MuJoCo when mujoco is
+installed, and written to a temporary file then renamed.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+from omegaconf import DictConfig, OmegaConf
+
+from ..display.ui import console, warning_line
+from ..errors import ConfigError
+from ..files.mjcf import MjcfSpec, ball_damping_dropped, load_model, mjcf_text, unique_names
+
+FORMATS = ("mjcf",)
+NOT_ARTICULATED = "export format=mjcf needs an articulated model (model.kinetic=articulated)"
+
+
+def _positive_mass(value, where: str) -> float | None:
+    if value is None:
+        return None
+    try:
+        m = float(value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"dataset.total_mass={value!r}{where}: a positive number (kg) or null") from None
+    if isinstance(value, bool) or not (m > 0 and math.isfinite(m)):
+        raise ConfigError(f"dataset.total_mass={value!r}{where}: a positive number (kg) or null")
+    return m
+
+
+def total_mass_choice(cfg: DictConfig, run_cfg: DictConfig) -> tuple[float, str]:
+    """(total mass in kg, where it comes from): the command line's dataset.total_mass, else the run's
+    config's, else 1 kg."""
+    given = OmegaConf.select(cfg, "dataset.total_mass", default=None)
+    m = _positive_mass(given, "")
+    if m is not None:
+        return m, "dataset.total_mass from the command line"
+    saved = OmegaConf.select(run_cfg, "dataset.total_mass", default=None)
+    m = _positive_mass(saved, " in the run's config")
+    if m is not None:
+        return m, "dataset.total_mass from the run's config"
+    return 1.0, "dataset.total_mass not set: the learned scale is arbitrary"
+
+
+def _gravity(model) -> tuple[np.ndarray, str | None]:
+    """The world gravity vector of the model's world potential, and a note when it has none that
+    MJCF can say."""
+    from ..mechanics.potentials import GravityPotential, UniformGravityPotential
+
+    V = getattr(model, "potential_world", None)
+    if isinstance(V, UniformGravityPotential):
+        return -V.field().detach().cpu().double().numpy(), None  # V = m gamma.c: gravity acts along -gamma
+    if isinstance(V, GravityPotential):
+        return np.array([0.0, 0.0, -float(V.gravity)]), None
+    if V is None:
+        return np.zeros(3), None
+    return np.zeros(3), f"the world potential {type(V).__name__} has no MJCF form: gravity 0"
+
+
+def _numpy(t) -> np.ndarray:
+    return t.detach().cpu().double().numpy()
+
+
+def model_spec(model, names, total_mass: float, timestep: float | None = None) -> tuple[MjcfSpec, list[str], float]:
+    """The MJCF spec of a trained `ArticulatedLieDFLNN` with masses, inertias and damping scaled to
+    `total_mass` (kg); returns (spec, warnings: what the file cannot carry, scale factor)."""
+    from ..lie.joints import joint_slices
+
+    tree = model.tree
+    B = tree.n_bodies
+    phys = model.physical_parameters()
+    Jd, mass, rho = _numpy(phys["J_d"]), _numpy(phys["m"]), _numpy(phys["rho_COM"])
+    J = np.trace(Jd, axis1=-2, axis2=-1)[:, None, None] * np.eye(3) - Jd
+    scale = total_mass / float(mass.sum())
+    d = phys.get("dof_damping")
+    damping = np.zeros(tree.n_dof) if d is None else _numpy(d)
+    names = unique_names(names, B)
+    notes: list[str] = []
+    per_body = []
+    for b, (kind, cols) in enumerate(zip(tree.joint_kinds, joint_slices(tree))):
+        values = [scale * float(x) for x in damping[cols]]
+        if kind == "ball":
+            dropped = ball_damping_dropped(values)
+            if dropped > 1e-3:
+                notes.append(
+                    f"body {names[b]!r}: MuJoCo has one damping per ball joint: wrote the mean "
+                    f"{float(np.mean(values)):.4g} of {', '.join(f'{x:.4g}' for x in values)} "
+                    f"({100 * dropped:.1f}% of the damping dropped)"
+                )
+        per_body.append(values)
+    gravity, note = _gravity(model)
+    if note:
+        notes.append(note)
+    if getattr(model, "potential_coord", None) is not None:
+        notes.append("the learned potential of the coordinates (mlp) has no MJCF form: not exported")
+    for f in getattr(model, "forces", []):
+        notes.append(f"the force {getattr(f, 'name', type(f).__name__)!r} has no MJCF form: not exported")
+    spec = MjcfSpec(
+        names=names,
+        parents=list(tree.parents),
+        offsets=np.asarray(tree.offsets, dtype=np.float64),
+        joints=list(tree.joint_kinds),
+        axes=np.asarray(tree.axes_array(), dtype=np.float64),
+        mass=scale * mass,
+        com=rho,
+        inertia=scale * J,
+        dof_damping=per_body,
+        gravity=gravity,
+        timestep=float(timestep) if timestep is not None else float(model.h) / 20.0,
+    )
+    return spec, notes, scale
+
+
+def _out_path(value) -> Path:
+    if value in (None, "", "???"):
+        raise ConfigError("out=<file> is required (e.g. out=model.xml)")
+    out = Path(str(value))
+    if out.is_dir():
+        raise ConfigError(f"out={out}: is a directory (give a file name, e.g. {out / 'model.xml'})")
+    if not out.parent.is_dir():
+        raise ConfigError(f"out={out}: folder {out.parent} does not exist")
+    return out
+
+
+def _timestep(value) -> float | None:
+    if value is None:
+        return None
+    try:
+        dt = float(value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"timestep={value!r}: a positive number (s) or null (h/20)") from None
+    if isinstance(value, bool) or not (dt > 0 and math.isfinite(dt)):
+        raise ConfigError(f"timestep={value!r}: a positive number (s) or null (h/20)")
+    return dt
+
+
+def run_export(cfg: DictConfig) -> Path:
+    """`liedfl export`: load the run's checkpoint, write its articulated model as MJCF to `out`
+    (module docstring). Returns the path written."""
+    from ..config.factory import configure_runtime
+    from ..config.runs import load_run_checkpoint
+    from ..config.typed import runtime_options
+    from ..files.checkpoint import describe_checkpoint
+    from ..files.dataset_identity import accept_option
+    from ..files.io_utils import write_text
+    from ..models.articulated import ArticulatedLieDFLNN, joint_summary
+
+    if OmegaConf.is_missing(cfg, "run") or cfg.get("run") in (None, ""):
+        raise ConfigError("run=<run dir> is required (a directory written by `liedfl train`)")
+    fmt = cfg.get("format")
+    if fmt not in FORMATS:
+        raise ConfigError(f"format={fmt!r}: choose one of {', '.join(FORMATS)}")
+    out = _out_path(None if OmegaConf.is_missing(cfg, "out") else cfg.get("out"))
+    timestep = _timestep(cfg.get("timestep"))
+    _positive_mass(OmegaConf.select(cfg, "dataset.total_mass", default=None), "")  # before loading the run
+    configure_runtime(runtime_options(cfg.get("runtime")))
+    run_cfg, model, dataset, run_dir, used = load_run_checkpoint(
+        str(cfg.run),
+        OmegaConf.select(cfg, "paths.data_dir", default=None),
+        str(cfg.get("checkpoint") or "best"),
+        accept_option(cfg.get("accept_changed_dataset")),
+    )
+    if not isinstance(model, ArticulatedLieDFLNN):
+        raise ConfigError(NOT_ARTICULATED)
+    console.print(describe_checkpoint(used), highlight=False)
+    total_mass, source = total_mass_choice(cfg, run_cfg)
+    spec, notes, scale = model_spec(model, list(dataset.body_names or []), total_mass, timestep)
+    checkpoint = describe_checkpoint(used).removeprefix("checkpoint: ")
+    h = float(model.h)
+    spec.comment = "\n".join(
+        [
+            f"liedfl export of run {Path(run_dir).resolve()} ({checkpoint})",
+            f"joints: {joint_summary(model.tree)}; h = {h!r} s, timestep h/{h / spec.timestep:.4g}",
+            f"total mass {total_mass:g} kg ({source}): learned masses, inertias and damping x {scale:.6g}",
+            "inertial: mass, centre of mass (body frame, from the joint), inertia about it (body frame)",
+            *notes,
+        ]
+    )
+    text = mjcf_text(spec)
+    try:
+        load_model(text)  # MuJoCo compiles it (a check; skipped without mujoco)
+    except ConfigError as e:
+        if "mujoco package" not in str(e):
+            raise
+        notes.append("mujoco is not installed: the file was not compiled as a check")
+    for note in notes:
+        warning_line(note)
+    write_text(out, text)
+    g = np.linalg.norm(spec.gravity)
+    console.print(
+        f"wrote {out}: MJCF of {model.tree.n_bodies} bodies ({joint_summary(model.tree)}), total mass "
+        f"{total_mass:g} kg ({source}), gravity {'none' if g == 0 else f'{g:.4g} m/s^2'}, "
+        f"timestep {spec.timestep:.4g} s",
+        highlight=False,
+    )
+    return out
+
+
+__all__ = ["FORMATS", "NOT_ARTICULATED", "model_spec", "run_export", "total_mass_choice"]
