@@ -93,6 +93,26 @@ def read_eval(run: Path) -> dict:
     }
 
 
+def _dof_signs(ds, run: Path) -> list[tuple[tuple[int, int], float]]:
+    """((qpos address, qvel address), +-1) of every hinge DoF of the engine's model: an inferred axis is
+    defined up to its sign, so the engine's angle and rate are flipped where the run's axis is the
+    opposite of MuJoCo's (the same motion in the exported model's convention)."""
+    import mujoco
+
+    src = mujoco.MjModel.from_xml_string(ds.params["mjcf"])
+    learned = json.loads((run / "joints.json").read_text())["axes"]
+    out = []
+    for jid in range(src.njnt):
+        if int(src.jnt_type[jid]) != 3:  # hinge
+            continue
+        name = mujoco.mj_id2name(src, mujoco.mjtObj.mjOBJ_JOINT, jid)  # j<b> or j<b>a / j<b>b (universal)
+        b = int(name[1:].rstrip("ab"))
+        row = 1 if name.endswith("b") else 0
+        sgn = 1.0 if float(np.dot(src.jnt_axis[jid], learned[b][row])) >= 0 else -1.0
+        out.append(((int(src.jnt_qposadr[jid]), int(src.jnt_dofadr[jid])), sgn))
+    return out
+
+
 def mjcf_replay(run: Path, ds, out: Path) -> float | None:
     """The exported model replayed by MuJoCo from the true initial states of the test trajectories:
     mean geodesic error over 50 steps / constant velocity's. None when export is not available."""
@@ -118,12 +138,17 @@ def mjcf_replay(run: Path, ds, out: Path) -> float | None:
     from liedfl_cli.lie import Pose
 
     text = xml.read_text()
+    signs = _dof_signs(ds, run)
     test = list(ds.test_idx)
     steps = min(50, ds.n_steps)
     errs, cvs = [], []
     truth = ds.pose(test)
     for j, i in enumerate(test):
-        Rw, _ = replay(text, ds.tree, ds.extras["qpos"][i, 0], ds.extras["qvel"][i, 0], ds.h, steps)
+        qpos, qvel = ds.extras["qpos"][i, 0].copy(), ds.extras["qvel"][i, 0].copy()
+        for (qa, va), sgn in signs:
+            qpos[qa] *= sgn
+            qvel[va] *= sgn
+        Rw, _ = replay(text, ds.tree, qpos, qvel, ds.h, steps)
         true_R = torch.as_tensor(ds.extras["body_R_world"][i, : steps + 1])
         errs.append(float(geodesic_error(torch.as_tensor(Rw), true_R).mean()))
         g0, g1 = truth.index((slice(j, j + 1), 0)), truth.index((slice(j, j + 1), 1))
