@@ -345,3 +345,198 @@ def test_rolling_a_tree_model_out_on_other_data_needs_the_same_tree():
     other.tree = None
     with pytest.raises(ConfigError, match="has none"):
         check_model_fits_data(model, other, "run")
+
+
+# ---------------------------------------------------------------------- MuJoCo trees: every joint type
+from liedfl_cli.data.mujoco_chain import JOINT_DOF, TREES, tree_spec  # noqa: E402
+from liedfl_cli.errors import ConfigError  # noqa: E402
+from liedfl_cli.lie.joint_constraints import joint_violation  # noqa: E402
+from liedfl_cli.lie.joints import to_joint_coordinates  # noqa: E402
+
+TREE_CASES = {
+    "branched5-free-mixed-world": dict(parents="branched5", joints=["free", "hinge", "universal", "ball", "weld"]),
+    "branched5-free-mixed-parent": dict(
+        parents=[-1, 0, 0, 0, 1], joints=["free", "universal", "weld", "hinge", "hinge"], rotations="parent"
+    ),
+    "branched5-pinned-hinge-gravity": dict(
+        parents="branched5",
+        joints=["hinge", "ball", "hinge", "universal", "weld"],
+        gravity=9.81,
+        joint_damping=[0.0, 0.05, 0.02, [0.01, 0.08], 0.0],
+        h=0.01,
+        speed=2.0,
+    ),
+    "binary7-pinned-universal": dict(
+        parents="binary7", joints=["universal", "hinge", "ball", "weld", "universal", "hinge", "ball"], h=0.02
+    ),
+    "branched7-pinned-ball-parent": dict(
+        parents="branched7",
+        joints=["ball", "hinge", "hinge", "universal", "ball", "weld", "hinge"],
+        rotations="parent",
+        gravity=9.81,
+        h=0.02,
+        speed=2.0,
+    ),
+    "chain4-heavy-root-mm": dict(
+        parents=[-1, 0, 1, 2], joints=["free", "hinge", "universal", "ball"], heavy_root=True, unit="mm"
+    ),
+}
+
+
+def tree(**kw) -> Dataset:
+    args = {"n_trajectories": 2, "steps": 15, "h": 0.02, "speed": 3.0, "max_step_rotation": 1.0, "seed": 11, **kw}
+    return chain_dataset(**args)
+
+
+def joint_violations(ds: Dataset) -> list[float]:
+    assert ds.tree is not None
+    q = to_joint_coordinates(ds.tree, ds.pose())
+    axes = torch.tensor(ds.tree.axes_array(), dtype=torch.float64)
+    return [float(joint_violation(k, axes[b], q.R[:, :, b]).max()) for b, k in enumerate(ds.tree.joint_kinds)]
+
+
+@pytest.mark.parametrize("kw", TREE_CASES.values(), ids=TREE_CASES.keys())
+def test_trees_reproduce_mujocos_poses_and_obey_their_joints(tmp_path, kw):
+    ds = tree(**kw)
+    back = load_dataset(save_dataset(ds, tmp_path / "tree.h5"))  # the load-time joint check passes too
+    assert back.tree == ds.tree and back.tree is not None
+    parents = TREES[kw["parents"]] if isinstance(kw["parents"], str) else kw["parents"]
+    assert list(back.tree.parents) == parents and back.tree.joints == tuple(kw["joints"])
+    assert back.tree.free_root == (kw["joints"][0] == "free") and back.tree.rotations == kw.get("rotations", "world")
+    world = fk(back)
+    scale = 1000.0 if kw.get("unit") == "mm" else 1.0
+    np.testing.assert_allclose(world.R.numpy(), back.extras["body_R_world"], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(world.p.numpy(), back.extras["body_p_world"], rtol=0, atol=1e-9 * scale)
+    violations = joint_violations(back)
+    assert max(violations) < 1e-9, dict(zip(back.tree.joint_kinds, violations))
+    # the joints really move: every hinge / universal / ball turns, a weld does not
+    q = to_joint_coordinates(back.tree, back.pose()).R
+    for b, k in enumerate(back.tree.joint_kinds):
+        turn = float(so3.log(q[:, :1, b].transpose(-1, -2) @ q[:, :, b]).norm(dim=-1).max())
+        assert (turn < 1e-9) if k == "weld" else (turn > 1e-2), (b, k, turn)
+    phys = back.params["physics"]
+    B = len(parents)
+    assert phys["joints"] == kw["joints"] and np.asarray(phys["joint_axes"]).shape == (B, 2, 3)
+    assert np.asarray(phys["joint_axes"]).tolist() == back.tree.axes_array()
+    assert [len(d) for d in phys["dof_damping"]] == [JOINT_DOF[k] for k in kw["joints"]]
+    assert len(phys["joint_damping"]) == B - 1 and phys["length_unit_m"] == back.params["length_unit_m"]
+    assert back.params["length_unit_m"] == (1e-3 if kw.get("unit") == "mm" else 1.0)
+    assert back.params["config"]["parents"] == parents and back.params["config"]["joints"] == kw["joints"]
+    axes = np.asarray(back.tree.axes_array())
+    for b, k in enumerate(kw["joints"]):
+        if k == "universal":  # two axes well away from parallel (between pi/4 and 3pi/4)
+            assert abs(axes[b, 0] @ axes[b, 1]) < np.cos(np.pi / 4)
+
+
+def test_a_tree_resimulated_from_its_mjcf_matches_by_body_name():
+    """MuJoCo numbers a tree's bodies depth first; the file's order is liedfl's: matched by name."""
+    ds = tree(parents=[-1, 0, 0, 1, 2, 1], joints=["free", "universal", "hinge", "weld", "ball", "hinge"])
+    model = mujoco.MjModel.from_xml_string(ds.params["mjcf"])
+    data = mujoco.MjData(model)
+    ids = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, n) for n in ds.body_names]
+    assert ids != sorted(ids)  # depth first: link3 (under link1) comes before link2
+    assert model.nv == 6 + 2 + 1 + 0 + 3 + 1 and model.njnt == 1 + 2 + 1 + 1 + 1
+    world = fk(ds)
+    sub = ds.params["simulation"]["substeps_per_sample"]
+    data.qpos[:], data.qvel[:] = ds.extras["qpos"][1, 0], ds.extras["qvel"][1, 0]
+    for k in range(ds.n_steps + 1):
+        if k > 0:
+            mujoco.mj_step(model, data, nstep=sub)
+        mujoco.mj_forward(model, data)
+        np.testing.assert_allclose(world.p[1, k].numpy(), data.xpos[ids], atol=1e-9)
+        np.testing.assert_allclose(world.R[1, k].numpy(), data.xmat[ids].reshape(-1, 3, 3), atol=1e-9)
+
+
+def test_a_weld_is_exactly_constant_and_a_hinge_turns_about_its_axis_only():
+    kw = dict(parents=[-1, 0, 1, 1], joints=["free", "hinge", "weld", "universal"])
+    par = tree(rotations="parent", **kw)
+    np.testing.assert_array_equal(par.R[:, :, 2], np.broadcast_to(np.eye(3), par.R[:, :, 2].shape))
+    wor = tree(rotations="world", **kw)
+    np.testing.assert_array_equal(wor.R[:, :, 2], wor.R[:, :, 1])  # world attitudes: the parent's, exactly
+    rel = np.swapaxes(wor.R[:, :, 1], -1, -2) @ wor.R[:, :, 2]
+    assert np.abs(rel - np.eye(3)).max() < 1e-14
+    # hinge: R_rel = exp(t a) with a the declared axis (C = I: identity body quats)
+    a = np.asarray(par.tree.axes[1][0])
+    w = so3.log(torch.as_tensor(par.R[:, :, 1])).numpy()
+    assert np.abs(w - (w @ a)[..., None] * a).max() < 1e-12
+    # universal: R_rel a2 . a1 = a1 . a2 (C = I)
+    a1, a2 = (np.asarray(x) for x in par.tree.axes[3])
+    assert np.abs(np.einsum("i,tkij,j->tk", a1, par.R[:, :, 3], a2) - a1 @ a2).max() < 1e-12
+
+
+def test_millimetres_are_the_metre_data_scaled():
+    kw = dict(parents="branched5", joints=["free", "hinge", "ball", "universal", "ball"], gravity=9.81)
+    kw.update(joint_damping=[0.0, 0.05, 0.03, [0.02, 0.06], 0.04], h=0.01, speed=2.0)
+    m, mm = tree(**kw), tree(unit="mm", **kw)
+    np.testing.assert_array_equal(mm.R, m.R)
+    np.testing.assert_allclose(mm.p, 1000 * m.p, rtol=1e-15)
+    np.testing.assert_allclose(mm.extras["body_p_world"], 1000 * m.extras["body_p_world"], rtol=1e-15)
+    np.testing.assert_allclose(fk(mm).p.numpy(), mm.extras["body_p_world"], atol=1e-6)  # 1e-9 m in mm
+    np.testing.assert_allclose(np.asarray(mm.tree.offsets), 1000 * np.asarray(m.tree.offsets), rtol=1e-15)
+    np.testing.assert_allclose(mm.extras["energy"], 1e6 * m.extras["energy"], rtol=1e-12)
+    pm, pmm = m.params["physics"], mm.params["physics"]
+    for a, b in zip(pm["bodies"], pmm["bodies"]):
+        assert a["mass"] == b["mass"]
+        np.testing.assert_allclose(b["com"], 1000 * np.asarray(a["com"]), rtol=1e-15)
+        np.testing.assert_allclose(b["inertia"], 1e6 * np.asarray(a["inertia"]), rtol=1e-15)
+    assert pmm["g"] == pytest.approx(9810.0) and mm.params["gravity"] == pytest.approx(9810.0)
+    np.testing.assert_allclose(pmm["dof_damping"][3], [2e4, 6e4])
+    assert mm.params["length_unit_m"] == 1e-3 and m.params["length_unit_m"] == 1.0
+    assert mm.params["mjcf"] == m.params["mjcf"]  # MuJoCo's scene stays in metres
+
+
+def test_per_dof_damping_and_heavy_root_reach_mujoco():
+    spec = tree_spec(
+        [-1, 0, 1, 1], ["hinge", "universal", "ball", "weld"], joint_damping=[0.01, [0.02, 0.07], 0.03, 0.0], seed=3
+    )
+    model = mujoco.MjModel.from_xml_string(chain_mjcf(spec))
+    phys = declared_physics(spec, model)
+    assert phys["dof_damping"] == [[0.01], [0.02, 0.07], [0.03] * 3, []]
+    assert phys["root_damping"] == 0.01 and phys["joint_damping"] == [pytest.approx(0.045), 0.03, 0.0]
+    np.testing.assert_allclose(model.dof_damping, [0.01, 0.02, 0.07, 0.03, 0.03, 0.03])
+    heavy = tree_spec([-1, 0, 0, 0, 1], ["free"] + ["ball"] * 4, heavy_root=True, seed=3)
+    masses = [link.mass for link in heavy.links]
+    assert masses[0] == 4.0 and all(0.5 <= m <= 0.7 for m in masses[1:])
+    assert max(np.linalg.eigvalsh(link.inertia).max() for link in heavy.links[1:]) < 0.025
+    assert tree_spec([-1, 0], ["free", "ball"], heavy_root=True, root_mass=10.0).links[0].mass == 10.0
+
+
+@pytest.mark.parametrize(
+    ("kw", "message"),
+    [
+        (dict(parents=[-1, 0, 2], joints=["free", "ball", "ball"]), "every parent an earlier body"),
+        (dict(parents=[-1, 0], joints=["free", "slider"]), "joints[1]='slider'"),
+        (dict(parents=[-1, 0, 0], joints=["ball", "free", "ball"]), "joints[1]='free'"),
+        (dict(parents=[-1, 0], joints=["weld", "weld"]), "nothing to move"),
+        (dict(parents="star9", joints=None), "one of ['chain3'"),
+        (dict(parents=[-1, 0], joints=["free", "universal"], joint_damping=[0.0, [0.1, 0.2, 0.3]]), "3 values"),
+        (dict(parents=[-1, 0], joints=["free", "ball"], joint_damping=[0.1, 0.1]), "free root is undamped"),
+        (dict(parents=[-1, 0], joints=["free", "ball"], unit="cm"), "unit='cm'"),
+    ],
+)
+def test_bad_tree_options_are_config_errors(kw, message):
+    with pytest.raises(ConfigError) as e:
+        tree(**kw)
+    assert message in str(e.value)
+
+
+def test_script_makes_trees(tmp_path, capsys):
+    import runpy
+
+    main = runpy.run_path(str(ROOT / "scripts" / "mujoco_chain.py"), run_name="mujoco_chain_script")["main"]
+    out = tmp_path / "tree.h5"
+    argv = ["--parents", "0,0,0,1", "--joints", "hinge,universal,ball,weld", "--unit", "mm", "--heavy-root"]
+    argv += ["--joint-damping", "0,0.05,0.02:0.08,0.05,0", "--n-trajectories", "2", "--steps", "5", "--out", str(out)]
+    assert main(argv) == 0, capsys.readouterr().err
+    ds = load_dataset(out)
+    assert ds.tree is not None and list(ds.tree.parents) == [-1, 0, 0, 0, 1]
+    assert ds.tree.joints == ("free", "hinge", "universal", "ball", "weld") and ds.params["length_unit_m"] == 1e-3
+    assert ds.params["physics"]["dof_damping"][2] == pytest.approx([0.02e6, 0.08e6])
+    assert "5 bodies" in capsys.readouterr().out
+    out2 = tmp_path / "named.h5"
+    argv = ["--tree", "binary7", "--root", "pinned", "--joint", "hinge", "--n-trajectories", "2", "--steps", "5"]
+    assert main([*argv, "--h", "0.02", "--out", str(out2)]) == 0, capsys.readouterr().err
+    named = load_dataset(out2)
+    assert list(named.tree.parents) == TREES["binary7"] and named.tree.joints == ("hinge",) * 7
+    assert main(["--tree", "binary7", "--parents", "0", "--out", str(tmp_path / "x.h5")]) == 2
+    assert "not both" in capsys.readouterr().err

@@ -340,7 +340,7 @@ def load_dataset(path, require_split: bool = True) -> Dataset:
         ds.split = {"train": np.arange(ds.R.shape[0]), "test": np.zeros(0, dtype=np.int64)}
     ds.R = _validate(ds, src, input_dtype=input_dtype, t_dtype=None if t is None else np.asarray(t).dtype)
     if tree is not None and tree.joints is not None:
-        check_joint_motion(ds, src)
+        check_joint_motion(ds, src, input_dtype)
     if require_split and ds.split["train"].size == 0:
         raise DatasetError(f"{src}: dataset 'split/train' is empty: there is nothing to train on")
     return ds
@@ -421,7 +421,8 @@ def _read_joints(joints, joint_axes, B: int, free: bool, src: str) -> tuple[list
         allowed = ("free",) if (b == 0 and free) else JOINT_TYPES
         if j not in allowed:
             where = "the free (SE(3)) root" if (b == 0 and free) else f"body {b}"
-            raise DatasetError(f"{src}: attribute 'joints' has {j!r} for {where}; use one of {list(allowed)}")
+            why = " ('free' is only the free root's, body 0)" if j == "free" else ""
+            raise DatasetError(f"{src}: attribute 'joints' has {j!r} for {where}{why}; use one of {list(allowed)}")
     needs = [b for b, j in enumerate(joints) if j in ("hinge", "universal")]
     if joint_axes is None:
         if needs:
@@ -447,10 +448,12 @@ def _read_joints(joints, joint_axes, B: int, free: bool, src: str) -> tuple[list
     return list(joints), axes.tolist()
 
 
-def check_joint_motion(ds: Dataset, src: str) -> None:
-    """Refuse a file whose motion violates its declared joints by more than
-    `lie.joint_constraints.VIOLATION_TOLERANCE`, naming the body, the trajectory and the violation."""
-    from ..lie.joint_constraints import VIOLATION_TOLERANCE, joint_violation
+def check_joint_motion(ds: Dataset, src: str, dtype: torch.dtype = torch.float64) -> None:
+    """Refuse a file whose motion R (T, N+1, B, 3, 3) violates its declared joints by more than
+    `lie.joint_constraints.violation_tolerance(dtype)` (1e-6 rad for float64 files, 1e-4 for float32;
+    `dtype`: the stored precision of R), with a one-line DatasetError naming the file, the body (index
+    and name), the joint, the trajectory and the largest violation."""
+    from ..lie.joint_constraints import joint_violation, violation_tolerance
     from ..lie.joints import to_joint_coordinates
 
     tree = ds.tree
@@ -458,16 +461,17 @@ def check_joint_motion(ds: Dataset, src: str) -> None:
     R = torch.as_tensor(np.asarray(ds.R), dtype=torch.float64)
     if R.ndim != 5 or R.shape[1] < 1:
         return
+    tol = violation_tolerance(dtype)
     q = to_joint_coordinates(tree, Pose(R, torch.zeros(*R.shape[:2], 0, 3, dtype=torch.float64)))
     axes = torch.tensor(tree.axes_array(), dtype=torch.float64)
     for b, kind in enumerate(tree.joint_kinds):
-        v = joint_violation(kind, axes[b], q.R[:, :, b])
-        if v.numel() and float(v.max()) > VIOLATION_TOLERANCE:
-            i = int(v.argmax())
+        v = joint_violation(kind, axes[b], q.R[:, :, b])  # (T,)
+        if v.numel() and not bool((v <= tol).all()):
+            i = int(torch.nan_to_num(v, nan=float("inf")).argmax())
             raise DatasetError(
                 f"{src}: body {b} ({ds.body_names[b]}) is declared a {kind} joint but trajectory {i} violates it by "
-                f"{float(v.max()):.3g} rad (> {VIOLATION_TOLERANCE:g}); fix 'joints'/'joint_axes' or leave "
-                "'joints' out (model.joints=auto infers them)"
+                f"{float(v[i]):.3g} rad (> {tol:g}); fix 'joints'/'joint_axes' or leave 'joints' out "
+                "(model.joints=auto infers them)"
             )
 
 

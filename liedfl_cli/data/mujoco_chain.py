@@ -31,7 +31,7 @@ mujoco is imported inside the functions (`pip install mujoco`, or the `test` ext
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -48,6 +48,7 @@ JOINTS = ("ball", "hinge")
 TREE_JOINTS = ("ball", "hinge", "universal", "weld")
 UNITS = {"m": 1.0, "mm": 1e-3}
 ROOTS = ("free", "pinned")
+JOINT_DOF = {"free": 6, "ball": 3, "universal": 2, "hinge": 1, "weld": 0}
 GENERATOR_VERSION = 1
 
 
@@ -73,9 +74,10 @@ class Link:
     inertia: np.ndarray  # (3, 3) about the COM, body frame
     offset: np.ndarray  # (3,)
     axis: np.ndarray | None = None  # hinge axis (body frame), None for ball / free; a universal's first (parent frame)
-    axis2: np.ndarray | None = None  # a universal joint's second axis (body frame)
     length: float = 0.0  # for drawing: the capsule from the joint along `direction`
     direction: np.ndarray = field(default_factory=lambda: np.array([1.0, 0.0, 0.0]))
+    axis2: np.ndarray | None = None  # a universal joint's second axis (body frame)
+    damping: list[float] | None = None  # per DoF of its joint (`tree_spec`); None: the spec's joint_damping
 
 
 @dataclass
@@ -101,7 +103,8 @@ class ChainSpec:
         return [("free" if self.root == "free" else self.joint)] + [self.joint] * (len(self.links) - 1)
 
     def joint_axes(self) -> list[list[list[float]]]:
-        """(B, 2, 3) in liedfl's layout (`lie.tree.Tree.axes`): hinge axis; universal a1, a2; else zeros."""
+        """(B, 2, 3) in liedfl's layout (`lie.tree.Tree.axes`): a hinge's axis (body frame) in row 0; a
+        universal joint's a1 (parent frame) in row 0 and a2 (body frame) in row 1; zeros otherwise."""
         z = [0.0, 0.0, 0.0]
         out = []
         for link, kind in zip(self.links, self.joint_kinds()):
@@ -111,6 +114,17 @@ class ChainSpec:
                 out.append([[float(x) for x in link.axis], [float(x) for x in link.axis2]])
             else:
                 out.append([z, z])
+        return out
+
+    def dof_damping(self) -> list[list[float]]:
+        """Per body, the damping of each DoF of its joint (6 / 3 / 2 / 1 / 0 values; the root's zeros
+        unless given)."""
+        out = []
+        for b, (link, kind) in enumerate(zip(self.links, self.joint_kinds())):
+            if link.damping is not None:
+                out.append([float(x) for x in link.damping])
+            else:
+                out.append([0.0 if b == 0 else self.joint_damping] * JOINT_DOF[kind])
         return out
 
 
@@ -184,23 +198,78 @@ def chain_spec(
     return ChainSpec(out, joint, root, float(gravity), float(joint_damping), float(dt))
 
 
+TREES = {
+    "chain3": [-1, 0, 1],
+    "chain5": [-1, 0, 1, 2, 3],
+    "branched5": [-1, 0, 0, 0, 1],  # a root with three branches, the first two links long
+    "branched7": [-1, 0, 0, 0, 1, 2, 3],  # a root with three branches of two links
+    "binary7": [-1, 0, 0, 1, 1, 2, 2],  # every body two children, two levels deep
+}
+"""Named trees for `chain_dataset(parents=...)` and `scripts/mujoco_chain.py --tree NAME`: parents (B,)."""
+
+
+def _damping_per_dof(joint_damping, kinds: list[str]) -> list[list[float]]:
+    """Per body, the damping of each DoF of its joint (B lists of 6/3/2/1/0 values): `joint_damping` a
+    float (every non-root DoF; the root's joint undamped) or a list of B entries, each a float (every
+    DoF of that joint) or a list with one value per DoF (a ball: 1 value, as MJCF has one per joint)."""
+    B = len(kinds)
+    if isinstance(joint_damping, (int, float)):
+        entries: list = [0.0] + [float(joint_damping)] * (B - 1)
+    else:
+        entries = list(joint_damping)
+        if len(entries) != B:
+            raise ConfigError(
+                f"joint_damping has {len(entries)} entries for {B} bodies (one per body, the root's first)"
+            )
+    out = []
+    for b, (e, kind) in enumerate(zip(entries, kinds)):
+        n = JOINT_DOF[kind]
+        vals = [float(x) for x in (e if isinstance(e, (list, tuple, np.ndarray)) else [e])]
+        if kind == "ball" and len(vals) == 3 and len(set(vals)) == 1:
+            vals = vals[:1]
+        if len(vals) == 1:
+            vals = vals * n
+        elif len(vals) != n or kind == "ball":
+            raise ConfigError(
+                f"joint_damping[{b}] has {len(vals)} values for a {kind} joint ({n} DoF; a ball takes one value)"
+            )
+        if not all(math.isfinite(x) and x >= 0 for x in vals):
+            raise ConfigError(f"joint_damping[{b}]={vals}: every value must be finite and >= 0")
+        if kind == "free" and any(vals):
+            raise ConfigError("joint_damping[0]: a free root is undamped (use 0)")
+        out.append(vals)
+    return out
+
+
 def tree_spec(
     parents,
     joints,
     gravity: float = 0.0,
-    joint_damping: float = 0.05,
+    joint_damping: float | Sequence = 0.05,
     dt: float = 1e-3,
     seed: int = 0,
     heavy_root: bool = False,
+    root_mass: float = 4.0,
+    link_mass: tuple[float, float] = (0.5, 0.7),
 ) -> ChainSpec:
-    """A random but physical kinematic tree: `parents` (B,) (-1 for body 0, every parent earlier) and
-    `joints` (B,): "free" for a free root (else the pinned root's joint), then "ball", "hinge",
-    "universal" or "weld" per body. Links are drawn as in `chain_spec` (mass U(1, 3) kg, length
-    U(0.25, 0.5) m, box inertias turned off their axes, centres of mass off the joint); a child's joint
-    sits at U(0.6, 1) of its parent's length along the parent's direction plus a sideways offset up to
-    0.05 m (siblings apart). Hinge axes are random; a universal joint's two axes are random at least
-    0.5 rad from parallel. heavy_root: a 4 kg root (inertias of its box) with light links of U(0.5, 0.7) kg
-    (link inertias 0.004-0.02 kg m^2): the mass ratios a robot base with light links has."""
+    """A random but physical kinematic tree of B = len(parents) bodies (2 to 12).
+
+    parents (B,): -1 for body 0, then every parent an earlier body (or a name in `TREES`). joints (B,):
+    body 0 "free" (a free root) or its joint to the world (a pinned root: "ball", "hinge", "universal"
+    or "weld"), then "ball", "hinge", "universal" or "weld" per body. joint_damping: see
+    `_damping_per_dof` (a float: every non-root DoF; or per body a float or per-DoF values).
+    Links are drawn as in `chain_spec` (mass U(1, 3) kg, length U(0.25, 0.5) m along a random direction,
+    box inertias turned off their axes, so off-diagonal in the body frame, centres of mass off the
+    joint); a child's joint sits at U(0.6, 1) of its parent's length along the parent's direction plus
+    a random offset up to 0.05 m (siblings apart). A hinge axis is a random unit vector; a universal
+    joint's two axes are random unit vectors between pi/4 and 3pi/4 apart (not orthogonal, well away
+    from parallel). heavy_root: the root's mass is `root_mass` (4 kg; the inertia of its box) and every
+    other link's U(link_mass) kg (0.5-0.7 kg; inertias ~0.004-0.02 kg m^2): a robot base with light
+    links."""
+    if isinstance(parents, str):
+        if parents not in TREES:
+            raise ConfigError(f"parents={parents!r}: a list or one of {list(TREES)}")
+        parents = TREES[parents]
     parents = [int(q) for q in parents]
     joints = [str(j) for j in joints]
     B = len(parents)
@@ -215,13 +284,22 @@ def tree_spec(
         ok = TREE_JOINTS + (("free",) if b == 0 else ())
         if j not in ok:
             raise ConfigError(f"joints[{b}]={j!r}: use one of {list(ok)}")
+    if sum(JOINT_DOF[j] for j in joints) == 0:
+        raise ConfigError(f"joints={joints}: every joint a weld leaves nothing to move")
     if not (math.isfinite(gravity) and gravity >= 0):
         raise ConfigError(f"gravity={gravity}: the magnitude along -e3 must be >= 0")
+    if not (math.isfinite(dt) and dt > 0):
+        raise ConfigError(f"dt={dt}: must be > 0")
+    if heavy_root and not (math.isfinite(root_mass) and root_mass > 0 and 0 < link_mass[0] <= link_mass[1]):
+        raise ConfigError(f"root_mass={root_mass}, link_mass={link_mass}: masses must be > 0")
+    damping = _damping_per_dof(joint_damping, joints)
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 3]))
     out: list[Link] = []
     for b in range(B):
-        light = heavy_root and b > 0
-        m = 4.0 if (heavy_root and b == 0) else float(rng.uniform(0.5, 0.7) if light else rng.uniform(1.0, 3.0))
+        if heavy_root:
+            m = float(root_mass) if b == 0 else float(rng.uniform(*link_mass))
+        else:
+            m = float(rng.uniform(1.0, 3.0))
         L = float(rng.uniform(0.25, 0.5))
         d = _unit(rng)
         side = _unit(rng)
@@ -245,12 +323,12 @@ def tree_spec(
             axis = _unit(rng)
             while True:
                 axis2 = _unit(rng)
-                if abs(float(axis.dot(axis2))) < math.cos(0.5):
+                if abs(float(axis.dot(axis2))) < math.cos(math.pi / 4):
                     break
-        link = Link(f"link{b}", m, com, 0.5 * (inertia + inertia.T), offset, axis, L, d)
-        link.axis2 = axis2
-        out.append(link)
-    return ChainSpec(out, "mixed", root, float(gravity), float(joint_damping), float(dt), parents, joints)
+        out.append(Link(f"link{b}", m, com, 0.5 * (inertia + inertia.T), offset, axis, L, d, axis2, damping[b]))
+    mean = [float(np.mean(v)) if v else 0.0 for v in damping]
+    uniform = float(joint_damping) if isinstance(joint_damping, (int, float)) else float(np.mean(mean[1:]))
+    return ChainSpec(out, "mixed", root, float(gravity), uniform, float(dt), parents, joints)
 
 
 def _v(x) -> str:
@@ -272,19 +350,21 @@ def chain_mjcf(spec: ChainSpec) -> str:
     ]
     parents, kinds = spec.parents, spec.joint_kinds()
 
+    damping = spec.dof_damping()
+
     def body(b: int, depth: int) -> None:
-        link, kind = spec.links[b], kinds[b]
+        link, kind, d = spec.links[b], kinds[b], damping[b]
         ind = "    " + "  " * depth
         lines.append(f'{ind}<body name="{link.name}" pos="{_v(link.offset)}">')
-        damping = spec.joint_damping if b > 0 else 0.0  # the root's joint (a pinned root's too) is undamped
         if kind == "free":
             lines.append(f'{ind}  <freejoint name="root"/>')
         elif kind in ("ball", "hinge"):
             axis = f' axis="{_v(link.axis)}"' if kind == "hinge" and link.axis is not None else ""
-            lines.append(f'{ind}  <joint name="j{b}" type="{kind}" damping="{damping!r}"{axis}/>')
+            lines.append(f'{ind}  <joint name="j{b}" type="{kind}" damping="{d[0]!r}"{axis}/>')
         elif kind == "universal":
-            for tag, ax in (("a", link.axis), ("b", link.axis2)):
-                lines.append(f'{ind}  <joint name="j{b}{tag}" type="hinge" damping="{damping!r}" axis="{_v(ax)}"/>')
+            for tag, ax, db in (("a", link.axis, d[0]), ("b", link.axis2, d[1])):
+                lines.append(f'{ind}  <joint name="j{b}{tag}" type="hinge" damping="{db!r}" axis="{_v(ax)}"/>')
+        # a weld body has no joint: MuJoCo attaches it rigidly to its parent
         I = link.inertia
         full = [I[0, 0], I[1, 1], I[2, 2], I[0, 1], I[0, 2], I[1, 2]]
         lines.append(f'{ind}  <inertial pos="{_v(link.com)}" mass="{link.mass!r}" fullinertia="{_v(full)}"/>')
@@ -309,7 +389,8 @@ def body_ids(spec: ChainSpec, model) -> list[int]:
 
 
 def declared_physics(spec: ChainSpec, model) -> dict[str, Any]:
-    """params["physics"] from the compiled MuJoCo model (masses, COMs and inertias as MuJoCo uses them)."""
+    """params["physics"] from the compiled MuJoCo model (masses, COMs and inertias as MuJoCo uses them;
+    damping per DoF from `model.dof_damping`), in metres (`chain_dataset` rescales for other units)."""
     mujoco = require_mujoco()
     ids = body_ids(spec, model)
     bodies = []
@@ -328,14 +409,21 @@ def declared_physics(spec: ChainSpec, model) -> dict[str, Any]:
         )
     kinds = spec.joint_kinds()
     hinge = "hinge" in kinds
-    dof = {"free": 6, "ball": 3, "universal": 2, "hinge": 1, "weld": 0}
-    dof_damping = [[0.0] * dof[k] if b == 0 else [spec.joint_damping] * dof[k] for b, k in enumerate(kinds)]
+    # per DoF as MuJoCo compiled it: a body's DoF are its joints' (a universal: two hinges; a weld: none)
+    dof_damping = [
+        [float(x) for x in model.dof_damping[model.body_dofadr[i] : model.body_dofadr[i] + model.body_dofnum[i]]]
+        for i in ids
+    ]
+
+    def one(v: list[float]) -> float:  # a joint's damping as one number: its DoF's value, or their mean
+        return 0.0 if not v else (v[0] if len(set(v)) == 1 else float(np.mean(v)))
+
     return {
         "kind": "articulated",
         "g": spec.gravity,
         "bodies": bodies,
-        "joint_damping": [spec.joint_damping] * (len(spec.links) - 1),
-        "root_damping": 0.0,
+        "joint_damping": [one(v) for v in dof_damping[1:]],
+        "root_damping": one(dof_damping[0]),
         "joints": kinds,
         "hinge_axes": (
             [
@@ -365,8 +453,7 @@ def _initial_state(spec: ChainSpec, model, data, rng: np.random.Generator, speed
     `speed` rad/s about its centre of mass (a fixed energy bounds how fast the light links can whip)."""
     qpos = np.zeros(model.nq)
     qvel = np.zeros(model.nv)
-    for b in range(len(spec.links)):
-        i = body_ids(spec, model)[b]
+    for i in body_ids(spec, model):
         first, count = int(model.body_jntadr[i]), int(model.body_jntnum[i])
         for jid in range(first, first + count):  # none for a weld body, two for a universal joint
             qa, va, kind = model.jnt_qposadr[jid], model.jnt_dofadr[jid], int(model.jnt_type[jid])
@@ -488,13 +575,26 @@ def chain_coordinates(
     return R, p
 
 
+def _tree_joints(parents: list[int], joints, joint: str, root: str) -> list[str]:
+    """Every body's joint (B,) from `joints`: None (the root "free" or, pinned, `joint`; `joint` elsewhere),
+    B entries, or B - 1 entries for the non-root bodies (the root's from `root` and `joint`)."""
+    B = len(parents)
+    first = "free" if root == "free" else joint
+    if joints is None:
+        return [first] + [joint] * (B - 1)
+    joints = [str(j).strip() for j in joints]
+    if len(joints) == B - 1:
+        return [first] + joints
+    return joints
+
+
 def chain_dataset(
     links: int = 3,
     joint: str = "ball",
     rotations: str = "world",
     root: str = "free",
     gravity: float = 0.0,
-    joint_damping: float = 0.05,
+    joint_damping: float | Sequence = 0.05,
     n_trajectories: int = 128,
     steps: int = 100,
     h: float = 0.05,
@@ -504,39 +604,67 @@ def chain_dataset(
     test_fraction: float = 0.1,
     max_step_rotation: float = 0.5 * math.pi / 2,
     progress: Callable[[float], None] | None = None,
-    parents=None,
-    joints=None,
+    parents: Sequence[int] | str | None = None,
+    joints: Sequence[str] | None = None,
     heavy_root: bool = False,
     unit: str = "m",
     declare_joints: bool = True,
+    root_mass: float = 4.0,
 ) -> Dataset:
-    """A liedfl dataset of a random MuJoCo chain (module docstring). ConfigError when the largest
-    per-step rotation of the coordinates or of a world attitude exceeds `max_step_rotation`
-    (default pi/4: well below the pi/2 at which liedfl warns; lower `speed` or h)."""
+    """A liedfl dataset of a random MuJoCo chain or tree (module docstring; docs/data_format.md "MuJoCo
+    chains"): R (T, N+1, B, 3, 3), p (T, N+1, 1 or 0, 3), the tree with its joints, params["physics"],
+    MuJoCo's poses under extras. ConfigError when the largest per-step rotation of the coordinates or of
+    a world attitude exceeds `max_step_rotation` (default pi/4: well below the pi/2 at which liedfl
+    warns; lower `speed` or h).
+
+    A serial chain of `links` ball or hinge joints (`chain_spec`, as before) unless one of the tree
+    options is given, then `tree_spec`: `parents` (B,) or a name in `TREES`; `joints` per body (B, or
+    B - 1 with the root's from `root`: "free", or pinned with `joint`) among ball / hinge / universal /
+    weld; `joint_damping` a float or per body (per DoF); `heavy_root` (a `root_mass` kg root, 0.5-0.7 kg
+    links); `joint` universal/weld. `unit` "m" or "mm": MuJoCo simulates in metres, the file stores
+    lengths (p, joint_offsets, COMs, world positions) in the unit, inertias in kg unit^2, gravity in
+    unit/s^2, damping in kg unit^2/s, energies in kg unit^2/s^2; params["length_unit_m"] says which.
+    declare_joints=False leaves the tree's joints out (every joint then reads as a ball)."""
     if rotations not in ("world", "parent"):
         raise ConfigError(f"rotations={rotations!r}: use 'world' or 'parent'")
     if int(n_trajectories) < 1 or int(steps) < 1:
         raise ConfigError(f"n_trajectories={n_trajectories}, steps={steps}: need at least 1 of each")
     if unit not in UNITS:
         raise ConfigError(f"unit={unit!r}: use one of {list(UNITS)}")
-    if parents is not None or joints is not None or heavy_root:
+    if root not in ROOTS:
+        raise ConfigError(f"root={root!r}: use one of {list(ROOTS)}")
+    as_tree = (
+        parents is not None
+        or joints is not None
+        or heavy_root
+        or joint not in JOINTS
+        or not isinstance(joint_damping, (int, float))
+    )
+    if as_tree:
         if parents is None:
             parents = [-1] + list(range(int(links) - 1))
-        if joints is None:
-            joints = [("free" if root == "free" else joint)] + [joint] * (len(parents) - 1)
-        spec = tree_spec(parents, joints, gravity, joint_damping, dt, seed, heavy_root)
+        elif isinstance(parents, str):
+            if parents not in TREES:
+                raise ConfigError(f"parents={parents!r}: a list or one of {list(TREES)}")
+            parents = TREES[parents]
+        parents = [int(q) for q in parents]
+        kinds_in = _tree_joints(parents, joints, joint, root)
+        spec = tree_spec(parents, kinds_in, gravity, joint_damping, dt, seed, heavy_root, root_mass)
         root = spec.root
     else:
-        spec = chain_spec(links, joint, root, gravity, joint_damping, dt, seed)
+        assert isinstance(joint_damping, (int, float))
+        spec = chain_spec(links, joint, root, gravity, float(joint_damping), dt, seed)
     rec, model = simulate_chain(spec, n_trajectories, steps, h, seed, speed, progress)
     free = root == "free"
-    R, p = chain_coordinates(rec, rotations, free, spec.parents)
     kinds = spec.joint_kinds()
+    R, p = chain_coordinates(rec, rotations, free, spec.parents)
+    for b, kind in enumerate(kinds):  # a weld's R_rel is C = I (identity body quats): exactly, not to rounding
+        if kind == "weld" and b > 0:
+            R[:, :, b] = np.eye(3) if rotations == "parent" else R[:, :, spec.parents[b]]
     scale = 1.0 / UNITS[unit]  # file units per metre
-    offsets = [scale * k.offset for k in spec.links]
     tree = Tree.from_lists(
         spec.parents,
-        offsets,
+        [scale * k.offset for k in spec.links],
         rotations,
         free_root=free,
         joints=kinds if declare_joints else None,
@@ -557,27 +685,32 @@ def chain_dataset(
     T = int(n_trajectories)
     split, overlap = default_split(T, float(test_fraction), None, int(seed))
     physics = declared_physics(spec, model)
-    if scale != 1.0:  # the same motion in other length units: lengths x scale, inertias x scale^2
+    energy_scale = scale * scale  # kg m^2 -> kg unit^2 (inertias, damping, energies, angular momenta)
+    if scale != 1.0:  # the same motion in other length units
         for body in physics["bodies"]:
             body["com"] = [scale * x for x in body["com"]]
-            body["inertia"] = [[scale * scale * x for x in row] for row in body["inertia"]]
+            body["inertia"] = [[energy_scale * x for x in row] for row in body["inertia"]]
         physics["g"] = scale * physics["g"]
-        physics["dof_damping"] = [[scale * scale * x for x in row] for row in physics["dof_damping"]]
-        physics["joint_damping"] = [scale * scale * x for x in physics["joint_damping"]]
-        physics["root_damping"] = scale * scale * physics["root_damping"]
+        physics["dof_damping"] = [[energy_scale * x for x in row] for row in physics["dof_damping"]]
+        physics["joint_damping"] = [energy_scale * x for x in physics["joint_damping"]]
+        physics["root_damping"] = energy_scale * physics["root_damping"]
         p = scale * p
-        rec.pw = scale * rec.pw
+    physics["length_unit_m"] = UNITS[unit]
     config = {
-        "links": int(links),
+        "links": len(spec.links),
         "joint": joint,
         "rotations": rotations,
         "root": root,
         "gravity": float(gravity),
-        "joint_damping": float(joint_damping),
+        "joint_damping": (
+            float(joint_damping) if isinstance(joint_damping, (int, float)) else physics_damping_config(joint_damping)
+        ),
         "parents": spec.parents,
         "joints": kinds,
         "heavy_root": bool(heavy_root),
+        "root_mass": float(root_mass) if heavy_root else None,
         "unit": unit,
+        "declare_joints": bool(declare_joints),
         "n_trajectories": T,
         "steps": int(steps),
         "h": float(h),
@@ -592,7 +725,7 @@ def chain_dataset(
         "config": config,
         "generator": "liedfl_cli.data.mujoco_chain",
         "generator_version": GENERATOR_VERSION,
-        "mjcf": chain_mjcf(spec),
+        "mjcf": chain_mjcf(spec),  # in metres, whatever `unit`
         "split_overlap": overlap,
         "step_rotation": largest,
         "length_unit_m": UNITS[unit],
@@ -608,17 +741,17 @@ def chain_dataset(
     }
     if gravity == 0:
         params["potential"] = "none"
-    extras = {
+    extras = {  # in the file's unit, but qpos / qvel: MuJoCo's own state, in metres (params["mjcf"])
         "body_R_world": rec.Rw,
-        "body_p_world": rec.pw,
+        "body_p_world": scale * rec.pw,
         "body_omega": rec.omega,
         "qpos": rec.qpos,
         "qvel": rec.qvel,
-        "kinetic_energy": rec.kinetic,
-        "potential_energy": rec.potential,
-        "energy": rec.kinetic + rec.potential,
-        "linear_momentum": rec.linear_momentum,
-        "angular_momentum": rec.angular_momentum,
+        "kinetic_energy": energy_scale * rec.kinetic,
+        "potential_energy": energy_scale * rec.potential,
+        "energy": energy_scale * (rec.kinetic + rec.potential),
+        "linear_momentum": scale * rec.linear_momentum,
+        "angular_momentum": energy_scale * rec.angular_momentum,
     }
     return Dataset(
         R=R,
@@ -626,7 +759,6 @@ def chain_dataset(
         h=float(h),
         scene="mujoco_chain",
         body_names=[k.name for k in spec.links],
-        # MuJoCo's qpos/qvel stay in metres (params["mjcf"] is the metre model)
         body_kinds=(["se3"] if free else ["so3"]) + ["so3"] * (len(spec.links) - 1),
         params=params,
         seed=int(seed),
@@ -634,6 +766,14 @@ def chain_dataset(
         extras=extras,
         tree=tree,
     )
+
+
+def physics_damping_config(joint_damping) -> list:
+    """`joint_damping` given per body (floats or per-DoF lists) as plain JSON lists."""
+    out: list = []
+    for e in joint_damping:
+        out.append([float(x) for x in e] if isinstance(e, (list, tuple, np.ndarray)) else float(e))
+    return out
 
 
 __all__ = [
@@ -646,6 +786,10 @@ __all__ = [
     "chain_spec",
     "tree_spec",
     "TREE_JOINTS",
+    "TREES",
+    "JOINT_DOF",
+    "UNITS",
+    "body_ids",
     "chain_mjcf",
     "declared_physics",
     "simulate_chain",
