@@ -1,29 +1,39 @@
-"""Articulated chains simulated by MuJoCo: an independent engine to test liedfl's trees and
-articulated models against (docs/data_format.md, "MuJoCo chains"; script `scripts/mujoco_chain.py`).
+"""Articulated chains and trees simulated by MuJoCo: an independent engine to test liedfl's trees,
+joints and articulated models against (docs/data_format.md, "MuJoCo chains and trees"; script
+`scripts/mujoco_chain.py`).
 
-`chain_spec(...)` draws a chain of 2..5 links from a seed: link masses, inertias about the centre of
-mass with off-diagonal terms (box-like principal moments about principal axes turned by a random
-rotation in the body frame), centres of mass off the joint, joint offsets, hinge axes. `chain_mjcf`
-writes its MJCF (contacts disabled, MuJoCo's RK4 integrator, gravity along -e3), `simulate_chain`
-integrates random initial states with `mj_step` and samples every h, `chain_dataset` makes a liedfl
-`Dataset` of it: the coordinates R (world or parent-relative attitudes) and p (the free root's
-position), the kinematic tree (parents, joint offsets: the MJCF body `pos` in the parent frame; every
-joint sits at its body's origin), `params["physics"]` declaring the truth (schema below) and the
-engine's world poses, velocities, energies and momenta under `extras/` (evaluation only).
+`chain_spec(...)` draws a serial chain of 2..5 links from a seed: link masses, inertias about the centre
+of mass with off-diagonal terms (box-like principal moments about principal axes turned by a random
+rotation in the body frame), centres of mass off the joint, joint offsets, hinge axes. `tree_spec(...)`
+draws any tree (`parents`, or a name in `TREES`) with a joint per body among ball / hinge / universal
+(two MJCF hinges in one body) / weld (no joint element), a free or pinned root (its joint any of
+those), per-DoF damping and an optional heavy root with light links. `chain_mjcf` writes the MJCF
+(contacts disabled, MuJoCo's RK4 integrator, gravity along -e3), `simulate_chain` integrates random
+initial states with `mj_step` and samples every h, `chain_dataset` makes a liedfl `Dataset` of it: the
+coordinates R (T, N+1, B, 3, 3) (world or parent-relative attitudes) and p (T, N+1, 1 or 0, 3) (the
+free root's position), the kinematic tree (parents, joint offsets: the MJCF body `pos` in the parent
+frame; every joint sits at its body's origin) with its joints and axes, `params["physics"]` declaring
+the truth (schema below) and the engine's world poses, velocities, energies and momenta under `extras/`
+(evaluation only), lengths in metres or, `unit="mm"`, millimetres.
 
 Body frames: every MJCF body has the identity `quat`, so its frame at the reference configuration is
 parallel to its parent's, and MuJoCo's `xmat` (body -> world) is the world attitude Rw_b; a ball
-joint's quaternion (w, x, y, z) is then R_parent^T R_b and a hinge's rotation is exp(theta a) with the
-axis a in the body frame. MuJoCo's joint damping d acts per degree of freedom on the relative angular
-velocity of the child w.r.t. its parent in the child frame: torque = -d * w_rel.
+joint's quaternion (w, x, y, z) is then R_rel = R_parent^T R_b, a hinge's rotation is exp(theta a) with
+the axis a in the body frame, a universal joint's exp(t1 a1) exp(t2 a2) (a1 fixed in the parent frame,
+a2 in the body frame; liedfl's `Tree.axes` rows 0 and 1), a weld's the identity. MuJoCo's joint damping
+d acts per degree of freedom on the relative angular velocity of the child w.r.t. its parent in the
+child frame: torque = -d * w_rel (a hinge's: along its axis).
 
 params["physics"] = {
     "kind": "articulated", "g": <gravity magnitude along -e3>,
     "bodies": [{"name", "mass", "com": body frame, from the joint, "inertia": 3x3 about the COM, body frame}],
-    "joint_damping": [d per non-root body], "root_damping": 0.0,
-    "joints": ["free" | "ball" | "hinge" per body (the root: "free" or its pinned joint)],
+    "joint_damping": [d per non-root body (its DoF's, their mean if they differ, 0 for a weld)],
+    "root_damping": <a pinned root's joint damping, 0.0>,
+    "joints": ["free" | "ball" | "hinge" | "universal" | "weld" per body (the root: "free" or its pinned joint)],
     "hinge_axes": [[3] or null per body] (body frame) or null when there is no hinge,
-    "engine": "mujoco <version>", "dt": dt, "integrator": "RK4"}
+    "joint_axes": (B, 2, 3) as `Tree.axes`, "dof_damping": [[per-DoF damping] per body] (6/3/2/1/0 values),
+    "length_unit_m": 1.0 | 0.001, "engine": "mujoco <version>", "dt": dt, "integrator": "RK4"}
+(lengths, inertias, damping and g in the file's length unit).
 
 mujoco is imported inside the functions (`pip install mujoco`, or the `test` extra).
 """
@@ -83,7 +93,7 @@ class Link:
 @dataclass
 class ChainSpec:
     links: list[Link]
-    joint: str  # "ball" | "hinge" (every non-root joint; a pinned root too)
+    joint: str  # "ball" | "hinge" (every non-root joint; a pinned root too); "mixed" for `tree_spec`
     root: str  # "free" | "pinned"
     gravity: float
     joint_damping: float
