@@ -54,21 +54,6 @@ def total_mass_choice(cfg: DictConfig, run_cfg: DictConfig) -> tuple[float, str]
     return 1.0, "dataset.total_mass not set: the learned scale is arbitrary"
 
 
-def _gravity(model) -> tuple[np.ndarray, str | None]:
-    """The world gravity vector of the model's world potential, and a note when it has none that
-    MJCF can say."""
-    from ..mechanics.potentials import GravityPotential, UniformGravityPotential
-
-    V = getattr(model, "potential_world", None)
-    if isinstance(V, UniformGravityPotential):
-        return -V.field().detach().cpu().double().numpy(), None  # V = m gamma.c: gravity acts along -gamma
-    if isinstance(V, GravityPotential):
-        return np.array([0.0, 0.0, -float(V.gravity)]), None
-    if V is None:
-        return np.zeros(3), None
-    return np.zeros(3), f"the world potential {type(V).__name__} has no MJCF form: gravity 0"
-
-
 def _numpy(t) -> np.ndarray:
     return t.detach().cpu().double().numpy()
 
@@ -78,14 +63,14 @@ def model_spec(model, names, total_mass: float, timestep: float | None = None) -
     `total_mass` (kg); returns (spec, warnings: what the file cannot carry, scale factor)."""
     from ..lie.joints import joint_slices
 
-    tree = model.tree
+    mb = model.multibody()
+    if mb is None:
+        raise ConfigError(NOT_ARTICULATED)
+    tree = mb["tree"]
     B = tree.n_bodies
-    phys = model.physical_parameters()
-    Jd, mass, rho = _numpy(phys["J_d"]), _numpy(phys["m"]), _numpy(phys["rho_COM"])
-    J = np.trace(Jd, axis1=-2, axis2=-1)[:, None, None] * np.eye(3) - Jd
+    mass, rho, J = _numpy(mb["mass"]), _numpy(mb["com"]), _numpy(mb["inertia"])
     scale = total_mass / float(mass.sum())
-    d = phys.get("dof_damping")
-    damping = np.zeros(tree.n_dof) if d is None else _numpy(d)
+    damping = _numpy(mb["dof_damping"])
     names = unique_names(names, B)
     notes: list[str] = []
     per_body = []
@@ -100,13 +85,8 @@ def model_spec(model, names, total_mass: float, timestep: float | None = None) -
                     f"({100 * dropped:.1f}% of the damping dropped)"
                 )
         per_body.append(values)
-    gravity, note = _gravity(model)
-    if note:
-        notes.append(note)
-    if getattr(model, "potential_coord", None) is not None:
-        notes.append("the learned potential of the coordinates (mlp) has no MJCF form: not exported")
-    for f in getattr(model, "forces", []):
-        notes.append(f"the force {getattr(f, 'name', type(f).__name__)!r} has no MJCF form: not exported")
+    gravity = _numpy(mb["gravity"])
+    notes += [f"{part} has no MJCF form: not exported" for part in mb["unexported"]]
     spec = MjcfSpec(
         names=names,
         parents=list(tree.parents),
@@ -155,7 +135,7 @@ def run_export(cfg: DictConfig) -> Path:
     from ..files.checkpoint import describe_checkpoint
     from ..files.dataset_identity import accept_option
     from ..files.io_utils import write_text
-    from ..models.articulated import ArticulatedLieDFLNN, joint_summary
+    from ..models.articulated import joint_summary
 
     if OmegaConf.is_missing(cfg, "run") or cfg.get("run") in (None, ""):
         raise ConfigError("run=<run dir> is required (a directory written by `liedfl train`)")
@@ -172,7 +152,7 @@ def run_export(cfg: DictConfig) -> Path:
         str(cfg.get("checkpoint") or "best"),
         accept_option(cfg.get("accept_changed_dataset")),
     )
-    if not isinstance(model, ArticulatedLieDFLNN):
+    if model.multibody() is None:
         raise ConfigError(NOT_ARTICULATED)
     console.print(describe_checkpoint(used), highlight=False)
     total_mass, source = total_mass_choice(cfg, run_cfg)

@@ -504,16 +504,14 @@ def _store_joints(model, config: dict, out: Path) -> None:
     """An articulated model's joints, as resolved (declared or inferred), go into the run's saved config
     (`model.joints` as {kinds, axes}: rollout, eval, resume and export rebuild exactly these) and into
     joints.json; the inference's table is printed."""
-    tree = getattr(model, "tree", None)
-    if tree is None or not hasattr(model, "dof_damping"):
+    record = model.joint_record()
+    if record is None:
         return
-    report = getattr(model, "joint_report", None)
-    if report:
-        console.print(report, highlight=False, markup=False)
-    spec = {"kinds": list(tree.joint_kinds), "axes": tree.axes_array()}
+    if record.get("inference"):
+        console.print(record["inference"], highlight=False, markup=False)
     if isinstance(config.get("model"), dict):
-        config["model"]["joints"] = spec
-    write_json(out / "joints.json", {**spec, "dof": tree.n_dof, "inference": report})
+        config["model"]["joints"] = {"kinds": record["kinds"], "axes": record["axes"]}
+    write_json(out / "joints.json", record)
 
 
 def run_train(cfg: DictConfig, resume: dict | None = None, accept_changed_dataset: bool = False) -> dict:

@@ -129,7 +129,8 @@ def world_from_parent(tree: Tree, R_rel: torch.Tensor) -> torch.Tensor:
 
 
 def to_joint_coordinates(tree: Tree, g: Pose) -> Pose:
-    """The tree's coordinates g -> joint coordinates q (parent-relative rotations)."""
+    """The tree's coordinates g (R (..., B, 3, 3), p (..., m, 3)) -> joint coordinates q (parent-relative
+    rotations), of the same shapes."""
     if tree.rotations == "parent":
         return g
     par = [max(q, 0) for q in tree.parents]
@@ -139,7 +140,8 @@ def to_joint_coordinates(tree: Tree, g: Pose) -> Pose:
 
 
 def from_joint_coordinates(tree: Tree, q: Pose) -> Pose:
-    """Joint coordinates q -> the tree's coordinates g (inverse of `to_joint_coordinates`)."""
+    """Joint coordinates q (R (..., B, 3, 3), p (..., m, 3)) -> the tree's coordinates g of the same
+    shapes (inverse of `to_joint_coordinates`)."""
     if tree.rotations == "parent":
         return q
     return Pose(world_from_parent(tree, q.R), q.p)

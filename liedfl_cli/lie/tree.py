@@ -136,8 +136,10 @@ class Tree:
             return [[[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]] for _ in range(self.n_bodies)]
         return [[list(r) for r in a] for a in self.axes]
 
-    def with_joints(self, joints: Sequence[str] | None, axes=None) -> Tree:
-        """The same tree with other joints (None: every joint a ball)."""
+    def with_joints(
+        self, joints: Sequence[str] | None, axes: Iterable[Iterable[Iterable[float]]] | None = None
+    ) -> Tree:
+        """The same tree with other joints: joints (B,) or None (every joint a ball), axes (B, 2, 3) or None."""
         return Tree.from_lists(self.parents, self.offsets, self.rotations, self.free_root, joints, axes)
 
     @property

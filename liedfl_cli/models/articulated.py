@@ -453,6 +453,43 @@ class ArticulatedLieDFLNN(ImplicitModel):
                 out["dof_damping"] = self.dof_damper.coefficients().detach()
             return out
 
+    def multibody(self) -> dict[str, Any]:
+        """`Model.multibody`: per body mass, COM and inertia about the COM (J = tr(J_d) I - J_d), the
+        per-DoF damping, the gravity vector of a uniform field, and the parts with no simulator form."""
+        with torch.no_grad():
+            Jd, mass, rho = (t.detach().cpu().double() for t in self._params())
+            J = Jd.diagonal(dim1=-2, dim2=-1).sum(-1)[:, None, None] * torch.eye(3, dtype=Jd.dtype) - Jd
+            d = self.dof_damping()
+            gravity = torch.zeros(3, dtype=torch.float64)
+            unexported: list[str] = []
+            V = self.potential_world
+            if isinstance(V, UniformGravityPotential):
+                gravity = -V.field().detach().cpu().double()  # V = m gamma.c: gravity acts along -gamma
+            elif isinstance(V, GravityPotential):
+                gravity = torch.tensor([0.0, 0.0, -float(V.gravity)], dtype=torch.float64)
+            elif V is not None:
+                unexported.append(f"the world potential {type(V).__name__}")
+            if self.potential_coord is not None:
+                unexported.append("the learned potential of the coordinates (mlp)")
+            unexported += [f"the force {getattr(f, 'name', type(f).__name__)!r}" for f in self.forces]
+        return {
+            "tree": self.tree,
+            "mass": mass,
+            "com": rho,
+            "inertia": J,
+            "dof_damping": torch.zeros(self.tree.n_dof, dtype=torch.float64) if d is None else d.cpu().double(),
+            "gravity": gravity,
+            "unexported": unexported,
+        }
+
+    def joint_record(self) -> dict[str, Any]:
+        return {
+            "kinds": list(self.tree.joint_kinds),
+            "axes": self.tree.axes_array(),
+            "dof": self.tree.n_dof,
+            "inference": self.joint_report,
+        }
+
     def dof_damping(self) -> torch.Tensor | None:
         """The learned joint damping per reduced coordinate (n,) (root first; 0 on a free root), or
         None when the model has no per-DoF damping (a ball-joint tree damps through `rayleigh`)."""

@@ -398,6 +398,18 @@ class Model(nn.Module, abc.ABC):
         model has none or it is not checked."""
         return None
 
+    def multibody(self) -> dict[str, Any] | None:
+        """The model as a multibody simulator reads it (`liedfl export`), or None where the model is not
+        a kinematic tree: {"tree": Tree (its joints), "mass" (B,), "com" (B, 3) body frame from the joint,
+        "inertia" (B, 3, 3) about the COM, "dof_damping" (n,) per DoF, "gravity" (3,) the field's vector
+        (zeros without one), "unexported": [what a simulator model cannot carry]}; tensors on the CPU."""
+        return None
+
+    def joint_record(self) -> dict[str, Any] | None:
+        """The joints a tree model runs with, to store with the run: {"kinds", "axes", "dof", "inference"
+        (the inference's table or None)}; None for a model without a tree."""
+        return None
+
 
 def runtime_path() -> ModelPath:
     """The path a model built now takes: "fused" unless `runtime.fused` is false."""
