@@ -261,6 +261,13 @@ def fit(
         cfg_train = section(TrainConfig, cfg_train, "train")
     # train.loss: newton changes the batches' loss; rollout trains with del here (fine-tuning: finetune.py)
     opts, samples = training_stage(model, data, int(steps), cfg_train.loss_options())
+    start_note, start_seconds = None, 0.0
+    if resume is None and cfg_train.start == "auto":
+        ts = time.perf_counter()
+        start_note = model.initial_fit(samples)
+        start_seconds = time.perf_counter() - ts
+        if start_note and log_epochs:
+            console.print(f"[bold]start[/] {start_note}", highlight=False)
     n = samples.n
     bs = n if cfg_train.full_batch else min(int(cfg_train.batch_size), n)
     n_batches = math.ceil(n / bs)
@@ -275,7 +282,7 @@ def fit(
     sched = make_schedule(opt, cfg_train.optimizer.schedule, epochs)
     every = checkpoint_interval(cfg_train.checkpoint_every)
     history: list[dict] = []
-    start, offset = 1, 0.0
+    start, offset = 1, start_seconds  # the model's start counts as training time
     if resume is not None:
         try:
             opt.load_state_dict(resume["optimizer"])
@@ -392,6 +399,8 @@ def fit(
         "seconds_per_epoch": wall / max(last, 1),
         "val_seconds": val_seconds,
         "epochs": last,
+        "start": start_note,
+        "start_seconds": start_seconds,
         "n_samples": n,
         "batches_per_epoch": n_batches,
         "state": state(last),

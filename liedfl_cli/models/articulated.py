@@ -315,6 +315,7 @@ class ArticulatedLieDFLNN(ImplicitModel):
     notes: list[str]
     tree: Tree
     joint_report: str | None = None  # the joint inference's table, when the joints were inferred
+    total_mass: float | None = None  # dataset.total_mass: the scale of the least-squares start
 
     def __init__(
         self,
@@ -338,6 +339,7 @@ class ArticulatedLieDFLNN(ImplicitModel):
         known = check_options(residual, known, physics)
         self.tree, self.G, self.h, self.residual_mode = tree, tree.group, float(h), residual
         self.known = known
+        self.epsilon = float(epsilon)
         B = tree.n_bodies
         gen = torch.Generator().manual_seed(seed)
         rho0, length = geometric_start(tree)
@@ -453,6 +455,15 @@ class ArticulatedLieDFLNN(ImplicitModel):
                 out["dof_damping"] = self.dof_damper.coefficients().detach()
             return out
 
+    def initial_fit(self, samples: Any) -> str | None:
+        """`Model.initial_fit`: the prediction-weighted least-squares start (`models.articulated_fit`),
+        on the fast path's triplets only; the scale from dataset.total_mass when given."""
+        if self.residual_mode != "fast" or not isinstance(samples, ArticulatedTriplets) or self.known:
+            return None
+        from .articulated_fit import least_squares_start
+
+        return least_squares_start(self, samples, epsilon=self.epsilon).line()
+
     def multibody(self) -> dict[str, Any]:
         """`Model.multibody`: per body mass, COM and inertia about the COM (J = tr(J_d) I - J_d), the
         per-DoF damping, the gravity vector of a uniform field, and the parts with no simulator form."""
@@ -542,11 +553,12 @@ class ArticulatedLieDFLNN(ImplicitModel):
             return at.R.new_zeros(*at.R.shape[:-3], self.G.dim)
         return 0.5 * self.h * self.at(at, self.joint_torque(g_from, g_to))
 
-    def potential_covector(self, g: Pose, world: Pose, A: torch.Tensor) -> torch.Tensor:
-        """-h dV(g exp(eta))/d eta at 0, (..., dim): world potentials through A^T, coordinate ones directly."""
+    def potential_covector(self, g: Pose, world: Pose, A: torch.Tensor, world_part: bool = True) -> torch.Tensor:
+        """-h dV(g exp(eta))/d eta at 0, (..., dim): world potentials through A^T (world_part=False: left
+        out), coordinate ones directly."""
         out = g.R.new_zeros(*g.R.shape[:-3], self.G.dim)
         Vw = self.potential_world
-        if Vw is not None:
+        if Vw is not None and world_part:
             Gw = art.world_group(self.tree)
             if isinstance(Vw, UniformGravityPotential):
                 dw = Vw.left_gradient(world)
@@ -745,13 +757,24 @@ class ArticulatedLieDFLNN(ImplicitModel):
             Hk = Hk - 0.5 * self.h * self.dof_damper.coefficients()[:, None] * dnu
         return Hk
 
-    def _batch_residual(self, b: ArticulatedBatch) -> torch.Tensor:
+    def _batch_residual(self, b: ArticulatedBatch, params: tuple | None = None) -> torch.Tensor:
+        """The residual of a batch, (N, dim) or reduced (N, n). params: (J_d (B, 3, 3), m (B,), rho (B, 3),
+        d (n,) or None) to use instead of the model's (the identification's regressor: the residual is
+        linear in (m, m rho, J_d + m rho rho^T) per body and in d; gravity shares m and rho)."""
         Gw = art.world_group(self.tree)
-        Jd, m, rho = self._params()
+        Jd, m, rho = self._params() if params is None else params[:3]
         c = kinetic.kinetic_d2(Gw, b.inc_prev, Jd, m, rho, self.h) + kinetic.kinetic_d1(
             Gw, b.inc_next, Jd, m, rho, self.h
         )
-        r = art.to_coordinates(b.A, c) + self.potential_covector(b.cur, b.world_cur, b.A)
+        r = art.to_coordinates(b.A, c)
+        if params is not None and isinstance(self.potential_world, UniformGravityPotential):
+            up = (b.world_cur.R * self.potential_world.field()[:, None]).sum(-2)  # (N, B, 3): R^T gamma
+            dw = Gw.join(torch.cross((m[:, None] * rho).expand_as(up), up, dim=-1), m[:, None] * up)
+            r = r - self.h * art.to_coordinates(b.A, dw)
+            if self.potential_coord is not None:
+                r = r + self.potential_covector(b.cur, b.world_cur, b.A, world_part=False)
+        else:
+            r = r + self.potential_covector(b.cur, b.world_cur, b.A)
         if len(self.forces):
             r = r + 0.5 * self.h * self._batch_torques(b)
         if not self.reduced:
@@ -760,7 +783,8 @@ class ArticulatedLieDFLNN(ImplicitModel):
         r = (b.T.transpose(-1, -2) @ r[..., None])[..., 0]
         if self.dof_damper is not None:
             assert b.nu_red_prev is not None and b.nu_red_next is not None
-            r = r + 0.5 * self.h * (self.dof_damper(b.nu_red_prev) + self.dof_damper(b.nu_red_next))
+            d = self.dof_damper.coefficients() if params is None or params[3] is None else params[3]
+            r = r - 0.5 * self.h * d * (b.nu_red_prev + b.nu_red_next)
         return r
 
     def _batch_torques(self, b: ArticulatedBatch) -> torch.Tensor:
@@ -928,6 +952,7 @@ def build_articulated(ctx, parts: tuple[str, ...], opt: dict, why: str) -> Artic
         raise ConfigError(str(e)) from None
     model.notes = [f"potential: {why}", f"kinetic: articulated ({model.components()[0]})", joint_note]
     model.joint_report = joint_report
+    model.total_mass = ctx.total_mass
     return model
 
 

@@ -398,6 +398,12 @@ class Model(nn.Module, abc.ABC):
         model has none or it is not checked."""
         return None
 
+    def initial_fit(self, samples: Any) -> str | None:
+        """Fit the model to its training samples (`training_set`) before the first epoch, where the
+        model has a closed-form or second-order start (`train.start=auto`); returns a line saying what
+        it did, or None where it has none."""
+        return None
+
     def multibody(self) -> dict[str, Any] | None:
         """The model as a multibody simulator reads it (`liedfl export`), or None where the model is not
         a kinematic tree: {"tree": Tree (its joints), "mass" (B,), "com" (B, 3) body frame from the joint,
