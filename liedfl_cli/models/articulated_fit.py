@@ -142,6 +142,7 @@ def least_squares_start(
     e = torch.zeros(P, dtype=Y.dtype)
     e[0 : 10 * B : 10] = 1.0  # sum of masses
     pi = pi0
+    best_pi, best_rms = None, float("inf")
     for _ in range(passes):
         Jd, m, rho, d = unpack(pi, B)
         _set(model, Jd, m, rho, d)
@@ -165,15 +166,22 @@ def least_squares_start(
         K[P, :P] = es
         sol = torch.linalg.solve(K, torch.cat((rhs, torch.tensor([M], dtype=Y.dtype))))
         pi_new = sol[:P] / s
+        pi_new = gauge_repair(pi_new, Xs, s, B)
         Jd, m, rho, d = unpack(pi_new, B)
         J, m_c, changed = consistent(Jd, m)
         Jd_c = J.diagonal(dim1=-2, dim2=-1).sum(-1)[:, None, None] / 2 * torch.eye(3, dtype=J.dtype) - J
         rho_c = (m[:, None] * rho) / m_c[:, None]
         d_c = None if d is None else d.clamp_min(0.0)
         pi = pack(Jd_c, m_c, rho_c, d_c)
+        rms = float((X @ pi + x0).pow(2).mean().sqrt())  # with this pass's weights
+        if rms < best_rms:
+            best_pi, best_rms, report.projected = pi, rms, changed
         report.projected = changed
         report.passes += 1
         report.rank = int(torch.linalg.matrix_rank(Xs).item())
+    pi = best_pi if best_pi is not None else pi
+    if best_rms >= report.weighted_rms[0]:  # no better than where the model stood: keep that
+        pi = pi0
     Jd, m, rho, d = unpack(pi, B)
     _set(model, Jd, m, rho, d)
     with torch.no_grad():
@@ -191,6 +199,59 @@ def least_squares_start(
     report.n_params = P
     report.seconds = time.perf_counter() - t0
     return report
+
+
+def _violation(pi: torch.Tensor, B: int) -> torch.Tensor:
+    """How far pi is from physical consistency (0 when consistent), differentiable: per body the
+    squared shortfalls of m and of the inertia's principal moments below a small margin and of the
+    triangle inequality, relative to the body's largest moment."""
+    Jd, m, _, _ = unpack(pi, B)
+    J = Jd.diagonal(dim1=-2, dim2=-1).sum(-1)[:, None, None] * torch.eye(3, dtype=Jd.dtype) - Jd
+    lam = torch.linalg.eigvalsh(0.5 * (J + J.transpose(-1, -2)))
+    big = lam.abs().amax(-1).detach().clamp_min(1e-300)
+    margin = 1e-3 * big
+    pos = torch.relu(margin[:, None] - lam) / big[:, None]
+    tri = torch.relu(lam[:, 2] - 0.999 * (lam[:, 0] + lam[:, 1])) / big
+    mass = torch.relu(1e-3 * m.abs().max().detach() - m) / m.abs().max().detach()
+    return (pos**2).sum() + (tri**2).sum() + (mass**2).sum()
+
+
+def gauge_repair(pi: torch.Tensor, Xs: torch.Tensor, s: torch.Tensor, B: int, steps: int = 200) -> torch.Tensor:
+    """Move pi within the regressor's null space (the gauge the data cannot see: a child's mass sliding
+    onto its parent as a point mass at the joint changes no prediction) towards physical consistency,
+    before any projection that would change predictions. Xs: the column-scaled weighted regressor, s
+    its column scales; the mass-sum direction is excluded (the scale stays fixed)."""
+    if float(_violation(pi, B)) == 0.0:
+        return pi
+    U, S, Vh = torch.linalg.svd(Xs, full_matrices=False)
+    null = Vh[1e-7 * S.max() > S]  # (k, P) in scaled coordinates
+    if null.shape[0] == 0:
+        return pi
+    Nmat = (null / s).T  # unscaled directions (P, k)
+    e = torch.zeros(pi.shape[0], dtype=pi.dtype)
+    e[0 : 10 * B : 10] = 1.0
+    Nmat = Nmat - torch.outer(e, e @ Nmat) / float(e @ e)  # keep the total mass
+    t = torch.zeros(Nmat.shape[1], dtype=pi.dtype, requires_grad=True)
+    best, best_v = pi, float(_violation(pi, B))
+    for _ in range(4):  # restarts: the eigenvalue penalty is piecewise smooth and LBFGS can stall on a kink
+        opt = torch.optim.LBFGS([t], max_iter=steps, line_search_fn="strong_wolfe")
+
+        def closure(opt=opt):
+            opt.zero_grad()
+            v = _violation(pi + Nmat @ t, B)
+            v.backward()
+            return v
+
+        opt.step(closure)
+        cand = (pi + Nmat @ t).detach()
+        v = float(_violation(cand, B))
+        if v < best_v:
+            best, best_v = cand, v
+        if best_v < 1e-12:
+            break
+        with torch.no_grad():
+            t.add_(1e-3 * torch.randn_like(t) * (1.0 + t.abs().max()))
+    return best
 
 
 @torch.no_grad()
