@@ -141,6 +141,13 @@ def least_squares_start(
     P = Y.shape[1]
     e = torch.zeros(P, dtype=Y.dtype)
     e[0 : 10 * B : 10] = 1.0  # sum of masses
+    # the rows of H^-1 r are a step's errors: radians, and a free root's translation in the file's length
+    # unit; dividing the translation by the tree's own length makes every row unit-free
+    offsets = torch.tensor(model.tree.offsets, dtype=Y.dtype).norm(dim=-1)
+    L = float(offsets[offsets > 0].median()) if bool((offsets > 0).any()) else 1.0
+    unit = torch.ones(Y.shape[0] // max(batch.A.shape[0], 1), dtype=Y.dtype)
+    if model.tree.free_root:
+        unit[3:6] = 1.0 / L
     pi = pi0
     best_pi, best_rms = None, float("inf")
     for _ in range(passes):
@@ -150,8 +157,8 @@ def least_squares_start(
             H = model.newton_jacobian_batch(batch).detach()  # (N, n, n)
         N, k = H.shape[0], H.shape[-1]
         Hinv = torch.linalg.pinv(H)
-        X = (Hinv @ Y.reshape(N, k, P)).reshape(N * k, P)
-        x0 = (Hinv @ r0.reshape(N, k, 1)).reshape(-1)
+        X = (unit[:, None] * (Hinv @ Y.reshape(N, k, P))).reshape(N * k, P)
+        x0 = (unit[:, None] * (Hinv @ r0.reshape(N, k, 1))).reshape(-1)
         report.weighted_rms.append(float((X @ pi + x0).pow(2).mean().sqrt()))
         s = X.norm(dim=0).clamp_min(1e-300)  # column scales: units drop out
         Xs = X / s
@@ -186,7 +193,7 @@ def least_squares_start(
     _set(model, Jd, m, rho, d)
     with torch.no_grad():
         H = model.newton_jacobian_batch(batch).detach()
-        x = torch.linalg.pinv(H) @ residual(pi).reshape(H.shape[0], -1, 1)
+        x = unit[:, None] * (torch.linalg.pinv(H) @ residual(pi).reshape(H.shape[0], -1, 1))
     report.weighted_rms.append(float(x.pow(2).mean().sqrt()))
     if epsilon is not None:
         with torch.no_grad():
