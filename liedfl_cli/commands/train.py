@@ -307,6 +307,16 @@ def fit(
         }
 
     val_seconds = sum(float(r.get("val_seconds") or 0.0) for r in history)
+    if start_note and validator is not None and selection is not None:
+        # the start is a candidate too: epochs that move away from it cannot lose it (best.pt)
+        tv = time.perf_counter()
+        row0 = validator.measure(model)
+        improved, _ = selection.update(0, row0)
+        if improved and save_best is not None:
+            save_best(0, row0)
+        val_seconds += time.perf_counter() - tv
+        if log_epochs:
+            console.print(f"start: {format_pass(row0)}", highlight=False)
     no_pass = dict.fromkeys(VAL_COLUMNS) if validator is not None else {}
     val_text = next((format_pass(r) for r in reversed(history) if r.get("val_one_step_error") is not None), "")
     last = start - 1

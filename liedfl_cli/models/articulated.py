@@ -462,7 +462,13 @@ class ArticulatedLieDFLNN(ImplicitModel):
             return None
         from .articulated_fit import least_squares_start
 
-        return least_squares_start(self, samples, epsilon=self.epsilon).line()
+        saved = {k: v.detach().clone() for k, v in self.state_dict().items()}
+        try:
+            return least_squares_start(self, samples, epsilon=self.epsilon).line()
+        except (torch.linalg.LinAlgError, RuntimeError, ValueError) as e:  # never worse than no start
+            self.load_state_dict(saved)
+            why = f"{type(e).__name__}: {str(e).splitlines()[0][:100]}"
+            return f"least-squares start failed ({why}); epochs start from the tree's geometry"
 
     def multibody(self) -> dict[str, Any]:
         """`Model.multibody`: per body mass, COM and inertia about the COM (J = tr(J_d) I - J_d), the

@@ -148,6 +148,11 @@ def least_squares_start(
     unit = torch.ones(Y.shape[0] // max(batch.A.shape[0], 1), dtype=Y.dtype)
     if model.tree.free_root:
         unit[3:6] = 1.0 / L
+    # a uniform field of known strength (model.gravity) makes the overall scale visible in the data
+    from ..mechanics.potentials import UniformGravityPotential
+
+    V = model.potential_world
+    scale_seen = isinstance(V, UniformGravityPotential) and float(V.gravity) > 0
     pi = pi0
     best_pi, best_rms = None, float("inf")
     for _ in range(passes):
@@ -167,12 +172,15 @@ def least_squares_start(
         target = pi0 * s
         rhs = -(Xs.T @ x0) + lam * target
         es = e / s
-        K = torch.zeros(P + 1, P + 1, dtype=Y.dtype)
-        K[:P, :P] = A + lam * torch.eye(P, dtype=Y.dtype)
-        K[:P, P] = es
-        K[P, :P] = es
-        sol = torch.linalg.solve(K, torch.cat((rhs, torch.tensor([M], dtype=Y.dtype))))
-        pi_new = sol[:P] / s
+        if scale_seen:  # gravity of a known strength fixes the scale: no gauge to pin
+            pi_new = torch.linalg.solve(A + lam * torch.eye(P, dtype=Y.dtype), rhs) / s
+        else:
+            K = torch.zeros(P + 1, P + 1, dtype=Y.dtype)
+            K[:P, :P] = A + lam * torch.eye(P, dtype=Y.dtype)
+            K[:P, P] = es
+            K[P, :P] = es
+            sol = torch.linalg.solve(K, torch.cat((rhs, torch.tensor([M], dtype=Y.dtype))))
+            pi_new = sol[:P] / s
         pi_new = gauge_repair(pi_new, Xs, s, B)
         Jd, m, rho, d = unpack(pi_new, B)
         J, m_c, changed = consistent(Jd, m)
@@ -249,7 +257,10 @@ def gauge_repair(pi: torch.Tensor, Xs: torch.Tensor, s: torch.Tensor, B: int, st
             v.backward()
             return v
 
-        opt.step(closure)
+        try:
+            opt.step(closure)
+        except (torch.linalg.LinAlgError, RuntimeError):  # a mass through zero: keep the best so far
+            break
         cand = (pi + Nmat @ t).detach()
         v = float(_violation(cand, B))
         if v < best_v:
