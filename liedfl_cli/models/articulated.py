@@ -316,6 +316,7 @@ class ArticulatedLieDFLNN(ImplicitModel):
     tree: Tree
     joint_report: str | None = None  # the joint inference's table, when the joints were inferred
     total_mass: float | None = None  # dataset.total_mass: the scale of the least-squares start
+    start_report: dict | None = None  # what the least-squares start found (recovery.json)
 
     def __init__(
         self,
@@ -464,7 +465,17 @@ class ArticulatedLieDFLNN(ImplicitModel):
 
         saved = {k: v.detach().clone() for k, v in self.state_dict().items()}
         try:
-            return least_squares_start(self, samples, epsilon=self.epsilon).line()
+            report = least_squares_start(self, samples, epsilon=self.epsilon)
+            self.start_report = {
+                "regressor_rank": report.rank,
+                "parameters": report.n_params,
+                "gauge_dimension": report.n_params - report.rank,
+                "first_order_one_step_error": report.weighted_rms,
+                "projected_bodies": report.projected,
+                "regularity_scale": report.scale,
+                "seconds": report.seconds,
+            }
+            return report.line()
         except (torch.linalg.LinAlgError, RuntimeError, ValueError) as e:  # never worse than no start
             self.load_state_dict(saved)
             why = f"{type(e).__name__}: {str(e).splitlines()[0][:100]}"

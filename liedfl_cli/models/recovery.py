@@ -104,6 +104,10 @@ def articulated_recovery(model: Any, ref: Any) -> dict:
             "inertia_max_rel_error": max(_floats(bodies, "inertia_over_total_mass_rel_error")),
             "bodies": bodies,
         }
+        if getattr(model, "start_report", None) is not None:
+            # what the data determine: the regressor's rank; the rest is gauge (overall scale, a child's
+            # mass sliding onto its parent; per-link masses are reported in that gauge)
+            out["identifiability"] = model.start_report
         d, d_true = getattr(model, "dof_damper", None), getattr(ref, "dof_damper", None)
         if d is not None and d_true is not None and model.tree.n_dof == ref.tree.n_dof:
             dl, dt = d.coefficients() / s, d_true.coefficients() / s_true
