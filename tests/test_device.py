@@ -78,6 +78,7 @@ CONSTRUCTION_FUNCTIONS = {  # rule 2c
     ("models/articulated.py", "articulated_parameters"),
     ("models/articulated.py", "joint_damping_matrix"),
     ("models/articulated.py", "geometric_start"),
+    ("models/articulated.py", "true_dof_damping"),
 }
 PYTHON_FLOAT_FUNCTIONS = {("models/fused_maps.py", "_exp_coefficients_scalar")}  # rule 2d
 

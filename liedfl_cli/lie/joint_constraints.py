@@ -32,7 +32,7 @@ VIOLATION_TOLERANCE_FLOAT32 = 1e-4
 
 def violation_tolerance(dtype: torch.dtype = torch.float64) -> float:
     """The violation (rad) a file of stored precision `dtype` may have: 1e-6 (float64) or 1e-4 (float32)."""
-    return VIOLATION_TOLERANCE_FLOAT32 if dtype == torch.float32 else VIOLATION_TOLERANCE
+    return VIOLATION_TOLERANCE if torch.finfo(dtype).bits >= 64 else VIOLATION_TOLERANCE_FLOAT32
 
 
 def _angle_between(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
@@ -50,7 +50,7 @@ def joint_violation(kind: str, axes: torch.Tensor, R_rel: torch.Tensor) -> torch
         return R_rel.new_zeros(lead)
     if R_rel.shape[-3] == 0:
         return R_rel.new_zeros(lead)
-    axes = torch.as_tensor(axes).to(R_rel)
+    axes = torch.as_tensor(axes, dtype=R_rel.dtype, device=R_rel.device)
     R0 = R_rel[..., :1, :, :]
     if kind == "weld":
         return so3.log(R0.transpose(-1, -2) @ R_rel).norm(dim=-1).amax(-1)

@@ -157,7 +157,9 @@ def coordinate_basis(tree: Tree, g: Pose) -> torch.Tensor:
     if tree.rotations == "parent":
         return S
     rows = tree.group.body_slices()
-    rot = torch.tensor([r.start for r in rows], device=g.R.device)[:, None] + torch.arange(3, device=g.R.device)
+    rot = torch.tensor([r.start for r in rows], dtype=torch.long, device=g.R.device)[:, None] + torch.arange(
+        3, device=g.R.device
+    )
     T = S.clone()
     for level in tree.levels[1:]:
         par = [tree.parents[b] for b in level]

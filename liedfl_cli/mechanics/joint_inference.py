@@ -131,7 +131,7 @@ def _triple(v: torch.Tensor) -> tuple[float, float, float]:
 def _rms_sv(X: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """RMS singular values (3,) and right singular vectors (rows of Vh, (3, 3)) of a cloud X (M, 3)."""
     if X.shape[0] == 0:
-        return X.new_zeros(3), torch.eye(3, dtype=X.dtype)
+        return X.new_zeros(3), torch.eye(3, dtype=X.dtype, device=X.device)
     M = X.shape[0]
     if M < 3:  # zero rows change neither the singular values nor the vectors
         X = torch.cat((X, X.new_zeros(3 - M, 3)))
@@ -167,7 +167,7 @@ def axis_drift(R_rel: torch.Tensor, a: torch.Tensor) -> float:
 
 def _tangent_basis(a: torch.Tensor) -> torch.Tensor:
     """(3, 2): an orthonormal basis of the plane perpendicular to the unit vector a (3,)."""
-    e = torch.eye(3, dtype=a.dtype)[a.abs().argmin()]
+    e = torch.eye(3, dtype=a.dtype, device=a.device)[a.abs().argmin()]
     u = torch.linalg.cross(a, e, dim=-1)
     u = u / u.norm()
     return torch.stack((u, torch.linalg.cross(a, u, dim=-1)), -1)
@@ -186,12 +186,12 @@ def universal_fit(R_rel: torch.Tensor, iterations: int = LM_ITERATIONS) -> tuple
     M = R_rel.shape[0]
     R = R_rel[:: max(1, M // MAX_FIT_ROWS)]
     m = R.shape[0]
-    rows = torch.cat((R.reshape(m, 9), -torch.ones(m, 1, dtype=R.dtype)), -1)
+    rows = torch.cat((R.reshape(m, 9), -torch.ones(m, 1, dtype=R.dtype, device=R.device)), -1)
     x = torch.linalg.svd(rows, full_matrices=False)[2][-1]
     U, _, Vh = torch.linalg.svd(x[:9].reshape(3, 3))
     a1, a2 = U[:, 0], Vh[0]
     f, lam = _algebraic_cost(R, a1, a2), 1e-3
-    ones = -torch.ones(m, 1, dtype=R.dtype)
+    ones = -torch.ones(m, 1, dtype=R.dtype, device=R.device)
     for _ in range(iterations):
         if f <= 1e-30:
             break
@@ -294,7 +294,8 @@ def infer_joints(tree: Tree, R: torch.Tensor | np.ndarray, noise: float | None =
     axis (rad), None to estimate it per joint from the data (module docstring, step 2). A free root
     gets "free" (its evidence is reported all the same). Returns a `JointInference`; its `tree` is
     `tree.with_joints(kinds, axes)`."""
-    R = torch.as_tensor(R).to(torch.float64).cpu()
+    R = R if isinstance(R, torch.Tensor) else torch.from_numpy(np.asarray(R))
+    R = R.to(torch.promote_types(R.dtype, torch.get_default_dtype()) if R.is_floating_point() else R.dtype)
     if R.ndim == 4:
         R = R[None]
     if R.ndim != 5 or R.shape[-2:] != (3, 3) or R.shape[2] != tree.n_bodies:

@@ -173,19 +173,19 @@ def joint_summary(tree: Tree) -> str:
     return ", ".join(parts) + f" ({tree.n_dof} DoF)"
 
 
-def true_dof_damping(tree: Tree, physics: dict) -> torch.Tensor:
+def true_dof_damping(tree: Tree, physics: dict, dtype: torch.dtype = torch.float64) -> torch.Tensor:
     """The declared damping per reduced coordinate (n,): physics["dof_damping"] (a list per body of
     per-DoF values) when present, else each joint's `joint_damping` on all its DoF (root_damping on a
     pinned root's); 0 on a free root."""
     cols = jt.joint_slices(tree)
-    d = torch.zeros(tree.n_dof, dtype=torch.float64)
+    d = torch.zeros(tree.n_dof, dtype=dtype)
     per_dof = physics.get("dof_damping")
     jd = physics.get("joint_damping") or [0.0] * (tree.n_bodies - 1)
     for b, c in enumerate(cols):
         if tree.free_root and b == 0:
             continue
         if per_dof is not None and per_dof[b] is not None and len(per_dof[b]) == c.stop - c.start:
-            d[c] = torch.as_tensor([float(x) for x in per_dof[b]], dtype=torch.float64)
+            d[c] = torch.tensor([float(x) for x in per_dof[b]], dtype=dtype)
         else:
             d[c] = float(jd[b - 1]) if b > 0 else float(physics.get("root_damping") or 0.0)
     return d
@@ -485,16 +485,19 @@ class ArticulatedLieDFLNN(ImplicitModel):
         """`Model.multibody`: per body mass, COM and inertia about the COM (J = tr(J_d) I - J_d), the
         per-DoF damping, the gravity vector of a uniform field, and the parts with no simulator form."""
         with torch.no_grad():
-            Jd, mass, rho = (t.detach().cpu().double() for t in self._params())
-            J = Jd.diagonal(dim1=-2, dim2=-1).sum(-1)[:, None, None] * torch.eye(3, dtype=Jd.dtype) - Jd
+            Jd, mass, rho = (t.detach() for t in self._params())
+            J = (
+                Jd.diagonal(dim1=-2, dim2=-1).sum(-1)[:, None, None] * torch.eye(3, dtype=Jd.dtype, device=Jd.device)
+                - Jd
+            )
             d = self.dof_damping()
-            gravity = torch.zeros(3, dtype=torch.float64)
+            gravity = mass.new_zeros(3)
             unexported: list[str] = []
             V = self.potential_world
             if isinstance(V, UniformGravityPotential):
-                gravity = -V.field().detach().cpu().double()  # V = m gamma.c: gravity acts along -gamma
+                gravity = -V.field().detach().to(mass)  # V = m gamma.c: gravity acts along -gamma
             elif isinstance(V, GravityPotential):
-                gravity = torch.tensor([0.0, 0.0, -float(V.gravity)], dtype=torch.float64)
+                gravity = torch.tensor([0.0, 0.0, -float(V.gravity)], dtype=mass.dtype, device=mass.device)
             elif V is not None:
                 unexported.append(f"the world potential {type(V).__name__}")
             if self.potential_coord is not None:
@@ -505,7 +508,7 @@ class ArticulatedLieDFLNN(ImplicitModel):
             "mass": mass,
             "com": rho,
             "inertia": J,
-            "dof_damping": torch.zeros(self.tree.n_dof, dtype=torch.float64) if d is None else d.cpu().double(),
+            "dof_damping": mass.new_zeros(self.tree.n_dof) if d is None else d,
             "gravity": gravity,
             "unexported": unexported,
         }

@@ -20,6 +20,7 @@ fail) and written into the model, so first-order epochs continue from there.
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -92,14 +93,16 @@ def consistent(Jd: torch.Tensor, m: torch.Tensor, floor: float = 1e-6) -> tuple[
     changed) from a least-squares J_d (B, 3, 3) and m (B,): J = tr(J_d) I - J_d, its principal moments
     raised to floor * their largest and so that each is at most the sum of the other two (plus 1e-3)."""
     m_out = m.clamp_min(floor * float(m.abs().max()))
-    J = Jd.diagonal(dim1=-2, dim2=-1).sum(-1)[:, None, None] * torch.eye(3, dtype=Jd.dtype) - Jd
+    J = Jd.diagonal(dim1=-2, dim2=-1).sum(-1)[:, None, None] * torch.eye(3, dtype=Jd.dtype, device=Jd.device) - Jd
     J = 0.5 * (J + J.transpose(-1, -2))
     lam, V = torch.linalg.eigh(J)
     big = lam.abs().amax(-1, keepdim=True).clamp_min(1e-300)
     lam2 = lam.clamp_min(floor * big)
     # triangle: the largest at most (1 - 1e-3) (the sum of the others), else raise the two smaller ones
     short = lam2[:, 2] - (1 - 1e-3) * (lam2[:, 0] + lam2[:, 1])
-    lift = (short.clamp_min(0) / (2 * (1 - 1e-3)))[:, None] * torch.tensor([1.0, 1.0, 0.0], dtype=J.dtype)
+    lift = (short.clamp_min(0) / (2 * (1 - 1e-3)))[:, None] * torch.tensor(
+        [1.0, 1.0, 0.0], dtype=J.dtype, device=J.device
+    )
     lam2 = lam2 + lift
     changed = [int(b) for b in torch.nonzero(((lam2 - lam).abs() > 1e-9 * big).any(-1) | (m_out != m)).flatten()]
     return V @ torch.diag_embed(lam2) @ V.transpose(-1, -2), m_out, changed
@@ -118,7 +121,8 @@ def least_squares_start(
     report = FitReport()
     B = model.tree.n_bodies
     n = samples.n
-    idx = torch.linspace(0, n - 1, min(n, MAX_TRIPLETS)).round().long().unique()
+    dev = samples.cur.R.device
+    idx = torch.linspace(0, n - 1, min(n, MAX_TRIPLETS), dtype=samples.cur.R.dtype, device=dev).round().long().unique()
     if samples.A_next is None:
         samples.enable_jacobian()
     batch = samples.batch(idx, torch.Generator().manual_seed(0), 0)
@@ -139,13 +143,13 @@ def least_squares_start(
     Y = torch.func.jacfwd(residual)(pi0).detach()  # (rows, P): exact, r is linear in pi
     r0 = r_at - Y @ pi0
     P = Y.shape[1]
-    e = torch.zeros(P, dtype=Y.dtype)
+    e = torch.zeros(P, dtype=Y.dtype, device=Y.device)
     e[0 : 10 * B : 10] = 1.0  # sum of masses
     # the rows of H^-1 r are a step's errors: radians, and a free root's translation in the file's length
     # unit; dividing the translation by the tree's own length makes every row unit-free
-    offsets = torch.tensor(model.tree.offsets, dtype=Y.dtype).norm(dim=-1)
+    offsets = torch.tensor(model.tree.offsets, dtype=Y.dtype, device=Y.device).norm(dim=-1)
     L = float(offsets[offsets > 0].median()) if bool((offsets > 0).any()) else 1.0
-    unit = torch.ones(Y.shape[0] // max(batch.A.shape[0], 1), dtype=Y.dtype)
+    unit = torch.ones(Y.shape[0] // max(batch.A.shape[0], 1), dtype=Y.dtype, device=Y.device)
     if model.tree.free_root:
         unit[3:6] = 1.0 / L
     # a uniform field of known strength (model.gravity) makes the overall scale visible in the data
@@ -173,18 +177,20 @@ def least_squares_start(
         rhs = -(Xs.T @ x0) + lam * target
         es = e / s
         if scale_seen:  # gravity of a known strength fixes the scale: no gauge to pin
-            pi_new = torch.linalg.solve(A + lam * torch.eye(P, dtype=Y.dtype), rhs) / s
+            pi_new = torch.linalg.solve(A + lam * torch.eye(P, dtype=Y.dtype, device=Y.device), rhs) / s
         else:
-            K = torch.zeros(P + 1, P + 1, dtype=Y.dtype)
-            K[:P, :P] = A + lam * torch.eye(P, dtype=Y.dtype)
+            K = torch.zeros(P + 1, P + 1, dtype=Y.dtype, device=Y.device)
+            K[:P, :P] = A + lam * torch.eye(P, dtype=Y.dtype, device=Y.device)
             K[:P, P] = es
             K[P, :P] = es
-            sol = torch.linalg.solve(K, torch.cat((rhs, torch.tensor([M], dtype=Y.dtype))))
+            sol = torch.linalg.solve(K, torch.cat((rhs, torch.tensor([M], dtype=Y.dtype, device=Y.device))))
             pi_new = sol[:P] / s
         pi_new = gauge_repair(pi_new, Xs, s, B)
         Jd, m, rho, d = unpack(pi_new, B)
         J, m_c, changed = consistent(Jd, m)
-        Jd_c = J.diagonal(dim1=-2, dim2=-1).sum(-1)[:, None, None] / 2 * torch.eye(3, dtype=J.dtype) - J
+        Jd_c = (
+            J.diagonal(dim1=-2, dim2=-1).sum(-1)[:, None, None] / 2 * torch.eye(3, dtype=J.dtype, device=J.device) - J
+        )
         rho_c = (m[:, None] * rho) / m_c[:, None]
         d_c = None if d is None else d.clamp_min(0.0)
         pi = pack(Jd_c, m_c, rho_c, d_c)
@@ -208,7 +214,7 @@ def least_squares_start(
             logdet = model.world_slogdet(samples.inc_next.index(idx))[0]
         low = float(logdet.min())
         if low < epsilon + 1.0:
-            report.scale = float(torch.exp(torch.tensor((epsilon + 1.0 - low) / 6.0)))
+            report.scale = float(math.exp((epsilon + 1.0 - low) / 6.0))
             Jd, m, rho, d = unpack(pi, B)
             _set(model, report.scale * Jd, report.scale * m, rho, None if d is None else report.scale * d)
     report.n_params = P
@@ -221,7 +227,7 @@ def _violation(pi: torch.Tensor, B: int) -> torch.Tensor:
     squared shortfalls of m and of the inertia's principal moments below a small margin and of the
     triangle inequality, relative to the body's largest moment."""
     Jd, m, _, _ = unpack(pi, B)
-    J = Jd.diagonal(dim1=-2, dim2=-1).sum(-1)[:, None, None] * torch.eye(3, dtype=Jd.dtype) - Jd
+    J = Jd.diagonal(dim1=-2, dim2=-1).sum(-1)[:, None, None] * torch.eye(3, dtype=Jd.dtype, device=Jd.device) - Jd
     lam = torch.linalg.eigvalsh(0.5 * (J + J.transpose(-1, -2)))
     big = lam.abs().amax(-1).detach().clamp_min(1e-300)
     margin = 1e-3 * big
@@ -243,10 +249,10 @@ def gauge_repair(pi: torch.Tensor, Xs: torch.Tensor, s: torch.Tensor, B: int, st
     if null.shape[0] == 0:
         return pi
     Nmat = (null / s).T  # unscaled directions (P, k)
-    e = torch.zeros(pi.shape[0], dtype=pi.dtype)
+    e = torch.zeros(pi.shape[0], dtype=pi.dtype, device=pi.device)
     e[0 : 10 * B : 10] = 1.0
     Nmat = Nmat - torch.outer(e, e @ Nmat) / float(e @ e)  # keep the total mass
-    t = torch.zeros(Nmat.shape[1], dtype=pi.dtype, requires_grad=True)
+    t = torch.zeros(Nmat.shape[1], dtype=pi.dtype, device=pi.device, requires_grad=True)
     best, best_v = pi, float(_violation(pi, B))
     for _ in range(4):  # restarts: the eigenvalue penalty is piecewise smooth and LBFGS can stall on a kink
         opt = torch.optim.LBFGS([t], max_iter=steps, line_search_fn="strong_wolfe")

@@ -408,7 +408,7 @@ class Model(nn.Module, abc.ABC):
         """The model as a multibody simulator reads it (`liedfl export`), or None where the model is not
         a kinematic tree: {"tree": Tree (its joints), "mass" (B,), "com" (B, 3) body frame from the joint,
         "inertia" (B, 3, 3) about the COM, "dof_damping" (n,) per DoF, "gravity" (3,) the field's vector
-        (zeros without one), "unexported": [what a simulator model cannot carry]}; tensors on the CPU."""
+        (zeros without one), "unexported": [what a simulator model cannot carry]}; tensors on the model's device."""
         return None
 
     def joint_record(self) -> dict[str, Any] | None:
