@@ -1,7 +1,9 @@
 """`liedfl export format=mjcf` and its writer `liedfl_cli/files/mjcf.py` (docs/export.md).
 
-(a) A MuJoCo chain's declared physics written by `mjcf_text` and stepped by MuJoCo reproduces the
-chain's own simulation (ball and hinge joints, free and pinned roots, gravity) to 1e-6 rad;
+(a) A MuJoCo chain's declared physics written by `mjcf_text` compiles to the chain's own model (masses,
+inertias, centres of mass, joints, axes, damping to 1e-9) and, stepped by MuJoCo from the recorded state,
+reproduces the chain's simulation (ball, hinge, universal, weld joints, free and pinned roots, gravity) to
+1e-6 rad, < 0.1 x constant velocity's error; from the poses alone (`initial_state_from_poses`) too;
 (b) universal and weld joints: MuJoCo composes two hinges as R_rel = exp(t1 a1) exp(t2 a2), keeps
 a1^T R_rel a2 and a weld's R_rel constant; (c) end to end: a tiny articulated run exported, loaded
 by MuJoCo, total mass 1 kg or dataset.total_mass; (d) one-line errors.
@@ -27,10 +29,12 @@ from liedfl_cli.files.mjcf import (  # noqa: E402
     MjcfSpec,
     ball_damping_dropped,
     depth_first,
+    initial_state_from_poses,
     load_model,
     mjcf_text,
     replay,
     spec_from_physics,
+    write_mjcf,
 )
 from liedfl_cli.lie import so3  # noqa: E402
 from liedfl_cli.lie.tree import Tree  # noqa: E402
@@ -54,20 +58,120 @@ def _angle(Ra: np.ndarray, Rb: np.ndarray) -> float:
 
 
 # ----------------------------------------------------------------------------- (a) declared physics
-@pytest.mark.parametrize("joint", ["ball", "hinge"])
-@pytest.mark.parametrize("root", ["free", "pinned"])
-def test_declared_physics_replays_the_chain(joint, root):
-    ds = chain_dataset(
-        links=3, joint=joint, root=root, gravity=9.81, n_trajectories=3, steps=50, h=0.02, speed=2.0, seed=1
-    )
+SCENES = {
+    "ball-free": dict(links=3, joint="ball", root="free"),
+    "ball-pinned": dict(links=3, joint="ball", root="pinned"),
+    "hinge-free": dict(links=3, joint="hinge", root="free"),
+    "hinge-pinned": dict(links=3, joint="hinge", root="pinned"),
+    "branched-universal-weld": dict(parents="branched5", joints=["free", "universal", "weld", "hinge", "ball"]),
+}
+
+
+def _full_inertia(model, b: int) -> np.ndarray:
+    """Body b's inertia about its COM in the body frame, (3, 3), from MuJoCo's principal form."""
+    Q = np.zeros(9)
+    mujoco.mju_quat2Mat(Q, model.body_iquat[b])
+    Q = Q.reshape(3, 3)
+    return Q @ np.diag(model.body_inertia[b]) @ Q.T
+
+
+def _assert_same_model(src, ours, names) -> None:
+    """The compiled MJCFs agree body by body (matched by name) to 1e-9."""
+    assert ours.nbody == src.nbody and ours.njnt == src.njnt and ours.nq == src.nq and ours.nv == src.nv
+    assert np.allclose(ours.opt.gravity, src.opt.gravity, atol=1e-12) and ours.opt.timestep == src.opt.timestep
+    for name in names:
+        a = mujoco.mj_name2id(src, mujoco.mjtObj.mjOBJ_BODY, name)
+        b = mujoco.mj_name2id(ours, mujoco.mjtObj.mjOBJ_BODY, name)
+        assert a >= 1 and b >= 1, name
+        assert abs(src.body_mass[a] - ours.body_mass[b]) < 1e-9, name
+        assert np.abs(src.body_ipos[a] - ours.body_ipos[b]).max() < 1e-9, name
+        assert np.abs(_full_inertia(src, a) - _full_inertia(ours, b)).max() < 1e-9, name
+        assert np.abs(src.body_pos[a] - ours.body_pos[b]).max() < 1e-9, name
+        assert np.abs(src.body_quat[a] - ours.body_quat[b]).max() < 1e-12, name
+        ja = [j for j in range(src.njnt) if src.jnt_bodyid[j] == a]
+        jb = [j for j in range(ours.njnt) if ours.jnt_bodyid[j] == b]
+        assert [int(src.jnt_type[j]) for j in ja] == [int(ours.jnt_type[j]) for j in jb], name
+        for j, k in zip(ja, jb):
+            assert np.abs(src.jnt_axis[j] - ours.jnt_axis[k]).max() < 1e-9, name
+            da, db = src.jnt_dofadr[j], ours.jnt_dofadr[k]
+            n = {0: 6, 1: 3}.get(int(src.jnt_type[j]), 1)
+            if int(src.jnt_type[j]) != 0:  # (a free joint's damping is not written)
+                assert np.abs(src.dof_damping[da : da + n] - ours.dof_damping[db : db + n]).max() < 1e-9, name
+
+
+def _mean_errors(ds, tree, i: int, R_world: np.ndarray, k0: int = 0) -> tuple[float, float]:
+    """(mean geodesic error of R_world (S+1, B, 3, 3) against the recorded world attitudes from
+    sample k0, that of constant velocity from the true samples k0, k0 + 1), over S+1 samples, rad."""
+    from liedfl_cli.evaluation.metrics import geodesic_error
+    from liedfl_cli.lie import Pose
+    from liedfl_cli.lie.tree import forward_kinematics
+    from liedfl_cli.solvers.one_step import constant_velocity_rollout
+
+    S = R_world.shape[0] - 1
+    true_R = torch.as_tensor(ds.extras["body_R_world"][i, k0 : k0 + S + 1])
+    err = float(geodesic_error(torch.as_tensor(R_world), true_R).mean())
+    truth = ds.pose([i])
+    cv = constant_velocity_rollout(ds.group, truth.index((slice(0, 1), k0)), truth.index((slice(0, 1), k0 + 1)), S)
+    cv_world = forward_kinematics(tree, Pose(cv.R[0], cv.p[0]))
+    return err, float(geodesic_error(cv_world.R, true_R).mean())
+
+
+@pytest.mark.parametrize("scene", list(SCENES))
+def test_declared_physics_replays_the_chain(scene):
+    ds = chain_dataset(gravity=9.81, n_trajectories=4, steps=60, h=0.02, speed=2.0, seed=1, **SCENES[scene])
     tree = _tree(ds)
     xml = mjcf_text(spec_from_physics(tree, ds.params["physics"], ds.body_names))
     model = load_model(xml)
     assert model.nbody == tree.n_bodies + 1 and np.allclose(model.opt.gravity, [0, 0, -9.81])
-    R, p = replay(xml, tree, ds.extras["qpos"][0, 0], ds.extras["qvel"][0, 0], ds.h, 50)
+    _assert_same_model(mujoco.MjModel.from_xml_string(ds.params["mjcf"]), model, ds.body_names)
+    i = int(ds.test_idx[0])
+    R, p = replay(xml, tree, ds.extras["qpos"][i, 0], ds.extras["qvel"][i, 0], ds.h, 50)
     assert R.shape == (51, tree.n_bodies, 3, 3)
-    assert _angle(ds.extras["body_R_world"][0], R) < 1e-6
-    assert np.abs(p - ds.extras["body_p_world"][0]).max() < 1e-6
+    assert _angle(ds.extras["body_R_world"][i, :51], R) < 1e-6
+    assert np.abs(p - ds.extras["body_p_world"][i, :51]).max() < 1e-6
+    err, cv = _mean_errors(ds, tree, i, R)
+    assert err < 0.1 * cv and err < 1e-8
+    # without the engine's state: (qpos, qvel) at sample 1 from the poses 0, 1, 2 (second order)
+    qpos, qvel, k0 = initial_state_from_poses(tree, ds.R[i], ds.p[i], ds.h)
+    assert k0 == 1 and qpos.shape == (model.nq,) and qvel.shape == (model.nv,)
+    R1, _ = replay(xml, tree, qpos, qvel, ds.h, 50)
+    assert _angle(ds.extras["body_R_world"][i, 1], R1[:1]) < 1e-9  # the poses are the configuration
+    err_poses, cv1 = _mean_errors(ds, tree, i, R1, k0=1)
+    assert err_poses < 0.1 * cv1
+    print(f"\n{scene}: replay {err:.3g} rad, from poses {err_poses:.3g} rad, constant velocity {cv:.3g} rad")
+
+
+def test_initial_state_orders():
+    """Central differences (sample 1) are second order, forward ones (sample 0) first order: halving h
+    divides the velocity error by about 4 and 2."""
+    errors: dict[str, list[float]] = {"central": [], "forward": []}
+    for h in (0.02, 0.01):
+        ds = chain_dataset(
+            links=2, joint="ball", root="free", gravity=9.81, n_trajectories=2, steps=4, h=h, speed=2.0, seed=3
+        )
+        for method in errors:
+            qpos, qvel, k0 = initial_state_from_poses(ds.tree, ds.R[0], ds.p[0], h, method=method)
+            assert np.abs(qpos[:3] - ds.extras["qpos"][0, k0, :3]).max() < 1e-12
+            errors[method].append(float(np.abs(qvel - ds.extras["qvel"][0, k0]).max()))
+    assert 3.0 < errors["central"][0] / errors["central"][1] < 5.0
+    assert 1.6 < errors["forward"][0] / errors["forward"][1] < 2.4
+    assert errors["central"][0] < 0.1 * errors["forward"][0]
+
+
+def test_initial_state_refuses_a_hinge_off_its_axis():
+    tree = Tree.from_lists(
+        [-1, 0],
+        [[0, 0, 0], [0.3, 0, 0]],
+        free_root=False,
+        joints=["ball", "hinge"],
+        axes=[[[0] * 3] * 2] + [[[0, 0, 1], [0, 0, 0]]],
+    )
+    R = np.tile(np.eye(3), (3, 2, 1, 1))
+    R[:, 1] = so3.exp(torch.tensor([0.3, 0.0, 0.0])).numpy()  # about x, not the hinge's z
+    with pytest.raises(ConfigError, match="body 1: its hinge rotation is 0.3 rad off"):
+        initial_state_from_poses(tree, R, np.zeros((3, 0, 3)), 0.01)
+    with pytest.raises(ConfigError, match="T >= 3"):
+        initial_state_from_poses(tree, R[:2], np.zeros((2, 0, 3)), 0.01)
 
 
 def test_the_bodies_are_listed_depth_first():
@@ -164,10 +268,11 @@ def _liedfl(*args, cwd: Path) -> subprocess.CompletedProcess:
 
 
 @pytest.fixture(scope="module")
-def hinge_run(tmp_path_factory) -> Path:
+def ball_run(tmp_path_factory) -> Path:
+    """A ball chain on a free root under gravity, trained 3 epochs with model.kinetic=articulated."""
     tmp = tmp_path_factory.mktemp("export")
     ds = chain_dataset(
-        links=2, joint="hinge", root="pinned", gravity=0.0, n_trajectories=3, steps=30, h=0.02, speed=2.0, seed=0
+        links=2, joint="ball", root="free", gravity=9.81, n_trajectories=3, steps=30, h=0.02, speed=2.0, seed=0
     )
     save_dataset(ds, tmp / "chain.h5")
     r = _liedfl(
@@ -187,32 +292,60 @@ def hinge_run(tmp_path_factory) -> Path:
 
 
 @pytest.mark.parametrize("mass", [None, 2.5])
-def test_export_end_to_end(hinge_run, mass):
+def test_export_end_to_end(ball_run, mass):
+    from liedfl_cli.data.hdf5 import load_dataset
+
     out = f"model_{mass}.xml"
     extra = [] if mass is None else [f"dataset.total_mass={mass}"]
-    r = _liedfl("export", "run=run", "format=mjcf", f"out={out}", "paths.data_dir=data", *extra, cwd=hinge_run)
+    r = _liedfl("export", "run=run", "format=mjcf", f"out={out}", "paths.data_dir=data", *extra, cwd=ball_run)
     assert r.returncode == 0, r.stderr[-2000:]
-    text = (hinge_run / out).read_text()
+    text = (ball_run / out).read_text()
     model = mujoco.MjModel.from_xml_string(text)
     total = 1.0 if mass is None else mass
     assert model.body_mass[1:].sum() == pytest.approx(total, rel=1e-9)
-    assert model.njnt == 2 and list(model.jnt_type) == [mujoco.mjtJoint.mjJNT_HINGE] * 2
-    assert np.allclose(model.opt.gravity, 0) and model.opt.timestep == pytest.approx(0.02 / 20)
-    assert (model.dof_damping > 0).all()
+    assert list(model.jnt_type) == [mujoco.mjtJoint.mjJNT_FREE, mujoco.mjtJoint.mjJNT_BALL]
+    assert np.allclose(model.opt.gravity, [0, 0, -9.81]) and model.opt.timestep == pytest.approx(0.02 / 50)
+    assert (model.dof_damping[6:] >= 0).all()
     names = [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, i) for i in (1, 2)]
     assert names == ["link0", "link1"]
     source = "not set" if mass is None else "from the command line"
-    assert source in text and source in r.stdout
-    assert not list(hinge_run.glob(f"{out}.tmp*"))  # written to a temporary file, then renamed
+    assert source in text and source in r.stdout and "lengths in m" in text and "h/50" in text
+    assert f"wrote {out}" in r.stdout
+    assert not list(ball_run.glob(f"{out}.tmp*")) and not list(ball_run.glob(".*tmp*"))
+    # the exported model, replayed by MuJoCo from the true states, follows the data (the scale is a gauge)
+    ds = load_dataset(ball_run / "chain.h5")
+    for i in range(len(ds.R)):
+        R, _ = replay(text, ds.tree, ds.extras["qpos"][i, 0], ds.extras["qvel"][i, 0], ds.h, 30)
+        err, cv = _mean_errors(ds, ds.tree, i, R)
+        assert err < 0.1 * cv, (i, err, cv)
 
 
 # ----------------------------------------------------------------------------- (d) one-line errors
-def test_a_missing_run_is_one_line(tmp_path):
-    r = _liedfl("export", "run=nowhere", "out=m.xml", cwd=tmp_path)
+def _one_line_failure(r: subprocess.CompletedProcess, *needles: str) -> None:
     assert r.returncode != 0 and "Traceback" not in r.stderr
     lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
-    assert len(lines) == 1 and "run=nowhere" in lines[0], r.stderr
+    assert len(lines) == 1 and all(n in lines[0] for n in needles), r.stderr
+
+
+def test_a_missing_run_is_one_line(tmp_path):
+    r = _liedfl("export", "run=nowhere", "out=m.xml", cwd=tmp_path)
+    _one_line_failure(r, "run=nowhere")
     assert not (tmp_path / "m.xml").exists()
+
+
+@pytest.mark.parametrize(
+    "args, needles",
+    [
+        (["out=/proc/m.xml"], ["/proc/m.xml"]),  # not writable (even as root)
+        (["out=."], ["out=.", "is a directory"]),
+        (["out=nofolder/m.xml"], ["does not exist"]),
+        (["format=urdf"], ["format='urdf'", "mjcf"]),
+        (["dataset.total_mass=-1"], ["dataset.total_mass=-1"]),
+    ],
+)
+def test_bad_arguments_are_one_line(ball_run, args, needles):
+    r = _liedfl("export", "run=run", "paths.data_dir=data", *args, cwd=ball_run)
+    _one_line_failure(r, *needles)
 
 
 def test_a_per_body_run_is_refused_in_one_line(tmp_path):
@@ -229,9 +362,7 @@ def test_a_per_body_run_is_refused_in_one_line(tmp_path):
     )
     assert r.returncode == 0, r.stderr[-2000:]
     r = _liedfl("export", "run=run", "out=m.xml", "paths.data_dir=data", cwd=tmp_path)
-    assert r.returncode != 0 and "Traceback" not in r.stderr
-    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
-    assert len(lines) == 1 and "needs an articulated model (model.kinetic=articulated)" in lines[0], r.stderr
+    _one_line_failure(r, "needs an articulated model (model.kinetic=articulated)")
     assert not (tmp_path / "m.xml").exists()
 
 
@@ -267,4 +398,47 @@ def test_a_ball_model_with_gravity_in_process():
     model_mj = load_model(mjcf_text(spec))
     assert list(model_mj.jnt_type) == [mujoco.mjtJoint.mjJNT_FREE] + [mujoco.mjtJoint.mjJNT_BALL] * 2
     assert np.allclose(model_mj.dof_damping, [0] * 6 + [scale * 0.02] * 3 + [scale * 0.05] * 3)
-    assert model_mj.opt.timestep == pytest.approx(0.001)
+    assert model_mj.opt.timestep == pytest.approx(0.02 / 50)
+
+
+def test_write_mjcf_is_atomic(tmp_path):
+    tree = Tree.from_lists([-1, 0], [[0, 0, 0], [0.3, 0, 0]], free_root=False)
+    out = tmp_path / "m.xml"
+    out.write_text("old")
+    spec = _spec(tree)
+    spec.mass[1] = -1.0
+    with pytest.raises(ConfigError, match="body 'b1': mass"):
+        write_mjcf(out, spec)
+    assert out.read_text() == "old"  # a refused spec leaves the file as it was
+    assert write_mjcf(out, _spec(tree)) == out and load_model(out.read_text()).nbody == 3
+    assert [f.name for f in tmp_path.iterdir()] == ["m.xml"]
+
+
+def test_rayleigh_damping_and_gravity_direction():
+    """A joint-space Rayleigh D (group tangent layout) is written as the diagonal of S^T D S per DoF,
+    with the dropped share; a learned gravity direction within 1e-3 rad of -e3 is written as -e3."""
+    from liedfl_cli.commands.export_model import gravity_vector, rayleigh_dof_damping
+
+    a = np.array([0.0, 0.6, 0.8])
+    tree = Tree.from_lists(
+        [-1, 0, 1],
+        [[0, 0, 0], [0.3, 0, 0], [0.3, 0, 0]],
+        free_root=True,
+        joints=["free", "ball", "hinge"],
+        axes=[[[0] * 3] * 2, [[0] * 3] * 2, [list(a), [0, 0, 0]]],
+    )
+    D = np.diag(np.arange(1.0, 13.0))  # dim 6 + 3 + 3
+    d, off, root = rayleigh_dof_damping(tree, D)
+    assert np.allclose(d, [0] * 6 + [7, 8, 9] + [a @ np.diag([10, 11, 12]) @ a]) and off == 0
+    assert root == pytest.approx(np.linalg.norm(np.arange(1.0, 7.0)) / np.linalg.norm(np.arange(1.0, 13.0)))
+    D[6, 7] = D[7, 6] = 1.0
+    _, off, _ = rayleigh_dof_damping(tree, D)
+    assert 0 < off < 1
+    with pytest.raises(ConfigError, match="shape"):
+        rayleigh_dof_damping(tree, np.eye(9))
+    g, phrase = gravity_vector(np.array([1e-4, 0.0, -9.81]))
+    assert g[0] == g[1] == 0 and g[2] == pytest.approx(-9.81) and "along -e3" in phrase
+    tilted = 9.81 * np.array([np.sin(0.1), 0.0, -np.cos(0.1)])
+    g, phrase = gravity_vector(tilted)
+    assert np.allclose(g, tilted) and "learned direction" in phrase and "0.1 rad" in phrase
+    assert gravity_vector(np.zeros(3))[1] == "none"

@@ -19,13 +19,16 @@ qpos follows them); `replay` maps them back. MuJoCo has one damping coefficient 
 mean of the three is written (`ball_damping_dropped` says how much that drops).
 
 `spec_from_physics` builds a spec from a dataset's declared truth (params["physics"] of
-`data/mujoco_chain.py`), `replay` steps an MJCF with MuJoCo (imported inside the functions).
+`data/mujoco_chain.py`), `write_mjcf` writes a spec atomically, `replay` steps an MJCF with MuJoCo
+(imported inside the functions) and `initial_state_from_poses` gives MuJoCo's (qpos, qvel) from the
+first poses of a liedfl trajectory when the engine's own state is not known.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 from xml.sax.saxutils import quoteattr
 
@@ -244,6 +247,19 @@ def mjcf_text(spec: MjcfSpec) -> str:
     return "\n".join(lines)
 
 
+def write_mjcf(path, spec: MjcfSpec) -> Path:
+    """Write `mjcf_text(spec)` to `path` atomically: a temporary file in the same folder, then
+    os.replace (a reader never sees a half-written file; an existing `path` is replaced only on
+    success). ConfigError for a bad spec (nothing written); OSError when the folder is not writable."""
+    from .io_utils import atomic_path
+
+    text = mjcf_text(spec)
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        Path(tmp).write_text(text)
+    return path
+
+
 def physics_dof_damping(tree: Tree, physics: dict[str, Any]) -> list[list[float]]:
     """The declared damping per body and DoF: physics["dof_damping"] (per body, per DoF) where it
     matches the joint, else `joint_damping` (non-root bodies) / `root_damping` (a pinned root) on
@@ -337,16 +353,141 @@ def replay(xml: str, tree: Tree, qpos0, qvel0, h: float, steps: int) -> tuple[np
     return R, p
 
 
+def _wrap(x: np.ndarray) -> np.ndarray:
+    """Angles to (-pi, pi]."""
+    return np.angle(np.exp(1j * x))
+
+
+def _signed_angle(u: np.ndarray, v: np.ndarray, n: np.ndarray) -> float:
+    """The angle turning u's component normal to the unit axis n onto v's, about n (right hand)."""
+    u = u - (u @ n) * n
+    v = v - (v @ n) * n
+    return float(math.atan2(float(n @ np.cross(u, v)), float(u @ v)))
+
+
+def _joint_angles(kind: str, axes: np.ndarray, R_rel: np.ndarray) -> tuple[list[float], float]:
+    """(angles, residual) of a hinge (R_rel = exp(t a)) or universal joint (R_rel = exp(t1 a1)
+    exp(t2 a2)) at one sample; residual: the angle (rad) between R_rel and the joint's rotation at
+    those angles (0 when R_rel is on the joint's manifold, i.e. the rest rotation C is the identity)."""
+    import torch
+
+    from ..lie import so3
+
+    def exp(w: np.ndarray) -> np.ndarray:
+        return so3.exp(torch.as_tensor(w, dtype=torch.float64)).numpy()
+
+    if kind == "hinge":
+        a = axes[0]
+        t = [float(so3.log(torch.as_tensor(R_rel)).numpy() @ a)]
+        fit = exp(t[0] * a)
+    else:
+        a1, a2 = axes[0], axes[1]
+        t2 = -_signed_angle(a1, R_rel.T @ a1, a2)  # R_rel^T a1 = exp(-t2 a2) a1
+        t1 = _signed_angle(a2, R_rel @ a2, a1)  # R_rel a2 = exp(t1 a1) a2
+        t = [t1, t2]
+        fit = exp(t1 * a1) @ exp(t2 * a2)
+    residual = float(so3.geodesic_distance(torch.as_tensor(fit), torch.as_tensor(R_rel)))
+    return t, residual
+
+
+def initial_state_from_poses(
+    tree: Tree, R, p, h: float, method: str = "central", tol: float = 1e-6
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """MuJoCo's state (qpos (nq,), qvel (nv,)) of an MJCF written by `mjcf_text` for `tree`, from the
+    first poses of a liedfl trajectory, for a replay (`replay`) when the engine's own velocities are
+    not known.
+
+    R (T, B, 3, 3): the tree's coordinates (world or parent-relative attitudes, `tree.rotations`);
+    p (T, m, 3): the free root's position (m = 1) or (T, 0, 3) for a pinned root; h: the sample
+    interval; T >= 3 for method="central", >= 2 for "forward". Returns (qpos, qvel, k0): the state at
+    sample k0 (central: 1, forward: 0), bodies in MuJoCo's (depth-first) order.
+
+    qpos: a free root's world position and attitude quaternion (w, x, y, z); a ball joint's
+    quaternion of R_rel = R_parent^T R_b; a hinge's angle t with R_rel = exp(t a); a universal's
+    (t1, t2) with R_rel = exp(t1 a1) exp(t2 a2); a weld has none. Exact (the poses are the state).
+    qvel: from the relative rotations' increments: per body and interval the mean body-frame angular
+    velocity w_{k+1/2} = log(R_rel,k^T R_rel,k+1) / h (ball joints, a free root's attitude), the
+    wrapped differences of a hinge's t or a universal joint's (t1, t2) over h, and the free root's
+    world velocity (p_{k+1} - p_k) / h.
+    "forward": the interval (0, 1) at sample 0: first-order, the error is h/2 times the acceleration
+    (w(t0) + h/2 w'(t0) + O(h^2)), which a replay carries as a drift growing linearly in time;
+    "central": the mean of the intervals (0, 1) and (1, 2) at sample 1: second order, error
+    h^2/6 w'' + O(h^2) commutator terms. ConfigError (one line, naming the body) when a hinge or universal
+    joint's relative rotation is more than `tol` rad off its manifold (a rest rotation C != I, which
+    the MJCF written without `quat` cannot hold)."""
+    import torch
+
+    from ..lie import so3
+    from ..lie.joints import to_joint_coordinates
+    from ..lie.product import Pose
+
+    if method not in ("central", "forward"):
+        raise ConfigError(f"initial state method={method!r}: use central or forward")
+    R = np.asarray(R, dtype=np.float64)
+    P = np.asarray(p, dtype=np.float64)
+    need = 3 if method == "central" else 2
+    B = tree.n_bodies
+    if R.ndim != 4 or R.shape[1:] != (B, 3, 3) or R.shape[0] < need:
+        raise ConfigError(f"initial state ({method}): R must be (T >= {need}, {B}, 3, 3), got {R.shape}")
+    m = 1 if tree.free_root else 0
+    if tree.free_root and (P.ndim != 3 or P.shape[0] < need or P.shape[1] < 1 or P.shape[2] != 3):
+        raise ConfigError(f"initial state ({method}): p must be (T >= {need}, 1, 3) for a free root, got {P.shape}")
+    k0 = 1 if method == "central" else 0
+    frames = [k0 - 1, k0, k0 + 1] if method == "central" else [k0, k0 + 1]
+    Rt = torch.as_tensor(R[frames])
+    Pt = torch.as_tensor(P[frames, :m] if m else np.zeros((len(frames), 0, 3)))
+    rel = to_joint_coordinates(tree, Pose(Rt, Pt)).R.numpy()  # (F, B, 3, 3): root's world, others R_rel
+    # mean body-frame angular velocity over each interval (F - 1, B, 3)
+    inc = np.einsum("fbji,fbjk->fbik", rel[:-1], rel[1:])
+    w = so3.log(torch.as_tensor(inc)).numpy() / h
+    w_mid = w.mean(axis=0)  # central: (w_{1/2} + w_{3/2}) / 2; forward: w_{1/2}
+    ax = np.asarray(tree.axes_array(), dtype=np.float64)
+    c = 1 if method == "central" else 0  # the state's frame among `frames`
+    qpos: list[float] = []
+    qvel: list[float] = []
+    for b in depth_first(tree.parents):
+        kind = tree.joint_kinds[b]
+        Rb = rel[c, b]
+        if kind in ("free", "ball"):
+            quat = so3.to_quaternion(torch.as_tensor(Rb)).numpy()
+            if kind == "free":
+                pos = P[frames, 0]
+                v = (pos[-1] - pos[0]) / (h * (len(frames) - 1))
+                qpos += [*pos[c], *quat]
+                qvel += [*v, *w_mid[b]]
+            else:
+                qpos += list(quat)
+                qvel += list(w_mid[b])
+        elif kind in ("hinge", "universal"):
+            angles = []
+            for f in range(len(frames)):
+                t, residual = _joint_angles(kind, ax[b], rel[f, b])
+                if residual > tol:
+                    raise ConfigError(
+                        f"initial state: body {b}: its {kind} rotation is {residual:.3g} rad off "
+                        f"exp(t a){' exp(t2 a2)' if kind == 'universal' else ''} at sample {frames[f]}: a rest "
+                        "rotation C != I, which the MJCF (no body quat) cannot hold"
+                    )
+                angles.append(t)
+            A = np.asarray(angles)  # (F, dof)
+            rate = _wrap(A[1:] - A[:-1]).mean(axis=0) / h
+            qpos += list(A[c])
+            qvel += list(rate)
+    return np.asarray(qpos), np.asarray(qvel), k0
+
+
 __all__ = [
     "INTEGRATOR",
     "MjcfSpec",
     "ball_damping_dropped",
     "check_spec",
     "depth_first",
+    "initial_state_from_poses",
     "load_model",
     "mjcf_text",
     "physics_dof_damping",
     "replay",
     "spec_from_physics",
     "unique_names",
+    "write_mjcf",
 ]
