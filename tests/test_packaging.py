@@ -99,7 +99,7 @@ def test_help_and_completion_name_liedfl(tmp_path):
         return subprocess.run(cmd, cwd=tmp_path, env=_env(PYTHONPATH=str(ROOT)), capture_output=True, text=True)
 
     out = liedfl("--help").stdout
-    assert out.startswith("usage: liedfl {train,data,rollout,eval,report}") and "--completion" in out
+    assert out.startswith("usage: liedfl {train,data,rollout,eval,report,export}") and "--completion" in out
     out = liedfl("train", "--help").stdout
     assert out.startswith("liedfl train: train and evaluate a model") and "liedfl-train" not in out
     script = liedfl("--completion", "bash").stdout

@@ -252,7 +252,8 @@ def test_errors_cover_converged_steps_only_with_the_valid_horizon_and_failure_co
     assert row["excluded_samples"] == n + 1 - 5
     assert row["newton_failures"] == 1
     assert list(curves["model"]["valid_horizon"]) == [4, n]
-    cv = rows[-1]
+    cv = next(r for r in rows if r["model"] == "constant_velocity")
+    assert rows[-1]["model"] == "constant_acceleration"
     assert cv["model"] == "constant_velocity" and cv["valid_horizon_min"] == n and cv["failed_trajectories"] == 0
 
 
