@@ -262,9 +262,9 @@ def fit(
     # train.loss: newton changes the batches' loss; rollout trains with del here (fine-tuning: finetune.py)
     opts, samples = training_stage(model, data, int(steps), cfg_train.loss_options())
     start_note, start_seconds = None, 0.0
-    if resume is None and cfg_train.start == "auto":
+    if resume is None and cfg_train.start != "none":
         ts = time.perf_counter()
-        start_note = model.initial_fit(samples)
+        start_note = model.initial_fit(samples, cfg_train.start)
         start_seconds = time.perf_counter() - ts
         if start_note and log_epochs:
             console.print(f"[bold]start[/] {start_note}", highlight=False)

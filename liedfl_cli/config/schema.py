@@ -47,7 +47,7 @@ CHOICES = {
     ("split",): ("auto", "all", "train", "test"),  # liedfl rollout (other_data.SPLITS)
     ("export",): ("csv", "npz"),  # liedfl rollout (export.EXPORTS), or null
     ("train", "loss"): ("del", "newton", "rollout"),
-    ("train", "start"): ("auto", "none"),
+    ("train", "start"): ("auto", "identify", "none"),
     ("train", "optimizer", "name"): ("soap", "adam"),
     ("train", "optimizer", "schedule"): ("constant", "cosine"),
     ("model", "potential"): ("auto", "mlp", "none", "uniform_gravity"),  # or a list of mlp, uniform_gravity

@@ -66,7 +66,7 @@ class TrainConfig:
     select: str = "val_one_step"  # val_one_step | val_rollout | last
     early_stopping: EarlyStoppingConfig = field(default_factory=EarlyStoppingConfig)
     loss: str = "del"  # del | newton | rollout (models/losses.py)
-    start: str = "auto"  # auto (a model's own least-squares start where it has one: articulated) | none
+    start: str = "auto"  # auto (a model's own least-squares start: articulated) | identify (articulated: + LM) | none
     rollout_loss: RolloutLossConfig = field(default_factory=RolloutLossConfig)
 
     def loss_options(self, solver: SolverOptions | None = None) -> LossOptions:

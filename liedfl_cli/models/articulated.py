@@ -456,7 +456,7 @@ class ArticulatedLieDFLNN(ImplicitModel):
                 out["dof_damping"] = self.dof_damper.coefficients().detach()
             return out
 
-    def initial_fit(self, samples: Any) -> str | None:
+    def initial_fit(self, samples: Any, method: str = "auto") -> str | None:
         """`Model.initial_fit`: the prediction-weighted least-squares start (`models.articulated_fit`),
         on the fast path's triplets only; the scale from dataset.total_mass when given."""
         if self.residual_mode != "fast" or not isinstance(samples, ArticulatedTriplets) or self.known:
@@ -465,6 +465,10 @@ class ArticulatedLieDFLNN(ImplicitModel):
 
         saved = {k: v.detach().clone() for k, v in self.state_dict().items()}
         try:
+            if method == "identify":  # least squares + Levenberg-Marquardt (models.identification)
+                from .identification import identify
+
+                return identify(self, samples, epsilon=self.epsilon, log=None).line()
             report = least_squares_start(self, samples, epsilon=self.epsilon)
             self.start_report = {
                 "regressor_rank": report.rank,

@@ -398,10 +398,10 @@ class Model(nn.Module, abc.ABC):
         model has none or it is not checked."""
         return None
 
-    def initial_fit(self, samples: Any) -> str | None:
+    def initial_fit(self, samples: Any, method: str = "auto") -> str | None:
         """Fit the model to its training samples (`training_set`) before the first epoch, where the
-        model has a closed-form or second-order start (`train.start=auto`); returns a line saying what
-        it did, or None where it has none."""
+        model has a closed-form or second-order start (`train.start`: auto, or identify where the model
+        has a second-order fit); returns a line saying what it did, or None where it has none."""
         return None
 
     def multibody(self) -> dict[str, Any] | None:
