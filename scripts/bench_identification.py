@@ -28,35 +28,21 @@ from liedfl_cli.models.articulated import ArticulatedLieDFLNN, ArticulatedTriple
 from liedfl_cli.models.base import LossOptions
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from articulated_scenes import SCENES as ACCEPTANCE  # noqa: E402  (the acceptance scenes, beside this script)
+
+# the acceptance scenes this benchmark uses, plus a heavy-root branched tree in millimetres
 SCENES: dict[str, dict] = {
-    "chain4_heavy_root": {"parents": [-1, 0, 1, 2], "joints": ["free", "ball", "ball", "ball"], "heavy_root": True},
-    "chain4_heavy_root_mm": {
-        "parents": [-1, 0, 1, 2],
-        "joints": ["free", "ball", "ball", "ball"],
-        "heavy_root": True,
-        "unit": "mm",
-    },
-    "tree5_ball": {"parents": [-1, 0, 0, 0, 1], "joints": ["free", "ball", "ball", "ball", "ball"]},
+    **{k: ACCEPTANCE[k] for k in ("chain4_heavy_root", "chain4_heavy_root_mm", "tree5_ball")},
     "tree5_heavy_root_mm": {
         "parents": [-1, 0, 0, 0, 1],
         "joints": ["free", "ball", "ball", "ball", "ball"],
         "heavy_root": True,
         "unit": "mm",
     },
-    "tree5_universal_weld": {"parents": [-1, 0, 0, 1, 2], "joints": ["free", "universal", "hinge", "weld", "ball"]},
-    "arm4_hinge_pinned_gravity": {
-        "parents": [-1, 0, 1, 2],
-        "joints": ["hinge", "hinge", "hinge", "hinge"],
-        "gravity": 9.81,
-        "h": 0.02,
-        "speed": 2.0,
-    },
-    "tree4_pinned_universal_gravity": {
-        "parents": [-1, 0, 0, 1],
-        "joints": ["universal", "hinge", "ball", "hinge"],
-        "gravity": 9.81,
-        "h": 0.02,
-        "speed": 2.0,
+    **{
+        k: ACCEPTANCE[k]
+        for k in ("tree5_universal_weld", "arm4_hinge_pinned_gravity", "tree4_pinned_universal_gravity")
     },
 }
 

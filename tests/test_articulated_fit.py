@@ -21,14 +21,6 @@ F64 = torch.float64
 HEAVY = {"parents": [-1, 0, 1, 2], "joints": ["free", "ball", "ball", "ball"], "heavy_root": True}
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
-
-
 def _ratio(model, truth) -> float:
     pred, conv = one_step_predictions(model, truth, SolverOptions())
     assert bool(conv.all())

@@ -173,7 +173,6 @@ from liedfl_cli.data.mujoco_chain import chain_dataset  # noqa: E402
     ],
 )
 def test_true_hinge_scheme_beats_constant_velocity_where_ball_joints_cannot(kw):
-    torch.set_num_threads(1)
     ds = chain_dataset(n_trajectories=3, steps=30, seed=7, joint="hinge", **{"h": 0.05, **kw})
     truth = ds.pose()
     cv = constant_velocity_one_step(ds.group, truth)

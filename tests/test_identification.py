@@ -24,14 +24,6 @@ F64 = torch.float64
 HEAVY = {"parents": [-1, 0, 1, 2], "joints": ["free", "ball", "ball", "ball"], "heavy_root": True}
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
-
-
 def _true_pi(ds, prob) -> torch.Tensor:
     phys = ds.params["physics"]
     t = articulated_parameters(phys, ds.tree.n_bodies)

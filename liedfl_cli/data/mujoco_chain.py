@@ -148,6 +148,24 @@ def _unit(rng: np.random.Generator) -> np.ndarray:
     return v / np.linalg.norm(v)
 
 
+def _draw_link(rng: np.random.Generator, m: float) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+    """One link of mass m drawn from rng (the draws of `chain_spec` and `tree_spec` alike): (length
+    U(0.25, 0.5) m, unit direction d, centre of mass at U(0.35, 0.65) L d plus up to 0.03 m sideways,
+    inertia about it (3, 3) of a box L x a x c, a, c U(0.15, 0.25) m, whose principal axes are the link's
+    turned by a random rotation of 0.2 to 0.6 rad)."""
+    L = float(rng.uniform(0.25, 0.5))
+    d = _unit(rng)
+    side = _unit(rng)
+    side -= side.dot(d) * d
+    side /= np.linalg.norm(side)
+    com = rng.uniform(0.35, 0.65) * L * d + rng.uniform(0.0, 0.03) * side
+    a, c = rng.uniform(0.15, 0.25, 2)  # a box L x a x c: a physical inertia (triangle inequalities hold)
+    moments = m / 12 * np.array([a * a + c * c, L * L + c * c, L * L + a * a])
+    frame = np.stack([d, side, np.cross(d, side)], -1)
+    Q = so3.exp(torch.from_numpy(_unit(rng) * rng.uniform(0.2, 0.6))).numpy() @ frame
+    return L, d, com, Q @ np.diag(moments) @ Q.T
+
+
 def chain_spec(
     links: int = 3,
     joint: str = "ball",
@@ -182,21 +200,7 @@ def chain_spec(
     out: list[Link] = []
     for b in range(int(links)):
         m = float(rng.uniform(1.0, 3.0))
-        L = float(rng.uniform(0.25, 0.5))
-        d = _unit(rng)
-        side = _unit(rng)
-        side -= side.dot(d) * d
-        side /= np.linalg.norm(side)
-        com = rng.uniform(0.35, 0.65) * L * d + rng.uniform(0.0, 0.03) * side
-        a, c = rng.uniform(0.15, 0.25, 2)  # a box L x a x c: a physical inertia (triangle inequalities hold)
-        moments = m / 12 * np.array([a * a + c * c, L * L + c * c, L * L + a * a])
-        # principal axes: column 0 along the link, turned by a random rotation of up to 0.6 rad
-        e1 = d
-        e2 = side
-        frame = np.stack([e1, e2, np.cross(e1, e2)], -1)
-        turn = so3.exp(torch.from_numpy(_unit(rng) * rng.uniform(0.2, 0.6))).numpy()
-        Q = turn @ frame
-        inertia = Q @ np.diag(moments) @ Q.T
+        L, d, com, inertia = _draw_link(rng, m)
         if b == 0:
             offset = np.zeros(3) if root == "free" else rng.uniform(-0.5, 0.5, 3)
         else:
@@ -310,17 +314,7 @@ def tree_spec(
             m = float(root_mass) if b == 0 else float(rng.uniform(*link_mass))
         else:
             m = float(rng.uniform(1.0, 3.0))
-        L = float(rng.uniform(0.25, 0.5))
-        d = _unit(rng)
-        side = _unit(rng)
-        side -= side.dot(d) * d
-        side /= np.linalg.norm(side)
-        com = rng.uniform(0.35, 0.65) * L * d + rng.uniform(0.0, 0.03) * side
-        a, c = rng.uniform(0.15, 0.25, 2)
-        moments = m / 12 * np.array([a * a + c * c, L * L + c * c, L * L + a * a])
-        frame = np.stack([d, side, np.cross(d, side)], -1)
-        Q = so3.exp(torch.from_numpy(_unit(rng) * rng.uniform(0.2, 0.6))).numpy() @ frame
-        inertia = Q @ np.diag(moments) @ Q.T
+        L, d, com, inertia = _draw_link(rng, m)
         if b == 0:
             offset = np.zeros(3) if root == "free" else rng.uniform(-0.5, 0.5, 3)
         else:
