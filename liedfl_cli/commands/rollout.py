@@ -110,6 +110,7 @@ def rollout_and_save(run: RunConfig, model, dataset, path, steps=None, provenanc
     checkpoint: `checkpoint.run_provenance`) and the rollout's dtype. Returns timing/solver summaries."""
     from ..config.factory import place
     from ..data.scenes import dataset_steps
+    from ..models.substeps import same_step
     from ..models.true_scheme import true_model
 
     assert run.rollout is not None, "a rollout section"
@@ -118,8 +119,8 @@ def rollout_and_save(run: RunConfig, model, dataset, path, steps=None, provenanc
     runs = {"model": model}
     if run.rollout.reference:
         ref = true_model(dataset)
-        if ref is not None:
-            runs["true_scheme"] = place(ref)
+        if ref is not None:  # on the model's own step (its sub-steps and order)
+            runs["true_scheme"] = place(same_step(ref, model))
     rollouts = {}
     for name, m in runs.items():
         was_training = m.training

@@ -413,13 +413,16 @@ class ArticulatedLieDFLNN(ImplicitModel):
 
     # ------------------------------------------------------------------ config
     @classmethod
-    def from_config(cls, ctx, **options: Any) -> ArticulatedLieDFLNN:
+    def from_config(cls, ctx, **options: Any) -> ImplicitModel:
         """From the options of `conf/model/liedflnn.yaml` with `kinetic: articulated` (the factory picks
-        this class for them); the tree comes from the data (`ctx.tree`)."""
+        this class for them); the tree comes from the data (`ctx.tree`). `model.substeps` / `model.order`
+        other than 1 / 2 wrap it in `models.substeps.SubstepModel`."""
         from .liedflnn import LieDFLNN
+        from .substeps import with_substeps
 
         _, parts, why, opt = LieDFLNN.resolve_options(ctx, options)
-        return build_articulated(ctx, parts, opt, why)
+        substeps, order = opt.pop("substeps", 1), opt.pop("order", 2)
+        return with_substeps(build_articulated(ctx, parts, opt, why), substeps, order)
 
     def components(self) -> list[str]:
         tag = component_tagger()
@@ -649,6 +652,14 @@ class ArticulatedLieDFLNN(ImplicitModel):
         nu = torch.stack((reduced_velocity(self.tree, q0, q1, self.h), reduced_velocity(self.tree, q1, q2, self.h)))
         tau = self.dof_damper(nu)
         return 0.5 * self.h * (tau[0] + tau[1])
+
+    def dof_half_torque(self, g: Pose, g_next: Pose) -> torch.Tensor | None:
+        """(h/2) tau(nu(g, g_next)) of the per-DoF damping over one interval, (..., n); None without it
+        (one half of `dof_torques`, for steps of different lengths: `models.substeps`)."""
+        if self.dof_damper is None:
+            return None
+        q0, q1 = jt.to_joint_coordinates(self.tree, g), jt.to_joint_coordinates(self.tree, g_next)
+        return 0.5 * self.h * self.dof_damper(reduced_velocity(self.tree, q0, q1, self.h))
 
     def _force_jacobian(self, g: Pose, inc: Pose, fixed: tuple[Pose, torch.Tensor | None] | None = None):
         """d/d delta of (h/2) C(g)^T F(q, nu~(q, q_next)) with g_next = g inc exp(delta), (..., dim, dim):

@@ -102,6 +102,8 @@ class LieDFLNNOptions:
     known: list[str] = field(default_factory=list)  # parts set to the scene's true values and frozen
     gravity: Any = "auto"  # field strength of uniform_gravity: auto (the data's g, else 9.81) | a number
     learn_gravity_direction: bool = False
+    substeps: int = 1  # DEL sub-steps per sample step (models/substeps.py): error / substeps^2
+    order: int = 2  # 2: the paper's step | 4: a triple-jump composition of it (models/substeps.py)
 
 
 class LieDFLNN(ImplicitModel):
@@ -122,6 +124,7 @@ class LieDFLNN(ImplicitModel):
 
     window = "triplet"
     notes: list[str]  # set by from_config: what `auto` options chose
+    has_rollout_maps = True  # its fused rollout's maps (`fused_rollout.RolloutMaps`) describe its step
 
     def __init__(
         self,
@@ -241,11 +244,15 @@ class LieDFLNN(ImplicitModel):
         return kinetic_kind, parts, why, {**opt, "known": known, "gravity": gravity, **extra}
 
     @classmethod
-    def from_config(cls, ctx: BuildContext, **options) -> LieDFLNN:
+    def from_config(cls, ctx: BuildContext, **options) -> ImplicitModel:
         """The per-body model from its config options (`resolve_options`). What auto chose is kept in
         `notes` (printed by `liedfl train`). `model.kinetic: articulated` is built by the factory as
-        `models.articulated.ArticulatedLieDFLNN` (same options)."""
+        `models.articulated.ArticulatedLieDFLNN` (same options). `model.substeps` / `model.order` other
+        than 1 / 2 wrap it in `models.substeps.SubstepModel`."""
+        from .substeps import with_substeps
+
         kinetic_kind, parts, why, opt = cls.resolve_options(ctx, options)
+        substeps, order = opt.pop("substeps", 1), opt.pop("order", 2)
         joints = opt.pop("joints", "auto")
         if joints not in ("auto", "ball", None):
             raise ConfigError(
@@ -272,7 +279,7 @@ class LieDFLNN(ImplicitModel):
         except ValueError as e:  # bad model/force options: one clear config error
             raise ConfigError(str(e)) from None
         model.notes = [f"potential: {why}"]
-        return model
+        return with_substeps(model, substeps, order)
 
     # ------------------------------------------------------------------ parameters
     def _params(self):
@@ -382,6 +389,8 @@ class LieDFLNN(ImplicitModel):
         eta = g.R.new_zeros(*g.R.shape[:-3], self.G.dim)
         if self.potential is None:
             return eta
+        if isinstance(self.potential, UniformGravityPotential):  # closed form (tested against autodiff)
+            return -self.h * self.potential.left_gradient(g)
         dV = grad(lambda e: self.potential(self.G.perturb(g, e)).sum())(eta)
         return -self.h * dV
 

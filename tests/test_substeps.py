@@ -1,0 +1,298 @@
+"""Sub-steps and the fourth-order step (`model.substeps`, `model.order`; models/substeps.py).
+
+References that do not share the sub-step code: scipy's DOP853 at tolerance 1e-13 (the heavy top's
+equations of motion, `data.physics`) for the convergence orders of a single body; autodiff for the
+internal Jacobian; central differences of the loss (the internal poses re-solved) for the
+implicit-function gradient; the wrapped model's own residual where the sub-steps are uniform.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from liedfl_cli.errors import ConfigError
+from liedfl_cli.lie import Pose, ProductGroup, so3
+from liedfl_cli.lie import joints as jt
+from liedfl_cli.models import substeps as sb
+from liedfl_cli.models.base import LossOptions, TripletBatch
+from liedfl_cli.models.liedflnn import LieDFLNN
+from liedfl_cli.models.true_scheme import physics_model
+from liedfl_cli.solvers.options import SolverOptions
+from tests.test_articulated_joints import learned_like, mixed_tree, smooth_motion
+
+F64 = torch.float64
+TIGHT = SolverOptions(tol=1e-12, max_iter=20)
+G_SO3 = ProductGroup(0, 1)
+TOP = {"J": [1.521, 1.362, 1.211], "m": 0.5, "rho": [0.0, 0.5, 1.0], "g": 9.81, "D": [0.1, 0.1, 0.1]}
+
+
+def top_truth(h: float, horizon: float, n_traj: int = 3) -> Pose:
+    """The damped heavy top sampled at h (DOP853, rtol 1e-13): R (n_traj, N+1, 1, 3, 3)."""
+    from liedfl_cli.data.physics import RigidBodySO3, simulate_so3
+
+    body = RigidBodySO3(J=np.diag(TOP["J"]), m=TOP["m"], rho=np.array(TOP["rho"]), g=TOP["g"], D=np.diag(TOP["D"]))
+    w0 = np.random.default_rng(0).normal(size=(n_traj, 3))
+    R0 = np.broadcast_to(np.eye(3), (n_traj, 3, 3)).copy()
+    n = round(horizon / h)
+    sim = simulate_so3(body, R0, w0, h * np.arange(n + 1), {"method": "DOP853", "rtol": 1e-13, "atol": 1e-14})
+    R = torch.from_numpy(sim.R)[:, :, None]
+    return Pose(R, R.new_zeros(n_traj, n + 1, 0, 3))
+
+
+def end_error(model, truth: Pose) -> float:
+    n = truth.R.shape[1] - 1
+    ro = model.rollout(truth.index((slice(None), 0)), truth.index((slice(None), 1)), n, TIGHT)
+    assert ro.n_failed == 0
+    return float((ro.pose.R[:, -1] - truth.R[:, -1]).norm(dim=(-1, -2)).max())
+
+
+def test_fractions_sum_to_one_and_are_symmetric():
+    for s in (1, 2, 3, 8):
+        for order in (2, 4):
+            c = sb.step_fractions(s, order)
+            assert len(c) == s * (1 if order == 2 else 3)
+            assert math.isclose(sum(c), 1.0, rel_tol=1e-14)
+            assert c == tuple(reversed(c))
+    g1, g2 = sb.GAMMA1, sb.GAMMA2
+    assert g2 < 0 and math.isclose(2 * g1**3 + g2**3, 0.0, abs_tol=1e-14)  # the order-4 condition
+
+
+@pytest.mark.parametrize("bad", [0, -1, 1.5, "two", True, 65])
+def test_bad_substeps_is_one_config_error(bad):
+    with pytest.raises(ConfigError, match="model.substeps"):
+        sb.check_steps(bad, 2)
+
+
+@pytest.mark.parametrize("bad", [1, 3, 6, "4", True])
+def test_bad_order_is_one_config_error(bad):
+    with pytest.raises(ConfigError, match="model.order"):
+        sb.check_steps(1, bad)
+
+
+def test_one_second_order_step_is_the_paper_model_itself():
+    m = physics_model(G_SO3, 0.05, TOP)
+    assert sb.with_substeps(m, 1, 2) is m
+    assert isinstance(sb.with_substeps(m, 2, 2), sb.SubstepModel)
+
+
+@pytest.mark.parametrize("residual", ["fast", "generic"])
+def test_uniform_substep_residual_is_the_models_residual(residual):
+    model = LieDFLNN(G_SO3, 0.05, potential=["mlp"], forces=["rayleigh"], residual=residual, seed=1)
+    g = top_truth(0.05, 0.15)
+    a, b, c = (g.index((slice(None), i)) for i in range(3))
+    r = sb.substep_residual(model, model, a, b, c)
+    assert torch.allclose(r, model.residual(a, b, c), rtol=1e-12, atol=1e-14)
+
+
+def test_uniform_substep_residual_is_the_tree_models_reduced_residual():
+    tree = mixed_tree("world")
+    model = learned_like(tree, 0.05)
+    assert model.reduced
+    q = smooth_motion(tree, 2, 2, 0.05, seed=4)
+    a, b, c = (q.index((slice(None), i)) for i in range(3))
+    assert torch.allclose(sb.substep_residual(model, model, a, b, c), model.residual(a, b, c), rtol=1e-11, atol=1e-13)
+
+
+def test_symmetric_potential_weight_between_unequal_substeps():
+    """A_{ha} + B_{hb} weights V at the pose by (ha + hb) / 2, in both residual modes."""
+    h = 0.05
+    out = {}
+    g = top_truth(h, 0.15)
+    a, b, c = (g.index((slice(None), i)) for i in range(3))
+    for residual in ("fast", "generic"):
+        model = LieDFLNN(G_SO3, h, potential=["mlp"], forces=[], residual=residual, seed=1)
+        ma, mb = model.with_path("reference"), model.with_path("reference")
+        ma.h, mb.h = 0.03, 0.07
+        out[residual] = sb.substep_residual(ma, mb, a, b, c)
+        # reference: the kinetic terms at their own steps and -(ha + hb)/2 dV/d eta, by autodiff of V
+        eta = torch.zeros(b.R.shape[0], 3, dtype=F64)
+        V = model.potential
+        dV = torch.func.grad(lambda e, V=V: V(G_SO3.perturb(b, e)).sum())(eta)
+        from liedfl_cli.mechanics import kinetic
+
+        Jd = model.inertia.Jd()
+        ref = (
+            kinetic.kinetic_d2(G_SO3, G_SO3.increment(a, b), Jd, Jd.new_zeros(0), Jd.new_zeros(0, 3), 0.03)
+            + kinetic.kinetic_d1(G_SO3, G_SO3.increment(b, c), Jd, Jd.new_zeros(0), Jd.new_zeros(0, 3), 0.07)
+            - 0.05 * dV
+        )
+        assert torch.allclose(out[residual], ref, rtol=1e-10, atol=1e-12), residual
+
+
+@pytest.mark.parametrize("potential", [["uniform_gravity"], ["mlp"], []])
+def test_linear_engine_equals_the_reference_residual(potential):
+    """The fused linear maps give the sub-step residual of the reference functions (unequal steps too)."""
+    model = sb.SubstepModel(
+        LieDFLNN(G_SO3, 0.05, potential=potential, forces=["rayleigh"], seed=3, init_jitter=0.3), 1, 4
+    )
+    assert sb._LinearEngine.applies(model.inner)
+    engine = sb._LinearEngine(model)
+    ref = model._models("reference")
+    g = top_truth(0.05, 0.15)
+    a, b, c = (g.index((slice(None), i)) for i in range(3))
+    for ia, ib in ((0, 1), (1, 2), (2, 0)):
+        with torch.enable_grad():
+            want = sb.substep_residual(ref[ia], ref[ib], a, b, c).detach()
+        assert torch.allclose(engine.residual(ia, ib, a, b, c), want, rtol=1e-10, atol=1e-12), (ia, ib)
+
+
+def test_fused_and_reference_order_four_rollouts_agree():
+    kw = {"potential": ["uniform_gravity"], "forces": ["rayleigh"], "seed": 5, "init_jitter": 0.2}
+    fused = sb.SubstepModel(LieDFLNN(G_SO3, 0.05, path="fused", **kw), 2, 4)
+    ref = sb.SubstepModel(LieDFLNN(G_SO3, 0.05, path="reference", **kw), 2, 4)
+    assert sb._LinearEngine.applies(fused.inner) and not sb._LinearEngine.applies(ref.inner)
+    g = top_truth(0.05, 0.1)
+    a, b = (
+        fused.rollout(g.index((slice(None), 0)), g.index((slice(None), 1)), 30, TIGHT),
+        ref.rollout(g.index((slice(None), 0)), g.index((slice(None), 1)), 30, TIGHT),
+    )
+    assert a.n_failed == 0 and b.n_failed == 0
+    assert torch.allclose(a.pose.R, b.pose.R, atol=1e-10)
+
+
+def test_internal_jacobian_matches_autodiff():
+    model = sb.SubstepModel(physics_model(G_SO3, 0.05, TOP), 4, 2)
+    g = top_truth(0.05, 0.05, n_traj=2)
+    q0, q1 = g.index((slice(None), 0)), g.index((slice(None), 1))
+    models = model._models("reference")
+    z, ok = model.internal_poses(q0, q1)
+    assert bool(ok.all())
+    J = model._interior_jacobian(models, q0, z, q1)
+    zero = torch.zeros(2, len(z), 3, dtype=F64)
+
+    def F(d):
+        return model._interior(models, q0, [G_SO3.retract(z[i], d[:, i]) for i in range(len(z))], q1)
+
+    Jad = torch.autograd.functional.jacobian(F, zero).reshape(2, 9, 2, 9)
+    Jad = torch.stack([Jad[i, :, i] for i in range(2)])
+    assert torch.allclose(J, Jad, rtol=1e-6, atol=1e-6 * float(Jad.abs().max()))
+
+
+@pytest.mark.parametrize(("s", "order"), [(3, 2), (1, 4)])
+def test_internal_poses_solve_the_substep_equations(s, order):
+    model = sb.SubstepModel(physics_model(G_SO3, 0.05, TOP), s, order)
+    g = top_truth(0.05, 0.05)
+    q0, q1 = g.index((slice(None), 0)), g.index((slice(None), 1))
+    z, ok = model.internal_poses(q0, q1)
+    assert bool(ok.all()) and len(z) == len(model.fractions) - 1
+    with torch.enable_grad():
+        F = model._interior(model._models("reference"), q0, z, q1)
+    assert float(F.abs().max()) < 1e-10
+    assert all(float(G_SO3.orthogonality_error(x).max()) < 1e-12 for x in z)
+
+
+def test_tree_internal_poses_stay_on_the_joints():
+    tree = mixed_tree("world")
+    model = sb.SubstepModel(learned_like(tree, 0.05), 1, 4)
+    q = smooth_motion(tree, 2, 1, 0.05, seed=5)
+    z, ok = model.internal_poses(q.index((slice(None), 0)), q.index((slice(None), 1)))
+    assert bool(ok.all())
+    ax = torch.tensor(tree.axes_array(), dtype=F64)
+    q0 = jt.to_joint_coordinates(tree, q.index((slice(None), 0)))
+    for x in z:
+        qx = jt.to_joint_coordinates(tree, x)
+        # the hinge keeps its axis, the weld its rotation (as in tests/test_articulated_joints.py)
+        assert torch.allclose(qx.R[:, 1] @ ax[1, 0], q0.R[:, 1] @ ax[1, 0], atol=1e-11)
+        assert torch.allclose(qx.R[:, 4], q0.R[:, 4], atol=1e-11)
+
+
+def test_convergence_orders_on_the_heavy_top_against_dop853():
+    """Error at t = 0.6 s with the true parameters: / 4 per halving for one second-order step, / s^2 with
+    s sub-steps, / 16 for order 4 (the measured slope, not the expected one, is what is asserted)."""
+    errs: dict[tuple[int, int], list[float]] = {(1, 2): [], (2, 2): [], (1, 4): []}
+    hs = (0.06, 0.03)
+    for h in hs:
+        truth = top_truth(h, 0.6)
+        for s, order in errs:
+            errs[(s, order)].append(end_error(sb.with_substeps(physics_model(G_SO3, h, TOP), s, order), truth))
+    p2 = sb.measured_order(errs[(1, 2)], hs)
+    p4 = sb.measured_order(errs[(1, 4)], hs)
+    assert 1.8 < p2 < 2.3, errs
+    assert p4 > 3.7, errs
+    for e1, e2 in zip(errs[(1, 2)], errs[(2, 2)]):
+        assert 3.3 < e1 / e2 < 4.7, errs  # two sub-steps: a quarter of the error
+
+
+@pytest.mark.slow
+def test_convergence_order_four_on_a_tree():
+    """A reduced tree (free root, hinge, universal, ball, weld) under gravity with per-DoF damping, its
+    own parameters: order 4 against the same scheme 8 sub-steps finer (Richardson-style reference)."""
+    tree = mixed_tree("world")
+    q = smooth_motion(tree, 2, 1, 0.04, seed=6)
+    q0, q1 = q.index((slice(None), 0)), q.index((slice(None), 1))
+    base = learned_like(tree, 0.04)
+    fine = sb.SubstepModel(base, 8, 4)
+    ref = fine.rollout(q0, q1, 11, TIGHT)  # to t = 0.4 s
+    assert ref.n_failed == 0
+    errs = []
+    for s in (1, 2):
+        model = sb.SubstepModel(base, s, 4)
+        ro = model.rollout(q0, q1, 11, TIGHT)
+        assert ro.n_failed == 0
+        errs.append(float((ro.pose.R[:, -1] - ref.pose.R[:, -1]).norm(dim=(-1, -2)).max()))
+    assert math.log2(errs[0] / errs[1]) > 3.6, errs
+
+
+def test_implicit_function_gradient_matches_central_differences():
+    torch.manual_seed(0)
+    model = sb.SubstepModel(
+        LieDFLNN(G_SO3, 0.05, potential=["uniform_gravity"], forces=["rayleigh"], seed=2, init_jitter=0.3), 1, 4
+    )
+    g = top_truth(0.05, 0.15, n_traj=2)
+    batch = TripletBatch(*(g.index((slice(None), i)) for i in range(3)))
+    opts = LossOptions(w_reg=0.0)
+    param = model.inner.inertia.abc
+    loss, _ = model.loss(batch, opts)
+    (grad,) = torch.autograd.grad(loss, param)
+    eps = 1e-6
+    fd = torch.zeros_like(param)
+    with torch.no_grad():
+        for i in range(param.numel()):
+            param.view(-1)[i] += eps
+            up = float(model.loss(batch, opts)[0])
+            param.view(-1)[i] -= 2 * eps
+            down = float(model.loss(batch, opts)[0])
+            param.view(-1)[i] += eps
+            fd.view(-1)[i] = (up - down) / (2 * eps)
+    assert torch.allclose(grad, fd, rtol=1e-4, atol=1e-6 * float(fd.abs().max()))
+
+
+def test_substep_rollout_starts_and_ends_on_the_samples():
+    model = sb.SubstepModel(physics_model(G_SO3, 0.05, TOP), 3, 2)
+    g = top_truth(0.05, 0.2)
+    ro = model.rollout(g.index((slice(None), 0)), g.index((slice(None), 1)), 4, TIGHT)
+    assert ro.pose.R.shape == (3, 5, 1, 3, 3)
+    assert ro.converged.shape == (3, 3) and ro.iterations.shape == (3, 3)
+    assert torch.equal(ro.pose.R[:, :2], g.R[:, :2])
+    assert float((ro.pose.R - g.R).abs().max()) < 1e-3
+
+
+def test_newton_loss_with_substeps_is_refused():
+    model = sb.SubstepModel(physics_model(G_SO3, 0.05, TOP), 2, 2)
+    g = top_truth(0.05, 0.1)
+    with pytest.raises(ConfigError, match="train.loss=newton"):
+        model.loss(TripletBatch(*(g.index((slice(None), i)) for i in range(3))), LossOptions(loss="newton"))
+
+
+@pytest.mark.parametrize("n_se3", [0, 1])
+def test_closed_form_gravity_covector_equals_autodiff(n_se3):
+    G = ProductGroup(n_se3, 1 - n_se3)
+    model = LieDFLNN(G, 0.05, potential=["uniform_gravity"], forces=[], seed=4, init_jitter=0.3)
+    gen = torch.Generator().manual_seed(1)
+    g = G.exp(torch.randn(5, G.dim, generator=gen, dtype=F64))
+    eta = torch.zeros(5, G.dim, dtype=F64)
+    ref = -0.05 * torch.func.grad(lambda e: model.potential(G.perturb(g, e)).sum())(eta)
+    assert torch.allclose(model.potential_covector(g), ref, rtol=1e-12, atol=1e-14)
+
+
+def test_random_rotation_guess_is_on_the_group():
+    """so3 sanity for the geodesic start of the internal poses (far from the identity)."""
+    R = so3.exp(torch.tensor([[3.0, 0.1, 0.0]], dtype=F64))
+    z = sb.move(
+        physics_model(G_SO3, 0.05, TOP), Pose(R[:, None], R.new_zeros(1, 0, 3)), torch.tensor([[0.1, 0, 0]]).double()
+    )
+    assert float(G_SO3.orthogonality_error(z).max()) < 1e-13
