@@ -90,6 +90,7 @@ def test_uniform_substep_residual_is_the_models_residual(residual):
 
 def test_uniform_substep_residual_is_the_tree_models_reduced_residual():
     tree = mixed_tree("world")
+    torch.manual_seed(0)
     model = learned_like(tree, 0.05)
     assert model.reduced
     q = smooth_motion(tree, 2, 2, 0.05, seed=4)
@@ -185,8 +186,10 @@ def test_internal_poses_solve_the_substep_equations(s, order):
     assert all(float(G_SO3.orthogonality_error(x).max()) < 1e-12 for x in z)
 
 
-def test_tree_internal_poses_stay_on_the_joints():
+@pytest.mark.parametrize("seed", [1, 2])
+def test_tree_internal_poses_stay_on_the_joints(seed):
     tree = mixed_tree("world")
+    torch.manual_seed(seed)  # learned_like draws its damping from the global generator
     model = sb.SubstepModel(learned_like(tree, 0.05), 1, 4)
     q = smooth_motion(tree, 2, 1, 0.05, seed=5)
     z, ok = model.internal_poses(q.index((slice(None), 0)), q.index((slice(None), 1)))
@@ -217,6 +220,31 @@ def test_convergence_orders_on_the_heavy_top_against_dop853():
         assert 3.3 < e1 / e2 < 4.7, errs  # two sub-steps: a quarter of the error
 
 
+def test_an_unconverged_start_is_reported_as_a_failed_first_step(monkeypatch):
+    monkeypatch.setattr(sb, "INTERNAL_MAX_ITER", 1)  # one Newton iteration cannot reach the tolerance
+    model = sb.SubstepModel(physics_model(G_SO3, 0.05, TOP), 1, 4)
+    g = top_truth(0.05, 0.15)
+    ro = model.rollout(g.index((slice(None), 0)), g.index((slice(None), 1)), 3, TIGHT)
+    assert not bool(ro.converged[:, 0].any()) and bool(ro.converged[:, 1].all())
+
+
+@pytest.mark.slow
+def test_an_unsolvable_fourth_order_start_is_a_reported_failure():
+    """Damping per DoF up to 1.6 (seed 0): the triple jump's negative sub-step leaves one trajectory's
+    internal poses without a solution; the rollout flags its first step instead of going on silently."""
+    tree = mixed_tree("world")
+    torch.manual_seed(0)
+    model = sb.SubstepModel(learned_like(tree, 0.05), 1, 4)
+    q = smooth_motion(tree, 2, 1, 0.05, seed=5)
+    q0, q1 = q.index((slice(None), 0)), q.index((slice(None), 1))
+    z, ok = model.internal_poses(q0, q1)
+    assert ok.tolist() == [True, False]
+    assert all(float(model.G.orthogonality_error(x).max()) < 1e-10 for x in z)  # still on the group
+    ro = model.rollout(q0, q1, 2, TIGHT)
+    assert not bool(ro.converged[1, 0])
+    assert sb.with_substeps(model.inner, 3, 2).internal_poses(q0, q1)[1].all()  # positive sub-steps solve it
+
+
 @pytest.mark.slow
 def test_convergence_order_four_on_a_tree():
     """A reduced tree (free root, hinge, universal, ball, weld) under gravity with per-DoF damping, its
@@ -224,6 +252,7 @@ def test_convergence_order_four_on_a_tree():
     tree = mixed_tree("world")
     q = smooth_motion(tree, 2, 1, 0.04, seed=6)
     q0, q1 = q.index((slice(None), 0)), q.index((slice(None), 1))
+    torch.manual_seed(0)
     base = learned_like(tree, 0.04)
     fine = sb.SubstepModel(base, 8, 4)
     ref = fine.rollout(q0, q1, 11, TIGHT)  # to t = 0.4 s
@@ -287,6 +316,9 @@ def test_closed_form_gravity_covector_equals_autodiff(n_se3):
     eta = torch.zeros(5, G.dim, dtype=F64)
     ref = -0.05 * torch.func.grad(lambda e: model.potential(G.perturb(g, e)).sum())(eta)
     assert torch.allclose(model.potential_covector(g), ref, rtol=1e-12, atol=1e-14)
+    from liedfl_cli.models import fused_maps
+
+    assert torch.allclose(fused_maps.potential_covector(model, g), ref, rtol=1e-12, atol=1e-14)
 
 
 def test_random_rotation_guess_is_on_the_group():

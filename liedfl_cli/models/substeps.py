@@ -95,8 +95,8 @@ def move(m: Any, z: Pose, d: torch.Tensor) -> Pose:
     G = m.G
     if not _reduced(m):
         return G.retract(z, d)
-    ident = G.identity(z.R.shape[:-3], dtype=z.R.dtype, device=z.R.device)
-    return G.compose(z, jt.retract(m.tree, z, ident, d))
+    # straight through the joint coordinates: z z^-1 (...) would compound rounding off the group
+    return jt.from_joint_coordinates(m.tree, jt.advance(m.tree, jt.to_joint_coordinates(m.tree, z), d))
 
 
 def dof_log(m: Any, z0: Pose, z1: Pose) -> torch.Tensor:
@@ -247,39 +247,15 @@ class SubstepModel(ImplicitModel):
 
     def internal_poses(self, q0: Pose, q1: Pose, differentiable: bool = False) -> tuple[list[Pose], torch.Tensor]:
         """The internal poses z_1..z_{n-1} of the sample intervals (q0, q1) (leading shape (N,)) and
-        whether their Newton solve converged (N,). differentiable: their dependence on the parameters
-        through the implicit function theorem (training)."""
-        models: Any = self._models("reference")
-        if not differentiable and _LinearEngine.applies(self.inner):
-            models = _LinearEngine(self)
+        whether their Newton solve converged (N,): a fourth-order step's negative sub-step can leave a
+        strongly damped tree without a solution near the geodesic guess (continuation from uniform
+        sub-steps did not find one either), and a rollout then reports its first step as failed.
+        differentiable: their dependence on the parameters through the implicit function theorem
+        (training)."""
         n, N = len(self.fractions), q0.R.shape[0]
-        ok = torch.ones(N, dtype=torch.bool, device=q0.R.device)
         if n == 1:
-            return [], ok
-        inner = self.inner
-        with torch.no_grad():
-            d0 = dof_log(inner, q0, q1)
-            cum = [sum(self.fractions[:i]) for i in range(1, n)]
-            z = [move(inner, q0, c * d0) for c in cum]
-            scale = 1.0 + d0.abs().amax(-1)
-            ok = torch.zeros_like(ok)
-            with torch.enable_grad():
-                F = self._interior(models, q0, z, q1).detach()
-            J, stale = None, True
-            for _ in range(INTERNAL_MAX_ITER):
-                if stale or J is None:  # a chord iteration while it contracts fast, else a fresh Jacobian
-                    with torch.enable_grad():
-                        J = self._interior_jacobian(models, q0, z, q1).detach()
-                before = F.flatten(1).norm(dim=-1)
-                step = torch.linalg.solve(J, -F.reshape(N, -1)).reshape(F.shape)
-                step = torch.nan_to_num(step, nan=0.0, posinf=0.0, neginf=0.0)
-                step[ok] = 0.0  # converged rows stay where they are
-                z, F, taken = self._damped_step(models, q0, z, q1, F, step)
-                after = F.flatten(1).norm(dim=-1)
-                stale = bool(((after > 0.05 * before) & ~ok).any())
-                ok = ok | (taken.abs().amax((-1, -2)) <= INTERNAL_TOL * scale)
-                if bool(ok.all()):
-                    break
+            return [], torch.ones(N, dtype=torch.bool, device=q0.R.device)
+        z, ok = self._solve_internal(q0, q1, self.fractions)
         if not differentiable:
             return z, ok
         models = self._models("reference")
@@ -287,15 +263,54 @@ class SubstepModel(ImplicitModel):
             J = self._interior_jacobian(models, q0, z, q1).detach()
         F = self._interior(models, q0, z, q1)  # live in the parameters, z fixed
         step = torch.linalg.solve(J, -F.reshape(N, -1)).reshape(F.shape)
-        return [move(inner, z[i], step[:, i]) for i in range(len(z))], ok
+        return [move(self.inner, z[i], step[:, i]) for i in range(len(z))], ok
 
-    def _damped_step(self, models, q0: Pose, z: list[Pose], q1: Pose, F: torch.Tensor, step: torch.Tensor):
-        """The Newton step, halved (up to MAX_HALVINGS times) in the rows where it does not reduce
-        ||F||: (poses, F there, the step taken (N, n-1, k))."""
+    @torch.no_grad()
+    def _solve_internal(
+        self, q0: Pose, q1: Pose, fractions: tuple[float, ...], start: list[Pose] | None = None
+    ) -> tuple[list[Pose], torch.Tensor]:
+        """Damped Newton (chord iterations while they contract) for the internal poses of sub-steps
+        `fractions` from `start` (default: the geodesic guess); (poses, converged (N,))."""
+        models: Any = [self._twin(c * self.h, "reference") for c in fractions]
+        if _LinearEngine.applies(self.inner):
+            models = _LinearEngine(self, fractions)
+        inner, N, n = self.inner, q0.R.shape[0], len(fractions)
+        d0 = dof_log(inner, q0, q1)
+        if start is None:
+            z = [move(inner, q0, sum(fractions[:i]) * d0) for i in range(1, n)]
+        else:
+            z = list(start)
+        scale = 1.0 + d0.abs().amax(-1)
+        ok = torch.zeros(N, dtype=torch.bool, device=q0.R.device)
+        with torch.enable_grad():
+            F = self._interior(models, q0, z, q1).detach()
+        J, stale = None, True
+        for _ in range(INTERNAL_MAX_ITER):
+            if stale or J is None:  # a chord iteration while it contracts fast, else a fresh Jacobian
+                with torch.enable_grad():
+                    J = self._interior_jacobian(models, q0, z, q1).detach()
+            before = F.flatten(1).norm(dim=-1)
+            sol, info = torch.linalg.solve_ex(J, -F.reshape(N, -1))
+            step = torch.nan_to_num(sol.reshape(F.shape), nan=0.0, posinf=0.0, neginf=0.0)
+            step[ok | (info != 0)] = 0.0  # converged rows stay where they are; singular ones fail
+            z, F, taken = self._damped_step(models, q0, z, q1, F, step, active=~ok)
+            after = F.flatten(1).norm(dim=-1)
+            stale = bool(((after > 0.05 * before) & ~ok).any())
+            ok = ok | (taken.abs().amax((-1, -2)) <= INTERNAL_TOL * scale)
+            if bool(ok.all()):
+                break
+        return z, ok
+
+    def _damped_step(
+        self, models, q0: Pose, z: list[Pose], q1: Pose, F: torch.Tensor, step: torch.Tensor, active: torch.Tensor
+    ):
+        """The Newton step in the `active` rows (N,), halved (up to MAX_HALVINGS times) where it does not
+        reduce ||F||: (poses, F there, the step taken (N, n-1, k)). Other rows are left exactly as they are
+        (moving a pose by a zero step along a tree's joints is not bit-exact)."""
         norm = F.flatten(1).norm(dim=-1)
         scale = torch.ones_like(norm)
         best_z, best_F, taken = z, F, torch.zeros_like(step)
-        todo = torch.ones_like(norm, dtype=torch.bool)
+        todo = active.clone()
         for _ in range(MAX_HALVINGS + 1):
             trial = step * scale[:, None, None]
             zt = [move(self.inner, z[i], trial[:, i]) for i in range(len(z))]
@@ -602,10 +617,10 @@ class _LinearEngine:
     sub-step length): A_h(z_prev, z) = W_prev lin_const_h + cov_h(z), B_h(z, z_next) = W lin_f_h.
     Equal to `substep_residual` to rounding (tested); used where nothing needs a gradient."""
 
-    def __init__(self, outer: SubstepModel):
+    def __init__(self, outer: SubstepModel, fractions: tuple[float, ...] | None = None):
         from .fused_rollout import rollout_maps
 
-        self.models = outer._models("fused")
+        self.models = [outer._twin(c * outer.h, "fused") for c in (fractions or outer.fractions)]
         self.maps = [rollout_maps(m) for m in self.models]
         self.n = len(self.models)
 
