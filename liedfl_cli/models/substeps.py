@@ -529,6 +529,7 @@ def levenberg_marquardt(model: SubstepModel, samples: Any, iterations: int = LM_
         put(theta)
         with torch.no_grad():
             scale = _kinetic_scale(model)
+        assert scale is not None  # checked above
         return (model.sample_residual(batch) / scale).reshape(-1)
 
     theta = get()
