@@ -671,7 +671,8 @@ def run_train(cfg: DictConfig, resume: dict | None = None, accept_changed_datase
     console.print(
         f"trained {result['epochs']} epochs in {result['train_seconds']:.1f} s "
         + (f"(+ {result['val_seconds']:.1f} s validation) " if validator is not None else "")
-        + f"(final loss {result['history'][-1]['loss']:.3e}); checkpoint {ckpt}"
+        + (f"(final loss {result['history'][-1]['loss']:.3e}); " if result["history"] else "(the start only); ")
+        + f"checkpoint {ckpt}"
     )
     used = use_selected(model, out, selection, result["epochs"])
     from ..data.checks import step_rotation_summary
@@ -692,7 +693,7 @@ def run_train(cfg: DictConfig, resume: dict | None = None, accept_changed_datase
             "val": len(split.val_idx),
         },
         "timings": timings,
-        "final_loss": result["history"][-1]["loss"],
+        "final_loss": result["history"][-1]["loss"] if result["history"] else None,  # None: train.epochs=0
         "validation": {"split": split.kind, "description": split.describe(), **selection.state()},
         "checkpoint": used,
         "data_step_rotation": step_rotation_summary(dataset),

@@ -401,7 +401,7 @@ def _check_scalars(cfg, command: str) -> None:
 
 def _check_values(cfg, command: str) -> None:
     if command == "train" and "train" in cfg:
-        _int(cfg, "train.epochs", 1)
+        _int(cfg, "train.epochs", 0)  # 0: the model's start only (train.start)
         _int(cfg, "train.batch_size", 1)
         _float(cfg, "train.optimizer.lr", positive=True)
         _float(cfg, "train.optimizer.weight_decay", nonnegative=True)

@@ -372,12 +372,11 @@ class SubstepModel(ImplicitModel):
         inner_samples = self.inner.training_set(*source)
         notes = [self.inner.initial_fit(inner_samples, method)]
         notes.append(second_order_fit(self.inner, inner_samples))
-        if samples.n <= SUBSTEP_START_MAX_TRIPLETS:  # then the sub-step residual itself
-            fit = levenberg_marquardt(self, samples)
-            if fit is None:  # too many parameters for a finite-difference Jacobian: L-BFGS
-                fit = second_order_fit(self, samples, SUBSTEP_START_ITERATIONS)
-                fit = None if fit is None else fit.replace("one-step", "sub-step")
-            notes.append(fit)
+        fit = levenberg_marquardt(self, samples)  # then the sub-step residual itself
+        if fit is None and samples.n <= SUBSTEP_START_MAX_TRIPLETS:  # too many parameters for LM: L-BFGS
+            fit = second_order_fit(self, samples, SUBSTEP_START_ITERATIONS)
+            fit = None if fit is None else fit.replace("one-step", "sub-step")
+        notes.append(fit)
         return "; ".join(n for n in notes if n)
 
     @torch.no_grad()
@@ -497,6 +496,7 @@ def second_order_fit(model: Any, samples: Any, iterations: int = START_ITERATION
 
 LM_MAX_PARAMETERS = 64  # Levenberg-Marquardt with a finite-difference Jacobian up to this many parameters
 LM_ITERATIONS = 30
+LM_MAX_TRIPLETS = 4096
 
 
 def _kinetic_scale(model: Any) -> torch.Tensor | None:
@@ -513,7 +513,10 @@ def levenberg_marquardt(model: SubstepModel, samples: Any, iterations: int = LM_
     n_par = sum(p.numel() for p in params)
     if not params or n_par > LM_MAX_PARAMETERS or _kinetic_scale(model) is None:
         return None
-    batch = samples.batch(torch.arange(samples.n, device=params[0].device), torch.Generator().manual_seed(0), 0)
+    gen = torch.Generator().manual_seed(0)
+    n = min(samples.n, LM_MAX_TRIPLETS)  # a fixed random subset: a few parameters need few triplets
+    idx = torch.randperm(samples.n, generator=gen)[:n] if n < samples.n else torch.arange(n, device=params[0].device)
+    batch = samples.batch(idx, gen, 0)
 
     def get() -> torch.Tensor:
         return torch.cat([p.detach().reshape(-1) for p in params])
@@ -554,7 +557,7 @@ def levenberg_marquardt(model: SubstepModel, samples: Any, iterations: int = LM_
         if not improved or done:
             break
     put(theta)
-    return f"Levenberg-Marquardt on the sub-step residual of {samples.n} triplets: {first:.3e} -> {cost:.3e}"
+    return f"Levenberg-Marquardt on the sub-step residual of {n} triplets: {first:.3e} -> {cost:.3e}"
 
 
 def _unit(like: torch.Tensor, j: int) -> torch.Tensor:
