@@ -301,7 +301,7 @@ def test_constant_velocity_row_has_finite_errors_and_no_newton_columns(tmp_path)
     ds = tiny_dataset(n_se3=1)
     perfect(ds, tmp_path / "rollout.h5")
     rows = {r["model"]: r for r in run_eval_from_objects(CFG, ds, tmp_path)}
-    assert list(rows) == ["model", "constant_velocity", "constant_acceleration"]
+    assert list(rows) == ["model", "constant_velocity", "constant_acceleration", "constant_velocity_euclidean"]
     cv = rows["constant_velocity"]
     assert cv["name"] == "constant velocity"
     for k in ("rel_rot_error_mean", "geodesic_error_mean", "position_error_mean", "max_orth_drift"):

@@ -188,6 +188,7 @@ def test_compute_eval_writes_nothing_and_returns_what_is_written(smoke_run, tmp_
         "model",
         "constant_velocity",
         "constant_acceleration",
+        "constant_velocity_euclidean",
     }
     write_outputs(out, tmp_path / "again")
     with open(tmp_path / "again" / "eval.csv") as f, open(run / "eval.csv") as g:

@@ -4,7 +4,9 @@ Errors against ground truth cover the steps the dataset has; drift, the first no
 Newton statistics cover the whole rollout (a rollout may be longer than the dataset); eval.md and the
 printed table say which span each column covers.
 
-Every evaluation has a `constant_velocity` row, computed here from the data alone: the rollout
+Every evaluation has zero-parameter reference rows (constant velocity, constant acceleration and, with
+SE(3) bodies, constant velocity with Euclidean positions; `_reference_rows`) and ratios to them over the
+same samples as the model's errors (`_reference_ratios`). The `constant_velocity` row: the rollout
 g_{k+1} = g_k exp(log(g_{k-1}^{-1} g_k)) from the same first pair over the same span, and the same guess
 teacher-forced from every true pair (`solvers.one_step`). A model that does not beat constant velocity
 has learned nothing. Every row has teacher-forced one-step errors (from the rollout file's optional
@@ -53,6 +55,13 @@ SHORT = {
     "one_step_pos_error_mean": "1-step pos",
     "one_step_vs_cv": "1-step/CV",
     "rollout_vs_cv": "geo/CV",
+    "cv_geodesic_error_same_horizon": "CV geo (same steps)",
+    "best_reference": "best ref",
+    "one_step_vs_best": "1-step/best",
+    "rollout_vs_best": "geo/best",
+    "one_step_pos_vs_best": "1-step pos/best",
+    "rollout_pos_vs_best": "pos/best",
+    "beats_references": "beats refs",
     "valid_horizon_min": "valid to",
     "failed_trajectories": "failed traj",
     "excluded_samples": "excluded",
@@ -66,12 +75,23 @@ failure; the error span's end without one), how many trajectories failed within 
 many samples the errors leave out."""
 ONE_STEP_COLUMNS = ["one_step_rot_error_mean", "one_step_pos_error_mean"]
 """Teacher-forced one-step errors (each g_{k+1} from the true (g_{k-1}, g_k)), over the steps with ground truth."""
-CV_COLUMNS = ["one_step_vs_cv", "rollout_vs_cv"]
-"""Ratios to the constant-velocity row: one_step_rot_error_mean and geodesic_error_mean (< 1: better than CV)."""
+CV_COLUMNS = ["one_step_vs_cv", "rollout_vs_cv", "cv_geodesic_error_same_horizon"]
+"""Ratios to the constant-velocity row: one_step_rot_error_mean and geodesic_error_mean (< 1: better than CV),
+each over the same samples on both sides (a model's rollout up to each trajectory's first Newton failure:
+`cv_geodesic_error_same_horizon` is constant velocity's error over those samples)."""
 CONSTANT_VELOCITY = "constant_velocity"
 """The row (and curve) of the constant-velocity reference, computed from the data in every evaluation."""
 CONSTANT_ACCELERATION = "constant_acceleration"
-"""The row of the constant-acceleration reference (one-step columns only), after constant velocity's."""
+"""The row of the constant-acceleration reference R exp(2 w_k - w_{k-1}), p + 2 dp_k - dp_{k-1}: teacher-forced
+from every three true poses, rolled out from the first three (`solvers.one_step`)."""
+EUCLIDEAN_VELOCITY = "constant_velocity_euclidean"
+"""With SE(3) bodies: constant velocity with Euclidean positions p + (p_k - p_{k-1}) (rotations as constant
+velocity's), often a better guess for positions than the SE(3) one."""
+REFERENCES = (CONSTANT_VELOCITY, CONSTANT_ACCELERATION, EUCLIDEAN_VELOCITY)
+"""The zero-parameter references; a model beats guessing only when it beats the best of them."""
+BEST_COLUMNS = ["one_step_vs_best", "rollout_vs_best", "one_step_pos_vs_best", "rollout_pos_vs_best"]
+"""Ratios to the best reference over the same samples (rotation geodesic and, with SE(3) bodies, position
+errors): `beats_references` is true when every one of them is below 1."""
 DRIFT_COLUMNS = ["max_orth_drift", "max_det_drift"]
 """Distance from the group: over the whole rollout (as are the non-finite step and the Newton columns)."""
 COLUMNS = [
@@ -80,6 +100,9 @@ COLUMNS = [
     *HORIZON_COLUMNS,
     *ONE_STEP_COLUMNS,
     *CV_COLUMNS,
+    "best_reference",
+    *BEST_COLUMNS,
+    "beats_references",
     *DRIFT_COLUMNS,
     "nonfinite_step",
     "newton_failures",
@@ -141,41 +164,109 @@ def _rows(
         row["rollout_trajectories"] = int(ro.R.shape[0])
         rows.append(row)
     if group is not None:
-        from ..solvers.one_step import constant_velocity_one_step, constant_velocity_rollout
-
-        g0, g1 = truth.index((slice(None), 0)), truth.index((slice(None), 1))
-        row, curves[CONSTANT_VELOCITY] = _errors(
-            CONSTANT_VELOCITY, names, constant_velocity_rollout(group, g0, g1, rf.steps), truth, n
-        )
-        if n >= 2:
-            cv = constant_velocity_one_step(group, truth.index((slice(None), slice(0, n + 1))))
-            row.update(one_step_metrics(cv, target))
-        row.update(dict.fromkeys(CV_COLUMNS))
-        row.update(
-            dict.fromkeys(("newton_failures", "first_failure_step", "mean_newton_iterations", "rollout_s_per_step"))
-        )
-        row.update({"error_steps": n, "rollout_steps": rf.steps, "rollout_trajectories": int(truth.R.shape[0])})
-        rows.append(row)
-        if n >= 3:
-            rows.append(_constant_acceleration_row(group, truth, target, n, names))
+        refs = _reference_rows(group, truth, target, n, rf.steps, names)
+        for ref_row, curve, _, _ in refs.values():
+            rows.append(ref_row)
+            curves[ref_row["model"]] = curve
+        cv_row = refs[CONSTANT_VELOCITY][0]
         for r in rows:
-            r["one_step_vs_cv"] = _ratio(r.get("one_step_rot_error_mean"), row.get("one_step_rot_error_mean"))
-            r["rollout_vs_cv"] = _ratio(r.get("geodesic_error_mean"), row.get("geodesic_error_mean"))
+            entry = rf.models.get(r["model"]) if r["model"] not in refs else None
+            _reference_ratios(r, entry, refs, truth, target, n, cv_row)
     return rows, curves
 
 
-def _constant_acceleration_row(group: ProductGroup, truth: Pose, target: Pose, n: int, names: dict) -> dict:
-    """The constant-acceleration reference (`solvers.one_step.constant_acceleration_one_step`): a
-    zero-parameter guess often stronger than constant velocity on smooth data. One-step columns only:
-    from the two poses every model starts from it is constant velocity, so it has no rollout of its own."""
-    from ..solvers.one_step import constant_acceleration_one_step
+def _reference_rows(
+    group: ProductGroup, truth: Pose, target: Pose, n: int, steps: int, names: dict
+) -> dict[str, tuple[dict, dict, Pose, Pose | None]]:
+    """{reference: (row, curves, rollout, one-step guesses)} of the zero-parameter references, computed
+    from the data: constant velocity (from the first true pair), constant acceleration (from the first
+    three true poses; its sample 2 is the data's) and, with SE(3) bodies, constant velocity with Euclidean
+    positions (`solvers.one_step`). One-step guesses: None with fewer than 3 poses."""
+    from ..solvers import one_step as ref
 
-    ca = constant_acceleration_one_step(group, truth.index((slice(None), slice(0, n + 1))))
-    row: dict = {"model": CONSTANT_ACCELERATION, "name": names.get(CONSTANT_ACCELERATION, "constant acceleration")}
-    row.update(one_step_metrics(ca, target))
-    row.update(dict.fromkeys(CV_COLUMNS))
-    row.update({"error_steps": n, "rollout_steps": None, "rollout_trajectories": int(truth.R.shape[0])})
-    return row
+    g = [truth.index((slice(None), k)) for k in range(min(3, n + 1))]
+    made: dict[str, tuple[Pose, Pose | None]] = {
+        CONSTANT_VELOCITY: (
+            ref.constant_velocity_rollout(group, g[0], g[1], steps),
+            ref.constant_velocity_one_step(group, truth.index((slice(None), slice(0, n + 1)))) if n >= 2 else None,
+        )
+    }
+    if n >= 2:
+        ca_one = ref.constant_acceleration_one_step(group, truth.index((slice(None), slice(0, n + 1))))
+        made[CONSTANT_ACCELERATION] = (ref.constant_acceleration_rollout(g[0], g[1], g[2], steps), ca_one)
+    if truth.p.shape[-2] > 0:
+        made[EUCLIDEAN_VELOCITY] = (
+            ref.euclidean_velocity_rollout(g[0], g[1], steps),
+            ref.euclidean_velocity_one_step(group, truth.index((slice(None), slice(0, n + 1)))) if n >= 2 else None,
+        )
+    names = {
+        CONSTANT_ACCELERATION: "constant acceleration",
+        EUCLIDEAN_VELOCITY: "constant velocity (Euclidean p)",
+        **names,
+    }
+    out = {}
+    for key, (rollout, one) in made.items():
+        row, curve = _errors(key, names, rollout, truth, n)
+        row.update({k: None for k in ONE_STEP_COLUMNS if k != "one_step_pos_error_mean" or truth.p.shape[-2]})
+        if one is not None:
+            row.update(one_step_metrics(one, target))
+        row.update(
+            dict.fromkeys(("newton_failures", "first_failure_step", "mean_newton_iterations", "rollout_s_per_step"))
+        )
+        row.update({"error_steps": n, "rollout_steps": steps, "rollout_trajectories": int(truth.R.shape[0])})
+        out[key] = (row, curve, rollout, one)
+    return out
+
+
+def _reference_ratios(r: dict, entry, refs: dict, truth: Pose, target: Pose, n: int, cv_row: dict) -> None:
+    """The ratio columns of row `r` (CV_COLUMNS, BEST_COLUMNS), each reference measured over the same
+    samples as the row: a model's rollout up to each trajectory's first Newton failure (the reference's
+    error over those samples is stored beside it: `cv_geodesic_error_same_horizon`), its one-step errors
+    over its converged solves. `entry`: the model's rollout entry (None for a reference row, whose
+    samples are all the steps)."""
+    span = (slice(None), slice(0, n + 1))
+    valid = one_conv = None
+    if entry is not None:
+        valid = valid_steps(torch.from_numpy(np.asarray(entry.converged, dtype=bool)), n)
+        if entry.one_step is not None:
+            one_conv = torch.from_numpy(np.asarray(entry.one_step.converged, dtype=bool))
+    rot: dict[str, float] = {}
+    pos: dict[str, float] = {}
+    rot1: dict[str, float] = {}
+    pos1: dict[str, float] = {}
+    for key, (_, _, rollout, one) in refs.items():
+        sc = error_metrics(rollout.index(span), truth.index(span), valid)["scalars"]
+        rot[key] = sc["geodesic_error_mean"]
+        if "position_error_mean" in sc:
+            pos[key] = sc["position_error_mean"]
+        if one is not None:
+            o = one_step_metrics(one, target, one_conv)
+            rot1[key] = o["one_step_rot_error_mean"]
+            if "one_step_pos_error_mean" in o:
+                pos1[key] = o["one_step_pos_error_mean"]
+    r["cv_geodesic_error_same_horizon"] = rot.get(CONSTANT_VELOCITY)
+    r["rollout_vs_cv"] = _ratio(r.get("geodesic_error_mean"), rot.get(CONSTANT_VELOCITY))
+    r["one_step_vs_cv"] = _ratio(r.get("one_step_rot_error_mean"), rot1.get(CONSTANT_VELOCITY))
+    r["best_reference"] = _best(rot)
+    r["rollout_vs_best"] = _ratio(r.get("geodesic_error_mean"), _min(rot))
+    r["one_step_vs_best"] = _ratio(r.get("one_step_rot_error_mean"), _min(rot1))
+    if pos:
+        r["rollout_pos_vs_best"] = _ratio(r.get("position_error_mean"), _min(pos))
+        r["one_step_pos_vs_best"] = _ratio(r.get("one_step_pos_error_mean"), _min(pos1))
+    ratios = [float(x) for x in (r.get(k) for k in BEST_COLUMNS) if x is not None]
+    beats = all(math.isfinite(x) and x < 1 for x in ratios) if ratios else None
+    r["beats_references"] = beats if entry is not None else None
+
+
+def _best(errors: dict[str, float]) -> str | None:
+    """The reference with the smallest finite error (None when none is finite)."""
+    ok = {k: v for k, v in errors.items() if math.isfinite(v)}
+    return min(ok, key=lambda k: ok[k]) if ok else None
+
+
+def _min(errors: dict[str, float]) -> float | None:
+    best = _best(errors)
+    return None if best is None else errors[best]
 
 
 def _errors(
@@ -213,6 +304,8 @@ TABLE_PRIORITY = [
     "position_error_mean",
     "one_step_vs_cv",
     "rollout_vs_cv",
+    "one_step_vs_best",
+    "rollout_vs_best",
     "one_step_rot_error_mean",
     "max_orth_drift",
     "newton_failures",
@@ -343,9 +436,16 @@ def compute_eval(
     md += (
         "`constant velocity`: g_{k+1} = g_k exp(log(g_{k-1}^-1 g_k)), the last increment repeated, rolled out from "
         "the same first pair and teacher-forced from every true pair (computed from the data). A model that "
-        "does not beat it has learned nothing. `one_step_*`: teacher-forced one-step errors (g_{k+1} from the "
+        "does not beat it has learned nothing. `constant acceleration`: R_k exp(2 w_k - w_{k-1}), "
+        "p_k + 2 dp_k - dp_{k-1}, teacher-forced from every three true poses and rolled out from the first three "
+        "(its sample 2 is the data's); with SE(3) bodies `constant velocity (Euclidean p)`: rotations as constant "
+        "velocity, positions p_k + dp_k. `one_step_*`: teacher-forced one-step errors (g_{k+1} from the "
         "true (g_{k-1}, g_k); rotation geodesic in rad); `one_step_vs_cv`, `rollout_vs_cv`: the row's "
-        "one_step_rot_error_mean and geodesic_error_mean over constant velocity's (< 1: better than it)"
+        "one_step_rot_error_mean and geodesic_error_mean over constant velocity's over the same samples (a "
+        "model's rollout up to each trajectory's first Newton failure, valid to; constant velocity's error over "
+        "those samples: `cv_geodesic_error_same_horizon`); `*_vs_best`: the same over the best reference "
+        "(`best_reference`, rotation; `*_pos_vs_best` positions); `beats_references`: every `*_vs_best` below 1, "
+        "the only case in which a model is better than guessing"
         + (
             "; one-step columns are blank for rollout files written without one-step predictions"
             if any(e.one_step is None for e in rf.models.values())
@@ -377,7 +477,7 @@ def compute_eval(
         result.add("plots/error_vs_step.png", plots.draw_error_vs_step(curves, h, names, length_unit=unit))
         result.add(
             "plots/drift_vs_step.png",
-            plots.draw_drift_vs_step({k: v for k, v in curves.items() if k != CONSTANT_VELOCITY}, h, names),
+            plots.draw_drift_vs_step({k: v for k, v in curves.items() if k not in REFERENCES}, h, names),
         )
         preds = {k: v.pose for k, v in rf.models.items()}
         result.add(

@@ -78,6 +78,59 @@ def constant_acceleration_one_step(G: ProductGroup, truth: Pose) -> Pose:
     return Pose(torch.cat((cv.R[:, :1], ca.R), 1), torch.cat((cv.p[:, :1], ca.p), 1))
 
 
+def euclidean_velocity_step(g_prev: Pose, g: Pose) -> Pose:
+    """The constant-velocity guess with Euclidean positions: every rotation R exp(log(R_prev^T R)),
+    every SE(3) position p + (p - p_prev) (the SE(3) guess couples the position to the rotation; on
+    data whose positions move independently of the body's own rotation this one is the better guess)."""
+    R = g.R @ so3.exp(so3.log(g_prev.R.transpose(-1, -2) @ g.R))
+    return Pose(R, g.p + (g.p - g_prev.p))
+
+
+def euclidean_velocity_one_step(G: ProductGroup, truth: Pose) -> Pose:
+    """`euclidean_velocity_step` guesses of g_2..g_N from the true pairs (shapes as
+    `constant_velocity_one_step`)."""
+    g_prev, g, (T, n) = _pairs(truth)
+    out = euclidean_velocity_step(g_prev, g)
+    return Pose(out.R.reshape(T, n, *out.R.shape[1:]), out.p.reshape(T, n, *out.p.shape[1:]))
+
+
+def euclidean_velocity_rollout(g0: Pose, g1: Pose, steps: int) -> Pose:
+    """The rollout of `euclidean_velocity_step` from (g0, g1): R (T, S+1, B, 3, 3), p (T, S+1, m, 3),
+    the rotations as `constant_velocity_rollout`'s, the positions p0 + k (p1 - p0)."""
+    w = so3.log(g0.R.transpose(-1, -2) @ g1.R)
+    Rs, ps = [g0.R, g1.R], [g0.p, g1.p]
+    R, dp = g1.R, g1.p - g0.p
+    for k in range(2, steps + 1):
+        R = R @ so3.exp(w)
+        Rs.append(R)
+        ps.append(g0.p + k * dp)
+    return Pose(torch.stack(Rs, 1), torch.stack(ps, 1))
+
+
+def constant_acceleration_rollout(g0: Pose, g1: Pose, g2: Pose, steps: int) -> Pose:
+    """The constant-acceleration rollout from three true poses (g0, g1, g2): R (T, S+1, B, 3, 3),
+    p (T, S+1, m, 3) starting with g0, g1, g2, then `constant_acceleration_step` from its own last three
+    poses (the body-frame increment grows by the same w_2 - w_1 every step, positions are quadratic in
+    k). It needs one true pose more than a model's rollout (from two poses it is constant velocity):
+    its sample 2 is the data's."""
+    if steps < 2:
+        return Pose(torch.stack([g0.R, g1.R], 1)[:, : steps + 1], torch.stack([g0.p, g1.p], 1)[:, : steps + 1])
+    w1 = so3.log(g0.R.transpose(-1, -2) @ g1.R)
+    w2 = so3.log(g1.R.transpose(-1, -2) @ g2.R)
+    dw = w2 - w1
+    dp1, dp2 = g1.p - g0.p, g2.p - g1.p
+    Rs, ps = [g0.R, g1.R, g2.R], [g0.p, g1.p, g2.p]
+    R, p, w, dp = g2.R, g2.p, w2, dp2
+    for _ in range(3, steps + 1):
+        w = w + dw
+        dp = dp + (dp2 - dp1)
+        R = R @ so3.exp(w)
+        p = p + dp
+        Rs.append(R)
+        ps.append(p)
+    return Pose(torch.stack(Rs, 1), torch.stack(ps, 1))
+
+
 @torch.no_grad()
 def one_step_predictions(
     model: Any, truth: Pose, opts: SolverOptions | None = None, chunk: int = 65536
