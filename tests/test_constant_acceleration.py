@@ -168,3 +168,39 @@ def test_uniform_motion_makes_euclidean_velocity_the_best_position_guess(tmp_pat
     assert rows["constant_velocity"]["position_error_mean"] > 1e-2
     # exact references make any position error infinitely worse than guessing: no "better than guessing"
     assert rows["model"]["beats_references"] is False
+
+
+def test_validation_pass_measures_against_constant_acceleration():
+    from liedfl_cli.commands.validation import Validator, constant_acceleration_guesses, format_pass
+    from liedfl_cli.solvers.options import SolverOptions
+
+    R, p = _accelerating(T=4, n=12)
+    truth = _pose(R, p)
+    G = ProductGroup(n_se3=1, n_so3=1)
+    v = Validator(G, truth, SolverOptions(), horizon=4, every=1)
+    # exact except at k = 1 (constant velocity's guess there): far below constant velocity's error
+    assert v._ca is not None and v._ca < 0.2 * v.cv_error
+    ca = constant_acceleration_guesses(G, truth, 10_000)
+    assert ca.R.shape[0] == 4 * 11
+    exact = ca.R.reshape(4, 11, *ca.R.shape[2:])[:, 1:] - torch.from_numpy(R[:, 3:])
+    assert float(exact.abs().max()) < 1e-10
+
+    class Repeat:  # a "model" that is constant velocity: worse than the best reference
+        training = False
+
+        def eval(self):
+            return self
+
+        def train(self, mode=True):
+            return self
+
+        def rollout(self, g0, g1, steps, opts):
+            from types import SimpleNamespace
+
+            pose = constant_velocity_rollout(G, g0, g1, steps)
+            return SimpleNamespace(pose=pose, converged=torch.ones(pose.R.shape[0], max(steps - 1, 0), dtype=bool))
+
+    row = v.measure(Repeat())
+    assert abs(row["val_one_step_vs_cv"] - 1.0) < 1e-9
+    assert row["val_one_step_vs_ca"] > 5 and row["val_one_step_vs_best"] == row["val_one_step_vs_ca"]
+    assert "x CA" in format_pass(row)

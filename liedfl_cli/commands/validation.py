@@ -8,7 +8,8 @@
 - `Validator`: every `train.val_every` epochs (and at the last epoch) the teacher-forced one-step
   error and a `train.val_horizon`-step rollout error on the validation data, under `torch.no_grad()`,
   in eval mode, on at most `MAX_VAL_TRAJECTORIES` trajectories / `MAX_ONE_STEP_PAIRS` one-step pairs;
-  the constant-velocity one-step error once, as the reference.
+  the constant-velocity and constant-acceleration one-step errors once, as the references (a model
+  beats guessing only when `val_one_step_vs_best`, its error over the better of the two, is below 1).
 - `Selection`: which pass is best (`train.select`), early stopping (`train.early_stopping`); its
   state travels in the checkpoint so that a resumed run selects as an uninterrupted one.
 """
@@ -26,7 +27,12 @@ from ..config.typed import TrainConfig
 from ..errors import ConfigError
 from ..evaluation.metrics import geodesic_error, position_error
 from ..lie import Pose
-from ..solvers.one_step import constant_velocity_one_step, one_step_predictions
+from ..solvers.one_step import (
+    constant_acceleration_step,
+    constant_velocity_one_step,
+    constant_velocity_step,
+    one_step_predictions,
+)
 from ..solvers.options import SolverOptions
 
 DEFAULT_VAL_FRACTION = 0.1
@@ -44,6 +50,9 @@ VAL_COLUMNS = (
     "val_one_step_pos_error",
     "val_cv_one_step_error",
     "val_one_step_vs_cv",
+    "val_ca_one_step_error",
+    "val_one_step_vs_ca",
+    "val_one_step_vs_best",
     "val_rollout_error",
     "val_rollout_pos_error",
     "val_seconds",
@@ -208,18 +217,41 @@ def make_selection(cfg_train: TrainConfig, select: str) -> Selection:
 
 
 # ----------------------------------------------------------------------------- measuring
-def _one_step_windows(truth: Pose, cap: int) -> Pose:
-    """Pose triplets (g_{k-1}, g_k, g_{k+1}) of truth (T, W, ...), at most `cap`, evenly spread:
-    R (P, 3, B, 3, 3), p (P, 3, m, 3)."""
-    T, W = truth.R.shape[:2]
+def _picks(T: int, W: int, cap: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(trajectory, k) of the one-step pairs of T windows of W poses: every interior k, at most `cap`,
+    evenly spread."""
     t = torch.arange(T).repeat_interleave(W - 2)
     k = torch.arange(1, W - 1).repeat(T)
     if len(t) > cap:
         pick = torch.linspace(0, len(t) - 1, cap).round().long()
         t, k = t[pick], k[pick]
+    return t, k
+
+
+def _one_step_windows(truth: Pose, cap: int) -> Pose:
+    """Pose triplets (g_{k-1}, g_k, g_{k+1}) of truth (T, W, ...), at most `cap`, evenly spread:
+    R (P, 3, B, 3, 3), p (P, 3, m, 3)."""
+    T, W = truth.R.shape[:2]
+    t, k = _picks(T, W, cap)
     t, k = t.to(truth.R.device), k.to(truth.R.device)
     stack = lambda x: torch.stack([x[t, k - 1], x[t, k], x[t, k + 1]], dim=1)
     return Pose(stack(truth.R), stack(truth.p))
+
+
+def constant_acceleration_guesses(group, truth: Pose, cap: int) -> Pose:
+    """The constant-acceleration guesses of g_{k+1} for the pairs of `_one_step_windows(truth, cap)`
+    (same order): from (g_{k-2}, g_{k-1}, g_k) where k >= 2, the constant-velocity guess at k = 1 (only
+    two poses before it). R (P, 1, B, 3, 3), p (P, 1, m, 3)."""
+    T, W = truth.R.shape[:2]
+    t, k = _picks(T, W, cap)
+    t, k = t.to(truth.R.device), k.to(truth.R.device)
+    at = lambda j: Pose(truth.R[t, j], truth.p[t, j])
+    cv = constant_velocity_step(group, at(k - 1), at(k))
+    ca = constant_acceleration_step(group, at((k - 2).clamp(min=0)), at(k - 1), at(k))
+    first = (k == 1).view(-1, *([1] * (ca.R.dim() - 1)))
+    R = torch.where(first, cv.R, ca.R)
+    p = torch.where(first.view(-1, *([1] * (ca.p.dim() - 1))), cv.p, ca.p)
+    return Pose(R[:, None], p[:, None])
 
 
 def _errors(pred: Pose, true: Pose) -> tuple[float, float | None]:
@@ -249,6 +281,7 @@ class Validator:
     _windows: Pose | None = None
     _cv: float | None = None
     _cv_pos: float | None = None
+    _ca: float | None = None
     _failed: set[str] = field(default_factory=set)
 
     def __post_init__(self) -> None:
@@ -258,6 +291,8 @@ class Validator:
         self._windows = _one_step_windows(self.truth, MAX_ONE_STEP_PAIRS)
         cv = constant_velocity_one_step(self.group, self._windows)  # type: ignore[arg-type]
         self._cv, self._cv_pos = _errors(cv, self._windows.index((slice(None), slice(2, 3))))
+        ca = constant_acceleration_guesses(self.group, self.truth, MAX_ONE_STEP_PAIRS)
+        self._ca, _ = _errors(ca, self._windows.index((slice(None), slice(2, 3))))
 
     @property
     def cv_error(self) -> float:
@@ -301,6 +336,10 @@ class Validator:
                 row["val_one_step_error"], row["val_one_step_pos_error"] = rot, pos
                 row["val_cv_one_step_error"] = self._cv
                 row["val_one_step_vs_cv"] = rot / self._cv if self._cv else None
+                row["val_ca_one_step_error"] = self._ca
+                row["val_one_step_vs_ca"] = rot / self._ca if self._ca else None
+                best = min(x for x in (self._cv, self._ca) if x is not None)
+                row["val_one_step_vs_best"] = rot / best if best else None
                 if self.horizon >= 2:
                     g0, g1 = self.truth.index((slice(None), 0)), self.truth.index((slice(None), 1))
                     try:
@@ -318,14 +357,15 @@ class Validator:
 
 
 def format_pass(row: dict) -> str:
-    """The progress-line text of a pass: `val 1.2e-04 (0.31x CV), roll 3.4e-03`."""
+    """The progress-line text of a pass: `val 1.2e-04 (0.31x CV, 1.20x CA), roll 3.4e-03`."""
     one = row.get("val_one_step_error")
     if one is None:
         return ""
     text = f"val {one:.2e}"
     ratio = row.get("val_one_step_vs_cv")
     if ratio is not None:
-        text += f" ({ratio:.2f}x CV)"
+        ca = row.get("val_one_step_vs_ca")
+        text += f" ({ratio:.2f}x CV" + (f", {ca:.2f}x CA)" if ca is not None else ")")
     roll = row.get("val_rollout_error")
     if roll is not None:
         text += f", roll {roll:.2e}"
