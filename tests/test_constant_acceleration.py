@@ -204,3 +204,22 @@ def test_validation_pass_measures_against_constant_acceleration():
     assert abs(row["val_one_step_vs_cv"] - 1.0) < 1e-9
     assert row["val_one_step_vs_ca"] > 5 and row["val_one_step_vs_best"] == row["val_one_step_vs_ca"]
     assert "x CA" in format_pass(row)
+
+
+def test_mocap_one_step_table_has_every_reference_and_the_ratio_to_the_best():
+    from types import SimpleNamespace
+
+    from liedfl_cli.evaluation.mocap import ONE_STEP_REFERENCES, best_reference_ratios, one_step_errors
+
+    R, p = _accelerating(T=2, n=20)
+    G = ProductGroup(n_se3=1, n_so3=1)
+    truth = _pose(R, p)
+    cv = constant_velocity_one_step(G, truth)  # stored "model" predictions: constant velocity itself
+    stored = SimpleNamespace(R=cv.R.numpy(), pose=cv, converged=np.ones(cv.R.shape[:2], bool))
+    out = one_step_errors(None, R, p, None, stored=stored, group=G)
+    assert out is not None and set(ONE_STEP_REFERENCES) <= set(out)
+    for k in ("root_rot", "joint_rot", "root_pos"):
+        assert np.all(out["const_acceleration"][k] < 0.2 * out["const_velocity"][k]), k
+        np.testing.assert_allclose(out["model"][k], out["const_velocity"][k], rtol=1e-12)
+    ratios = best_reference_ratios(out)
+    assert ratios is not None and all(r > 5 for k in ratios for r in ratios[k])

@@ -162,15 +162,21 @@ def one_step_errors(model, truth_R, truth_p, solver, joints=None, stored=None, g
     """Teacher-forced one-step predictions: g_{k+1} from the true (g_{k-1}, g_k) for every k, batched.
 
     Separates the model's local error from the compounding of the rollout. Returns per-sequence means
-    of the three errors for the model and for constant velocity g_k exp(log(g_{k-1}^-1 g_k))
-    (`solvers.one_step.constant_velocity_one_step`, the last increment repeated), and the Newton
+    of the three errors for the model and for the references (`ONE_STEP_REFERENCES`): constant velocity
+    g_k exp(log(g_{k-1}^-1 g_k)) (the last increment repeated), constant acceleration R_k exp(2 w_k - w_{k-1}),
+    p_k + 2 dp_k - dp_{k-1}, and constant velocity with Euclidean positions (`solvers.one_step`), and the Newton
     convergence count. `stored`: the rollout file's `model/one_step` predictions (`rollout_file.OneStep`)
     of the same samples, used when present; otherwise the model predicts them here
     (`solvers.one_step.one_step_predictions`). "model" is None (and the counts 0) for a model without
     a `rollout(g0, g1, steps, solver)` method when nothing is stored. `group`: the data's group
     (default the model's). None for fewer than 3 poses.
     """
-    from ..solvers.one_step import constant_velocity_one_step, one_step_predictions
+    from ..solvers.one_step import (
+        constant_acceleration_one_step,
+        constant_velocity_one_step,
+        euclidean_velocity_one_step,
+        one_step_predictions,
+    )
 
     truth = Pose(torch.as_tensor(truth_R), torch.as_tensor(truth_p))
     T, K = truth.R.shape[0], truth.R.shape[1] - 2
@@ -189,12 +195,19 @@ def one_step_errors(model, truth_R, truth_p, solver, joints=None, stored=None, g
         finally:
             model.train(was_training)
         pred = pred.to(device="cpu", dtype=torch.float64)
-    cv = constant_velocity_one_step(G, truth)
-    ec = mocap_errors(cv, true, joints=joints)
+    guesses = {
+        "const_velocity": constant_velocity_one_step(G, truth),
+        "const_acceleration": constant_acceleration_one_step(G, truth),
+        "euclid_velocity": euclidean_velocity_one_step(G, truth),
+    }
+    refs = {}
+    for who, guess in guesses.items():
+        e = mocap_errors(guess, true, joints=joints)
+        refs[who] = {k: e[k].numpy() for k in METRICS}
     em = mocap_errors(pred, true, joints=joints) if pred is not None else None
     return {
         "model": None if em is None else {k: em[k].numpy() for k in METRICS},
-        "const_velocity": {k: ec[k].numpy() for k in METRICS},
+        **refs,
         "converged": 0 if conv is None else int(conv.sum()),
         "solves": 0 if conv is None else int(conv.numel()),
         "from_rollout_file": stored is not None and pred is not None and stored.R.shape[:2] == (T, K),
@@ -214,6 +227,25 @@ def constant_velocity_errors(dataset, tR, tp, joints=None) -> dict:
 
 def _finite(x) -> bool:
     return x is not None and isinstance(x, (int, float)) and math.isfinite(x)
+
+
+ONE_STEP_REFERENCES = ("const_velocity", "const_acceleration", "euclid_velocity")
+"""The zero-parameter one-step references of `one_step_errors`; a model beats guessing on a metric only
+when it beats the best of them (`best_reference_ratios`)."""
+
+
+def best_reference_ratios(onestep: dict) -> dict[str, list[float]] | None:
+    """Per metric, per sequence: the model's one-step error over the smallest reference error (< 1: the
+    model beats every zero-parameter guess). None without the model's predictions."""
+    if onestep is None or onestep.get("model") is None:
+        return None
+    out = {}
+    for k in METRICS:
+        best = np.min(
+            np.stack([np.asarray(onestep[w][k], dtype=float) for w in ONE_STEP_REFERENCES if w in onestep]), 0
+        )
+        out[k] = [float(a / b) if b > 0 else math.nan for a, b in zip(np.asarray(onestep["model"][k], float), best)]
+    return out
 
 
 CV_ROW = "Constant velocity, sequence"
@@ -452,10 +484,11 @@ def mocap_summary(m: MocapNumbers, dataset) -> dict:
                     _sequence_name(dataset, i): float(onestep[who][k][n] * (asf if k == "root_pos" else 1))
                     for n, i in enumerate(idx)
                 }
-                for who in ("model", "const_velocity")
-                if onestep[who] is not None
+                for who in ("model", *ONE_STEP_REFERENCES)
+                if onestep.get(who) is not None
                 for k in METRICS
             },
+            "model_vs_best_reference": best_reference_ratios(onestep),
             "from_rollout_file": onestep["from_rollout_file"],
         },
         "discrepancy_common_frames": int(dataset.n_steps) + 1,
@@ -513,8 +546,10 @@ def mocap_markdown(m: MocapNumbers, summary: dict, dataset) -> str:
     if onestep is not None:
         md += (
             "\n## One-step (teacher-forced) errors: g_{k+1} from the true (g_{k-1}, g_k), mean over k\n\n"
-            "`const_velocity`: g_k exp(log(g_{k-1}^-1 g_k)), the last increment repeated; a model that does not "
-            "beat it has learned nothing. "
+            "`const_velocity`: g_k exp(log(g_{k-1}^-1 g_k)), the last increment repeated; `const_acceleration`: "
+            "R_k exp(2 w_k - w_{k-1}), p_k + 2 dp_k - dp_{k-1} (constant velocity's guess at k = 1); "
+            "`euclid_velocity`: rotations as constant velocity, root position p_k + dp_k. A model beats guessing "
+            "only where it beats the best of the three (`model_vs_best_reference` in mocap_eval.json). "
             + (
                 f"Newton converged on {onestep['converged']} of {onestep['solves']} solves"
                 + (" (predictions stored in the rollout file)" if onestep["from_rollout_file"] else "")
@@ -530,10 +565,17 @@ def mocap_markdown(m: MocapNumbers, summary: dict, dataset) -> str:
                 **{LABELS[k]: float(onestep[who][k][n] * (asf if k == "root_pos" else 1)) for k in METRICS},
             }
             for n, i in enumerate(idx)
-            for who in ("model", "const_velocity")
-            if onestep[who] is not None
+            for who in ("model", *ONE_STEP_REFERENCES)
+            if onestep.get(who) is not None
         ]
         md += markdown_table(orows, list(orows[0]))
+        ratios = best_reference_ratios(onestep)
+        if ratios is not None:
+            md += "\n\nModel over the best reference (< 1: better than every zero-parameter guess): " + "; ".join(
+                f"{_sequence_name(dataset, i)}: " + ", ".join(f"{k} {fmt(ratios[k][n])}" for k in METRICS)
+                for n, i in enumerate(idx)
+            )
+            md += "\n"
     md += "\n\n## Mean joint rotation error per joint (rad, mean over the rolled-out sequences)\n\n"
     md += markdown_table([m.per_joint], list(m.per_joint))
     return md
@@ -580,6 +622,8 @@ def mocap_console(m: MocapNumbers, dataset) -> list[tuple[Any, dict[str, Any]]]:
             + ("model " + ", ".join(f"{float(v):.3e}" for v in mo["joint_rot"]) + " vs " if mo is not None else "")
             + "constant velocity "
             + ", ".join(f"{float(v):.3e}" for v in c["joint_rot"])
+            + ", constant acceleration "
+            + ", ".join(f"{float(v):.3e}" for v in m.onestep["const_acceleration"]["joint_rot"])
             + " rad (per sequence)"
         )
     shown += [(escape(x), {"highlight": False}) for x in verdict_lines(m, dataset) + extra]
