@@ -690,11 +690,43 @@ EVAL_KEYS = (
     "model",
     "rel_rot_error_mean",
     "rel_rot_error_final",
+    "geodesic_error_mean",
     "position_error_mean",
     "rollout_vs_cv",
+    "cv_geodesic_error_same_horizon",
+    "rollout_vs_best",
+    "one_step_vs_cv",
+    "one_step_vs_best",
+    "best_reference",
+    "beats_references",
+    "valid_horizon_min",
+    "valid_horizon_mean",
+    "failed_trajectories",
+    "error_steps",
     "newton_failures",
     "checkpoint_epoch",
 )
+"""What a record keeps of each eval row: the errors, the valid horizon they cover, and both sides of every
+ratio to a reference (`cv_geodesic_error_same_horizon`: constant velocity over the model's valid samples)."""
+
+
+def same_horizon_ratio(ev: dict) -> str:
+    """The rollout ÷ constant velocity cell of a record's model row: the ratio when both sides cover the
+    same steps (records with `cv_geodesic_error_same_horizon`, or a rollout without a Newton failure),
+    else "not comparable" (older records divided a rollout cut at its first failure by constant velocity
+    over all steps)."""
+    if not ev or ev.get("rollout_vs_cv") is None:
+        return "–"
+    same = ev.get("cv_geodesic_error_same_horizon") is not None or not ev.get("newton_failures")
+    return _fmt(ev["rollout_vs_cv"]) if same else "not comparable (different horizons)"
+
+
+def horizon_note(ev: dict) -> str:
+    """ " (valid to step k of n)" after an error of a rollout that failed within the error span."""
+    lo, n = ev.get("valid_horizon_min"), ev.get("error_steps")
+    if lo is None:
+        return " (valid horizon not recorded)" if ev.get("newton_failures") else ""
+    return f" (valid to step {lo} of {n})" if n is not None and lo < n else ""
 
 
 def eval_rows(run: Path) -> list[dict]:
@@ -721,6 +753,7 @@ def full_table(path: Path = FULL_RUNS) -> str:
         rows = {e.get("model"): e for e in kept}
         ev, true = rows.get("model", {}), rows.get("true_scheme", {})
         err = f"{_fmt(ev.get('rel_rot_error_mean'))} / {_fmt(ev.get('rel_rot_error_final'))}" if ev else "–"
+        err += horizon_note(ev) if ev else ""
         notes = [f"{rec['paused_seconds']:,.0f} paused"] if rec.get("paused_seconds") else []
         if len(rec.get("pieces", [])) > 1 or rec.get("lost_pieces"):
             notes.append(f"{len(rec['pieces'])} pieces")
@@ -738,7 +771,7 @@ def full_table(path: Path = FULL_RUNS) -> str:
             f"| {key.replace('experiment=', '')} | {rec.get('epochs')} | {wall} "
             f"| {_fmt(rec.get('cpu_seconds'), ',.0f')} "
             f"| {_fmt(rec.get('load_1min'), '.1f')} → {_fmt(rec.get('load_1min_end'), '.1f')} | {err} "
-            f"| {_fmt(ev.get('position_error_mean'))} | {_fmt(ev.get('rollout_vs_cv'))} "
+            f"| {_fmt(ev.get('position_error_mean'))} | {same_horizon_ratio(ev)} "
             f"| {_fmt(true.get('rel_rot_error_mean'))} "
             f"| {ev.get('newton_failures', '–')} | {ev.get('checkpoint_epoch', '–')} |"
         )
@@ -786,7 +819,7 @@ def compare_table(old_path: Path, new_path: Path = FULL_RUNS) -> str:
             f"| {o['cpu_seconds'] / n['cpu_seconds']:.2f} "
             f"| {_fmt(eo.get('rel_rot_error_mean'))} → {_fmt(en.get('rel_rot_error_mean'))} "
             f"| {_fmt(eo.get('position_error_mean'))} → {_fmt(en.get('position_error_mean'))} "
-            f"| {_fmt(eo.get('rollout_vs_cv'))} → {_fmt(en.get('rollout_vs_cv'))} "
+            f"| {same_horizon_ratio(eo)} → {same_horizon_ratio(en)} "
             f"| {eo.get('newton_failures', '–')} → {en.get('newton_failures', '–')} |"
         )
     if both:

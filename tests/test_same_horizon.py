@@ -88,3 +88,46 @@ def test_ratio_to_constant_velocity_covers_the_models_valid_horizon(tmp_path):
         rec = {r["model"]: r for r in csv.DictReader(f)}["model"]
     assert float(rec["cv_geodesic_error_same_horizon"]) == model["cv_geodesic_error_same_horizon"]
     assert int(rec["valid_horizon_min"]) == FAIL + 1
+
+
+def _paper_plan():
+    import importlib.util
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    spec = importlib.util.spec_from_file_location("paper_plan_same_horizon", root / "scripts" / "paper_plan.py")
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_whole_paper_table_prints_no_mixed_horizon_ratio(tmp_path):
+    import json
+
+    plan = _paper_plan()
+    old = {"model": "model", "rel_rot_error_mean": 0.36, "rollout_vs_cv": 0.566, "newton_failures": 690}
+    new = {
+        "model": "model",
+        "rel_rot_error_mean": 0.36,
+        "rollout_vs_cv": 1.7,
+        "cv_geodesic_error_same_horizon": 0.01,
+        "valid_horizon_min": 12,
+        "error_steps": 470,
+        "newton_failures": 690,
+    }
+    clean = {"model": "model", "rel_rot_error_mean": 0.03, "rollout_vs_cv": 0.02, "newton_failures": 0}
+    jobs = {
+        f"experiment=exp{i}": {"epochs": 1, "wall_seconds": 1.0, "exit_code": 0, "eval": [ev]}
+        for i, ev in enumerate((old, new, clean))
+    }
+    path = tmp_path / "full.json"
+    path.write_text(json.dumps({"jobs": jobs}))
+    lines = {ln.split("|")[1].strip(): ln for ln in plan.full_table(path).splitlines() if ln.startswith("| exp")}
+    assert "not comparable (different horizons)" in lines["exp0"] and "0.566" not in lines["exp0"]
+    assert "(valid horizon not recorded)" in lines["exp0"]
+    assert "| 1.7 |" in lines["exp1"] and "(valid to step 12 of 470)" in lines["exp1"]
+    assert "| 0.02 |" in lines["exp2"] and "valid" not in lines["exp2"]
+    assert set(plan.EVAL_KEYS) >= {"cv_geodesic_error_same_horizon", "valid_horizon_min", "rollout_vs_best"}
