@@ -76,15 +76,24 @@ def simulate(scene: dict, n_traj: int, seed: int) -> Pose:
     return Pose(R, R.new_zeros(n_traj, n + 1, 0, 3))
 
 
+def rollout_seconds(model, truth: Pose) -> float:
+    """Wall time of the rollout with the default Newton settings (what a user gets; tol 1e-5 on the step,
+    whose quadratic convergence leaves ~1e-10): the best of REPEATS, the first also warming the caches.
+    The errors are measured on a separate rollout at tol 1e-12."""
+    n = truth.R.shape[1] - 1
+    secs = []
+    for _ in range(REPEATS):
+        t0 = time.perf_counter()
+        model.rollout(truth.index((slice(None), 0)), truth.index((slice(None), 1)), n, SolverOptions())
+        secs.append(time.perf_counter() - t0)
+    return min(secs)
+
+
 def rollout_error(model, truth: Pose) -> tuple[float, float, int]:
     """(geometric mean over trajectories of the mean relative error, seconds, Newton failures)."""
     n = truth.R.shape[1] - 1
-    secs = []
-    for _ in range(REPEATS):  # the best of REPEATS (the first also warms the caches)
-        t0 = time.perf_counter()
-        ro = model.rollout(truth.index((slice(None), 0)), truth.index((slice(None), 1)), n, SOLVER)
-        secs.append(time.perf_counter() - t0)
-    sec = min(secs)
+    ro = model.rollout(truth.index((slice(None), 0)), truth.index((slice(None), 1)), n, SOLVER)
+    sec = rollout_seconds(model, truth)
     R, Rt = ro.pose.R[:, :, 0], truth.R[:, :, 0]
     rel = ((R - Rt).norm(dim=(-1, -2)) / Rt.norm(dim=(-1, -2))).mean(1)
     return float(torch.exp(torch.log(rel).mean())), sec, ro.n_failed
@@ -101,6 +110,46 @@ def learned(scene: dict, train: Pose, s: int, order: int) -> tuple[object, float
     t0 = time.perf_counter()
     note = wrapper.initial_fit(samples) or ""
     return sb.with_substeps(inner, s, order), time.perf_counter() - t0, note
+
+
+COST_OPTIONS = [(1, 2, 1), (2, 2, 1), (4, 2, 1), (8, 2, 1), (1, 4, 1), (2, 4, 1), (1, 2, 2), (1, 2, 4), (1, 2, 8)]
+
+
+def speed_against_error(n_traj: int = 32) -> list[dict]:
+    """The heavy top with the true parameters, sampled at 0.02 s to 5 s: the rotation error after 1 s
+    and 5 s (mean over trajectories of ||R^ - R||_F) and the rollout's wall time per trajectory per
+    simulated second, for sub-steps s = 1..8 of order 2, order 4 with s = 1, 2, and the one-step scheme
+    at the sample step divided by 2, 4, 8 (its own, finer data; the same total time)."""
+    base = dict(SCENES["heavy_top"], horizon=5.0)
+    rows = []
+    for s, order, refine in COST_OPTIONS:
+        scene = dict(base, h=base["h"] / refine)
+        truth = simulate(scene, n_traj, 3)
+        model = sb.with_substeps(physics_model(G, scene["h"], scene["physics"]), s, order)
+        n = truth.R.shape[1] - 1
+        ro = model.rollout(truth.index((slice(None), 0)), truth.index((slice(None), 1)), n, SOLVER)
+        secs = [rollout_seconds(model, truth)]
+        err = (ro.pose.R[:, :, 0] - truth.R[:, :, 0]).norm(dim=(-1, -2)).mean(0)
+        i1, i5 = round(1.0 / scene["h"]), round(5.0 / scene["h"])
+        rows.append(
+            {
+                "substeps": s,
+                "order": order,
+                "h": scene["h"],
+                "solves_per_second": s * (1 if order == 2 else 3) / scene["h"],
+                "error_1s": float(err[i1]),
+                "error_5s": float(err[i5]),
+                "ms_per_trajectory_second": 1e3 * min(secs) / n_traj / base["horizon"],
+                "newton_failures": ro.n_failed,
+            }
+        )
+        r = rows[-1]
+        print(
+            f"h {scene['h']:.4f} s={s} order={order}: error 1 s {r['error_1s']:.2e}, 5 s {r['error_5s']:.2e}, "
+            f"{r['ms_per_trajectory_second']:.3f} ms per trajectory-second",
+            flush=True,
+        )
+    return rows
 
 
 def main() -> None:
@@ -157,6 +206,7 @@ def main() -> None:
             "test": args.test,
             "rows": rows,
         }
+    record["speed_against_error"] = speed_against_error()
     record["load_after"] = os.getloadavg()[0]
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
@@ -175,6 +225,14 @@ def main() -> None:
                 f"| {r['learned_error']:.2e} "
                 f"| {r['learned_error_vs_one_step']:.3f} | {r['rollout_cost_vs_one_step']:.2f} |"
             )
+    print("\nheavy top, true parameters, sampled at 0.02 s (rows with h < 0.02: the one-step scheme on finer data)")
+    print("| h (s) | substeps | order | solves per s | error after 1 s | after 5 s | ms per trajectory-second |")
+    print("|---|---|---|---|---|---|---|")
+    for r in record["speed_against_error"]:
+        print(
+            f"| {r['h']:g} | {r['substeps']} | {r['order']} | {r['solves_per_second']:.0f} | {r['error_1s']:.2e} "
+            f"| {r['error_5s']:.2e} | {r['ms_per_trajectory_second']:.3f} |"
+        )
     assert all(math.isfinite(r["learned_error"]) for sc in record["scenes"].values() for r in sc["rows"])
 
 

@@ -25,6 +25,15 @@ PHYSICS = {
         "g": 9.81,
         "D": [0.1, 0.1, 0.1, 0.05, 0.05, 0.05],
     },
+    # SE(3) with rotational damping only: the translational velocity estimate (I - h/2 hat(w)) z / h is not
+    # time-symmetric, so translational damping caps a composition at order 3 (docs/substeps.md)
+    "se3_rotational_damping": {
+        "J": [1.521, 1.362, 1.211],
+        "m": 0.5,
+        "rho": [0.0, 0.5, 1.0],
+        "g": 9.81,
+        "D": [0.1, 0.1, 0.1, 0.0, 0.0, 0.0],
+    },
 }
 
 

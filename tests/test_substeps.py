@@ -156,6 +156,22 @@ def test_fused_and_reference_order_four_rollouts_agree():
     assert torch.allclose(a.pose.R, b.pose.R, atol=1e-10)
 
 
+def test_column_and_row_order_four_rollouts_agree(monkeypatch):
+    from liedfl_cli.models import fused_columns
+
+    model = sb.SubstepModel(
+        LieDFLNN(G_SO3, 0.05, potential=["uniform_gravity"], forces=["rayleigh"], seed=5, init_jitter=0.2), 1, 4
+    )
+    g = top_truth(0.05, 0.1, n_traj=fused_columns.MIN_ROWS)
+    start = g.index((slice(None), 0)), g.index((slice(None), 1))
+    assert fused_columns.applies(model.inner, start[0])
+    cols = model.rollout(*start, 25, TIGHT)
+    monkeypatch.setattr(fused_columns, "MIN_ROWS", 10**6)  # the row layout (`_FusedCycle`)
+    rows = model.rollout(*start, 25, TIGHT)
+    assert cols.n_failed == 0 and rows.n_failed == 0
+    assert torch.allclose(cols.pose.R, rows.pose.R, atol=1e-11)
+
+
 def test_internal_jacobian_matches_autodiff():
     model = sb.SubstepModel(physics_model(G_SO3, 0.05, TOP), 4, 2)
     g = top_truth(0.05, 0.05, n_traj=2)
