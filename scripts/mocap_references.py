@@ -1,7 +1,8 @@
 """The zero-parameter references on the cartwheel recordings (Exp 4): one-step errors of constant
 velocity, constant acceleration and constant velocity with Euclidean positions, teacher-forced from the
 true poses over every sample of both recordings (`evaluation.mocap.one_step_errors`, the metrics of the
-paper's table), and the ratios of the last two to constant velocity. No training: the bar a model must clear.
+paper's table), the ratios of the last two to constant velocity, and the ground-truth discrepancy between the
+two recordings. No training: the bar a model must clear.
 
 `OMP_NUM_THREADS=1 python scripts/mocap_references.py [--out docs/bench/mocap_references_<date>.json]`
 """
@@ -33,7 +34,7 @@ def main() -> None:
     from liedfl_cli.config.typed import typed
     from liedfl_cli.data.mocap import moving_joints
     from liedfl_cli.data.scenes import get_dataset
-    from liedfl_cli.evaluation.mocap import ONE_STEP_REFERENCES, _asf_per_unit, one_step_errors
+    from liedfl_cli.evaluation.mocap import ONE_STEP_REFERENCES, _asf_per_unit, discrepancy, one_step_errors
 
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose(config_name="train", overrides=["experiment=exp4_mocap"])
@@ -69,6 +70,12 @@ def main() -> None:
             k: [float(x / y) for x, y in zip(out[who][k], out["const_velocity"][k])] for k in out[who]
         }
     rec["recordings"] = names
+    disc = discrepancy(ds)
+    if disc is not None:  # the ground-truth discrepancy between the recordings (the paper's last row)
+        rec["discrepancy"] = {
+            k: float(disc[k]) * (asf if k == "root_pos" else 1.0)
+            for k in ("root_rot", "joint_rot", "joint_rot_all", "root_pos")
+        }
     a.out.write_text(json.dumps(rec, indent=1) + "\n")
     print(json.dumps({k: rec[k] for k in ("errors", "over_constant_velocity")}, indent=1))
 
