@@ -34,7 +34,13 @@ def main() -> None:
     from liedfl_cli.config.typed import typed
     from liedfl_cli.data.mocap import moving_joints
     from liedfl_cli.data.scenes import get_dataset
-    from liedfl_cli.evaluation.mocap import ONE_STEP_REFERENCES, _asf_per_unit, discrepancy, one_step_errors
+    from liedfl_cli.evaluation.mocap import (
+        ONE_STEP_REFERENCES,
+        _asf_per_unit,
+        discrepancy,
+        one_step_errors,
+        sequence_errors,
+    )
 
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose(config_name="train", overrides=["experiment=exp4_mocap"])
@@ -70,6 +76,28 @@ def main() -> None:
             k: [float(x / y) for x, y in zip(out[who][k], out["const_velocity"][k])] for k in out[who]
         }
     rec["recordings"] = names
+    # rollouts over the whole recordings: constant velocity and its Euclidean variant from the true first
+    # pair, constant acceleration from the first three poses (one more than a model's rollout gets)
+    import torch
+
+    from liedfl_cli.lie import Pose
+    from liedfl_cli.solvers import one_step as ref
+
+    truth = Pose(torch.as_tensor(ds.R), torch.as_tensor(ds.p))
+    g = [truth.index((slice(None), k)) for k in range(3)]
+    S = int(ds.R.shape[1]) - 1
+    rollouts = {
+        "const_velocity": ref.constant_velocity_rollout(ds.group, g[0], g[1], S),
+        "const_acceleration": ref.constant_acceleration_rollout(g[0], g[1], g[2], S),
+        "euclid_velocity": ref.euclidean_velocity_rollout(g[0], g[1], S),
+    }
+    rec["rollout_errors"] = {}
+    for who, ro in rollouts.items():
+        e = sequence_errors(ro.R.numpy(), ro.p.numpy(), ds.R, ds.p, joints=joints)
+        rec["rollout_errors"][who] = {
+            k: [float(v * (asf if k == "root_pos" else 1.0)) for v in np.asarray(e[k])]
+            for k in ("root_rot", "joint_rot", "joint_rot_all", "root_pos")
+        }
     disc = discrepancy(ds)
     if disc is not None:  # the ground-truth discrepancy between the recordings (the paper's last row)
         rec["discrepancy"] = {
