@@ -1,6 +1,7 @@
 """Bands over seeds for the headline figures of docs/results.md that take a few minutes a run.
 
-`OMP_NUM_THREADS=1 python scripts/paper_bands.py [--seeds 0 1 2] [--out docs/bench/bands_<date>.json] [--only KEY]`
+`OMP_NUM_THREADS=1 python scripts/paper_bands.py [--seeds 0 1 2] [--out docs/bench/bands_<date>.json] [--only KEY]`;
+`python scripts/paper_bands.py --table --out <record>` prints the record's bands as markdown.
 
 Runs each job of JOBS (the paper's experiment file and full budget; `seed=<s>` changes the training seed,
 the dataset stays the experiment's) once per seed, one at a time, in outputs/paper_bands/, and writes
@@ -88,12 +89,53 @@ def band(values: list[float]) -> dict | None:
     return {"min": v[0], "median": statistics.median(v), "max": v[-1], "n": len(v)} if v else None
 
 
+def table(path: Path) -> str:
+    """Markdown: per job of the record, the learned model's mean relative rotation error per seed, its band,
+    the rollout and one-step ratios to the best zero-parameter reference (same samples), and the CPU seconds."""
+    rec = json.loads(path.read_text())
+    lines = [
+        "| job | seeds | mean rel. rotation error per seed | band (min – max) | rollout ÷ best reference | "
+        "one step ÷ best reference | beats every reference | CPU s per run |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    fmt = lambda x: "–" if x is None else f"{x:.3g}"
+    for key, job in rec["jobs"].items():
+        runs = {s: r for s, r in job["runs"].items() if r.get("exit_code") == 0}
+        rows = {s: next((e for e in r.get("eval", []) if e.get("model") == "model"), {}) for s, r in runs.items()}
+        errs = [rows[s].get("rel_rot_error_mean") for s in runs]
+        b = band(errs)
+
+        def span(k: str, rows: dict = rows) -> str:
+            v = [r[k] for r in rows.values() if r.get(k) is not None]
+            return f"{fmt(min(v))} – {fmt(max(v))}" if v else "–"
+
+        beats = {rows[s].get("beats_references") for s in runs}
+        cpu = [r["cpu_seconds"] for r in runs.values()]
+        lines.append(
+            f"| {key} | {', '.join(runs)} | {' / '.join(fmt(e) for e in errs)} "
+            f"| {fmt(b['min']) + ' – ' + fmt(b['max']) if b else '–'} | {span('rollout_vs_best')} "
+            f"| {span('one_step_vs_best')} | {' / '.join(str(x) for x in sorted(beats, key=str))} "
+            f"| {fmt(min(cpu)) + ' – ' + fmt(max(cpu)) if cpu else '–'} |"
+        )
+    m = rec.get("machine", {})
+    lines.append("")
+    lines.append(
+        f"Machine: {m.get('cpu_model')}, {m.get('cores')} cores, OMP_NUM_THREADS={m.get('omp_num_threads')}, "
+        f"torch {m.get('torch')}, commit {m.get('commit')}."
+    )
+    return "\n".join(lines)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "bench" / f"bands_{datetime.now():%Y-%m-%d}.json")
     ap.add_argument("--only", nargs="*", default=None, help="job keys of JOBS (default: all)")
+    ap.add_argument("--table", action="store_true", help="print the record's bands as markdown, run nothing")
     a = ap.parse_args()
+    if a.table:
+        print(table(a.out))
+        return
     plan = _plan()
     rec = json.loads(a.out.read_text()) if a.out.is_file() else {"jobs": {}}
     rec["machine"] = machine()
