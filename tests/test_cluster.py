@@ -94,7 +94,7 @@ def failing_sweep(tmp_path_factory) -> tuple[subprocess.CompletedProcess, Path]:
     """liedfl's `liedfl_local` (one thread per job through `setup`; OMP_NUM_THREADS unset here):
     job 0 fails validation, job 1 trains."""
     cwd = tmp_path_factory.mktemp("submitit_fail")
-    args = ["train", "-m", "train.epochs=0,2", "budget=smoke", "hydra/launcher=liedfl_local", *FAST]
+    args = ["train", "-m", "train.epochs=-1,2", "budget=smoke", "hydra/launcher=liedfl_local", *FAST]
     proc = liedfl(*args, cwd=cwd, threads=None)
     return proc, _only_sweep(cwd)
 
@@ -105,14 +105,14 @@ def test_a_failing_submitit_job_is_recorded_and_counted(failing_sweep):
     assert _status(sweep_dir / "0") == {
         "status": "failed",
         "exit_code": 2,
-        "error": "train.epochs=0: must be a positive integer",
+        "error": "train.epochs=-1: must be an integer >= 0",
     }
     assert _status(sweep_dir / "1")["status"] == "ok"
     assert proc.returncode == 1  # the number of failed jobs
     errors = [ln for ln in proc.stderr.splitlines() if ln.startswith("error:")]
     # the job printed its error into its submitit log; the launching process repeats it
     assert errors == [
-        "error: [job 0] train.epochs=0: must be a positive integer",
+        "error: [job 0] train.epochs=-1: must be an integer >= 0",
         f"error: 1 of 2 jobs failed: {Path('outputs') / 'multirun' / sweep_dir.name / '0'}",
     ]
     assert status.sweep_summary(sweep_dir)[:2] == (1, 2)
@@ -128,7 +128,7 @@ def test_report_lists_the_failed_submitit_job(failing_sweep, tmp_path, run_main)
     _, sweep_dir = failing_sweep
     proc = run_main("report", f"sweep={sweep_dir}", "plots=false", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
-    assert "failed runs (1)" in proc.stdout and "0: train.epochs=0: must be a positive integer" in proc.stdout
+    assert "failed runs (1)" in proc.stdout and "0: train.epochs=-1: must be an integer >= 0" in proc.stdout
     assert "1 runs, 1 failed." in (sweep_dir / "report.md").read_text()
 
 

@@ -474,7 +474,7 @@ IMP = ("data", "dataset=import", "dataset.path=log.csv", "dataset.rotation=wxyz"
 T = "train"
 CASES: list[Case] = [
     # --- config values (fail before any folder or data exists)
-    Case("epochs-zero", (T, *FAST, "train.epochs=0"), ("train.epochs=0", "positive integer")),
+    Case("epochs-minus-one", (T, *FAST, "train.epochs=-1"), ("train.epochs=-1", "integer >= 0")),
     Case("epochs-negative", (T, *FAST, "train.epochs=-5"), ("train.epochs=-5",)),
     Case("epochs-text", (T, *FAST, "train.epochs=many"), ("train.epochs", "many")),
     Case("batch-zero", (T, *FAST, "train.batch_size=0"), ("train.batch_size=0",)),

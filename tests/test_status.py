@@ -33,11 +33,11 @@ def liedfl(*args: str, cwd: Path, **env) -> subprocess.CompletedProcess:
 
 @pytest.fixture
 def sweep(tmp_path, run_main) -> tuple[subprocess.CompletedProcess, Path]:
-    """`liedfl train -m train.epochs=0,1` (in-process, Hydra's basic launcher runs the jobs here too: cheaper
+    """`liedfl train -m train.epochs=-1,1` (in-process, Hydra's basic launcher runs the jobs here too: cheaper
     per test than one subprocess per module): job 0 fails validation, job 1 trains (smoke)."""
     cwd = tmp_path / "sweep"
     cwd.mkdir()
-    proc = run_main("train", "-m", *FAST, "train.epochs=0,1", cwd=cwd)
+    proc = run_main("train", "-m", *FAST, "train.epochs=-1,1", cwd=cwd)
     (sweep_dir,) = (cwd / "outputs" / "multirun").iterdir()
     return proc, sweep_dir
 
@@ -46,7 +46,7 @@ def test_a_failing_job_does_not_stop_the_sweep(sweep):
     proc, sweep_dir = sweep
     assert "Traceback" not in proc.stderr, proc.stderr
     failed = json.loads((sweep_dir / "0" / "status.json").read_text())
-    assert failed == {"status": "failed", "exit_code": 2, "error": "train.epochs=0: must be a positive integer"}
+    assert failed == {"status": "failed", "exit_code": 2, "error": "train.epochs=-1: must be an integer >= 0"}
     ok = json.loads((sweep_dir / "1" / "status.json").read_text())
     assert ok["status"] == "ok" and ok["exit_code"] == 0
     assert (sweep_dir / "1" / "checkpoints" / "last.pt").is_file() and (sweep_dir / "1" / "eval.csv").is_file()
@@ -56,7 +56,7 @@ def test_the_sweep_exit_code_counts_the_failed_jobs(sweep):
     proc, sweep_dir = sweep
     assert proc.returncode == 1
     errors = [ln for ln in proc.stderr.splitlines() if ln.startswith("error:")]
-    assert errors[0] == "error: [job 0] train.epochs=0: must be a positive integer"
+    assert errors[0] == "error: [job 0] train.epochs=-1: must be an integer >= 0"
     assert errors[-1] == f"error: 1 of 2 jobs failed: {Path('outputs') / 'multirun' / sweep_dir.name / '0'}"
 
 
@@ -64,10 +64,10 @@ def test_report_lists_failed_runs(sweep, tmp_path, run_main):
     _, sweep_dir = sweep
     proc = run_main("report", f"sweep={sweep_dir}", "plots=false", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
-    assert "failed runs (1)" in proc.stdout and "0: train.epochs=0: must be a positive integer" in proc.stdout
+    assert "failed runs (1)" in proc.stdout and "0: train.epochs=-1: must be an integer >= 0" in proc.stdout
     md = (sweep_dir / "report.md").read_text()
     assert "1 runs, 1 failed." in md and "## Failed runs" in md
-    assert "| 0 | train.epochs=0: must be a positive integer |" in md
+    assert "| 0 | train.epochs=-1: must be an integer >= 0 |" in md
     assert status.sweep_summary(sweep_dir)[:2] == (1, 2)
 
 
@@ -75,7 +75,7 @@ def test_two_sweeps_started_together_get_their_own_folders(tmp_path):
     """Both sweeps fail fast (validation), so that they start within the same second."""
     procs = [
         subprocess.Popen(
-            _cmd("train", "-m", *FAST, "train.epochs=0,-1"),
+            _cmd("train", "-m", *FAST, "train.epochs=-1,-2"),
             cwd=tmp_path,
             env=_env(),
             stdout=subprocess.PIPE,
