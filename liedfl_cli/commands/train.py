@@ -32,7 +32,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from ..config.typed import OptimizerConfig, RunConfig, TrainConfig, section, typed
-from ..display.ui import console, err_console, progress_bar, warning_line
+from ..display.ui import PlainProgress, console, err_console, progress_bar, warning_line
 from ..errors import CheckpointError, ConfigError, LiedflError
 from ..files.checkpoint import (
     CHECKPOINT_FILE,
@@ -323,6 +323,7 @@ def fit(
     saved_epoch = start - 1 if resume is not None else None  # the epoch of the last checkpoint written
     t0 = time.perf_counter() - offset
     last_save = time.perf_counter()
+    plain = PlainProgress(epochs, start - 1, enabled=show_progress and log_epochs)  # lines a log file keeps
     with progress_bar(show_progress) as bar:
         task = bar.add_task("train", total=epochs, completed=start - 1, loss=float("nan"), val=val_text)
         for epoch in range(start, epochs + 1):
@@ -348,8 +349,9 @@ def fit(
             if sched is not None:
                 sched.step()
             row = {"epoch": epoch, **sums, "lr": lr, "seconds": time.perf_counter() - t0, **no_pass}
-            early = False
+            early = validated = False
             if validator is not None and validator.due(epoch, epochs):
+                validated = True
                 tv = time.perf_counter()
                 row.update(validator.measure(model))
                 improved, early = selection.update(epoch, row) if selection is not None else (False, False)
@@ -365,6 +367,7 @@ def fit(
             if on_epoch is not None:
                 on_epoch(row)
             bar.update(task, advance=1, loss=sums["loss"], val=val_text)
+            plain.update(epoch, sums["loss"], val_text, validated=validated or early)
             if log_epochs and not show_progress and (epoch % max(1, epochs // 10) == 0 or epoch == epochs or early):
                 console.print(
                     f"epoch {epoch}/{epochs}  "

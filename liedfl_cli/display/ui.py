@@ -113,6 +113,68 @@ class _PhaseLines:
             console.print(line, highlight=False, markup=False, soft_wrap=True)
 
 
+def format_duration(seconds: float) -> str:
+    """`42 s`, `3 min 05 s`, `1 h 02 min`: a duration for a progress line."""
+    s = max(0.0, float(seconds))
+    if not math.isfinite(s):
+        return "?"
+    if s < 60:
+        return f"{s:.0f} s"
+    if s < 3600:
+        return f"{int(s // 60)} min {int(s % 60):02d} s"
+    return f"{int(s // 3600)} h {int(s % 3600 // 60):02d} min"
+
+
+def progress_line(epoch: int, total: int, loss: float | None, val: str, elapsed: float, left: float | None) -> str:
+    """One plain progress line of a training (see `PlainProgress`):
+    `train epoch 120/1000  loss 1.234e-03  val 1.2e-04 (0.31x CV, 1.20x CA)  elapsed 1 min 02 s  left ~8 min 30 s`."""
+    parts = [f"train epoch {epoch}/{total}"]
+    if isinstance(loss, (int, float)) and math.isfinite(loss):
+        parts.append(f"loss {loss:.3e}")
+    if val:
+        parts.append(val)
+    parts.append(f"elapsed {format_duration(elapsed)}")
+    if left is not None:
+        parts.append(f"left ~{format_duration(left)}")
+    return "  ".join(parts)
+
+
+class PlainProgress:
+    """Progress that survives a log file: where the rich bar is invisible (stdout is not a terminal)
+    a training prints one plain line per validation pass, or once a minute when passes are rarer
+    (`every` seconds), on stdout and in the run log (`train.log`); on a terminal the bar shows the
+    progress and the same lines go to the run log only. With `ui.progress=false` the training prints
+    its own epoch lines: this prints nothing (`enabled=False`)."""
+
+    def __init__(self, total: int, start_epoch: int = 0, enabled: bool = True, every: float = 60.0,
+                 to_stdout: bool | None = None) -> None:  # fmt: skip
+        self.total, self.start_epoch, self.enabled, self.every = int(total), int(start_epoch), enabled, float(every)
+        self.to_stdout = (not sys.stdout.isatty()) if to_stdout is None else to_stdout
+        self.t0 = time.perf_counter()
+        self.last = self.t0
+        self.lines: list[str] = []
+
+    def update(self, epoch: int, loss: float | None, val: str = "", validated: bool = False) -> str | None:
+        """After `epoch`: the line printed (a validation pass, a minute since the last line, or the
+        last epoch), or None."""
+        if not self.enabled:
+            return None
+        now = time.perf_counter()
+        if not (validated or now - self.last >= self.every or epoch >= self.total):
+            return None
+        self.last = now
+        elapsed = now - self.t0
+        done = epoch - self.start_epoch
+        left = elapsed / done * (self.total - epoch) if done > 0 else None
+        line = progress_line(epoch, self.total, loss, val, elapsed, left)
+        self.lines.append(line)
+        if self.to_stdout:
+            console.print(line, highlight=False, markup=False, soft_wrap=True)  # mirrored to the log
+        elif _Log.console is not None:
+            _Log.console.print(line, highlight=False, markup=False, soft_wrap=True)
+        return line
+
+
 @contextlib.contextmanager
 def progress_bar(enabled: bool = True):
     """A rich progress display (`bar.add_task(description, total=..., loss=...)`, `bar.update(...)`);
