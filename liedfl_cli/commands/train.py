@@ -724,6 +724,9 @@ def run_train(cfg: DictConfig, resume: dict | None = None, accept_changed_datase
         if extra is not None:
             summary["extra_eval"] = extra
     write_json(out / "summary.json", summary)
+    from ..display.closing_summary import print_closing_summary
+
+    print_closing_summary(model, dataset, summary, result["history"], recovery, out)  # what was learned, files
     return summary
 
 
