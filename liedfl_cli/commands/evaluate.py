@@ -474,6 +474,12 @@ def compute_eval(
     if run.eval.plots:
         h = dataset.h
         unit = length_unit(dataset)
+        names = {
+            **plots.display_names(curves),
+            **names,
+            "model": plots.model_label(names.get("model"), _kinetic(run, dataset, run_dir), dataset.group.n_bodies)
+            or "model",
+        }
         result.add("plots/error_vs_step.png", plots.draw_error_vs_step(curves, h, names, length_unit=unit))
         result.add(
             "plots/drift_vs_step.png",
@@ -494,6 +500,8 @@ def compute_eval(
                 length_unit=unit,
             ),
         )
+        if dataset.group.n_bodies > 1:
+            _body_plots(result, run, dataset, truth, preds, names, unit)
         hist = run_dir / "train_metrics.csv"
         if own and hist.is_file():
             with open(hist) as f:
@@ -501,6 +509,61 @@ def compute_eval(
             if history and all("epoch" in r for r in history):
                 result.add("plots/loss.png", plots.draw_loss_curve(history))
     return result
+
+
+def _kinetic(run: RunConfig, dataset, run_dir: Path) -> str | None:
+    """The run's model kind, `articulated` or `per_body`: from the run's components.json (the model
+    built), else its `model.kinetic` as the model factory resolves it (`auto`: articulated for data with
+    a tree; `liedfl eval` passes the command's config, not the run's)."""
+    with contextlib.suppress(OSError, ValueError, AttributeError):
+        built = json.loads((Path(run_dir) / "components.json").read_text()).get("model")
+        if isinstance(built, str):
+            return "articulated" if built.startswith("Articulated") else "per_body"
+    kinetic = (run.model or {}).get("kinetic")
+    if kinetic == "auto":
+        return "articulated" if getattr(dataset, "tree", None) is not None else "per_body"
+    return kinetic
+
+
+def _body_plots(result: EvalOutputs, run: RunConfig, dataset, truth: Pose, preds: dict, names: dict, unit) -> None:
+    """Multibody figures: every body's rotation (and position) error against time (one panel per body, or
+    a heat map over body x time for many bodies); for data with a kinematic tree the errors are of the
+    bodies' world poses and the skeleton of one predicted and recorded frame is drawn too."""
+    tree = getattr(dataset, "tree", None)
+    if tree is not None:
+        from ..lie.tree import forward_kinematics
+
+        def world(g: Pose) -> plots.ArrayPose:
+            w = forward_kinematics(tree, g)
+            return plots.ArrayPose(w.R.numpy(), w.p.numpy())
+    else:
+
+        def world(g: Pose) -> plots.ArrayPose:
+            return plots.ArrayPose(g.R.numpy(), g.p.numpy())
+
+    true_w = world(truth)
+    preds_w = {k: world(v) for k, v in preds.items()}
+    errors = {k: plots.body_errors(true_w, v) for k, v in preds_w.items()}
+    bodies = list(getattr(dataset, "body_names", []))
+    result.add("plots/error_per_body.png", plots.draw_body_errors(errors, dataset.h, bodies, names=names))
+    if any("position_error" in e for e in errors.values()):
+        result.add(
+            "plots/position_error_per_body.png",
+            plots.draw_body_errors(errors, dataset.h, bodies, "position_error", names, length_unit=unit),
+        )
+    if tree is not None:
+        result.add(
+            "plots/skeleton.png",
+            plots.draw_skeleton(
+                true_w.p,
+                {k: v.p for k, v in preds_w.items()},
+                tree.parents,
+                dataset.h,
+                body_names=bodies,
+                names=names,
+                length_unit=unit,
+            ),  # fmt: skip
+        )
 
 
 EVALS_DIR = "evals"
