@@ -65,12 +65,12 @@ def test_both_recordings_rolled_out_exported_as_csv_and_imported_again(trained_o
     assert list(rows[0]) == ["trajectory", "t", "q0", "q1", "q2", "q3", "x", "y", "z"]
     T, S1 = R.shape[:2]
     assert len(rows) == T * S1
-    ids = np.array([int(r["trajectory"]) for r in rows]).reshape(T, S1)
+    ids = np.array([r["trajectory"] for r in rows]).reshape(T, S1)  # the recording's names (issue 38)
     t = np.array([float(r["t"]) for r in rows]).reshape(T, S1)
     q = np.array([[float(r[f"q{k}"]) for k in WXYZ] for r in rows]).reshape(T, S1, 1, 4)  # (w, x, y, z)
     xyz = np.array([[float(r[c]) for c in "xyz"] for r in rows]).reshape(T, S1, 1, 3)
-    assert (ids == traj[:, None]).all()
-    assert np.allclose(t, H * np.arange(S1)[None], rtol=0, atol=1e-12 * H * S1)
+    assert (ids == np.array([f"take{i}" for i in traj])[:, None]).all()
+    assert np.allclose(t, 100.0 + H * np.arange(S1)[None], rtol=0, atol=1e-12 * 100)  # its own time stamps
     assert (q[..., 0] >= 0).all()  # the sign convention: w >= 0
     back = so3.from_quaternion(torch.from_numpy(q)).numpy()
     assert np.abs(back - R).max() <= 1e-12 * np.abs(R).max()

@@ -348,9 +348,11 @@ def from_file(c: dict, progress: Callable[[float], None] | None = None) -> Datas
 class _Track:
     """One recording read from a file: time stamps (n,), rotations (n, B, 3, 3), positions (n, m, 3)."""
 
-    def __init__(self, t, R, p, source: str, columns: dict[str, str] | None = None):
+    def __init__(self, t, R, p, source: str, columns: dict[str, str] | None = None, name: str | None = None,
+                 t0: float = 0.0):  # fmt: skip
         self.t, self.R, self.p, self.source = t, R, p, source
         self.columns = columns  # CSV: {canonical name: the file's column} (import_options.ColumnFinder)
+        self.name, self.t0 = name, t0  # the CSV's trajectory value; the first stamp in seconds (the export's)
 
 
 def _rotations(values: np.ndarray, rotation: str, where: str, first_row: int = 0) -> np.ndarray:
@@ -439,7 +441,7 @@ def _read_csv(path: Path, c: dict) -> list[_Track]:
                 ps.append(v[:, off : off + 3])
                 off += 3
         p = np.stack(ps, 1) if ps else np.zeros((len(sel), 0, 3))
-        tracks.append(_Track(v[:, 0], R, p, where, columns=cols.used))
+        tracks.append(_Track(v[:, 0], R, p, where, columns=cols.used, name=tid if traj_col is not None else None))
     return _order_bodies(tracks, names, [q is not None for q in p_cols], str(path))
 
 
@@ -625,6 +627,7 @@ def import_recording(c: dict, progress: Callable[[float], None] | None = None) -
     names, kinds, _ = layout
     scale_t, scale_p = float(c["time_scale"]) * check_time_unit(c), float(c["length_scale"])
     for tr in tracks:
+        tr.t0 = float(tr.t[0]) * scale_t
         tr.t = (tr.t - tr.t[0]) * scale_t
         tr.p = tr.p * scale_p
         if len(tr.t) < 3:
@@ -669,6 +672,8 @@ def import_recording(c: dict, progress: Callable[[float], None] | None = None) -
                     tr.p[j * n : (j + 1) * n],
                     tr.source,
                     tr.columns,
+                    tr.name,
+                    tr.t0 + float(tr.t[j * n]),
                 )
                 for j in range(k)
             ]
@@ -694,6 +699,9 @@ def import_recording(c: dict, progress: Callable[[float], None] | None = None) -
         split_source="default split",
         split_overlap=overlap,
         **({"columns": tracks[0].columns} if tracks[0].columns else {}),
+        # per trajectory: the recording's name and first time stamp (s), which `export=csv|npz` writes back
+        **({"trajectory_names": [str(tr.name) for tr in tracks[:n]]} if tracks[0].name is not None else {}),
+        trajectory_start_s=[tr.t0 for tr in tracks[:n]],
         **gravity_params(c),
     )
     return Dataset(
