@@ -200,8 +200,11 @@ def test_joints_as_an_hdf5_string_array_are_read(mixed, tmp_path):
 @pytest.mark.parametrize(
     ("edit", "message"),
     [
-        (lambda f: f.attrs.__setitem__("joints", "hinge"), "'joints' is not valid JSON"),
-        (lambda f: f.attrs.__setitem__("joints", json.dumps("hingeball")), "must be a JSON list of joint types"),
+        (
+            lambda f: f.attrs.__setitem__("joints", "hinge"),
+            "'joints' must be a JSON list of strings (or an HDF5 string array), got text that is not valid JSON",
+        ),
+        (lambda f: f.attrs.__setitem__("joints", json.dumps("hingeball")), 'got a JSON string ("hingeball")'),
         (
             lambda f: f.attrs.__setitem__("joints", json.dumps(["free", "ball", "free", "universal", "weld"])),
             "'free' for body 2 ('free' is only the free root's, body 0)",

@@ -269,7 +269,7 @@ BAD = [
     ({"offsets": np.zeros((3, 2))}, r"dataset 'joint_offsets' has shape \(3, 2\), expected \(3, 3\)"),
     ({"offsets": np.full((3, 3), np.nan)}, r"dataset 'joint_offsets' has non-finite value"),
     ({"offsets": np.ones((3, 3))}, r"dataset 'joint_offsets' row 0 .* must be zeros"),
-    ({"attrs": {"rotations": "local"}}, r"attribute 'rotations' is 'local'"),
+    ({"attrs": {"rotations": "local"}}, r"attribute 'rotations' must be one of \['world', 'parent'\], got 'local'"),
     ({"delete": ["joint_offsets"]}, r"dataset 'joint_offsets' is missing"),
     ({"delete": ["parents"]}, r"attribute 'parents' is missing"),
     ({"delete": ["parents", "joint_offsets"]}, r"attribute 'rotations' is 'parent' but the file has no tree"),

@@ -26,9 +26,7 @@ from ..lie import so3
 from ..lie.product import Pose, ProductGroup
 from ..lie.tolerances import tol
 from ..lie.tree import ROTATIONS, Tree
-
-FORMAT_VERSION = 1
-BODY_KINDS = ("se3", "so3")
+from .attributes import BODY_KINDS, FORMAT_VERSION, read_root_attributes
 
 
 @dataclass(eq=False)
@@ -185,33 +183,6 @@ def _write(ds: Dataset, path: Path, tmp: Path) -> None:
 
 
 # ---------------------------------------------------------------------- reading
-def _attr(f, name: str, src: str, required: bool = True, default=None):
-    if name not in f.attrs:
-        if required:
-            raise DatasetError(f"{src}: attribute '{name}' is missing")
-        return default
-    v = f.attrs[name]
-    if isinstance(v, bytes):
-        v = v.decode()
-    if isinstance(v, np.generic):
-        v = v.item()
-    return v
-
-
-def _json_attr(f, name: str, src: str, required: bool = True, default=None):
-    v = _attr(f, name, src, required, None)
-    if v is None:
-        return default
-    if isinstance(v, np.ndarray):  # tolerate a plain array of strings instead of JSON
-        return [x.decode() if isinstance(x, bytes) else str(x) for x in v.reshape(-1)]
-    if not isinstance(v, str):
-        raise DatasetError(f"{src}: attribute '{name}' must be a JSON string, got {type(v).__name__}")
-    try:
-        return json.loads(v)
-    except json.JSONDecodeError as exc:
-        raise DatasetError(f"{src}: attribute '{name}' is not valid JSON ({exc.msg} at char {exc.pos})") from None
-
-
 def _array(f, name: str, src: str):
     obj = f.get(name)
     if obj is None:
@@ -241,31 +212,24 @@ def load_dataset(path, require_split: bool = True) -> Dataset:
         raise DatasetError(f"{src}: not an HDF5 file")
     try:
         with h5py.File(path, "r") as f:
-            version = _attr(f, "format_version", src)
-            if not isinstance(version, int) or not 1 <= version <= FORMAT_VERSION:
-                raise DatasetError(
-                    f"{src}: attribute 'format_version' is {version!r}; this liedfl reads 1..{FORMAT_VERSION}"
-                )
-            h = _attr(f, "h", src)
-            kinds = _json_attr(f, "body_kinds", src)
-            names = _json_attr(f, "body_names", src, required=False)
-            if not isinstance(kinds, list):
-                raise DatasetError(f"{src}: attribute 'body_kinds' must be a JSON list of 'se3'/'so3'")
+            a = read_root_attributes(f.attrs, src)
+            h, kinds, names = a["h"], a["body_kinds"], a["body_names"]
             if names is None:
                 names = [f"body{i}" for i in range(len(kinds))]
             for key, expected in (("n_se3", kinds.count("se3")), ("n_so3", kinds.count("so3"))):
-                given = _attr(f, key, src, required=False)
-                if given is not None and (type(given) is not int or given != expected):  # arrays, text, bools too
+                if a[key] is not None and a[key] != expected:
                     raise DatasetError(
-                        f"{src}: attribute '{key}' is {given!r:.80} but 'body_kinds' lists {expected} such bodies"
+                        f"{src}: attribute '{key}' is {a[key]} but 'body_kinds' lists {expected} such bodies"
                     )
-            scene = _attr(f, "scene", src, required=False, default=path.stem)
-            params = _json_attr(f, "params", src, required=False, default={})
-            seed = _attr(f, "seed", src, required=False, default=-1)
-            parents = _json_attr(f, "parents", src, required=False)
-            rotations = _attr(f, "rotations", src, required=False)
+            if len(names) != len(kinds):
+                raise DatasetError(
+                    f"{src}: attribute 'body_names' has {len(names)} entries but 'body_kinds' has {len(kinds)}"
+                )
+            scene = path.stem if a["scene"] is None else a["scene"]
+            params = {} if a["params"] is None else a["params"]
+            seed = -1 if a["seed"] is None else a["seed"]
+            parents, rotations, joints = a["parents"], a["rotations"], a["joints"]
             offsets = _array(f, "joint_offsets", src)
-            joints = _json_attr(f, "joints", src, required=False)
             joint_axes = _array(f, "joint_axes", src)
             R = _array(f, "R", src)
             if R is None:
@@ -289,8 +253,6 @@ def load_dataset(path, require_split: bool = True) -> Dataset:
     except (OSError, KeyError, ValueError, TypeError, RuntimeError) as exc:  # RuntimeError: h5py, corrupt metadata
         raise DatasetError(f"{src}: cannot read file ({type(exc).__name__}: {exc})") from None
 
-    if not isinstance(h, (int, float)) or not np.isfinite(h) or h <= 0:
-        raise DatasetError(f"{src}: attribute 'h' must be a positive finite number, got {h!r}")
     R = _float_array(R, "R", src)
     m = kinds.count("se3") if all(k in BODY_KINDS for k in kinds) else 0
     if p is None:
@@ -308,10 +270,6 @@ def load_dataset(path, require_split: bool = True) -> Dataset:
             )
     input_dtype = torch.float32 if R.dtype == np.float32 else torch.float64
     tree = read_tree(parents, offsets, rotations, kinds, src, joints, joint_axes)
-    if not isinstance(params, dict):
-        raise DatasetError(f"{src}: attribute 'params' must be a JSON object, got a JSON {type(params).__name__}")
-    if isinstance(seed, bool) or not isinstance(seed, (int, float)) or not float(seed).is_integer():
-        raise DatasetError(f"{src}: attribute 'seed' must be an integer, got {seed!r:.80}")
     if "physics" in params and all(k in BODY_KINDS for k in kinds):
         from .checks import check_physics
 
