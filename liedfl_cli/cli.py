@@ -354,7 +354,7 @@ def _main() -> None:
     if command == "train" and any(a.startswith("resume=") for a in argv[1:]):
         command = "resume"  # `liedfl train resume=<run dir>` has its own primary config (liedfl_cli/conf/resume.yaml)
     if command not in COMMANDS and command != "resume":
-        print(f"error: unknown command {command!r}\n\n{USAGE}", file=sys.stderr)
+        print(f"error: unknown command {command!r}{_did_you_mean(command)}\n\n{USAGE}", file=sys.stderr)
         raise SystemExit(2)
     if any(a in ("--version", "-V") for a in argv[1:]):  # liedfl's version, not Hydra's
         print(version())
@@ -369,6 +369,7 @@ def _main() -> None:
     if command in DIR_ARGS:
         _check_dir_arg(command, argv[1:])
     _check_flags(command, argv[1:])
+    _check_dataset_choice(argv[1:])
     _one_line_warnings()
     _no_collection_at_exit()
     from .commands.status import reset
@@ -464,6 +465,36 @@ def _help_overrides(command: str, args: list[str]) -> list[str]:
         f"hydra.help.app_name='liedfl {command}'",
         f"hydra.help.header='liedfl {command}: {what}. Usage: liedfl {command} [key=value ...] [-m] [--cfg job]'",
     ]
+
+
+def _did_you_mean(command: str) -> str:
+    """` (did you mean train?)` for a misspelt command, "" when nothing is close."""
+    import difflib
+
+    close = difflib.get_close_matches(command, list(COMMANDS), n=1, cutoff=0.6)
+    return f" (did you mean {close[0]}?)" if close else ""
+
+
+RECORDING_SUFFIXES = (".csv", ".txt", ".npz")
+DATASET_SUFFIXES = (".h5", ".hdf5", ".hdf")
+
+
+def _check_dataset_choice(args: list[str]) -> None:
+    """`dataset=chain.h5` names a file where the dataset group wants a scene (`dataset=file` / `import`):
+    one line with the overrides that read it, before Hydra says it cannot find `dataset/chain.h5`."""
+    for a in args:
+        key, sep, value = a.partition("=")
+        if not sep or key.lstrip("+~") != "dataset":
+            continue
+        suffix = Path(value).suffix.lower()
+        if suffix in DATASET_SUFFIXES:
+            hint = f"dataset=file dataset.path={value}"
+        elif suffix in RECORDING_SUFFIXES:
+            hint = f"dataset=import dataset.path={value} dataset.rotation=wxyz (or xyzw, matrix)"
+        else:
+            continue
+        print(f"error: {a}: dataset= takes a scene name, not a file; for this file: {hint}", file=sys.stderr)
+        raise SystemExit(2)
 
 
 def _check_flags(command: str, args: list[str]) -> None:

@@ -33,7 +33,7 @@ from omegaconf.errors import OmegaConfBaseException
 from ..errors import ConfigError
 from . import resolvers  # noqa: F401  (registers the config resolvers)
 from .typed import SECTIONS as TYPED_SECTIONS
-from .typed import PathsConfig
+from .typed import PathsConfig, wrong_type_line
 
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"  # the configs ship inside the package
 
@@ -262,8 +262,9 @@ def _check_types(cfg, name: str, schema, values=None) -> None:
         OmegaConf.merge(OmegaConf.structured(schema), values)
     except OmegaConfBaseException as e:
         key = getattr(e, "full_key", None) or ""
+        ours = wrong_type_line(e, f"{name}.{key}" if key else "")  # e.g. train.optimizer.lr=abc: must be a number
         raise ConfigError(
-            f"config section '{name}': {_first_line(e)}" + (f" (key {name}.{key})" if key else "")
+            ours or f"config section '{name}': {_first_line(e)}" + (f" (key {name}.{key})" if key else "")
         ) from None
 
 

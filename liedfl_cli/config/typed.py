@@ -189,6 +189,23 @@ def _first_line(e: Exception) -> str:
     return text.splitlines()[0] if text else type(e).__name__
 
 
+_KINDS = {"Float": "a number (e.g. 1e-3)", "Integer": "an integer", "Boolean": "true or false", "bool": "true or false",
+          "String": "a string"}  # fmt: skip
+
+
+def wrong_type_line(e: Exception, full_key: str) -> str | None:
+    """OmegaConf's `Value 'abc' of type 'str' could not be converted to Float` in our words:
+    `train.optimizer.lr=abc: must be a number (e.g. 1e-3)`; None for any other error."""
+    import re
+
+    line = _first_line(e)
+    m = re.match(r"Value '(.*)' of type '\w+' could not be converted to (\w+)", line)
+    m = m or re.match(r"Value '(.*)' is not a valid (\w+)", line)
+    if m is None or not full_key:
+        return None
+    return f"{full_key}={m.group(1)}: must be {_KINDS.get(m.group(2), m.group(2))}"
+
+
 def plain(node, where: str) -> Any:
     """A config subtree as plain Python (interpolations resolved); ConfigError naming `where`."""
     if isinstance(node, (DictConfig, ListConfig)):
@@ -209,7 +226,8 @@ def section(schema: type, values: Any, where: str) -> Any:
     except OmegaConfBaseException as e:
         key = getattr(e, "full_key", None) or ""
         where_key = f" (key {where}.{key})" if key else ""
-        raise ConfigError(f"config section '{where}': {_first_line(e)}{where_key}") from None
+        ours = wrong_type_line(e, f"{where}.{key}" if key else "")
+        raise ConfigError(ours or f"config section '{where}': {_first_line(e)}{where_key}") from None
 
 
 def _resolvable(node: DictConfig) -> dict[str, Any]:

@@ -294,6 +294,11 @@ def from_file(c: dict, progress: Callable[[float], None] | None = None) -> Datas
     """Scene `file`: an HDF5 file in liedfl's format (docs/data_format.md)."""
     c = check_source_config(dict(c))
     (path,) = _paths(c)
+    if Path(path).suffix.lower() in (".csv", ".txt", ".npz") and not h5py.is_hdf5(path):
+        raise DatasetError(
+            f"{path}: a recording, not an HDF5 dataset; dataset=file reads liedfl's HDF5 files, a CSV or NPZ "
+            f"recording is read with dataset=import dataset.path={path} dataset.rotation=wxyz (or xyzw, matrix)"
+        )
     ds = load_dataset(path, require_split=False)
     with h5py.File(path, "r") as f:
         has_split = "split" in f

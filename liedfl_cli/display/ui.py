@@ -33,6 +33,8 @@ class MirroredConsole(Console):
     """A rich Console whose `print` also goes to the run log (`log_to`) as plain text."""
 
     def print(self, *objects, **kwargs) -> None:
+        if not objects and not kwargs and not self.is_terminal:
+            return  # rich's Progress.stop() ends with an empty print off a terminal: no stray blank line
         super().print(*objects, **kwargs)
         log = _Log.console
         if log is not None and log is not self:
