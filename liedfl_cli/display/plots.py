@@ -377,9 +377,9 @@ def draw_error_per_body(
     the first bodies when it covers fewer (positions of SE(3) bodies only)."""
     names = names or display_names(errors)
     n = max(e[key].shape[0] for e in errors.values() if key in e)
-    cols = min(n, 4 if n > 4 else n)
+    cols = n if n <= 4 else (3 if n <= 6 else 4)
     rows = -(-n // cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(3.4 * cols, 2.5 * rows + 0.6), squeeze=False, sharex=True)
+    fig, axes = plt.subplots(rows, cols, figsize=(3.4 * cols, 2.5 * rows + 0.6), squeeze=False)
     for b in range(rows * cols):
         ax = axes[b // cols][b % cols]
         if b >= n:
@@ -393,11 +393,10 @@ def draw_error_per_body(
         name = body_names[b] if b < len(body_names) else ""
         ax.set_title(f"body {b}" + (f": {name}" if name and name != f"body{b}" else ""), fontsize=9)
         ax.grid(alpha=0.3)
-        ax.tick_params(labelsize=7)
+        ax.tick_params(which="both", labelsize=7)
         if b % cols == 0:
             ax.set_ylabel(_error_unit(key, length_unit), fontsize=8)
-        if b // cols == rows - 1 or b + cols >= n:
-            ax.set_xlabel("time [s]", fontsize=8)
+        ax.set_xlabel("time [s]", fontsize=8)
     handles, labels = axes[0][0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="upper center", ncol=min(len(labels), 5), fontsize=8, bbox_to_anchor=(0.5, 1.0))
     what = "rotation" if key == "geodesic_error" else "position"
