@@ -52,3 +52,34 @@ def test_a_csv_given_to_dataset_file_points_to_import(tmp_path, run_main):
 )
 def test_a_value_of_the_wrong_type_in_our_words(tmp_path, run_main, arg, want):
     assert _one_error_line(run_main("train", arg, cwd=tmp_path)) == want
+
+
+def test_report_of_a_single_run_folder_is_refused(tmp_path, run_main):
+    from report_sweep import fake_sweep
+
+    sweep = fake_sweep(tmp_path / "sweep", points=2, seeds=1)
+    run = next(p.parent.parent for p in sweep.rglob(".hydra/config.yaml"))
+    before = sorted(p.name for p in run.iterdir())
+    line = _one_error_line(run_main("report", f"sweep={run}", "plots=false", cwd=tmp_path))
+    assert f"sweep={run}: a single run's folder, not a sweep" in line and "eval.md" in line
+    assert sorted(p.name for p in run.iterdir()) == before  # nothing written into the run
+    run_main("report", f"sweep={sweep}", "plots=false", cwd=tmp_path, ok=True)  # the sweep itself: as before
+
+
+def test_no_pareto_front_for_one_point(tmp_path):
+    from report_sweep import fake_sweep
+
+    from liedfl_cli.commands import report
+    from liedfl_cli.display.plots import plt
+
+    def labels(points: int) -> list[str]:
+        rows = report.collect(fake_sweep(tmp_path / str(points), points=points, seeds=1))
+        fig = report.draw_error_vs_speed(report.summarize(rows, report.varying_settings(rows)))
+        assert fig is not None
+        lines = [ln.get_label() for ax in fig.axes for ln in ax.get_lines()]
+        lines += [t.get_text() for lg in fig.legends for t in lg.get_texts()]
+        plt.close(fig)
+        return lines
+
+    assert "Pareto front" not in labels(1)
+    assert "Pareto front" in labels(3)

@@ -1,7 +1,8 @@
 """`liedfl report sweep=<multirun dir>`: one table and the paper-style figures over a sweep.
 
 Reads every run directory below `sweep` (any folder holding `.hydra/config.yaml` and `eval.csv`) and
-writes into the sweep directory:
+writes into the sweep directory (a single run's own folder is refused: the report's files would land
+among the run's; its evaluation is its eval.md):
 
 - `report.csv`: one row per run, every column;
 - `report.md`: one summary line per model and setting (the overrides that differ between runs, the
@@ -9,7 +10,8 @@ writes into the sweep directory:
   constant ones are listed once above the tables), then the failed runs;
 - `plots/error_vs_speed.png`: error against speed, one point per model and setting (mean ± std over
   seeds as error bars, labelled; numbered with a key in sweeps of more than 8), the Pareto front
-  drawn; two panels, training time and rollout time per step per trajectory (`speed_figure.py`);
+  drawn when it has two points or more; two panels, training time and rollout time per step per
+  trajectory (`speed_figure.py`);
 - `plots/error_vs_time.png`: rollout error and manifold drift against time, one line per model and
   setting (mean over seeds, ± std band), as in the paper's Exp 1 and Exp 3 panels, with the true
   scheme (dotted) and constant velocity (dashed, error panel) of the first run that has them;
@@ -548,6 +550,13 @@ def run_report(cfg: DictConfig) -> dict:
     sweep = Path(str(given))
     if str(given) in ("", "???") or not sweep.is_dir():
         raise ConfigError(f"sweep={given}: not a directory (give a multirun directory, e.g. outputs/multirun/<date>)")
+    if (sweep / ".hydra" / "config.yaml").is_file() or (sweep / "summary.json").is_file():
+        # one run: a report would write report.md/csv and figures among the run's own files
+        raise ConfigError(
+            f"sweep={given}: a single run's folder, not a sweep; liedfl report compares the runs below a folder "
+            f"(e.g. outputs/multirun/<date>, or the folder holding several runs); this run's own evaluation is "
+            f"{sweep / 'eval.md'} (liedfl eval run={given} redoes it)"
+        )
     from ..files.signals import set_phase
     from .status import failed_runs
 

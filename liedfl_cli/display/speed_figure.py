@@ -159,7 +159,7 @@ def draw_error_vs_speed(summary: list[dict], error: str, error_label: str, const
             lo_y.append(constant_velocity)
             hi_y.append(constant_velocity)
         front = pareto_front([(x, y) for x, y, _, _ in pts])
-        if front:
+        if len(front) >= 2:  # one point is no front (no legend entry for it)
             fx, fy = zip(*front)
             ax.step(fx, fy, where="post", color="black", ls="--", lw=1.2, label="Pareto front", zorder=2)
             ax.plot(fx, fy, "o", ms=10, mfc="none", mec="black", zorder=4)
