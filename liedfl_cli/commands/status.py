@@ -193,6 +193,34 @@ def remove_unused_run_dir(run_dir) -> bool:
     return not run_dir.exists()
 
 
+def discard_new_run_outputs(run_dir) -> bool:
+    """Remove what a single run wrote into the run folder it created (everything but Hydra's
+    `.hydra/`, the `*.log` files and the lock), so that `remove_unused_run_dir` can take the folder
+    back after a config or data error found once the data were loaded. A folder that existed before
+    the run, a multirun's job folder or a run outside the CLI is left alone. Returns True when
+    something was removed."""
+    import shutil
+
+    from ..files.locks import LOCK_FILE
+
+    run_dir = Path(run_dir).absolute()
+    recorded, keep_from = _state["run_dir"], _state["keep_from"]
+    if recorded is None or keep_from is None or Path(recorded).absolute() != run_dir or not run_dir.is_dir():
+        return False
+    if Path(keep_from).absolute() == run_dir:  # the user's existing folder: leave it as it is
+        return False
+    removed = False
+    for e in run_dir.iterdir():
+        if e.name in (".hydra", LOCK_FILE) or (e.suffix == ".log" and e.is_file()):
+            continue
+        if e.is_dir() and not e.is_symlink():
+            shutil.rmtree(e, ignore_errors=True)
+        else:
+            e.unlink(missing_ok=True)
+        removed = True
+    return removed
+
+
 def _deepest_existing(path: Path) -> Path:
     path = path.absolute()
     while not path.exists():
@@ -255,4 +283,5 @@ __all__ = [
     "jobs_ran_elsewhere",
     "check_launcher",
     "remove_unused_run_dir",
+    "discard_new_run_outputs",
 ]

@@ -33,7 +33,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from ..config.typed import OptimizerConfig, RunConfig, TrainConfig, section, typed
 from ..display.ui import PlainProgress, console, err_console, progress_bar, warning_line
-from ..errors import CheckpointError, ConfigError, LiedflError
+from ..errors import CheckpointError, ConfigError, DatasetError, LiedflError
 from ..files.checkpoint import (
     CHECKPOINT_FILE,
     capture_rng_state,
@@ -51,7 +51,7 @@ from ..files.io_utils import write_json
 from ..lie import Pose
 from ..loggers import MetricsLog, make_loggers
 from ..models.fused_step import RotationalGradient
-from ..models.losses import training_stage
+from ..models.losses import check_loss, check_rollout_horizon, training_stage
 from ..solvers import runtime
 from .validation import (
     VAL_COLUMNS,
@@ -324,6 +324,7 @@ def fit(
     t0 = time.perf_counter() - offset
     last_save = time.perf_counter()
     plain = PlainProgress(epochs, start - 1, enabled=show_progress and log_epochs)  # lines a log file keeps
+    last_line = time.perf_counter()  # the last epoch line with ui.progress=false
     with progress_bar(show_progress) as bar:
         task = bar.add_task("train", total=epochs, completed=start - 1, loss=float("nan"), val=val_text)
         for epoch in range(start, epochs + 1):
@@ -368,7 +369,9 @@ def fit(
                 on_epoch(row)
             bar.update(task, advance=1, loss=sums["loss"], val=val_text)
             plain.update(epoch, sums["loss"], val_text, validated=validated or early)
-            if log_epochs and not show_progress and (epoch % max(1, epochs // 10) == 0 or epoch == epochs or early):
+            tenth = epoch % max(1, epochs // 10) == 0 or epoch == epochs or early
+            if log_epochs and not show_progress and (tenth or time.perf_counter() - last_line >= 60.0):
+                last_line = time.perf_counter()  # (also at least once a minute: a log file sees progress)
                 console.print(
                     f"epoch {epoch}/{epochs}  "
                     + "  ".join(f"{k} {v:.3e}" for k, v in sums.items())
@@ -539,7 +542,23 @@ def _store_joints(model, config: dict, out: Path) -> None:
 def run_train(cfg: DictConfig, resume: dict | None = None, accept_changed_dataset: bool = False) -> dict:
     """`liedfl train`: data -> model -> fit (with checkpoints) -> checkpoint -> recovery ->
     rollout -> eval. `resume`: a checkpoint payload to continue from. Returns a summary.
-    accept_changed_dataset: resume although the dataset file changed since training (a warning)."""
+    accept_changed_dataset: resume although the dataset file changed since training (a warning).
+
+    A config or data error before the first checkpoint leaves no run folder behind: the files this
+    job wrote into the folder it created are removed (`status.discard_new_run_outputs`; the CLI then
+    removes the folder with Hydra's files), so a failed start never looks like a run."""
+    from .status import discard_new_run_outputs
+
+    out = Path(str(cfg.paths.output_dir))
+    try:
+        return _run_train(cfg, resume, accept_changed_dataset)
+    except (ConfigError, DatasetError):
+        if resume is None and not (out / "checkpoints" / "last.pt").exists():
+            discard_new_run_outputs(out)
+        raise
+
+
+def _run_train(cfg: DictConfig, resume: dict | None, accept_changed_dataset: bool) -> dict:
     from ..config.factory import build_model, configure_runtime, data_pose
     from ..data.files import complete_steps
     from ..files.signals import set_phase
@@ -563,9 +582,14 @@ def run_train(cfg: DictConfig, resume: dict | None = None, accept_changed_datase
             f"{data_path}: the dataset's test split is empty, so there is nothing to roll out after training; "
             "give it test trajectories (dataset=file: dataset.split=default) or set rollout.enabled=false"
         )
+    # every check that needs the data runs here, before the run folder holds anything
+    split, validator, selection = validation_setup(run, dataset, resume)
+    if run.train.loss == "rollout":
+        check_rollout_horizon(run.train.rollout_loss.horizon, int(run.dataset.train_steps or 0))
     resumable = ckpt.is_file() and resume is not None
     set_phase("training", f"resume with: liedfl train resume={out}" if resumable else None)
     model = build_model(run, dataset)  # on the runtime's device, in its dtype
+    check_loss(model, run.train.loss)
     if resume is not None:
         load_state(ckpt, model, resume)
     n_params = count_parameters(model)
@@ -605,7 +629,6 @@ def run_train(cfg: DictConfig, resume: dict | None = None, accept_changed_datase
     history = list(resume.get("history", [])) if resume else []
     log = make_loggers(run.logger.name, out, history)
     epochs = int(run.train.epochs)
-    split, validator, selection = validation_setup(run, dataset, resume)
     if resume is None:
         best.unlink(missing_ok=True)  # a reused run directory: no stale best.pt
 

@@ -109,6 +109,10 @@ def make_val_split(train_idx, train_steps: int, fraction: float, seed: int) -> V
     fraction = val_fraction(fraction)
     if fraction == 0:
         return ValSplit("none", train_idx, np.zeros(0, np.int64), L)
+    if L < MIN_TRAIN_STEPS:  # too short to train at all: the fault is the length, not the validation
+        raise ConfigError(
+            f"dataset.train_steps={L}: need at least {MIN_TRAIN_STEPS} steps to form a triplet (and more to validate)"
+        )
     hint = "; lower dataset.val_fraction or set it to 0 (no validation)"
     if n >= TIME_SPLIT_BELOW:
         k = max(1, round(fraction * n))

@@ -269,18 +269,24 @@ def newton_loss(model: Any, batch: Any, opts: LossOptions) -> tuple[torch.Tensor
 
 
 # ---------------------------------------------------------------------------- the rollout loss
+def check_rollout_horizon(horizon: int, steps: int) -> None:
+    """One-line ConfigError unless windows of `horizon` + 2 poses fit in the first `steps` steps
+    (`steps` + 1 poses) of a trajectory (`train.loss=rollout`; checked before training starts)."""
+    if isinstance(horizon, bool) or not isinstance(horizon, int) or horizon < 1 or int(steps) + 1 < horizon + 2:
+        raise ConfigError(
+            f"train.rollout_loss.horizon={horizon}: needs windows of horizon + 2 poses within the "
+            f"{int(steps) + 1} training poses of a trajectory (dataset.train_steps={int(steps)})"
+        )
+
+
 class WindowSet:
     """Windows of k + 2 consecutive true poses within the first `steps` steps of each trajectory
     (T, N+1, ...): R (W, k+2, B, 3, 3), p (W, k+2, m, 3), every start 0 .. steps - k - 1."""
 
     def __init__(self, data: Pose, steps: int, horizon: int):
         steps = min(int(steps), data.R.shape[1] - 1)
+        check_rollout_horizon(horizon, steps)
         L = int(horizon) + 2
-        if horizon < 1 or steps + 1 < L:
-            raise ConfigError(
-                f"train.rollout_loss.horizon={horizon}: needs windows of horizon + 2 poses within the "
-                f"{steps + 1} training poses of a trajectory (dataset.train_steps={steps})"
-            )
         starts = range(0, steps + 2 - L)
         R = torch.cat([data.R[:, s : s + L] for s in starts])
         p = torch.cat([data.p[:, s : s + L] for s in starts])
