@@ -138,7 +138,8 @@ def validation_lines(val: Mapping[str, Any] | None, test: Mapping[str, Any] | No
             if r:
                 parts.append(f"{what.replace('_', ' ')} " + ", ".join(r))
         if parts:
-            size = f" ({test['trajectories']} trajectories x {test['steps']} steps)" if test.get("trajectories") else ""
+            n = test.get("trajectories")
+            size = f" ({n} trajector{'y' if n == 1 else 'ies'} x {test['steps']} steps)" if n else ""
             lines.append(f"test rollout{size}: " + "; ".join(parts))
     if lines:
         lines.append("  (CV: repeating the last increment, CA: constant acceleration; below 1x beats them)")
@@ -239,7 +240,7 @@ def _bodies_of(model, params: dict, scale: float, names: list[str], joints: list
 
 def _damping_per_body(model, params: dict, B: int, joints: list[str] | None) -> list[float | None] | None:
     """The mean damping coefficient of each body's joint (`dof_damping`, by the joints' DoF; a free root's
-    zeros left out) or of the rotational diagonal of its block of a constant Rayleigh `D`."""
+    undamped DoF left out; a weld: none) or of the rotational diagonal of its block of a constant Rayleigh `D`."""
     coeffs = params.get("dof_damping")
     if coeffs is not None and joints is not None:
         out: list[float | None] = []
@@ -248,8 +249,10 @@ def _damping_per_body(model, params: dict, B: int, joints: list[str] | None) -> 
             n = JOINT_DOF.get(kind, 3)
             block = coeffs[k : k + n]
             k += n
-            nonzero = [float(x) for x in block if float(x) != 0.0]  # a free root's zeros: no damping
-            out.append(sum(nonzero) / len(nonzero) if nonzero else None)
+            values = [float(x) for x in block]
+            if kind == "free":  # a free root: only its damped DoF, if any
+                values = [x for x in values if x != 0.0]
+            out.append(sum(values) / len(values) if values else None)
         return out
     D = params.get("D")
     G = getattr(model, "G", None)
@@ -272,6 +275,21 @@ def _gravity(model):
         if found is not None:
             return found
     return None
+
+
+def _true_moments(model, dataset, bodies: list[dict], true_bodies: list[dict]) -> None:
+    """m·com of pivot (SO(3)) bodies under gravity from the declared physics (the true scheme's potential
+    has no learnable moment to read), beside the learned ones."""
+    physics = (getattr(dataset, "params", None) or {}).get("physics") or {}
+    G = getattr(model, "G", None)
+    if G is None or "m" not in physics or not any("moment" in b for b in bodies):
+        return
+    from ..mechanics.scene_physics import body_parameters
+
+    _, masses, rhos, _ = body_parameters(G, dict(physics))
+    for b, (body, true) in enumerate(zip(bodies, true_bodies)):
+        if "moment" in body and "moment" not in true and b < len(masses):
+            true["moment"] = [float(masses[b]) * float(x) for x in rhos[b]]
 
 
 def gather(model, dataset, recovery: Mapping[str, Any] | None) -> dict | None:
@@ -314,6 +332,8 @@ def gather(model, dataset, recovery: Mapping[str, Any] | None) -> dict | None:
         true_bodies = [{k: v for k, v in t.items() if k not in ("name", "joint", "parent")} for t in truth]
         if len(true_bodies) != len(bodies):
             true_bodies = None
+        else:
+            _true_moments(inner, dataset, bodies, true_bodies)
     unit = float((getattr(dataset, "params", None) or {}).get("length_unit_m", 1.0) or 1.0)
     out: dict[str, Any] = {"kinetic": kinetic, "bodies": bodies, "true_bodies": true_bodies, "scaled": scaled,
                            "units": {"length": LENGTH_UNITS.get(unit, f"({unit:g} m)")}}  # fmt: skip
