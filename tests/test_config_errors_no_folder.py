@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 
 import h5py
+import numpy as np
 import pytest
 from own_data import write_h5
 
@@ -78,3 +79,42 @@ def test_an_existing_folder_is_left_as_it_was(tmp_path, data_dir, capfd, monkeyp
     )  # fmt: skip
     assert proc.returncode == 2
     assert (run / "notes.txt").read_text() == "the user's"
+
+
+# ----------------------------------------------------------------------------- the round's cosmetic findings
+@pytest.mark.parametrize(
+    "override, needle",
+    [
+        ("eval.plots=2", "error: eval.plots=2: must be true or false"),
+        ("eval.plots=yes", "error: eval.plots='yes': must be true or false"),
+        ("train.early_stopping=5", "error: train.early_stopping=5: must be a mapping of patience, min_delta"),
+    ],
+)
+def test_a_flag_or_section_of_the_wrong_kind_is_our_one_line(override, needle, tmp_path, capfd, monkeypatch):
+    proc = run_main(*SMOKE, override, f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path, capfd=capfd,
+                    monkeypatch=monkeypatch)  # fmt: skip
+    assert proc.returncode == 2 and proc.stderr.strip().startswith(needle), proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "run").exists()
+
+
+def test_an_unwritable_run_folder_is_one_line_without_hydras_warning(tmp_path, capfd, monkeypatch):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    proc = run_main(*SMOKE, f"hydra.run.dir={blocker / 'run'}", cwd=tmp_path, capfd=capfd, monkeypatch=monkeypatch)
+    assert proc.returncode == 2
+    assert proc.stderr.strip().startswith(f"error: hydra.run.dir={blocker / 'run'}: cannot create the run folder")
+    assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr  # no "UserWarning: Callback ... raised"
+
+
+def test_an_empty_test_split_names_the_users_file_not_the_cache(tmp_path, data_dir, capfd, monkeypatch):
+    path = write_h5(tmp_path / "rec.h5")
+    with h5py.File(path, "r+") as f:
+        del f["split/test"]
+        f.create_dataset("split/test", data=np.zeros(0, dtype=np.int64))
+    proc = run_main(
+        "train", "dataset=file", f"dataset.path={path}", "budget=smoke", f"hydra.run.dir={tmp_path / 'run'}",
+        f"paths.data_dir={data_dir}", cwd=tmp_path, capfd=capfd, monkeypatch=monkeypatch,
+    )  # fmt: skip
+    errors = [x for x in proc.stderr.splitlines() if x.startswith("error:")]
+    assert proc.returncode == 2 and errors and errors[0].startswith(f"error: {path}: the dataset's test split is empty")

@@ -231,10 +231,14 @@ def _deepest_existing(path: Path) -> Path:
 def _lock_new_run(run_dir: Path) -> None:
     """Take the run folder's lock before Hydra writes its `.hydra/` files there (a second
     `liedfl train hydra.run.dir=<dir>` must not overwrite the first one's config); the job keeps it."""
+    from ..config.preflight import os_error_line
     from ..display.ui import fail
     from ..files.locks import RunLocked, acquire
 
-    run_dir.mkdir(parents=True, exist_ok=True)
+    try:  # (an exception here would reach the user as Hydra's two-line callback warning first)
+        run_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        fail(f"hydra.run.dir={run_dir}: cannot create the run folder: {os_error_line(e)}")
     try:
         acquire(run_dir, "train")
     except RunLocked as e:

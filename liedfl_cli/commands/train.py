@@ -578,8 +578,9 @@ def _run_train(cfg: DictConfig, resume: dict | None, accept_changed_dataset: boo
     complete_steps(run.dataset, dataset)  # a file's null train_steps / rollout_steps: all its steps
     _record_steps(cfg, run)
     if run.rollout.enabled and len(dataset.test_idx) == 0:  # fail now, not after training
+        source = ((dataset.params or {}).get("source") or {}).get("file") or data_path  # the user's file
         raise ConfigError(
-            f"{data_path}: the dataset's test split is empty, so there is nothing to roll out after training; "
+            f"{source}: the dataset's test split is empty, so there is nothing to roll out after training; "
             "give it test trajectories (dataset=file: dataset.split=default) or set rollout.enabled=false"
         )
     # every check that needs the data runs here, before the run folder holds anything

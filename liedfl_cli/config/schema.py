@@ -258,6 +258,7 @@ def _check_types(cfg, name: str, schema, values=None) -> None:
     """The section `cfg[name]` (or `values`, a plain mapping of its values) merged into the dataclass
     `schema`: a wrong type is one line naming the key."""
     values = _plain(cfg[name], name) if values is None else values
+    _check_shapes(values, schema, name)
     try:
         OmegaConf.merge(OmegaConf.structured(schema), values)
     except OmegaConfBaseException as e:
@@ -266,6 +267,30 @@ def _check_types(cfg, name: str, schema, values=None) -> None:
         raise ConfigError(
             ours or f"config section '{name}': {_first_line(e)}" + (f" (key {name}.{key})" if key else "")
         ) from None
+
+
+def _check_shapes(values, schema, where: str) -> None:
+    """What OmegaConf's merge would coerce or word obscurely, in one line: a flag given a number or
+    text (`eval.plots=2` is not `true`), a section given a scalar (`train.early_stopping=5`)."""
+    import typing
+
+    if not isinstance(values, dict) or not dataclasses.is_dataclass(schema):
+        return
+    hints = typing.get_type_hints(schema)
+    for f in dataclasses.fields(schema):
+        if f.name not in values:
+            continue
+        v, kind = values[f.name], hints.get(f.name)
+        key = f"{where}.{f.name}"
+        if kind is bool and not isinstance(v, bool):
+            raise ConfigError(f"{key}={v!r}: must be true or false")
+        if isinstance(kind, type) and dataclasses.is_dataclass(kind):
+            if v is not None and not isinstance(v, dict):
+                names = ", ".join(g.name for g in dataclasses.fields(kind))
+                raise ConfigError(
+                    f"{key}={v!r}: must be a mapping of {names} (e.g. {key}.{dataclasses.fields(kind)[0].name}=...)"
+                )
+            _check_shapes(v, kind, key)
 
 
 def _check_reference_keys(node, ref, path: str, where: str) -> None:
