@@ -343,7 +343,10 @@ def fit(
                         value.backward()
                 if value is None:
                     raise TrainingDiverged(epoch, b, bad, first=epoch == start and b == 0, saved=saved_epoch)
-                opt.step()
+                if resume is not None and epoch == start and b == 0:  # the restored state's first use
+                    _first_resumed_step(opt)
+                else:
+                    opt.step()
                 for k, v in {"loss": value, **parts}.items():
                     sums[k] = sums.get(k, 0.0) + (v if isinstance(v, float) else float(v.detach())) / n_batches
             lr = float(opt.param_groups[0]["lr"])  # the rate this epoch's steps used
@@ -421,6 +424,17 @@ def fit(
         "batches_per_epoch": n_batches,
         "state": state(last),
     }
+
+
+def _first_resumed_step(opt) -> None:
+    """The first optimizer step after a resume: a restored state that `load_state_dict` accepted but
+    the step cannot use (a missing or reshaped buffer of the checkpoint) is a CheckpointError line."""
+    try:
+        opt.step()
+    except (KeyError, IndexError, TypeError, ValueError, RuntimeError) as e:
+        raise CheckpointError(
+            f"checkpoint training state is not usable: the optimizer's step fails ({type(e).__name__}: {e})"
+        ) from None
 
 
 def validation_setup(run: RunConfig, dataset, resume: dict | None) -> tuple[ValSplit, Validator | None, Selection]:
@@ -675,6 +689,8 @@ def _run_train(cfg: DictConfig, resume: dict | None, accept_changed_dataset: boo
                 )
             except TrainingInterrupted as e:
                 raise TrainingInterrupted(f"{e}; resume with: liedfl train resume={out}", e.exit_code) from None
+            except CheckpointError as e:  # the resumed training state: name the file it came from
+                raise CheckpointError(e if str(e).startswith(str(ckpt)) else f"{ckpt}: {e}") from None
             except TrainingDiverged as e:
                 raise _diverged(e, run.train, ckpt, resume is not None) from None
             finally:
@@ -836,6 +852,12 @@ def run_resume(cfg: DictConfig) -> dict:
             raise ConfigError(f"epochs={epochs}: the checkpoint is already at epoch {int(payload['epoch'])}")
         saved.train.epochs = epochs
     saved.ui = cfg.ui
+    from ..config.schema import validate
     from ..files.dataset_identity import accept_option
+
+    try:  # the checkpoint's own config, with the two values a resume may change
+        validate(saved, "train")
+    except ConfigError as e:
+        raise CheckpointError(f"{ckpt}: field 'config': {e}") from None
 
     return run_train(saved, resume=payload, accept_changed_dataset=accept_option(cfg.get("accept_changed_dataset")))
