@@ -143,3 +143,55 @@ def test_fuzz_checkpoints_through_the_commands_slow(trained, command, capfd):
 
     run()
     assert count[0] >= SLOW_PER_COMMAND
+
+
+# ----------------------------------------------------------------------------- config values that name paths
+def _paths_cases(run: Path, tmp: Path) -> dict[str, tuple[tuple[str, ...], bool]]:
+    """name -> (argv, works?): paths through symlinks work as their targets; a path that names the
+    wrong kind of thing (a file for a folder, a folder for a file, a dangling link) is one line."""
+    link = tmp / "link_to_run"
+    link.symlink_to(run, target_is_directory=True)
+    dangling = tmp / "dangling.h5"
+    dangling.symlink_to(tmp / "nowhere.h5")
+    a_file = tmp / "a_file"
+    a_file.write_text("not a folder")
+    data = next((run.parent / "data").glob("*.h5"))
+    data_link = tmp / "data_link.h5"
+    data_link.symlink_to(data)
+    return {
+        "rollout through a symlinked run": (("rollout", f"run={link}", "steps=3"), True),
+        "eval through a symlinked run": (("eval", f"run={link}"), True),
+        "rollout of a run that is a file": (("rollout", f"run={a_file}"), False),
+        "eval of a rollout file of another kind": (("eval", f"run={run}", f"rollout={a_file}"), False),
+        "dataset.path through a symlink": (
+            ("data", "dataset=file", f"dataset.path={data_link}", f"paths.data_dir={tmp / 'cache'}"),
+            True,
+        ),  # fmt: skip
+        "dataset.path a dangling symlink": (("data", "dataset=file", f"dataset.path={dangling}"), False),
+        "dataset.path a folder": (("data", "dataset=file", f"dataset.path={tmp}"), False),
+        "paths.data_dir a file": (("data", "dataset=heavy_so3", "budget=smoke", f"paths.data_dir={a_file}"), False),
+        "resume of a run that is a file": (("train", f"resume={a_file}"), False),
+    }
+
+
+CASE_NAMES = [  # the keys of _paths_cases (built per test: the symlinks live in tmp_path)
+    "rollout through a symlinked run", "eval through a symlinked run", "rollout of a run that is a file",
+    "eval of a rollout file of another kind", "dataset.path through a symlink", "dataset.path a dangling symlink",
+    "dataset.path a folder", "paths.data_dir a file", "resume of a run that is a file",
+]  # fmt: skip
+
+
+@pytest.mark.parametrize("name", CASE_NAMES)
+def test_config_values_that_name_paths(trained, name, tmp_path, capfd):
+    cases = _paths_cases(trained, tmp_path)
+    assert list(cases) == CASE_NAMES
+    argv, works = cases[name]
+    capfd.readouterr()
+    code, tb = main_in_process(*argv, "ui.progress=false", cwd=tmp_path)
+    _, err = capfd.readouterr()
+    assert not tb and "Traceback" not in err, tb or err
+    if works:
+        assert code == 0, err
+    else:
+        errors = [x for x in err.splitlines() if x.startswith("error:")]
+        assert code == 2 and len(errors) == 1, err
