@@ -195,3 +195,23 @@ def test_config_values_that_name_paths(trained, name, tmp_path, capfd):
     else:
         errors = [x for x in err.splitlines() if x.startswith("error:")]
         assert code == 2 and len(errors) == 1, err
+
+
+ONE_STEP = "1 step per trajectory; a rollout needs at least 2 to compare with"
+
+
+@pytest.mark.parametrize("steps", [None, "5"])
+def test_a_one_step_file_in_rollout_names_the_file(trained, steps, tmp_path, capfd):
+    """Round 3: `rollout steps=1: need at least 2` without the file, and with steps=5 a StopIteration
+    traceback."""
+    from liedfl_cli.data.hdf5 import load_dataset, save_dataset
+
+    ds = load_dataset(next((trained.parent / "data").glob("*.h5")))
+    ds.R, ds.p, ds.t = ds.R[:, :2], ds.p[:, :2], None
+    path = save_dataset(ds, tmp_path / "one_step.h5")
+    capfd.readouterr()
+    args = ("rollout", f"run={trained}", "dataset=file", f"dataset.path={path}", f"paths.data_dir={tmp_path / 'c'}")
+    code, tb = main_in_process(*args, *([f"steps={steps}"] if steps else []), cwd=tmp_path)
+    _, err = capfd.readouterr()
+    assert not tb and code == 2, tb or err
+    assert err.strip().splitlines()[-1] == f"error: {path}: {ONE_STEP}", err

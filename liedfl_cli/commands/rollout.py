@@ -140,10 +140,12 @@ def rollout_and_save(run: RunConfig, model, dataset, path, steps=None, provenanc
         if entry.one_step is not None:
             results[name]["one_step_seconds"] = float(entry.one_step.attrs["seconds"])
     one = {k: e.one_step for k, e in written.models.items() if e.one_step is not None}
-    note = "; teacher-forced one-step predictions of {} pairs in {}".format(
-        next(iter(one.values())).attrs["n_pairs"],
-        ", ".join(f"{o.attrs['seconds']:.3g} s ({k})" for k, o in one.items()),
-    )
+    note = ""
+    if one:
+        note = "; teacher-forced one-step predictions of {} pairs in {}".format(
+            next(iter(one.values())).attrs["n_pairs"],
+            ", ".join(f"{o.attrs['seconds']:.3g} s ({k})" for k, o in one.items()),
+        )
     console.print(f"rollout of {len(idx)} test trajectories x {steps} steps written to {path}" + (note if one else ""))
     return results
 
@@ -237,6 +239,12 @@ def run_rollout(cfg: DictConfig) -> dict:
     from ..data.scenes import dataset_steps
 
     run = typed(merged, "train")  # the run's config with this command's settings, typed once
+    where = ((dataset.params or {}).get("source") or {}).get("file")  # the user's file (dataset=file|import)
+    where = where or (source["dataset_path"] if source is not None else dataset.scene)
+    if dataset.n_steps < 2:
+        raise DatasetError(
+            f"{where}: {dataset.n_steps} step per trajectory; a rollout needs at least 2 to compare with"
+        )
     steps = rollout_steps(cfg.steps if cfg.steps is not None else dataset_steps(run.dataset, dataset, "rollout_steps"))
     tag = dataset.scene if other is not None else (split if split != "test" else None)
     from ..files.signals import set_phase

@@ -161,7 +161,8 @@ def _write(ds: Dataset, path: Path, tmp: Path) -> None:
             a["created"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
             f.create_dataset("R", data=ds.R)
             f.create_dataset("p", data=ds.p)
-            f.create_dataset("t", data=np.asarray(ds.t, dtype=np.float64))
+            t = ds.h * np.arange(ds.R.shape[1]) if ds.t is None else ds.t  # (the documented default)
+            f.create_dataset("t", data=np.asarray(t, dtype=np.float64))
             g = f.create_group("split")
             for k in ("train", "test"):
                 g.create_dataset(k, data=np.asarray(ds.split[k], dtype=np.int64))
