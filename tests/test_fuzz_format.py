@@ -90,6 +90,16 @@ def _set_h(value: Any, n: int) -> Callable[[h5py.File], None]:
     return apply
 
 
+def _joints_and_axes(axes: np.ndarray) -> Callable[[h5py.File], None]:
+    """Ball joints declared with the dataset `joint_axes` (optional for ball joints, checked when given)."""
+
+    def apply(f: h5py.File) -> None:
+        f.attrs["joints"] = json.dumps(["ball"] * 3)
+        f.create_dataset("joint_axes", data=axes)
+
+    return apply
+
+
 # ----------------------------------------------------------------------------- the two bases
 def _rigid() -> Dataset:
     _, R, p = motion(4, 10)
@@ -280,6 +290,22 @@ def _chain_cases(n: int) -> list[Case]:
         bad("joints", json.dumps("ball")),
         bad("joints", json.dumps(["ball"] * 2)),
         bad("joints", 5),
+        Case(
+            "joints",
+            "ball joints with axes",
+            _joints_and_axes(np.tile([[1.0, 0, 0], [0, 1.0, 0]], (3, 1, 1))),
+            True,
+            tree(lambda t: list(t.joints or []) == ["ball"] * 3),
+        ),  # fmt: skip
+        Case("joints", "axes of the wrong shape", _joints_and_axes(np.ones((3, 3))), False, names=("joint_axes",)),
+        Case("joints", "axes NaN", _joints_and_axes(np.full((3, 2, 3), np.nan)), False, names=("joint_axes",)),
+        Case(
+            "joints",
+            "axes as integers",
+            _joints_and_axes(np.ones((3, 2, 3), dtype=np.int64)),
+            False,
+            names=("joint_axes",),
+        ),  # fmt: skip
         Case("offsets", "offsets NaN", _array("joint_offsets", lambda a: a * np.nan), False, names=("joint_offsets",)),
         Case("offsets", "offsets dropped", lambda f: f.__delitem__("joint_offsets"), False, names=("joint_offsets",)),
         bad("body_kinds", json.dumps(["se3", "so3", "se3"])),
