@@ -91,12 +91,14 @@ def test_exp4_smoke_run_end_to_end(smoke_run):
         "Sequence 2",
         "Constant velocity, sequence 1",
         "Constant velocity, sequence 2",
+        "Constant acceleration, sequence 1",
+        "Constant acceleration, sequence 2",
         "Ground truth discrepancy",
     ]
     for r in rows:
         for k in ("root_rot", "joint_rot", "root_pos_asf", "root_pos_m"):
             assert math.isfinite(float(r[k])), (r["row"], k, r[k])
-    assert [r["root_rot_paper"] for r in rows] == ["0.193", "0.188", "", "", "0.373"]
+    assert [r["root_rot_paper"] for r in rows] == ["0.193", "0.188", "", "", "", "", "0.373"]
     from liedfl_cli.data.mocap import ASF_UNIT_M
 
     for r in rows:
@@ -154,7 +156,7 @@ def test_evaluate_mocap_writes_nothing_and_returns_what_is_written(smoke_run, tm
     assert out.out_dir == run and set(out.files) == {"mocap_eval.json", "mocap_eval.csv", "mocap_eval.md"} | {
         f"plots/{n}" for n in PLOTS
     }
-    assert out.table("mocap_eval.csv") is out.summary["rows"] and len(out.summary["rows"]) == 5
+    assert out.table("mocap_eval.csv") is out.summary["rows"] and len(out.summary["rows"]) == 7
     written = write_outputs(out, tmp_path / "again")
     assert sorted(p.relative_to(tmp_path / "again").as_posix() for p in written) == sorted(out.files)
     for name in ("mocap_eval.json", "mocap_eval.csv", "mocap_eval.md"):

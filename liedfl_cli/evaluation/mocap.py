@@ -225,6 +225,21 @@ def constant_velocity_errors(dataset, tR, tp, joints=None) -> dict:
     return sequence_errors(cv.R.numpy(), cv.p.numpy(), tR, tp, joints=joints)
 
 
+def constant_acceleration_errors(dataset, tR, tp, joints=None) -> dict:
+    """`sequence_errors` of the constant-acceleration rollout (`solvers.one_step.constant_acceleration_rollout`)
+    from each sequence's true first three poses over the same samples as the truth tR (T, S+1, B, 3, 3)
+    (its sample 2 is the data's: it starts from one true pose more than a model)."""
+    from ..solvers.one_step import constant_acceleration_rollout
+
+    truth = Pose(torch.as_tensor(tR), torch.as_tensor(tp))
+    S = truth.R.shape[1] - 1
+    if S < 2:
+        return constant_velocity_errors(dataset, tR, tp, joints=joints)
+    first = [truth.index((slice(None), k)) for k in range(3)]
+    ca = constant_acceleration_rollout(*first, S)
+    return sequence_errors(ca.R.numpy(), ca.p.numpy(), tR, tp, joints=joints)
+
+
 def _finite(x) -> bool:
     return x is not None and isinstance(x, (int, float)) and math.isfinite(x)
 
@@ -250,6 +265,8 @@ def best_reference_ratios(onestep: dict) -> dict[str, list[float]] | None:
 
 CV_ROW = "Constant velocity, sequence"
 """Start of the constant-velocity rows' names (they are no predictions: verdicts skip them)."""
+CA_ROW = "Constant acceleration, sequence"
+"""Start of the constant-acceleration rows' names (no predictions either)."""
 
 
 def build_rows(
@@ -262,10 +279,12 @@ def build_rows(
     unit_m: float,
     steps: int,
     cv: dict | None = None,
+    ca: dict | None = None,
 ) -> list[dict]:
     """Table rows: one per rolled-out sequence (errors over `steps` steps, Newton failures over the whole
-    rollout), then, with `cv` (`constant_velocity_errors`), the constant-velocity rollout of each sequence,
-    then the ground-truth discrepancy."""
+    rollout), then, with `cv` (`constant_velocity_errors`) and `ca` (`constant_acceleration_errors`), the
+    constant-velocity and constant-acceleration rollouts of each sequence, then the ground-truth
+    discrepancy."""
     rows = []
     for n, i in enumerate(idx):
         paper = PAPER["sequences"][i] if i < len(PAPER["sequences"]) else {}
@@ -288,20 +307,21 @@ def build_rows(
                 ours = row[key]
                 row[f"{k}_below_discrepancy"] = bool(_finite(ours) and ours < disc[k] * (asf if k == "root_pos" else 1))
         rows.append(row)
-    for n, i in enumerate(idx if cv is not None else []):
-        assert cv is not None
-        rows.append(
-            {
-                "row": f"{CV_ROW} {i + 1} ({_sequence_name(dataset, i)})",
-                "steps": steps,
-                "root_rot": float(cv["root_rot"][n]),
-                "joint_rot": float(cv["joint_rot"][n]),
-                "joint_rot_all": float(cv["joint_rot_all"][n]),
-                "root_pos_asf": float(cv["root_pos"][n]) * asf,
-                "root_pos_m": float(cv["root_pos"][n]) * unit_m,
-                "newton_failures": None,
-            }
-        )
+    for label, ref in ((CV_ROW, cv), (CA_ROW, ca)):
+        for n, i in enumerate(idx if ref is not None else []):
+            assert ref is not None
+            rows.append(
+                {
+                    "row": f"{label} {i + 1} ({_sequence_name(dataset, i)})",
+                    "steps": steps,
+                    "root_rot": float(ref["root_rot"][n]),
+                    "joint_rot": float(ref["joint_rot"][n]),
+                    "joint_rot_all": float(ref["joint_rot_all"][n]),
+                    "root_pos_asf": float(ref["root_pos"][n]) * asf,
+                    "root_pos_m": float(ref["root_pos"][n]) * unit_m,
+                    "newton_failures": None,
+                }
+            )
     if disc is not None:
         p = PAPER["discrepancy"]
         rows.append(
@@ -395,7 +415,8 @@ def mocap_numbers(opts: SceneEvalOptions, model, dataset, path: Path) -> MocapNu
     full = n_err >= recording_steps(dataset)
     asf = _asf_per_unit(dataset)
     unit_m = float(dataset.params.get("length_unit_m", float("nan")))
-    rows = build_rows(err, disc, idx, dataset, ro, asf, unit_m, n_err, cv=cv_err)
+    ca_err = constant_acceleration_errors(dataset, tR, tp, joints=joints)
+    rows = build_rows(err, disc, idx, dataset, ro, asf, unit_m, n_err, cv=cv_err, ca=ca_err)
     onestep = one_step_errors(model, tR, tp, opts.solver, joints=joints, stored=ro.one_step, group=dataset.group)
     per_joint = {
         name: float(v)
@@ -840,6 +861,7 @@ __all__ = [
     "below_until",
     "one_step_errors",
     "constant_velocity_errors",
+    "constant_acceleration_errors",
     "plot_errors",
     "plot_skeletons",
     "plot_root_trajectory",
