@@ -235,8 +235,8 @@ def constant_acceleration_errors(dataset, tR, tp, joints=None) -> dict:
     S = truth.R.shape[1] - 1
     if S < 2:
         return constant_velocity_errors(dataset, tR, tp, joints=joints)
-    first = [truth.index((slice(None), k)) for k in range(3)]
-    ca = constant_acceleration_rollout(*first, S)
+    g0, g1, g2 = (truth.index((slice(None), k)) for k in range(3))
+    ca = constant_acceleration_rollout(g0, g1, g2, S)
     return sequence_errors(ca.R.numpy(), ca.p.numpy(), tR, tp, joints=joints)
 
 
