@@ -228,6 +228,42 @@ def rollout_us(model, G, h, n: int, budget: float, repeats: int, **settings) -> 
     return best / n * 1e6
 
 
+def articulated_models(data_dir: str) -> dict:
+    """The articulated model's rollout subjects: the true-parameter scheme of a 5-body branched MuJoCo
+    tree (free root, ball joints, h 0.05) and the untrained 23-body Exp 4 articulated model (the
+    cartwheel skeleton, h 1/120): name -> (model, group, h). Random start poses are valid for both
+    (ball joints: any relative rotation)."""
+    from liedfl_cli.data.mujoco_chain import chain_dataset
+    from liedfl_cli.models.true_scheme import true_model
+
+    ds5 = chain_dataset(parents="branched5", n_trajectories=2, steps=3, h=0.05, gravity=9.81, test_fraction=0.0)
+    tree5 = true_model(ds5)
+    assert tree5 is not None
+    cfg = config(["experiment=exp4_mocap", "model.kinetic=articulated"], data_dir)
+    run = typed(cfg, "train")
+    assert run.dataset is not None
+    ds23, _ = get_dataset(run.dataset, data_dir)
+    torch.manual_seed(0)
+    tree23 = build_model(run, ds23)
+    out = {}
+    for name, model, ds in (("tree5_true", tree5, ds5), ("cartwheel23_articulated", tree23, ds23)):
+        model.requires_grad_(False)
+        out[name] = (model, ds.group, ds.h)
+    return out
+
+
+def articulated_rollouts(data_dir: str, quick: bool, log) -> dict:
+    """Articulated rollout us per step per trajectory at batch 1 and 1,000 (issue 34 item 3)."""
+    budget, repeats = (0.3, 1) if quick else (1.0, 2)
+    figures: dict = {}
+    for name, (model, G, h) in articulated_models(data_dir).items():
+        figures[name] = {}
+        for n in (1, 1000):
+            figures[name][str(n)] = rollout_us(model, G, h, n, budget, repeats)
+            log(f"articulated rollout {name} batch {n}: {figures[name][str(n)]:.1f} us/step/traj")
+    return figures
+
+
 def compare_threads(data_dir: str, quick: bool) -> dict:
     """Default-train seconds per epoch and free-body rollout us/step/trajectory with 1 and 2 torch
     threads, alternately in this process (fused paths)."""
@@ -257,6 +293,7 @@ def main() -> None:
     ap.add_argument("--no-compile", action="store_true", help="skip the compilation figures")
     ap.add_argument("--compare-threads", action="store_true", help="also time 1 against 2 threads (fused paths)")
     ap.add_argument("--baselines-only", action="store_true", help="only the baseline_models figures")
+    ap.add_argument("--articulated-only", action="store_true", help="only the articulated rollout figures")
     ap.add_argument("--fast-tier", action="store_true", help="also time the fast tier of the tests")
     ap.add_argument("--fast-tier-only", action="store_true", help="only time the fast tier of the tests")
     ap.add_argument("--data-dir", default=str(ROOT / "outputs" / "data"))
@@ -277,7 +314,9 @@ def main() -> None:
     def log(msg: str) -> None:
         print(f"[{time.perf_counter() - t_all:6.1f} s] {msg}", flush=True)
 
-    if args.fast_tier_only or args.baselines_only:
+    if args.fast_tier_only or args.baselines_only or args.articulated_only:
+        if args.articulated_only:
+            out["articulated_rollout_us_per_step_traj"] = articulated_rollouts(args.data_dir, q, log)
         if args.baselines_only:
             out["baseline_models"] = baseline_models(args.data_dir, q, log)
         if args.fast_tier_only:
@@ -326,6 +365,7 @@ def main() -> None:
     )
 
     out["baseline_models"] = baseline_models(args.data_dir, q, log)
+    out["articulated_rollout_us_per_step_traj"] = articulated_rollouts(args.data_dir, q, log)
 
     # rollouts
     budget, repeats = (0.3, 2) if q else (1.0, 3)
