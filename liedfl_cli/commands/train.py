@@ -765,8 +765,14 @@ def _run_train(cfg: DictConfig, resume: dict | None, accept_changed_dataset: boo
             summary["extra_eval"] = extra
     write_json(out / "summary.json", summary)
     from ..display.closing_summary import print_closing_summary
+    from ..models.learned_physics import gather
 
-    print_closing_summary(model, dataset, summary, result["history"], recovery, out)  # what was learned, files
+    try:  # what was learned (a model whose parameters cannot be read this way: the summary without them)
+        physics = gather(model, dataset, recovery)
+    except (ValueError, RuntimeError, KeyError, IndexError, AttributeError, TypeError) as e:
+        warning_line(f"closing summary: learned physics left out ({type(e).__name__}: {e})")
+        physics = None
+    print_closing_summary(physics, summary, result["history"], out)
     return summary
 
 
