@@ -21,6 +21,7 @@ rolled out and evaluated.
 from __future__ import annotations
 
 import contextlib
+import copy
 import math
 import signal
 import threading
@@ -768,7 +769,11 @@ def _run_train(cfg: DictConfig, resume: dict | None, accept_changed_dataset: boo
     from ..models.learned_physics import gather
 
     try:  # what was learned (a model whose parameters cannot be read this way: the summary without them)
-        physics = gather(model, dataset, recovery)
+        first = next(model.parameters(), None)
+        on_cpu = first is None or (first.device.type == "cpu" and first.dtype == torch.float64)
+        physics = gather(
+            model if on_cpu else copy.deepcopy(model).to(device="cpu", dtype=torch.float64), dataset, recovery
+        )
     except (ValueError, RuntimeError, KeyError, IndexError, AttributeError, TypeError) as e:
         warning_line(f"closing summary: learned physics left out ({type(e).__name__}: {e})")
         physics = None

@@ -41,7 +41,9 @@ def _bodies_of(model, params: dict, scale: float, names: list[str], joints: list
     if Jd is None:
         return []
     B = int(Jd.shape[0])
-    J = Jd.diagonal(dim1=-2, dim2=-1).sum(-1)[:, None, None] * torch.eye(3, dtype=Jd.dtype) - Jd  # J = tr(J_d) I - J_d
+    J = (
+        Jd.diagonal(dim1=-2, dim2=-1).sum(-1)[:, None, None] * torch.eye(3, dtype=Jd.dtype, device=Jd.device) - Jd
+    )  # J = tr(J_d) I - J_d
     m, rho = params.get("m"), params.get("rho_COM")
     n_m = int(m.shape[0]) if m is not None else 0
     damping = _damping_per_body(model, params, B, joints)
@@ -123,19 +125,13 @@ def _true_moments(model, dataset, bodies: list[dict], true_bodies: list[dict]) -
 
 
 def gather(model, dataset, recovery: Mapping[str, Any] | None) -> dict | None:
-    """The `physics` dict of `physics_lines` for a trained model (None: no physical parameters):
+    """The `physics` dict of `physics_lines` for a trained model (None: no physical parameters), read
+    where the model lives (the caller moves a GPU or float32 model to the CPU in float64 first):
     learned figures put on the truth's scale where the data declare physics (`recovery`'s
     `scale_learned_over_true`), joints and parents of a tree, gravity, the worst relative errors."""
-    import copy
-
-    import torch
-
     from ..models.true_scheme import true_model
 
     inner = getattr(model, "inner", model)  # (a substeps wrapper)
-    p = next(inner.parameters(), None)
-    if p is not None and (p.device.type != "cpu" or p.dtype != torch.float64):
-        inner = copy.deepcopy(inner).to(device="cpu", dtype=torch.float64)
     params = inner.physical_parameters()
     if not params or "J_d" not in params:
         return None
