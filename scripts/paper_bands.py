@@ -47,6 +47,11 @@ JOBS = {
         "baseline=glnn_rk4",
         "dataset.train_steps=10",
     ],
+    "exp2 GLNN-RK4 length 100": [  # the other half of Exp 2's claim (issue 36: ten minutes of one core a run)
+        "experiment=exp2_discrete_vs_continuous",
+        "baseline=glnn_rk4",
+        "dataset.train_steps=100",
+    ],
 }
 """The jobs whose full budget takes at most a few minutes of one core ("The whole paper in one run")."""
 
