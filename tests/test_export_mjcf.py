@@ -11,9 +11,7 @@ by MuJoCo, total mass 1 kg or dataset.total_mass; (d) one-line errors.
 
 from __future__ import annotations
 
-import os
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +20,7 @@ import torch
 
 mujoco = pytest.importorskip("mujoco")
 
+from helpers import main_in_process  # noqa: E402
 from liedfl_cli.data.hdf5 import save_dataset  # noqa: E402
 from liedfl_cli.data.mujoco_chain import chain_dataset  # noqa: E402
 from liedfl_cli.errors import ConfigError  # noqa: E402
@@ -38,8 +37,6 @@ from liedfl_cli.files.mjcf import (  # noqa: E402
 )
 from liedfl_cli.lie import so3  # noqa: E402
 from liedfl_cli.lie.tree import Tree  # noqa: E402
-
-ENV = {**os.environ, "OMP_NUM_THREADS": "1"}
 
 
 def _tree(ds):
@@ -261,10 +258,14 @@ def test_a_bad_body_is_refused_by_name():
 
 
 # ----------------------------------------------------------------------------- (c) end to end
-def _liedfl(*args, cwd: Path) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "liedfl_cli", *args], cwd=cwd, env=ENV, capture_output=True, text=True, timeout=300
-    )
+# The commands run in this process (`helpers.run_main`, the entry point's `main()`): what is tested
+# is each command's behaviour and its one-line errors, not the process boundary.
+@pytest.fixture
+def _liedfl(run_main):
+    def run(*args, cwd: Path) -> subprocess.CompletedProcess:
+        return run_main(*args, cwd=cwd)
+
+    return run
 
 
 @pytest.fixture(scope="module")
@@ -275,24 +276,28 @@ def ball_run(tmp_path_factory) -> Path:
         links=2, joint="ball", root="free", gravity=9.81, n_trajectories=3, steps=30, h=0.02, speed=2.0, seed=0
     )
     save_dataset(ds, tmp / "chain.h5")
-    r = _liedfl(
-        "train",
-        "dataset=file",
-        "dataset.path=chain.h5",
-        "model.kinetic=articulated",
-        "train.epochs=3",
-        "eval.plots=false",
-        "rollout.enabled=false",
-        "paths.data_dir=data",
-        "hydra.run.dir=run",
-        cwd=tmp,
-    )
-    assert r.returncode == 0, r.stderr[-2000:]
+    with pytest.MonkeyPatch.context() as mp:
+        for key in ("LIEDFL_DATA_DIR", "HYDRA_FULL_ERROR"):
+            mp.delenv(key, raising=False)
+        mp.setenv("MPLBACKEND", "Agg")
+        code, tb = main_in_process(
+            "train",
+            "dataset=file",
+            "dataset.path=chain.h5",
+            "model.kinetic=articulated",
+            "train.epochs=3",
+            "eval.plots=false",
+            "rollout.enabled=false",
+            "paths.data_dir=data",
+            "hydra.run.dir=run",
+            cwd=tmp,
+        )
+    assert code == 0, tb[-2000:]
     return tmp
 
 
 @pytest.mark.parametrize("mass", [None, 2.5])
-def test_export_end_to_end(ball_run, mass):
+def test_export_end_to_end(ball_run, mass, _liedfl):
     from liedfl_cli.data.hdf5 import load_dataset
 
     out = f"model_{mass}.xml"
@@ -327,7 +332,7 @@ def _one_line_failure(r: subprocess.CompletedProcess, *needles: str) -> None:
     assert len(lines) == 1 and all(n in lines[0] for n in needles), r.stderr
 
 
-def test_a_missing_run_is_one_line(tmp_path):
+def test_a_missing_run_is_one_line(tmp_path, _liedfl):
     r = _liedfl("export", "run=nowhere", "out=m.xml", cwd=tmp_path)
     _one_line_failure(r, "run=nowhere")
     assert not (tmp_path / "m.xml").exists()
@@ -343,12 +348,12 @@ def test_a_missing_run_is_one_line(tmp_path):
         (["dataset.total_mass=-1"], ["dataset.total_mass=-1"]),
     ],
 )
-def test_bad_arguments_are_one_line(ball_run, args, needles):
+def test_bad_arguments_are_one_line(ball_run, args, needles, _liedfl):
     r = _liedfl("export", "run=run", "paths.data_dir=data", *args, cwd=ball_run)
     _one_line_failure(r, *needles)
 
 
-def test_a_per_body_run_is_refused_in_one_line(tmp_path):
+def test_a_per_body_run_is_refused_in_one_line(tmp_path, _liedfl):
     r = _liedfl(
         "train",
         "dataset=heavy_so3",
