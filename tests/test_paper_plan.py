@@ -32,11 +32,33 @@ def _plan_module():
     return mod
 
 
+# (experiment, extra overrides) -> (validated?, its jobs): `paper_plan.jobs` composes each job with
+# Hydra (seconds per experiment), and its answer depends on the configs alone (not on ROOT or the
+# environment); each experiment is composed (and validated, when asked) once per test process.
+_JOBS: dict[tuple[str, tuple[str, ...]], tuple[bool, list]] = {}
+
+
+def _composed_once(real):
+    def jobs(experiments, extra, check=False):
+        out = []
+        for exp in experiments:  # `jobs` composes each experiment on its own, in order
+            key = (exp, tuple(extra))
+            hit = _JOBS.get(key)
+            if hit is None or (check and not hit[0]):
+                hit = _JOBS[key] = (check, real([exp], list(extra), check))
+            out += copy.deepcopy(hit[1])  # copies: callers may change a job
+        return out
+
+    return jobs
+
+
 @pytest.fixture(autouse=True)
 def own_output_folder(tmp_path, monkeypatch):
     """`full` writes its runs under ROOT/outputs/paper_full and clears a job's folder before a fresh
-    start: every test here gets a ROOT of its own, never the checkout's outputs."""
+    start: every test here gets a ROOT of its own, never the checkout's outputs. `jobs` composes
+    each experiment once per process (`_composed_once`)."""
     plan = _plan_module()
+    monkeypatch.setattr(plan, "jobs", _composed_once(plan.jobs))
     monkeypatch.setattr(plan, "ROOT", tmp_path)
     monkeypatch.setattr(plan, "FULL_DIR", tmp_path / "outputs" / "paper_full")
     # run_full sets LIEDFL_DATA_DIR when it is unset: here through monkeypatch, so no later test inherits it
