@@ -347,13 +347,28 @@ def test_random_rotation_guess_is_on_the_group():
     assert float(G_SO3.orthogonality_error(z).max()) < 1e-13
 
 
+@pytest.fixture(scope="module")
+def heavy_so3_data(tmp_path_factory) -> Path:
+    """One data folder for the train commands below: the smoke heavy_so3 dataset is generated once
+    (the dataset cache is keyed by its config) instead of once per test."""
+    return tmp_path_factory.mktemp("substeps_data")
+
+
+def _smoke_train_cfg(data: Path, out: Path, *overrides: str):
+    from helpers import SMOKE, compose_config
+
+    return compose_config("train", (*SMOKE, f"paths.data_dir={data}", f"paths.output_dir={out}", *overrides))
+
+
 @pytest.mark.parametrize(("s", "order"), [(2, 2), (1, 4)])
-def test_train_command_with_substeps_end_to_end(tmp_path, smoke_cfg, s, order):
+def test_train_command_with_substeps_end_to_end(tmp_path, heavy_so3_data, s, order):
     """`liedfl train model.substeps/model.order` at a smoke budget: the start, a rollout of the sub-stepped
     model, the true scheme on the same step, every file written."""
     from liedfl_cli.commands.train import run_train
 
-    cfg = smoke_cfg(tmp_path, "run", "dataset=heavy_so3", f"model.substeps={s}", f"model.order={order}")
+    cfg = _smoke_train_cfg(
+        heavy_so3_data, tmp_path / "run", "dataset=heavy_so3", f"model.substeps={s}", f"model.order={order}"
+    )
     result = run_train(cfg)
     out = Path(result["run_dir"])
     for name in ("eval.csv", "rollout.h5", "checkpoints/last.pt", "summary.json"):
@@ -365,13 +380,13 @@ def test_train_command_with_substeps_end_to_end(tmp_path, smoke_cfg, s, order):
     assert f"step: {s} sub-step(s) of order {order}" in components["components"][-1]
 
 
-def test_train_epochs_zero_keeps_the_start(tmp_path, smoke_cfg):
+def test_train_epochs_zero_keeps_the_start(tmp_path, heavy_so3_data):
     """train.epochs=0: the model's start only (here the sub-step fit), checkpointed and evaluated."""
     import json
 
     from liedfl_cli.commands.train import run_train
 
-    cfg = smoke_cfg(tmp_path, "run", "dataset=heavy_so3", "model.order=4", "train.epochs=0")
+    cfg = _smoke_train_cfg(heavy_so3_data, tmp_path / "run", "dataset=heavy_so3", "model.order=4", "train.epochs=0")
     result = run_train(cfg)
     summary = json.loads((Path(result["run_dir"]) / "summary.json").read_text())
     assert summary["final_loss"] is None and summary["timings"]["epochs"] == 0
