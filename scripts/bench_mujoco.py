@@ -43,6 +43,9 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "scripts"))
+
+from machine_info import cpu_model  # noqa: E402
 
 from liedfl_cli.data.mujoco_chain import TREES, chain_dataset, require_mujoco  # noqa: E402
 from liedfl_cli.lie import Pose  # noqa: E402
@@ -247,7 +250,7 @@ def main() -> None:
     torch.set_num_threads(1)
     out = {
         "machine": {
-            "cpu": _cpu(),
+            "cpu": cpu_model(),
             "cores": os.cpu_count(),
             "load_start": os.getloadavg(),
             "python": platform.python_version(),
@@ -272,16 +275,6 @@ def main() -> None:
     if args.figure:
         figure(out["rows"], Path(args.figure), f"{args.tree} tree, {args.joints} joints")
     print(json.dumps(out["machine"]))
-
-
-def _cpu() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 if __name__ == "__main__":

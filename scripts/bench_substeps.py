@@ -21,12 +21,12 @@ import argparse
 import json
 import math
 import os
-import platform
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
+from machine_info import cpu_model  # scripts/machine_info.py (scripts/ is on the path of a script)
 
 from liedfl_cli.data.physics import RigidBodySO3, simulate_so3
 from liedfl_cli.lie import Pose, ProductGroup
@@ -52,16 +52,6 @@ SCENES = {
 OPTIONS = [(1, 2), (2, 2), (4, 2), (1, 4), (2, 4)]
 SOLVER = SolverOptions(tol=1e-12, max_iter=20)
 REPEATS = 5
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def simulate(scene: dict, n_traj: int, seed: int) -> Pose:

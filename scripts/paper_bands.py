@@ -67,14 +67,10 @@ def _plan():
 
 def machine() -> dict:
     """CPU model, cores, threads, torch, commit: what a figure's record names beside it."""
-    cpu = "?"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
+    sys.path.insert(0, str(Path(__file__).resolve().parent))  # (also when loaded by file path)
+    from machine_info import cpu_model
+
+    cpu = cpu_model("?")
     import torch
 
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True)

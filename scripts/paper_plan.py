@@ -275,14 +275,10 @@ def provenance() -> dict:
     commit = git("rev-parse", "--short", "HEAD")
     if commit and git("status", "--porcelain", "--", "liedfl_cli", "scripts"):
         commit += "+changes"
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
+    sys.path.insert(0, str(Path(__file__).resolve().parent))  # (also when loaded by file path)
+    from machine_info import cpu_model
+
+    cpu = cpu_model(platform.processor() or platform.machine())
     try:
         torch_version: str | None = importlib.metadata.version("torch")
     except importlib.metadata.PackageNotFoundError:

@@ -76,14 +76,10 @@ COMMANDS = {  # id: (command as the docs quote it, where it runs, what it is)
 
 def machine() -> dict:
     """CPU model, cores, OS, Python and torch versions, OMP_NUM_THREADS as set (None: unset)."""
-    cpu = platform.processor() or ""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
+    sys.path.insert(0, str(Path(__file__).resolve().parent))  # (also when loaded by file path)
+    from machine_info import cpu_model
+
+    cpu = cpu_model(platform.processor() or "")
     try:
         import torch
 

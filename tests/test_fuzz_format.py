@@ -31,6 +31,7 @@ from fuzz_strategies import FAST, check_outcome
 from hypothesis import HealthCheck, given, seed, settings
 from hypothesis import strategies as st
 from own_data import H, motion
+from test_fuzz_loaders import _rigid_dataset  # the SE(3) body with declared physics
 
 from helpers import main_in_process
 from liedfl_cli.data.hdf5 import Dataset, load_dataset, save_dataset
@@ -101,22 +102,6 @@ def _joints_and_axes(axes: np.ndarray) -> Callable[[h5py.File], None]:
 
 
 # ----------------------------------------------------------------------------- the two bases
-def _rigid() -> Dataset:
-    _, R, p = motion(4, 10)
-    physics = {"J": [1.0, 2.0, 2.5], "m": 1.5, "rho": [0.0, 0.0, 0.1], "g": 9.81, "D": [0.1] * 6}
-    return Dataset(
-        R=R[:, :, None],
-        p=p[:, :, None],
-        h=H,
-        scene="rigid",
-        body_names=["box"],
-        body_kinds=["se3"],
-        params={"physics": physics},
-        seed=3,
-        split={"train": np.arange(1, 4), "test": np.array([0])},
-    )
-
-
 def _chain() -> Dataset:
     _, R, _ = motion(4, 10)
     Rs = np.stack([R, np.swapaxes(R, -1, -2), R @ R], axis=2)  # three bodies, parent-relative
@@ -316,7 +301,7 @@ def _chain_cases(n: int) -> list[Case]:
 def bases(tmp_path_factory) -> tuple[Path, list[tuple[Path, list[Case]]]]:
     root = tmp_path_factory.mktemp("fuzz_format")
     out = []
-    for name, ds, extra in (("rigid", _rigid(), _rigid_cases), ("chain", _chain(), _chain_cases)):
+    for name, ds, extra in (("rigid", _rigid_dataset(), _rigid_cases), ("chain", _chain(), _chain_cases)):
         path = save_dataset(ds, root / f"{name}.h5")
         load_dataset(path)  # the base itself is valid
         n = ds.R.shape[1]
