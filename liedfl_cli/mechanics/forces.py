@@ -11,7 +11,7 @@ from torch import nn
 
 from ..lie import Pose, ProductGroup, so3
 from .damping import PerBodyDampingNet, PerBodySPSD, apply_blocks, block_diagonal
-from .mlp import MLP
+from .mlp import MLP, value_and_input_jacobian
 from .parameterizations import SPSDMatrix
 
 COUPLINGS = ("coupled", "per_body")
@@ -143,6 +143,7 @@ class NNForce(nn.Module):
     """Unconstrained force F(g, xi~) = scale * MLP(flatten(g), xi~) in g* (no dissipative guarantee)."""
 
     name = "nn"
+    scale: torch.Tensor
 
     def __init__(self, G: ProductGroup, scale: float = 1.0, width: int = 64, depth: int = 3):
         super().__init__()
@@ -153,6 +154,14 @@ class NNForce(nn.Module):
     def forward(self, g: Pose, xi: torch.Tensor) -> torch.Tensor:
         x = torch.cat((self.G.flatten(g), xi), -1)
         return self.scale * self.net(x)
+
+    def jacobian_xi(self, g: Pose, xi: torch.Tensor) -> torch.Tensor:
+        """dF/d xi~ (..., dim, dim) by forward mode through the MLP (`mlp.value_and_input_jacobian`;
+        one pass instead of dim reverse passes)."""
+        x = torch.cat((self.G.flatten(g), xi), -1)
+        out = value_and_input_jacobian(self.net, x, slice(x.shape[-1] - xi.shape[-1], None))
+        assert out is not None  # an MLP of `mechanics.mlp.MLP`'s form
+        return self.scale * out[1]
 
     def describe(self) -> str:
         return f"nn (F(g, xi~) {_mlp_desc(self.net)})"

@@ -43,7 +43,7 @@ from ..mechanics.forces import RayleighForce, build_forces, force_jacobian_xi
 from ..mechanics.parameterizations import Inertia, PositiveVector
 from ..mechanics.potentials import STANDARD_GRAVITY, GravityPotential, MLPPotential, UniformGravityPotential
 from ..solvers.newton import NewtonProblem, jacobian
-from . import mlp_derivatives
+from . import fused_articulated, mlp_derivatives
 from .base import (
     Batch,
     ImplicitModel,
@@ -55,6 +55,7 @@ from .base import (
 )
 from .components import component_tagger, force_parameters
 from .del_loss import del_regularity_loss
+from .fused_articulated import FusedArticulatedState
 from .liedflnn import check_options
 
 
@@ -835,13 +836,20 @@ class ArticulatedLieDFLNN(ImplicitModel):
         return F if b.C is None else (b.C.transpose(-1, -2) @ F[..., None])[..., 0]
 
     # ------------------------------------------------------------------ rollout
-    def implicit_start(self, g0: Pose, g1: Pose) -> ArticulatedState:
+    def implicit_start(self, g0: Pose, g1: Pose) -> ArticulatedState | FusedArticulatedState:
+        """The rollout's first state: the fused engine's (`models.fused_articulated`) on the fused path
+        where it applies and no gradient is being recorded (it reads the parameters detached), else
+        the reference problem's."""
+        if self.path == "fused" and not torch.is_grad_enabled() and fused_articulated.applies(self) is None:
+            return fused_articulated.ArticulatedEngine(self, g1.R).start(g0, g1)
         world, A = art.fk_and_jacobian(self.tree, g1)
         return ArticulatedState(g0, g1, self.G.increment(g0, g1), world, A)
 
-    def implicit_problem(self, state: ArticulatedState) -> NewtonProblem:
+    def implicit_problem(self, state: ArticulatedState | FusedArticulatedState) -> NewtonProblem:
         """Solve the DEL residual for the coordinate increment W_k (updated by W exp(delta)); on a
-        reduced tree for its joints' DoF (`_reduced_problem`)."""
+        reduced tree for its joints' DoF (`_reduced_problem`); the fused engine's own problem."""
+        if isinstance(state, FusedArticulatedState):
+            return state.engine.problem(state)
         if self.reduced:
             return self._reduced_problem(state)
         G, Gw, tree = self.G, art.world_group(self.tree), self.tree
@@ -947,7 +955,9 @@ class ArticulatedLieDFLNN(ImplicitModel):
         x0 = jt.retract(tree, g, ident, d0)
         return NewtonProblem(f, jac, x0, lambda x, delta: jt.retract(tree, g, x, delta))
 
-    def implicit_advance(self, state: ArticulatedState, x: Pose) -> tuple[ArticulatedState, Pose]:
+    def implicit_advance(self, state, x: Pose) -> tuple[ArticulatedState | FusedArticulatedState, Pose]:
+        if isinstance(state, FusedArticulatedState):
+            return state.engine.advance(state, x)
         W = x.R.detach()
         W = 0.5 * W @ (3.0 * torch.eye(3, dtype=W.dtype, device=W.device) - W.transpose(-1, -2) @ W)
         inc = Pose(W, x.p.detach())

@@ -1,0 +1,192 @@
+"""The articulated model's fused rollout engine (`models.fused_articulated`) against the reference problem.
+
+The engine must take the reference's Newton steps: the same residual, Jacobian, warm start and
+retraction at the same iterate (to rounding, relative to their magnitudes), hence the same rollouts,
+convergence flags and iteration counts. Checked on trees with every joint type the engine serves (free,
+ball, hinge, weld; world and parent rotations; free and pinned roots; reduced and unreduced), with
+learned gravity, an MLP potential, per-DoF damping and learned joint-space forces; the models it does
+not serve (universal joints, the generic residual, a recorded gradient) keep the reference problem.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from test_articulated_joints import _unit, mixed_tree, smooth_motion
+
+from liedfl_cli.lie import Pose
+from liedfl_cli.lie.tree import Tree
+from liedfl_cli.mechanics.forces import NNForce, RayleighNonlinearForce
+from liedfl_cli.models import fused_articulated as fa
+from liedfl_cli.models.articulated import ArticulatedLieDFLNN, ArticulatedState
+from liedfl_cli.solvers.options import SolverOptions
+
+F64 = torch.float64
+H = 0.02
+
+
+def _tree(name: str) -> Tree:
+    z = [0.0, 0.0, 0.0]
+    parents = [-1, 0, 0, 2, 1, 4]
+    offsets = [z, [0.4, 0.0, 0.1], [0.0, 0.3, 0.0], [0.2, 0.2, 0.0], [0.0, 0.0, 0.5], [0.1, -0.3, 0.2]]
+    a1, a2, a3 = _unit([1.0, 2.0, -0.5]), _unit([0.2, 1.0, 0.1]), _unit([0.0, 0.0, 1.0])
+    if name.startswith("ball"):
+        rotations = name.split("-")[1]
+        return Tree.from_lists(parents, offsets, rotations, True, ["free"] + ["ball"] * 5)
+    if name.startswith("hinge"):  # free root, hinges, a ball and a weld
+        rotations = name.split("-")[1]
+        kinds = ["free", "hinge", "hinge", "ball", "weld", "hinge"]
+        axes = [[z, z], [a1, z], [a2, z], [z, z], [z, z], [a3, z]]
+        return Tree.from_lists(parents, offsets, rotations, True, kinds, axes)
+    # pinned root on a hinge, then a ball, hinges and a weld (a robot arm on a table)
+    offsets = [[0.1, 0.2, 0.3]] + offsets[1:]
+    kinds = ["hinge", "ball", "hinge", "weld", "hinge", "ball"]
+    axes = [[a3, z], [z, z], [a1, z], [z, z], [a2, z], [z, z]]
+    return Tree.from_lists(parents, offsets, name.split("-")[1], False, kinds, axes)
+
+
+# (tree, potential parts, forces): every joint type and both attitude conventions; damping ("rayleigh"
+# becomes per-DoF damping, which makes a tree reduced), learned forces, an MLP potential
+CASES = {
+    "ball-world unreduced": ("ball-world", ("uniform_gravity",), ()),
+    "ball-parent unreduced, forces": ("ball-parent", ("uniform_gravity", "mlp"), ("nn", "rayleigh_nonlinear")),
+    "ball-world damped": ("ball-world", ("uniform_gravity",), ("rayleigh",)),
+    "hinge-world damped, nn": ("hinge-world", ("uniform_gravity",), ("rayleigh", "nn")),
+    "hinge-parent damped, mlp, forces": ("hinge-parent", ("uniform_gravity", "mlp"), ("rayleigh", "nn")),
+    "pinned-world damped": ("pinned-world", ("uniform_gravity",), ("rayleigh",)),
+    "pinned-parent, mlp": ("pinned-parent", ("mlp",), ()),
+}
+
+
+def _model(case: str) -> tuple[ArticulatedLieDFLNN, Pose]:
+    tree_name, potential, forces = CASES[case]
+    tree = _tree(tree_name)
+    torch.manual_seed(0)
+    m = ArticulatedLieDFLNN(
+        tree, H, potential=potential, forces=forces, init_jitter=0.3, seed=5, mlp_width=8, mlp_depth=2
+    )
+    with torch.no_grad():
+        if m.dof_damper is not None:
+            m.dof_damper.lam.copy_(0.3 + torch.rand(m.dof_damper.lam.shape, dtype=F64))
+        for f in m.forces:  # learned forces of a visible size (the untrained MLPs start near zero)
+            for p in f.parameters():
+                p.mul_(3.0)
+    m.requires_grad_(False)
+    return m, smooth_motion(tree, 5, 3, H, seed=2)
+
+
+def _close(a: torch.Tensor, b: torch.Tensor, rel: float = 1e-10) -> bool:
+    if b.numel() == 0:
+        return a.shape == b.shape
+    a, b = a.detach(), b.detach()
+    scale = max(1.0, float(b.abs().max()))
+    return float((a - b).abs().max()) <= rel * scale
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_the_engine_serves_the_case(case):
+    m, _ = _model(case)
+    assert fa.applies(m) is None
+    assert m.reduced == ("damped" in case or not case.startswith("ball"))
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_residual_jacobian_warm_start_and_retraction_equal_the_reference(case):
+    m, traj = _model(case)
+    g0, g1 = traj.index((slice(None), 0)), traj.index((slice(None), 1))
+    with torch.no_grad():
+        ref = m.with_path("reference")
+        p_ref = ref.implicit_problem(ref.implicit_start(g0, g1))
+        state = m.with_path("fused").implicit_start(g0, g1)
+        assert isinstance(state, fa.FusedArticulatedState)
+        p_fused = m.implicit_problem(state)
+        assert _close(p_fused.x0.R, p_ref.x0.R) and _close(p_fused.x0.p, p_ref.x0.p)
+        x = p_ref.x0
+        for _ in range(2):  # at the warm start and at a moved iterate
+            r = p_ref.f(x)
+            assert _close(p_fused.f(x), r), float((p_fused.f(x) - r).abs().max())
+            J = p_ref.jac(x)
+            assert _close(p_fused.jac(x), J), float((p_fused.jac(x) - J).abs().max())
+            delta = 0.01 * torch.linspace(-1.0, 1.0, r.shape[-1], dtype=F64).expand_as(r)
+            xr, xf = p_ref.retract(x, delta), p_fused.retract(x, delta)
+            assert _close(xf.R, xr.R) and _close(xf.p, xr.p)
+            x = xr
+
+
+@pytest.mark.parametrize("case", ["ball-world damped", "hinge-parent damped, mlp, forces", "pinned-world damped"])
+def test_rollouts_equal_the_reference_to_rounding(case):
+    m, traj = _model(case)
+    g0, g1 = traj.index((slice(None), 0)), traj.index((slice(None), 1))
+    opts = SolverOptions(tol=1e-9)
+    a = m.with_path("fused").rollout(g0, g1, 30, opts)
+    b = m.with_path("reference").rollout(g0, g1, 30, opts)
+    assert bool(a.converged.all()) and bool(b.converged.all())
+    # rounding grows along a rollout; 1e-8 of the magnitudes after 30 steps is ~1e4 ulps
+    assert _close(a.pose.R, b.pose.R, 1e-8) and _close(a.pose.p, b.pose.p, 1e-8)
+    # integer counts from float tests: a step at the tolerance could flip under rounding
+    assert float((a.iterations == b.iterations).double().mean()) >= 0.95
+    # the motion is not trivial: the rollout moves away from its start
+    assert float((a.pose.R[:, -1] - a.pose.R[:, 1]).abs().max()) > 1e-2
+
+
+def test_rows_that_converge_early_leave_the_batch_without_changing_the_others(monkeypatch):
+    """At 64+ rows the loop continues on the rows still iterating (`restrict`) once at most a quarter
+    is left: a batch that mixes slow rows with fast ones gives every row the result it has alone."""
+    m, traj = _model("hinge-world damped, nn")
+    g0, g1 = traj.index((slice(None), 0)), traj.index((slice(None), 1))
+    big0 = Pose(g0.R.repeat(16, 1, 1, 1), g0.p.repeat(16, 1, 1))
+    big1 = Pose(g1.R.repeat(16, 1, 1, 1), g1.p.repeat(16, 1, 1))
+    start = Pose(big0.R.clone(), big0.p.clone())  # rows 0..69 start at rest and converge first
+    start.R[70:], start.p[70:] = big1.R[70:], big1.p[70:]
+    restricted = []
+    index = fa.FusedArticulatedState.index
+    monkeypatch.setattr(
+        fa.FusedArticulatedState, "index", lambda s, rows: restricted.append(len(rows)) or index(s, rows)
+    )
+    opts = SolverOptions(tol=1e-9)
+    mf = m.with_path("fused")
+    together = mf.rollout(big0, start, 6, opts)
+    assert restricted and min(restricted) <= 20  # the moving rows were iterated apart
+    alone = mf.rollout(big0.index(slice(70, None)), start.index(slice(70, None)), 6, opts)
+    assert _close(together.pose.R[70:], alone.pose.R, 1e-12) and _close(together.pose.p[70:], alone.pose.p, 1e-12)
+
+
+def test_models_the_engine_does_not_serve_keep_the_reference_problem():
+    uni = ArticulatedLieDFLNN(mixed_tree("world"), H, potential=("uniform_gravity",), forces=("rayleigh",))
+    assert "universal" in (fa.applies(uni) or "")
+    generic = ArticulatedLieDFLNN(_tree("ball-world"), H, residual="generic", forces=())
+    assert fa.applies(generic) == "residual=generic"
+    m, traj = _model("ball-world damped")
+    g0, g1 = traj.index((slice(None), 0)), traj.index((slice(None), 1))
+    with torch.no_grad():
+        assert isinstance(
+            uni.with_path("fused").implicit_start(
+                *(smooth_motion(uni.tree, 2, 1, H).index((slice(None), k)) for k in (0, 1))
+            ),
+            ArticulatedState,
+        )
+        assert isinstance(m.with_path("reference").implicit_start(g0, g1), ArticulatedState)
+    # a recorded gradient: the engine reads the parameters detached, so the reference problem serves
+    with torch.enable_grad():
+        assert isinstance(m.with_path("fused").implicit_start(g0, g1), ArticulatedState)
+
+
+@pytest.mark.parametrize("force_cls", [NNForce, RayleighNonlinearForce])
+def test_force_jacobians_in_closed_form_equal_autodiff(force_cls):
+    """The closed-form dF/d xi~ the engine (and the reference's Jacobian) uses, against one reverse
+    pass per tangent direction."""
+    tree = _tree("hinge-parent")
+    G = tree.group
+    f = force_cls(G, 2.0, width=16, depth=2)
+    with torch.no_grad():
+        for p in f.parameters():
+            p.mul_(3.0)
+    g = smooth_motion(tree, 4, 1, H).index((slice(None), 1))
+    xi = torch.randn(4, G.dim, dtype=F64, generator=torch.Generator().manual_seed(1))
+    J = f.jacobian_xi(g, xi)
+    x = xi.clone().requires_grad_(True)
+    F = f(g, x)
+    rows = [torch.autograd.grad(F[:, i].sum(), x, retain_graph=True)[0] for i in range(G.dim)]
+    J_auto = torch.stack(rows, -2)
+    assert float(J_auto.abs().max()) > 1e-3
+    assert _close(J, J_auto, 1e-12)
