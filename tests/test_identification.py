@@ -120,7 +120,11 @@ def _heavy(unit: str):
     train, test = truth.index(slice(0, 16)), truth.index(slice(16, 20))
     model = ArticulatedLieDFLNN(ds.tree, ds.h, forces=("rayleigh",))
     before = idf.one_step_ratio(model, test)
-    res = idf.identify(model, ArticulatedTriplets(model, train, 60), max_triplets=600, log=None)
+    # 300 of the 944 training triplets (a strided subset, as identify() takes them): the fit and the
+    # comparison hold with margin (2026-11-29: after 0.034 in both units, asserted <= 0.1; m and mm
+    # 4.5e-8 apart, asserted <= 1e-6; base parameters 5e-9 apart, asserted <= 1e-6) at 60 % of the time
+    # of 600 triplets (after 0.029, 1.6e-7 apart)
+    res = idf.identify(model, ArticulatedTriplets(model, train, 60), max_triplets=300, log=None)
     return model, before, idf.one_step_ratio(model, test, tol=1e-12), res
 
 
