@@ -1,8 +1,9 @@
-"""End to end through the installed `liedfl` command (subprocess, cwd = a temporary directory),
-plus `run_train` called in-process on a composed config. Everything runs on the smoke budget. The
-cases about what a command writes or refuses beyond the first train run `main()` in-process
-(`run_main`, the same code without a new interpreter per call; test_signals_phases.py and
-test_hostile.py run rollout and eval as processes)."""
+"""End to end through the `liedfl` command (cwd = a temporary directory), plus `run_train` called
+in-process on a composed config. Everything runs on the smoke budget. The commands run `main()` in
+this process (the first train in the module fixture, the rest through `run_main`: the same code without
+a new interpreter per call); `--help` and an unknown command run the installed command as a process,
+and so do test_tutorial.py (`liedfl data`, `train`, `export` to the end) and test_packaging.py (the
+wheel's train); test_signals_phases.py and test_hostile.py run rollout and eval as processes."""
 
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ import h5py
 import pytest
 from omegaconf import OmegaConf
 
-from helpers import compose_config, run_cli
+from helpers import compose_config, main_in_process, run_cli
 
 FAST = ["budget=smoke", "ui.progress=false"]
 PLOTS = ["error_vs_step", "drift_vs_step", "sphere", "predicted_vs_true"]
@@ -28,9 +29,20 @@ def liedfl(*args: str, cwd: Path, ok: bool = True) -> subprocess.CompletedProces
 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory) -> Path:
-    """`liedfl train budget=smoke ui.progress=false` in a fresh directory -> its run dir."""
+    """`liedfl train budget=smoke ui.progress=false` in a fresh directory -> its run dir.
+
+    In this process (`main()`, the entry point's code, with `cli_env()`'s variables): a new interpreter
+    costs ~3.5 s of imports. The installed `liedfl train` runs to the end as a process in
+    test_tutorial.py (exit 0, no traceback, the files the page names) and as the built wheel in
+    test_packaging.py; `--help` and an unknown command below go through the installed command."""
     cwd = tmp_path_factory.mktemp("train_cli")
-    liedfl("train", *FAST, cwd=cwd)
+    with pytest.MonkeyPatch.context() as mp:
+        for key in ("LIEDFL_DATA_DIR", "HYDRA_FULL_ERROR"):
+            mp.delenv(key, raising=False)
+        for key, value in (("MPLBACKEND", "Agg"), ("COLUMNS", "200")):
+            mp.setenv(key, value)
+        code, traceback = main_in_process("train", *FAST, cwd=cwd)
+    assert code == 0 and not traceback, traceback
     runs = sorted((cwd / "outputs" / "runs").iterdir())
     assert len(runs) == 1, runs
     return runs[0]
@@ -71,7 +83,7 @@ def test_rollout_writes_a_new_folder(trained, run_main):
     with h5py.File(run / "rollout.h5") as f:
         assert int(f.attrs["steps"]) != 15
     args = ("rollout", f"run={run}", "steps=15", "ui.progress=false", "eval.plots=false")
-    for _ in range(2):  # in this process (`trained` ran the `liedfl` command; test_signals_phases.py rolls out in one)
+    for _ in range(2):  # in this process (test_signals_phases.py rolls out in a process)
         run_main(*args, cwd=run.parents[2], ok=True)
     new = sorted(d for d in (run / "rollouts").iterdir() if "_steps15" in d.name)
     assert len(new) == 2 and all(d.name.endswith(("_steps15", "_steps15_2")) for d in new), new
