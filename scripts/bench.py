@@ -26,6 +26,13 @@ few repeats, so a speed-up is a ratio taken under the same load. Keys:
                                 Euler and Euclidean DFLNN, Neural ODE) at its experiment's settings (Exp 2 at
                                 its longest training length, 100 steps), fused (`runtime.fused`) and reference
                                 paths alternately; paper_epochs x s_per_epoch projects a full-budget job
+  articulated_rollout_us_per_step_traj  {model: {batch: {fused, reference, reference_over_fused}}} for the
+                                5-body MuJoCo tree's true-parameter scheme (free root, ball joints, per-DoF
+                                damping, h 0.05) and the untrained 23-body Exp 4 articulated model (MLP
+                                potential, nn + rayleigh_nonlinear forces, h 1/120), batches 1/1000, the
+                                fused articulated engine and the reference problem alternately; with
+                                mujoco_rk4_dt1e-3_us_per_substep_tree5 (MuJoCo's RK4 on that tree's true
+                                model, one trajectory at a time; --articulated-only runs these alone)
   compile_s                     first compilation of the Newton step (runtime.compile=true)
   compiled_rollout_us_per_step_traj  the free body with the compiled step, batches 1000/10000
   threads, load_avg             torch threads used; `os.getloadavg()` before and after
@@ -64,6 +71,7 @@ sys.path.insert(0, str(ROOT))
 
 from hydra import compose, initialize_config_dir  # noqa: E402
 from hydra.core.global_hydra import GlobalHydra  # noqa: E402
+from machine_info import cpu_model  # noqa: E402
 
 from liedfl_cli.cli import CONF_DIR  # noqa: E402
 from liedfl_cli.commands.train import fit  # noqa: E402
@@ -252,15 +260,56 @@ def articulated_models(data_dir: str) -> dict:
     return out
 
 
+def mujoco_rk4_us_per_substep(ds, dt: float = 1e-3, steps: int = 1000, repeats: int = 3) -> float | None:
+    """MuJoCo's RK4 on the TRUE model of an articulated MuJoCo dataset (its MJCF), one trajectory at a
+    time from its recorded initial states: best-of-`repeats` microseconds per substep of dt (the done-when
+    of issue 34: a liedfl step at batch 1,000 should cost no more per trajectory than one of these).
+    None without MuJoCo (the test extra)."""
+    try:
+        import mujoco
+    except ImportError:
+        return None
+    model = mujoco.MjModel.from_xml_string(ds.params["mjcf"])
+    model.opt.timestep = dt
+    model.opt.integrator = mujoco.mjtIntegrator.mjINT_RK4
+    data = mujoco.MjData(model)
+    qpos0, qvel0 = ds.extras["qpos"][:, 0], ds.extras["qvel"][:, 0]
+    best = float("inf")
+    for _ in range(repeats):
+        t = time.perf_counter()
+        for i in range(qpos0.shape[0]):
+            mujoco.mj_resetData(model, data)
+            data.qpos[:], data.qvel[:] = qpos0[i], qvel0[i]
+            mujoco.mj_step(model, data, nstep=steps)
+        best = min(best, (time.perf_counter() - t) / (qpos0.shape[0] * steps))
+    return best * 1e6
+
+
 def articulated_rollouts(data_dir: str, quick: bool, log) -> dict:
-    """Articulated rollout us per step per trajectory at batch 1 and 1,000 (issue 34 item 3)."""
+    """Articulated rollout us per step per trajectory at batch 1 and 1,000 on the fused engine
+    (`models.fused_articulated`) and the reference problem, alternately in this process (issue 34
+    items 1 and 3), and MuJoCo's RK4 per substep of the 5-body tree's true model in the same run."""
+    from liedfl_cli.data.mujoco_chain import chain_dataset
+
     budget, repeats = (0.3, 1) if quick else (1.0, 2)
     figures: dict = {}
     for name, (model, G, h) in articulated_models(data_dir).items():
         figures[name] = {}
         for n in (1, 1000):
-            figures[name][str(n)] = rollout_us(model, G, h, n, budget, repeats)
-            log(f"articulated rollout {name} batch {n}: {figures[name][str(n)]:.1f} us/step/traj")
+            row = {}
+            for path in ("fused", "reference"):
+                row[path] = rollout_us(model, G, h, n, budget, repeats, fused=path == "fused")
+            row["reference_over_fused"] = row["reference"] / row["fused"]
+            figures[name][str(n)] = row
+            log(
+                f"articulated rollout {name} batch {n}: {row['fused']:.1f} us/step/traj fused, "
+                f"{row['reference']:.1f} reference ({row['reference_over_fused']:.2f}x)"
+            )
+    ds5 = chain_dataset(parents="branched5", n_trajectories=8, steps=3, h=0.05, gravity=9.81, test_fraction=0.0)
+    rk4 = mujoco_rk4_us_per_substep(ds5, repeats=2 if quick else 3)
+    figures["mujoco_rk4_dt1e-3_us_per_substep_tree5"] = rk4
+    if rk4 is not None:
+        log(f"MuJoCo RK4 (dt 1e-3) on the 5-body tree's true model: {rk4:.1f} us per substep")
     return figures
 
 
@@ -304,6 +353,7 @@ def main() -> None:
     out: dict = {
         "torch": torch.__version__,
         "machine": platform.processor() or platform.machine(),
+        "cpu": cpu_model(),
         "cpus": os.cpu_count(),
         "threads": torch.get_num_threads(),
         "quick": q,

@@ -305,19 +305,13 @@ def kinetic_d2(maps: TreeMaps, W: torch.Tensor, z: torch.Tensor) -> torch.Tensor
     return torch.cat((w, s * WtX), -1)
 
 
-def hessian_world(maps: TreeMaps, Rk: torch.Tensor, Rn: torch.Tensor) -> torch.Tensor:
-    """Every body's mixed-Hessian block in the world frame, blockdiag(R_k, R_k) H_b blockdiag(R_n, R_n)^T
-    (N, B, 6, 6) (module docstring), from the world attitudes at both ends."""
+def rotational_world(maps: TreeMaps, Rk: torch.Tensor, Rn: torch.Tensor) -> torch.Tensor:
+    """Every body's rotational mixed-Hessian block in the world frame, R_k H_rot(R_k^T R_n) R_n^T
+    (N, B, 3, 3) (`kinetic.se3_mixed_hessian`'s massless part, linear in W: `TreeMaps.rot_map`)."""
     N, B = Rk.shape[0], Rk.shape[1]
     W = Rk.transpose(-1, -2) @ Rn
     Hrot = torch.einsum("Nbk,bkl->Nbl", W.reshape(N, B, 9), maps.rot_map).reshape(N, B, 3, 3)
-    s = (maps.mass / maps.h)[:, None, None]
-    a = so3.hat((Rk @ maps.rho[:, :, None])[..., 0])
-    b = so3.hat((Rn @ maps.rho[:, :, None])[..., 0])
-    eye = torch.eye(3, dtype=Rk.dtype, device=Rk.device)
-    top = torch.cat((Rk @ Hrot @ Rn.transpose(-1, -2) + s * (a @ b), -s * a), -1)
-    bottom = torch.cat((s * b, (-s * eye).expand(N, B, 3, 3)), -1)
-    return torch.cat((top, bottom), -2)
+    return Rk @ Hrot @ Rn.transpose(-1, -2)
 
 
 # ---------------------------------------------------------------------------- joints
@@ -407,6 +401,7 @@ class Frame:
     pw: torch.Tensor
     u: torch.Tensor
     X: torch.Tensor | None = None
+    Y: torch.Tensor | None = None
 
     @classmethod
     def at(cls, maps: TreeMaps, g: Pose, q: Pose | None = None) -> Frame:
@@ -418,6 +413,15 @@ class Frame:
             self.X = world_jacobian(maps, self.Rw, self.u)
         return self.X
 
+    def com_jacobian(self, maps: TreeMaps) -> torch.Tensor:
+        """Y (N, B, 3, n): the world velocity of every body's centre of mass per unit column,
+        P - (Rw rho) x Theta."""
+        if self.Y is None:
+            X = self.jacobian(maps)
+            arm = (self.Rw @ maps.rho[:, :, None])[..., 0]  # (N, B, 3): Rw rho
+            self.Y = X[:, :, 3:] + _cross_columns(X[:, :, :3], arm)
+        return self.Y
+
     def index(self, rows: torch.Tensor) -> Frame:
         return Frame(
             self.g.index(rows),
@@ -426,6 +430,7 @@ class Frame:
             self.pw[rows],
             self.u[rows],
             None if self.X is None else self.X[rows],
+            None if self.Y is None else self.Y[rows],
         )
 
 
@@ -556,6 +561,7 @@ class ArticulatedEngine:
     def problem(self, s: FusedArticulatedState, x0: Pose | None = None) -> NewtonProblem:
         maps, cur = self.maps, s.frame
         last: list = [None, None]  # (x, its Frame): the last iterate made or read
+        cached: list = [None]  # the Jacobian's left factor at g_k
 
         def frame(x: Pose) -> Frame:
             if last[0] is not x:
@@ -569,12 +575,23 @@ class ArticulatedEngine:
             return r + self._joint_terms(cur.q, nxt.q)
 
         def jac(x: Pose) -> torch.Tensor:
+            # blockdiag(H_world) in closed form (module docstring): the rotational blocks
+            # Theta_k^T R_k H_rot(W) R_n^T Theta_n, and the translational ones -(m/h) Y_k^T Y_n with Y
+            # the centre of mass's world velocity per column
             nxt = frame(x)
-            Xn = nxt.jacobian(maps)
-            N, B, _, n = Xn.shape
-            HX = torch.bmm(hessian_world(maps, cur.Rw, nxt.Rw).reshape(N * B, 6, 6), Xn.reshape(N * B, 6, n))
-            J = _flat(cur.jacobian(maps)).transpose(-1, -2) @ HX.reshape(N, 6 * B, n)
-            return J + self._joint_jacobian(cur.q, nxt.q)
+            Tn = nxt.jacobian(maps)[:, :, :3]
+            N, B, _, n = Tn.shape
+            HT = torch.bmm(rotational_world(maps, cur.Rw, nxt.Rw).reshape(N * B, 3, 3), Tn.reshape(N * B, 3, n))
+            right = torch.cat((HT.reshape(N, B, 3, n), -nxt.com_jacobian(maps)), 2).reshape(N, 6 * B, n)
+            return torch.bmm(left(), right) + self._joint_jacobian(cur.q, nxt.q)
+
+        def left() -> torch.Tensor:
+            """(N, n, 6B): [Theta_k; (m/h) Y_k]^T, once per step."""
+            if cached[0] is None:
+                s_ = (maps.mass / maps.h)[:, None, None]
+                Xk = cur.jacobian(maps)
+                cached[0] = torch.cat((Xk[:, :, :3], s_ * cur.com_jacobian(maps)), 2).flatten(1, 2).transpose(1, 2)
+            return cached[0]
 
         def retract(x: Pose, delta: torch.Tensor) -> Pose:
             q_next = advance(maps, frame(x).q, delta)
