@@ -12,11 +12,12 @@ g_k^{-1} g_{k+1}), so the Newton iterates agree to rounding. What changes is how
   DoF on a reduced tree): rotation rows Theta = M own with own_b = Rw_b E_b (the world axes of b's
   joint), position rows P = M V with V_b = Theta_parent(b) x u_b. The reference builds A (dim
   columns, body frame) body by body, then multiplies by T(g) (dim x n).
-- Residual and Jacobian with the body-frame kinetic terms moved to the world frame: covectors
-  rotated per body (R_b c), and each 6 x 6 mixed-Hessian block as
-      [[R_k H_rot(W) R_n^T + s hat(a) hat(b), -s hat(a)], [s hat(b), -s I]],
-  a = R_k rho, b = R_n rho, s = m / h (`kinetic.se3_mixed_hessian` conjugated; H_rot linear in W);
-  then r = X_k^T c_world and J = X_k^T blockdiag(H_world) X_{k+1} as batched products over 6B rows.
+- Residual and Jacobian with the body-frame kinetic terms moved to the world frame: covectors rotated
+  per body (R_b c), r = X_k^T c_world; each body's 6 x 6 mixed-Hessian block conjugated to the world
+  frame is [[R_k H_rot(W) R_n^T + s hat(a) hat(b), -s hat(a)], [s hat(b), -s I]] (a = R_k rho,
+  b = R_n rho, s = m / h; `kinetic.se3_mixed_hessian`, H_rot linear in W), so
+      J = sum_b Theta_k^T R_k H_rot R_n^T Theta_n - s Y_k^T Y_n,   Y = P - (R rho) x Theta
+  (Y: the centre of mass's world velocity per column): one batched product over 6B rows.
 - Joint damping: the reduced velocity estimate and its Jacobian per body (a joint's DoF move only its
   own relative rotation, so d nu / d delta is block diagonal), scattered into the n x n matrix.
 - The Newton loop is `solvers.newton.solve`'s (with `restrict`, so at large batch the last
@@ -75,10 +76,11 @@ class TreeMaps:
     the free root's translation columns. joint_mode: the unknown moves the joints (parent-relative
     rotations; reduced trees, and every tree stored with parent rotations) rather than the world
     attitudes of an unreduced world-rotation tree. Jd (B, 3, 3), mass (B,), rho (B, 3): the kinetic
-    parameters; hess_map (B, 9, 36): W.flatten() @ hess_map = the body's 6 x 6 mixed-Hessian block.
+    parameters; rot_map (B, 9, 9): W.flatten() @ rot_map = the body's rotational mixed-Hessian block.
     gamma (3,), first_moment (B, 3), gmass (B,): the world gravity's field and moments, or None.
-    damping (n,) or None; dof_body (n,), dof_row (n,): the body and the row of its padded 3-column
-    joint block (Epad (B, 3, 3)) of every reduced column."""
+    damping (n,) or None; Epad (B, 3, 3): each joint's columns padded to three; damp_index /
+    damp_source: where the entries of every joint's own block of d nu / d delta go in the n x n matrix,
+    and where they come from in (B, 3, 3)."""
 
     tree: Tree
     h: float
@@ -98,8 +100,6 @@ class TreeMaps:
     gmass: torch.Tensor | None
     damping: torch.Tensor | None
     Epad: torch.Tensor
-    dof_body: torch.Tensor
-    dof_row: torch.Tensor
     damp_index: torch.Tensor  # flat (row * n + col) of every rotational entry of a joint's own block
     damp_source: torch.Tensor  # flat (body * 9 + i * 3 + j) of the same entries in (B, 3, 3)
     reduced: bool
@@ -172,8 +172,6 @@ def _static(tree: Tree, reduced: bool, dtype: torch.dtype, device: torch.device)
         "E": E,
         "Vsel": Vsel,
         "Epad": Epad,
-        "dof_body": torch.tensor(dof_body, dtype=torch.long, device=device),
-        "dof_row": torch.tensor(dof_row, dtype=torch.long, device=device),
         "damp_index": torch.tensor(idx, dtype=torch.long, device=device),
         "damp_source": torch.tensor(src, dtype=torch.long, device=device),
     }
