@@ -33,6 +33,10 @@ few repeats, so a speed-up is a ratio taken under the same load. Keys:
                                 fused articulated engine and the reference problem alternately; with
                                 mujoco_rk4_dt1e-3_us_per_substep_tree5 (MuJoCo's RK4 on that tree's true
                                 model, one trajectory at a time; --articulated-only runs these alone)
+  articulated_training_tree5    {s_per_epoch_fused, s_per_epoch_reference, samples_per_epoch, start_s}: the
+                                default articulated command on a 5-body branched MuJoCo tree (112
+                                trajectories x 100 steps): seconds per epoch without the start, and the
+                                seconds of the least-squares start (train.start=auto)
   compile_s                     first compilation of the Newton step (runtime.compile=true)
   compiled_rollout_us_per_step_traj  the free body with the compiled step, batches 1000/10000
   threads, load_avg             torch threads used; `os.getloadavg()` before and after
@@ -77,7 +81,7 @@ from liedfl_cli.cli import CONF_DIR  # noqa: E402
 from liedfl_cli.commands.train import fit  # noqa: E402
 from liedfl_cli.config.factory import build_model  # noqa: E402
 from liedfl_cli.config.typed import typed  # noqa: E402
-from liedfl_cli.data.scenes import get_dataset  # noqa: E402
+from liedfl_cli.data.scenes import dataset_steps, get_dataset  # noqa: E402
 from liedfl_cli.lie import SE3, SO3, Pose, so3  # noqa: E402
 from liedfl_cli.models.liedflnn import LieDFLNN  # noqa: E402
 from liedfl_cli.models.true_scheme import physics_model  # noqa: E402
@@ -110,7 +114,8 @@ def epoch_seconds(overrides: list[str], epochs: int, repeats: int, data_dir: str
             with runtime.using(fused=fused):
                 model = build_model(run, ds)
                 t, c = time.perf_counter(), time.process_time()
-                out = fit(model, data, tcfg, int(run.dataset.train_steps), show_progress=False, log_epochs=False)
+                steps = dataset_steps(run.dataset, ds, "train_steps")  # a file's null: all its steps
+                out = fit(model, data, tcfg, steps, show_progress=False, log_epochs=False)
                 best[fused] = min(best[fused], (time.perf_counter() - t) / epochs)
                 cpu[fused] = min(cpu[fused], (time.process_time() - c) / epochs)
                 n = out["n_samples"]
@@ -285,6 +290,44 @@ def mujoco_rk4_us_per_substep(ds, dt: float = 1e-3, steps: int = 1000, repeats: 
     return best * 1e6
 
 
+def articulated_training(data_dir: str, quick: bool, log) -> dict:
+    """The default articulated command's training on a 5-body branched MuJoCo tree (ball joints, per-DoF
+    damping, 100 train trajectories x 100 steps, h 0.05; `liedfl train dataset=file dataset.path=<tree>
+    model.kinetic=articulated`): seconds per epoch (fused and reference, fit's epochs without the start)
+    and the seconds of its start, the prediction-weighted least-squares fit (`train.start=auto`)."""
+    from liedfl_cli.data.hdf5 import save_dataset
+    from liedfl_cli.data.mujoco_chain import chain_dataset
+
+    path = Path(data_dir) / "bench_tree5_branched.h5"
+    if not path.exists():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        ds = chain_dataset(parents="branched5", n_trajectories=112, steps=100, h=0.05, gravity=9.81, seed=9002)
+        save_dataset(ds, path)
+    overrides = ["dataset=file", f"dataset.path={path}", "model.kinetic=articulated"]
+    epochs = 2 if quick else 5
+    no_start = epoch_seconds([*overrides, "train.start=none"], epochs, 1 if quick else 2, data_dir)
+    run = typed(config(overrides, data_dir), "train")
+    ds, _ = get_dataset(run.dataset, data_dir)
+    data = ds.pose(ds.train_idx)
+    tcfg = dataclasses.replace(run.train, epochs=0, checkpoint_every=10**9)
+    starts = []
+    for _ in range(1 if quick else 2):
+        model = build_model(run, ds)
+        steps = dataset_steps(run.dataset, ds, "train_steps")  # a file's null: all its steps
+        starts.append(fit(model, data, tcfg, steps, show_progress=False, log_epochs=False)["start_seconds"])
+    out = {
+        "s_per_epoch_fused": no_start["fused"],
+        "s_per_epoch_reference": no_start["reference"],
+        "samples_per_epoch": no_start["n_samples"],
+        "start_s": min(starts),
+    }
+    log(
+        f"articulated training (5-body tree): {out['s_per_epoch_fused']:.3f} s/epoch "
+        f"(reference {out['s_per_epoch_reference']:.3f}), least-squares start {out['start_s']:.2f} s"
+    )
+    return out
+
+
 def articulated_rollouts(data_dir: str, quick: bool, log) -> dict:
     """Articulated rollout us per step per trajectory at batch 1 and 1,000 on the fused engine
     (`models.fused_articulated`) and the reference problem, alternately in this process (issue 34
@@ -367,6 +410,7 @@ def main() -> None:
     if args.fast_tier_only or args.baselines_only or args.articulated_only:
         if args.articulated_only:
             out["articulated_rollout_us_per_step_traj"] = articulated_rollouts(args.data_dir, q, log)
+            out["articulated_training_tree5"] = articulated_training(args.data_dir, q, log)
         if args.baselines_only:
             out["baseline_models"] = baseline_models(args.data_dir, q, log)
         if args.fast_tier_only:
@@ -416,6 +460,7 @@ def main() -> None:
 
     out["baseline_models"] = baseline_models(args.data_dir, q, log)
     out["articulated_rollout_us_per_step_traj"] = articulated_rollouts(args.data_dir, q, log)
+    out["articulated_training_tree5"] = articulated_training(args.data_dir, q, log)
 
     # rollouts
     budget, repeats = (0.3, 2) if q else (1.0, 3)
