@@ -4,6 +4,7 @@ one inside a function: a lazy import still makes a dependency)."""
 from __future__ import annotations
 
 import ast
+import functools
 from pathlib import Path
 
 PKG = Path(__file__).resolve().parents[1] / "liedfl_cli"
@@ -21,12 +22,20 @@ def _module_name(path: Path) -> str:
     return ".".join(parts)
 
 
-def _imports(path: Path) -> set[str]:
+@functools.cache
+def _tree(path: Path) -> ast.Module:
+    """The parsed source of `path`, once per process and only when a test asks (not at collection:
+    every pytest-xdist worker collects this module, and parsing the package takes ~1 s)."""
+    return ast.parse(path.read_text(), filename=str(path))
+
+
+@functools.cache
+def _imports(path: Path) -> frozenset[str]:
     """Absolute names of every module imported by `path` (relative imports resolved)."""
     mod = _module_name(path)
     package = mod if path.name == "__init__.py" else mod.rpartition(".")[0]
     out = set()
-    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+    for node in ast.walk(_tree(path)):
         if isinstance(node, ast.Import):
             out.update(a.name for a in node.names)
         elif isinstance(node, ast.ImportFrom):
@@ -38,13 +47,18 @@ def _imports(path: Path) -> set[str]:
                 prefix = node.module or ""
             out.add(prefix)
             out.update(f"{prefix}.{a.name}" for a in node.names)  # `from . import x` imports module x
-    return out
+    return frozenset(out)
 
 
 MODULES = {_module_name(p): p for p in sorted(PKG.rglob("*.py"))}
-GRAPH = {
-    m: {i for i in _imports(p) if i in MODULES and i != m and not m.startswith(i + ".")} for m, p in MODULES.items()
-}
+
+
+@functools.cache
+def _graph() -> dict[str, set[str]]:
+    """module -> the package's modules it imports (not itself, not its own parent packages)."""
+    return {
+        m: {i for i in _imports(p) if i in MODULES and i != m and not m.startswith(i + ".")} for m, p in MODULES.items()
+    }
 
 
 def _layer(mod: str) -> str:
@@ -107,11 +121,12 @@ def test_every_module_is_in_a_layer_of_the_table():
 def test_each_layer_imports_only_the_layers_below_it():
     """No whitelist: every import of a module in a layer goes to its own layer or one listed."""
     bad = []
+    graph = _graph()
     for m in MODULES:
         layer = _layer(m)
         if layer not in ALLOWED:
             continue
-        for i in GRAPH[m]:
+        for i in graph[m]:
             if i in ("liedfl_cli", "liedfl_cli.errors"):
                 continue
             if _layer(i) != layer and _layer(i) not in ALLOWED[layer]:
@@ -127,13 +142,14 @@ def test_there_are_no_import_cycles():
     on_stack: set[str] = set()
     cycles: list[list[str]] = []
     counter = [0]
+    graph = _graph()
 
     def visit(v: str) -> None:
         index[v] = low[v] = counter[0]
         counter[0] += 1
         stack.append(v)
         on_stack.add(v)
-        for w in GRAPH[v]:
+        for w in graph[v]:
             if w not in index:
                 visit(w)
                 low[v] = min(low[v], low[w])
@@ -150,7 +166,7 @@ def test_there_are_no_import_cycles():
             if len(comp) > 1:
                 cycles.append(sorted(comp))
 
-    for v in GRAPH:
+    for v in graph:
         if v not in index:
             visit(v)
     assert not cycles, cycles
@@ -158,8 +174,9 @@ def test_there_are_no_import_cycles():
 
 def test_the_graph_is_not_trivially_empty():
     """Guards the checks above against a broken parser: known edges must be seen."""
-    assert "liedfl_cli.models.base" in GRAPH["liedfl_cli.models.liedflnn"]
-    assert "liedfl_cli.solvers.newton" in GRAPH["liedfl_cli.solvers.rollout"]
+    graph = _graph()
+    assert "liedfl_cli.models.base" in graph["liedfl_cli.models.liedflnn"]
+    assert "liedfl_cli.solvers.newton" in graph["liedfl_cli.solvers.rollout"]
     assert (
         _layer("liedfl_cli.cli") == "pipeline"
         and _layer("liedfl_cli.commands.train") == "commands"
@@ -172,7 +189,7 @@ def _concrete_model_classes() -> set[str]:
     names = set()
     for m, p in MODULES.items():
         if _layer(m) == "models" and m != "liedfl_cli.models.base":
-            names |= {n.name for n in ast.walk(ast.parse(p.read_text())) if isinstance(n, ast.ClassDef)}
+            names |= {n.name for n in ast.walk(_tree(p)) if isinstance(n, ast.ClassDef)}
     return names
 
 
@@ -185,7 +202,7 @@ def test_no_code_outside_models_tests_a_concrete_model_class_or_probes_its_attri
     for m, p in MODULES.items():
         if _layer(m) == "models":
             continue
-        for node in ast.walk(ast.parse(p.read_text())):
+        for node in ast.walk(_tree(p)):
             if not isinstance(node, ast.Call) or not isinstance(node.func, ast.Name) or len(node.args) < 2:
                 continue
             first, second = node.args[0], node.args[1]
