@@ -1,12 +1,16 @@
-"""Every number in docs/results.md's tables is in a raw record under docs/bench/, or its section says it
-is historical (measured before records kept the machine; its run folders are gone).
+"""Every number in the tables of docs/results.md and docs/benchmarks.md is in a raw record under docs/bench/,
+or its section (or its row) says it is historical (measured before records kept the machine; its run folders
+are gone).
 
 Sections are the page's `##` / `###` headings. A table number (a decimal, a number in scientific notation
 or an integer of at least 4 digits, in a row of a markdown table) matches a record when some number in
 some docs/bench/*.json (any depth) or docs/bench/*.md prints as it (rounded to the printed digits, or
 truncated to them). Not brittle: any record may hold
 it (a number quoted in two sections needs one record), settings such as step counts (integers below 1000)
-are not checked, and a section opts out only by saying "historical" in its text, which the reader sees.
+are not checked, and a section opts out only by saying "historical" in its text, which the reader sees; a
+single row opts out the same way, by saying "historical" in one of its cells. Derived numbers (ratios,
+sums, per-unit conversions) cannot be checked: a page keeps them out of its tables, in prose that states
+the derivation.
 """
 
 from __future__ import annotations
@@ -14,10 +18,15 @@ from __future__ import annotations
 import json
 import math
 import re
+import warnings
 from pathlib import Path
+
+import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "docs" / "results.md"
+BENCHMARKS = ROOT / "docs" / "benchmarks.md"
+PAGES = {"results.md": RESULTS, "benchmarks.md": BENCHMARKS}
 BENCH = ROOT / "docs" / "bench"
 NUMBER = re.compile(r"(?<![\w.])[-−]?(\d{1,3}(?:,\d{3})+|\d+)(\.\d+)?(?:e[-−+]?\d+)?(?![\w.])")
 
@@ -91,6 +100,8 @@ def table_numbers(body: str) -> list[str]:
             continue
         if j + 1 < len(lines) and set(lines[j + 1].strip()) <= set("|-: ") and lines[j + 1].strip():
             continue  # a header row
+        if historical(line):
+            continue  # the row says it is historical
         cells = line.strip().strip("|").split("|")
         for cell in cells[1:]:  # the first cell names the row
             cell = re.sub(r"`[^`]*`", "", cell)  # commands and keys: settings, not measurements
@@ -103,15 +114,50 @@ def table_numbers(body: str) -> list[str]:
     return out
 
 
-def historical(body: str) -> bool:
-    return "historical" in body.lower()
+def historical(text: str) -> bool:
+    return "historical" in text.lower()
 
 
-def unrecorded() -> dict[str, list[str]]:
+def prose(body: str) -> str:
+    """The body without its table rows (a row saying "historical" opts out only itself)."""
+    return "\n".join(line for line in body.splitlines() if not line.startswith("|"))
+
+
+# Sections of docs/benchmarks.md not yet brought to the rule, by heading prefix: listed, not hidden. The test
+# below reports them, and fails once one of them passes or is gone (then take it off this list).
+PENDING: dict[str, str] = {
+    "### Fast tier, 2026-11-29": "another engineer's section, not edited here",
+    "## Current figures: idle machine, 2026-11-28": "not yet reviewed",
+    "## Speed against error beside MuJoCo": "not yet reviewed",
+    "## The whole paper in one run": "not yet reviewed",
+    "## Baselines": "not yet reviewed",
+    "## Full paper reproduction: projection": "not yet reviewed",
+    "## Threads": "not yet reviewed",
+    "## Compilation": "not yet reviewed",
+    "## Idle figures of round 4": "not yet reviewed",
+    "### Round 8": "not yet reviewed",
+    "### Round 6 (2026-11-27, 18:30": "not yet reviewed",
+    "### Round 5": "not yet reviewed",
+    "### A few trajectories in Python floats": "not yet reviewed",
+    "### Full paper reproduction: measured jobs": "not yet reviewed",
+    "## Earlier: idle figures of round 3": "not yet reviewed",
+    "## Idle machine": "not yet reviewed",
+    "## Training step, fused": "not yet reviewed",
+    "## Learned models in rollout": "not yet reviewed",
+    "## Against the peer": "not yet reviewed",
+    "## Figures": "not yet reviewed",
+}
+
+
+def _pending(head: str) -> str | None:
+    return next((key for key in PENDING if head.startswith(key)), None)
+
+
+def unrecorded(page: Path = RESULTS) -> dict[str, list[str]]:
     values = record_values()
     bad: dict[str, list[str]] = {}
-    for head, body in sections(RESULTS.read_text()):
-        if historical(body):
+    for head, body in sections(page.read_text()):
+        if historical(prose(body)):
             continue
         missing = [t for t in table_numbers(body) if not matches(t, values)]
         if missing:
@@ -119,11 +165,24 @@ def unrecorded() -> dict[str, list[str]]:
     return bad
 
 
-def test_every_table_number_is_recorded_or_its_section_is_historical():
-    bad = unrecorded()
-    assert not bad, "numbers in docs/results.md tables with no record under docs/bench/ (mark the section " + (
+@pytest.mark.parametrize("name", list(PAGES))
+def test_every_table_number_is_recorded_or_its_section_is_historical(name):
+    bad = unrecorded(PAGES[name])
+    if name == "benchmarks.md":
+        bad = {h: v for h, v in bad.items() if _pending(h) is None}
+    assert not bad, f"numbers in docs/{name} tables with no record under docs/bench/ (mark the section " + (
         "historical or add the record): " + "; ".join(f"{h}: {', '.join(v[:8])}" for h, v in bad.items())
     )
+
+
+def test_pending_sections_are_still_pending():
+    """The allow-list only shrinks: each entry names a section that exists and still fails."""
+    bad = unrecorded(BENCHMARKS)
+    heads = [h for h, _ in sections(BENCHMARKS.read_text())]
+    for key, why in PENDING.items():
+        assert any(h.startswith(key) for h in heads), f"PENDING names no section of docs/benchmarks.md: {key}"
+        assert any(h.startswith(key) for h in bad), f"PENDING section now passes, take it off the list: {key}"
+        warnings.warn(f"docs/benchmarks.md: pending ({why}): {key}", stacklevel=1)
 
 
 def test_the_matcher_is_honest():
@@ -132,6 +191,8 @@ def test_the_matcher_is_honest():
     assert not matches("0.0537", values) and not matches("0.57", [0.5]) and not matches("2.3e-3", values)
     body = "| a | b |\n|---|---|\n| row 1 | 0.0536 / 7 | `x=0.5` 12,000 |\n"
     assert table_numbers(body) == ["0.0536", "12,000"]
+    row = "| a | b |\n|---|---|\n| row 1 | 0.0536 |\n| row 2 | 1,775 (historical: no record) |\n"
+    assert table_numbers(row) == ["0.0536"] and not historical(prose(row))
 
 
 def test_headline_sections_are_not_historical():
@@ -139,3 +200,16 @@ def test_headline_sections_are_not_historical():
     heads = {h: b for h, b in sections(RESULTS.read_text())}
     whole = next(b for h, b in heads.items() if h.startswith("## The whole paper in one run"))
     assert not historical(whole) and "docs/bench/paper_full.json" in whole
+
+
+def test_newest_benchmark_sections_are_not_historical():
+    """docs/benchmarks.md's current sections carry records: they may not opt out as a whole."""
+    heads = {h: b for h, b in sections(BENCHMARKS.read_text())}
+    for prefix, record in (
+        ("## Current figures", "docs/bench/bench_2026-11-28_idle.json"),
+        ("## Speed against error beside MuJoCo", "docs/bench/mujoco_vs_liedfl.json"),
+        ("## The whole paper in one run", "docs/bench/paper_full.json"),
+    ):
+        body = next(b for h, b in heads.items() if h.startswith(prefix))
+        assert not historical(prose(body)), f"docs/benchmarks.md {prefix!r} says historical"
+        assert record in body, f"docs/benchmarks.md {prefix!r} does not name {record}"
