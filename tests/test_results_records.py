@@ -127,10 +127,6 @@ def prose(body: str) -> str:
 # below reports them, and fails once one of them passes or is gone (then take it off this list).
 PENDING: dict[str, str] = {
     "### Fast tier, 2026-11-29": "another engineer's section, not edited here",
-    "## Current figures: idle machine, 2026-11-28": "not yet reviewed",
-    "## Speed against error beside MuJoCo": "not yet reviewed",
-    "## The whole paper in one run": "not yet reviewed",
-    "## Baselines": "not yet reviewed",
     "## Full paper reproduction: projection": "not yet reviewed",
     "## Threads": "not yet reviewed",
     "## Compilation": "not yet reviewed",
