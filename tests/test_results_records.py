@@ -127,9 +127,6 @@ def prose(body: str) -> str:
 # below reports them, and fails once one of them passes or is gone (then take it off this list).
 PENDING: dict[str, str] = {
     "### Fast tier, 2026-11-29": "another engineer's section, not edited here",
-    "## Full paper reproduction: projection": "not yet reviewed",
-    "## Threads": "not yet reviewed",
-    "## Compilation": "not yet reviewed",
     "## Idle figures of round 4": "not yet reviewed",
     "### Round 8": "not yet reviewed",
     "### Round 6 (2026-11-27, 18:30": "not yet reviewed",
