@@ -14,7 +14,7 @@ import pytest
 import torch
 from test_articulated_joints import _unit, mixed_tree, smooth_motion
 
-from liedfl_cli.lie import Pose
+from liedfl_cli.lie import Pose, so3
 from liedfl_cli.lie.tree import Tree
 from liedfl_cli.mechanics.forces import NNForce, RayleighNonlinearForce
 from liedfl_cli.models import fused_articulated as fa
@@ -190,3 +190,22 @@ def test_force_jacobians_in_closed_form_equal_autodiff(force_cls):
     J_auto = torch.stack(rows, -2)
     assert float(J_auto.abs().max()) > 1e-3
     assert _close(J, J_auto, 1e-12)
+
+
+def test_a_newton_failure_is_flagged_as_the_reference_flags_it():
+    """One iteration per step cannot reach the tolerance: both paths flag every step as failed and keep
+    the same last iterates; a second pose far off the first (0.6 rad on every attitude, 5 units on the
+    root: a start no step of h explains) fails on both, with finite poses (the careful iterations)."""
+    m, traj = _model("hinge-world damped, nn")
+    g0, g1 = traj.index((slice(None), 0)), traj.index((slice(None), 1))
+    opts = SolverOptions(tol=1e-12, max_iter=1)
+    a = m.with_path("fused").rollout(g0, g1, 5, opts)
+    b = m.with_path("reference").rollout(g0, g1, 5, opts)
+    assert not bool(a.converged.any()) and torch.equal(a.converged, b.converged)
+    assert _close(a.pose.R, b.pose.R, 1e-9) and _close(a.pose.p, b.pose.p, 1e-9)
+    fast = m.with_path("fused")
+    far = Pose(g1.R @ so3.exp(torch.full((5, 6, 3), 0.6, dtype=F64)), g1.p + 5.0)
+    opts = SolverOptions(tol=1e-10, max_iter=4)
+    a, b = fast.rollout(g0, far, 4, opts), m.with_path("reference").rollout(g0, far, 4, opts)
+    assert not bool(a.converged.any()) and not bool(b.converged.any())
+    assert bool(torch.isfinite(a.pose.R).all()) and bool(torch.isfinite(a.pose.p).all())
