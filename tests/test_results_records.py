@@ -127,11 +127,6 @@ def prose(body: str) -> str:
 # below reports them, and fails once one of them passes or is gone (then take it off this list).
 PENDING: dict[str, str] = {
     "### Fast tier, 2026-11-29": "another engineer's section, not edited here",
-    "## Idle figures of round 4": "not yet reviewed",
-    "### Round 8": "not yet reviewed",
-    "### Round 6 (2026-11-27, 18:30": "not yet reviewed",
-    "### Round 5": "not yet reviewed",
-    "### A few trajectories in Python floats": "not yet reviewed",
     "### Full paper reproduction: measured jobs": "not yet reviewed",
     "## Earlier: idle figures of round 3": "not yet reviewed",
     "## Idle machine": "not yet reviewed",
