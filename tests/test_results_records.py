@@ -127,10 +127,6 @@ def prose(body: str) -> str:
 # below reports them, and fails once one of them passes or is gone (then take it off this list).
 PENDING: dict[str, str] = {
     "### Fast tier, 2026-11-29": "another engineer's section, not edited here",
-    "## Training step, fused": "not yet reviewed",
-    "## Learned models in rollout": "not yet reviewed",
-    "## Against the peer": "not yet reviewed",
-    "## Figures": "not yet reviewed",
 }
 
 
