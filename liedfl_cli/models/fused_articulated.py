@@ -249,30 +249,49 @@ def forward_kinematics(maps: TreeMaps, g: Pose) -> tuple[torch.Tensor, torch.Ten
     return Rw, maps.ancestors @ u, u
 
 
-def _cross_columns(a: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-    """a x v column by column: a (..., 3, n), v (..., 3) -> (..., 3, n)."""
+def _cross_columns(a: torch.Tensor, v: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
+    """a x v column by column: a (..., 3, n), v (..., 3) -> (..., 3, n), written into `out` when given."""
     a0, a1, a2 = a.unbind(-2)
     v0, v1, v2 = (x[..., None] for x in v.unbind(-1))
-    return torch.stack((a1 * v2 - a2 * v1, a2 * v0 - a0 * v2, a0 * v1 - a1 * v0), -2)
+    out = torch.empty_like(a) if out is None else out
+    for i, (p, q, r, t) in enumerate(((a1, v2, a2, v1), (a2, v0, a0, v2), (a0, v1, a1, v0))):
+        torch.mul(p, q, out=out[..., i, :])
+        out[..., i, :].sub_(r * t)
+    return out
 
 
-def world_jacobian(maps: TreeMaps, Rw: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-    """X (N, B, 6, n): body b's world-frame twist (rotation rows, then the velocity of its origin) per
-    unit of the unknown's columns; the body-frame FK Jacobian A~ = A T is blockdiag(Rw_b^T, Rw_b^T) X."""
+def world_jacobian(maps: TreeMaps, Rw: torch.Tensor, u: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(Theta, P), each (N, B, 3, n): body b's world-frame rotation and the velocity of its origin per
+    unit of the unknown's columns; the body-frame FK Jacobian A~ = A T is blockdiag(Rw_b^T, Rw_b^T)
+    [Theta; P]."""
     own = torch.einsum("Nbij,bjn->Nbin", Rw, maps.E)  # world axes of each body's own joint
     N, B, _, n = own.shape
     theta = (maps.ancestors @ own.reshape(N, B, 3 * n)).reshape(N, B, 3, n) if maps.joint_mode else own
-    V = _cross_columns(theta[:, maps.parent_index], u)  # theta_parent x u_b (root row replaced below)
-    root = (Rw[:, 0] @ maps.Vsel) if maps.tree.free_root else V.new_zeros(N, 3, n)
-    V = torch.cat((root[:, None], V[:, 1:]), 1)
+    V = _cross_columns(theta[:, maps.parent_index], u)  # theta_parent x u_b (the root's row replaced)
+    if maps.tree.free_root:
+        V[:, 0] = Rw[:, 0] @ maps.Vsel
+    else:
+        V[:, 0] = 0.0
     P = (maps.ancestors @ V.reshape(N, B, 3 * n)).reshape(N, B, 3, n)
-    return torch.cat((theta, P), 2)
+    return theta, P
 
 
-def to_world(Rw: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
-    """Body-frame covectors c (N, B, 6) -> world frame (R_b c_w, R_b c_v), flat (N, 6B, 1)."""
+def _rows(X: torch.Tensor) -> torch.Tensor:
+    """(N, B, 3, n) -> (N, 3B, n)."""
+    return X.reshape(X.shape[0], -1, X.shape[-1])
+
+
+def covector_rows(Rw: torch.Tensor, c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Body-frame covectors c (N, B, 6) -> their world-frame rotation and translation parts
+    (R_b c_w, R_b c_v), each (N, 3B, 1)."""
     N, B = c.shape[0], c.shape[1]
-    return (Rw[:, :, None] @ c.reshape(N, B, 2, 3, 1)).reshape(N, 6 * B, 1)
+    cw = (Rw[:, :, None] @ c.reshape(N, B, 2, 3, 1)).reshape(N, B, 2, 3)
+    return cw[:, :, 0].reshape(N, 3 * B, 1), cw[:, :, 1].reshape(N, 3 * B, 1)
+
+
+def pair(A: tuple[torch.Tensor, torch.Tensor], c: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
+    """Theta^T c_w + P^T c_v, (N, n): a world covector on the unknown's columns."""
+    return (_rows(A[0]).transpose(-1, -2) @ c[0] + _rows(A[1]).transpose(-1, -2) @ c[1])[..., 0]
 
 
 def _world_increment(Rw, pw, Rw2, pw2) -> tuple[torch.Tensor, torch.Tensor]:
@@ -398,7 +417,7 @@ class Frame:
     Rw: torch.Tensor
     pw: torch.Tensor
     u: torch.Tensor
-    X: torch.Tensor | None = None
+    X: tuple[torch.Tensor, torch.Tensor] | None = None
     Y: torch.Tensor | None = None
 
     @classmethod
@@ -406,7 +425,8 @@ class Frame:
         Rw, pw, u = forward_kinematics(maps, g)
         return cls(g, moving_coordinates(maps, g, Rw) if q is None else q, Rw, pw, u)
 
-    def jacobian(self, maps: TreeMaps) -> torch.Tensor:
+    def jacobian(self, maps: TreeMaps) -> tuple[torch.Tensor, torch.Tensor]:
+        """(Theta, P) at this pose (`world_jacobian`), computed once."""
         if self.X is None:
             self.X = world_jacobian(maps, self.Rw, self.u)
         return self.X
@@ -415,9 +435,9 @@ class Frame:
         """Y (N, B, 3, n): the world velocity of every body's centre of mass per unit column,
         P - (Rw rho) x Theta."""
         if self.Y is None:
-            X = self.jacobian(maps)
-            arm = (self.Rw @ maps.rho[:, :, None])[..., 0]  # (N, B, 3): Rw rho
-            self.Y = X[:, :, 3:] + _cross_columns(X[:, :, :3], arm)
+            theta, P = self.jacobian(maps)
+            arm = torch.einsum("Nbij,bj->Nbi", self.Rw, maps.rho)  # (N, B, 3): Rw rho
+            self.Y = _cross_columns(theta, arm).add_(P)
         return self.Y
 
     def index(self, rows: torch.Tensor) -> Frame:
@@ -427,7 +447,7 @@ class Frame:
             self.Rw[rows],
             self.pw[rows],
             self.u[rows],
-            None if self.X is None else self.X[rows],
+            None if self.X is None else (self.X[0][rows], self.X[1][rows]),
             None if self.Y is None else self.Y[rows],
         )
 
@@ -453,11 +473,6 @@ class FusedArticulatedState:
         )
 
 
-def _flat(X: torch.Tensor) -> torch.Tensor:
-    """(N, B, 6, n) -> (N, 6B, n)."""
-    return X.reshape(X.shape[0], -1, X.shape[-1])
-
-
 class ArticulatedEngine:
     """The fused rollout of one model (its parameters read once, `build_maps`)."""
 
@@ -471,10 +486,10 @@ class ArticulatedEngine:
         c = kinetic_d2(maps, *_world_increment(prev.Rw, prev.pw, cur.Rw, cur.pw))
         if maps.gamma is not None:
             assert maps.first_moment is not None and maps.gmass is not None
-            up = cur.Rw.transpose(-1, -2) @ maps.gamma  # (N, B, 3): R^T gamma
+            up = torch.einsum("Nbji,j->Nbi", cur.Rw, maps.gamma)  # (N, B, 3): R^T gamma
             fm = maps.first_moment.expand_as(up)
             c = c - maps.h * torch.cat((torch.linalg.cross(fm, up, dim=-1), maps.gmass[:, None] * up), -1)
-        r = (_flat(cur.jacobian(maps)).transpose(-1, -2) @ to_world(cur.Rw, c))[..., 0]
+        r = pair(cur.jacobian(maps), covector_rows(cur.Rw, c))
         if maps.mlp is not None:
             r = r + self._coordinate_potential(cur.g)
         return r + self._joint_terms(prev.q, cur.q)
@@ -569,7 +584,7 @@ class ArticulatedEngine:
         def f(x: Pose) -> torch.Tensor:
             nxt = frame(x)
             c = kinetic_d1(maps, *_world_increment(cur.Rw, cur.pw, nxt.Rw, nxt.pw))
-            r = s.const + (_flat(cur.jacobian(maps)).transpose(-1, -2) @ to_world(cur.Rw, c))[..., 0]
+            r = s.const + pair(cur.jacobian(maps), covector_rows(cur.Rw, c))
             return r + self._joint_terms(cur.q, nxt.q)
 
         def jac(x: Pose) -> torch.Tensor:
@@ -577,18 +592,21 @@ class ArticulatedEngine:
             # Theta_k^T R_k H_rot(W) R_n^T Theta_n, and the translational ones -(m/h) Y_k^T Y_n with Y
             # the centre of mass's world velocity per column
             nxt = frame(x)
-            Tn = nxt.jacobian(maps)[:, :, :3]
+            Tn = nxt.jacobian(maps)[0]
             N, B, _, n = Tn.shape
             HT = torch.bmm(rotational_world(maps, cur.Rw, nxt.Rw).reshape(N * B, 3, 3), Tn.reshape(N * B, 3, n))
-            right = torch.cat((HT.reshape(N, B, 3, n), -nxt.com_jacobian(maps)), 2).reshape(N, 6 * B, n)
-            return torch.bmm(left(), right) + self._joint_jacobian(cur.q, nxt.q)
+            Lt, Ly = left()
+            J = torch.bmm(Lt, HT.reshape(N, 3 * B, n)).sub_(torch.bmm(Ly, _rows(nxt.com_jacobian(maps))))
+            return J + self._joint_jacobian(cur.q, nxt.q)
 
-        def left() -> torch.Tensor:
-            """(N, n, 6B): [Theta_k; (m/h) Y_k]^T, once per step."""
+        def left() -> tuple[torch.Tensor, torch.Tensor]:
+            """(Theta_k^T, ((m/h) Y_k)^T), each (N, n, 3B), once per step."""
             if cached[0] is None:
                 s_ = (maps.mass / maps.h)[:, None, None]
-                Xk = cur.jacobian(maps)
-                cached[0] = torch.cat((Xk[:, :, :3], s_ * cur.com_jacobian(maps)), 2).flatten(1, 2).transpose(1, 2)
+                cached[0] = (
+                    _rows(cur.jacobian(maps)[0]).transpose(1, 2),
+                    _rows(s_ * cur.com_jacobian(maps)).transpose(1, 2),
+                )
             return cached[0]
 
         def retract(x: Pose, delta: torch.Tensor) -> Pose:
