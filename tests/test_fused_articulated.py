@@ -26,6 +26,8 @@ H = 0.02
 
 
 def _tree(name: str) -> Tree:
+    if name.startswith("universal"):  # test_articulated_joints' tree: universal, hinge, ball, weld joints
+        return mixed_tree(name.split("-")[1], free_root=not name.endswith("pinned"))
     z = [0.0, 0.0, 0.0]
     parents = [-1, 0, 0, 2, 1, 4]
     offsets = [z, [0.4, 0.0, 0.1], [0.0, 0.3, 0.0], [0.2, 0.2, 0.0], [0.0, 0.0, 0.5], [0.1, -0.3, 0.2]]
@@ -55,6 +57,8 @@ CASES = {
     "hinge-parent damped, mlp, forces": ("hinge-parent", ("uniform_gravity", "mlp"), ("rayleigh", "nn")),
     "pinned-world damped": ("pinned-world", ("uniform_gravity",), ("rayleigh",)),
     "pinned-parent, mlp": ("pinned-parent", ("mlp",), ()),
+    "universal-world damped, nn": ("universal-world", ("uniform_gravity",), ("rayleigh", "nn")),
+    "universal-parent pinned, damped": ("universal-parent-pinned", ("uniform_gravity", "mlp"), ("rayleigh",)),
 }
 
 
@@ -113,7 +117,10 @@ def test_residual_jacobian_warm_start_and_retraction_equal_the_reference(case):
             x = xr
 
 
-@pytest.mark.parametrize("case", ["ball-world damped", "hinge-parent damped, mlp, forces", "pinned-world damped"])
+@pytest.mark.parametrize(
+    "case",
+    ["ball-world damped", "hinge-parent damped, mlp, forces", "pinned-world damped", "universal-world damped, nn"],
+)
 def test_rollouts_equal_the_reference_to_rounding(case):
     m, traj = _model(case)
     g0, g1 = traj.index((slice(None), 0)), traj.index((slice(None), 1))
@@ -152,19 +159,18 @@ def test_rows_that_converge_early_leave_the_batch_without_changing_the_others(mo
 
 
 def test_models_the_engine_does_not_serve_keep_the_reference_problem():
-    uni = ArticulatedLieDFLNN(mixed_tree("world"), H, potential=("uniform_gravity",), forces=("rayleigh",))
-    assert "universal" in (fa.applies(uni) or "")
+    world_forces = ArticulatedLieDFLNN(_tree("ball-world"), H, forces=("nn",))
+    assert "forces" in (fa.applies(world_forces) or "")
     generic = ArticulatedLieDFLNN(_tree("ball-world"), H, residual="generic", forces=())
     assert fa.applies(generic) == "residual=generic"
     m, traj = _model("ball-world damped")
     g0, g1 = traj.index((slice(None), 0)), traj.index((slice(None), 1))
     with torch.no_grad():
-        assert isinstance(
-            uni.with_path("fused").implicit_start(
-                *(smooth_motion(uni.tree, 2, 1, H).index((slice(None), k)) for k in (0, 1))
-            ),
-            ArticulatedState,
+        pair = smooth_motion(world_forces.tree, 2, 1, H)
+        start = world_forces.with_path("fused").implicit_start(
+            pair.index((slice(None), 0)), pair.index((slice(None), 1))
         )
+        assert isinstance(start, ArticulatedState)
         assert isinstance(m.with_path("reference").implicit_start(g0, g1), ArticulatedState)
     # a recorded gradient: the engine reads the parameters detached, so the reference problem serves
     with torch.enable_grad():

@@ -24,11 +24,13 @@ g_k^{-1} g_{k+1}), so the Newton iterates agree to rounding. What changes is how
   iterations run on the rows still iterating); the poses and FK of the last retracted iterate are
   reused by the residual and the Jacobian at that iterate.
 
-Applies (`applies`) to the fast residual with no joint-space forces other than per-DoF damping, world
-potentials of uniform gravity (learned or declared) and/or an MLP of the coordinates, and joints whose
-motion basis is constant (free, ball, hinge, weld; a universal joint's is not). Other models keep the
-reference problem. Shapes: N trajectories, B bodies, n the unknown's columns (the reduced DoF, or the
-coordinates' tangent dim on an unreduced tree), m = 1 (free root) or 0.
+Applies (`applies`) to the fast residual, world potentials of uniform gravity (learned or declared)
+and/or an MLP of the coordinates, every joint type (free, ball, universal, hinge, weld; a universal
+joint's first axis turns with its parent, so its damping and forces take the least-squares rates of the
+reference, `_joint_terms_moving_basis`), and joint-space forces on trees whose unknown moves the joints
+(reduced, or stored with parent rotations). Other models keep the reference problem. Shapes: N
+trajectories, B bodies, n the unknown's columns (the reduced DoF, or the coordinates' tangent dim on an
+unreduced tree), m = 1 (free root) or 0.
 """
 
 from __future__ import annotations
@@ -48,7 +50,7 @@ from ..mechanics.potentials import GravityPotential, UniformGravityPotential
 from ..solvers.newton import NewtonProblem
 from . import mlp_derivatives
 
-SUPPORTED_JOINTS = ("free", "ball", "hinge", "weld")
+SUPPORTED_JOINTS = ("free", "ball", "universal", "hinge", "weld")
 
 
 def applies(model) -> str | None:
@@ -90,6 +92,8 @@ class TreeMaps:
     offsets: torch.Tensor
     E: torch.Tensor
     Vsel: torch.Tensor
+    U: torch.Tensor  # (B, 3, n): a universal joint's first axis, fixed in the parent's frame
+    universal: bool  # some joint is universal (its motion basis depends on the pose)
     joint_mode: bool
     Jd: torch.Tensor
     mass: torch.Tensor
@@ -124,6 +128,7 @@ def _static(tree: Tree, reduced: bool, dtype: torch.dtype, device: torch.device)
     ax = torch.tensor(tree.axes_array(), dtype=dtype, device=device)
     E = torch.zeros(B, 3, n, dtype=dtype, device=device)
     Epad = torch.zeros(B, 3, 3, dtype=dtype, device=device)
+    U = torch.zeros(B, 3, n, dtype=dtype, device=device)
     Vsel = torch.zeros(3, n, dtype=dtype, device=device)
     eye = torch.eye(3, dtype=dtype, device=device)
     dof_body, dof_row = [], []
@@ -142,6 +147,11 @@ def _static(tree: Tree, reduced: bool, dtype: torch.dtype, device: torch.device)
             Epad[b, :, 0] = ax[b, 0]
             dof_body.append(b)
             dof_row.append(0)
+        elif kind == "universal":  # exp(d1 a1) R exp(d2 a2): a1 in the parent's frame, a2 in the body's
+            U[b, :, c] = ax[b, 0]
+            E[b, :, c + 1] = ax[b, 1]
+            dof_body += [b, b]
+            dof_row += [-1, -1]  # its basis moves: damping and forces take the general path
     # the rotational entries of every joint's own block of d nu / d delta (the damping's Jacobian)
     idx, src = [], []
     for i in range(n):
@@ -171,6 +181,8 @@ def _static(tree: Tree, reduced: bool, dtype: torch.dtype, device: torch.device)
         "offsets": torch.tensor(tree.offsets, dtype=dtype, device=device),
         "E": E,
         "Vsel": Vsel,
+        "U": U,
+        "universal": "universal" in [k for k, _ in _columns(tree, reduced)],
         "Epad": Epad,
         "damp_index": torch.tensor(idx, dtype=torch.long, device=device),
         "damp_source": torch.tensor(src, dtype=torch.long, device=device),
@@ -261,6 +273,10 @@ def world_jacobian(maps: TreeMaps, Rw: torch.Tensor, u: torch.Tensor) -> tuple[t
     unit of the unknown's columns; the body-frame FK Jacobian A~ = A T is blockdiag(Rw_b^T, Rw_b^T)
     [Theta; P]."""
     own = torch.einsum("Nbij,bjn->Nbin", Rw, maps.E)  # world axes of each body's own joint
+    if maps.universal:  # a universal joint's first axis turns with the parent (the world's for a root)
+        eye = torch.eye(3, dtype=Rw.dtype, device=Rw.device).expand(Rw.shape[0], 1, 3, 3)
+        Rp = torch.cat((eye, Rw[:, maps.parent_index[1:]]), 1)
+        own = own + torch.einsum("Nbij,bjn->Nbin", Rp, maps.U)
     N, B, _, n = own.shape
     theta = (maps.ancestors @ own.reshape(N, B, 3 * n)).reshape(N, B, 3, n) if maps.joint_mode else own
     V = _cross_columns(theta[:, maps.parent_index], u)  # theta_parent x u_b (the root's row replaced)
@@ -356,6 +372,8 @@ def advance(maps: TreeMaps, q: Pose, d: torch.Tensor) -> Pose:
     N, B = q.R.shape[0], q.R.shape[1]
     w = (d @ maps.E.reshape(B * 3, -1).T).reshape(N, B, 3)
     R = q.R @ so3.exp(w)
+    if maps.universal:
+        R = so3.exp((d @ maps.U.reshape(B * 3, -1).T).reshape(N, B, 3)) @ R
     p = q.p
     if maps.tree.free_root:
         w0, v0 = w[:, 0], d @ maps.Vsel.T
@@ -493,15 +511,17 @@ class ArticulatedEngine:
         r = pair(cur.jacobian(maps), covector_rows(cur.Rw, c))
         if maps.mlp is not None:
             r = r + self._coordinate_potential(cur.g)
-        return r + self._joint_terms(prev.q, cur.q)
+        return r + self._joint_terms(prev.q, cur.q, cur.q)
 
-    def _joint_terms(self, q: Pose, q2: Pose) -> torch.Tensor | float:
+    def _joint_terms(self, q: Pose, q2: Pose, at: Pose) -> torch.Tensor | float:
         """(h/2) of the joint-space forces and damping of the interval (q, q2), on the unknown's columns
-        (N, n): S0^T sum_f F(q, nu~) - d nu~ S0 (T_k^T C_k^T = S0^T: the reference's T(g_k)^T and
-        C(g_k)^T together); 0 without either."""
+        at g_k (joint coordinates `at`), (N, n): S0^T sum_f F(q, nu~) - d nu~ S0 (T_k^T C_k^T = S(q_k)^T:
+        the reference's T(g_k)^T and C(g_k)^T together); 0 without either."""
         maps = self.maps
         if maps.damping is None and not maps.forces:
             return 0.0
+        if maps.universal:
+            return self._joint_terms_moving_basis(q, q2, at)
         nu = joint_velocity(maps, q, q2)
         tau = nu.new_zeros(nu.shape[0], maps.S0.shape[1])
         if maps.forces:
@@ -518,6 +538,8 @@ class ArticulatedEngine:
         maps = self.maps
         if maps.damping is None and not maps.forces:
             return 0.0
+        if maps.universal:
+            return self._joint_jacobian_moving_basis(q, q2)
         W = q.R.transpose(-1, -2) @ q2.R
         J = damping_jacobian(maps, W) if maps.damping is not None else 0.0
         if maps.forces:
@@ -529,6 +551,39 @@ class ArticulatedEngine:
                 dF = dF + force_jacobian_xi(force, q, nu)
             dnu = kinetic.velocity_estimate_jacobian(G, inc, maps.h)
             J = J + 0.5 * maps.h * (maps.S0.T @ dF @ dnu @ maps.S0)
+        return J
+
+    def _joint_terms_moving_basis(self, q: Pose, q2: Pose, at: Pose) -> torch.Tensor:
+        """`_joint_terms` with a universal joint: the forces through S(q_k)^T (T_k^T C_k^T at `at`), the
+        DoF rates by least squares on the mean basis of both ends (`lie.joints.reduce_joint_velocity`)."""
+        maps, tree = self.maps, self.maps.tree
+        nu = joint_velocity(maps, q, q2)
+        tau = nu.new_zeros(nu.shape[0], tree.n_dof)
+        if maps.forces:
+            F = maps.forces[0](q, nu)
+            for force in maps.forces[1:]:
+                F = F + force(q, nu)
+            tau = tau + (F[:, None, :] @ jt.motion_basis(tree, at))[:, 0]
+        if maps.damping is not None:
+            tau = tau - maps.damping * jt.reduce_joint_velocity(tree, q, q2, nu)
+        return 0.5 * maps.h * tau
+
+    def _joint_jacobian_moving_basis(self, q: Pose, q2: Pose) -> torch.Tensor:
+        """d `_joint_terms_moving_basis` / d delta: S(q)^T dF dnu S(q2) and the damping's least-squares
+        rates with both bases held fixed (`articulated.reduced_velocity_jacobian`)."""
+        maps, tree = self.maps, self.maps.tree
+        dnu = kinetic.velocity_estimate_jacobian(tree.group, increment(q, q2), maps.h)
+        S2 = jt.motion_basis(tree, q2)
+        J = dnu.new_zeros(dnu.shape[0], tree.n_dof, tree.n_dof)
+        if maps.damping is not None:
+            dred = jt.reduce_joint_velocity(tree, q, q2, dnu @ S2, columns=True)
+            J = J - 0.5 * maps.h * maps.damping[:, None] * dred
+        if maps.forces:
+            nu = joint_velocity(maps, q, q2)
+            dF = force_jacobian_xi(maps.forces[0], q, nu)
+            for force in maps.forces[1:]:
+                dF = dF + force_jacobian_xi(force, q, nu)
+            J = J + 0.5 * maps.h * (jt.motion_basis(tree, q).transpose(-1, -2) @ dF @ dnu @ S2)
         return J
 
     def _coordinate_potential(self, g: Pose) -> torch.Tensor:
@@ -587,7 +642,7 @@ class ArticulatedEngine:
             c = kinetic_d1(maps, *_world_increment(cur.Rw, cur.pw, nxt.Rw, nxt.pw))
             cw, cv = covector_rows(cur.Rw, c)
             r = s.const + (left()[0] @ torch.cat((cw, cv), 1))[..., 0]
-            return r + self._joint_terms(cur.q, nxt.q)
+            return r + self._joint_terms(cur.q, nxt.q, cur.q)
 
         def jac(x: Pose) -> torch.Tensor:
             # blockdiag(H_world) in closed form (module docstring): the rotational blocks
