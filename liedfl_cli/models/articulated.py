@@ -793,24 +793,32 @@ class ArticulatedLieDFLNN(ImplicitModel):
             Hk = Hk - 0.5 * self.h * self.dof_damper.coefficients()[:, None] * dnu
         return Hk
 
-    def _batch_residual(self, b: ArticulatedBatch, params: tuple | None = None) -> torch.Tensor:
-        """The residual of a batch, (N, dim) or reduced (N, n). params: (J_d (B, 3, 3), m (B,), rho (B, 3),
-        d (n,) or None) to use instead of the model's (the identification's regressor: the residual is
-        linear in (m, m rho, J_d + m rho rho^T) per body and in d; gravity shares m and rho)."""
+    def body_covectors(self, b: ArticulatedBatch, params: tuple | None = None) -> tuple[torch.Tensor, bool]:
+        """Every body's world covector of the batch's kinetic terms, D2 K + D1 K (N, 6B), and with `params`
+        and a learned uniform gravity also -h dV_world (then True): the part of the residual the
+        physical parameters enter, body by body (body b's covector depends on body b's parameters only:
+        the identification's regressor is a forward-mode Jacobian in ten colours, `articulated_fit`)."""
         Gw = art.world_group(self.tree)
         Jd, m, rho = self._params() if params is None else params[:3]
         c = kinetic.kinetic_d2(Gw, b.inc_prev, Jd, m, rho, self.h) + kinetic.kinetic_d1(
             Gw, b.inc_next, Jd, m, rho, self.h
         )
-        r = art.to_coordinates(b.A, c)
         if params is not None and isinstance(self.potential_world, UniformGravityPotential):
             up = (b.world_cur.R * self.potential_world.field()[:, None]).sum(-2)  # (N, B, 3): R^T gamma
             dw = Gw.join(torch.cross((m[:, None] * rho).expand_as(up), up, dim=-1), m[:, None] * up)
-            r = r - self.h * art.to_coordinates(b.A, dw)
-            if self.potential_coord is not None:
-                r = r + self.potential_covector(b.cur, b.world_cur, b.A, world_part=False)
-        else:
+            return c - self.h * dw, True
+        return c, False
+
+    def _batch_residual(self, b: ArticulatedBatch, params: tuple | None = None) -> torch.Tensor:
+        """The residual of a batch, (N, dim) or reduced (N, n). params: (J_d (B, 3, 3), m (B,), rho (B, 3),
+        d (n,) or None) to use instead of the model's (the identification's regressor: the residual is
+        linear in (m, m rho, J_d + m rho rho^T) per body and in d; gravity shares m and rho)."""
+        c, with_potential = self.body_covectors(b, params)
+        r = art.to_coordinates(b.A, c)
+        if not with_potential:
             r = r + self.potential_covector(b.cur, b.world_cur, b.A)
+        elif self.potential_coord is not None:
+            r = r + self.potential_covector(b.cur, b.world_cur, b.A, world_part=False)
         if len(self.forces):
             r = r + 0.5 * self.h * self._batch_torques(b)
         if not self.reduced:

@@ -108,6 +108,41 @@ def consistent(Jd: torch.Tensor, m: torch.Tensor, floor: float = 1e-6) -> tuple[
     return V @ torch.diag_embed(lam2) @ V.transpose(-1, -2), m_out, changed
 
 
+def regressor(model: Any, batch: Any, pi0: torch.Tensor) -> torch.Tensor:
+    """d r / d pi (N k, P) of the batch's residual (`ArticulatedLieDFLNN._batch_residual` with the
+    parameters `unpack(pi)`), exact: r is linear in pi. Body b's world covector depends on body b's ten
+    numbers only, so one forward-mode pass in ten colours (the k-th number of every body at once) gives
+    every body's 6 x 10 block; the FK Jacobian A (and T on a reduced tree) then maps the blocks, and the
+    per-DoF damping enters as -(h/2) diag(nu~_{k-1} + nu~_k). (The same matrix as
+    `torch.func.jacfwd` of the residual in P directions, which pushes each of them through A: tested.)"""
+    B = model.tree.n_bodies
+    P = pi0.shape[0]
+    colours = torch.zeros(P, 10, dtype=pi0.dtype, device=pi0.device)
+    colours[torch.arange(10 * B, device=pi0.device), torch.arange(10 * B, device=pi0.device) % 10] = 1.0
+
+    def covectors(t: torch.Tensor) -> torch.Tensor:
+        Jd, m, rho, _ = unpack(pi0 + colours @ t, B)
+        return model.body_covectors(batch, (Jd, m, rho, None))[0]
+
+    zero = pi0.new_zeros(10)
+    N = batch.A.shape[0]
+    Phi = torch.func.jacfwd(covectors)(zero).detach().reshape(N, B, 6, 10)
+    Yb = torch.einsum("Nbsd,Nbsk->Ndbk", batch.A, Phi).reshape(N, -1, 10 * B)  # (N, dim, 10 B)
+    if not model.reduced:
+        return (
+            Yb.reshape(-1, P)
+            if P == 10 * B
+            else torch.cat((Yb, Yb.new_zeros(N, Yb.shape[1], P - 10 * B)), -1).reshape(-1, P)
+        )
+    Yb = batch.T.transpose(-1, -2) @ Yb  # (N, n, 10 B)
+    n = Yb.shape[1]
+    if P == 10 * B:
+        return Yb.reshape(-1, P)
+    nu = batch.nu_red_prev + batch.nu_red_next  # (N, n)
+    Yd = torch.diag_embed(-0.5 * model.h * nu)  # (N, n, n): d enters the reduced residual per DoF
+    return torch.cat((Yb, Yd), -1).reshape(N * n, P)
+
+
 def least_squares_start(
     model: Any, samples: Any, total_mass: float | None = None, passes: int = 3, epsilon: float | None = None
 ) -> FitReport:
@@ -140,7 +175,7 @@ def least_squares_start(
 
     with torch.no_grad():
         r_at = residual(pi0)
-    Y = torch.func.jacfwd(residual)(pi0).detach()  # (rows, P): exact, r is linear in pi
+    Y = regressor(model, batch, pi0)  # (rows, P): exact, r is linear in pi
     r0 = r_at - Y @ pi0
     P = Y.shape[1]
     e = torch.zeros(P, dtype=Y.dtype, device=Y.device)
