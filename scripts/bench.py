@@ -36,7 +36,8 @@ few repeats, so a speed-up is a ratio taken under the same load. Keys:
   articulated_training_tree5    {s_per_epoch_fused, s_per_epoch_reference, samples_per_epoch, start_s}: the
                                 default articulated command on a 5-body branched MuJoCo tree (112
                                 trajectories x 100 steps): seconds per epoch without the start, and the
-                                seconds of the least-squares start (train.start=auto)
+                                seconds of the least-squares start (train.start=auto); cartwheel23_start_s:
+                                the same start of the 23-body Exp 4 articulated model
   compile_s                     first compilation of the Newton step (runtime.compile=true)
   compiled_rollout_us_per_step_traj  the free body with the compiled step, batches 1000/10000
   threads, load_avg             torch threads used; `os.getloadavg()` before and after
@@ -321,9 +322,20 @@ def articulated_training(data_dir: str, quick: bool, log) -> dict:
         "samples_per_epoch": no_start["n_samples"],
         "start_s": min(starts),
     }
+    # the same start on the 23-body Exp 4 articulated model (278 parameters, the cartwheels' 938 triplets)
+    run = typed(config(["experiment=exp4_mocap", "model.kinetic=articulated"], data_dir), "train")
+    assert run.dataset is not None
+    ds, _ = get_dataset(run.dataset, data_dir)
+    torch.manual_seed(0)
+    model = build_model(run, ds)
+    tcfg = dataclasses.replace(run.train, epochs=0, checkpoint_every=10**9)
+    steps = dataset_steps(run.dataset, ds, "train_steps")
+    fitted = fit(model, ds.pose(ds.train_idx), tcfg, steps, show_progress=False, log_epochs=False)
+    out["cartwheel23_start_s"] = fitted["start_seconds"]
     log(
         f"articulated training (5-body tree): {out['s_per_epoch_fused']:.3f} s/epoch "
-        f"(reference {out['s_per_epoch_reference']:.3f}), least-squares start {out['start_s']:.2f} s"
+        f"(reference {out['s_per_epoch_reference']:.3f}), least-squares start {out['start_s']:.2f} s "
+        f"(23-body Exp 4 model: {out['cartwheel23_start_s']:.1f} s)"
     )
     return out
 
