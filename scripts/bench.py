@@ -37,7 +37,8 @@ few repeats, so a speed-up is a ratio taken under the same load. Keys:
                                 default articulated command on a 5-body branched MuJoCo tree (112
                                 trajectories x 100 steps): seconds per epoch without the start, and the
                                 seconds of the least-squares start (train.start=auto); cartwheel23_start_s:
-                                the same start of the 23-body Exp 4 articulated model
+                                the same start of the 23-body Exp 4 articulated model; cartwheel23_s_per_epoch_*:
+                                its epochs (the paper's DEL loss, batch 63)
   compile_s                     first compilation of the Newton step (runtime.compile=true)
   compiled_rollout_us_per_step_traj  the free body with the compiled step, batches 1000/10000
   threads, load_avg             torch threads used; `os.getloadavg()` before and after
@@ -332,10 +333,14 @@ def articulated_training(data_dir: str, quick: bool, log) -> dict:
     steps = dataset_steps(run.dataset, ds, "train_steps")
     fitted = fit(model, ds.pose(ds.train_idx), tcfg, steps, show_progress=False, log_epochs=False)
     out["cartwheel23_start_s"] = fitted["start_seconds"]
+    e23 = epoch_seconds(
+        ["experiment=exp4_mocap", "model.kinetic=articulated", "train.start=none"], 2 if quick else 5, 1, data_dir
+    )
+    out["cartwheel23_s_per_epoch_fused"], out["cartwheel23_s_per_epoch_reference"] = e23["fused"], e23["reference"]
     log(
         f"articulated training (5-body tree): {out['s_per_epoch_fused']:.3f} s/epoch "
         f"(reference {out['s_per_epoch_reference']:.3f}), least-squares start {out['start_s']:.2f} s "
-        f"(23-body Exp 4 model: {out['cartwheel23_start_s']:.1f} s)"
+        f"(23-body Exp 4 model: {out['cartwheel23_start_s']:.1f} s, {out['cartwheel23_s_per_epoch_fused']:.3f} s/epoch)"
     )
     return out
 
