@@ -110,3 +110,29 @@ def test_an_articulated_run_lists_bodies_and_joints(tmp_path, run_main):
     assert len(bodies) == 3 and "(free)" in bodies[0] and "joint to " in bodies[1], tail
     assert all("[true " in x and " kg m² " in x for x in bodies)
     assert len(tail) <= 25
+
+
+def test_a_start_that_stayed_the_best_says_the_epochs_added_nothing():
+    history = [
+        {"epoch": 0, "val_one_step_error": 1.0e-4},
+        {"epoch": 500, "val_one_step_error": 1.1e-4},
+        {"epoch": 1000, "val_one_step_error": 1.2e-4},
+    ]
+    notes = cs.start_notes(history, 0)
+    assert len(notes) == 1 and "1000 epochs" in notes[0] and "train.epochs=0" in notes[0]
+    assert cs.start_notes(history, 500) == []  # the epochs helped: no hint
+    assert cs.start_notes(history[:1], 0) == []  # nothing after the start (train.epochs=0)
+    lines = cs.closing_lines(None, history[0], None, "/runs/x", [], notes)
+    assert notes[0] in lines
+
+
+def test_the_start_selected_shows_its_own_figure_not_the_last_pass():
+    """The start's validation pass (epoch 0) is not in the epochs' history: the summary takes its figure
+    from summary.json's validation section instead of showing the last pass as if it were selected."""
+    history = [{"epoch": 20, "val_one_step_error": 3.0e-5}, {"epoch": 40, "val_one_step_error": 1.5e-5}]
+    validation = {"metric": "val_one_step_error", "best": 5.8e-6, "best_epoch": 0}
+    row = cs.selected_pass(history, 0, validation)
+    assert row == {"epoch": 0, "val_one_step_error": 5.8e-6}
+    text = "\n".join(cs.validation_lines(row, None))
+    assert "validation (epoch 0): one step 5.8e-06" in text
+    assert cs.selected_pass(history, 40, validation)["val_one_step_error"] == 1.5e-5

@@ -146,20 +146,42 @@ def closing_lines(
     test: Mapping[str, Any] | None,
     run_dir: str | Path,
     present: Sequence[str],
+    notes: Sequence[str] = (),
 ) -> list[str]:
-    """The whole closing summary: a rule, what was learned, validation and test, files."""
+    """The whole closing summary: a rule, what was learned, validation and test, `notes` (`start_notes`),
+    files."""
     return [
         "── summary " + "─" * 40,
         *physics_lines(physics),
         *validation_lines(val, test),
+        *notes,
         *files_lines(run_dir, present),
     ]
 
 
-def selected_pass(history: Sequence[Mapping[str, Any]], best_epoch: int | None) -> dict | None:
-    """The validation row of the selected checkpoint (`best_epoch`), else the last validation pass."""
+def start_notes(history: Sequence[Mapping[str, Any]], best_epoch: int | None) -> list[str]:
+    """A hint when the start (validation pass at epoch 0) stayed the selected checkpoint although epochs
+    followed: they improved nothing on the validation data, and the run could have ended there."""
+    later = [int(r.get("epoch") or 0) for r in history if r.get("val_one_step_error") is not None]
+    later = [e for e in later if e > 0]
+    if best_epoch != 0 or not later:
+        return []
+    return [
+        f"  the start (epoch 0) stayed the best: the {max(later)} epochs after it did not improve the validation "
+        "error; train.epochs=0 (the start only) or train.early_stopping.patience=N end such runs early"
+    ]
+
+
+def selected_pass(
+    history: Sequence[Mapping[str, Any]], best_epoch: int | None, validation: Mapping[str, Any] | None = None
+) -> dict | None:
+    """The validation row of the selected checkpoint (`best_epoch`); where the history has no row for it
+    (the start's pass, epoch 0, is not a training epoch) the figure `validation` (summary.json's section:
+    metric, best) records for it; else the last validation pass."""
     passes = [r for r in history if r.get("val_one_step_error") is not None]
     chosen = [r for r in passes if best_epoch is not None and r.get("epoch") == best_epoch]
+    if not chosen and best_epoch is not None and validation and validation.get("best") is not None:
+        return {"epoch": best_epoch, str(validation.get("metric") or "val_one_step_error"): validation["best"]}
     rows = chosen or passes[-1:]
     return dict(rows[0]) if rows else None
 
@@ -191,7 +213,8 @@ def print_closing_summary(physics: Mapping[str, Any] | None, summary: Mapping[st
 
     best_epoch = (summary.get("validation") or {}).get("best_epoch")
     present = [f for f in FILES if (Path(out) / f).is_file()]
-    lines = closing_lines(physics, selected_pass(history, best_epoch), test_figures(summary.get("eval")), out, present)
+    val, test = selected_pass(history, best_epoch, summary.get("validation")), test_figures(summary.get("eval"))
+    lines = closing_lines(physics, val, test, out, present, start_notes(history, best_epoch))
     for line in lines:
         console.print(line, highlight=False, markup=False, soft_wrap=True)
     return lines
