@@ -136,3 +136,10 @@ def test_the_start_selected_shows_its_own_figure_not_the_last_pass():
     text = "\n".join(cs.validation_lines(row, None))
     assert "validation (epoch 0): one step 5.8e-06" in text
     assert cs.selected_pass(history, 40, validation)["val_one_step_error"] == 1.5e-5
+
+
+def test_a_tree_with_invisible_combinations_says_so_beside_its_errors():
+    lines = cs.physics_lines({**TREE, "gauge": {"invisible": 6, "parameters": 38}})
+    text = "\n".join(lines)
+    assert "determine 32 of the 38 parameter combinations" in text and "other 6" in text
+    assert "determine" not in "\n".join(cs.physics_lines(TREE))  # none declared: no line

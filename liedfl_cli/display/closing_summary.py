@@ -69,7 +69,8 @@ def physics_lines(physics: Mapping[str, Any] | None) -> list[str]:
     physics: kinetic ("per_body" / "articulated"), bodies (list of body dicts, see `body_line`),
     true_bodies (same length, or None), scaled ("true": learned figures put on the truth's common scale;
     "total_mass": dataset.total_mass fixed it; None: up to one common factor), units ({"length": "m"}),
-    gravity ({"g", "up", "learned_up", "up_error_rad"} or None), errors (worst relative errors by name)."""
+    gravity ({"g", "up", "learned_up", "up_error_rad"} or None), errors (worst relative errors by name),
+    gauge ({"invisible", "parameters"}: how many parameter combinations the data cannot see, or None)."""
     if not physics or not physics.get("bodies"):
         return []
     kind = "articulated model" if physics.get("kinetic") == "articulated" else "per-body model"
@@ -101,6 +102,13 @@ def physics_lines(physics: Mapping[str, Any] | None) -> list[str]:
     errors = physics.get("errors") or {}
     if errors:
         lines.append("  worst relative errors: " + ", ".join(f"{k} {v:.1%}" for k, v in errors.items()))
+    gauge = physics.get("gauge")
+    if gauge:  # per-link figures along combinations the data cannot see (the identification's gauge)
+        k, n = int(gauge["invisible"]), int(gauge["parameters"])
+        lines.append(
+            f"  the data determine {n - k} of the {n} parameter combinations: per-link values can differ from the "
+            f"truth along the other {k} without changing any prediction (docs/identification.md)"
+        )
     return lines
 
 

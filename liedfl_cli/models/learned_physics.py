@@ -175,6 +175,10 @@ def gather(model, dataset, recovery: Mapping[str, Any] | None) -> dict | None:
             errors[label] = float(v)
     if errors:
         out["errors"] = errors
+    ident = (recovery or {}).get("identifiability") or {}
+    gauge, n_par = ident.get("gauge_dimension"), ident.get("parameters")
+    if isinstance(gauge, int) and isinstance(n_par, int) and gauge > 0:
+        out["gauge"] = {"invisible": gauge, "parameters": n_par}
     return out
 
 
