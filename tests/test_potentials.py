@@ -273,3 +273,30 @@ def test_recovery_reports_pivot_moments_and_field_direction():
     rec = parameter_recovery(m, ds)
     assert rec["pivot_moment_over_trace_rel_error"] == pytest.approx(0.1, rel=1e-9)
     assert rec["gravity_direction_error_rad"] == pytest.approx(float(np.arctan(0.1)), rel=1e-9)
+
+
+@pytest.mark.parametrize("n_se3,n_so3", [(0, 1), (1, 0), (2, 3)])
+def test_declared_gravity_left_gradient_in_closed_form_equals_autodiff(n_se3, n_so3):
+    """`GravityPotential.left_gradient` (the declared scenes' gravity: the true scheme's potential) against
+    the generic autodiff `left_gradient` and against d/d eta of V(g exp(eta)), through both covector paths."""
+    from liedfl_cli.lie import ProductGroup
+    from liedfl_cli.mechanics.potentials import GravityPotential, left_gradient
+    from liedfl_cli.models import fused_maps
+    from liedfl_cli.models.liedflnn import LieDFLNN
+
+    G = ProductGroup(n_se3, n_so3)
+    gen = torch.Generator().manual_seed(3)
+    B = G.n_bodies
+    V = GravityPotential(G, 0.5 + torch.rand(B, generator=gen, dtype=torch.float64),
+                         torch.randn(B, 3, generator=gen, dtype=torch.float64), 9.81)  # fmt: skip
+    g = G.exp(torch.randn(6, G.dim, generator=gen, dtype=torch.float64))
+    closed = V.left_gradient(g)
+    assert float(closed.abs().max()) > 0.1
+    assert torch.allclose(closed, left_gradient(V, G, g), rtol=1e-12, atol=1e-13)
+    eta = torch.zeros(6, G.dim, dtype=torch.float64)
+    ref = torch.func.grad(lambda e: V(G.perturb(g, e)).sum())(eta)
+    assert torch.allclose(closed, ref, rtol=1e-12, atol=1e-13)
+    model = LieDFLNN(G, 0.05, potential=[], forces=[])
+    model.potential = V
+    assert torch.allclose(model.potential_covector(g), -0.05 * ref, rtol=1e-12, atol=1e-13)
+    assert torch.allclose(fused_maps.potential_covector(model, g), -0.05 * ref, rtol=1e-12, atol=1e-13)

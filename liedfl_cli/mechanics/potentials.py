@@ -50,6 +50,16 @@ class GravityPotential(nn.Module):
             com_height = torch.cat((com_height[..., :m] + g.p[..., 2], com_height[..., m:]), -1)
         return self.gravity * (self.masses * com_height).sum(-1)
 
+    def left_gradient(self, g: Pose) -> torch.Tensor:
+        """Closed form of dV(g exp(eta))/d eta at 0, (..., dim): per body the rotational part
+        m g rho x (R^T e3) and, for SE(3) bodies, the translational part m g R^T e3 (tested against the
+        generic `left_gradient`)."""
+        up = g.R[..., 2, :]  # (..., B, 3): R^T e3 per body
+        w = self.gravity * torch.cross((self.masses[:, None] * self.rhos).expand_as(up), up, dim=-1)
+        m = self.G.n_se3
+        v = self.gravity * self.masses[:m, None] * up[..., :m, :]
+        return self.G.join(w, v)
+
     def describe(self) -> str:
         return "gravity"
 

@@ -20,7 +20,7 @@ from ..lie.tolerances import tol
 from ..mechanics.damping import PerBodySPSD
 from ..mechanics.forces import RayleighForce
 from ..mechanics.parameterizations import Inertia, SPSDMatrix
-from ..mechanics.potentials import UniformGravityPotential, left_gradient
+from ..mechanics.potentials import GravityPotential, UniformGravityPotential, left_gradient
 from . import mlp_derivatives
 
 # ---------------------------------------------------------------------------- small closed forms
@@ -356,7 +356,7 @@ def potential_covector(model, g: Pose, create_graph: bool = False) -> torch.Tens
     out = mlp_derivatives.potential_covector(model, g)
     if out is not None:
         return out
-    if isinstance(model.potential, UniformGravityPotential):  # closed form, differentiable in g and parameters
+    if isinstance(model.potential, (UniformGravityPotential, GravityPotential)):  # closed form, differentiable
         return -model.h * model.potential.left_gradient(g)
     if create_graph and not (g.R.requires_grad or g.p.requires_grad):  # data poses: leaves of the graph
         g = Pose(g.R.detach().requires_grad_(True), g.p.detach().requires_grad_(True))

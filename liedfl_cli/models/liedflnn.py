@@ -30,7 +30,13 @@ from ..lie.tolerances import projects_poses
 from ..mechanics import kinetic
 from ..mechanics.forces import RayleighForce, build_forces, force_jacobian_xi
 from ..mechanics.parameterizations import Inertia, PositiveVector
-from ..mechanics.potentials import STANDARD_GRAVITY, MLPPotential, SumPotential, UniformGravityPotential
+from ..mechanics.potentials import (
+    STANDARD_GRAVITY,
+    GravityPotential,
+    MLPPotential,
+    SumPotential,
+    UniformGravityPotential,
+)
 from ..mechanics.scene_physics import body_parameters, true_potential
 from ..solvers import runtime
 from ..solvers.newton import NewtonProblem, jacobian
@@ -389,7 +395,7 @@ class LieDFLNN(ImplicitModel):
         eta = g.R.new_zeros(*g.R.shape[:-3], self.G.dim)
         if self.potential is None:
             return eta
-        if isinstance(self.potential, UniformGravityPotential):  # closed form (tested against autodiff)
+        if isinstance(self.potential, (UniformGravityPotential, GravityPotential)):  # closed form (tested)
             return -self.h * self.potential.left_gradient(g)
         dV = grad(lambda e: self.potential(self.G.perturb(g, e)).sum())(eta)
         return -self.h * dV

@@ -653,9 +653,9 @@ class _LinearEngine:
         W = (z_prev.R.transpose(-1, -2) @ z.R).flatten(-3)
         out = W @ self.maps[ia].linear[2]  # type: ignore[index]
         if ma.potential is not None:
-            from ..mechanics.potentials import UniformGravityPotential
+            from ..mechanics.potentials import GravityPotential, UniformGravityPotential
 
-            if isinstance(ma.potential, UniformGravityPotential):  # closed form
+            if isinstance(ma.potential, (UniformGravityPotential, GravityPotential)):  # closed form
                 c = -float(ma.h) * ma.potential.left_gradient(z).detach()
             else:
                 c = cov(ma, z).detach()
