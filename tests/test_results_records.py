@@ -18,7 +18,6 @@ from __future__ import annotations
 import json
 import math
 import re
-import warnings
 from pathlib import Path
 
 import pytest
@@ -123,17 +122,6 @@ def prose(body: str) -> str:
     return "\n".join(line for line in body.splitlines() if not line.startswith("|"))
 
 
-# Sections of docs/benchmarks.md not yet brought to the rule, by heading prefix: listed, not hidden. The test
-# below reports them, and fails once one of them passes or is gone (then take it off this list).
-PENDING: dict[str, str] = {
-    "### Fast tier, 2026-11-29": "another engineer's section, not edited here",
-}
-
-
-def _pending(head: str) -> str | None:
-    return next((key for key in PENDING if head.startswith(key)), None)
-
-
 def unrecorded(page: Path = RESULTS) -> dict[str, list[str]]:
     values = record_values()
     bad: dict[str, list[str]] = {}
@@ -149,21 +137,9 @@ def unrecorded(page: Path = RESULTS) -> dict[str, list[str]]:
 @pytest.mark.parametrize("name", list(PAGES))
 def test_every_table_number_is_recorded_or_its_section_is_historical(name):
     bad = unrecorded(PAGES[name])
-    if name == "benchmarks.md":
-        bad = {h: v for h, v in bad.items() if _pending(h) is None}
     assert not bad, f"numbers in docs/{name} tables with no record under docs/bench/ (mark the section " + (
         "historical or add the record): " + "; ".join(f"{h}: {', '.join(v[:8])}" for h, v in bad.items())
     )
-
-
-def test_pending_sections_are_still_pending():
-    """The allow-list only shrinks: each entry names a section that exists and still fails."""
-    bad = unrecorded(BENCHMARKS)
-    heads = [h for h, _ in sections(BENCHMARKS.read_text())]
-    for key, why in PENDING.items():
-        assert any(h.startswith(key) for h in heads), f"PENDING names no section of docs/benchmarks.md: {key}"
-        assert any(h.startswith(key) for h in bad), f"PENDING section now passes, take it off the list: {key}"
-        warnings.warn(f"docs/benchmarks.md: pending ({why}): {key}", stacklevel=1)
 
 
 def test_the_matcher_is_honest():
