@@ -706,7 +706,7 @@ def _run_train(cfg: DictConfig, resume: dict | None, accept_changed_dataset: boo
         "n_samples": result["n_samples"],
         "parameters": n_params,
         "val_seconds": result["val_seconds"],
-        **{str(k): result[k] for k in ("del_seconds", "finetune_seconds") if k in result},
+        **{str(k): result[k] for k in ("del_seconds", "finetune_seconds", "start_seconds") if k in result},
     }
     # the trained model is saved before anything else can fail
     save(result["state"], timings)
