@@ -179,9 +179,12 @@ def retract(tree: Tree, g: Pose, x: Pose, d: torch.Tensor) -> Pose:
 
 
 def reduce(T: torch.Tensor, xi: torch.Tensor) -> torch.Tensor:
-    """The least-squares reduced coordinates d (..., n) of a tangent vector xi (..., dim): T d ~ xi."""
+    """The least-squares reduced coordinates d (..., n) of a tangent vector xi (..., dim): T d ~ xi (T d = xi
+    exactly, by an LU solve, when T is square: every joint a ball, where T = C^-1 is invertible)."""
     if T.shape[-1] == 0:
         return xi[..., :0]
+    if T.shape[-1] == T.shape[-2]:
+        return torch.linalg.solve(T, xi[..., None])[..., 0]
     return torch.linalg.lstsq(T, xi[..., None]).solution[..., 0]
 
 

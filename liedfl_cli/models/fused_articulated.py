@@ -18,8 +18,11 @@ g_k^{-1} g_{k+1}), so the Newton iterates agree to rounding. What changes is how
   b = R_n rho, s = m / h; `kinetic.se3_mixed_hessian`, H_rot linear in W), so
       J = sum_b Theta_k^T R_k H_rot R_n^T Theta_n - s Y_k^T Y_n,   Y = P - (R rho) x Theta
   (Y: the centre of mass's world velocity per column): one batched product over 6B rows.
-- Joint damping: the reduced velocity estimate and its Jacobian per body (a joint's DoF move only its
-  own relative rotation, so d nu / d delta is block diagonal), scattered into the n x n matrix.
+- Joint damping and joint-space forces through the reference's own joint maps (`lie.joints`,
+  `kinetic.velocity_estimate(_jacobian)`), with T_k^T C_k^T = S(q_k)^T: no C and no T in the step; the
+  damping Jacobian of joints with a constant basis block by block (`damping_jacobian`).
+- Group operations, joint coordinates, the joints' retraction, the kinetic covectors and the warm start
+  are the package's own (`ProductGroup`, `lie.joints`, `mechanics.kinetic`, `mechanics.articulated`).
 - The Newton loop is `solvers.newton.solve`'s (with `restrict`, so at large batch the last
   iterations run on the rows still iterating); the poses and FK of the last retracted iterate are
   reused by the residual and the Jacobian at that iterate.
@@ -36,19 +39,20 @@ unreduced tree), m = 1 (free root) or 0.
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
 
-from ..lie import Pose, se3, so3
+from ..lie import Pose, ProductGroup, so3
 from ..lie import joints as jt
 from ..lie.tolerances import projects_poses
 from ..lie.tree import Tree
+from ..mechanics import articulated as art
 from ..mechanics import kinetic
 from ..mechanics.forces import force_jacobian_xi
 from ..mechanics.potentials import GravityPotential, UniformGravityPotential
 from ..solvers.newton import NewtonProblem
-from . import mlp_derivatives
 
 SUPPORTED_JOINTS = ("free", "ball", "universal", "hinge", "weld")
 
@@ -72,28 +76,28 @@ def applies(model) -> str | None:
 class TreeMaps:
     """What a rollout builds once (detached, on the data's dtype and device).
 
-    ancestors (B, B): M[b, a] = 1 when a is b or an ancestor of b; parent_index (B,) (the root its own).
-    levels: (bodies, their parents) per depth level below the root (long tensors). offsets (B, 3).
-    E (B, 3, n): body b's rotation variation R_b exp(E_b d) in its moving coordinates; Vsel (3, n):
-    the free root's translation columns. joint_mode: the unknown moves the joints (parent-relative
-    rotations; reduced trees, and every tree stored with parent rotations) rather than the world
-    attitudes of an unreduced world-rotation tree. Jd (B, 3, 3), mass (B,), rho (B, 3): the kinetic
-    parameters; rot_map (B, 9, 9): W.flatten() @ rot_map = the body's rotational mixed-Hessian block.
-    gamma (3,), first_moment (B, 3), gmass (B,): the world gravity's field and moments, or None.
-    damping (n,) or None; Epad (B, 3, 3): each joint's columns padded to three; damp_index /
-    damp_source: where the entries of every joint's own block of d nu / d delta go in the n x n matrix,
-    and where they come from in (B, 3, 3)."""
+    ancestors (B, B): M[b, a] = 1 when a is b or an ancestor of b; parent_index (B,) (the root its own);
+    offsets (B, 3). E, U (B, 3, n), V (3, n): the joints' maps of `lie.joints` (a body's own axes in its
+    frame, a universal joint's first axis in the parent's, the free root's translation columns).
+    joint_mode: the unknown moves the joints (parent-relative rotations; reduced trees, and every tree
+    stored with parent rotations) rather than the world attitudes of an unreduced world-rotation tree.
+    Jd (B, 3, 3), mass (B,), rho (B, 3): the kinetic parameters; rot_map (B, 9, 9): W.flatten() @
+    rot_map = the body's rotational mixed-Hessian block. gamma (3,), first_moment (B, 3), gmass (B,):
+    the world gravity's field and moments, or None. damping (n,) or None; forces: the joint-space forces.
+    Epad, damp_index, damp_source: the damping Jacobian's blocks (`damping_jacobian`)."""
 
     tree: Tree
     h: float
     ancestors: torch.Tensor
     parent_index: torch.Tensor
-    levels: list[tuple[torch.Tensor, torch.Tensor]]
     offsets: torch.Tensor
     E: torch.Tensor
-    Vsel: torch.Tensor
-    U: torch.Tensor  # (B, 3, n): a universal joint's first axis, fixed in the parent's frame
-    universal: bool  # some joint is universal (its motion basis depends on the pose)
+    U: torch.Tensor
+    V: torch.Tensor
+    universal: bool
+    Epad: torch.Tensor  # (B, 3, 3)
+    damp_index: torch.Tensor  # flat (row * n + col) of each ball / hinge joint's block entries
+    damp_source: torch.Tensor  # flat (body * 9 + i * 3 + j) of the same entries in (B, 3, 3)
     joint_mode: bool
     Jd: torch.Tensor
     mass: torch.Tensor
@@ -103,89 +107,45 @@ class TreeMaps:
     first_moment: torch.Tensor | None
     gmass: torch.Tensor | None
     damping: torch.Tensor | None
-    Epad: torch.Tensor
-    damp_index: torch.Tensor  # flat (row * n + col) of every rotational entry of a joint's own block
-    damp_source: torch.Tensor  # flat (body * 9 + i * 3 + j) of the same entries in (B, 3, 3)
     reduced: bool
-    mlp: object | None
-    S0: torch.Tensor  # (dim, n): the joints' motion basis (orthonormal columns), I on an unreduced tree
-    forces: list  # the model's joint-space forces (joint mode only)
-
-
-def _columns(tree: Tree, reduced: bool) -> list[tuple[str, int]]:
-    """(joint kind, first column) per body: the reduced DoF, or the coordinates' tangent layout."""
-    if reduced:
-        return [(k, s.start) for k, s in zip(tree.joint_kinds, jt.joint_slices(tree))]
-    kinds = ("free" if tree.free_root else "ball",) + ("ball",) * (tree.n_bodies - 1)
-    return [(k, s.start) for k, s in zip(kinds, tree.group.body_slices())]
+    forces: list
 
 
 @functools.lru_cache(maxsize=32)
-def _static(tree: Tree, reduced: bool, dtype: torch.dtype, device: torch.device) -> dict:
-    """The parameter-free constants of `TreeMaps` (cached per tree, layout, dtype and device)."""
+def _static(tree: Tree, dtype: torch.dtype, device: torch.device) -> dict:
+    """The parameter-free constants of `TreeMaps` (cached per tree, dtype and device). The unknown's
+    columns are the joints' DoF (`lie.joints.joint_slices`); on an unreduced tree every joint is a ball
+    and they are the coordinates' tangent layout."""
     B = tree.n_bodies
-    n = tree.n_dof if reduced else tree.group.dim
-    ax = torch.tensor(tree.axes_array(), dtype=dtype, device=device)
-    E = torch.zeros(B, 3, n, dtype=dtype, device=device)
-    Epad = torch.zeros(B, 3, 3, dtype=dtype, device=device)
-    U = torch.zeros(B, 3, n, dtype=dtype, device=device)
-    Vsel = torch.zeros(3, n, dtype=dtype, device=device)
-    eye = torch.eye(3, dtype=dtype, device=device)
-    dof_body, dof_row = [], []
-    for b, (kind, c) in enumerate(_columns(tree, reduced)):
-        if kind in ("free", "ball"):
-            E[b, :, c : c + 3] = eye
-            Epad[b] = eye
-            dof_body += [b] * 3
-            dof_row += [0, 1, 2]
-            if kind == "free":
-                Vsel[:, c + 3 : c + 6] = eye
-                dof_body += [b] * 3  # translation columns: never damped (a free root is undamped)
-                dof_row += [-1, -1, -1]
-        elif kind == "hinge":
-            E[b, :, c] = ax[b, 0]
-            Epad[b, :, 0] = ax[b, 0]
-            dof_body.append(b)
-            dof_row.append(0)
-        elif kind == "universal":  # exp(d1 a1) R exp(d2 a2): a1 in the parent's frame, a2 in the body's
-            U[b, :, c] = ax[b, 0]
-            E[b, :, c + 1] = ax[b, 1]
-            dof_body += [b, b]
-            dof_row += [-1, -1]  # its basis moves: damping and forces take the general path
-    # the rotational entries of every joint's own block of d nu / d delta (the damping's Jacobian)
-    idx, src = [], []
-    for i in range(n):
-        for j in range(n):
-            if dof_body[i] == dof_body[j] and dof_row[i] >= 0 and dof_row[j] >= 0:
-                idx.append(i * n + j)
-                src.append(dof_body[i] * 9 + dof_row[i] * 3 + dof_row[j])
-    levels = [
-        (
-            torch.tensor(level, dtype=torch.long, device=device),
-            torch.tensor([tree.parents[b] for b in level], dtype=torch.long, device=device),
-        )
-        for level in tree.levels[1:]
-    ]
     anc = torch.zeros(B, B, dtype=dtype, device=device)
     for b in range(B):
         a = b
         while a >= 0:
             anc[b, a] = 1.0
             a = tree.parents[a]
-    S0 = jt._maps(tree, dtype, device)["S0"] if reduced else torch.eye(n, dtype=dtype, device=device)
+    maps = jt._maps(tree, dtype, device)
+    # every ball or hinge joint's rotational block of d nu / d delta: its axes padded to three columns (Epad)
+    # and where the block's entries go in the n x n matrix (a universal joint's basis moves: not here)
+    ax = torch.tensor(tree.axes_array(), dtype=dtype, device=device)
+    Epad = torch.zeros(B, 3, 3, dtype=dtype, device=device)
+    idx, src = [], []
+    n = tree.n_dof
+    for b, (kind, c) in enumerate(zip(tree.joint_kinds, jt.joint_slices(tree))):
+        k = {"free": 3, "ball": 3, "hinge": 1}.get(kind, 0)
+        Epad[b, :, :k] = torch.eye(3, dtype=dtype, device=device)[:, :k] if kind != "hinge" else ax[b, 0][:, None]
+        idx += [(c.start + i) * n + c.start + j for i in range(k) for j in range(k)]
+        src += [b * 9 + i * 3 + j for i in range(k) for j in range(k)]
     return {
-        "S0": S0,
-        "ancestors": anc,
-        "parent_index": torch.tensor([max(q, 0) for q in tree.parents], dtype=torch.long, device=device),
-        "levels": levels,
-        "offsets": torch.tensor(tree.offsets, dtype=dtype, device=device),
-        "E": E,
-        "Vsel": Vsel,
-        "U": U,
-        "universal": "universal" in [k for k, _ in _columns(tree, reduced)],
         "Epad": Epad,
         "damp_index": torch.tensor(idx, dtype=torch.long, device=device),
         "damp_source": torch.tensor(src, dtype=torch.long, device=device),
+        "ancestors": anc,
+        "parent_index": torch.tensor([max(q, 0) for q in tree.parents], dtype=torch.long, device=device),
+        "offsets": tree.offsets_tensor(anc),
+        "E": maps["E"],
+        "U": maps["U"],
+        "V": maps["V"],
+        "universal": "universal" in tree.joint_kinds,
     }
 
 
@@ -195,7 +155,7 @@ def build_maps(model, like: torch.Tensor) -> TreeMaps:
     dt, dev = like.dtype, like.device
     B = tree.n_bodies
     reduced = bool(model.reduced)
-    st = _static(tree, reduced, dt, dev)
+    st = _static(tree, dt, dev)
     with torch.no_grad():
         Jd, mass, rho = (t.detach().to(like) for t in model._params())
         basis = torch.eye(9, dtype=dt, device=dev).reshape(9, 1, 3, 3).expand(9, B, 3, 3)
@@ -227,7 +187,6 @@ def build_maps(model, like: torch.Tensor) -> TreeMaps:
         gmass=gmass,
         damping=damping,
         reduced=reduced,
-        mlp=model.potential_coord,
         forces=list(model.forces),
         **st,
     )
@@ -236,17 +195,7 @@ def build_maps(model, like: torch.Tensor) -> TreeMaps:
 # ---------------------------------------------------------------------------- kinematics
 def world_rotations(maps: TreeMaps, R: torch.Tensor) -> torch.Tensor:
     """The tree's stored attitudes R (N, B, 3, 3) -> world attitudes (N, B, 3, 3)."""
-    return R if maps.tree.rotations == "world" else world_rotations_from_relative(maps, R)
-
-
-def world_rotations_from_relative(maps: TreeMaps, Q: torch.Tensor) -> torch.Tensor:
-    """Parent-relative attitudes (the root's its own) -> world attitudes: one product per depth level."""
-    if not maps.levels:
-        return Q
-    Rw = Q.clone()
-    for idx, par in maps.levels:
-        Rw[:, idx] = Rw[:, par] @ Q[:, idx]
-    return Rw
+    return R if maps.tree.rotations == "world" else jt.world_from_parent(maps.tree, R)
 
 
 def forward_kinematics(maps: TreeMaps, g: Pose) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -281,7 +230,7 @@ def world_jacobian(maps: TreeMaps, Rw: torch.Tensor, u: torch.Tensor) -> tuple[t
     theta = (maps.ancestors @ own.reshape(N, B, 3 * n)).reshape(N, B, 3, n) if maps.joint_mode else own
     V = _cross_columns(theta[:, maps.parent_index], u)  # theta_parent x u_b (the root's row replaced)
     if maps.tree.free_root:
-        V[:, 0] = Rw[:, 0] @ maps.Vsel
+        V[:, 0] = Rw[:, 0] @ maps.V
     else:
         V[:, 0] = 0.0
     P = (maps.ancestors @ V.reshape(N, B, 3 * n)).reshape(N, B, 3, n)
@@ -311,32 +260,13 @@ def stacked(A: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
     return torch.cat((_rows(A[0]), _rows(A[1])), 1).transpose(1, 2)
 
 
-def _world_increment(Rw, pw, Rw2, pw2) -> tuple[torch.Tensor, torch.Tensor]:
-    """(W, z) = FK_k^{-1} FK_{k+1} per body: W (N, B, 3, 3), z (N, B, 3)."""
-    Rt = Rw.transpose(-1, -2)
-    return Rt @ Rw2, (Rt @ (pw2 - pw)[..., None])[..., 0]
-
-
-def kinetic_d1(maps: TreeMaps, W: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
-    """Every body's covector D1 K (N, B, 6), body frame (`kinetic.kinetic_d1` on SE(3)^B)."""
-    Jd, rho, h = maps.Jd, maps.rho, maps.h
-    w = so3.vee(Jd @ W.transpose(-1, -2) - W @ Jd) / h
-    Wrho = (W @ rho[:, :, None])[..., 0]
-    X = z + Wrho - rho
-    s = (maps.mass / h)[:, None]
-    w = w + s * torch.linalg.cross(X, z + Wrho, dim=-1)
-    return torch.cat((w, -s * X), -1)
-
-
-def kinetic_d2(maps: TreeMaps, W: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
-    """Every body's covector D2 K (N, B, 6), body frame (`kinetic.kinetic_d2` on SE(3)^B)."""
-    Jd, rho, h = maps.Jd, maps.rho, maps.h
-    w = so3.vee(Jd @ W - W.transpose(-1, -2) @ Jd) / h
-    X = z + (W @ rho[:, :, None])[..., 0] - rho
-    WtX = (W.transpose(-1, -2) @ X[..., None])[..., 0]
-    s = (maps.mass / h)[:, None]
-    w = w + s * torch.linalg.cross(rho.expand_as(WtX), WtX, dim=-1)
-    return torch.cat((w, s * WtX), -1)
+def body_covector(d: Callable, maps: TreeMaps, a: Frame, b: Frame) -> torch.Tensor:
+    """`kinetic.kinetic_d1` or `kinetic_d2` (d) of every body as a free SE(3) body over the world
+    increments FK(a)^-1 FK(b), (N, B, 6) (w, v)."""
+    N, B = a.Rw.shape[0], a.Rw.shape[1]
+    Gw = ProductGroup(B, 0)  # `mechanics.articulated.world_group`
+    inc = Gw.increment(Pose(a.Rw, a.pw), Pose(b.Rw, b.pw))
+    return d(Gw, inc, maps.Jd, maps.mass, maps.rho, maps.h).reshape(N, B, 6)
 
 
 def rotational_world(maps: TreeMaps, Rk: torch.Tensor, Rn: torch.Tensor) -> torch.Tensor:
@@ -349,79 +279,32 @@ def rotational_world(maps: TreeMaps, Rk: torch.Tensor, Rn: torch.Tensor) -> torc
 
 
 # ---------------------------------------------------------------------------- joints
-def moving_coordinates(maps: TreeMaps, g: Pose, Rw: torch.Tensor | None = None) -> Pose:
+def moving_coordinates(maps: TreeMaps, g: Pose) -> Pose:
     """The coordinates the unknown moves: joint coordinates (parent-relative attitudes) in joint mode,
-    else the tree's own. Rw: g's world attitudes when known."""
-    if maps.joint_mode and maps.tree.rotations == "world":
-        Rw = g.R if Rw is None else Rw
-        Q = Rw[:, maps.parent_index].transpose(-1, -2) @ Rw
-        return Pose(torch.cat((Rw[:, :1], Q[:, 1:]), 1), g.p)
-    return g
+    else the tree's own."""
+    return jt.to_joint_coordinates(maps.tree, g) if maps.joint_mode else g
 
 
 def from_moving(maps: TreeMaps, q: Pose) -> Pose:
     """Inverse of `moving_coordinates`."""
-    if maps.joint_mode and maps.tree.rotations == "world":
-        return Pose(world_rotations_from_relative(maps, q.R), q.p)
-    return q
-
-
-def advance(maps: TreeMaps, q: Pose, d: torch.Tensor) -> Pose:
-    """Move the moving coordinates q by d (N, n) (`lie.joints.advance`): R_b exp(E_b d), the free
-    root's position by R_0 V(w) v."""
-    N, B = q.R.shape[0], q.R.shape[1]
-    w = (d @ maps.E.reshape(B * 3, -1).T).reshape(N, B, 3)
-    R = q.R @ so3.exp(w)
-    if maps.universal:
-        R = so3.exp((d @ maps.U.reshape(B * 3, -1).T).reshape(N, B, 3)) @ R
-    p = q.p
-    if maps.tree.free_root:
-        w0, v0 = w[:, 0], d @ maps.Vsel.T
-        p = p + (q.R[:, 0] @ (se3.V_matrix(w0) @ v0[..., None]))[..., 0][:, None, :]
-    return Pose(R, p)
-
-
-def compose(g: Pose, x: Pose) -> Pose:
-    """g x on the tree's coordinates (`ProductGroup.compose`)."""
-    m = g.p.shape[1]
-    return Pose(g.R @ x.R, g.p + (g.R[:, :m] @ x.p[..., None])[..., 0])
-
-
-def increment(g: Pose, g2: Pose) -> Pose:
-    """g^{-1} g2 on the tree's coordinates (`ProductGroup.increment`)."""
-    m = g.p.shape[1]
-    Rt = g.R.transpose(-1, -2)
-    return Pose(Rt @ g2.R, (Rt[:, :m] @ (g2.p - g.p)[..., None])[..., 0])
-
-
-def joint_velocity(maps: TreeMaps, q: Pose, q2: Pose) -> torch.Tensor:
-    """The joint-coordinate velocity estimate nu~ (N, dim) of the interval (q, q2) in the coordinates'
-    tangent layout (`kinetic.velocity_estimate` of the increment q^{-1} q2); its DoF rates are
-    nu~ @ S0 (`articulated.reduced_velocity`: S0's columns are orthonormal)."""
-    h = maps.h
-    W = q.R.transpose(-1, -2) @ q2.R
-    w = so3.vee(W) / h  # (N, B, 3)
-    N = w.shape[0]
-    if not maps.tree.free_root:
-        return w.reshape(N, -1)
-    z = (q.R[:, 0].transpose(-1, -2) @ (q2.p[:, 0] - q.p[:, 0])[..., None])[..., 0]
-    v = (z - 0.5 * h * torch.linalg.cross(w[:, 0], z, dim=-1)) / h
-    return torch.cat((w[:, 0], v, w[:, 1:].reshape(N, -1)), -1)
+    return jt.from_joint_coordinates(maps.tree, q) if maps.joint_mode else q
 
 
 def damping_jacobian(maps: TreeMaps, W: torch.Tensor) -> torch.Tensor:
-    """-(h/2) diag(d) d nu / d delta (N, n, n) on the damped (rotational) DoF: per body
-    E_pad^T (tr(W) I - W^T) E_pad / (2h) (`kinetic.velocity_estimate_jacobian`)."""
+    """-(h/2) diag(d) d nu_red / d delta (N, n, n) for joints with a constant basis: the rotational blocks
+    (tr(W) I - W^T) / (2h) of `kinetic.velocity_estimate_jacobian` (W: the joints' rotation increments),
+    each only on its own joint's DoF (E_pad^T . E_pad), scattered instead of the dense dim x dim product
+    (the hot path of a damped tree; the free root is not damped)."""
     assert maps.damping is not None
-    h = maps.h
+    h, n = maps.h, maps.damping.shape[0]
     tr = W.diagonal(dim1=-2, dim2=-1).sum(-1)[..., None, None]
     eye = torch.eye(3, dtype=W.dtype, device=W.device)
     blocks = torch.einsum("bia,Nbij,bjc->Nbac", maps.Epad, (tr * eye - W.transpose(-1, -2)) / (2 * h), maps.Epad)
-    N, n = W.shape[0], maps.damping.shape[0]
-    vals = blocks.reshape(N, -1)[:, maps.damp_source]
-    coeff = (-0.5 * h * maps.damping)[maps.damp_index // n]
+    N = W.shape[0]
     out = W.new_zeros(N, n * n)
-    out[:, maps.damp_index] = coeff * vals
+    out[:, maps.damp_index] = (-0.5 * h * maps.damping)[maps.damp_index // n] * blocks.reshape(N, -1)[
+        :, maps.damp_source
+    ]
     return out.reshape(N, n, n)
 
 
@@ -442,7 +325,7 @@ class Frame:
     @classmethod
     def at(cls, maps: TreeMaps, g: Pose, q: Pose | None = None) -> Frame:
         Rw, pw, u = forward_kinematics(maps, g)
-        return cls(g, moving_coordinates(maps, g, Rw) if q is None else q, Rw, pw, u)
+        return cls(g, moving_coordinates(maps, g) if q is None else q, Rw, pw, u)
 
     def jacobian(self, maps: TreeMaps) -> tuple[torch.Tensor, torch.Tensor]:
         """(Theta, P) at this pose (`world_jacobian`), computed once."""
@@ -502,63 +385,27 @@ class ArticulatedEngine:
     def _const(self, prev: Frame, cur: Frame) -> torch.Tensor:
         """D2 L_d(g_prev, g) + the potentials at g + (h/2) tau(g_prev, g), reduced (N, n)."""
         maps = self.maps
-        c = kinetic_d2(maps, *_world_increment(prev.Rw, prev.pw, cur.Rw, cur.pw))
+        c = body_covector(kinetic.kinetic_d2, maps, prev, cur)
         if maps.gamma is not None:
             assert maps.first_moment is not None and maps.gmass is not None
             up = torch.einsum("Nbji,j->Nbi", cur.Rw, maps.gamma)  # (N, B, 3): R^T gamma
             fm = maps.first_moment.expand_as(up)
             c = c - maps.h * torch.cat((torch.linalg.cross(fm, up, dim=-1), maps.gmass[:, None] * up), -1)
         r = pair(cur.jacobian(maps), covector_rows(cur.Rw, c))
-        if maps.mlp is not None:
+        if self.model.potential_coord is not None:
             r = r + self._coordinate_potential(cur.g)
         return r + self._joint_terms(prev.q, cur.q, cur.q)
 
     def _joint_terms(self, q: Pose, q2: Pose, at: Pose) -> torch.Tensor | float:
-        """(h/2) of the joint-space forces and damping of the interval (q, q2), on the unknown's columns
-        at g_k (joint coordinates `at`), (N, n): S0^T sum_f F(q, nu~) - d nu~ S0 (T_k^T C_k^T = S(q_k)^T:
-        the reference's T(g_k)^T and C(g_k)^T together); 0 without either."""
-        maps = self.maps
-        if maps.damping is None and not maps.forces:
-            return 0.0
-        if maps.universal:
-            return self._joint_terms_moving_basis(q, q2, at)
-        nu = joint_velocity(maps, q, q2)
-        tau = nu.new_zeros(nu.shape[0], maps.S0.shape[1])
-        if maps.forces:
-            F = maps.forces[0](q, nu)
-            for force in maps.forces[1:]:
-                F = F + force(q, nu)
-            tau = tau + F @ maps.S0
-        if maps.damping is not None:
-            tau = tau - maps.damping * (nu @ maps.S0)
-        return 0.5 * maps.h * tau
-
-    def _joint_jacobian(self, q: Pose, q2: Pose) -> torch.Tensor | float:
-        """d `_joint_terms`(q, q2) / d delta (N, n, n) with q2 advanced along the joints by delta."""
-        maps = self.maps
-        if maps.damping is None and not maps.forces:
-            return 0.0
-        if maps.universal:
-            return self._joint_jacobian_moving_basis(q, q2)
-        W = q.R.transpose(-1, -2) @ q2.R
-        J = damping_jacobian(maps, W) if maps.damping is not None else 0.0
-        if maps.forces:
-            G = maps.tree.group
-            inc = increment(q, q2)
-            nu = joint_velocity(maps, q, q2)
-            dF = force_jacobian_xi(maps.forces[0], q, nu)
-            for force in maps.forces[1:]:
-                dF = dF + force_jacobian_xi(force, q, nu)
-            dnu = kinetic.velocity_estimate_jacobian(G, inc, maps.h)
-            J = J + 0.5 * maps.h * (maps.S0.T @ dF @ dnu @ maps.S0)
-        return J
-
-    def _joint_terms_moving_basis(self, q: Pose, q2: Pose, at: Pose) -> torch.Tensor:
-        """`_joint_terms` with a universal joint: the forces through S(q_k)^T (T_k^T C_k^T at `at`), the
-        DoF rates by least squares on the mean basis of both ends (`lie.joints.reduce_joint_velocity`)."""
+        """(h/2) of the joint-space forces and damping of the interval (q, q2) on the unknown's columns at
+        g_k (joint coordinates `at`), (N, n): S(q_k)^T sum_f F(q, nu~) - d nu_red (the reference's T(g_k)^T
+        C(g_k)^T is S(q_k)^T; `articulated.reduced_velocity`); 0 without either."""
         maps, tree = self.maps, self.maps.tree
-        nu = joint_velocity(maps, q, q2)
-        tau = nu.new_zeros(nu.shape[0], tree.n_dof)
+        if maps.damping is None and not maps.forces:
+            return 0.0
+        G = tree.group
+        nu = kinetic.velocity_estimate(G, G.increment(q, q2), maps.h)
+        tau = nu.new_zeros(nu.shape[0], maps.E.shape[-1])
         if maps.forces:
             F = maps.forces[0](q, nu)
             for force in maps.forces[1:]:
@@ -568,18 +415,25 @@ class ArticulatedEngine:
             tau = tau - maps.damping * jt.reduce_joint_velocity(tree, q, q2, nu)
         return 0.5 * maps.h * tau
 
-    def _joint_jacobian_moving_basis(self, q: Pose, q2: Pose) -> torch.Tensor:
-        """d `_joint_terms_moving_basis` / d delta: S(q)^T dF dnu S(q2) and the damping's least-squares
-        rates with both bases held fixed (`articulated.reduced_velocity_jacobian`)."""
+    def _joint_jacobian(self, q: Pose, q2: Pose) -> torch.Tensor | float:
+        """d `_joint_terms`(q, q2, q) / d delta (N, n, n) with q2 advanced along the joints by delta:
+        S(q)^T dF dnu S(q2) and the damping's rates with the bases held fixed
+        (`articulated.reduced_velocity_jacobian`)."""
         maps, tree = self.maps, self.maps.tree
-        dnu = kinetic.velocity_estimate_jacobian(tree.group, increment(q, q2), maps.h)
+        if maps.damping is None and not maps.forces:
+            return 0.0
+        G = tree.group
+        if maps.damping is not None and not maps.forces and not maps.universal:  # the common case, sparse
+            return damping_jacobian(maps, q.R.transpose(-1, -2) @ q2.R)
+        inc = G.increment(q, q2)
+        dnu = kinetic.velocity_estimate_jacobian(G, inc, maps.h)
         S2 = jt.motion_basis(tree, q2)
-        J = dnu.new_zeros(dnu.shape[0], tree.n_dof, tree.n_dof)
+        J = dnu.new_zeros(dnu.shape[0], S2.shape[-1], S2.shape[-1])
         if maps.damping is not None:
             dred = jt.reduce_joint_velocity(tree, q, q2, dnu @ S2, columns=True)
             J = J - 0.5 * maps.h * maps.damping[:, None] * dred
         if maps.forces:
-            nu = joint_velocity(maps, q, q2)
+            nu = kinetic.velocity_estimate(G, inc, maps.h)
             dF = force_jacobian_xi(maps.forces[0], q, nu)
             for force in maps.forces[1:]:
                 dF = dF + force_jacobian_xi(force, q, nu)
@@ -587,59 +441,50 @@ class ArticulatedEngine:
         return J
 
     def _coordinate_potential(self, g: Pose) -> torch.Tensor:
-        """-h dV_coord at g for the MLP of the coordinates, reduced by T(g)^T on a reduced tree."""
-        model, maps = self.model, self.maps
-        closed = mlp_derivatives.mlp_potential_covector(maps.mlp, model.G, g, maps.h)
-        if closed is None:
-            from torch.func import grad
-
-            Vc = maps.mlp
-            eta = g.R.new_zeros(g.R.shape[0], model.G.dim)
-            with torch.enable_grad():
-                closed = -maps.h * grad(lambda e: Vc(model.G.perturb(g, e)).sum())(eta)  # type: ignore[operator]
+        """-h dV_coord at g of the potential of the coordinates (the model's own `potential_covector`, no
+        world part), reduced by T(g)^T on a reduced tree."""
+        maps = self.maps
+        cov = self.model.potential_covector(g, None, None, world_part=False)
         if not maps.reduced:
-            return closed
+            return cov
         T = jt.coordinate_basis(maps.tree, g)
-        return (T.transpose(-1, -2) @ closed[..., None])[..., 0]
+        return (T.transpose(-1, -2) @ cov[..., None])[..., 0]
 
     def start(self, g0: Pose, g1: Pose) -> FusedArticulatedState:
         maps = self.maps
         cur = Frame.at(maps, g1)
         const = self._const(Frame.at(maps, g0), cur)
-        return FusedArticulatedState(g0, cur, increment(g0, g1), const, self)
+        return FusedArticulatedState(g0, cur, maps.tree.group.increment(g0, g1), const, self)
 
     def _warm_start(self, s: FusedArticulatedState) -> Pose:
         """The reference's warm start: the last increment (unreduced), or its DoF by least squares
         applied along the joints at g_k (`ArticulatedLieDFLNN._reduced_problem`)."""
-        maps, model = self.maps, self.model
+        maps, tree = self.maps, self.maps.tree
         if not maps.reduced:
             return s.inc
-        xi = model.G.log(s.inc)
-        tree, q = maps.tree, s.frame.q
-        if tree.n_dof != tree.group.dim:  # hinge or weld joints: least squares on T(g_k)
+        G = tree.group
+        xi = G.log(s.inc)
+        C = art.joint_velocity_map(tree, s.g) if tree.n_dof == G.dim else None
+        if C is not None:  # every joint a ball on a world-attitude tree: T = C^-1, so T d = xi is d = C xi
+            d0 = (C @ xi[..., None])[..., 0]
+        else:
             d0 = jt.reduce(jt.coordinate_basis(tree, s.g), xi)
-        elif tree.rotations == "parent":  # every joint a ball: T = I
-            d0 = xi
-        else:  # every joint a ball on a world-rotation tree: T = C^{-1}, so d0 = C xi exactly
-            w, v = model.G.split(xi)
-            wp = (q.R.transpose(-1, -2) @ w[:, maps.parent_index][..., None])[..., 0]  # R_rel^T w_parent
-            wj = torch.cat((w[:, :1], w[:, 1:] - wp[:, 1:]), 1)
-            d0 = model.G.join(wj, v)
-        return increment(s.g, from_moving(maps, advance(maps, q, d0)))
+        return G.increment(s.g, from_moving(maps, jt.advance(tree, s.frame.q, d0)))
 
     def problem(self, s: FusedArticulatedState, x0: Pose | None = None) -> NewtonProblem:
         maps, cur = self.maps, s.frame
+        G = maps.tree.group
         last: list = [None, None]  # (x, its Frame): the last iterate made or read
         cached: list = [None]  # the Jacobian's left factor at g_k
 
         def frame(x: Pose) -> Frame:
             if last[0] is not x:
-                last[0], last[1] = x, Frame.at(maps, compose(cur.g, x))
+                last[0], last[1] = x, Frame.at(maps, G.compose(cur.g, x))
             return last[1]
 
         def f(x: Pose) -> torch.Tensor:
             nxt = frame(x)
-            c = kinetic_d1(maps, *_world_increment(cur.Rw, cur.pw, nxt.Rw, nxt.pw))
+            c = body_covector(kinetic.kinetic_d1, maps, cur, nxt)
             cw, cv = covector_rows(cur.Rw, c)
             r = s.const + (left()[0] @ torch.cat((cw, cv), 1))[..., 0]
             return r + self._joint_terms(cur.q, nxt.q, cur.q)
@@ -665,9 +510,9 @@ class ArticulatedEngine:
             return cached[0]
 
         def retract(x: Pose, delta: torch.Tensor) -> Pose:
-            q_next = advance(maps, frame(x).q, delta)
+            q_next = jt.advance(maps.tree, frame(x).q, delta)
             g_next = from_moving(maps, q_next)
-            x_next = increment(cur.g, g_next)
+            x_next = G.increment(cur.g, g_next)
             last[0], last[1] = x_next, Frame.at(maps, g_next, q_next)
             return x_next
 
@@ -683,7 +528,7 @@ class ArticulatedEngine:
         W = x.R.detach()
         W = 0.5 * W @ (3.0 * torch.eye(3, dtype=W.dtype, device=W.device) - W.transpose(-1, -2) @ W)
         inc = Pose(W, x.p.detach())
-        g_next = compose(s.g, inc)
+        g_next = maps.tree.group.compose(s.g, inc)
         if projects_poses(W.dtype):
             g_next = Pose(so3.orthonormalize(g_next.R), g_next.p)
         nxt = Frame.at(maps, g_next)

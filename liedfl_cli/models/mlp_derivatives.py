@@ -33,6 +33,7 @@ import torch
 from torch import nn
 
 from ..lie import Pose, ProductGroup
+from ..mechanics.mlp import activation_slope
 
 Layer = tuple[nn.Linear, nn.Module | None]
 
@@ -73,23 +74,7 @@ def _act_backward(act: nn.Module, g: torch.Tensor, z: torch.Tensor, a: torch.Ten
     return aten.silu_backward(g, z)
 
 
-def _act_slope(act: nn.Module, z: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
-    """act'(z) as a differentiable expression."""
-    if isinstance(act, nn.GELU) and act.approximate == "none":
-        Phi = 0.5 + 0.5 * torch.erf(z * _INV_SQRT2)
-        return Phi + z * torch.exp(-0.5 * z * z) * _INV_SQRT2PI
-    if isinstance(act, nn.Tanh):
-        return 1.0 - a * a
-    if isinstance(act, nn.Softplus):
-        bz = act.beta * z
-        return torch.where(bz > act.threshold, torch.ones_like(z), torch.sigmoid(bz))
-    if isinstance(act, nn.SiLU):
-        s = torch.sigmoid(z)
-        return s * (1.0 + z * (1.0 - s))
-    # GELU, tanh form: 0.5 (1 + t) + 0.5 z (1 - t^2) u'(z), u = c (z + 0.044715 z^3), t = tanh(u)
-    c = math.sqrt(2.0 / math.pi)
-    t = torch.tanh(c * (z + 0.044715 * z * z * z))
-    return 0.5 * (1.0 + t) + 0.5 * z * (1.0 - t * t) * c * (1.0 + 3 * 0.044715 * z * z)
+_act_slope = activation_slope  # act'(z) as a differentiable expression (`mechanics.mlp`)
 
 
 def _act_curvature(act: nn.Module, z: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
