@@ -85,8 +85,9 @@ from liedfl_cli.config.factory import build_model  # noqa: E402
 from liedfl_cli.config.typed import typed  # noqa: E402
 from liedfl_cli.data.scenes import dataset_steps, get_dataset  # noqa: E402
 from liedfl_cli.lie import SE3, SO3, Pose, so3  # noqa: E402
-from liedfl_cli.models.liedflnn import LieDFLNN  # noqa: E402
+from liedfl_cli.models.liedflnn.model import LieDFLNN  # noqa: E402
 from liedfl_cli.models.true_scheme import physics_model  # noqa: E402
+from liedfl_cli.solvers import compile as compile_cache  # noqa: E402
 from liedfl_cli.solvers import runtime  # noqa: E402
 
 PHYS = {"J": [1.521, 1.362, 1.211], "m": 0.5, "rho": [0.0, 0.5, 1.0]}
@@ -224,21 +225,22 @@ def learned_so3_model():
 def rollout_us(model, G, h, n: int, budget: float, repeats: int, **settings) -> float:
     """Microseconds per step per trajectory (best of `repeats`) of a rollout of about `budget` s;
     the CPU time of the same rollouts goes to `CPU_US`. `fused=`: the model's path (fixed per model:
-    `with_path`); other settings: `runtime.using`."""
+    `with_path`); `compile=`: the twin's plan."""
     g0, g1 = start(G, n, h)
-    if "fused" in settings:
-        model = model.with_path("fused" if settings.pop("fused") else "reference")
-    with runtime.using(**settings):
-        t = time.perf_counter()
-        model.rollout(g0, g1, 4)
-        per_step = (time.perf_counter() - t) / 3
-        steps = int(min(500, max(6, budget / max(per_step, 1e-6))))
-        best = best_cpu = float("inf")
-        for _ in range(repeats):
-            t, c = time.perf_counter(), time.process_time()
-            model.rollout(g0, g1, steps)
-            best = min(best, (time.perf_counter() - t) / (steps - 1))
-            best_cpu = min(best_cpu, (time.process_time() - c) / (steps - 1))
+    model = model.with_path("fused" if settings.pop("fused", model.path == "fused") else "reference")
+    if "compile" in settings:  # this twin's plan (the model's own stays as it is)
+        model.set_plan(dataclasses.replace(model.plan, compile=settings.pop("compile")))
+    assert not settings, f"unknown settings {settings}"
+    t = time.perf_counter()
+    model.rollout(g0, g1, 4)
+    per_step = (time.perf_counter() - t) / 3
+    steps = int(min(500, max(6, budget / max(per_step, 1e-6))))
+    best = best_cpu = float("inf")
+    for _ in range(repeats):
+        t, c = time.perf_counter(), time.process_time()
+        model.rollout(g0, g1, steps)
+        best = min(best, (time.perf_counter() - t) / (steps - 1))
+        best_cpu = min(best_cpu, (time.process_time() - c) / (steps - 1))
     CPU_US.append(best_cpu / n * 1e6)
     return best / n * 1e6
 
@@ -347,7 +349,7 @@ def articulated_training(data_dir: str, quick: bool, log) -> dict:
 
 def articulated_rollouts(data_dir: str, quick: bool, log) -> dict:
     """Articulated rollout us per step per trajectory at batch 1 and 1,000 on the fused engine
-    (`models.fused_articulated`) and the reference problem, alternately in this process (issue 34
+    (`models.articulated.engines.fused`) and the reference problem, alternately in this process (issue 34
     items 1 and 3), and MuJoCo's RK4 per substep of the 5-body tree's true model in the same run."""
     from liedfl_cli.data.mujoco_chain import chain_dataset
 
@@ -516,12 +518,13 @@ def main() -> None:
     out["cpu_time"] = cpu
 
     # compilation
-    if not args.no_compile and runtime.compiler_available():
+    if not args.no_compile and compile_cache.compiler_available():
         model, G, h = rollout_models()["free_body_true"]
         g0, g1 = start(G, 8, h)
         t = time.perf_counter()
-        with runtime.using(compile="true"):
-            model.rollout(g0, g1, 3)
+        model = model.with_path(model.path)
+        model.set_plan(dataclasses.replace(model.plan, compile="true"))
+        model.rollout(g0, g1, 3)
         out["compile_s"] = time.perf_counter() - t
         out["compiled_rollout_us_per_step_traj"] = {
             str(n): rollout_us(model, G, h, n, budget, repeats, compile="true") for n in (1000, 10000)

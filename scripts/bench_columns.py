@@ -17,7 +17,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from liedfl_cli.models import fused_columns
+from liedfl_cli.models.liedflnn.engines import columns as fused_columns
 
 
 def best_us(fn, *args, repeats: int = 50) -> float:

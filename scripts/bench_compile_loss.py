@@ -25,9 +25,9 @@ from bench import config  # noqa: E402
 
 from liedfl_cli.config.factory import build_model  # noqa: E402
 from liedfl_cli.data.scenes import get_dataset  # noqa: E402
-from liedfl_cli.models import fused  # noqa: E402
 from liedfl_cli.models.base import LossOptions  # noqa: E402
-from liedfl_cli.models.liedflnn import fused_loss  # noqa: E402
+from liedfl_cli.models.liedflnn.engines import core as fused  # noqa: E402
+from liedfl_cli.models.liedflnn.model import fused_loss  # noqa: E402
 from liedfl_cli.solvers import runtime  # noqa: E402
 
 

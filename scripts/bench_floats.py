@@ -19,8 +19,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from liedfl_cli.lie import SO3, Pose, so3
-from liedfl_cli.models import fused_scalar
-from liedfl_cli.models.liedflnn import LieDFLNN
+from liedfl_cli.models.liedflnn.engines import scalar as fused_scalar
+from liedfl_cli.models.liedflnn.model import LieDFLNN
 from liedfl_cli.solvers.options import SolverOptions
 from liedfl_cli.solvers.rollout import rollout_implicit
 

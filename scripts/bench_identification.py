@@ -1,5 +1,5 @@
-"""Identification (`liedfl_cli.models.identification.identify`: weighted least squares + Levenberg-Marquardt
-in log-Cholesky parameters) against the least-squares start (`models.articulated_fit`) and against the
+"""Identification (`liedfl_cli.models.articulated.identification.identify`: weighted least squares + Levenberg-Marquardt
+in log-Cholesky parameters) against the least-squares start (`models.articulated.fit`) and against the
 default first-order training (SOAP, lr 3e-3, DEL + regularity loss, batches of 1024, from the equal-mass
 start) given the same wall time, on MuJoCo scenes (docs/identification.md).
 
@@ -23,8 +23,8 @@ from pathlib import Path
 import torch
 
 from liedfl_cli.data.mujoco_chain import chain_dataset
-from liedfl_cli.models import identification as idf
-from liedfl_cli.models.articulated import ArticulatedLieDFLNN, ArticulatedTriplets
+from liedfl_cli.models.articulated import identification as idf
+from liedfl_cli.models.articulated.model import ArticulatedLieDFLNN, ArticulatedTriplets
 from liedfl_cli.models.base import LossOptions
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -116,7 +116,7 @@ def main() -> None:
         res = idf.identify(model, trip, iterations=a.iterations, log=None)
         t_id = time.perf_counter() - t
         row("identify (LS + LM)", t_id, model, {"identification": res.as_dict()})
-        from liedfl_cli.models.articulated_fit import least_squares_start
+        from liedfl_cli.models.articulated.fit import least_squares_start
 
         model = build(ds, kw)
         trip = ArticulatedTriplets(model, train, 100)

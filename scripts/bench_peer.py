@@ -9,7 +9,7 @@ search or convergence check), rolled out by its `predict` from random rotations,
 velocity scale and zero control. liedfl is timed on (a) the free rigid body with true parameters
 and (b) an SO(3) LieDFLNN with an MLP potential of width 10 x 2 and Rayleigh damping (the peer's
 network size), Newton to tolerance 1e-5 with line search, on the fused paths (a single SO(3) body
-rolls out in column layout, `models.fused_columns`), on the fused step in the row layout (`_rows`)
+rolls out in column layout, `models.liedflnn.engines.columns`), on the fused step in the row layout (`_rows`)
 and on the reference paths (`_reference`). Figures: microseconds per step per trajectory (best of 3), peer and liedfl
 alternately, and their ratios (peer_over_X > 1: liedfl is faster).
 """
@@ -29,7 +29,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from liedfl_cli.lie import SO3, Pose, so3  # noqa: E402
-from liedfl_cli.models.liedflnn import LieDFLNN  # noqa: E402
+from liedfl_cli.models.liedflnn.model import LieDFLNN  # noqa: E402
 from liedfl_cli.models.true_scheme import physics_model  # noqa: E402
 from liedfl_cli.solvers import runtime  # noqa: E402
 from liedfl_cli.solvers.options import SolverOptions  # noqa: E402

@@ -30,8 +30,8 @@ from machine_info import cpu_model  # scripts/machine_info.py (scripts/ is on th
 
 from liedfl_cli.data.physics import RigidBodySO3, simulate_so3
 from liedfl_cli.lie import Pose, ProductGroup
-from liedfl_cli.models import substeps as sb
-from liedfl_cli.models.liedflnn import LieDFLNN
+from liedfl_cli.models.liedflnn import substeps as sb
+from liedfl_cli.models.liedflnn.model import LieDFLNN
 from liedfl_cli.models.true_scheme import physics_model
 from liedfl_cli.solvers.options import SolverOptions
 

@@ -46,7 +46,7 @@ def paper_scheme() -> None:
 
 
 def tree_orders() -> list[dict]:
-    from liedfl_cli.models import substeps as sb
+    from liedfl_cli.models.liedflnn import substeps as sb
     from tests.test_articulated_joints import learned_like, mixed_tree, smooth_motion
 
     tree = mixed_tree("world")

@@ -26,7 +26,7 @@ from liedfl_cli.cli import CONF_DIR
 from liedfl_cli.commands.train import fit
 from liedfl_cli.config.recovery import parameter_recovery
 from liedfl_cli.data.scenes import get_dataset
-from liedfl_cli.models.liedflnn import LieDFLNN
+from liedfl_cli.models.liedflnn.model import LieDFLNN
 
 ROOT = Path(__file__).resolve().parents[1]
 D_TRUE = [[0.05, 0.02, 0.01], [0.02, 0.06, -0.015], [0.01, -0.015, 0.04]]

@@ -60,7 +60,7 @@ def train(out: Path, key: str, epochs: int) -> Path:
 def mass_scan(run: Path, factors=(0.25, 0.5, 1.0, 2.0, 4.0)) -> list[float]:
     """DEL loss of the true-parameter scheme (uniform_gravity at the true values) with m multiplied."""
     from liedfl_cli.config.runs import load_run
-    from liedfl_cli.models.liedflnn import LieDFLNN
+    from liedfl_cli.models.liedflnn.model import LieDFLNN
     from liedfl_cli.models.true_scheme import true_model
 
     cfg, _, ds, _ = load_run(run)

@@ -12,8 +12,8 @@ import torch
 
 from liedfl_cli.data.mujoco_chain import chain_dataset
 from liedfl_cli.evaluation.metrics import geodesic_error
-from liedfl_cli.models.articulated import ArticulatedLieDFLNN, ArticulatedTriplets
-from liedfl_cli.models.articulated_fit import least_squares_start
+from liedfl_cli.models.articulated.fit import least_squares_start
+from liedfl_cli.models.articulated.model import ArticulatedLieDFLNN, ArticulatedTriplets
 from liedfl_cli.solvers.one_step import constant_velocity_one_step, one_step_predictions
 from liedfl_cli.solvers.options import SolverOptions
 

@@ -32,7 +32,7 @@ if "PYTEST_XDIST_WORKER" in os.environ:
 
 import helpers
 import liedfl_cli.config.resolvers  # noqa: F401  (the configs the tests compose use its resolvers)
-from liedfl_cli.solvers import runtime
+from liedfl_cli.solvers import execution, runtime
 
 settings.register_profile(
     "default-liedfl",
@@ -79,20 +79,19 @@ def pytest_collection_modifyitems(config, items) -> None:
 @pytest.fixture(autouse=True)
 def _fresh_runtime(request):
     """The default engine state before each test, restored after it (see the module docstring)."""
-    threads, min_work = torch.get_num_threads(), dict(runtime.COMPILE_MIN_WORK)
+    threads, min_work = torch.get_num_threads(), dict(execution.COMPILE_MIN_WORK)
 
     def reset() -> None:
         runtime._current = runtime.RuntimeOptions()
-        runtime._planned.clear()
 
     reset()
     torch.set_num_threads(runtime.DEFAULT_THREADS)
     if request.node.get_closest_marker("compile_auto") is None:
-        runtime.COMPILE_MIN_WORK.update(dict.fromkeys(runtime.COMPILE_MIN_WORK, math.inf))
+        execution.COMPILE_MIN_WORK.update(dict.fromkeys(execution.COMPILE_MIN_WORK, math.inf))
     try:
         yield
     finally:
-        runtime.COMPILE_MIN_WORK.update(min_work)
+        execution.COMPILE_MIN_WORK.update(min_work)
         reset()
         torch.set_num_threads(threads)
 

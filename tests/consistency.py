@@ -56,7 +56,7 @@ def exact(kind: str, h: float, final_time: float, n_traj: int = 4, seed: int = 0
 
 
 def _model(kind: str, h: float, substeps: int = 1, order: int = 2):
-    from liedfl_cli.models.substeps import with_substeps
+    from liedfl_cli.models.liedflnn.substeps import with_substeps
 
     return with_substeps(physics_model(SO3 if kind == "so3" else SE3, h, PHYSICS[kind]), substeps, order)
 
@@ -81,7 +81,7 @@ def rollout_order(
     kind: str, hs=(0.04, 0.02, 0.01, 0.005), final_time: float = 2.0, substeps: int = 1, order: int = 2
 ) -> dict:
     """Rotation (and position) error at t = final_time per h, started from exact (g0, g1), of the scheme
-    with `substeps` sub-steps of order `order` (models/substeps.py; 1, 2: the paper's)."""
+    with `substeps` sub-steps of order `order` (models/liedflnn/substeps.py; 1, 2: the paper's)."""
     errs, drift = [], 0.0
     for h in hs:
         traj = exact(kind, h, final_time)

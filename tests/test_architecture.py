@@ -175,7 +175,7 @@ def test_there_are_no_import_cycles():
 def test_the_graph_is_not_trivially_empty():
     """Guards the checks above against a broken parser: known edges must be seen."""
     graph = _graph()
-    assert "liedfl_cli.models.base" in graph["liedfl_cli.models.liedflnn"]
+    assert "liedfl_cli.models.base" in graph["liedfl_cli.models.liedflnn.model"]
     assert "liedfl_cli.solvers.newton" in graph["liedfl_cli.solvers.rollout"]
     assert (
         _layer("liedfl_cli.cli") == "pipeline"
@@ -226,8 +226,73 @@ def test_importing_the_core_loads_no_config_system():
     from helpers import modules_in_fresh_interpreter
 
     code = (
-        "import liedfl_cli.lie, liedfl_cli.mechanics, liedfl_cli.solvers, liedfl_cli.models.liedflnn, "
-        "liedfl_cli.models.articulated, liedfl_cli.data.scenes, liedfl_cli.evaluation, liedfl_cli.files.checkpoint, "
-        "liedfl_cli.loggers, liedfl_cli.display.plots"
+        "import liedfl_cli.lie, liedfl_cli.mechanics, liedfl_cli.solvers, liedfl_cli.models.liedflnn.model, "
+        "liedfl_cli.models.articulated.model, liedfl_cli.data.scenes, liedfl_cli.evaluation, "
+        "liedfl_cli.files.checkpoint, liedfl_cli.loggers, liedfl_cli.display.plots"
     )
     assert modules_in_fresh_interpreter(code, ("hydra", "omegaconf")) == []
+
+
+def _family(mod: str) -> str:
+    """The model family package of a module under models/ (`liedfl_cli.models.liedflnn.engines.core` ->
+    `liedfl_cli.models.liedflnn`); a shared module of models/ is its own family; '' outside models/."""
+    parts = mod.split(".")
+    if len(parts) < 3 or parts[1] != "models":
+        return ""
+    return ".".join(parts[:3])
+
+
+def _class_families() -> dict[str, set[str]]:
+    """Class name -> the families defining a class of that name (concrete models and engine types)."""
+    out: dict[str, set[str]] = {}
+    for m, p in MODULES.items():
+        if _layer(m) == "models" and m != "liedfl_cli.models.base":
+            for n in ast.walk(_tree(p)):
+                if isinstance(n, ast.ClassDef):
+                    out.setdefault(n.name, set()).add(_family(m))
+    return out
+
+
+def _type_tests(tree: ast.Module):
+    """(line, isinstance | issubclass, class name) of every type test naming a class by name or attribute."""
+    for node in ast.walk(tree):
+        if not (isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and len(node.args) == 2):
+            continue
+        if node.func.id in ("isinstance", "issubclass"):
+            second = node.args[1]
+            for n in second.elts if isinstance(second, ast.Tuple) else [second]:
+                if isinstance(n, ast.Name):
+                    yield node.lineno, node.func.id, n.id
+                elif isinstance(n, ast.Attribute):
+                    yield node.lineno, node.func.id, n.attr
+
+
+def test_no_type_test_on_a_concrete_model_or_engine_type_outside_its_family():
+    """Which model or engine a caller holds is asked only inside that model's family package
+    (`models/<family>/`): elsewhere (the pipeline, another family, the shared model modules) the
+    contract's hooks answer (`Model.variant_for`, `value_and_grad`, `set_plan`, ...). Covers
+    `isinstance` and `issubclass`, by plain name and by attribute (`fused.IncrementBatch`)."""
+    families = _class_families()
+    bad = []
+    for m, p in MODULES.items():
+        own = _family(m)
+        for line, kind, name in _type_tests(_tree(p)):
+            where = families.get(name)
+            if where is not None and own not in where:
+                bad.append(f"{m}:{line} {kind}(..., {name}) (defined in {sorted(where)})")
+    assert not bad, bad
+
+
+def test_the_type_test_scan_sees_the_families_own_checks():
+    """Guards the check above: the LieDFLNN family's own checks of its engine types are found."""
+    seen = {(name, _family(m)) for m, p in MODULES.items() for _, _, name in _type_tests(_tree(p))}
+    assert ("IncrementBatch", "liedfl_cli.models.liedflnn") in seen
+
+
+def test_no_model_reads_the_process_runtime():
+    """Models and their engines are told how to run (`solvers.execution.ExecutionPlan`, held by the
+    model): no module under models/ imports `solvers.runtime` (threads, device, dtype, the command's
+    settings), so nothing there reads a process-global setting."""
+    bad = [m for m, p in MODULES.items() if _layer(m) == "models" and "liedfl_cli.solvers.runtime" in _imports(p)]
+    assert not bad, bad
+    assert "liedfl_cli.solvers.runtime" in _imports(MODULES["liedfl_cli.config.factory"])  # the scan sees imports

@@ -10,7 +10,7 @@ import torch
 
 from liedfl_cli.lie import Pose, so3
 from liedfl_cli.lie.tree import Tree
-from liedfl_cli.models.articulated import ArticulatedLieDFLNN, ArticulatedTriplets
+from liedfl_cli.models.articulated.model import ArticulatedLieDFLNN, ArticulatedTriplets
 from liedfl_cli.models.base import LossOptions, TripletSet
 
 H = 0.05
@@ -161,7 +161,7 @@ def test_vectorised_world_blocks_equal_the_per_body_closed_form_and_autodiff():
     from liedfl_cli.lie import ProductGroup
     from liedfl_cli.mechanics import articulated as art
     from liedfl_cli.mechanics import kinetic
-    from liedfl_cli.models.liedflnn import LieDFLNN
+    from liedfl_cli.models.liedflnn.model import LieDFLNN
 
     B = 4
     Gw = ProductGroup(B, 0)
@@ -183,8 +183,8 @@ def test_vectorised_world_blocks_equal_the_per_body_closed_form_and_autodiff():
 @pytest.mark.parametrize(("rotations", "free_root", "forces"), CASES[:2])
 def test_newton_loss_of_the_batches_equals_the_reference_path(rotations, free_root, forces):
     """train.loss=newton: the precomputed batches (`enable_jacobian`) give the loss of the generic
-    reference path (`models.losses.newton_loss`: autodiff Jacobian of the residual, then solve)."""
-    from liedfl_cli.models.losses import training_stage
+    reference path (`models.liedflnn.losses.newton_loss`: autodiff Jacobian of the residual, then solve)."""
+    from liedfl_cli.models.liedflnn.losses import training_stage
 
     tree = _tree(rotations, free_root)
     data = _trajectories(tree, T=3, N=6, speed=0.05)

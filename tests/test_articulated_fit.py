@@ -1,4 +1,4 @@
-"""The articulated model's least-squares start (`models.articulated_fit`): the residual is affine in the
+"""The articulated model's least-squares start (`models.articulated.fit`): the residual is affine in the
 physical parameters (so the autodiff regressor is exact), the start is the same in metres and in
 millimetres, it lifts a heavy-root chain from worse than constant velocity to far better, and what it
 writes is physically consistent."""
@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from liedfl_cli.evaluation.metrics import geodesic_error
-from liedfl_cli.models.articulated import ArticulatedLieDFLNN, ArticulatedTriplets
-from liedfl_cli.models.articulated_fit import consistent, least_squares_start, pack, unpack
+from liedfl_cli.models.articulated.fit import consistent, least_squares_start, pack, unpack
+from liedfl_cli.models.articulated.model import ArticulatedLieDFLNN, ArticulatedTriplets
 from liedfl_cli.solvers.one_step import constant_velocity_one_step, one_step_predictions
 from liedfl_cli.solvers.options import SolverOptions
 

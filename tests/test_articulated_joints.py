@@ -16,7 +16,7 @@ from liedfl_cli.evaluation.metrics import geodesic_error
 from liedfl_cli.lie import Pose, so3
 from liedfl_cli.lie import joints as jt
 from liedfl_cli.lie.tree import Tree
-from liedfl_cli.models.articulated import ArticulatedLieDFLNN, ArticulatedTriplets, articulated_true_model
+from liedfl_cli.models.articulated.model import ArticulatedLieDFLNN, ArticulatedTriplets, articulated_true_model
 from liedfl_cli.solvers.one_step import constant_velocity_one_step, one_step_predictions
 from liedfl_cli.solvers.options import SolverOptions
 

@@ -18,7 +18,7 @@ import torch
 from liedfl_cli.errors import ConfigError
 from liedfl_cli.evaluation.metrics import geodesic_error, position_error
 from liedfl_cli.lie.tree import forward_kinematics
-from liedfl_cli.models.articulated import ArticulatedLieDFLNN, articulated_true_model
+from liedfl_cli.models.articulated.model import ArticulatedLieDFLNN, articulated_true_model
 from liedfl_cli.solvers.one_step import constant_velocity_one_step, constant_velocity_rollout, one_step_predictions
 from liedfl_cli.solvers.options import SolverOptions
 
@@ -135,7 +135,7 @@ def test_articulated_training_runs_end_to_end(tmp_path, monkeypatch):
 
 def test_articulated_needs_a_tree_in_the_data():
     from liedfl_cli.lie import ProductGroup
-    from liedfl_cli.models.articulated import build_articulated
+    from liedfl_cli.models.articulated.model import build_articulated
     from liedfl_cli.models.base import BuildContext
 
     ctx = BuildContext(group=ProductGroup(1, 2), h=0.05)

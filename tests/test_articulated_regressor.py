@@ -1,4 +1,4 @@
-"""The identification's regressor (`models.articulated_fit.regressor`): d r / d pi of the articulated
+"""The identification's regressor (`models.articulated.fit.regressor`): d r / d pi of the articulated
 residual, built from ten coloured forward-mode directions and the FK Jacobian, against the plain
 forward-mode Jacobian of the residual in all P directions (`torch.func.jacfwd`), on trees with every
 joint type, learned gravity or none, per-DoF damping or none, an MLP potential and learned forces
@@ -11,8 +11,8 @@ import torch
 from test_articulated_joints import mixed_tree, smooth_motion
 from test_fused_articulated import _tree
 
-from liedfl_cli.models.articulated import ArticulatedLieDFLNN
-from liedfl_cli.models.articulated_fit import pack, regressor, unpack
+from liedfl_cli.models.articulated.fit import pack, regressor, unpack
+from liedfl_cli.models.articulated.model import ArticulatedLieDFLNN
 
 F64 = torch.float64
 H = 0.02

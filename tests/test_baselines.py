@@ -22,9 +22,9 @@ from liedfl_cli.data.scenes import generate
 from liedfl_cli.errors import ConfigError
 from liedfl_cli.lie import SE3, SO3, Pose, euler, so3
 from liedfl_cli.mechanics.potentials import GravityPotential
-from liedfl_cli.models.euclidean_dflnn import EuclideanDFLNN
-from liedfl_cli.models.euler_dflnn import EulerDFLNN
-from liedfl_cli.models.glnn import GLNN
+from liedfl_cli.models.euclidean_dflnn.model import EuclideanDFLNN
+from liedfl_cli.models.euler_dflnn.model import EulerDFLNN
+from liedfl_cli.models.glnn.model import GLNN
 from liedfl_cli.models.true_scheme import physics_model
 from liedfl_cli.solvers.options import SolverOptions
 from liedfl_cli.solvers.rollout import Rollout

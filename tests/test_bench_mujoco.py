@@ -59,7 +59,7 @@ def test_order_4_converges_to_mujoco_at_fourth_order_on_a_tree(bench):
     """model.order=4 on an articulated tree against MuJoCo's fine reference (not our own ODE reference,
     whose h-sweep on trees stalled at 1.1-1.7 in docs/substeps.md): rates 5.2 / 4.2 measured."""
     from liedfl_cli.lie import Pose
-    from liedfl_cli.models.substeps import with_substeps
+    from liedfl_cli.models.liedflnn.substeps import with_substeps
     from liedfl_cli.models.true_scheme import true_model
     from liedfl_cli.solvers.options import SolverOptions
 

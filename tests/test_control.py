@@ -20,7 +20,7 @@ from liedfl_cli.evaluation import EvalOutputs, SceneEvalOptions
 from liedfl_cli.evaluation.control import evaluate_control, force_torques, plot_torque, torque_errors
 from liedfl_cli.lie import SO3, Pose, ProductGroup, so3
 from liedfl_cli.mechanics.forces import ControlForce
-from liedfl_cli.models.liedflnn import LieDFLNN
+from liedfl_cli.models.liedflnn.model import LieDFLNN
 from liedfl_cli.models.true_scheme import physics_model, true_model
 
 ROOT = Path(__file__).resolve().parents[1]

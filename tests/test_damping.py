@@ -15,7 +15,7 @@ from liedfl_cli.lie import Pose, ProductGroup, so3
 from liedfl_cli.mechanics.damping import PerBodyDampingNet, PerBodySPSD, block_diagonal
 from liedfl_cli.mechanics.forces import RayleighForce, RayleighNonlinearForce, force_jacobian_xi
 from liedfl_cli.mechanics.parameterizations import SPSDMatrix
-from liedfl_cli.models.liedflnn import LieDFLNN
+from liedfl_cli.models.liedflnn.model import LieDFLNN
 from liedfl_cli.solvers.newton import jacobian
 
 GROUPS = [ProductGroup(0, 1), ProductGroup(1, 0), ProductGroup(1, 2), ProductGroup(2, 3), ProductGroup(0, 3)]

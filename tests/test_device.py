@@ -75,12 +75,12 @@ CONSTRUCTION_MODULES = ("mechanics/scene_physics.py",)  # rule 2c
 CONSTRUCTION_FUNCTIONS = {  # rule 2c
     ("mechanics/potentials.py", "_vec3"),
     # the articulated model's declared truth and starting geometry, read when it is built
-    ("models/articulated.py", "articulated_parameters"),
-    ("models/articulated.py", "joint_damping_matrix"),
-    ("models/articulated.py", "geometric_start"),
-    ("models/articulated.py", "true_dof_damping"),
+    ("models/articulated/model.py", "articulated_parameters"),
+    ("models/articulated/model.py", "joint_damping_matrix"),
+    ("models/articulated/model.py", "geometric_start"),
+    ("models/articulated/model.py", "true_dof_damping"),
 }
-PYTHON_FLOAT_FUNCTIONS = {("models/fused_maps.py", "_exp_coefficients_scalar")}  # rule 2d
+PYTHON_FLOAT_FUNCTIONS = {("models/liedflnn/engines/maps.py", "_exp_coefficients_scalar")}  # rule 2d
 
 
 def _is_torch_attr(node: ast.AST, names) -> bool:

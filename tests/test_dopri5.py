@@ -11,7 +11,7 @@ import torch
 from torchdiffeq import odeint as torchdiffeq_odeint
 
 from liedfl_cli.lie import so3
-from liedfl_cli.models import fused_glnn
+from liedfl_cli.models.glnn.engines import fused as fused_glnn
 from liedfl_cli.solvers import dopri5
 
 F64 = torch.float64

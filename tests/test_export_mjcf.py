@@ -386,7 +386,7 @@ def test_a_ball_model_with_gravity_in_process():
     """model_spec of an untrained articulated model: inertia J = tr(J_d) I - J_d about the COM, the
     total mass, -g u as gravity, one damping per ball joint (the mean, with a warning)."""
     from liedfl_cli.commands.export_model import model_spec
-    from liedfl_cli.models.articulated import ArticulatedLieDFLNN
+    from liedfl_cli.models.articulated.model import ArticulatedLieDFLNN
 
     tree = Tree.from_lists([-1, 0, 1], [[0, 0, 0], [0.3, 0, 0], [0.25, 0.05, 0]], free_root=True)
     model = ArticulatedLieDFLNN(tree, 0.02, potential=("uniform_gravity",), forces=("rayleigh",))

@@ -13,7 +13,7 @@ from omegaconf import OmegaConf
 from liedfl_cli.lie import Pose, ProductGroup, so3
 from liedfl_cli.mechanics import kinetic
 from liedfl_cli.mechanics.forces import FORCES, RayleighForce, RayleighNonlinearForce, build_forces, force_jacobian_xi
-from liedfl_cli.models.liedflnn import LieDFLNN
+from liedfl_cli.models.liedflnn.model import LieDFLNN
 from liedfl_cli.models.true_scheme import physics_model
 from liedfl_cli.solvers.newton import jacobian
 from liedfl_cli.solvers.options import SolverOptions

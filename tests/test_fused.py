@@ -17,12 +17,14 @@ from liedfl_cli.cli import CONF_DIR
 from liedfl_cli.errors import ConfigError
 from liedfl_cli.lie import SE3, SO3, Pose, ProductGroup, batched, so3
 from liedfl_cli.mechanics import kinetic
-from liedfl_cli.models import fused
 from liedfl_cli.models.base import LossOptions
 from liedfl_cli.models.del_loss import regularity_penalty
-from liedfl_cli.models.liedflnn import LieDFLNN
+from liedfl_cli.models.liedflnn.engines import core as fused
+from liedfl_cli.models.liedflnn.model import LieDFLNN
 from liedfl_cli.models.true_scheme import physics_model
+from liedfl_cli.solvers import compile as compile_cache
 from liedfl_cli.solvers import runtime
+from liedfl_cli.solvers.execution import ExecutionPlan
 from liedfl_cli.solvers.newton import NewtonProblem, solve
 from liedfl_cli.solvers.options import SolverOptions
 
@@ -424,24 +426,24 @@ def test_configure_runtime_from_the_train_config(tmp_path):
 def test_compile_false_and_auto_roll_out_the_same(setting):
     model = physics_model(SO3, 0.1, {**PHYS, "g": 0.0, "D": [0.05] * 3})
     g0, g1 = _start(SO3, 4, 0.1)
-    with runtime.using(compile="false"):
-        a = model.rollout(g0, g1, 10)
-    with runtime.using(compile=setting):
-        b = model.rollout(g0, g1, 10)
-        assert not runtime.want_compile("rollout")  # a small rollout: auto does not compile
+    model.set_plan(ExecutionPlan(compile="false"))
+    a = model.rollout(g0, g1, 10)
+    model.set_plan(ExecutionPlan(compile=setting))
+    b = model.rollout(g0, g1, 10)
+    assert not model.plan.wants_compile("rollout", 4 * 9)  # a small rollout: auto does not compile
     torch.testing.assert_close(a.pose.R, b.pose.R, rtol=0, atol=0)
 
 
 def test_compile_without_a_compiler_falls_back_saying_so_once(monkeypatch, capsys):
-    monkeypatch.setattr(runtime, "compiler_available", lambda: False)
-    monkeypatch.setattr(runtime, "_said_no_compiler", False)
+    monkeypatch.setattr(compile_cache, "compiler_available", lambda: False)
+    monkeypatch.setattr(compile_cache, "_said", set())
     model = physics_model(SO3, 0.1, {**PHYS, "g": 0.0, "D": [0.05] * 3})
     g0, g1 = _start(SO3, 3, 0.1)
-    with runtime.using(compile="false"):
-        a = model.rollout(g0, g1, 8)
-    with runtime.using(compile="true"):
-        b = model.rollout(g0, g1, 8)
-        model.rollout(g0, g1, 8)
+    model.set_plan(ExecutionPlan(compile="false"))
+    a = model.rollout(g0, g1, 8)
+    model.set_plan(ExecutionPlan(compile="true"))
+    b = model.rollout(g0, g1, 8)
+    model.rollout(g0, g1, 8)
     err = capsys.readouterr().err
     assert err.count("no C++ compiler") == 1 and err.count("\n") == 1
     torch.testing.assert_close(a.pose.R, b.pose.R, rtol=0, atol=0)
@@ -455,39 +457,39 @@ def test_a_failing_compilation_falls_back_to_eager(monkeypatch, capsys):
         return run
 
     monkeypatch.setattr(torch, "compile", broken)
-    monkeypatch.setattr(runtime, "_compiled", {})
-    monkeypatch.setattr(runtime, "_said_no_compiler", False)
-    monkeypatch.setattr(runtime, "compiler_available", lambda: True)
+    monkeypatch.setattr(compile_cache, "_compiled", {})
+    monkeypatch.setattr(compile_cache, "_said", set())
+    monkeypatch.setattr(compile_cache, "compiler_available", lambda: True)
     model = physics_model(SE3, 0.05, {**PHYS, "g": 9.81, "D": [0.1, 0.1, 0.1, 0.0, 0.0, 0.0]})
     g0, g1 = _start(SE3, 3, 0.05)
-    with runtime.using(compile="false"):
-        a = model.rollout(g0, g1, 8)
-    with runtime.using(compile="true"):
-        b = model.rollout(g0, g1, 8)
+    model.set_plan(ExecutionPlan(compile="false"))
+    a = model.rollout(g0, g1, 8)
+    model.set_plan(ExecutionPlan(compile="true"))
+    b = model.rollout(g0, g1, 8)
     assert "compilation failed" in capsys.readouterr().err
     torch.testing.assert_close(a.pose.R, b.pose.R, rtol=0, atol=0)
     assert torch.equal(a.iterations, b.iterations)
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(not runtime.compiler_available(), reason="no C++ compiler: the fallback is tested above")
+@pytest.mark.skipif(not compile_cache.compiler_available(), reason="no C++ compiler: the fallback is tested above")
 def test_compiled_newton_step_rolls_out_the_same():
     model = physics_model(SE3, 0.05, {**PHYS, "g": 9.81, "D": [0.1, 0.1, 0.1, 0.0, 0.0, 0.0]})
     g0, g1 = _start(SE3, 5, 0.05)
-    with runtime.using(compile="false"):
-        a = model.rollout(g0, g1, 20)
-    with runtime.using(compile="true"):
-        b = model.rollout(g0, g1, 20)
+    model.set_plan(ExecutionPlan(compile="false"))
+    a = model.rollout(g0, g1, 20)
+    model.set_plan(ExecutionPlan(compile="true"))
+    b = model.rollout(g0, g1, 20)
     assert torch.equal(a.iterations, b.iterations) and torch.equal(a.converged, b.converged)
     assert float((a.pose.R - b.pose.R).abs().max()) <= SolverOptions().tol
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(not runtime.compiler_available(), reason="no C++ compiler: the fallback is tested above")
+@pytest.mark.skipif(not compile_cache.compiler_available(), reason="no C++ compiler: the fallback is tested above")
 def test_compiled_training_loss_of_a_many_body_model_equals_eager(monkeypatch, capsys):
     """More than `fused.SCALAR_BODIES` bodies take the tensor J_d path (`_InertiaJd`), which once
     made torch.compile fail on Exp 4's loss (a saved view; a cache filled while tracing)."""
-    monkeypatch.setattr(runtime, "_compiled", {})
+    monkeypatch.setattr(compile_cache, "_compiled", {})
     G = ProductGroup(1, fused.SCALAR_BODIES)
     model = LieDFLNN(G, 0.1, potential="mlp", forces=["rayleigh"], mlp_width=8, init_jitter=0.3, seed=0)
     _, fus = both_batches(model, trajectories(G))
@@ -496,9 +498,9 @@ def test_compiled_training_loss_of_a_many_body_model_equals_eager(monkeypatch, c
     zero = torch.zeros((), dtype=torch.float64)
 
     def loss_and_grads(setting: str):
-        with runtime.using(compile=setting):
-            loss, _ = model.loss(fus, opts)
-            grads = torch.autograd.grad(loss, params, allow_unused=True)
+        model.set_plan(ExecutionPlan(compile=setting))
+        loss, _ = model.loss(fus, opts)
+        grads = torch.autograd.grad(loss, params, allow_unused=True)
         return loss, [zero if g is None else g for g in grads]
 
     eager, g_eager = loss_and_grads("false")

@@ -1,4 +1,4 @@
-"""The articulated model's fused rollout engine (`models.fused_articulated`) against the reference problem.
+"""The articulated model's fused rollout engine (`models.articulated.engines.fused`) against the reference problem.
 
 The engine must take the reference's Newton steps: the same residual, Jacobian, warm start and
 retraction at the same iterate (to rounding, relative to their magnitudes), hence the same rollouts,
@@ -17,8 +17,8 @@ from test_articulated_joints import _unit, mixed_tree, smooth_motion
 from liedfl_cli.lie import Pose, so3
 from liedfl_cli.lie.tree import Tree
 from liedfl_cli.mechanics.forces import NNForce, RayleighNonlinearForce
-from liedfl_cli.models import fused_articulated as fa
-from liedfl_cli.models.articulated import ArticulatedLieDFLNN, ArticulatedState
+from liedfl_cli.models.articulated.engines import fused as fa
+from liedfl_cli.models.articulated.model import ArticulatedLieDFLNN, ArticulatedState
 from liedfl_cli.solvers.options import SolverOptions
 
 F64 = torch.float64

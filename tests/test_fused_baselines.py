@@ -1,7 +1,7 @@
-"""The baselines' fused training paths (`runtime.fused`, models/fused_glnn.py and
-models/fused_dflnn.py) against their reference paths (`runtime.fused=false`): the same loss (to
-1e-12 relative) and the same gradients (to 1e-12 of the gradient's largest entry), on the same
-parameters and batches."""
+"""The baselines' fused training paths (`runtime.fused`: models/glnn/engines/fused.py,
+models/euclidean_dflnn/engines/fused.py, models/euler_dflnn/engines/fused.py) against their reference
+paths (`runtime.fused=false`): the same loss (to 1e-12 relative) and the same gradients (to 1e-12 of the
+gradient's largest entry), on the same parameters and batches."""
 
 from __future__ import annotations
 
@@ -9,12 +9,12 @@ import pytest
 import torch
 
 from liedfl_cli.lie import SE3, SO3, Pose, so3
-from liedfl_cli.models import fused_dflnn
 from liedfl_cli.models.base import LossOptions, TrajectorySet, TripletBatch, TripletSet
-from liedfl_cli.models.euclidean_dflnn import EuclideanDFLNN
-from liedfl_cli.models.euler_dflnn import EulerDFLNN
-from liedfl_cli.models.glnn import GLNN
-from liedfl_cli.models.neural_ode import NeuralODE
+from liedfl_cli.models.euclidean_dflnn.model import EuclideanDFLNN
+from liedfl_cli.models.euler_dflnn.engines import fused as fused_dflnn
+from liedfl_cli.models.euler_dflnn.model import EulerDFLNN
+from liedfl_cli.models.glnn.model import GLNN
+from liedfl_cli.models.neural_ode.model import NeuralODE
 from liedfl_cli.solvers.newton import jacobian
 
 F64 = torch.float64
@@ -94,7 +94,7 @@ def test_glnn_dopri5_fused_rollout_equals_the_reference():
 
 @pytest.mark.parametrize("G", [SO3, SE3])
 def test_neural_ode_fused_loss_gradients_and_rollout_equal_the_reference(G):
-    """The Neural ODE's dopri5 through `solvers.dopri5` with the MLP field of `models.fused_neural_ode`
+    """The Neural ODE's dopri5 through `solvers.dopri5` with the MLP field of `models.neural_ode.engines.fused`
     against torchdiffeq over the module: loss, every weight's and bias's gradient, and a rollout."""
     steps, h = 6, 0.1
     rot = _trajectories(5, steps, h)

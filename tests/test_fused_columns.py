@@ -1,4 +1,4 @@
-"""The column-layout rollout (`models.fused_columns`) steps exactly as the row layout does: the same
+"""The column-layout rollout (`models.liedflnn.engines.columns`) steps exactly as the row layout does: the same
 Newton iterations, flags and poses to the Newton tolerance (and to the reference path), its
 pieces equal to independent references, and every branch of its Newton loop (compaction to the
 rows still iterating, the hand-over of a singular or non-decreasing iteration) taken and checked."""
@@ -9,10 +9,12 @@ import pytest
 import torch
 
 from liedfl_cli.lie import SE3, SO3, Pose, ProductGroup, so3
-from liedfl_cli.models import fused_columns, fused_scalar
-from liedfl_cli.models.liedflnn import LieDFLNN
+from liedfl_cli.models.liedflnn.engines import columns as fused_columns
+from liedfl_cli.models.liedflnn.engines import scalar as fused_scalar
+from liedfl_cli.models.liedflnn.model import LieDFLNN
 from liedfl_cli.models.true_scheme import physics_model
-from liedfl_cli.solvers import newton, runtime
+from liedfl_cli.solvers import newton
+from liedfl_cli.solvers.execution import ExecutionPlan
 from liedfl_cli.solvers.options import SolverOptions
 from liedfl_cli.solvers.rollout import rollout_implicit
 
@@ -176,8 +178,8 @@ def test_which_models_take_the_column_path():
 
 def test_a_compiled_rollout_takes_the_row_layouts_compiled_step(monkeypatch):
     taken = []
-    monkeypatch.setattr(runtime, "want_compile", lambda kind: True)
-    monkeypatch.setattr(fused_columns, "rollout_implicit", lambda *a, **k: taken.append(a) or "rows")
+    monkeypatch.setattr(ExecutionPlan, "wants_compile", lambda self, kind, work=None: True)
+    monkeypatch.setattr(LieDFLNN, "rollout_rows", lambda self, *a, **k: taken.append(a) or "rows")
     g0, g1 = start(2)
     assert model_named("free_rayleigh").rollout(g0, g1, 4) == "rows"
     assert len(taken) == 1

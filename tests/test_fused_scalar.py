@@ -1,4 +1,4 @@
-"""`models.fused_scalar`: one or a few trajectories of a single SO(3) body rolled out in Python floats
+"""`models.liedflnn.engines.scalar`: one or a few trajectories of a single SO(3) body rolled out in Python floats
 take the same Newton steps as the row layout and the reference path (flags, iteration counts, poses to
 the Newton tolerance), hand careful iterations to the row layout's loop, and are taken only where they
 pay (batch size, MLP size, activations, dtype, compilation)."""
@@ -10,10 +10,11 @@ import torch
 from test_fused_columns import MODELS, PHYS, TOL, H, assert_same_steps, model_named, start
 
 from liedfl_cli.lie import SO3, Pose, so3, tolerances
-from liedfl_cli.models import fused_columns, fused_scalar
-from liedfl_cli.models.liedflnn import LieDFLNN
+from liedfl_cli.models.liedflnn.engines import columns as fused_columns
+from liedfl_cli.models.liedflnn.engines import scalar as fused_scalar
+from liedfl_cli.models.liedflnn.model import LieDFLNN
 from liedfl_cli.models.true_scheme import physics_model
-from liedfl_cli.solvers import runtime
+from liedfl_cli.solvers.execution import ExecutionPlan
 from liedfl_cli.solvers.options import SolverOptions
 from liedfl_cli.solvers.rollout import rollout_implicit
 
@@ -141,8 +142,8 @@ def test_which_rollouts_take_the_float_path():
 
 def test_a_compiled_rollout_takes_the_row_layouts_compiled_step(monkeypatch):
     taken = []
-    monkeypatch.setattr(runtime, "want_compile", lambda kind: True)
-    monkeypatch.setattr(fused_scalar, "rollout_implicit", lambda *a, **k: taken.append(a) or "rows")
+    monkeypatch.setattr(ExecutionPlan, "wants_compile", lambda self, kind, work=None: True)
+    monkeypatch.setattr(LieDFLNN, "rollout_rows", lambda self, *a, **k: taken.append(a) or "rows")
     g0, g1 = start(1)
     assert model_named("free_rayleigh").rollout(g0, g1, 4) == "rows"
     assert len(taken) == 1

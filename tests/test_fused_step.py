@@ -17,11 +17,11 @@ from pytorch_optimizer import SOAP
 from liedfl_cli.commands import fused_optim
 from liedfl_cli.commands.fused_optim import FusedSOAP
 from liedfl_cli.lie import SE3, SO3, Pose, ProductGroup, so3
-from liedfl_cli.models import fused_step
 from liedfl_cli.models.base import LossOptions, oriented_logdet
-from liedfl_cli.models.fused_step import RotationalGradient
-from liedfl_cli.models.fused_training import _oriented_relu, _penalty_and_slope
-from liedfl_cli.models.liedflnn import LieDFLNN
+from liedfl_cli.models.liedflnn.engines import gradient as fused_step
+from liedfl_cli.models.liedflnn.engines.gradient import RotationalGradient
+from liedfl_cli.models.liedflnn.engines.training import _oriented_relu, _penalty_and_slope
+from liedfl_cli.models.liedflnn.model import LieDFLNN
 
 SHAPES = [(1, 3), (1, 3), (6,), (3,), (4, 5)]  # the default run's four tensors and an MLP-like weight
 

@@ -1,4 +1,4 @@
-"""System identification of the articulated model (`models.identification`): the residual and the Newton
+"""System identification of the articulated model (`models.articulated.identification`): the residual and the Newton
 Jacobian are linear in the ten inertial parameters per body and the damping (so the autodiff regressor is
 exact), the log-Cholesky map gives only physical bodies and round-trips, the data determine the base
 parameters (true parameters fit, identify() recovers them), metres and millimetres give the same fit, and
@@ -9,8 +9,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from liedfl_cli.models import identification as idf
-from liedfl_cli.models.articulated import (
+from liedfl_cli.models.articulated import identification as idf
+from liedfl_cli.models.articulated.model import (
     ArticulatedLieDFLNN,
     ArticulatedTriplets,
     articulated_parameters,

@@ -17,7 +17,7 @@ from liedfl_cli.errors import ConfigError, DatasetError, DataWarning
 from liedfl_cli.lie import so3
 from liedfl_cli.mechanics.potentials import UniformGravityPotential
 from liedfl_cli.models.base import BuildContext
-from liedfl_cli.models.liedflnn import LieDFLNN
+from liedfl_cli.models.liedflnn.model import LieDFLNN
 
 
 def _import(path, **kw):

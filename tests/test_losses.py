@@ -1,4 +1,4 @@
-"""train.loss = del | newton | rollout (liedfl_cli/models/losses.py, liedfl_cli/commands/finetune.py)."""
+"""train.loss = del | newton | rollout (liedfl_cli/models/liedflnn/losses.py, liedfl_cli/commands/finetune.py)."""
 
 from __future__ import annotations
 
@@ -10,9 +10,10 @@ from test_fused import MODELS, both_batches, make, rel, trajectories
 
 from liedfl_cli.errors import ConfigError
 from liedfl_cli.lie import SO3, Pose, ProductGroup
-from liedfl_cli.models import fused, losses
 from liedfl_cli.models.base import LossOptions, TrajectoryBatch
-from liedfl_cli.models.euler_dflnn import EulerDFLNN
+from liedfl_cli.models.euler_dflnn.model import EulerDFLNN
+from liedfl_cli.models.liedflnn import losses
+from liedfl_cli.models.liedflnn.engines import core as fused
 from liedfl_cli.solvers.options import SolverOptions
 
 TIGHT = SolverOptions(tol=1e-13, max_iter=30)
@@ -86,7 +87,7 @@ def test_block_diagonal_decision():
 
 def test_generic_residual_mode_newton_loss_has_parameter_gradients():
     G, kw = MODELS["se3_mlp_rayleigh"]
-    from liedfl_cli.models.liedflnn import LieDFLNN
+    from liedfl_cli.models.liedflnn.model import LieDFLNN
 
     fast, generic = LieDFLNN(G, 0.1, init_jitter=0.3, **kw), LieDFLNN(G, 0.1, init_jitter=0.3, residual="generic", **kw)
     generic.load_state_dict(fast.state_dict())

@@ -12,8 +12,10 @@ from torch.func import jacrev
 from liedfl_cli.lie import SE3, SO3, Pose, ProductGroup, so3
 from liedfl_cli.mechanics.forces import NNForce, force_jacobian_xi
 from liedfl_cli.mechanics.potentials import left_gradient
-from liedfl_cli.models import fused, fused_maps, mlp_derivatives
-from liedfl_cli.models.liedflnn import LieDFLNN
+from liedfl_cli.models import mlp_derivatives
+from liedfl_cli.models.liedflnn.engines import core as fused
+from liedfl_cli.models.liedflnn.engines import maps as fused_maps
+from liedfl_cli.models.liedflnn.model import LieDFLNN
 from liedfl_cli.solvers.options import SolverOptions
 
 ACTIVATIONS = {

@@ -1,6 +1,7 @@
-"""An implicit model's path ("fused" | "reference") is chosen once, when it is built: from
-`runtime.fused` at construction, or explicitly with `with_path`; the runtime changed afterwards
-does not switch it. Both paths give the same loss (1e-12 relative) and rollouts (Newton tolerance)."""
+"""An implicit model's path ("fused" | "reference") is its execution plan's: the fused paths by default,
+the command's `runtime.fused` when the pipeline builds it (`factory.build_model`), or explicitly with
+`with_path` / `set_plan`; the process runtime changed afterwards does not switch it (no model reads
+it). Both paths give the same loss (1e-12 relative) and rollouts (Newton tolerance)."""
 
 from __future__ import annotations
 
@@ -8,10 +9,11 @@ import pytest
 import torch
 from test_fused import _start, make, rel, trajectories
 
-from liedfl_cli.models import fused
 from liedfl_cli.models.base import LossOptions, check_path
+from liedfl_cli.models.liedflnn.engines import core as fused
 from liedfl_cli.solvers import rollout as rollout_loop
 from liedfl_cli.solvers import runtime
+from liedfl_cli.solvers.execution import ExecutionPlan
 from liedfl_cli.solvers.options import SolverOptions
 
 
@@ -41,11 +43,11 @@ def _path_taken(model, solver_calls: list[str]) -> tuple[bool, bool, set[str]]:
     return is_fused_set, is_fused_state, set(solver_calls)
 
 
-def test_the_path_is_fixed_at_construction_whatever_the_runtime_says_later(solver_calls):
-    with runtime.using(fused=False):
-        ref = make("se3xso3_mlp")
-    with runtime.using(fused=True):
+def test_the_path_is_the_models_plan_whatever_the_runtime_says(solver_calls):
+    with runtime.using(fused=False):  # a model built outside the pipeline does not read the runtime
         fus = make("se3xso3_mlp")
+    ref = make("se3xso3_mlp")
+    ref.set_plan(ExecutionPlan(path="reference"))
     assert (ref.path, fus.path) == ("reference", "fused")
     for later in (True, False):
         with runtime.using(fused=later):

@@ -23,7 +23,7 @@ from liedfl_cli.mechanics.potentials import (
     left_gradient,
 )
 from liedfl_cli.models.base import BuildContext
-from liedfl_cli.models.liedflnn import LieDFLNN
+from liedfl_cli.models.liedflnn.model import LieDFLNN
 
 GROUPS = [ProductGroup(0, 1), ProductGroup(1, 0), ProductGroup(1, 2), ProductGroup(2, 1)]
 
@@ -281,8 +281,8 @@ def test_declared_gravity_left_gradient_in_closed_form_equals_autodiff(n_se3, n_
     the generic autodiff `left_gradient` and against d/d eta of V(g exp(eta)), through both covector paths."""
     from liedfl_cli.lie import ProductGroup
     from liedfl_cli.mechanics.potentials import GravityPotential, left_gradient
-    from liedfl_cli.models import fused_maps
-    from liedfl_cli.models.liedflnn import LieDFLNN
+    from liedfl_cli.models.liedflnn.engines import maps as fused_maps
+    from liedfl_cli.models.liedflnn.model import LieDFLNN
 
     G = ProductGroup(n_se3, n_so3)
     gen = torch.Generator().manual_seed(3)

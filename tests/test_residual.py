@@ -6,7 +6,7 @@ import torch
 from liedfl_cli.lie import Pose, ProductGroup, so3
 from liedfl_cli.mechanics import kinetic
 from liedfl_cli.models.del_loss import regularity_penalty
-from liedfl_cli.models.liedflnn import LieDFLNN
+from liedfl_cli.models.liedflnn.model import LieDFLNN
 from liedfl_cli.models.true_scheme import physics_model
 
 GROUPS = [ProductGroup(0, 1), ProductGroup(1, 0), ProductGroup(1, 2), ProductGroup(2, 1)]

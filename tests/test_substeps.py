@@ -1,4 +1,4 @@
-"""Sub-steps and the fourth-order step (`model.substeps`, `model.order`; models/substeps.py).
+"""Sub-steps and the fourth-order step (`model.substeps`, `model.order`; models/liedflnn/substeps.py).
 
 References that do not share the sub-step code: scipy's DOP853 at tolerance 1e-13 (the heavy top's
 equations of motion, `data.physics`) for the convergence orders of a single body; autodiff for the
@@ -18,9 +18,9 @@ import torch
 from liedfl_cli.errors import ConfigError
 from liedfl_cli.lie import Pose, ProductGroup, so3
 from liedfl_cli.lie import joints as jt
-from liedfl_cli.models import substeps as sb
 from liedfl_cli.models.base import LossOptions, TripletBatch
-from liedfl_cli.models.liedflnn import LieDFLNN
+from liedfl_cli.models.liedflnn import substeps as sb
+from liedfl_cli.models.liedflnn.model import LieDFLNN
 from liedfl_cli.models.true_scheme import physics_model
 from liedfl_cli.solvers.options import SolverOptions
 from tests.test_articulated_joints import learned_like, mixed_tree, smooth_motion
@@ -157,7 +157,7 @@ def test_fused_and_reference_order_four_rollouts_agree():
 
 
 def test_column_and_row_order_four_rollouts_agree(monkeypatch):
-    from liedfl_cli.models import fused_columns
+    from liedfl_cli.models.liedflnn.engines import columns as fused_columns
 
     model = sb.SubstepModel(
         LieDFLNN(G_SO3, 0.05, potential=["uniform_gravity"], forces=["rayleigh"], seed=5, init_jitter=0.2), 1, 4
@@ -333,7 +333,7 @@ def test_closed_form_gravity_covector_equals_autodiff(n_se3):
     eta = torch.zeros(5, G.dim, dtype=F64)
     ref = -0.05 * torch.func.grad(lambda e: model.potential(G.perturb(g, e)).sum())(eta)
     assert torch.allclose(model.potential_covector(g), ref, rtol=1e-12, atol=1e-14)
-    from liedfl_cli.models import fused_maps
+    from liedfl_cli.models.liedflnn.engines import maps as fused_maps
 
     assert torch.allclose(fused_maps.potential_covector(model, g), ref, rtol=1e-12, atol=1e-14)
 

@@ -107,7 +107,7 @@ def test_a_diverging_learning_rate_stops_with_one_line_and_keeps_the_last_good_c
 
 
 def test_the_scalar_inertia_path_overflows_to_non_finite_values_not_an_exception():
-    from liedfl_cli.models.fused import _InertiaJdScalar
+    from liedfl_cli.models.liedflnn.engines.core import _InertiaJdScalar
 
     r = torch.zeros(1, 3, dtype=torch.float64)
     out = _InertiaJdScalar.apply(r, torch.tensor([[1e300, 0.0, 0.0]], dtype=torch.float64))

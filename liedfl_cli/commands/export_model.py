@@ -218,7 +218,7 @@ def run_export(cfg: DictConfig) -> Path:
     from ..config.typed import runtime_options
     from ..files.checkpoint import describe_checkpoint
     from ..files.dataset_identity import accept_option
-    from ..models.articulated import joint_summary
+    from ..models.articulated.model import joint_summary
 
     if OmegaConf.is_missing(cfg, "run") or cfg.get("run") in (None, ""):
         raise ConfigError("run=<run dir> is required (a directory written by `liedfl train`)")

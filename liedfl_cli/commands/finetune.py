@@ -1,6 +1,6 @@
 """The fine-tuning stage of `train.loss=rollout`: after `train.fit` has trained with the DEL loss for
 `train.epochs`, train `train.rollout_loss.epochs` more epochs on the k-step rollout error of windows of
-k + 2 true poses (`models.losses.rollout_window_loss`, gradients by the implicit function theorem).
+k + 2 true poses (`models.liedflnn.losses.rollout_window_loss`, gradients by the implicit function theorem).
 
 A fresh optimiser of the `train.optimizer` kind (learning rate `train.rollout_loss.lr`, or the
 optimiser's when null), mini-batches of `train.batch_size` windows, the run's `solver` settings for
@@ -20,7 +20,7 @@ import torch
 from ..config.typed import TrainConfig
 from ..display.ui import console, progress_bar
 from ..lie import Pose
-from ..models.losses import WindowSet, check_loss, rollout_window_loss
+from ..models.liedflnn.losses import WindowSet, check_loss, rollout_window_loss
 from ..solvers.options import SolverOptions
 
 

@@ -110,7 +110,7 @@ def rollout_and_save(run: RunConfig, model, dataset, path, steps=None, provenanc
     checkpoint: `checkpoint.run_provenance`) and the rollout's dtype. Returns timing/solver summaries."""
     from ..config.factory import place
     from ..data.scenes import dataset_steps
-    from ..models.substeps import same_step
+    from ..models.liedflnn.substeps import same_step
     from ..models.true_scheme import true_model
 
     assert run.rollout is not None, "a rollout section"

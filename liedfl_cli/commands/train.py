@@ -51,8 +51,7 @@ from ..files.checkpoint import (
 from ..files.io_utils import write_json
 from ..lie import Pose
 from ..loggers import MetricsLog, make_loggers
-from ..models.fused_step import RotationalGradient
-from ..models.losses import check_loss, check_rollout_horizon, training_stage
+from ..models.liedflnn.losses import check_loss, check_rollout_horizon, training_stage
 from ..solvers import runtime
 from .validation import (
     VAL_COLUMNS,
@@ -100,7 +99,7 @@ def _loss_value(model, batch, opts) -> tuple[torch.Tensor | None, dict, str]:
 
 
 def _fused_value(grad_fn, params: list, batch, opts) -> tuple[float | None, dict, str]:
-    """`_loss_value` plus the backward pass of a fused gradient (`fused_step.RotationalGradient`):
+    """`_loss_value` plus the backward pass of a fused gradient (`Model.value_and_grad`):
     the gradients are set on `params` (no autograd graph, nothing to zero)."""
     try:
         loss, parts, grads = grad_fn(batch, opts)
@@ -272,13 +271,13 @@ def fit(
     n = samples.n
     bs = n if cfg_train.full_batch else min(int(cfg_train.batch_size), n)
     n_batches = math.ceil(n / bs)
-    runtime.plan("train", int(cfg_train.epochs) * n_batches)  # runtime.compile: auto weighs this
+    model.set_plan(model.plan.for_training(int(cfg_train.epochs) * n_batches))  # compile: auto weighs this
     gen = torch.Generator().manual_seed(seed)
     params = [p for p in model.parameters() if p.requires_grad]
     if not params:
         raise ConfigError("the model has no trainable parameters")
     opt = make_optimizer(params, cfg_train.optimizer)
-    grad_fn = RotationalGradient.make(model, samples, opts, params)  # None: autograd's backward
+    grad_fn = model.value_and_grad(samples, opts, params)  # None: autograd's backward
     epochs = int(cfg_train.epochs)
     sched = make_schedule(opt, cfg_train.optimizer.schedule, epochs)
     every = checkpoint_interval(cfg_train.checkpoint_every)

@@ -21,9 +21,8 @@ from torch import nn
 
 from ..errors import ConfigError
 from ..lie import Pose
-from ..models.articulated import ArticulatedLieDFLNN
 from ..models.base import BuildContext, Model
-from ..models.liedflnn import LieDFLNN
+from ..solvers.execution import ExecutionPlan
 from ..solvers.runtime import RuntimeOptions
 from . import resolvers  # noqa: F401  (registers the config resolvers)
 from .typed import RunConfig, typed
@@ -100,20 +99,26 @@ def _total_mass(run: RunConfig) -> float | None:
     return m
 
 
-def build_model(run: RunConfig | DictConfig, dataset) -> Model:
+def execution_plan() -> ExecutionPlan:
+    """The plan of the models this command builds: its `runtime` section as applied by
+    `configure_runtime` (`runtime.fused`, `runtime.compile`; the defaults before it runs)."""
+    from ..solvers import runtime
+
+    return ExecutionPlan.from_runtime(runtime.current())
+
+
+def build_model(run: RunConfig | DictConfig, dataset, plan: ExecutionPlan | None = None) -> Model:
     """The model of `run.model` for the dataset's group and step; `model.name` names it. Built on the
     CPU in float64 (the same initial weights whatever the runtime), then moved to the runtime's
-    device and dtype (`place`)."""
+    device and dtype (`place`), and given `plan` (default: this command's, `execution_plan`)."""
     run = _typed(run)
     check_group(run, dataset)
     options = dict(run.model or {})
     cls = model_class(options.pop("_target_", None))
     name = str(options.pop("name", cls.__name__.lower()))
-    if issubclass(cls, LieDFLNN) and options.get("kinetic", "auto") == "auto":
-        # model only what the scene has: a file that declares a kinematic tree gets the articulated model
-        options["kinetic"] = "articulated" if getattr(dataset, "tree", None) is not None else "per_body"
-    if issubclass(cls, LieDFLNN) and options.get("kinetic") == "articulated":
-        cls = ArticulatedLieDFLNN  # the same options on the data's kinematic tree
+    variant = cls.variant_for(options, getattr(dataset, "tree", None) is not None)
+    if variant is not None:  # e.g. LieDFLNN on a kinematic tree: the articulated model, same options
+        cls = model_class(variant)
     try:
         model = cls.from_config(build_context(run, dataset), **options)
     except ConfigError:
@@ -121,6 +126,7 @@ def build_model(run: RunConfig | DictConfig, dataset) -> Model:
     except ValueError as e:  # invalid option values: one clear config error
         raise ConfigError(f"model={name}: {e}") from None
     model.name = name
+    model.set_plan(plan if plan is not None else execution_plan())
     return place(model)
 
 

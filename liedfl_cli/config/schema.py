@@ -343,7 +343,7 @@ def _check_force(cfg) -> None:
 
 def _check_model(cfg) -> None:
     """`model._target_` names a model class of this package (`factory.model_class`); the keys are
-    those of the model's `Options` dataclass (LieDFLNN's: models/liedflnn.py), else of its reference
+    those of the model's `Options` dataclass (LieDFLNN's: models/liedflnn/model.py), else of its reference
     file conf/model/<name>.yaml."""
     model = cfg.get("model")
     if model is None:
@@ -373,7 +373,7 @@ def _check_model(cfg) -> None:
     _check_model_size(cfg)
     known = _value(cfg, "model.known") or []
     if known:
-        from ..models.liedflnn import KNOWN_PARTS
+        from ..models.liedflnn.model import KNOWN_PARTS
 
         bad = [k for k in known if k not in KNOWN_PARTS]
         if bad:

@@ -65,7 +65,7 @@ class TrainConfig:
     val_horizon: int = 20
     select: str = "val_one_step"  # val_one_step | val_rollout | last
     early_stopping: EarlyStoppingConfig = field(default_factory=EarlyStoppingConfig)
-    loss: str = "del"  # del | newton | rollout (models/losses.py)
+    loss: str = "del"  # del | newton | rollout (models/liedflnn/losses.py)
     start: str = "auto"  # auto (a model's own least-squares start: articulated) | identify (articulated: + LM) | none
     rollout_loss: RolloutLossConfig = field(default_factory=RolloutLossConfig)
 

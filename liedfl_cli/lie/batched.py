@@ -1,4 +1,4 @@
-"""Batched group maps of a `ProductGroup` on its flat tangent, for the fused engine (`models.fused`).
+"""Batched group maps of a `ProductGroup` on its flat tangent, for the fused engine (`models.liedflnn.engines.core`).
 
 The same maths as `ProductGroup.exp / compose / retract` (`lie/product.py`) with the three series
 coefficients (sinc, cosc, sinc3) of each body evaluated together and hat(w)^2 = w w^T - |w|^2 I formed

@@ -1,17 +1,24 @@
-"""Models: every model follows the contract of `models.base` and has one config file.
+"""Models: every model follows the contract of `models.base` and has one config file; a model family
+is a package whose `model.py` is its one meaning and whose `engines/` hold the fast paths that must
+equal it (docs/architecture.md, "Model families and their engines").
 
-| config (conf/model/)   | class (file)                      | kind     | groups         | trained on |
-|------------------------|-----------------------------------|----------|----------------|------------|
-| liedflnn               | LieDFLNN (liedflnn.py)            | implicit | any product    | triplets   |
-| euler_dflnn            | EulerDFLNN (euler_dflnn.py)       | implicit | SO(3)          | triplets   |
-| euclidean_dflnn        | EuclideanDFLNN (euclidean_dflnn.py)| implicit| SO(3) or SE(3) | triplets   |
-| glnn_rk4 / _lie_heun / _lie_midpoint | GLNN (glnn.py)      | explicit | SO(3)          | trajectories / triplets |
-| neural_ode             | NeuralODE (neural_ode.py)         | explicit | any product    | trajectories |
-| liedflnn, model.kinetic=articulated | ArticulatedLieDFLNN (articulated.py) | implicit | a kinematic tree | triplets |
-| liedflnn, model.substeps or order | SubstepModel (substeps.py), wraps either | implicit | as wrapped | triplets |
+| config (conf/model/)           | class (package/file)                          | kind     | trained on   |
+|--------------------------------|-----------------------------------------------|----------|--------------|
+| liedflnn                       | LieDFLNN (liedflnn/model.py)                  | implicit | triplets     |
+| euler_dflnn                    | EulerDFLNN (euler_dflnn/model.py)             | implicit | triplets     |
+| euclidean_dflnn                | EuclideanDFLNN (euclidean_dflnn/model.py)     | implicit | triplets     |
+| glnn_rk4 / _lie_heun / _midpoint | GLNN (glnn/model.py) | explicit | trajectories (midpoint: triplets) |
+| neural_ode                     | NeuralODE (neural_ode/model.py)               | explicit | trajectories |
+| liedflnn, kinetic=articulated  | ArticulatedLieDFLNN (articulated/model.py)    | implicit | triplets     |
+| liedflnn, substeps or order    | SubstepModel (liedflnn/substeps.py)           | implicit | triplets     |
 
-`liedfl_cli.config.factory.build_model(cfg, dataset)` builds the one a config names. Beside them: the
-true-parameter scheme of a synthetic dataset (true_scheme.py), the second-order start of an articulated
-fit (articulated_fit.py, identification.py), what a trained model learned for the closing summary
-(learned_physics.py), and the fused engines (fused_*.py) that must equal the reference paths.
+Groups: LieDFLNN any product group (the articulated model a kinematic tree); Euler-angle DFLNN and GLNN
+SO(3); Euclidean DFLNN SO(3) or SE(3); Neural ODE any; the sub-step wrapper as the model it wraps.
+
+`liedfl_cli.config.factory.build_model(cfg, dataset)` builds the one a config names (asking the class's
+`variant_for` first: LieDFLNN on a declared kinematic tree is the articulated model) and gives it the
+command's `ExecutionPlan`. Shared by the families: the true-parameter scheme of a synthetic dataset
+(true_scheme.py), what a trained model learned for the closing summary (learned_physics.py), the
+closed-form MLP derivatives the engines use (mlp_derivatives.py), the DEL loss (del_loss.py), damping
+stiffness (stiffness.py) and parameter recovery (recovery.py).
 """

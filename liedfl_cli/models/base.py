@@ -27,7 +27,7 @@ import itertools
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Literal, TypeVar
+from typing import Any, TypeVar
 
 import torch
 from torch import nn
@@ -35,14 +35,12 @@ from torch import nn
 from ..errors import ConfigError
 from ..lie import Pose, ProductGroup
 from ..lie.tree import Tree
-from ..solvers import runtime
+from ..solvers.execution import PATHS, ExecutionPlan, ModelPath
 from ..solvers.newton import NewtonProblem, NewtonResult
 from ..solvers.options import SolverOptions
 from ..solvers.rollout import Rollout, rollout_explicit, rollout_implicit
 
 WINDOWS = ("triplet", "trajectory")
-PATHS = ("fused", "reference")
-ModelPath = Literal["fused", "reference"]
 """Which implementation serves an `ImplicitModel` (`ImplicitModel.path`)."""
 
 
@@ -205,7 +203,7 @@ class LossOptions:
 
     w_del, w_reg: weights of mean ||r||^2 and of the regularity penalty. epsilon: threshold on
     log|det H| per body block. reg_form: relu | gaussian. reg_points: pairs drawn per batch for
-    the regularity term (0 = none). loss: del | newton | rollout (`models.losses`; w_del then
+    the regularity term (0 = none). loss: del | newton | rollout (`models.liedflnn.losses`; w_del then
     weighs mean ||H^-1 r||^2 for newton). rollout_horizon: steps k of the rollout loss's windows;
     solver: the Newton settings of its solves (the run's `solver` section, set by the fine-tuning stage)."""
 
@@ -329,16 +327,32 @@ class Model(nn.Module, abc.ABC):
     Options: type | None = None
     """A dataclass of the model's config options (keys and types checked against it before a run
     starts, `config/schema.py`); None: its `from_config` checks them (`config_options`)."""
-    path: ModelPath
-    """"fused" | "reference", fixed at construction: which implementation serves the model's training
-    loss and rollouts (its fused hot paths where it has them, or the reference ones). It defaults to
-    `runtime.fused` as set when the model is built (the pipeline configures the runtime before
-    `factory.build_model`); changing the runtime later does not change it. `with_path` gives the same
-    model, parameters shared, on the other path."""
+    plan: ExecutionPlan
+    """How the model is computed (`solvers.execution.ExecutionPlan`): its path ("fused" | "reference":
+    its fast engines where they apply, or the reference paths) and compile policy. Defaults to the
+    fused paths; the pipeline gives every model it builds the command's plan (`set_plan`, from the
+    `runtime` section); nothing is read from a process global. `with_path` gives the same model,
+    parameters shared, on the other path."""
 
-    def __init__(self, path: ModelPath | None = None):
+    def __init__(self, path: ModelPath | None = None, plan: ExecutionPlan | None = None):
         super().__init__()
-        self.path = check_path(path if path is not None else runtime_path())
+        plan = plan if plan is not None else ExecutionPlan()
+        self.plan = plan.on_path(check_path(path)) if path is not None else plan
+
+    @property
+    def path(self) -> ModelPath:
+        """The plan's path, fixed until `set_plan`: which implementation serves training and rollouts."""
+        return self.plan.path
+
+    def set_plan(self, plan: ExecutionPlan) -> None:
+        """Run under `plan` from now on: this model and every model it holds (a wrapped model, twins)."""
+        for module in self.modules():
+            if isinstance(module, Model):
+                module.plan = plan
+                module.plan_changed()
+
+    def plan_changed(self) -> None:
+        """Hook: drop what was built for the previous plan (cached twins, engines)."""
 
     def with_path(self: ModelT, path: ModelPath) -> ModelT:
         """A copy of this model on `path` sharing every parameter, buffer and submodule (a step of an
@@ -348,8 +362,15 @@ class Model(nn.Module, abc.ABC):
         twin._parameters = dict(self._parameters)
         twin._buffers = dict(self._buffers)
         twin._modules = dict(self._modules)
-        twin.path = check_path(path)
+        twin.plan = self.plan.on_path(check_path(path))
         return twin
+
+    @classmethod
+    def variant_for(cls, options: dict[str, Any], has_tree: bool) -> str | None:
+        """The `_target_` of the model to build instead of this class for `options` on a scene with
+        (`has_tree`) or without a declared kinematic tree, or None for this class; may set an `auto`
+        option in `options` to what it chose (the factory asks before `from_config`)."""
+        return None
 
     @classmethod
     @abc.abstractmethod
@@ -398,6 +419,14 @@ class Model(nn.Module, abc.ABC):
         model has none or it is not checked."""
         return None
 
+    def value_and_grad(
+        self, samples: Any, opts: LossOptions, params: list[nn.Parameter]
+    ) -> Callable[[Any, LossOptions], tuple[Any, dict[str, float], list | None]] | None:
+        """A training batch's loss and the gradients of `params` without autograd, where the model has
+        a fused gradient for `samples` under `opts`: a callable (batch, opts) -> (loss, parts, grads;
+        grads None when the loss is not finite: loss is then what it became); None: autograd's backward."""
+        return None
+
     def initial_fit(self, samples: Any, method: str = "auto") -> str | None:
         """Fit the model to its training samples (`training_set`) before the first epoch, where the
         model has a closed-form or second-order start (`train.start`: auto, or identify where the model
@@ -417,11 +446,6 @@ class Model(nn.Module, abc.ABC):
         return None
 
 
-def runtime_path() -> ModelPath:
-    """The path a model built now takes: "fused" unless `runtime.fused` is false."""
-    return "fused" if runtime.current().fused else "reference"
-
-
 class ImplicitModel(Model):
     """A model whose step solves an implicit equation r(g_{k-1}, g_k, g_{k+1}) = 0 (the DEL
     models). `state` is whatever the model carries from step to step.
@@ -429,8 +453,8 @@ class ImplicitModel(Model):
     Its `path` (see `Model`) also picks the Newton loop of its rollouts (`solvers.newton.solve`,
     `reference=True` on the reference path)."""
 
-    def __init__(self, path: ModelPath | None = None):
-        super().__init__(path)
+    def __init__(self, path: ModelPath | None = None, plan: ExecutionPlan | None = None):
+        super().__init__(path, plan)
 
     @abc.abstractmethod
     def implicit_start(self, g0: Pose, g1: Pose) -> Any:

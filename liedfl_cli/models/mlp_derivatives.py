@@ -401,3 +401,15 @@ class ForcesAt:
         sub.g = Pose(self.g.R.index_select(0, rows), self.g.p.index_select(0, rows))
         sub.closed = [(net, s, z0.index_select(0, rows), W) for net, s, z0, W in self.closed]
         return sub
+
+
+def potential_input_gradient(net: torch.nn.Module, x: torch.Tensor) -> torch.Tensor:
+    """dV/dx (..., n) of an MLP potential V = net(x)[..., 0], differentiable in the parameters:
+    closed form where `mlp_derivatives` supports the network, else autograd."""
+    vg = value_and_gradient(net, x)
+    if vg is not None:
+        return vg[1]
+    with torch.enable_grad():
+        xg = x.detach().requires_grad_(True) if not x.requires_grad else x
+        (g,) = torch.autograd.grad(net(xg)[..., 0].sum(), xg, create_graph=True)
+    return g

@@ -13,7 +13,7 @@ from ..lie import ProductGroup
 from ..mechanics.forces import RayleighForce
 from ..mechanics.scene_physics import body_parameters, true_control, true_potential
 from .base import ImplicitModel
-from .liedflnn import LieDFLNN
+from .liedflnn.model import LieDFLNN
 
 
 def physics_model(G: ProductGroup, h: float, physics: dict, residual: str = "fast") -> LieDFLNN:
@@ -58,7 +58,7 @@ def true_model(dataset, residual: str = "fast") -> ImplicitModel | None:
     if physics.get("kind") == "articulated":
         if tree is None:
             return None
-        from .articulated import articulated_true_model
+        from .articulated.model import articulated_true_model
 
         return articulated_true_model(tree, dataset.h, physics, residual)
     if "J" not in physics:

@@ -26,7 +26,7 @@ Step-size control after the first step carries no gradient (the reference's does
 
 A vector field is an object with `forward(y, params) -> (F(y), saved)` (no graph) and
 `vjp(saved, g, params, acc) -> g_y`, which adds its parameters' pieces to `acc`;
-`param_grads(acc, params)` turns them into one gradient per parameter tensor (`models.fused_glnn`).
+`param_grads(acc, params)` turns them into one gradient per parameter tensor (`models.glnn.engines.fused`).
 """
 
 from __future__ import annotations

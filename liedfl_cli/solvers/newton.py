@@ -22,7 +22,7 @@ from .options import SolverOptions
 
 class Layout:
     """Where a problem's batch lies: here (the default) on the first axis of x (T, n) or a Pose of T
-    rows, of r (T, n) and of delta (T, n). A subclass puts it elsewhere (`models.fused_columns`:
+    rows, of r (T, n) and of delta (T, n). A subclass puts it elsewhere (`models.liedflnn.engines.columns`:
     (n, T) columns); the loop of `solve` only reaches the batch through these methods."""
 
     def size(self, r: torch.Tensor) -> int:

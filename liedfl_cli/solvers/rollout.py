@@ -10,13 +10,13 @@ is flagged, never silently accepted. The models say what one step is (`models.ba
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 import torch
 
 from ..lie import Pose
-from . import runtime
 from .newton import NewtonResult, solve
 from .options import SolverOptions
 
@@ -62,12 +62,14 @@ def _stack(xs: list[torch.Tensor], like: torch.Tensor, dtype: torch.dtype) -> to
 
 
 @torch.no_grad()
-def rollout_implicit(model: Any, g0: Pose, g1: Pose, steps: int, opts: SolverOptions, progress=None) -> Rollout:
+def rollout_implicit(
+    model: Any, g0: Pose, g1: Pose, steps: int, opts: SolverOptions, progress=None, start: Callable | None = None
+) -> Rollout:
     """Roll an `ImplicitModel` forward: for k = 1..steps-1 solve the model's Newton problem
-    for g_{k+1} given its state (built from g_{k-1}, g_k). `progress`: optional callable(k)."""
+    for g_{k+1} given its state (built from g_{k-1}, g_k). `progress`: optional callable(k);
+    `start(g0, g1)`: the first state (default `model.implicit_start`)."""
     t0 = time.perf_counter()
-    runtime.plan("rollout", g0.R.shape[0] * max(steps - 1, 0))
-    state = model.implicit_start(g0, g1)
+    state = (start or model.implicit_start)(g0, g1)
     reference = model.path != "fused"  # fixed when the model was built
     Rs, ps = [g0.R, g1.R], [g0.p, g1.p]
     conv, its, res = [], [], []

@@ -3,9 +3,8 @@ fused paths, compilation, device and dtype.
 
     runtime.threads   auto | N   torch intra-op threads (auto: 1, measured fastest here; 1 per job
                                  under the joblib launcher whatever N says)
-    runtime.fused     true | false   the path of the models built while it is in force (false: the
-                                 reference paths, for comparison); read once per model, at its
-                                 construction (`models.base.ImplicitModel.path`)
+    runtime.fused     true | false   the path of the models the command builds (false: the reference
+                                 paths, for comparison): their `ExecutionPlan.path`
     runtime.compile   auto | true | false   torch.compile (CPU inductor) of the fused hot paths;
                                  auto compiles only work large enough to repay the compilation
                                  (docs/benchmarks.md); without a C++ compiler it falls back to
@@ -15,29 +14,27 @@ fused paths, compilation, device and dtype.
     runtime.dtype     float64 | float32   floating-point type of models and data (float32: poses are
                                  re-orthonormalised every rollout step, README "Runtime settings")
 
-The models and solvers read `current()` for threads, compilation and, when a model is built, its path: the device
-and dtype are the pipeline's (`placement()`, used by `factory.build_model` and the commands), and
-models and solvers take them from their inputs. The pipeline calls `configure(cfg.runtime)` once per
-command (`factory.configure_runtime`, which knows about Hydra's launchers; this module does not).
-`using(...)` switches settings temporarily (tests, benchmarks).
+Nothing below the pipeline reads these settings. Threads are set for the process (`configure`); the
+device and dtype are the pipeline's (`placement()`, used by `factory.build_model` and the commands),
+and models and solvers take them from their inputs; `fused` and `compile` become each model's
+`solvers.execution.ExecutionPlan` when the pipeline builds it (`ExecutionPlan.from_runtime`). The
+pipeline calls `configure(cfg.runtime)` once per command (`factory.configure_runtime`, which knows
+about Hydra's launchers; this module does not). `using(...)` switches settings temporarily (tests).
 """
 
 from __future__ import annotations
 
 import contextlib
-import functools
 import os
-import shutil
-import sys
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass, replace
 from typing import Any
 
 import torch
 
 from ..errors import ConfigError
+from .execution import COMPILE_CHOICES
 
-COMPILE_CHOICES = ("auto", "true", "false")
 DEVICE_CHOICES = ("cpu", "cuda", "auto")
 DTYPES = {"float64": torch.float64, "float32": torch.float32}
 """`runtime.dtype` names -> torch dtypes (the one place below the pipeline that names them)."""
@@ -45,11 +42,6 @@ DEFAULT_THREADS = 1
 """Threads for `runtime.threads: auto` (docs/benchmarks.md: on the 2-core machine one thread was
 as fast as two on an idle machine at the batch sizes used here and several times faster when
 other work shares the cores)."""
-
-COMPILE_MIN_WORK = {"rollout": 5.0e7, "train": 1.0e5}
-"""`compile: auto` compiles a hot path only for work large enough to repay the one-off compilation
-(tens of seconds on 2 cores, docs/benchmarks.md): a rollout of trajectories x steps row-steps, a
-training run of optimiser steps."""
 
 
 @dataclass(frozen=True)
@@ -139,69 +131,3 @@ def using(**changes: Any) -> Iterator[RuntimeOptions]:
         yield _current
     finally:
         _current = before
-
-
-# ---------------------------------------------------------------------------- compilation
-@functools.lru_cache(maxsize=1)
-def compiler_available() -> bool:
-    """True when torch.compile's CPU backend can build code here (a C++ compiler on PATH)."""
-    cxx = os.environ.get("CXX")
-    if cxx and shutil.which(cxx):
-        return True
-    return any(shutil.which(c) for c in ("g++", "c++", "clang++"))
-
-
-_said_no_compiler = False
-
-
-def _say_once(message: str) -> None:
-    global _said_no_compiler
-    if not _said_no_compiler:
-        print(f"warning: {message}", file=sys.stderr, flush=True)
-        _said_no_compiler = True
-
-
-_planned: dict[str, float] = {}
-
-
-def plan(kind: str, work: float) -> None:
-    """Announce the size of the coming hot-path work ("rollout": row-steps, "train": optimiser
-    steps), which `compile: auto` weighs against the compilation time."""
-    _planned[kind] = float(work)
-
-
-def want_compile(kind: str) -> bool:
-    """Whether to compile the hot path `kind` ("rollout" | "train") under `runtime.compile` (asked by
-    the fused paths only: a model built with `runtime.fused=false` never reaches it)."""
-    opts = current()
-    if opts.compile == "false":
-        return False
-    if opts.compile == "auto" and _planned.get(kind, 0.0) < COMPILE_MIN_WORK[kind]:
-        return False
-    if not compiler_available():
-        _say_once("runtime.compile: no C++ compiler found (g++/c++/clang++), running the fused paths uncompiled")
-        return False
-    return True
-
-
-_compiled: dict[Any, Callable] = {}
-
-
-def compiled(fn: Callable, key: Any = None) -> Callable:
-    """`torch.compile(fn)` (dynamic batch size), built once per key; falls back to `fn` with one
-    printed line when compilation fails (e.g. a broken toolchain)."""
-    key = key if key is not None else fn
-    if key in _compiled:
-        return _compiled[key]
-    compiled_fn = torch.compile(fn, dynamic=True)
-
-    def run(*args, **kwargs):
-        try:
-            return compiled_fn(*args, **kwargs)
-        except Exception as e:  # compilation needs a working toolchain; eager is always correct
-            _say_once(f"runtime.compile: compilation failed ({type(e).__name__}), running uncompiled")
-            _compiled[key] = fn
-            return fn(*args, **kwargs)
-
-    _compiled[key] = run
-    return run

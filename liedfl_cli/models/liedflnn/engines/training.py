@@ -1,4 +1,4 @@
-"""Fused hot paths of LieDFLNN, part 2 (see `models.fused`): the training triplets stored as
+"""Fused hot paths of LieDFLNN, part 2 (see `models.liedflnn.engines.core`): the training triplets stored as
 precomputed increments (`IncrementSet`, `IncrementBatch`), the forced DEL residual of a batch, the
 regularity log-determinants, and the SO(3)-only loss with a hand-written gradient
 (`rotational_loss`)."""
@@ -12,11 +12,11 @@ from typing import Any
 import torch
 from torch import nn
 
-from ..lie import Pose
-from ..mechanics import kinetic
-from ..mechanics.forces import RayleighForce, RayleighNonlinearForce, force_jacobian_xi
-from .base import TripletSet, oriented_logdet
-from .fused_maps import Derived, _apply_map, _map_contraction, _trainable, derive, potential_covector, training_maps
+from ....lie import Pose
+from ....mechanics import kinetic
+from ....mechanics.forces import RayleighForce, RayleighNonlinearForce, force_jacobian_xi
+from ...base import TripletSet, oriented_logdet
+from .maps import Derived, _apply_map, _map_contraction, _trainable, derive, potential_covector, training_maps
 
 
 @dataclass
@@ -32,7 +32,7 @@ class IncrementBatch:
 
 
 class IncrementSet(TripletSet):
-    """Training triplets of a LieDFLNN stored as precomputed increments (see `models.fused`'s docstring).
+    """Training triplets of a LieDFLNN stored as precomputed increments (see `engines/core.py`'s docstring).
 
     Fields (N triplets, B bodies, m SE(3) bodies, dim the tangent dimension):
       A (N, B, 9)             W_1 + W_2^T flattened (rotational kinetic residual)
@@ -91,7 +91,7 @@ class IncrementSet(TripletSet):
         del self.prev, self.cur, self.nxt  # everything needed is in `fields`
 
     def enable_jacobian(self) -> None:
-        """Also give every batch what the step Jacobian at (g_k, W_k) needs (`models.losses`, loss
+        """Also give every batch what the step Jacobian at (g_k, W_k) needs (`models.liedflnn.losses`, loss
         newton): W2r, W_k of every body flattened (N, B, 9), and static_jac for frozen forces."""
         self.fields["W2r"] = self.reg_W
         if self.static_jac is not None:
@@ -333,7 +333,7 @@ class _RotationalLoss(torch.autograd.Function):
 
     Both maps are J_d.flatten() @ C (`_map_contraction`), so the gradient is
     dJ_d = (A^T dr) C_r^T + (W_2^T dH) C_H^T with dH = dlogdet H^-T, and dD = -(h/2) dr^T s.
-    (`rotational_forward` / `rotational_backward`; `models.fused_step` calls them without autograd.)"""
+    (`rotational_forward` / `rotational_backward`; `models.liedflnn.engines.gradient` calls them without autograd.)"""
 
     @staticmethod
     def forward(ctx, Jd_flat, D, A, s, static, reg_W, C, settings):

@@ -28,7 +28,7 @@ differentiable Newton iterations whose Jacobian I - h/2 dA/dw omits the potentia
 on R (exact without a potential); rollouts use the damped Newton solver with the full autodiff
 Jacobian, tolerance and iteration limit of `solver`, and report real convergence flags.
 
-Without a potential (the Exp 2 scenes) the model takes the fused path of `models.fused_glnn` when
+Without a potential (the Exp 2 scenes) the model takes the fused path of `models.glnn.engines.fused` when
 `runtime.fused` is on (the default): dopri5 as one autograd node per solve (`solvers.dopri5`:
 the same steps as torchdiffeq's dopri5, the backward the solve's discrete adjoint; rollouts too), Heun and
 Midpoint with their velocities first and every step's exp in one call. Same losses and gradients to
@@ -43,15 +43,14 @@ from typing import Any
 
 import torch
 
-from ..errors import ConfigError
-from ..lie import Pose, ProductGroup, so3
-from ..mechanics.parameterizations import Inertia, SPSDMatrix
-from ..mechanics.potentials import MLPPotential
-from ..solvers import dopri5
-from ..solvers.newton import NewtonProblem, NewtonResult, solve
-from ..solvers.options import SolverOptions
-from . import fused_glnn
-from .base import (
+from ...errors import ConfigError
+from ...lie import Pose, ProductGroup, so3
+from ...mechanics.parameterizations import Inertia, SPSDMatrix
+from ...mechanics.potentials import MLPPotential
+from ...solvers import dopri5
+from ...solvers.newton import NewtonProblem, NewtonResult, solve
+from ...solvers.options import SolverOptions
+from ..base import (
     Batch,
     BuildContext,
     ExplicitModel,
@@ -61,6 +60,7 @@ from .base import (
     require_single_so3,
     so3_pose,
 )
+from .engines import fused as fused_glnn
 
 INTEGRATORS = ("dopri5", "heun", "midpoint")
 # config options common to every integrator, and those of one integrator only
@@ -179,7 +179,7 @@ class GLNN(ExplicitModel):
         return -dV
 
     def fused_training(self) -> bool:
-        """Whether `loss` takes the fused path (`models.fused_glnn`): the model's path (fixed when it
+        """Whether `loss` takes the fused path (`models.glnn.engines.fused`): the model's path (fixed when it
         was built) is "fused" and it has no potential."""
         return self.path == "fused" and self.potential is None
 
@@ -308,7 +308,7 @@ class GLNN(ExplicitModel):
 
     def integrate_rotations(self, R0: torch.Tensor, w0: torch.Tensor, steps: int, fused: bool = False) -> torch.Tensor:
         """Differentiable prediction (N, steps+1, 3, 3) from R0 (N, 3, 3), w0 (N, 3); fused: the
-        training path of `models.fused_glnn` (no potential)."""
+        training path of `models.glnn.engines.fused` (no potential)."""
         params = self._params()
         if self.integrator == "dopri5":
             return self._odeint(R0, w0, steps, params, fused)

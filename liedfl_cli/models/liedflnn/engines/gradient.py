@@ -15,10 +15,9 @@ import math
 import torch
 from torch import nn
 
-from ..mechanics.forces import RayleighForce
-from ..mechanics.parameterizations import Inertia, SPSDMatrix
-from ..solvers import runtime
-from .fused_maps import (
+from ....mechanics.forces import RayleighForce
+from ....mechanics.parameterizations import Inertia, SPSDMatrix
+from .maps import (
     SCALAR_BODIES,
     SCALAR_DIM,
     _InertiaJd,
@@ -30,7 +29,7 @@ from .fused_maps import (
     spsd_grad_lists,
     spsd_lists,
 )
-from .fused_training import IncrementBatch, IncrementSet, rotational_backward, rotational_forward
+from .training import IncrementBatch, IncrementSet, rotational_backward, rotational_forward
 
 
 class _Ctx:
@@ -65,11 +64,10 @@ class RotationalGradient:
         """The fused gradient of `model` on `samples`, or None where it does not apply: the fused
         paths off or compiled, another loss, SE(3) bodies, a trainable potential or force other than
         a constant Rayleigh one with a small `SPSDMatrix`, or trainable parameters it does not cover."""
-        from .liedflnn import LieDFLNN
-
-        if type(model) is not LieDFLNN or not isinstance(samples, IncrementSet) or not model._fused():
+        # the caller (`LieDFLNN.value_and_grad`) has checked the model is a plain LieDFLNN
+        if not isinstance(samples, IncrementSet) or not model._fused():
             return None
-        if opts.loss != "del" or runtime.want_compile("train") or model.G.n_se3:
+        if opts.loss != "del" or model.plan.wants_compile("train") or model.G.n_se3:
             return None
         if samples.dynamic_forces or samples.potential_trainable or not isinstance(model.inertia, Inertia):
             return None

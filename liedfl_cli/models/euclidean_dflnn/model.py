@@ -18,7 +18,7 @@ Loss: w_DEL mean |r|^2 + w_reg mean penalty(log|det d^2 L_d / dx_k dx_{k+1}|) (t
 Hessian by autodiff; it is -(1/h) times the constant kinetic matrix). Rollout: damped Newton on
 x_{k+1} in R^12 from 2 x_k - x_{k-1}; the predicted R is not orthogonal and is returned as is.
 Single-body groups only (SO(3) or SE(3)). With `runtime.fused` (the default) the training loss is
-computed in closed form by `models.fused_dflnn` (the same numbers; `runtime.fused=false`: autograd).
+computed in closed form by `models.euclidean_dflnn.engines.fused` (the same numbers; `runtime.fused=false`: autograd).
 """
 
 from __future__ import annotations
@@ -29,13 +29,12 @@ from typing import Any
 import torch
 from torch import nn
 
-from ..errors import ConfigError
-from ..lie import Pose, ProductGroup, so3
-from ..mechanics.mlp import MLP
-from ..mechanics.parameterizations import Inertia, PositiveVector, SPSDMatrix
-from ..solvers.newton import NewtonProblem
-from . import fused_dflnn
-from .base import (
+from ...errors import ConfigError
+from ...lie import Pose, ProductGroup, so3
+from ...mechanics.mlp import MLP
+from ...mechanics.parameterizations import Inertia, PositiveVector, SPSDMatrix
+from ...solvers.newton import NewtonProblem
+from ..base import (
     Batch,
     BuildContext,
     ImplicitModel,
@@ -45,7 +44,8 @@ from .base import (
     config_options,
     initial_scale,
 )
-from .del_loss import del_regularity_loss
+from ..del_loss import del_regularity_loss
+from .engines import fused as fused_dflnn
 
 # rollout state: the pair (x_{k-1}, x_k), each (N, n)
 State = tuple[torch.Tensor, torch.Tensor]
@@ -208,7 +208,7 @@ class EuclideanDFLNN(ImplicitModel):
         """w_DEL mean |r_k|^2 + w_reg mean penalty(log|det d^2 L_d/dx0 dx1|) over triplets of poses
         R (N, 1, 3, 3), p (N, m, 3) (regularity pairs (P, ...)) -> (scalar (), {"del_loss", "reg_loss"} scalars ())."""
         assert isinstance(batch, TripletBatch), "EuclideanDFLNN trains on triplets (window = 'triplet')"
-        if self.path == "fused":  # closed form (models/fused_dflnn.py), the same numbers
+        if self.path == "fused":  # closed form (models/euclidean_dflnn/engines/fused.py), the same numbers
             n_reg = batch.reg[0].R.shape[0] if batch.reg is not None and opts.w_reg > 0 else 0
             x_prev, x, x_next = (self.to_x(g) for g in batch.poses())
             return del_regularity_loss(*fused_dflnn.euclidean_residual_and_logdet(self, x_prev, x, x_next, n_reg), opts)

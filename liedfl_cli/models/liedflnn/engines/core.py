@@ -20,7 +20,7 @@ Fewer kernels
 
 Numbers: equal to the reference path to rounding (tests/test_fused.py checks <= 1e-12 relative).
 
-Files (this module only re-exports them: the rest of the code imports `models.fused` alone)
+Files (this module only re-exports them: the rest of the code imports `models.liedflnn.engines.core` alone)
     fused_maps.py      small closed forms (exp coefficients, group exp/retract, 3x3 solves), the
                        constants cached per dtype/device, the derived parameters (`Derived`,
                        `derive`; J_d and SPSD matrices with hand-written gradients), the kinetic
@@ -38,8 +38,8 @@ Files (this module only re-exports them: the rest of the code imports `models.fu
 
 from __future__ import annotations
 
-from ..lie.batched import compose, exp_coefficients, group_exp, group_retract, vee2
-from .fused_maps import (
+from ....lie.batched import compose, exp_coefficients, group_exp, group_retract, vee2
+from .maps import (
     SCALAR_BODIES,
     SCALAR_DIM,
     Derived,
@@ -58,7 +58,7 @@ from .fused_maps import (
     training_maps,
     warm_caches,
 )
-from .fused_rollout import (
+from .rollout import (
     AFFINE_FORCES,
     FusedStep,
     RolloutMaps,
@@ -75,7 +75,7 @@ from .fused_rollout import (
     step_residual,
     velocity_jacobian_blocks,
 )
-from .fused_training import (
+from .training import (
     IncrementBatch,
     IncrementSet,
     _penalty_and_slope,
@@ -89,7 +89,7 @@ from .fused_training import (
     training_residual,
 )
 
-# the private names are used by `models.losses` and the tests
+# the private names are used by `models.liedflnn.losses` and the tests
 __all__ = [
     "_apply_map",
     "_InertiaJd",

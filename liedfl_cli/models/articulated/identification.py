@@ -43,7 +43,7 @@ from typing import Any
 
 import torch
 
-from ..lie import so3
+from ...lie import so3
 
 MAX_TRIPLETS = 1000
 """Triplets the regressor is built on (evenly strided over the training set)."""
@@ -757,8 +757,8 @@ def one_step_ratio(model: Any, truth: Any, tol: float = 1e-5) -> float:
     velocity's, on truth R (T, N+1, B, 3, 3), p (T, N+1, m, 3). tol: the Newton step tolerance (an
     absolute one: 1e-12 makes the figure independent of the length unit)."""
     geodesic_error = _geodesic
-    from ..solvers.one_step import constant_velocity_one_step, one_step_predictions
-    from ..solvers.options import SolverOptions
+    from ...solvers.one_step import constant_velocity_one_step, one_step_predictions
+    from ...solvers.options import SolverOptions
 
     pred, _ = one_step_predictions(model, truth, SolverOptions(tol=tol))
     cv = constant_velocity_one_step(model.G, truth)
@@ -770,8 +770,8 @@ def rollout_ratio(model: Any, truth: Any, steps: int = 50) -> float:
     """Mean geodesic rotation error of the model's rollout of `steps` steps from the first two true poses
     over the constant-velocity rollout's (every trajectory of truth, its first steps + 1 poses)."""
     geodesic_error = _geodesic
-    from ..solvers.one_step import constant_velocity_rollout
-    from ..solvers.options import SolverOptions
+    from ...solvers.one_step import constant_velocity_rollout
+    from ...solvers.options import SolverOptions
 
     steps = min(steps, truth.R.shape[1] - 1)
     g0, g1 = truth.index((slice(None), 0)), truth.index((slice(None), 1))

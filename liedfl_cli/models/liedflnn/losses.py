@@ -28,15 +28,15 @@ from typing import Any
 import torch
 from torch.func import jacrev
 
-from ..errors import ConfigError
-from ..lie import Pose, ProductGroup
-from ..mechanics import kinetic
-from ..mechanics.damping import PerBodySPSD
-from ..mechanics.forces import RayleighForce, RayleighNonlinearForce
-from ..solvers.newton import solve
-from ..solvers.options import SolverOptions
-from . import fused
-from .base import ImplicitModel, LossOptions, LossParts, TrajectoryBatch, TripletBatch, oriented_logdet
+from ...errors import ConfigError
+from ...lie import Pose, ProductGroup
+from ...mechanics import kinetic
+from ...mechanics.damping import PerBodySPSD
+from ...mechanics.forces import RayleighForce, RayleighNonlinearForce
+from ...solvers.newton import solve
+from ...solvers.options import SolverOptions
+from ..base import ImplicitModel, LossOptions, LossParts, TrajectoryBatch, TripletBatch, oriented_logdet
+from .engines import core as fused
 
 LOSSES = ("del", "newton", "rollout")
 
@@ -374,7 +374,7 @@ def _penalty(logdet: torch.Tensor, opts: LossOptions) -> torch.Tensor:
 
 def _rot_sq(truth: Pose, pred: Pose) -> torch.Tensor:
     """Sum over bodies of the squared geodesic distance |log(R_true^T R_pred)|^2, shape (N,)."""
-    from ..lie import so3
+    from ...lie import so3
 
     w = so3.log(truth.R.transpose(-1, -2) @ pred.R)
     return (w * w).sum((-1, -2))

@@ -32,31 +32,24 @@ import torch
 from torch import nn
 from torch.func import grad
 
-from ..errors import ConfigError
-from ..lie import Pose, so3
-from ..lie import joints as jt
-from ..lie.tolerances import projects_poses
-from ..lie.tree import Tree, forward_kinematics
-from ..mechanics import articulated as art
-from ..mechanics import kinetic
-from ..mechanics.forces import RayleighForce, build_forces, force_jacobian_xi
-from ..mechanics.parameterizations import Inertia, PositiveVector
-from ..mechanics.potentials import STANDARD_GRAVITY, GravityPotential, MLPPotential, UniformGravityPotential
-from ..solvers.newton import NewtonProblem, jacobian
-from . import fused_articulated, mlp_derivatives
-from .base import (
-    Batch,
-    ImplicitModel,
-    LossOptions,
-    TrajectoryBatch,
-    TripletBatch,
-    TripletSet,
-    oriented_logdet,
-)
-from .components import component_tagger, force_parameters
-from .del_loss import del_regularity_loss
-from .fused_articulated import FusedArticulatedState
-from .liedflnn import check_options
+from ...errors import ConfigError
+from ...lie import Pose, so3
+from ...lie import joints as jt
+from ...lie.tolerances import projects_poses
+from ...lie.tree import Tree, forward_kinematics
+from ...mechanics import articulated as art
+from ...mechanics import kinetic
+from ...mechanics.forces import RayleighForce, build_forces, force_jacobian_xi
+from ...mechanics.parameterizations import Inertia, PositiveVector
+from ...mechanics.potentials import STANDARD_GRAVITY, GravityPotential, MLPPotential, UniformGravityPotential
+from ...solvers.newton import NewtonProblem, jacobian
+from .. import mlp_derivatives
+from ..base import Batch, ImplicitModel, LossOptions, TrajectoryBatch, TripletBatch, TripletSet, oriented_logdet
+from ..components import component_tagger, force_parameters
+from ..del_loss import del_regularity_loss
+from ..liedflnn.model import check_options
+from .engines import fused as fused_articulated
+from .engines.fused import FusedArticulatedState
 
 
 def geometric_start(tree: Tree) -> tuple[torch.Tensor, torch.Tensor]:
@@ -417,9 +410,9 @@ class ArticulatedLieDFLNN(ImplicitModel):
     def from_config(cls, ctx, **options: Any) -> ImplicitModel:
         """From the options of `conf/model/liedflnn.yaml` with `kinetic: articulated` (the factory picks
         this class for them); the tree comes from the data (`ctx.tree`). `model.substeps` / `model.order`
-        other than 1 / 2 wrap it in `models.substeps.SubstepModel`."""
-        from .liedflnn import LieDFLNN
-        from .substeps import with_substeps
+        other than 1 / 2 wrap it in `models.liedflnn.substeps.SubstepModel`."""
+        from ..liedflnn.model import LieDFLNN
+        from ..liedflnn.substeps import with_substeps
 
         _, parts, why, opt = LieDFLNN.resolve_options(ctx, options)
         substeps, order = opt.pop("substeps", 1), opt.pop("order", 2)
@@ -461,15 +454,15 @@ class ArticulatedLieDFLNN(ImplicitModel):
             return out
 
     def initial_fit(self, samples: Any, method: str = "auto") -> str | None:
-        """`Model.initial_fit`: the prediction-weighted least-squares start (`models.articulated_fit`),
+        """`Model.initial_fit`: the prediction-weighted least-squares start (`models.articulated.fit`),
         on the fast path's triplets only; the scale from dataset.total_mass when given."""
         if self.residual_mode != "fast" or not isinstance(samples, ArticulatedTriplets) or self.known:
             return None
-        from .articulated_fit import least_squares_start
+        from .fit import least_squares_start
 
         saved = {k: v.detach().clone() for k, v in self.state_dict().items()}
         try:
-            if method == "identify":  # least squares + Levenberg-Marquardt (models.identification)
+            if method == "identify":  # least squares + Levenberg-Marquardt (models.articulated.identification)
                 from .identification import identify
 
                 return identify(self, samples, epsilon=self.epsilon, log=None).line()
@@ -535,7 +528,7 @@ class ArticulatedLieDFLNN(ImplicitModel):
         return None if self.dof_damper is None else self.dof_damper.coefficients().detach()
 
     def parameter_recovery(self, reference, physics) -> dict | None:
-        from .recovery import articulated_recovery
+        from ..recovery import articulated_recovery
 
         return articulated_recovery(self, reference) if isinstance(reference, ArticulatedLieDFLNN) else None
 
@@ -656,7 +649,7 @@ class ArticulatedLieDFLNN(ImplicitModel):
 
     def dof_half_torque(self, g: Pose, g_next: Pose) -> torch.Tensor | None:
         """(h/2) tau(nu(g, g_next)) of the per-DoF damping over one interval, (..., n); None without it
-        (one half of `dof_torques`, for steps of different lengths: `models.substeps`)."""
+        (one half of `dof_torques`, for steps of different lengths: `models.liedflnn.substeps`)."""
         if self.dof_damper is None:
             return None
         q0, q1 = jt.to_joint_coordinates(self.tree, g), jt.to_joint_coordinates(self.tree, g_next)
@@ -750,9 +743,9 @@ class ArticulatedLieDFLNN(ImplicitModel):
 
     def loss(self, batch: Batch | ArticulatedBatch, opts: LossOptions):
         """`train.loss`: del (w_DEL mean ||r||^2), newton (w_DEL mean ||H^-1 r||^2) or rollout (the
-        fine-tuning windows, `models.losses.rollout_window_loss`), each + w_reg mean penalty(log|det H_b|)
+        fine-tuning windows, `models.liedflnn.losses.rollout_window_loss`), each + w_reg mean penalty(log|det H_b|)
         -> (loss, parts)."""
-        from . import losses
+        from ..liedflnn import losses
 
         if opts.loss == "rollout":
             assert isinstance(batch, TrajectoryBatch), "train.loss=rollout trains on windows (losses.WindowSet)"
@@ -845,7 +838,7 @@ class ArticulatedLieDFLNN(ImplicitModel):
 
     # ------------------------------------------------------------------ rollout
     def implicit_start(self, g0: Pose, g1: Pose) -> ArticulatedState | FusedArticulatedState:
-        """The rollout's first state: the fused engine's (`models.fused_articulated`) on the fused path
+        """The rollout's first state: the fused engine's (`models.articulated.engines.fused`) on the fused path
         where it applies and no gradient is being recorded (it reads the parameters detached), else
         the reference problem's."""
         if self.path == "fused" and not torch.is_grad_enabled() and fused_articulated.applies(self) is None:
@@ -1034,7 +1027,7 @@ def resolve_joints(ctx, tree: Tree, joints) -> tuple[Tree, str, str | None]:
         raise ConfigError(f"model.joints={joints!r}: auto, declared, ball or a mapping {{kinds: [...], axes: [...]}}")
     if ctx.train_poses is None:
         return tree.with_joints(None), "joints: ball (no training data to infer joints from)", None
-    from ..mechanics.joint_inference import format_inference, infer_joints
+    from ...mechanics.joint_inference import format_inference, infer_joints
 
     result = infer_joints(tree, ctx.train_poses().R)
     out = tree.with_joints(list(result.kinds), [[list(r) for r in a] for a in result.axes])

@@ -24,26 +24,25 @@ import torch
 from torch import nn
 from torch.func import grad, jacfwd, jacrev, vmap
 
-from ..errors import ConfigError
-from ..lie import Pose, ProductGroup, so3
-from ..lie.tolerances import projects_poses
-from ..mechanics import kinetic
-from ..mechanics.forces import RayleighForce, build_forces, force_jacobian_xi
-from ..mechanics.parameterizations import Inertia, PositiveVector
-from ..mechanics.potentials import (
+from ...errors import ConfigError
+from ...lie import Pose, ProductGroup, so3
+from ...lie.tolerances import projects_poses
+from ...mechanics import kinetic
+from ...mechanics.forces import RayleighForce, build_forces, force_jacobian_xi
+from ...mechanics.parameterizations import Inertia, PositiveVector
+from ...mechanics.potentials import (
     STANDARD_GRAVITY,
     GravityPotential,
     MLPPotential,
     SumPotential,
     UniformGravityPotential,
 )
-from ..mechanics.scene_physics import body_parameters, true_potential
-from ..solvers import runtime
-from ..solvers.newton import NewtonProblem, jacobian
-from ..solvers.options import SolverOptions
-from ..solvers.rollout import Rollout
-from . import fused, fused_columns, fused_scalar
-from .base import (
+from ...mechanics.scene_physics import body_parameters, true_potential
+from ...solvers import compile as compile_cache
+from ...solvers.newton import NewtonProblem, jacobian
+from ...solvers.options import SolverOptions
+from ...solvers.rollout import Rollout, rollout_implicit
+from ..base import (
     POTENTIAL_PARTS,
     Batch,
     BuildContext,
@@ -56,8 +55,11 @@ from .base import (
     initial_scale,
     oriented_logdet,
 )
-from .components import component_tagger, force_parameters
-from .del_loss import del_regularity_loss
+from ..components import component_tagger, force_parameters
+from ..del_loss import del_regularity_loss
+from .engines import columns as fused_columns
+from .engines import core as fused
+from .engines import scalar as fused_scalar
 
 RESIDUAL_MODES = ("fast", "generic")
 KINETIC_KINDS = ("auto", "per_body", "articulated")
@@ -108,8 +110,12 @@ class LieDFLNNOptions:
     known: list[str] = field(default_factory=list)  # parts set to the scene's true values and frozen
     gravity: Any = "auto"  # field strength of uniform_gravity: auto (the data's g, else 9.81) | a number
     learn_gravity_direction: bool = False
-    substeps: int = 1  # DEL sub-steps per sample step (models/substeps.py): error / substeps^2
-    order: int = 2  # 2: the paper's step | 4: a triple-jump composition of it (models/substeps.py)
+    substeps: int = 1  # DEL sub-steps per sample step (models/liedflnn/substeps.py): error / substeps^2
+    order: int = 2  # 2: the paper's step | 4: a triple-jump composition of it (models/liedflnn/substeps.py)
+
+
+ARTICULATED_TARGET = "liedfl_cli.models.articulated.ArticulatedLieDFLNN"
+"""The articulated variant (its own package, which builds on this one: named, not imported)."""
 
 
 class LieDFLNN(ImplicitModel):
@@ -124,7 +130,7 @@ class LieDFLNN(ImplicitModel):
         epsilon: log-det regularity threshold, also used to pick the initial scale.
         known / physics: parts set to the scene's true values and frozen.
         gravity: field strength of the uniform_gravity part; learn_gravity_direction: learn its direction too.
-        path: "fused" (the fused hot paths of `models.fused`, with the fast residual) or "reference";
+        path: "fused" (the fused hot paths of `models.liedflnn.engines.core`, with the fast residual) or "reference";
             default `runtime.fused` at construction (`ImplicitModel.path`; `with_path` for the other).
     """
 
@@ -250,11 +256,19 @@ class LieDFLNN(ImplicitModel):
         return kinetic_kind, parts, why, {**opt, "known": known, "gravity": gravity, **extra}
 
     @classmethod
+    def variant_for(cls, options: dict[str, Any], has_tree: bool) -> str | None:
+        """Model only what the scene has: `kinetic: auto` is articulated on a scene that declares a
+        kinematic tree, per body otherwise; articulated builds `ArticulatedLieDFLNN` with the same options."""
+        if options.get("kinetic", "auto") == "auto":
+            options["kinetic"] = "articulated" if has_tree else "per_body"
+        return ARTICULATED_TARGET if options.get("kinetic") == "articulated" else None
+
+    @classmethod
     def from_config(cls, ctx: BuildContext, **options) -> ImplicitModel:
         """The per-body model from its config options (`resolve_options`). What auto chose is kept in
         `notes` (printed by `liedfl train`). `model.kinetic: articulated` is built by the factory as
         `models.articulated.ArticulatedLieDFLNN` (same options). `model.substeps` / `model.order` other
-        than 1 / 2 wrap it in `models.substeps.SubstepModel`."""
+        than 1 / 2 wrap it in `models.liedflnn.substeps.SubstepModel`."""
         from .substeps import with_substeps
 
         kinetic_kind, parts, why, opt = cls.resolve_options(ctx, options)
@@ -297,7 +311,7 @@ class LieDFLNN(ImplicitModel):
         return Jd, empty, Jd.new_zeros(0, 3)
 
     def _fused(self) -> bool:
-        """Whether the fused paths (`models.fused`) serve this model: its `path`, with the fast residual."""
+        """Whether the fused paths (`engines/core.py`) serve this model: its `path`, with the fast residual."""
         return self.residual_mode == "fast" and self.path == "fused"
 
     def training_set(self, data: Pose, steps: int):
@@ -308,7 +322,7 @@ class LieDFLNN(ImplicitModel):
 
     def loss(self, batch: Batch | fused.IncrementBatch, opts: LossOptions):
         """w_DEL mean ||r||^2 + w_reg mean penalty(log|det H|) -> (loss, {"del_loss", "reg_loss"});
-        `opts.loss` newton / rollout: `models.losses`."""
+        `opts.loss` newton / rollout: `models.liedflnn.losses`."""
         if opts.loss != "del":
             from . import losses
 
@@ -317,10 +331,10 @@ class LieDFLNN(ImplicitModel):
             assert isinstance(batch, TrajectoryBatch), "train.loss=rollout trains on windows (losses.WindowSet)"
             return losses.rollout_window_loss(self, batch, opts, opts.solver)
         if isinstance(batch, fused.IncrementBatch):
-            if runtime.want_compile("train"):  # the whole loss, forward and backward, compiled
+            if self.plan.wants_compile("train"):  # the whole loss, forward and backward, compiled
                 ref = next(self.parameters())
                 fused.warm_caches(ref.dtype, ref.device, float(self.h))
-                return runtime.compiled(fused_loss, "train_loss")(self, batch, opts)
+                return compile_cache.compiled(fused_loss, "train_loss")(self, batch, opts)
             return fused_loss(self, batch, opts)
         assert isinstance(batch, TripletBatch), "LieDFLNN trains on triplets (window = 'triplet')"
         logdet = None
@@ -344,12 +358,12 @@ class LieDFLNN(ImplicitModel):
         return out
 
     def parameter_recovery(self, reference, physics) -> dict | None:
-        from .recovery import lie_recovery
+        from ..recovery import lie_recovery
 
         return lie_recovery(self, reference, physics) if isinstance(reference, LieDFLNN) else None
 
     def damping_stiffness(self) -> float | None:
-        from .stiffness import damping_stiffness
+        from ..stiffness import damping_stiffness
 
         return damping_stiffness(self)
 
@@ -446,6 +460,14 @@ class LieDFLNN(ImplicitModel):
             J = J + 0.5 * self.h * (dF @ dxi)
         return J
 
+    def value_and_grad(self, samples, opts: LossOptions, params: list[nn.Parameter]):
+        """`Model.value_and_grad`: the SO(3)-only fused gradient (`engines/gradient.py`) where it applies."""
+        if type(self) is not LieDFLNN:  # a subclass (the articulated model) has other parameters
+            return None
+        from .engines.gradient import RotationalGradient
+
+        return RotationalGradient.make(self, samples, opts, params)
+
     # ------------------------------------------------------------------ implicit step (rollout)
     def rollout(self, g0: Pose, g1: Pose, steps: int, opts: SolverOptions | None = None, progress=None) -> Rollout:
         """`ImplicitModel.rollout`; a single SO(3) body with at most constant Rayleigh damping rolls
@@ -455,13 +477,22 @@ class LieDFLNN(ImplicitModel):
             return fused_scalar.rollout(self, g0, g1, steps, opts or SolverOptions(), progress)
         if fused_columns.applies(self, g0):
             return fused_columns.rollout(self, g0, g1, steps, opts or SolverOptions(), progress)
-        return super().rollout(g0, g1, steps, opts, progress)
+        return self.rollout_rows(g0, g1, steps, opts or SolverOptions(), progress)
 
-    def implicit_start(self, g0: Pose, g1: Pose):
+    def rollout_rows(self, g0: Pose, g1: Pose, steps: int, opts: SolverOptions, progress=None) -> Rollout:
+        """The rollout in row layout (`solvers.rollout.rollout_implicit`); its fused Newton step is
+        compiled when the model's plan asks for it at this rollout's size (trajectories x steps)."""
+        compile_it = self._fused() and self.plan.wants_compile("rollout", g0.R.shape[0] * max(steps - 1, 0))
+        return rollout_implicit(
+            self, g0, g1, steps, opts, progress, start=lambda a, b: self.implicit_start(a, b, compile=compile_it)
+        )
+
+    def implicit_start(self, g0: Pose, g1: Pose, compile: bool = False):
         """State (g_{k-1}, g_k, warm start = the last increment g_{k-1}^{-1} g_k); on the fused path
-        a `fused.RolloutState` that also carries the parameters derived once for the rollout."""
+        a `fused.RolloutState` that also carries the parameters derived once for the rollout (and,
+        with `compile`, the compiled Newton step)."""
         if self._fused():
-            return fused.rollout_start(self, g0, g1)
+            return fused.rollout_start(self, g0, g1, compile)
         return g0, g1, self.G.increment(g0, g1)
 
     def implicit_problem(self, state) -> NewtonProblem:

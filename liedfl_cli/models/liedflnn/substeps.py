@@ -39,15 +39,14 @@ from typing import Any
 import torch
 from torch import nn
 
-from ..errors import ConfigError
-from ..lie import Pose
-from ..lie import joints as jt
-from ..solvers import runtime
-from ..solvers.newton import NewtonProblem
-from ..solvers.options import SolverOptions
-from ..solvers.rollout import Rollout, rollout_implicit
-from .base import ImplicitModel, LossOptions, TripletBatch, TripletSet, oriented_logdet
-from .del_loss import del_regularity_loss
+from ...errors import ConfigError
+from ...lie import Pose
+from ...lie import joints as jt
+from ...solvers.newton import NewtonProblem
+from ...solvers.options import SolverOptions
+from ...solvers.rollout import Rollout, rollout_implicit
+from ..base import ImplicitModel, LossOptions, TripletBatch, TripletSet, oriented_logdet
+from ..del_loss import del_regularity_loss
 
 GAMMA1 = 1.0 / (2.0 - 2.0 ** (1.0 / 3.0))
 GAMMA2 = 1.0 - 2.0 * GAMMA1
@@ -138,7 +137,7 @@ def right_half(m: Any, z: Pose, z_next: Pose) -> torch.Tensor:
 def potential_covector(m: Any, z: Pose) -> torch.Tensor:
     """-m.h dV/d eta at z in DoF (zeros without a potential)."""
     if hasattr(m, "reduced"):  # the articulated model takes its FK and Jacobian
-        from ..mechanics import articulated as art
+        from ...mechanics import articulated as art
 
         world, A = art.fk_and_jacobian(m.tree, z)
         return _project(m, z, m.potential_covector(z, world, A))
@@ -171,7 +170,7 @@ class SubstepModel(ImplicitModel):
     window = "triplet"
 
     def __init__(self, inner: ImplicitModel, substeps: int = 1, order: int = 2):
-        super().__init__(inner.path)
+        super().__init__(plan=inner.plan)
         self.substeps, self.order = check_steps(substeps, order)
         self.inner = inner
         self.G, self.h = inner.G, float(inner.h)
@@ -198,6 +197,9 @@ class SubstepModel(ImplicitModel):
             twin.h = float(h)
             self._twins[key] = twin
         return self._twins[key]
+
+    def plan_changed(self) -> None:
+        self._twins = {}  # built on the previous plan
 
     def _models(self, path: str | None = None) -> list[Any]:
         return [self._twin(c * self.h, path) for c in self.fractions]
@@ -414,9 +416,10 @@ class SubstepModel(ImplicitModel):
         if self.order == 2:
             ro = self._twin(self.h / self.substeps).rollout(a, g1, sub_steps, opts, sub_progress)
         elif _LinearEngine.applies(self.inner):
-            from . import fused_columns
+            from .engines import columns as fused_columns
 
-            if fused_columns.applies(self.inner, a) and not runtime.want_compile("rollout"):
+            compiled = self.plan.wants_compile("rollout", g0.R.shape[0] * sub_steps)
+            if fused_columns.applies(self.inner, a) and not compiled:
                 ro = _columns_cycle(_LinearEngine(self), a, g1, sub_steps, opts, sub_progress)
             else:
                 ro = rollout_implicit(_FusedCycle(_LinearEngine(self)), a, g1, sub_steps, opts, sub_progress)
@@ -628,7 +631,7 @@ class _LinearEngine:
     Equal to `substep_residual` to rounding (tested); used where nothing needs a gradient."""
 
     def __init__(self, outer: SubstepModel, fractions: tuple[float, ...] | None = None):
-        from .fused_rollout import rollout_maps
+        from .engines.rollout import rollout_maps
 
         self.models = [outer._twin(c * outer.h, "fused") for c in (fractions or outer.fractions)]
         self.maps = [rollout_maps(m) for m in self.models]
@@ -636,7 +639,7 @@ class _LinearEngine:
 
     @staticmethod
     def applies(model: Any) -> bool:
-        from ..mechanics.forces import RayleighForce
+        from ...mechanics.forces import RayleighForce
 
         return (
             bool(getattr(type(model), "has_rollout_maps", False))
@@ -647,13 +650,13 @@ class _LinearEngine:
 
     def const(self, ia: int, ib: int, z_prev: Pose, z: Pose) -> torch.Tensor:
         """A_{h_a}(z_prev, z) with the potential at z weighted (h_a + h_b) / 2, (N, dim)."""
-        from .fused_maps import potential_covector as cov
+        from .engines.maps import potential_covector as cov
 
         ma, mb = self.models[ia], self.models[ib]
         W = (z_prev.R.transpose(-1, -2) @ z.R).flatten(-3)
         out = W @ self.maps[ia].linear[2]  # type: ignore[index]
         if ma.potential is not None:
-            from ..mechanics.potentials import GravityPotential, UniformGravityPotential
+            from ...mechanics.potentials import GravityPotential, UniformGravityPotential
 
             if isinstance(ma.potential, (UniformGravityPotential, GravityPotential)):  # closed form
                 c = -float(ma.h) * ma.potential.left_gradient(z).detach()
@@ -679,7 +682,7 @@ class _FusedCycle:
         return (g0, g1, 0, None)
 
     def implicit_problem(self, state: Any) -> NewtonProblem:
-        from .fused_rollout import FusedStep
+        from .engines.rollout import FusedStep
 
         g_prev, g, j, _ = state
         e = self.e
@@ -688,7 +691,7 @@ class _FusedCycle:
         W = g_prev.R.transpose(-1, -2) @ g.R
         ratio = float(mb.h) / float(e.models[ia].h)
         if ratio != 1.0:  # warm start: the last increment scaled to this sub-step (first-order log: cheap)
-            from ..lie import so3
+            from ...lie import so3
 
             W = so3.exp(ratio * so3.vee(W))
         step = FusedStep.from_parts(mb, e.maps[ib], g, e.const(ia, ib, g_prev, g))
@@ -696,7 +699,7 @@ class _FusedCycle:
         return step.problem(Pose(W, g.p.new_zeros(*g.p.shape)))
 
     def implicit_advance(self, state: Any, x: Any) -> tuple[Any, Pose]:
-        from .fused_rollout import RolloutState, rollout_advance
+        from .engines.rollout import RolloutState, rollout_advance
 
         g_prev, g, j = self._last
         ib = j % self.e.n
@@ -713,12 +716,11 @@ def _columns_cycle(
     the potential weighted (h_a + h_b) / 2, the Newton solve of the step after it."""
     import time
 
-    from ..lie import so3
-    from . import fused_columns as fc
+    from ...lie import so3
+    from .engines import columns as fc
 
     t0 = time.perf_counter()
     T, n = g0.R.shape[0], engine.n
-    runtime.plan("rollout", T * max(steps - 1, 0))
     cols = [fc.ColumnMaps(m, mp) for m, mp in zip(engine.models, engine.maps)]
     n_poses = max(steps, 1) + 1
     out = g0.R.new_empty(n_poses, 9, T)

@@ -44,15 +44,15 @@ from dataclasses import dataclass
 
 import torch
 
-from ..lie import Pose, ProductGroup, so3
-from ..lie import joints as jt
-from ..lie.tolerances import projects_poses
-from ..lie.tree import Tree
-from ..mechanics import articulated as art
-from ..mechanics import kinetic
-from ..mechanics.forces import force_jacobian_xi
-from ..mechanics.potentials import GravityPotential, UniformGravityPotential
-from ..solvers.newton import NewtonProblem
+from ....lie import Pose, ProductGroup, so3
+from ....lie import joints as jt
+from ....lie.tolerances import projects_poses
+from ....lie.tree import Tree
+from ....mechanics import articulated as art
+from ....mechanics import kinetic
+from ....mechanics.forces import force_jacobian_xi
+from ....mechanics.potentials import GravityPotential, UniformGravityPotential
+from ....solvers.newton import NewtonProblem
 
 SUPPORTED_JOINTS = ("free", "ball", "universal", "hinge", "weld")
 

@@ -5,7 +5,7 @@ x = flatten(g) of the configuration (9 per body for R, then 3 per SE(3) body for
 
 integrated with torchdiffeq (`method`, rtol / atol); with `method: dopri5` on the fused path (the
 default, `runtime.fused`) the same dopri5 runs as one autograd node per solve (`solvers.dopri5`, field
-`models.fused_neural_ode`), same numbers to rounding. No geometric structure: predicted R are
+`models.neural_ode.engines.fused`), same numbers to rounding. No geometric structure: predicted R are
 not orthogonal, and the drift is the result. Training unrolls the ODE over each window from
 x_0 with v_0 = (x_1 - x_0)/h and minimises the mean squared error of the predicted positions
 x_1..x_L (window "trajectory": the whole training window of each trajectory; "triplet": each
@@ -20,13 +20,13 @@ from typing import Any
 
 import torch
 
-from ..errors import ConfigError
-from ..lie import Pose, ProductGroup
-from ..mechanics.mlp import MLP
-from ..solvers import dopri5
-from . import mlp_derivatives
-from .base import Batch, BuildContext, ExplicitModel, LossOptions, LossParts, config_options
-from .fused_neural_ode import MLPField
+from ...errors import ConfigError
+from ...lie import Pose, ProductGroup
+from ...mechanics.mlp import MLP
+from ...solvers import dopri5
+from .. import mlp_derivatives
+from ..base import Batch, BuildContext, ExplicitModel, LossOptions, LossParts, config_options
+from .engines.fused import MLPField
 
 ADAPTIVE_METHODS = ("dopri5", "dopri8", "bosh3", "fehlberg2", "adaptive_heun")
 

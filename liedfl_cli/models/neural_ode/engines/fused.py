@@ -15,7 +15,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from . import mlp_derivatives
+from ... import mlp_derivatives
 
 
 class MLPField:

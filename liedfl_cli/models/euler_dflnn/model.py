@@ -20,7 +20,7 @@ damped Newton on r_k (solver tolerance / iterations), warm-started at 2 q_k - q_
 converted back to SO(3) by `euler.to_matrix` for evaluation.
 
 With `runtime.fused` (the default) the residual and the regularity term's mixed Hessian are computed
-in closed form (`models.fused_dflnn.euler_residual` and `euler_mixed_hessian`, the same numbers to
+in closed form (`engines/fused.py`: `euler_residual` and `euler_mixed_hessian`, the same numbers to
 rounding; `runtime.fused=false`: autograd of `lagrangian`)."""
 
 from __future__ import annotations
@@ -30,12 +30,11 @@ from typing import Any
 
 import torch
 
-from ..lie import Pose, ProductGroup, euler
-from ..mechanics.mlp import MLP
-from ..mechanics.parameterizations import Inertia, SPSDMatrix
-from ..solvers.newton import NewtonProblem
-from . import fused_dflnn
-from .base import (
+from ...lie import Pose, ProductGroup, euler
+from ...mechanics.mlp import MLP
+from ...mechanics.parameterizations import Inertia, SPSDMatrix
+from ...solvers.newton import NewtonProblem
+from ..base import (
     Batch,
     BuildContext,
     ImplicitModel,
@@ -47,7 +46,8 @@ from .base import (
     require_single_so3,
     so3_pose,
 )
-from .del_loss import del_regularity_loss
+from ..del_loss import del_regularity_loss
+from .engines import fused as fused_dflnn
 
 
 def _shift_to_principal(q_ref: torch.Tensor) -> torch.Tensor:

@@ -1,6 +1,7 @@
-"""Fused hot paths of LieDFLNN, part 3 (see `models.fused`): the rollout's maps built once
+"""Fused hot paths of LieDFLNN, part 3 (see `models.liedflnn.engines.core`): the rollout's maps built once
 (`RolloutMaps`, `RolloutState`) and the implicit Newton step on the increment (`FusedStep`: residual,
-Jacobian, full iteration, the part `runtime.compile` compiles), and the rollout's start/advance."""
+Jacobian, full iteration, the part `runtime.compile` compiles under the model's plan), and the rollout's
+start/advance."""
 
 from __future__ import annotations
 
@@ -10,25 +11,16 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from ..lie import Pose, ProductGroup, so3
-from ..lie.batched import compose, retract_increment
-from ..lie.tolerances import projects_poses
-from ..mechanics import kinetic
-from ..mechanics.forces import PDControl, RayleighForce, RayleighNonlinearForce, force_jacobian_xi
-from ..mechanics.potentials import MLPPotential
-from ..solvers import runtime
-from ..solvers.newton import NewtonProblem
-from . import mlp_derivatives
-from .fused_maps import (
-    Derived,
-    _apply_map,
-    _basis,
-    _constants,
-    derive,
-    hessian_map,
-    potential_covector,
-    solve_small,
-)
+from ....lie import Pose, ProductGroup, so3
+from ....lie.batched import compose, retract_increment
+from ....lie.tolerances import projects_poses
+from ....mechanics import kinetic
+from ....mechanics.forces import PDControl, RayleighForce, RayleighNonlinearForce, force_jacobian_xi
+from ....mechanics.potentials import MLPPotential
+from ....solvers import compile as compile_cache
+from ....solvers.newton import NewtonProblem
+from ... import mlp_derivatives
+from .maps import Derived, _apply_map, _basis, _constants, derive, hessian_map, potential_covector, solve_small
 
 AFFINE_FORCES = (RayleighNonlinearForce, PDControl)
 """Forces known to be affine in the velocity estimate: F(g, xi) = F(g, 0) + dF/dxi(g) xi."""
@@ -151,10 +143,9 @@ def _linear_maps(model, P: Derived) -> tuple[torch.Tensor, torch.Tensor, torch.T
     return torch.cat(fs).contiguous(), torch.cat(Js).contiguous(), torch.cat(cs).contiguous()
 
 
-def rollout_start(model, g0: Pose, g1: Pose) -> RolloutState:
-    """State before the first step; the Newton step is compiled when `runtime.compile` asks for it
-    for this rollout's size (`runtime.planned_rollout`)."""
-    compile_it = runtime.want_compile("rollout")
+def rollout_start(model, g0: Pose, g1: Pose, compile_it: bool = False) -> RolloutState:
+    """State before the first step; `compile_it`: run the compiled Newton step (the model's plan
+    decides, `LieDFLNN.rollout_rows`)."""
     return RolloutState(g0, g1, model.G.increment(g0, g1), rollout_maps(model), compile_it)
 
 
@@ -378,7 +369,7 @@ def step_iterate(G: ProductGroup, h: float, x: Pose, r: torch.Tensor, const, B, 
 
 
 def rollout_problem(model, state: RolloutState) -> NewtonProblem:
-    compiled = runtime.compiled(step_iterate, "rollout_step") if state.compile else None
+    compiled = compile_cache.compiled(step_iterate, "rollout_step") if state.compile else None
     return FusedStep(model, state, compiled).problem(state.inc)
 
 

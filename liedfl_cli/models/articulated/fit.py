@@ -188,7 +188,7 @@ def least_squares_start(
     if model.tree.free_root:
         unit[3:6] = 1.0 / L
     # a uniform field of known strength (model.gravity) makes the overall scale visible in the data
-    from ..mechanics.potentials import UniformGravityPotential
+    from ...mechanics.potentials import UniformGravityPotential
 
     V = model.potential_world
     scale_seen = isinstance(V, UniformGravityPotential) and float(V.gravity) > 0

@@ -1,4 +1,4 @@
-"""Fused hot paths of LieDFLNN, part 5 (see `models.fused`): the rollout of a *few* trajectories of a
+"""Fused hot paths of LieDFLNN, part 5 (see `models.liedflnn.engines.core`): the rollout of a *few* trajectories of a
 single SO(3) body with a linear Newton residual (no force, or constant Rayleigh damping) in Python
 floats.
 
@@ -27,13 +27,14 @@ import time
 import torch
 from torch import nn
 
-from ..lie import Pose
-from ..mechanics.potentials import MLPPotential
-from ..solvers import newton, runtime
-from ..solvers.options import SolverOptions
-from ..solvers.rollout import Rollout, rollout_implicit
-from . import fused_columns, mlp_derivatives
-from .fused_rollout import RolloutMaps, rollout_maps
+from ....lie import Pose
+from ....mechanics.potentials import MLPPotential
+from ....solvers import newton
+from ....solvers.options import SolverOptions
+from ....solvers.rollout import Rollout
+from ... import mlp_derivatives
+from . import columns as fused_columns
+from .rollout import RolloutMaps, rollout_maps
 
 MAX_ROWS = 6
 """Batches up to this many trajectories can take this path: each trajectory is its own Python loop,
@@ -225,9 +226,8 @@ def rollout(model, g0: Pose, g1: Pose, steps: int, opts: SolverOptions, progress
     `runtime.compile` compiles takes the row layout's compiled step instead."""
     t0 = time.perf_counter()
     T = g0.R.shape[0]
-    runtime.plan("rollout", T * max(steps - 1, 0))
-    if runtime.want_compile("rollout"):
-        return rollout_implicit(model, g0, g1, steps, opts, progress)
+    if model.plan.wants_compile("rollout", T * max(steps - 1, 0)):
+        return model.rollout_rows(g0, g1, steps, opts, progress)
     maps = rollout_maps(model)
     cols: list[fused_columns.ColumnMaps] = []  # the column maps, built by the first hand-over only
     fmaps = _Maps(maps)

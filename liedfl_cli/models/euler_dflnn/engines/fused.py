@@ -1,27 +1,12 @@
-"""Fused training losses of the DFLNN baselines (`runtime.fused`).
+"""Fused training loss of the Euler-angle DFLNN baseline (`model.py` beside this folder; the fused path).
 
-Euclidean DFLNN: the forced DEL residual in closed form, with the potential's input gradient from
-`mlp_derivatives.value_and_gradient` (plain tensor expressions), so that the loss's backward
-differentiates one explicit graph instead of a double backward through `autograd.grad(...,
-create_graph=True)`, and the regularity term's mixed Hessian (constant here) built once instead of
-by 12 autograd passes per batch.
+The forced DEL residual in closed form (`euler_residual`: both pairs of a triplet in one batch, so the
+potential MLP runs once on 2N midpoints, its input gradient from `mlp_derivatives`), so that the loss's
+backward is one pass instead of a double backward through `autograd.grad(..., create_graph=True)`; and
+the regularity term's mixed Hessian (`euler_mixed_hessian`: E(q)'s first and second derivatives written
+out, the potential's Hessian by `mlp_derivatives.gradient_and_hvp`) instead of four autograd passes.
 
-Euler-angle DFLNN: the forced DEL residual in closed form (`euler_residual`: both pairs of a triplet
-in one batch, so the potential MLP runs once on 2N midpoints, its input gradient from
-`mlp_derivatives.value_and_gradient`), so that the loss's backward is one pass instead of a double
-backward through `autograd.grad(..., create_graph=True)`; and the regularity term's mixed Hessian
-(`euler_mixed_hessian`: E(q)'s first and second derivatives written out, the potential's Hessian by
-`mlp_derivatives.gradient_and_hvp`) instead of four autograd passes.
-
-Euclidean coordinates (`EuclideanDFLNN`): L_d(x0, x1) = h/2 xd^T K xd - h V(x0), xd = (x1 - x0)/h,
-with the constant kinetic matrix K = [[I3 (x) (J_d + m rho rho^T), m I3 (x) rho], [m I3 (x) rho^T, m I3]]
-(the R block alone for an SO(3) body; (x) the Kronecker product over the rows of R). Then
-
-    r_k = K (x_k - x_{k-1})/h - K (x_{k+1} - x_k)/h - h dV(x_k) + F^+(x_{k-1}, x_k) + F^-(x_k, x_{k+1})
-
-and the mixed Hessian is -K/h at every pair: its log-determinant is computed once per batch.
-
-Same numbers as the reference (`runtime.fused=false`: autograd of `lagrangian`) to rounding;
+Same numbers as the reference (the reference path: autograd of `lagrangian`) to rounding;
 tests/test_fused_baselines.py checks losses and gradients to 1e-12 relative.
 """
 
@@ -29,53 +14,10 @@ from __future__ import annotations
 
 import torch
 
-from ..lie import euler
-from . import mlp_derivatives
+from ....lie import euler
+from ... import mlp_derivatives
 
 
-def potential_gradient(net: torch.nn.Module, x: torch.Tensor) -> torch.Tensor:
-    """dV/dx (..., n) of an MLP potential V = net(x)[..., 0], differentiable in the parameters:
-    closed form where `mlp_derivatives` supports the network, else autograd."""
-    vg = mlp_derivatives.value_and_gradient(net, x)
-    if vg is not None:
-        return vg[1]
-    with torch.enable_grad():
-        xg = x.detach().requires_grad_(True) if not x.requires_grad else x
-        (g,) = torch.autograd.grad(net(xg)[..., 0].sum(), xg, create_graph=True)
-    return g
-
-
-def kinetic_matrix(model) -> torch.Tensor:
-    """K (n, n) of `EuclideanDFLNN` (module docstring): h/2 xd^T K xd is its kinetic discrete Lagrangian."""
-    Jd = model.inertia.Jd()[0]
-    eye = torch.eye(3, dtype=Jd.dtype, device=Jd.device)
-    if not model.se3:
-        return torch.kron(eye, Jd)
-    m, rho = model.mass()[0], model.rho
-    KR = torch.kron(eye, Jd + m * rho[:, None] * rho[None, :])
-    KRp = m * torch.kron(eye, rho[:, None])  # (9, 3)
-    return torch.cat((torch.cat((KR, KRp), 1), torch.cat((KRp.T, m * eye), 1)), 0)
-
-
-def euclidean_residual_and_logdet(
-    model, x_prev: torch.Tensor, x: torch.Tensor, x_next: torch.Tensor, n_reg: int
-) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """(`EuclideanDFLNN.residual` (N, n), log|det| of the mixed Hessian at `n_reg` pairs (n_reg,) or
-    None when 0) in closed form from x_prev, x, x_next (N, n)."""
-    h = model.h
-    K = kinetic_matrix(model)
-    r = ((x - x_prev) / h - (x_next - x) / h) @ K.T
-    if model.potential is not None:
-        r = r - h * potential_gradient(model.potential, x)
-    if model.damping is not None:
-        r = r + 0.5 * h * (model.forces(x_prev, x)[1] + model.forces(x, x_next)[0])
-    logdet = None
-    if n_reg > 0:
-        logdet = torch.linalg.slogdet(-K / h).logabsdet.expand(n_reg)
-    return r, logdet
-
-
-# ---------------------------------------------------------------------------- Euler-angle DFLNN
 def _mat(*rows: tuple[torch.Tensor, ...]) -> torch.Tensor:
     return torch.stack([torch.stack(r, -1) for r in rows], -2)
 
@@ -155,7 +97,7 @@ def euler_residual(model, q_prev: torch.Tensor, q: torch.Tensor, q_next: torch.T
     c = (p[:, None, None, :] @ _rate_matrix_first_derivatives(qm) @ qd[:, None, :, None])[..., 0, 0]
     X = c
     if model.potential is not None:
-        X = X - potential_gradient(model.potential, qm)
+        X = X - mlp_derivatives.potential_input_gradient(model.potential, qm)
     if model.damping is not None:
         X = X - (Et @ (w @ model.damping().T)[..., None])[..., 0]
     X = (0.5 * h) * X

@@ -1,4 +1,4 @@
-"""Fused hot paths of LieDFLNN, part 4 (see `models.fused`): the rollout of a single rigid body on
+"""Fused hot paths of LieDFLNN, part 4 (see `models.liedflnn.engines.core`): the rollout of a single rigid body on
 SO(3) with a linear Newton residual (no force, or constant Rayleigh damping) in *column* layout.
 
 Layout: a batch of T rotations is held as one (3, 3, T) tensor, entry (i, j) of trajectory t at
@@ -26,16 +26,16 @@ import time
 
 import torch
 
-from ..lie import Pose
-from ..lie.tolerances import projects_poses
-from ..mechanics.forces import RayleighForce
-from ..mechanics.potentials import MLPPotential
-from ..solvers import newton, runtime
-from ..solvers.options import SolverOptions
-from ..solvers.rollout import Rollout, rollout_implicit
-from . import mlp_derivatives
-from .fused_maps import _constants, potential_covector
-from .fused_rollout import FusedStep, RolloutMaps, rollout_maps
+from ....lie import Pose
+from ....lie.tolerances import projects_poses
+from ....mechanics.forces import RayleighForce
+from ....mechanics.potentials import MLPPotential
+from ....solvers import newton
+from ....solvers.options import SolverOptions
+from ....solvers.rollout import Rollout
+from ... import mlp_derivatives
+from .maps import _constants, potential_covector
+from .rollout import FusedStep, RolloutMaps, rollout_maps
 
 MIN_ROWS = 32
 """Batches below this many trajectories keep the row layout: fewer kernel calls per step, which is
@@ -247,9 +247,8 @@ def rollout(model, g0: Pose, g1: Pose, steps: int, opts: SolverOptions, progress
     that `runtime.compile` compiles takes the row layout's compiled step instead."""
     t0 = time.perf_counter()
     T = g0.R.shape[0]
-    runtime.plan("rollout", T * max(steps - 1, 0))
-    if runtime.want_compile("rollout"):
-        return rollout_implicit(model, g0, g1, steps, opts, progress)
+    if model.plan.wants_compile("rollout", T * max(steps - 1, 0)):
+        return model.rollout_rows(g0, g1, steps, opts, progress)
     maps = rollout_maps(model)
     cols = ColumnMaps(model, maps)
     n_poses = max(steps, 1) + 1  # g0, g1 and g2..g_steps

@@ -1,4 +1,4 @@
-"""Fused hot paths of LieDFLNN, part 1 (see `models.fused`): the small closed forms (3x3 solves; the
+"""Fused hot paths of LieDFLNN, part 1 (see `models.liedflnn.engines.core`): the small closed forms (3x3 solves; the
 batched group maps live in `lie/batched.py` and are re-exported here), the constants cached per dtype/device,
 the derived parameters built once (`Derived`, `derive`: J_d and the SPSD matrices with
 hand-written gradients), the rotational kinetic-residual and mixed-Hessian maps linear in W, and the
@@ -13,15 +13,15 @@ from typing import Any
 import torch
 from torch import nn
 
-from ..lie import Pose, so3
-from ..lie.batched import EXP_TAYLOR as _EXP_TAYLOR
-from ..lie.batched import exp_coefficients, vee2
-from ..lie.tolerances import tol
-from ..mechanics.damping import PerBodySPSD
-from ..mechanics.forces import RayleighForce
-from ..mechanics.parameterizations import Inertia, SPSDMatrix
-from ..mechanics.potentials import GravityPotential, UniformGravityPotential, left_gradient
-from . import mlp_derivatives
+from ....lie import Pose, so3
+from ....lie.batched import EXP_TAYLOR as _EXP_TAYLOR
+from ....lie.batched import exp_coefficients, vee2
+from ....lie.tolerances import tol
+from ....mechanics.damping import PerBodySPSD
+from ....mechanics.forces import RayleighForce
+from ....mechanics.parameterizations import Inertia, SPSDMatrix
+from ....mechanics.potentials import GravityPotential, UniformGravityPotential, left_gradient
+from ... import mlp_derivatives
 
 # ---------------------------------------------------------------------------- small closed forms
 
