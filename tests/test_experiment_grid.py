@@ -39,7 +39,7 @@ from liedfl_cli.config.typed import typed
 from liedfl_cli.data.files import complete_steps
 from liedfl_cli.data.scenes import get_dataset
 from liedfl_cli.errors import LiedflError
-from liedfl_cli.models.losses import check_loss, check_rollout_horizon
+from liedfl_cli.models.liedflnn.losses import check_loss, check_rollout_horizon
 
 ROOT = Path(__file__).resolve().parent.parent
 EXPERIMENTS = sorted(p.stem for p in (CONF_DIR / "experiment").glob("*.yaml"))
