@@ -1,9 +1,9 @@
 """The per-epoch work of a training, as callbacks of `trainer.fit` (lightning's habit).
 
-A callback is told when the epochs start (`on_train_start`), after each epoch (`on_epoch_end(trainer,
-row)`: the epoch's metrics row, which it may extend; True ends the training after this epoch, the
-later callbacks skipped) and after the last epoch (`on_train_end`); `state()` is what it adds to the
-training state saved in checkpoints. `fit` calls them in the order given; `liedfl train` gives
+A callback (`trainer.Callback`) is told when the epochs start (`on_train_start`), after each epoch
+(`on_epoch_end(trainer, row)`: the epoch's metrics row, which it may extend; True ends the training
+after this epoch, the later callbacks skipped) and after the last epoch (`on_train_end`); `state()` is
+what it adds to the training state saved in checkpoints. `fit` calls them in the order given; `liedfl train` gives
 `ValidationCallback`, `BestModelCallback`, `LoggerCallback`, `ProgressCallback`,
 `EarlyStoppingCallback`, `CheckpointCallback` (`train.default_callbacks`): validation first, so that
 the logger, the display and the stop decisions see its columns; the checkpoint last, so that it saves
@@ -18,35 +18,14 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from typing import TYPE_CHECKING
 
 from ..display.ui import PlainProgress, console, progress_bar
 from ..errors import ConfigError
 from .stopping import StopRequest, TrainingDiverged, TrainingInterrupted, stop_reason
+from .trainer import Callback, Trainer
 from .validation import VAL_COLUMNS, Selection, Validator, format_pass
 
-if TYPE_CHECKING:
-    from .trainer import Trainer
-
 AUTO_CHECKPOINT_SECONDS = 60.0  # `checkpoint_every: auto` loses at most about this much work
-
-
-class Callback:
-    """One piece of a training's per-epoch work; every hook does nothing unless overridden."""
-
-    def on_train_start(self, trainer: Trainer) -> None:
-        """Before the first epoch of this `fit` call (after the model's start and a resume's restore)."""
-
-    def on_epoch_end(self, trainer: Trainer, row: dict) -> bool:
-        """After epoch `trainer.epoch`, whose metrics are `row` (already in `trainer.history`) -> stop?"""
-        return False
-
-    def on_train_end(self, trainer: Trainer) -> None:
-        """After the last epoch run (not after an error)."""
-
-    def state(self) -> dict:
-        """What this callback adds to the training state of a checkpoint (restored by its maker)."""
-        return {}
 
 
 class ValidationCallback(Callback):

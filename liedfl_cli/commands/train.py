@@ -47,7 +47,6 @@ from ..loggers import Logger, MetricsLog, make_loggers
 from ..models.losses import check_loss, check_rollout_horizon
 from .callbacks import (
     BestModelCallback,
-    Callback,
     CheckpointCallback,
     EarlyStoppingCallback,
     LoggerCallback,
@@ -57,7 +56,7 @@ from .callbacks import (
 )
 from .optimizers import make_optimizer, make_schedule
 from .stopping import StopRequest, TrainingDiverged, TrainingInterrupted, graceful_stop, stop_reason
-from .trainer import fit
+from .trainer import Callback, fit
 from .validation import (
     VAL_COLUMNS,
     Selection,

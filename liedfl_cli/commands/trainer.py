@@ -25,7 +25,6 @@ from ..lie import Pose
 from ..models.fused_step import RotationalGradient
 from ..models.losses import training_stage
 from ..solvers import runtime
-from .callbacks import Callback
 from .optimizers import make_optimizer, make_schedule
 from .stopping import TrainingDiverged
 
@@ -64,6 +63,24 @@ def _first_resumed_step(opt) -> None:
         raise CheckpointError(
             f"checkpoint training state is not usable: the optimizer's step fails ({type(e).__name__}: {e})"
         ) from None
+
+
+class Callback:
+    """One piece of a training's per-epoch work; every hook does nothing unless overridden."""
+
+    def on_train_start(self, trainer: Trainer) -> None:
+        """Before the first epoch of this `fit` call (after the model's start and a resume's restore)."""
+
+    def on_epoch_end(self, trainer: Trainer, row: dict) -> bool:
+        """After epoch `trainer.epoch`, whose metrics are `row` (already in `trainer.history`) -> stop?"""
+        return False
+
+    def on_train_end(self, trainer: Trainer) -> None:
+        """After the last epoch run (not after an error)."""
+
+    def state(self) -> dict:
+        """What this callback adds to the training state of a checkpoint (restored by its maker)."""
+        return {}
 
 
 class Trainer:
