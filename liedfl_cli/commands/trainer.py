@@ -1,6 +1,7 @@
 """The training loop: `fit` trains a model on the samples of its data for `train.epochs` epochs of
 shuffled mini-batches; what happens after each epoch (validation, best model, loggers, progress,
-early stopping, checkpoints) is the callbacks' (`callbacks.py`).
+early stopping, checkpoints) is the callbacks' (`callbacks.py`), objects with the hooks of `Callback`
+that share the loop's state, the `Trainer`.
 
 loss = the model's `loss(batch, opts)` (for the DEL models w_DEL * mean ||r_k||^2 + w_reg *
 mean penalty(log|det H|) over `reg_points` random pairs). Samples are batched tensors. A training
@@ -213,7 +214,7 @@ def fit(
     """
     if not isinstance(cfg_train, TrainConfig):  # scripts and tests may pass a `train` section as is
         cfg_train = section(TrainConfig, cfg_train, "train")
-    assert isinstance(cfg_train, TrainConfig)
+    assert isinstance(cfg_train, TrainConfig)  # (for mypy: `section` returns its schema's instance)
     # train.loss: newton changes the batches' loss; rollout trains with del here (fine-tuning: finetune.py)
     opts, samples = training_stage(model, data, int(steps), cfg_train.loss_options())
     start_note, start_seconds = _model_start(model, samples, cfg_train, resume)
