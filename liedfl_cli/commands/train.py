@@ -221,6 +221,7 @@ def run_train(cfg: DictConfig, resume: dict | None = None, accept_changed_datase
 
 
 def _run_train(cfg: DictConfig, resume: dict | None, accept_changed_dataset: bool) -> dict:
+    """`run_train`'s steps, in order (each helper below does one)."""
     from ..config.factory import configure_runtime
     from ..files.signals import set_phase
 
@@ -442,6 +443,7 @@ def _timings(result: dict, n_params: int) -> dict:
 
 
 def _say_trained(result: dict, validated: bool, ckpt: Path) -> None:
+    """The line saying what was trained, in how long, and where it is saved."""
     console.print(
         f"trained {result['epochs']} epochs in {result['train_seconds']:.1f} s "
         + (f"(+ {result['val_seconds']:.1f} s validation) " if validated else "")
