@@ -118,7 +118,7 @@ def epoch_seconds(overrides: list[str], epochs: int, repeats: int, data_dir: str
                 model = build_model(run, ds)
                 t, c = time.perf_counter(), time.process_time()
                 steps = dataset_steps(run.dataset, ds, "train_steps")  # a file's null: all its steps
-                out = fit(model, data, tcfg, steps, show_progress=False, log_epochs=False)
+                out = fit(model, data, tcfg, steps)
                 best[fused] = min(best[fused], (time.perf_counter() - t) / epochs)
                 cpu[fused] = min(cpu[fused], (time.process_time() - c) / epochs)
                 n = out["n_samples"]
@@ -318,7 +318,7 @@ def articulated_training(data_dir: str, quick: bool, log) -> dict:
     for _ in range(1 if quick else 2):
         model = build_model(run, ds)
         steps = dataset_steps(run.dataset, ds, "train_steps")  # a file's null: all its steps
-        starts.append(fit(model, data, tcfg, steps, show_progress=False, log_epochs=False)["start_seconds"])
+        starts.append(fit(model, data, tcfg, steps)["start_seconds"])
     out = {
         "s_per_epoch_fused": no_start["fused"],
         "s_per_epoch_reference": no_start["reference"],
@@ -333,7 +333,7 @@ def articulated_training(data_dir: str, quick: bool, log) -> dict:
     model = build_model(run, ds)
     tcfg = dataclasses.replace(run.train, epochs=0, checkpoint_every=10**9)
     steps = dataset_steps(run.dataset, ds, "train_steps")
-    fitted = fit(model, ds.pose(ds.train_idx), tcfg, steps, show_progress=False, log_epochs=False)
+    fitted = fit(model, ds.pose(ds.train_idx), tcfg, steps)
     out["cartwheel23_start_s"] = fitted["start_seconds"]
     e23 = epoch_seconds(
         ["experiment=exp4_mocap", "model.kinetic=articulated", "train.start=none"], 2 if quick else 5, 1, data_dir

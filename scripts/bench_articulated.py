@@ -59,7 +59,7 @@ def main() -> None:
         model = build_model(run, ds)
         tcfg = dataclasses.replace(run.train, epochs=args.epochs, checkpoint_every=10**9)
         t = time.perf_counter()
-        fit(model, data, tcfg, int(run.dataset.train_steps), show_progress=False, log_epochs=False)
+        fit(model, data, tcfg, int(run.dataset.train_steps))
         seconds[kin].append((time.perf_counter() - t) / args.epochs)
     med = {kin: statistics.median(v) for kin, v in seconds.items()}
     out = {

@@ -23,6 +23,7 @@ import torch
 from omegaconf import OmegaConf
 
 from liedfl_cli.cli import CONF_DIR
+from liedfl_cli.commands.callbacks import LoggerCallback
 from liedfl_cli.commands.train import fit
 from liedfl_cli.config.recovery import parameter_recovery
 from liedfl_cli.data.scenes import get_dataset
@@ -48,7 +49,7 @@ def train(ds, start: str, epochs: int) -> dict:
         rec = parameter_recovery(model, ds)
         curve.append((row["epoch"], rec["D_over_trace_max_rel_error"], rec["Jd_over_trace_max_rel_error"]))
 
-    fit(model, ds.pose(ds.train_idx), cfg, 100, seed=0, show_progress=False, log_epochs=False, on_epoch=on_epoch)
+    fit(model, ds.pose(ds.train_idx), cfg, 100, seed=0, callbacks=[LoggerCallback(on_epoch)])
     rec = parameter_recovery(model, ds)
     s = float(model.inertia.Jd()[0].trace().detach())
     s_true = sum((1.521, 1.362, 1.211)) / 2

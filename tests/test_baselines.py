@@ -308,7 +308,7 @@ def test_unknown_baseline_key_is_a_config_error(free_body, data_dir):
 def test_loss_decreases_on_a_tiny_problem(name, free_body, data_dir):
     torch.manual_seed(0)
     model = build_model(_cfg(data_dir, name), free_body)
-    res = fit(model, free_body.pose(free_body.train_idx), _cfg_obj(), 8, show_progress=False)
+    res = fit(model, free_body.pose(free_body.train_idx), _cfg_obj(), 8)
     first, last = res["history"][0]["loss"], res["history"][-1]["loss"]
     # Lie-midpoint on triplets starts close to its floor (two steps from a finite-difference
     # velocity carry little signal -- the paper's explanation of its failure): only ask for progress.

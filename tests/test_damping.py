@@ -97,7 +97,7 @@ def _recover(zero_L: bool) -> dict:
             "epsilon": 10.0,
         }
     )
-    fit(model, ds.pose(ds.train_idx), train, 40, show_progress=False, log_epochs=False)
+    fit(model, ds.pose(ds.train_idx), train, 40)
     return parameter_recovery(model, ds) | {"L": model.forces[0].D.L.detach()}
 
 

@@ -341,7 +341,7 @@ def _smoke_fit(tmp_path, optimizer: str):
         with runtime.using(fused=use_fused):  # decides the path of the model built here
             model = build_model(cfg, ds)
         assert model.path == ("fused" if use_fused else "reference")
-        result = fit(model, data, cfg.train, int(cfg.dataset.train_steps), show_progress=False, log_epochs=False)
+        result = fit(model, data, cfg.train, int(cfg.dataset.train_steps))
         out[use_fused] = (result["history"], parameter_recovery(model, ds))
     return out
 
@@ -385,7 +385,7 @@ def test_full_batch_and_precondition_frequency_options(tmp_path):
     cfg = _smoke_config(tmp_path, "train.full_batch=true", "train.optimizer.precondition_frequency=3")
     ds, _ = get_dataset(cfg.dataset, cfg.paths.data_dir)
     model = build_model(cfg, ds)
-    result = fit(model, ds.pose(ds.train_idx), cfg.train, int(cfg.dataset.train_steps), show_progress=False)
+    result = fit(model, ds.pose(ds.train_idx), cfg.train, int(cfg.dataset.train_steps))
     assert result["batches_per_epoch"] == 1
     opt = make_optimizer([p for p in model.parameters() if p.requires_grad], cfg.train.optimizer)
     assert opt.param_groups[0]["precondition_frequency"] == 3

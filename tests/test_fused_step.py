@@ -235,7 +235,7 @@ def _smoke_histories(tmp_path, monkeypatch, optimizer: str, epochs: int = 6):
             monkeypatch.setattr(RotationalGradient, "make", staticmethod(lambda *a: None))
             monkeypatch.setattr(fused_optim, "FusedSOAP", SOAP)
         model = build_model(cfg, ds)
-        result = fit(model, data, cfg.train, int(cfg.dataset.train_steps), show_progress=False, log_epochs=False)
+        result = fit(model, data, cfg.train, int(cfg.dataset.train_steps))
         out.append((result["history"], [p.detach().clone() for p in model.parameters()]))
     return out
 

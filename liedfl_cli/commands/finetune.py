@@ -22,6 +22,7 @@ from ..display.ui import console, progress_bar
 from ..lie import Pose
 from ..models.liedflnn.losses import WindowSet, check_loss, rollout_window_loss
 from ..solvers.options import SolverOptions
+from .optimizers import make_optimizer
 
 
 def finetune(
@@ -33,11 +34,9 @@ def finetune(
     seed: int = 0,
     show_progress: bool = True,
     on_epoch: Callable[[dict], None] | None = None,
-    make_optimizer: Callable | None = None,
 ) -> dict:
-    """Fine-tune `model` on rollout windows of the first `steps` steps of `data` -> {history, seconds}.
-    make_optimizer(params, cfg_optimizer): `train.make_optimizer` (passed in: train imports this module)."""
-    assert make_optimizer is not None
+    """Fine-tune `model` on rollout windows of the first `steps` steps of `data` -> {history, seconds};
+    the optimiser is `train.optimizer`'s (`optimizers.make_optimizer`)."""
     check_loss(model, "rollout")
     opts = dataclasses.replace(cfg_train.loss_options(solver), loss="rollout")
     cfg_rl = cfg_train.rollout_loss
