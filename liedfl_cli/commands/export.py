@@ -23,11 +23,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..config.fields import choices
+from ..config.typed import Export
 from ..data.files import ROTATIONS
 from ..errors import ConfigError
 from ..lie import so3
 
-EXPORTS = ("csv", "npz")
+EXPORTS = choices(Export)
+"""`liedfl rollout export=...`: the formats (declared once, on `config.typed.TopKeys.export`)."""
 
 
 def export_layout(dataset) -> tuple[str, list[str] | None]:

@@ -10,13 +10,15 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from ..errors import ConfigError, DatasetError
-from .typed import dataset_config
+from .fields import choices
+from .typed import Split, dataset_config
 
 SOURCE_FILE = "source.json"
 """Written next to a rollout of a run on other data (or of other trajectories than the test split):
 which dataset and trajectories it was rolled out on."""
-SPLITS = ("auto", "all", "train", "test")
-"""`liedfl rollout split=...`: which trajectories (auto: all of a user's file given as dataset=, else test)."""
+SPLITS = choices(Split)
+"""`liedfl rollout split=...`: which trajectories (auto: all of a user's file given as dataset=, else test);
+declared once, on `typed.TopKeys.split`."""
 USER_FILES = ("file", "import")
 
 

@@ -12,8 +12,9 @@ the scene evaluations a `SceneEvalOptions` (docs/architecture.md, "How a config 
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar, Literal
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
@@ -24,6 +25,7 @@ from ..evaluation.outputs import SceneEvalOptions
 from ..models.base import LossOptions
 from ..solvers.options import SolverOptions
 from ..solvers.runtime import RuntimeOptions
+from .fields import Check, Checked, check, option
 
 
 @dataclass
@@ -49,24 +51,34 @@ class RolloutLossConfig:  # train.loss=rollout: the fine-tuning stage (liedfl_cl
     lr: Any = None  # null: train.optimizer.lr
 
 
+RegForm = Literal["relu", "gaussian"]  # log-space forms of the paper's regularity penalties
+Select = Literal["val_one_step", "val_rollout", "last"]  # which weights roll out (docs/validation.md)
+Loss = Literal["del", "newton", "rollout"]  # models/losses.py
+Start = Literal["auto", "identify", "none"]  # a model's own least-squares start (articulated)
+TRAIN = ("train",)
+
+
 @dataclass
-class TrainConfig:
-    epochs: int = 1000
-    batch_size: int = 1024
+class TrainConfig(Checked):
+    section: ClassVar[str] = "train"
+
+    epochs: int = option(1000, integer=0, required=TRAIN)  # 0: the model's start only (train.start)
+    batch_size: int = option(1024, integer=1, required=TRAIN)
     optimizer: OptimizerConfig = field(default_factory=OptimizerConfig)
-    w_del: float = 0.5
-    w_reg: float = 0.5
-    reg_points: int = 10
-    reg_form: str = "relu"  # relu | gaussian
-    epsilon: float = 10.0
-    checkpoint_every: Any = "auto"  # auto | positive int (checked in train.checkpoint_interval)
+    w_del: float = option(0.5, number="nonnegative", required=TRAIN)
+    w_reg: float = option(0.5, number="nonnegative", required=TRAIN)
+    reg_points: int = option(10, integer=0, required=TRAIN)
+    reg_form: str = option("relu", choices_of=RegForm, required=TRAIN)
+    epsilon: float = option(10.0, number="finite", required=TRAIN)
+    # auto | positive int (None: auto)
+    checkpoint_every: Any = option("auto", integer=1, auto=True, nullable=True, what="auto or a positive integer")
     full_batch: bool = False  # one optimiser step per epoch over every sample
-    val_every: Any = "auto"  # auto | positive int (checked in validation.val_interval)
-    val_horizon: int = 20
-    select: str = "val_one_step"  # val_one_step | val_rollout | last
+    val_every: Any = option("auto", integer=1, auto=True, nullable=True, what="auto or a positive integer")
+    val_horizon: int = option(20, integer=2)
+    select: str = option("val_one_step", choices_of=Select)
     early_stopping: EarlyStoppingConfig = field(default_factory=EarlyStoppingConfig)
-    loss: str = "del"  # del | newton | rollout (models/losses.py)
-    start: str = "auto"  # auto (a model's own least-squares start: articulated) | identify (articulated: + LM) | none
+    loss: str = option("del", choices_of=Loss)
+    start: str = option("auto", choices_of=Start)
     rollout_loss: RolloutLossConfig = field(default_factory=RolloutLossConfig)
 
     def loss_options(self, solver: SolverOptions | None = None) -> LossOptions:
@@ -83,28 +95,53 @@ class TrainConfig:
         )
 
 
-@dataclass
-class RolloutConfig:
-    enabled: bool = True
-    steps: int | None = None
-    max_trajectories: int | None = None
-    reference: bool = True
+RUNS = ("train", "rollout", "eval")  # the commands that roll out or evaluate a model
 
 
 @dataclass
-class EvalConfig:
-    plots: bool = True
+class RolloutConfig(Checked):
+    section: ClassVar[str] = "rollout"
+
+    enabled: bool = option(True, required=TRAIN)
+    steps: int | None = option(None, integer=2, nullable=True, required=TRAIN)  # the given poses + >= 1 step
+    max_trajectories: int | None = option(None, integer=1, nullable=True, required=("train", "rollout"))
+    reference: bool = option(True, required=("train", "rollout"))
 
 
 @dataclass
-class UiConfig:
-    progress: bool = True
+class EvalConfig(Checked):
+    section: ClassVar[str] = "eval"
+
+    plots: bool = option(True, required=RUNS)
 
 
 @dataclass
-class PathsConfig:
-    data_dir: str = "outputs/data"
-    output_dir: str = "."  # Hydra's run folder (`${hydra:runtime.output_dir}`; "." outside a Hydra run)
+class UiConfig(Checked):
+    section: ClassVar[str] = "ui"
+
+    progress: bool = option(True, required=(*RUNS, "data", "resume"))
+
+
+@dataclass
+class PathsConfig(Checked):
+    section: ClassVar[str] = "paths"
+
+    data_dir: str = option("outputs/data", required=(*RUNS, "data"))  # checked by schema._check_data_dir
+    # Hydra's run folder (`${hydra:runtime.output_dir}`; "." outside a Hydra run)
+    output_dir: str = option(".", required=TRAIN)
+
+
+@dataclass(frozen=True)
+class SolverConfig(SolverOptions, Checked):
+    """The `solver` section: `SolverOptions` (the solvers' own dataclass declares the fields) with
+    the checks of its values; `typed` hands the solvers a plain `SolverOptions`."""
+
+    section: ClassVar[str] = "solver"
+    checks: ClassVar[dict[str, Check]] = {
+        "tol": check(number="positive", required=RUNS),
+        "max_iter": check(integer=1, required=RUNS),
+        "max_halvings": check(integer=0, required=RUNS),
+    }
 
 
 @dataclass
@@ -116,9 +153,14 @@ class RuntimeConfig:  # execution settings; checked and normalised by solvers/ru
     dtype: str = "float64"  # float64 | float32
 
 
+LoggerName = Literal["csv", "tensorboard"]  # tensorboard: train_metrics.csv plus <run>/tensorboard/
+
+
 @dataclass
-class LoggerConfig:  # the `logger` config group (liedfl_cli/loggers/)
-    name: str = "csv"  # csv | tensorboard (train_metrics.csv plus <run>/tensorboard/)
+class LoggerConfig(Checked):  # the `logger` config group (liedfl_cli/loggers/)
+    section: ClassVar[str] = "logger"
+
+    name: str = option("csv", choices_of=LoggerName)
 
 
 @dataclass
@@ -127,13 +169,35 @@ class GroupConfig:
     n_so3: int = 1
 
 
+Checkpoint = Literal["best", "last"]  # checkpoints/best.pt (when the run has one, else last.pt) | last.pt
+Split = Literal["auto", "all", "train", "test"]  # which trajectories a rollout takes (config/other_data.py)
+Export = Literal["csv", "npz", None]  # predictions in the import's layout (commands/export.py), or none
+
+
+@dataclass
+class TopKeys(Checked):
+    """The commands' own top-level keys (`liedfl rollout run=... steps=... split=...`), checked here
+    and kept as plain values in `RunConfig.top`; a key a command does not have is left out."""
+
+    run: Any = option(None, required=("rollout", "eval"))
+    checkpoint: str = option("best", choices_of=Checkpoint)
+    steps: Any = option(None, integer=2, nullable=True, required=("rollout",))
+    split: str = option("auto", choices_of=Split)
+    export: Any = option(None, choices_of=Export)
+    accept_changed_dataset: Any = None
+    resume: Any = option(None, required=("resume",))
+    epochs: Any = None
+    sweep: Any = option(None, required=("report",))
+    plots: Any = option(None, required=("report",))
+
+
 SECTIONS: dict[str, Any] = {
     "train": TrainConfig,
     "rollout": RolloutConfig,
     "eval": EvalConfig,
     "ui": UiConfig,
     "paths": PathsConfig,
-    "solver": SolverOptions,
+    "solver": SolverConfig,
     "group": GroupConfig,
     "runtime": RuntimeConfig,
     "logger": LoggerConfig,
@@ -251,15 +315,18 @@ def runtime_options(values: Any) -> RuntimeOptions:
     return RuntimeOptions(**vars(section(RuntimeConfig, values, "runtime")))
 
 
+def solver_options(values: Any) -> SolverOptions:
+    """The `solver` section (a config node or plain mapping) as the `SolverOptions` the solvers
+    take, its values checked (`SolverConfig`)."""
+    return SolverOptions(**vars(section(SolverConfig, values, "solver")))
+
+
 def dataset_config(values: Any) -> DatasetConfig:
     """The `dataset` section (a config node or plain mapping) as a `DatasetConfig`."""
     return DatasetConfig.from_mapping(plain(values, "dataset"))
 
 
-TOP_KEYS = (
-    *("run", "steps", "checkpoint", "split", "export", "accept_changed_dataset"),
-    *("resume", "epochs", "sweep", "plots"),
-)
+TOP_KEYS = tuple(f.name for f in dataclasses.fields(TopKeys))
 
 
 def typed(cfg: DictConfig, command: str | None = None) -> RunConfig:
@@ -274,8 +341,11 @@ def typed(cfg: DictConfig, command: str | None = None) -> RunConfig:
             continue
         if name == "rollout" and not isinstance(cfg.get(name), DictConfig):
             continue  # `liedfl eval rollout=<file>`: a path (in `top`)
+        value: Any
         if name == "runtime":
             value = runtime_options(cfg[name])
+        elif name == "solver":
+            value = solver_options(cfg[name])
         elif name == "paths":
             value = section(schema, _resolvable(cfg[name]), name)
         else:
@@ -309,11 +379,14 @@ __all__ = [
     "RolloutLossConfig",
     "RunConfig",
     "RuntimeConfig",
+    "SolverConfig",
+    "TopKeys",
     "TrainConfig",
     "UiConfig",
     "dataset_config",
     "plain",
     "runtime_options",
+    "solver_options",
     "section",
     "typed",
 ]
