@@ -2,12 +2,14 @@
 
 A field of a section dataclass (`config/typed.py`) is written `name: type = option(default, ...)`:
 the one place that says the option's type, default, allowed values (a `Literal` alias, read with
-`typing.get_args`), bounds and the commands that need it. `Checked.__post_init__` runs the checks
-(so `OmegaConf.to_object`, and any direct construction, refuse a bad value as one `ConfigError`
-line naming the key: `train.loss='newtn': choose one of del, newton, rollout`), and
-`required_keys(schema, command)` lists the keys a command needs (`schema.validate` reports one
-removed by an override). OmegaConf 2.3's structured configs do not accept `Literal` annotations, so
-a field with choices is annotated `str` and its `Literal` alias is given to `option(choices=...)`.
+`typing.get_args`, or the tuple of the layer that implements it), bounds and the commands that
+need it. `Checked.__post_init__` runs the checks, so `OmegaConf.to_object`, and any direct
+construction, refuse a bad value as one `ConfigError` line naming the key (`train.loss='newtn':
+choose one of del, newton, rollout`); `required_keys(schema, command)` lists the keys a command
+needs (`schema.validate` reports one removed by an override). OmegaConf 2.3's structured configs
+do not accept `Literal` annotations, so a field with choices is annotated `str` and its `Literal`
+type is given to `option(choices_of=...)`; code that lists the values reads them from the field
+(`allowed(TopKeys, "split")`).
 """
 
 from __future__ import annotations
@@ -68,8 +70,10 @@ def _is_number(v: Any) -> bool:
 
 
 def choices(alias: Any) -> tuple[Any, ...]:
-    """The values of a `Literal[...]` alias (None inside it: the option may be null)."""
-    return tuple(a for a in typing.get_args(alias) if a is not None)
+    """The values of a `Literal[...]` alias, or of a tuple a lower layer declares (None inside it:
+    the option may be null)."""
+    values = alias if isinstance(alias, tuple) else typing.get_args(alias)
+    return tuple(a for a in values if a is not None)
 
 
 def check(
@@ -84,7 +88,7 @@ def check(
 ) -> Check:
     """A `Check` (for `option`, or for `Checked.checks` of fields inherited from another layer)."""
     if choices_of is not None:
-        nullable = nullable or None in typing.get_args(choices_of)
+        nullable = nullable or None in (choices_of if isinstance(choices_of, tuple) else typing.get_args(choices_of))
     allowed = choices(choices_of) if choices_of is not None else None
     return Check(allowed, integer, number, nullable, auto, what, required)
 
@@ -105,6 +109,13 @@ def field_checks(schema: Any) -> dict[str, Check]:
         if c is not None:
             out[f.name] = c
     return out
+
+
+def allowed(schema: Any, name: str) -> tuple[Any, ...]:
+    """The allowed values the field `name` of `schema` declares (for code that lists them)."""
+    values = field_checks(schema)[name].choices
+    assert values is not None, f"{schema.__name__}.{name} declares no choices"
+    return values
 
 
 def shown(v: Any) -> str:
@@ -152,4 +163,15 @@ def required_keys(schema: Any, command: str, prefix: str) -> tuple[str, ...]:
     return tuple(out)
 
 
-__all__ = ["ALL_COMMANDS", "Check", "Checked", "check", "check_fields", "choices", "option", "required_keys", "shown"]
+__all__ = [
+    "ALL_COMMANDS",
+    "Check",
+    "allowed",
+    "Checked",
+    "check",
+    "check_fields",
+    "choices",
+    "option",
+    "required_keys",
+    "shown",
+]

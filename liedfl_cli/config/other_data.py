@@ -10,13 +10,13 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from ..errors import ConfigError, DatasetError
-from .fields import choices
-from .typed import Split, dataset_config
+from .fields import allowed
+from .typed import TopKeys, dataset_config
 
 SOURCE_FILE = "source.json"
 """Written next to a rollout of a run on other data (or of other trajectories than the test split):
 which dataset and trajectories it was rolled out on."""
-SPLITS = choices(Split)
+SPLITS = allowed(TopKeys, "split")
 """`liedfl rollout split=...`: which trajectories (auto: all of a user's file given as dataset=, else test);
 declared once, on `typed.TopKeys.split`."""
 USER_FILES = ("file", "import")
@@ -53,8 +53,7 @@ def choose_split(mode: str, dataset, other: bool, all_asked: bool = False):
     dataset.n_test or dataset.test_fraction asked for every trajectory."""
     import numpy as np
 
-    if mode not in SPLITS:
-        raise ConfigError(f"split={mode!r}: choose one of {', '.join(SPLITS)}")
+    mode = TopKeys(split=mode).split  # the values the field declares (one-line ConfigError otherwise)
     if all_asked:
         if mode == "train":
             raise ConfigError("split=train: dataset.n_test / dataset.test_fraction make every trajectory a test one")

@@ -22,6 +22,7 @@ from omegaconf.errors import OmegaConfBaseException
 from ..data.dataset_config import DatasetConfig
 from ..errors import ConfigError
 from ..evaluation.outputs import SceneEvalOptions
+from ..loggers import NAMES as LOGGERS  # the loggers' own list (loggers/__init__.py)
 from ..models.base import LossOptions
 from ..solvers.options import SolverOptions
 from ..solvers.runtime import RuntimeOptions
@@ -51,10 +52,6 @@ class RolloutLossConfig:  # train.loss=rollout: the fine-tuning stage (liedfl_cl
     lr: Any = None  # null: train.optimizer.lr
 
 
-RegForm = Literal["relu", "gaussian"]  # log-space forms of the paper's regularity penalties
-Select = Literal["val_one_step", "val_rollout", "last"]  # which weights roll out (docs/validation.md)
-Loss = Literal["del", "newton", "rollout"]  # models/losses.py
-Start = Literal["auto", "identify", "none"]  # a model's own least-squares start (articulated)
 TRAIN = ("train",)
 
 
@@ -68,17 +65,18 @@ class TrainConfig(Checked):
     w_del: float = option(0.5, number="nonnegative", required=TRAIN)
     w_reg: float = option(0.5, number="nonnegative", required=TRAIN)
     reg_points: int = option(10, integer=0, required=TRAIN)
-    reg_form: str = option("relu", choices_of=RegForm, required=TRAIN)
+    reg_form: str = option("relu", choices_of=Literal["relu", "gaussian"], required=TRAIN)  # log-space penalties
     epsilon: float = option(10.0, number="finite", required=TRAIN)
     # auto | positive int (None: auto)
     checkpoint_every: Any = option("auto", integer=1, auto=True, nullable=True, what="auto or a positive integer")
     full_batch: bool = False  # one optimiser step per epoch over every sample
     val_every: Any = option("auto", integer=1, auto=True, nullable=True, what="auto or a positive integer")
     val_horizon: int = option(20, integer=2)
-    select: str = option("val_one_step", choices_of=Select)
+    # which weights roll out: the best validation one-step error / rollout error, or the last (docs/validation.md)
+    select: str = option("val_one_step", choices_of=Literal["val_one_step", "val_rollout", "last"])
     early_stopping: EarlyStoppingConfig = field(default_factory=EarlyStoppingConfig)
-    loss: str = option("del", choices_of=Loss)
-    start: str = option("auto", choices_of=Start)
+    loss: str = option("del", choices_of=Literal["del", "newton", "rollout"])  # models/losses.py
+    start: str = option("auto", choices_of=Literal["auto", "identify", "none"])  # a model's own start (articulated)
     rollout_loss: RolloutLossConfig = field(default_factory=RolloutLossConfig)
 
     def loss_options(self, solver: SolverOptions | None = None) -> LossOptions:
@@ -153,14 +151,11 @@ class RuntimeConfig:  # execution settings; checked and normalised by solvers/ru
     dtype: str = "float64"  # float64 | float32
 
 
-LoggerName = Literal["csv", "tensorboard"]  # tensorboard: train_metrics.csv plus <run>/tensorboard/
-
-
 @dataclass
 class LoggerConfig(Checked):  # the `logger` config group (liedfl_cli/loggers/)
     section: ClassVar[str] = "logger"
 
-    name: str = option("csv", choices_of=LoggerName)
+    name: str = option("csv", choices_of=LOGGERS)  # tensorboard: train_metrics.csv plus <run>/tensorboard/
 
 
 @dataclass
@@ -169,21 +164,16 @@ class GroupConfig:
     n_so3: int = 1
 
 
-Checkpoint = Literal["best", "last"]  # checkpoints/best.pt (when the run has one, else last.pt) | last.pt
-Split = Literal["auto", "all", "train", "test"]  # which trajectories a rollout takes (config/other_data.py)
-Export = Literal["csv", "npz", None]  # predictions in the import's layout (commands/export.py), or none
-
-
 @dataclass
 class TopKeys(Checked):
     """The commands' own top-level keys (`liedfl rollout run=... steps=... split=...`), checked here
     and kept as plain values in `RunConfig.top`; a key a command does not have is left out."""
 
     run: Any = option(None, required=("rollout", "eval"))
-    checkpoint: str = option("best", choices_of=Checkpoint)
+    checkpoint: str = option("best", choices_of=Literal["best", "last"])  # best.pt (else last.pt) | last.pt
     steps: Any = option(None, integer=2, nullable=True, required=("rollout",))
-    split: str = option("auto", choices_of=Split)
-    export: Any = option(None, choices_of=Export)
+    split: str = option("auto", choices_of=Literal["auto", "all", "train", "test"])  # config/other_data.py
+    export: Any = option(None, choices_of=Literal["csv", "npz", None])  # predictions (commands/export.py) or none
     accept_changed_dataset: Any = None
     resume: Any = option(None, required=("resume",))
     epochs: Any = None
