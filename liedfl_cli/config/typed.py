@@ -22,6 +22,7 @@ from omegaconf.errors import OmegaConfBaseException
 from ..data.dataset_config import DatasetConfig
 from ..errors import ConfigError
 from ..evaluation.outputs import SceneEvalOptions
+from ..files.checkpoint import CHECKPOINTS  # the checkpoint files' own list
 from ..loggers import NAMES as LOGGERS  # the loggers' own list (loggers/__init__.py)
 from ..models.base import LossOptions
 from ..solvers.options import SolverOptions
@@ -170,7 +171,7 @@ class TopKeys(Checked):
     and kept as plain values in `RunConfig.top`; a key a command does not have is left out."""
 
     run: Any = option(None, required=("rollout", "eval"))
-    checkpoint: str = option("best", choices_of=Literal["best", "last"])  # best.pt (else last.pt) | last.pt
+    checkpoint: str = option("best", choices_of=CHECKPOINTS)  # best.pt (else last.pt) | last.pt (files/checkpoint.py)
     steps: Any = option(None, integer=2, nullable=True, required=("rollout",))
     split: str = option("auto", choices_of=Literal["auto", "all", "train", "test"])  # config/other_data.py
     export: Any = option(None, choices_of=Literal["csv", "npz", None])  # predictions (commands/export.py) or none
