@@ -238,7 +238,8 @@ def run_rollout(cfg: DictConfig) -> dict:
         source.update(split=split, test_trajectories=[int(i) for i in idx])
     from ..data.scenes import dataset_steps
 
-    run = typed(merged, "train")  # the run's config with this command's settings, typed once
+    # the run's config with this command's settings, typed once (its data are loaded: not checked again)
+    run = typed(merged, "train", check_dataset=False)
     where = ((dataset.params or {}).get("source") or {}).get("file")  # the user's file (dataset=file|import)
     where = where or (source["dataset_path"] if source is not None else dataset.scene)
     if dataset.n_steps < 2:

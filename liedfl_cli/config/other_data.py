@@ -11,7 +11,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from ..errors import ConfigError, DatasetError
 from .fields import allowed
-from .typed import TopKeys, dataset_config
+from .typed import USER_FILES, TopKeys, dataset_config, relaxed_dataset_config
 
 SOURCE_FILE = "source.json"
 """Written next to a rollout of a run on other data (or of other trajectories than the test split):
@@ -19,22 +19,6 @@ which dataset and trajectories it was rolled out on."""
 SPLITS = allowed(TopKeys, "split")
 """`liedfl rollout split=...`: which trajectories (auto: all of a user's file given as dataset=, else test);
 declared once, on `typed.TopKeys.split`."""
-USER_FILES = ("file", "import")
-
-
-def relaxed_dataset_config(d: dict) -> tuple[dict, bool]:
-    """A rollout trains nothing, so `dataset.test_fraction=1.0` (every trajectory a test one, which a
-    dataset refuses for training) asks for all trajectories: returns (the config to build the data with,
-    whether all were asked)."""
-    tf = d.get("test_fraction")
-    if isinstance(tf, bool) or not isinstance(tf, (int, float)) or tf != 1.0:
-        return d, False
-    d = dict(d)
-    if d.get("name") in USER_FILES:
-        d.pop("test_fraction")  # the shipped default (data/files.py): the split is replaced anyway
-    else:
-        d["test_fraction"] = 0.0
-    return d, True
 
 
 def with_test_split(dataset, idx):

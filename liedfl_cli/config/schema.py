@@ -425,7 +425,8 @@ def _check_scalars(cfg, command: str) -> None:
 def _check_values(cfg, command: str) -> None:
     """The values no checked dataclass declares yet: the trainer's optimiser, early stopping and
     rollout-loss groups (`OptimizerConfig`, `EarlyStoppingConfig`, `RolloutLossConfig`, being
-    restructured with the trainer), the optional TensorBoard extra and a usable `paths.data_dir`."""
+    restructured with the trainer), the optional TensorBoard extra and a usable `paths.data_dir`
+    (`dataset.val_fraction`: `DatasetConfig`)."""
     if command == "train" and "train" in cfg:
         _float(cfg, "train.optimizer.lr", positive=True)
         _float(cfg, "train.optimizer.weight_decay", nonnegative=True)
@@ -438,9 +439,6 @@ def _check_values(cfg, command: str) -> None:
             _int(cfg, "train.early_stopping.patience", 1, nullable=True)
         if _has(cfg, "train.early_stopping.min_delta"):
             _float(cfg, "train.early_stopping.min_delta", nonnegative=True)
-        fraction = _value(cfg, "dataset.val_fraction")
-        if fraction is not None and not (_is_number(fraction) and 0 <= fraction < 1):
-            raise ConfigError(f"dataset.val_fraction={fraction!r}: must be a number in [0, 1) (0: no validation)")
         if _value(cfg, "logger.name") == "tensorboard":  # the optional extra: refused before the run starts
             from ..loggers import require_tensorboard
 
@@ -477,18 +475,16 @@ def _check_split_sizes(cfg, d: dict) -> None:
 
 
 def _check_dataset_values(cfg, command: str) -> None:
+    """The dataset section's one check (`typed.dataset_config`, the same as the command's conversion),
+    then, for training, the sizes of its split."""
     if not isinstance(cfg.get("dataset"), DictConfig):
         return
-    from ..data.scenes import _checked
+    from .typed import dataset_config
 
-    d = _plain(cfg.dataset, "dataset")
-    if command == "rollout":  # a rollout trains nothing: test_fraction=1.0 asks for every trajectory
-        from .other_data import relaxed_dataset_config
-
-        d, _ = relaxed_dataset_config(d)
-    d = _checked(d)
+    ds = dataset_config(_plain(cfg.dataset, "dataset"), rollout=command == "rollout")  # the one check
     if command == "train":
-        _check_split_sizes(cfg, d)
+        assert ds.checked is not None
+        _check_split_sizes(cfg, ds.checked)
 
 
 # ----------------------------------------------------------------------------- entry point

@@ -312,17 +312,44 @@ def solver_options(values: Any) -> SolverOptions:
     return SolverOptions(**vars(section(SolverConfig, values, "solver")))
 
 
-def dataset_config(values: Any) -> DatasetConfig:
-    """The `dataset` section (a config node or plain mapping) as a `DatasetConfig`."""
-    return DatasetConfig.from_mapping(plain(values, "dataset"))
+USER_FILES = ("file", "import")
+"""The scenes that read a user's file (`dataset=file`, `dataset=import`)."""
+
+
+def relaxed_dataset_config(d: dict) -> tuple[dict, bool]:
+    """A rollout trains nothing, so `dataset.test_fraction=1.0` (every trajectory a test one, which a
+    dataset refuses for training) asks for all trajectories: returns (the config to build the data with,
+    whether all were asked)."""
+    tf = d.get("test_fraction")
+    if isinstance(tf, bool) or not isinstance(tf, (int, float)) or tf != 1.0:
+        return d, False
+    d = dict(d)
+    if d.get("name") in USER_FILES:
+        d.pop("test_fraction")  # the shipped default (data/files.py): the split is replaced anyway
+    else:
+        d["test_fraction"] = 0.0
+    return d, True
+
+
+def dataset_config(values: Any, rollout: bool = False) -> DatasetConfig:
+    """The `dataset` section (a config node or plain mapping) as a `DatasetConfig`, checked once
+    (`scenes.dataset_section`: one-line ConfigError naming the key). rollout: the section of
+    `liedfl rollout dataset=...`, checked as `relaxed_dataset_config` reads it (`test_fraction=1.0`
+    asks for every trajectory) and kept as configured."""
+    from ..data.scenes import dataset_section
+
+    d = plain(values, "dataset")
+    return dataset_section(d, relaxed_dataset_config(d)[0] if rollout else None)
 
 
 TOP_KEYS = tuple(f.name for f in dataclasses.fields(TopKeys))
 
 
-def typed(cfg: DictConfig, command: str | None = None) -> RunConfig:
+def typed(cfg: DictConfig, command: str | None = None, check_dataset: bool = True) -> RunConfig:
     """The typed form of a composed config (validate it first: this reports only what the section
-    dataclasses refuse). command: default `cfg.task_name`."""
+    dataclasses refuse). command: default `cfg.task_name`. check_dataset: false for a run's saved
+    config, whose data are its recorded file (the section is checked where it generates data again:
+    `scenes.get_dataset`)."""
     command = str(command or cfg.get("task_name") or "")
     out = RunConfig(command=command)
     if "seed" in cfg:
@@ -343,7 +370,10 @@ def typed(cfg: DictConfig, command: str | None = None) -> RunConfig:
             value = section(schema, cfg[name], name)
         setattr(out, name, value)
     if cfg.get("dataset") is not None:
-        out.dataset = dataset_config(cfg.dataset)
+        if check_dataset:
+            out.dataset = dataset_config(cfg.dataset, rollout=command == "rollout")
+        else:
+            out.dataset = DatasetConfig.from_mapping(plain(cfg.dataset, "dataset"))
     if cfg.get("model") is not None:
         out.model = dict(plain(cfg.model, "model"))
     if cfg.get("force") is not None:
