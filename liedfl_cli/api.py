@@ -248,7 +248,8 @@ def _pair(run_or_model, g0, g1) -> tuple[Any, Pose, Pose, bool]:
 # --------------------------------------------------------------------------- runs
 @dataclass
 class Run:
-    """A trained run: its config, model (trained weights, eval mode), dataset and folder."""
+    """A trained run: its config (typed: `config.typed.RunConfig`), model (trained weights, eval
+    mode), dataset and folder."""
 
     config: Any
     model: Any
@@ -294,9 +295,9 @@ def load_run(run_dir, data_dir=None, checkpoint: str = "best") -> Run:
     last.pt) or `last`; `Run.checkpoint` says which was loaded."""
     from .config.runs import load_run_checkpoint
 
-    cfg, model, dataset, path, used = load_run_checkpoint(run_dir, data_dir, checkpoint)
-    model.eval()
-    return Run(cfg, model, dataset, Path(path), used)
+    loaded = load_run_checkpoint(run_dir, data_dir, checkpoint)
+    loaded.model.eval()
+    return Run(loaded.config, loaded.model, loaded.dataset, Path(loaded.run_dir), loaded.checkpoint)
 
 
 def train(*overrides: str, output_dir=None, data_dir=None, progress: bool = False) -> Run:

@@ -454,7 +454,7 @@ def _checkpoint_property(run_dir: Path, mutations, raw) -> None:
         path.write_bytes(apply_byte_mutation(path.read_bytes(), raw))
     loaded = check_outcome(lambda: load_run_checkpoint(case, checkpoint="last"), path, names=(str(case),))
     if loaded is not None:
-        model = loaded[1]
+        model = loaded.model  # a LoadedRun (config/runs.py)
         assert all(torch.isfinite(v).all() for v in model.state_dict().values() if v.is_floating_point())
     shutil.rmtree(case.parent)
 

@@ -25,7 +25,8 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from ..config.typed import RunConfig, section, typed
+from ..config.runs import LoadedRun
+from ..config.typed import RunConfig, typed
 from ..display import plots
 from ..display.ui import console, print_table, warning_line
 from ..errors import ConfigError
@@ -644,12 +645,13 @@ def run_eval(cfg: DictConfig) -> list[dict]:
     configure_runtime(command.runtime)  # this command's runtime section (the model of the scene's extra evaluation)
     from ..files.dataset_identity import accept_option
 
-    run_cfg, model, dataset, run_dir, used = load_run_checkpoint(
+    loaded = load_run_checkpoint(
         command.top["run"],
         command.paths.data_dir,
         command.top.get("checkpoint") or "best",
         accept_option(command.top.get("accept_changed_dataset")),
     )
+    run_dir = loaded.run_dir
     path = rollout_path_arg(command.top.get("rollout"), run_dir)
     last = load_checkpoint(Path(run_dir) / "checkpoints" / "last.pt")
     check_provenance(path, read_rollout(path).attrs, run_dir, last.get("run_id"))
@@ -660,7 +662,7 @@ def run_eval(cfg: DictConfig) -> list[dict]:
     try:
         if not _inside(path, run_dir):
             path = copy_into_run(path, run_dir, made=copied)
-        return _eval_rollout(command, run_cfg, model, dataset, run_dir, used, path, last)
+        return _eval_rollout(command, loaded, path, last)
     except BaseException as e:
         _interrupted_eval(e, path.parent, copied[0] if copied else None, run_dir)
         raise
@@ -687,19 +689,17 @@ def _interrupted_eval(e: BaseException, out: Path, copied: Path | None, run_dir)
             mark_interrupted(out, message, code, "evaluation")
 
 
-def _eval_rollout(command: RunConfig, run_cfg, model, dataset, run_dir, used, path: Path, last: dict) -> list[dict]:
-    from omegaconf import OmegaConf
-
+def _eval_rollout(command: RunConfig, loaded: LoadedRun, path: Path, last: dict) -> list[dict]:
     from ..config.other_data import rollout_dataset
     from ..evaluation import SceneEvalOptions
     from ..files.checkpoint import describe_checkpoint, rollout_checkpoint
-    from ..solvers.options import SolverOptions
     from .outputs import run_scene_eval
     from .status import clear_interruption
 
-    used = rollout_checkpoint(path, used)  # the rollout's own record (checkpoint.json) when it has one
+    model, run_dir = loaded.model, loaded.run_dir
+    used = rollout_checkpoint(path, loaded.checkpoint)  # the rollout's own record (checkpoint.json) when it has one
     console.print(describe_checkpoint(used), highlight=False)
-    dataset, run_cfg = rollout_dataset(path, model, dataset, run_cfg, run_dir, command.paths.data_dir)
+    dataset, _ = rollout_dataset(path, model, loaded.dataset, loaded.config, run_dir, command.paths.data_dir)
     timings = last.get("timings")
     rows = run_eval_from_objects(
         command,
@@ -707,11 +707,11 @@ def _eval_rollout(command: RunConfig, run_cfg, model, dataset, run_dir, used, pa
         run_dir,
         timings,
         rollout_path=path,
-        model_name=OmegaConf.select(run_cfg, "model.name", default=None),
+        model_name=loaded.model_name,
         checkpoint=used,
     )
     # the scene evaluation solves with the run's solver settings, draws as this command says
-    opts = SceneEvalOptions(plots=command.eval.plots, solver=section(SolverOptions, run_cfg.get("solver"), "solver"))
+    opts = SceneEvalOptions(plots=command.eval.plots, solver=loaded.config.solver)
     run_scene_eval(opts, model, dataset, run_dir, rollout_path=path)
     clear_interruption(path.parent, "evaluation")
     return rows

@@ -23,11 +23,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..config.fields import allowed
+from ..config.typed import TopKeys
 from ..data.files import ROTATIONS
-from ..errors import ConfigError
 from ..lie import so3
 
-EXPORTS = ("csv", "npz")
+EXPORTS = allowed(TopKeys, "export")
+"""`liedfl rollout export=...`: the formats (declared once, on `config.typed.TopKeys.export`)."""
 
 
 def export_layout(dataset) -> tuple[str, list[str] | None]:
@@ -75,8 +77,7 @@ def export_predictions(rollout_path, dataset, fmt: str, out_dir) -> Path:
     """Write the model's rollout in `rollout_path` as `<out_dir>/predictions.<fmt>`; returns the path."""
     from ..files.rollout_file import read_rollout
 
-    if fmt not in EXPORTS:
-        raise ConfigError(f"export={fmt!r}: choose csv or npz (or null for none)")
+    fmt = TopKeys(export=fmt).export  # the values the field declares (one-line ConfigError otherwise)
     rf = read_rollout(rollout_path)
     entry = rf.model
     R, p, traj = np.asarray(entry.R), np.asarray(entry.p), np.asarray(rf.traj_index)

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
+from ..config.typed import RunConfig
 from ..display.ui import console, warning_line
 from ..errors import ConfigError
 from ..files.mjcf import MjcfSpec, ball_damping_dropped, load_model, mjcf_text, unique_names, write_mjcf
@@ -45,14 +46,14 @@ def _positive_mass(value, where: str) -> float | None:
     return m
 
 
-def total_mass_choice(cfg: DictConfig, run_cfg: DictConfig) -> tuple[float, str]:
+def total_mass_choice(cfg: DictConfig, run_cfg: RunConfig) -> tuple[float, str]:
     """(total mass in kg, where it comes from): the command line's dataset.total_mass, else the run's
     config's, else 1 kg."""
     given = OmegaConf.select(cfg, "dataset.total_mass", default=None)
     m = _positive_mass(given, "")
     if m is not None:
         return m, "dataset.total_mass from the command line"
-    saved = OmegaConf.select(run_cfg, "dataset.total_mass", default=None)
+    saved = run_cfg.dataset.total_mass if run_cfg.dataset is not None else None
     m = _positive_mass(saved, " in the run's config")
     if m is not None:
         return m, "dataset.total_mass from the run's config"
@@ -229,16 +230,17 @@ def run_export(cfg: DictConfig) -> Path:
     timestep = _timestep(cfg.get("timestep"))
     _positive_mass(OmegaConf.select(cfg, "dataset.total_mass", default=None), "")  # before loading the run
     configure_runtime(runtime_options(cfg.get("runtime")))
-    run_cfg, model, dataset, run_dir, used = load_run_checkpoint(
+    loaded = load_run_checkpoint(
         str(cfg.run),
         OmegaConf.select(cfg, "paths.data_dir", default=None),
         str(cfg.get("checkpoint") or "best"),
         accept_option(cfg.get("accept_changed_dataset")),
     )
+    model, dataset, run_dir, used = loaded.model, loaded.dataset, loaded.run_dir, loaded.checkpoint
     if model.multibody() is None:
         raise ConfigError(NOT_ARTICULATED)
     console.print(describe_checkpoint(used), highlight=False)
-    total_mass, source = total_mass_choice(cfg, run_cfg)
+    total_mass, source = total_mass_choice(cfg, loaded.config)
     spec, notes, scale = model_spec(model, list(dataset.body_names or []), total_mass, timestep)
     checkpoint = describe_checkpoint(used).removeprefix("checkpoint: ")
     h = float(model.h)

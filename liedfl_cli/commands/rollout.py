@@ -17,6 +17,7 @@ in the import's layout (`export.py`)."""
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import math
 import shutil
 import time
@@ -24,7 +25,7 @@ from datetime import datetime
 from pathlib import Path
 
 import numpy as np
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from ..config.typed import RunConfig, typed
 from ..display.ui import console, progress_bar, warning_line
@@ -150,13 +151,14 @@ def rollout_and_save(run: RunConfig, model, dataset, path, steps=None, provenanc
     return results
 
 
-def own_source(run_dir, run_cfg, dataset, data_dir) -> dict:
+def own_source(run_dir, run_cfg: RunConfig, dataset, data_dir) -> dict:
     """The `source.json` record of a rollout of the run's own dataset over other trajectories than its
     test split (`split=all|train`): the run's dataset file, so that `liedfl eval` evaluates those."""
     from ..config.runs import _recorded_dataset
     from ..data.scenes import dataset_path
     from ..files.checkpoint import load_checkpoint
 
+    assert run_cfg.dataset is not None, "a trained run has a dataset section"
     recorded = load_checkpoint(Path(run_dir) / "checkpoints" / "last.pt").get("dataset_path")
     path = _recorded_dataset(Path(run_dir), recorded) or dataset_path(run_cfg.dataset, data_dir)
     return {
@@ -164,8 +166,26 @@ def own_source(run_dir, run_cfg, dataset, data_dir) -> dict:
         "scene": dataset.scene,
         "group": dataset.group.name,
         "h": dataset.h,
-        "dataset_config": OmegaConf.to_container(run_cfg.dataset, resolve=True),
+        "dataset_config": run_cfg.dataset.as_dict(),
     }
+
+
+ROLLOUT_KEYS = ("steps", "max_trajectories", "reference")
+"""The `rollout` keys `liedfl rollout` sets over the run's own (when not null)."""
+
+
+def with_command_settings(run: RunConfig, command: RunConfig) -> RunConfig:
+    """The run's typed config with this rollout command's settings: its `ui`, `solver` and `eval`
+    sections, and its non-null `rollout` keys over the run's."""
+    assert run.rollout is not None and command.rollout is not None
+    given = {k: getattr(command.rollout, k) for k in ROLLOUT_KEYS if getattr(command.rollout, k) is not None}
+    return dataclasses.replace(
+        run,
+        rollout=dataclasses.replace(run.rollout, **given),
+        ui=command.ui,
+        solver=command.solver,
+        eval=command.eval,
+    )
 
 
 def new_rollout_dir(run_dir, steps: int, tag: str | None = None) -> Path:
@@ -205,47 +225,40 @@ def run_rollout(cfg: DictConfig) -> dict:
     configure_runtime(command.runtime)  # this command's runtime section: threads, device, dtype, ...
     from ..files.dataset_identity import accept_option
 
-    run_cfg, model, dataset, run_dir, used = load_run_checkpoint(
+    loaded = load_run_checkpoint(
         command.top["run"],
         command.paths.data_dir,
         command.top.get("checkpoint") or "best",
         accept_option(command.top.get("accept_changed_dataset")),
     )
+    model, dataset, run_dir, used = loaded.model, loaded.dataset, loaded.run_dir, loaded.checkpoint
     console.print(describe_checkpoint(used), highlight=False)
-    other = other_dataset(cfg, model, run_dir)
-    merged = OmegaConf.merge(
-        run_cfg,
-        {
-            "rollout": {k: v for k, v in cfg.rollout.items() if v is not None},
-            "ui": cfg.ui,
-            "solver": cfg.solver,
-            "eval": cfg.eval,
-        },
-    )
-    assert isinstance(merged, DictConfig)  # merged into the run's config, a DictConfig
+    other = other_dataset(command, model, run_dir)
+    run = with_command_settings(loaded.config, command)  # the run's typed config, this command's settings
+    assert run.rollout is not None and command.rollout is not None
     source, all_asked = None, False
     if other is not None:
         dataset, ds_cfg, source, all_asked = other
-        merged.dataset = ds_cfg  # replaces the run's dataset section (no key-by-key merge)
-    split, idx = choose_split(str(cfg.get("split") or "auto"), dataset, other is not None, all_asked)
+        run.dataset = ds_cfg  # replaces the run's dataset section (no key-by-key merge)
+    split, idx = choose_split(str(command.top.get("split") or "auto"), dataset, other is not None, all_asked)
     if split != "test":
         dataset = with_test_split(dataset, idx)
-        if split == "all" and cfg.rollout.get("max_trajectories") is None:
-            merged.rollout.max_trajectories = None  # every trajectory, not the run's training-time cap
+        if split == "all" and command.rollout.max_trajectories is None:
+            run.rollout.max_trajectories = None  # every trajectory, not the run's training-time cap
         if source is None:  # the run's own data, other trajectories: recorded for `liedfl eval`
-            source = own_source(run_dir, run_cfg, dataset, cfg.paths.data_dir)
+            source = own_source(run_dir, loaded.config, dataset, command.paths.data_dir)
     if source is not None:
         source.update(split=split, test_trajectories=[int(i) for i in idx])
     from ..data.scenes import dataset_steps
 
-    run = typed(merged, "train")  # the run's config with this command's settings, typed once
     where = ((dataset.params or {}).get("source") or {}).get("file")  # the user's file (dataset=file|import)
     where = where or (source["dataset_path"] if source is not None else dataset.scene)
     if dataset.n_steps < 2:
         raise DatasetError(
             f"{where}: {dataset.n_steps} step per trajectory; a rollout needs at least 2 to compare with"
         )
-    steps = rollout_steps(cfg.steps if cfg.steps is not None else dataset_steps(run.dataset, dataset, "rollout_steps"))
+    given = command.top.get("steps")
+    steps = rollout_steps(given if given is not None else dataset_steps(run.dataset, dataset, "rollout_steps"))
     tag = dataset.scene if other is not None else (split if split != "test" else None)
     from ..files.signals import set_phase
 
@@ -261,8 +274,7 @@ def run_rollout(cfg: DictConfig) -> dict:
             write_json(out / SOURCE_FILE, source)
         path = out / FILE_NAME
         last = load_checkpoint(Path(run_dir) / "checkpoints" / "last.pt")
-        model_name = OmegaConf.select(run_cfg, "model.name", default=None)
-        provenance = run_provenance(run_dir, last.get("run_id"), model_name, used)
+        provenance = run_provenance(run_dir, last.get("run_id"), loaded.model_name, used)
         results = rollout_and_save(run, model, dataset, path, steps=steps, provenance=provenance)
         timings = last.get("timings")
         write_json(out / CHECKPOINT_FILE, used)
@@ -270,10 +282,10 @@ def run_rollout(cfg: DictConfig) -> dict:
         rows = run_eval_from_objects(run, dataset, run_dir, timings, rollout_path=path, checkpoint=used)
         extra = run_scene_eval(run.scene_eval_options(), model, dataset, run_dir, rollout_path=path)
         exported = None
-        if cfg.get("export"):
+        if command.top.get("export"):
             from .export import export_layout, export_predictions, reimport_command
 
-            exported = export_predictions(path, dataset, str(cfg.export), out)
+            exported = export_predictions(path, dataset, str(command.top["export"]), out)
             again = reimport_command(exported, *export_layout(dataset))
             console.print(
                 f"predictions exported to {exported} (re-import: {again})",

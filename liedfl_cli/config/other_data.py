@@ -4,35 +4,22 @@ rollout that `liedfl eval` reads to evaluate the rollout against the same datase
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
+from typing import Any
 
-from omegaconf import DictConfig, OmegaConf
-
+from ..data.dataset_config import DatasetConfig
 from ..errors import ConfigError, DatasetError
-from .typed import dataset_config
+from .fields import allowed
+from .typed import USER_FILES, RunConfig, TopKeys, dataset_config, relaxed_dataset_config
 
 SOURCE_FILE = "source.json"
 """Written next to a rollout of a run on other data (or of other trajectories than the test split):
 which dataset and trajectories it was rolled out on."""
-SPLITS = ("auto", "all", "train", "test")
-"""`liedfl rollout split=...`: which trajectories (auto: all of a user's file given as dataset=, else test)."""
-USER_FILES = ("file", "import")
-
-
-def relaxed_dataset_config(d: dict) -> tuple[dict, bool]:
-    """A rollout trains nothing, so `dataset.test_fraction=1.0` (every trajectory a test one, which a
-    dataset refuses for training) asks for all trajectories: returns (the config to build the data with,
-    whether all were asked)."""
-    tf = d.get("test_fraction")
-    if isinstance(tf, bool) or not isinstance(tf, (int, float)) or tf != 1.0:
-        return d, False
-    d = dict(d)
-    if d.get("name") in USER_FILES:
-        d.pop("test_fraction")  # the shipped default (data/files.py): the split is replaced anyway
-    else:
-        d["test_fraction"] = 0.0
-    return d, True
+SPLITS = allowed(TopKeys, "split")
+"""`liedfl rollout split=...`: which trajectories (auto: all of a user's file given as dataset=, else test);
+declared once, on `typed.TopKeys.split`."""
 
 
 def with_test_split(dataset, idx):
@@ -51,8 +38,7 @@ def choose_split(mode: str, dataset, other: bool, all_asked: bool = False):
     dataset.n_test or dataset.test_fraction asked for every trajectory."""
     import numpy as np
 
-    if mode not in SPLITS:
-        raise ConfigError(f"split={mode!r}: choose one of {', '.join(SPLITS)}")
+    mode = TopKeys(split=mode).split  # the values the field declares (one-line ConfigError otherwise)
     if all_asked:
         if mode == "train":
             raise ConfigError("split=train: dataset.n_test / dataset.test_fraction make every trajectory a test one")
@@ -120,38 +106,37 @@ def _h_error(model, run_dir, scene: str, h: float) -> ConfigError | None:
     )
 
 
-def other_dataset(cfg: DictConfig, model, run_dir):
+def other_dataset(command: RunConfig, model, run_dir):
     """(dataset, its config, source record, whether n_test / test_fraction asked for every trajectory)
-    of `dataset=...` given to `liedfl rollout`, or None."""
+    of `dataset=...` given to `liedfl rollout` (the command's typed config: its dataset section was
+    checked at the door, relaxed as a rollout reads it), or None."""
     from ..data.scenes import get_dataset
 
-    ds_cfg = cfg.get("dataset")
+    ds_cfg = command.dataset
     if ds_cfg is None:
         return None
-    grp = cfg.get("group")  # set by a scene's dataset file: checked before anything is generated
+    grp = command.group  # set by a scene's dataset file: checked before anything is generated
     if grp is not None:
-        err = _group_error(model, run_dir, str(ds_cfg.get("name")), int(grp.n_se3), int(grp.n_so3))
+        err = _group_error(model, run_dir, str(ds_cfg.name), int(grp.n_se3), int(grp.n_so3))
         if err is not None:
             raise err
-    if isinstance(ds_cfg.get("h"), (int, float)):  # likewise the step of a generated scene
-        err = _h_error(model, run_dir, str(ds_cfg.get("name")), float(ds_cfg.h))
+    if isinstance(ds_cfg.h, (int, float)):  # likewise the step of a generated scene
+        err = _h_error(model, run_dir, str(ds_cfg.name), float(ds_cfg.h))
         if err is not None:
             raise err
-    plain = OmegaConf.to_container(ds_cfg, resolve=True)
-    assert isinstance(plain, dict)
-    plain, all_asked = relaxed_dataset_config(plain)
+    plain, all_asked = relaxed_dataset_config(ds_cfg.as_dict())
     try:
-        dataset, path = get_dataset(dataset_config(plain), cfg.paths.data_dir)
+        dataset, path = get_dataset(ds_cfg, command.paths.data_dir)  # its checked (relaxed) form
     except ConfigError as e:  # dataset.n_test = every trajectory: refused for training, not for a rollout
         n_test = plain.get("n_test")
         if n_test is None or "dataset.n_test" not in str(e):
             raise
-        dataset, path = get_dataset(dataset_config({**plain, "n_test": None}), cfg.paths.data_dir)
+        dataset, path = get_dataset(dataset_config({**plain, "n_test": None}), command.paths.data_dir)
         if int(n_test) != dataset.n_trajectories:
             raise
         plain, all_asked = {**plain, "n_test": None}, True
     check_model_fits_data(model, dataset, run_dir)
-    ds_cfg = OmegaConf.create(plain)
+    ds_cfg = DatasetConfig.from_mapping(plain)
     source = {
         "dataset_path": str(Path(path).resolve()),
         "scene": dataset.scene,
@@ -177,28 +162,28 @@ def load_source(folder) -> dict | None:
     return src
 
 
-def rollout_dataset(path: Path, model, dataset, run_cfg, run_dir, data_dir):
-    """(dataset, config) a rollout file belongs to: the run's own, or the one named by the `source.json`
-    next to it: the recorded (cached) dataset file, or, where it is gone, the dataset regenerated or
-    re-read from its config."""
+def rollout_dataset(path: Path, model, dataset, run_cfg: RunConfig, run_dir, data_dir) -> tuple[Any, RunConfig]:
+    """(dataset, the run's typed config with that dataset's section) a rollout file belongs to: the
+    run's own, or the one named by the `source.json` next to it: the recorded (cached) dataset file,
+    or, where it is gone, the dataset regenerated or re-read from its config."""
     from ..data.hdf5 import load_dataset
     from ..data.scenes import get_dataset
 
     src = load_source(path.parent)
     if src is None:
         return dataset, run_cfg
-    ds_cfg = OmegaConf.create(src.get("dataset_config") or {})
+    section = src.get("dataset_config") or {}
     ds_path = Path(src["dataset_path"])
     if ds_path.is_file():
         other = load_dataset(ds_path)
+        ds_cfg = DatasetConfig.from_mapping(section) if isinstance(section.get("name"), str) else None
     else:
-        other, _ = get_dataset(dataset_config(ds_cfg), data_dir)
+        ds_cfg = dataset_config(section)
+        other, _ = get_dataset(ds_cfg, data_dir)
     check_model_fits_data(model, other, run_dir)
     if src.get("split") not in (None, "test"):  # split=all / train: those trajectories are the ones evaluated
         other = with_test_split(other, src.get("test_trajectories") or [])
-    merged = OmegaConf.merge(run_cfg, {})
-    merged.dataset = ds_cfg
-    return other, merged
+    return other, dataclasses.replace(run_cfg, dataset=ds_cfg)
 
 
 __all__ = [

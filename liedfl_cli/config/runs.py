@@ -1,4 +1,4 @@
-"""Reload a finished run: its resolved config, model and dataset."""
+"""Reload a finished run: its config (typed once, at load), model and dataset (`LoadedRun`)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,9 @@ import contextlib
 import csv
 import json
 import math
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from omegaconf import OmegaConf
 
@@ -14,6 +16,27 @@ from ..errors import CheckpointError, ConfigError, DatasetError
 from ..files.checkpoint import checkpoint_path, checkpoint_record, load_checkpoint, load_state
 from ..files.dataset_identity import check_unchanged
 from . import resolvers  # noqa: F401  (registers the config resolvers)
+from .typed import RunConfig, typed
+
+
+@dataclass
+class LoadedRun:
+    """A finished run as `load_run_checkpoint` loads it: the run's saved config typed once (the
+    `RunConfig` of its `liedfl train`; the file format is unchanged), the model with its trained
+    weights, the dataset, the run's folder and the record of the checkpoint loaded. `rollout`,
+    `eval`, `export` and the API receive this, never the saved config itself."""
+
+    config: RunConfig
+    model: Any
+    dataset: Any
+    run_dir: Path
+    checkpoint: dict = field(default_factory=dict)
+
+    @property
+    def model_name(self) -> str | None:
+        """`model.name` of the run's config (None when it has none)."""
+        name = (self.config.model or {}).get("name")
+        return None if name is None else str(name)
 
 
 def _recorded_dataset(run_dir: Path, recorded) -> Path | None:
@@ -41,15 +64,38 @@ def _one_line(e: Exception) -> str:
 
 
 def load_run(run_dir, data_dir=None, checkpoint: str = "best"):
-    """-> (config, model with trained weights on the runtime's device and dtype, dataset, run_dir).
+    """-> (typed config, model with trained weights on the runtime's device and dtype, dataset, run_dir).
     checkpoint: `best` (checkpoints/best.pt, the selected model, when the run has one; else last.pt)
     or `last`. The checkpoint is loaded with `map_location` = that device."""
-    cfg, model, dataset, run_dir, _ = load_run_checkpoint(run_dir, data_dir, checkpoint)
-    return cfg, model, dataset, run_dir
+    run = load_run_checkpoint(run_dir, data_dir, checkpoint)
+    return run.config, run.model, run.dataset, run.run_dir
 
 
-def load_run_checkpoint(run_dir, data_dir=None, checkpoint: str = "best", accept_changed_dataset: bool = False):
-    """`load_run` plus the record of the checkpoint loaded (`checkpoint.checkpoint_record`:
+def saved_config(payload: dict, ckpt: Path) -> RunConfig:
+    """The run's config saved in its checkpoint (`payload["config"]`, a plain mapping), typed once.
+    Its dataset section is not checked again (the run's data are the recorded file; the section is
+    checked where the data are generated again from it: `scenes.get_dataset`)."""
+    if not isinstance(payload["config"], dict):
+        raise CheckpointError(f"{ckpt}: field 'config' is not a mapping (got {type(payload['config']).__name__})")
+    try:
+        cfg = OmegaConf.create(payload["config"])
+    except Exception as e:
+        raise CheckpointError(
+            f"{ckpt}: field 'config' is not a valid config ({type(e).__name__}: {_one_line(e)})"
+        ) from None
+    try:
+        # what the model is built from must be in the saved config (the typed sections fill in
+        # defaults, which would hide a damaged checkpoint)
+        _ = (cfg.seed, cfg.train.epsilon, cfg.model)
+        return typed(cfg, "train", check_dataset=False)
+    except Exception as e:
+        raise CheckpointError(f"{ckpt}: field 'config' does not build a model ({_one_line(e)})") from None
+
+
+def load_run_checkpoint(
+    run_dir, data_dir=None, checkpoint: str = "best", accept_changed_dataset: bool = False
+) -> LoadedRun:
+    """`load_run` as a `LoadedRun`, with the record of the checkpoint loaded (`checkpoint.checkpoint_record`:
     file, epoch, selection metric and value). The run's config comes from checkpoints/last.pt, which
     is always loaded and checked (a broken last.pt is a broken run); best.pt then replaces the weights.
     The recorded dataset file must be the one trained on (its SHA-256, `dataset_identity`) unless
@@ -57,7 +103,6 @@ def load_run_checkpoint(run_dir, data_dir=None, checkpoint: str = "best", accept
     from ..data.hdf5 import load_dataset
     from ..data.scenes import get_dataset
     from .factory import build_model, placement
-    from .typed import dataset_config
 
     if run_dir in (None, "", "???"):
         raise ConfigError("run=<run dir> is required (a directory written by `liedfl train`)")
@@ -67,25 +112,16 @@ def load_run_checkpoint(run_dir, data_dir=None, checkpoint: str = "best", accept
     selected = checkpoint_path(run_dir, checkpoint)
     ckpt = run_dir / "checkpoints" / "last.pt"
     payload = load_checkpoint(ckpt, map_location=placement()[0])
-    if not isinstance(payload["config"], dict):
-        raise CheckpointError(f"{ckpt}: field 'config' is not a mapping (got {type(payload['config']).__name__})")
-    try:
-        cfg = OmegaConf.create(payload["config"])
-    except Exception as e:
-        raise CheckpointError(
-            f"{ckpt}: field 'config' is not a valid config ({type(e).__name__}: {_one_line(e)})"
-        ) from None
+    cfg = saved_config(payload, ckpt)
     ds_path = _recorded_dataset(run_dir, payload.get("dataset_path"))
     if ds_path is not None:
         with _naming_the_users_file(cfg, ds_path):
             check_unchanged(ckpt, payload.get("dataset_sha256"), ds_path, accept_changed_dataset)
             dataset = load_dataset(ds_path)
-    else:  # regenerate from the recorded config (deterministic given its seed)
-        dataset, _ = get_dataset(dataset_config(cfg.dataset), data_dir or cfg.paths.data_dir)
+    else:  # regenerate from the recorded config (deterministic given its seed; checked there)
+        assert cfg.dataset is not None
+        dataset, _ = get_dataset(cfg.dataset, data_dir or cfg.paths.data_dir)
     try:
-        # what the model is built from must be in the saved config (the typed sections fill in
-        # defaults, which would hide a damaged checkpoint)
-        _ = (cfg.seed, cfg.train.epsilon, cfg.model)
         model = build_model(cfg, dataset)
     except Exception as e:
         raise CheckpointError(f"{ckpt}: field 'config' does not build a model ({_one_line(e)})") from None
@@ -94,18 +130,18 @@ def load_run_checkpoint(run_dir, data_dir=None, checkpoint: str = "best", accept
         ckpt, payload = selected, load_checkpoint(selected, map_location=placement()[0])
         load_state(ckpt, model, payload)
     check_finite_first_step(ckpt, model, dataset)
-    return cfg, model, dataset, run_dir, checkpoint_record(ckpt, payload)
+    return LoadedRun(cfg, model, dataset, run_dir, checkpoint_record(ckpt, payload))
 
 
 @contextlib.contextmanager
-def _naming_the_users_file(cfg, cached: Path):
+def _naming_the_users_file(cfg: RunConfig, cached: Path):
     """Errors and warnings about the cached copy of a user's file (dataset=file / import) also name
     the user's file (`dataset.path`), which is the one they know."""
     import warnings
 
     from ..errors import DataWarning
 
-    source = OmegaConf.select(cfg, "dataset.path", default=None)
+    source = cfg.dataset.get("path") if cfg.dataset is not None else None
     if not isinstance(source, str) or not source:
         yield
         return

@@ -32,8 +32,9 @@ from omegaconf.errors import OmegaConfBaseException
 
 from ..errors import ConfigError
 from . import resolvers  # noqa: F401  (registers the config resolvers)
+from .fields import required_keys
 from .typed import SECTIONS as TYPED_SECTIONS
-from .typed import PathsConfig, wrong_type_line
+from .typed import PathsConfig, TopKeys, section, wrong_type_line
 
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"  # the configs ship inside the package
 
@@ -41,13 +42,10 @@ CONF_DIR = Path(__file__).resolve().parents[1] / "conf"  # the configs ship insi
 SECTIONS: dict[str, Any] = {k: v for k, v in TYPED_SECTIONS.items() if k != "paths"}
 """The sections whose keys and types are checked against their dataclass (config/typed.py)."""
 CHOICES = {
-    ("train", "reg_form"): ("relu", "gaussian"),
-    ("train", "select"): ("val_one_step", "val_rollout", "last"),
-    ("checkpoint",): ("best", "last"),  # liedfl rollout / eval
-    ("split",): ("auto", "all", "train", "test"),  # liedfl rollout (other_data.SPLITS)
-    ("export",): ("csv", "npz"),  # liedfl rollout (export.EXPORTS), or null
-    ("train", "loss"): ("del", "newton", "rollout"),
-    ("train", "start"): ("auto", "identify", "none"),
+    # The options whose allowed values are still listed here, not on their dataclass field: the
+    # model's (they move with the model families), the runtime's (`solvers.runtime.RuntimeOptions`
+    # checks them again; they become the execution plan) and the optimiser's (`OptimizerConfig`,
+    # being restructured with the trainer). Every other option's values: its field in config/typed.py.
     ("train", "optimizer", "name"): ("soap", "adam"),
     ("train", "optimizer", "schedule"): ("constant", "cosine"),
     ("model", "potential"): ("auto", "mlp", "none", "uniform_gravity"),  # or a list of mlp, uniform_gravity
@@ -55,7 +53,6 @@ CHOICES = {
     ("model", "kinetic"): ("auto", "per_body", "articulated"),
     ("runtime", "device"): ("cpu", "cuda", "auto"),
     ("runtime", "dtype"): ("float64", "float32"),
-    ("logger", "name"): ("csv", "tensorboard"),
 }
 _TRAIN_KEYS = ("task_name", "seed", "epoch_scale", "train", "rollout", "eval", "ui", "paths")
 TOP_LEVEL: dict[str, tuple[str, ...]] = {
@@ -92,31 +89,27 @@ TOP_LEVEL: dict[str, tuple[str, ...]] = {
     ),
     "resume": ("task_name", "resume", "epochs", "ui", "accept_changed_dataset"),
 }
-_SOLVER = ("solver.tol", "solver.max_iter", "solver.max_halvings")
-_RUN_KEYS = ("run", "steps", "rollout.max_trajectories", "rollout.reference", "eval.plots", "ui.progress")
-REQUIRED: dict[str, tuple[str, ...]] = {
-    # keys the commands read (an override such as ~train.epochs removes them)
-    "train": (
-        "seed",
-        *(f"train.{k}" for k in ("epochs", "batch_size", "w_del", "w_reg", "reg_points", "reg_form", "epsilon")),
-        *(f"train.optimizer.{k}" for k in ("name", "lr", "weight_decay")),
-        *(f"rollout.{k}" for k in ("enabled", "steps", "max_trajectories", "reference")),
-        "eval.plots",
-        "ui.progress",
-        "paths.data_dir",
-        "paths.output_dir",
-        "dataset",
-        "model",
-        "force",
-        "model.name",
-        *_SOLVER,
-    ),
-    "data": ("ui.progress", "paths.data_dir", "dataset"),
-    "rollout": (*_RUN_KEYS, "paths.data_dir", *_SOLVER),
-    "eval": ("run", "eval.plots", "ui.progress", "paths.data_dir", *_SOLVER),
-    "report": ("sweep", "plots"),
-    "resume": ("resume", "ui.progress"),
+_OTHER_REQUIRED: dict[tuple[str, str], tuple[str, ...]] = {
+    # (command, section) -> the required keys that are not fields of a checked dataclass (those say
+    # it on the field: `option(required=...)`): listed after that section's own ("": before every
+    # section); the config groups a command reads come after `paths`
+    ("train", ""): ("seed",),
+    ("train", "train"): tuple(f"train.optimizer.{k}" for k in ("name", "lr", "weight_decay")),  # OptimizerConfig
+    ("train", "paths"): ("dataset", "model", "force", "model.name"),
+    ("data", "paths"): ("dataset",),
 }
+
+
+def required(command: str) -> tuple[str, ...]:
+    """The keys `command` reads (an override such as ~train.epochs removes them), in the order they
+    are reported: the fields declared `required` for it (config/typed.py) and `_OTHER_REQUIRED`."""
+    keys = [*required_keys(TopKeys, command, ""), *_OTHER_REQUIRED.get((command, ""), ())]
+    for name, schema in TYPED_SECTIONS.items():
+        keys += required_keys(schema, command, name)
+        keys += _OTHER_REQUIRED.get((command, name), ())
+    return tuple(keys)
+
+
 DEFAULT_MODEL_TARGET = "liedfl_cli.models.liedflnn.LieDFLNN"
 TARGET_PREFIX = "liedfl_cli."
 
@@ -254,11 +247,15 @@ def _options(group: str) -> list[str]:
 
 
 # ----------------------------------------------------------------------------- sections
-def _check_types(cfg, name: str, schema, values=None) -> None:
+def _check_types(cfg, name: str, schema, values=None, build: bool = False) -> None:
     """The section `cfg[name]` (or `values`, a plain mapping of its values) merged into the dataclass
-    `schema`: a wrong type is one line naming the key."""
+    `schema`: a wrong type is one line naming the key; with `build`, the dataclass is built, so the
+    values its fields declare are checked too (one line naming the key)."""
     values = _plain(cfg[name], name) if values is None else values
     _check_shapes(values, schema, name)
+    if build:  # the dataclass built: its fields' checks run (fields.Checked.__post_init__)
+        section(schema, values, name)
+        return
     try:
         OmegaConf.merge(OmegaConf.structured(schema), values)
     except OmegaConfBaseException as e:
@@ -426,50 +423,36 @@ def _check_scalars(cfg, command: str) -> None:
 
 
 def _check_values(cfg, command: str) -> None:
+    """The values no checked dataclass declares yet: the trainer's optimiser, early stopping and
+    rollout-loss groups (`OptimizerConfig`, `EarlyStoppingConfig`, `RolloutLossConfig`, being
+    restructured with the trainer), the optional TensorBoard extra and a usable `paths.data_dir`
+    (`dataset.val_fraction`: `DatasetConfig`)."""
     if command == "train" and "train" in cfg:
-        _int(cfg, "train.epochs", 0)  # 0: the model's start only (train.start)
-        _int(cfg, "train.batch_size", 1)
         _float(cfg, "train.optimizer.lr", positive=True)
         _float(cfg, "train.optimizer.weight_decay", nonnegative=True)
-        _float(cfg, "train.w_del", nonnegative=True)
-        _float(cfg, "train.w_reg", nonnegative=True)
-        _int(cfg, "train.reg_points", 0)
-        _float(cfg, "train.epsilon")
         if _value(cfg, "train.rollout_loss") is not None:
             _int(cfg, "train.rollout_loss.horizon", 1)
             _int(cfg, "train.rollout_loss.epochs", 1)
             if _value(cfg, "train.rollout_loss.lr") is not None:
                 _float(cfg, "train.rollout_loss.lr", positive=True)
-        if _value(cfg, "train.checkpoint_every") not in (None, "auto"):
-            _int(cfg, "train.checkpoint_every", 1, what="auto or a positive integer")
-        if _value(cfg, "train.val_every") not in (None, "auto"):
-            _int(cfg, "train.val_every", 1, what="auto or a positive integer")
-        if _has(cfg, "train.val_horizon"):
-            _int(cfg, "train.val_horizon", 2)
         if _has(cfg, "train.early_stopping.patience"):
             _int(cfg, "train.early_stopping.patience", 1, nullable=True)
         if _has(cfg, "train.early_stopping.min_delta"):
             _float(cfg, "train.early_stopping.min_delta", nonnegative=True)
-        fraction = _value(cfg, "dataset.val_fraction")
-        if fraction is not None and not (_is_number(fraction) and 0 <= fraction < 1):
-            raise ConfigError(f"dataset.val_fraction={fraction!r}: must be a number in [0, 1) (0: no validation)")
         if _value(cfg, "logger.name") == "tensorboard":  # the optional extra: refused before the run starts
             from ..loggers import require_tensorboard
 
             require_tensorboard()
-    if isinstance(cfg.get("rollout"), DictConfig):  # (`liedfl eval rollout=<dir>`: a path, or null)
-        if "steps" in cfg.rollout:  # a rollout needs the two given poses and at least one predicted step
-            _int(cfg, "rollout.steps", 2, nullable=True)
-        if "max_trajectories" in cfg.rollout:
-            _int(cfg, "rollout.max_trajectories", 1, nullable=True)
-    if command in ("rollout", "eval") and "steps" in cfg:
-        _int(cfg, "steps", 2, nullable=True)
-    if "solver" in cfg:
-        _float(cfg, "solver.tol", positive=True)
-        _int(cfg, "solver.max_iter", 1)
-        _int(cfg, "solver.max_halvings", 0)
     if "paths" in cfg and command in ("train", "data", "rollout", "eval"):
         _check_data_dir(cfg, must_write=command in ("train", "data"))
+
+
+def _check_top_keys(cfg) -> None:
+    """The commands' own top-level keys (run, checkpoint, steps, split, export, ...) against
+    `typed.TopKeys` (their fields declare the values)."""
+    keys = set(cfg.keys())  # (`key in cfg` is false for a missing mandatory value such as `run: ???`)
+    present = {f.name: _value(cfg, f.name) for f in dataclasses.fields(TopKeys) if f.name in keys}
+    TopKeys(**present)
 
 
 def _check_split_sizes(cfg, d: dict) -> None:
@@ -492,18 +475,16 @@ def _check_split_sizes(cfg, d: dict) -> None:
 
 
 def _check_dataset_values(cfg, command: str) -> None:
+    """The dataset section's one check (`typed.dataset_config`, the same as the command's conversion),
+    then, for training, the sizes of its split."""
     if not isinstance(cfg.get("dataset"), DictConfig):
         return
-    from ..data.scenes import _checked
+    from .typed import dataset_config
 
-    d = _plain(cfg.dataset, "dataset")
-    if command == "rollout":  # a rollout trains nothing: test_fraction=1.0 asks for every trajectory
-        from .other_data import relaxed_dataset_config
-
-        d, _ = relaxed_dataset_config(d)
-    d = _checked(d)
+    ds = dataset_config(_plain(cfg.dataset, "dataset"), rollout=command == "rollout")  # the one check
     if command == "train":
-        _check_split_sizes(cfg, d)
+        assert ds.checked is not None
+        _check_split_sizes(cfg, ds.checked)
 
 
 # ----------------------------------------------------------------------------- entry point
@@ -516,7 +497,7 @@ def validate(cfg: DictConfig, command: str | None = None) -> None:
     top = TOP_LEVEL.get(str(command))
     if top is not None:
         _check_keys(cfg, (*top, "hydra"), "")
-    for dotted in REQUIRED.get(str(command), ()):
+    for dotted in required(str(command)):
         if not _has(cfg, dotted):
             raise ConfigError(f"config key '{dotted}' is missing (removed by an override?)")
     _check_scalars(cfg, str(command))
@@ -526,12 +507,13 @@ def validate(cfg: DictConfig, command: str | None = None) -> None:
             continue  # `liedfl eval rollout=<file>`: there `rollout` is a path, not this section
         if name in cfg and cfg[name] is not None:
             _check_dataclass_keys(cfg[name], schema, name)
-            _check_types(cfg, name, schema)
+            _check_types(cfg, name, schema, build=True)
     if "paths" in cfg:
         _check_keys(cfg.paths, [f.name for f in dataclasses.fields(PathsConfig)], "paths")
     if command != "export":  # export's `dataset` holds total_mass only (commands/export_model.py)
         _check_dataset_keys(cfg)
     _check_force(cfg)
+    _check_top_keys(cfg)
     for path, allowed in CHOICES.items():
         if path[0] == "model":
             continue

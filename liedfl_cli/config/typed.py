@@ -12,8 +12,9 @@ the scene evaluations a `SceneEvalOptions` (docs/architecture.md, "How a config 
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar, Literal
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
@@ -21,9 +22,12 @@ from omegaconf.errors import OmegaConfBaseException
 from ..data.dataset_config import DatasetConfig
 from ..errors import ConfigError
 from ..evaluation.outputs import SceneEvalOptions
+from ..files.checkpoint import CHECKPOINTS  # the checkpoint files' own list
+from ..loggers import NAMES as LOGGERS  # the loggers' own list (loggers/__init__.py)
 from ..models.base import LossOptions
 from ..solvers.options import SolverOptions
 from ..solvers.runtime import RuntimeOptions
+from .fields import Check, Checked, check, option
 
 
 @dataclass
@@ -49,24 +53,31 @@ class RolloutLossConfig:  # train.loss=rollout: the fine-tuning stage (liedfl_cl
     lr: Any = None  # null: train.optimizer.lr
 
 
+TRAIN = ("train",)
+
+
 @dataclass
-class TrainConfig:
-    epochs: int = 1000
-    batch_size: int = 1024
+class TrainConfig(Checked):
+    section: ClassVar[str] = "train"
+
+    epochs: int = option(1000, integer=0, required=TRAIN)  # 0: the model's start only (train.start)
+    batch_size: int = option(1024, integer=1, required=TRAIN)
     optimizer: OptimizerConfig = field(default_factory=OptimizerConfig)
-    w_del: float = 0.5
-    w_reg: float = 0.5
-    reg_points: int = 10
-    reg_form: str = "relu"  # relu | gaussian
-    epsilon: float = 10.0
-    checkpoint_every: Any = "auto"  # auto | positive int (checked in train.checkpoint_interval)
+    w_del: float = option(0.5, number="nonnegative", required=TRAIN)
+    w_reg: float = option(0.5, number="nonnegative", required=TRAIN)
+    reg_points: int = option(10, integer=0, required=TRAIN)
+    reg_form: str = option("relu", choices_of=Literal["relu", "gaussian"], required=TRAIN)  # log-space penalties
+    epsilon: float = option(10.0, number="finite", required=TRAIN)
+    # auto | positive int (None: auto)
+    checkpoint_every: Any = option("auto", integer=1, auto=True, nullable=True, what="auto or a positive integer")
     full_batch: bool = False  # one optimiser step per epoch over every sample
-    val_every: Any = "auto"  # auto | positive int (checked in validation.val_interval)
-    val_horizon: int = 20
-    select: str = "val_one_step"  # val_one_step | val_rollout | last
+    val_every: Any = option("auto", integer=1, auto=True, nullable=True, what="auto or a positive integer")
+    val_horizon: int = option(20, integer=2)
+    # which weights roll out: the best validation one-step error / rollout error, or the last (docs/validation.md)
+    select: str = option("val_one_step", choices_of=Literal["val_one_step", "val_rollout", "last"])
     early_stopping: EarlyStoppingConfig = field(default_factory=EarlyStoppingConfig)
-    loss: str = "del"  # del | newton | rollout (models/liedflnn/losses.py)
-    start: str = "auto"  # auto (a model's own least-squares start: articulated) | identify (articulated: + LM) | none
+    loss: str = option("del", choices_of=Literal["del", "newton", "rollout"])  # models/liedflnn/losses.py
+    start: str = option("auto", choices_of=Literal["auto", "identify", "none"])  # a model's own start (articulated)
     rollout_loss: RolloutLossConfig = field(default_factory=RolloutLossConfig)
 
     def loss_options(self, solver: SolverOptions | None = None) -> LossOptions:
@@ -83,28 +94,53 @@ class TrainConfig:
         )
 
 
-@dataclass
-class RolloutConfig:
-    enabled: bool = True
-    steps: int | None = None
-    max_trajectories: int | None = None
-    reference: bool = True
+RUNS = ("train", "rollout", "eval")  # the commands that roll out or evaluate a model
 
 
 @dataclass
-class EvalConfig:
-    plots: bool = True
+class RolloutConfig(Checked):
+    section: ClassVar[str] = "rollout"
+
+    enabled: bool = option(True, required=TRAIN)
+    steps: int | None = option(None, integer=2, nullable=True, required=TRAIN)  # the given poses + >= 1 step
+    max_trajectories: int | None = option(None, integer=1, nullable=True, required=("train", "rollout"))
+    reference: bool = option(True, required=("train", "rollout"))
 
 
 @dataclass
-class UiConfig:
-    progress: bool = True
+class EvalConfig(Checked):
+    section: ClassVar[str] = "eval"
+
+    plots: bool = option(True, required=RUNS)
 
 
 @dataclass
-class PathsConfig:
-    data_dir: str = "outputs/data"
-    output_dir: str = "."  # Hydra's run folder (`${hydra:runtime.output_dir}`; "." outside a Hydra run)
+class UiConfig(Checked):
+    section: ClassVar[str] = "ui"
+
+    progress: bool = option(True, required=(*RUNS, "data", "resume"))
+
+
+@dataclass
+class PathsConfig(Checked):
+    section: ClassVar[str] = "paths"
+
+    data_dir: str = option("outputs/data", required=(*RUNS, "data"))  # checked by schema._check_data_dir
+    # Hydra's run folder (`${hydra:runtime.output_dir}`; "." outside a Hydra run)
+    output_dir: str = option(".", required=TRAIN)
+
+
+@dataclass(frozen=True)
+class SolverConfig(SolverOptions, Checked):
+    """The `solver` section: `SolverOptions` (the solvers' own dataclass declares the fields) with
+    the checks of its values; `typed` hands the solvers a plain `SolverOptions`."""
+
+    section: ClassVar[str] = "solver"
+    checks: ClassVar[dict[str, Check]] = {
+        "tol": check(number="positive", required=RUNS),
+        "max_iter": check(integer=1, required=RUNS),
+        "max_halvings": check(integer=0, required=RUNS),
+    }
 
 
 @dataclass
@@ -117,8 +153,10 @@ class RuntimeConfig:  # execution settings; checked and normalised by solvers/ru
 
 
 @dataclass
-class LoggerConfig:  # the `logger` config group (liedfl_cli/loggers/)
-    name: str = "csv"  # csv | tensorboard (train_metrics.csv plus <run>/tensorboard/)
+class LoggerConfig(Checked):  # the `logger` config group (liedfl_cli/loggers/)
+    section: ClassVar[str] = "logger"
+
+    name: str = option("csv", choices_of=LOGGERS)  # tensorboard: train_metrics.csv plus <run>/tensorboard/
 
 
 @dataclass
@@ -127,13 +165,30 @@ class GroupConfig:
     n_so3: int = 1
 
 
+@dataclass
+class TopKeys(Checked):
+    """The commands' own top-level keys (`liedfl rollout run=... steps=... split=...`), checked here
+    and kept as plain values in `RunConfig.top`; a key a command does not have is left out."""
+
+    run: Any = option(None, required=("rollout", "eval"))
+    checkpoint: str = option("best", choices_of=CHECKPOINTS)  # best.pt (else last.pt) | last.pt (files/checkpoint.py)
+    steps: Any = option(None, integer=2, nullable=True, required=("rollout",))
+    split: str = option("auto", choices_of=Literal["auto", "all", "train", "test"])  # config/other_data.py
+    export: Any = option(None, choices_of=Literal["csv", "npz", None])  # predictions (commands/export.py) or none
+    accept_changed_dataset: Any = None
+    resume: Any = option(None, required=("resume",))
+    epochs: Any = None
+    sweep: Any = option(None, required=("report",))
+    plots: Any = option(None, required=("report",))
+
+
 SECTIONS: dict[str, Any] = {
     "train": TrainConfig,
     "rollout": RolloutConfig,
     "eval": EvalConfig,
     "ui": UiConfig,
     "paths": PathsConfig,
-    "solver": SolverOptions,
+    "solver": SolverConfig,
     "group": GroupConfig,
     "runtime": RuntimeConfig,
     "logger": LoggerConfig,
@@ -251,20 +306,50 @@ def runtime_options(values: Any) -> RuntimeOptions:
     return RuntimeOptions(**vars(section(RuntimeConfig, values, "runtime")))
 
 
-def dataset_config(values: Any) -> DatasetConfig:
-    """The `dataset` section (a config node or plain mapping) as a `DatasetConfig`."""
-    return DatasetConfig.from_mapping(plain(values, "dataset"))
+def solver_options(values: Any) -> SolverOptions:
+    """The `solver` section (a config node or plain mapping) as the `SolverOptions` the solvers
+    take, its values checked (`SolverConfig`)."""
+    return SolverOptions(**vars(section(SolverConfig, values, "solver")))
 
 
-TOP_KEYS = (
-    *("run", "steps", "checkpoint", "split", "export", "accept_changed_dataset"),
-    *("resume", "epochs", "sweep", "plots"),
-)
+USER_FILES = ("file", "import")
+"""The scenes that read a user's file (`dataset=file`, `dataset=import`)."""
 
 
-def typed(cfg: DictConfig, command: str | None = None) -> RunConfig:
+def relaxed_dataset_config(d: dict) -> tuple[dict, bool]:
+    """A rollout trains nothing, so `dataset.test_fraction=1.0` (every trajectory a test one, which a
+    dataset refuses for training) asks for all trajectories: returns (the config to build the data with,
+    whether all were asked)."""
+    tf = d.get("test_fraction")
+    if isinstance(tf, bool) or not isinstance(tf, (int, float)) or tf != 1.0:
+        return d, False
+    d = dict(d)
+    if d.get("name") in USER_FILES:
+        d.pop("test_fraction")  # the shipped default (data/files.py): the split is replaced anyway
+    else:
+        d["test_fraction"] = 0.0
+    return d, True
+
+
+def dataset_config(values: Any, rollout: bool = False) -> DatasetConfig:
+    """The `dataset` section (a config node or plain mapping) as a `DatasetConfig`, checked once
+    (`scenes.dataset_section`: one-line ConfigError naming the key). rollout: the section of
+    `liedfl rollout dataset=...`, checked as `relaxed_dataset_config` reads it (`test_fraction=1.0`
+    asks for every trajectory) and kept as configured."""
+    from ..data.scenes import dataset_section
+
+    d = plain(values, "dataset")
+    return dataset_section(d, relaxed_dataset_config(d)[0] if rollout else None)
+
+
+TOP_KEYS = tuple(f.name for f in dataclasses.fields(TopKeys))
+
+
+def typed(cfg: DictConfig, command: str | None = None, check_dataset: bool = True) -> RunConfig:
     """The typed form of a composed config (validate it first: this reports only what the section
-    dataclasses refuse). command: default `cfg.task_name`."""
+    dataclasses refuse). command: default `cfg.task_name`. check_dataset: false for a run's saved
+    config, whose data are its recorded file (the section is checked where it generates data again:
+    `scenes.get_dataset`)."""
     command = str(command or cfg.get("task_name") or "")
     out = RunConfig(command=command)
     if "seed" in cfg:
@@ -274,15 +359,21 @@ def typed(cfg: DictConfig, command: str | None = None) -> RunConfig:
             continue
         if name == "rollout" and not isinstance(cfg.get(name), DictConfig):
             continue  # `liedfl eval rollout=<file>`: a path (in `top`)
+        value: Any
         if name == "runtime":
             value = runtime_options(cfg[name])
+        elif name == "solver":
+            value = solver_options(cfg[name])
         elif name == "paths":
             value = section(schema, _resolvable(cfg[name]), name)
         else:
             value = section(schema, cfg[name], name)
         setattr(out, name, value)
     if cfg.get("dataset") is not None:
-        out.dataset = dataset_config(cfg.dataset)
+        if check_dataset:
+            out.dataset = dataset_config(cfg.dataset, rollout=command == "rollout")
+        else:
+            out.dataset = DatasetConfig.from_mapping(plain(cfg.dataset, "dataset"))
     if cfg.get("model") is not None:
         out.model = dict(plain(cfg.model, "model"))
     if cfg.get("force") is not None:
@@ -309,11 +400,14 @@ __all__ = [
     "RolloutLossConfig",
     "RunConfig",
     "RuntimeConfig",
+    "SolverConfig",
+    "TopKeys",
     "TrainConfig",
     "UiConfig",
     "dataset_config",
     "plain",
     "runtime_options",
+    "solver_options",
     "section",
     "typed",
 ]

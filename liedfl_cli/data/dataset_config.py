@@ -5,6 +5,10 @@ The fields every scene shares are attributes; what only some scenes have (`files
 `path`, `columns`, `rotation`, ... of a user's file) is in `scene`, a plain mapping checked by the
 scene's generator (the keys each scene accepts: conf/dataset/<scene>.yaml). `as_dict()` gives the
 section back exactly as configured (the same keys, so the cache hash of a config does not change).
+
+`scenes.dataset_section` is the one check of a dataset section (the scene's registry, its common
+fields, noise and smoothing; `val_fraction` here), made once at the command's door; the checked form
+travels in `checked`, so `scenes.get_dataset` / `dataset_path` / `generate` do not check again.
 """
 
 from __future__ import annotations
@@ -40,6 +44,13 @@ class DatasetConfig:
     smoothing: dict[str, Any] | None = None
     scene: dict[str, Any] = field(default_factory=dict)  # the scene's own keys
     present: tuple[str, ...] = ()  # the configured keys, in order ("" = every common field)
+    # the section as the generators take it, once checked (`scenes.dataset_section`); None: not yet
+    checked: dict[str, Any] | None = field(default=None, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        v = self.val_fraction  # read at train time only, but refused wherever it is configured
+        if v is not None and not (isinstance(v, (int, float)) and not isinstance(v, bool) and 0 <= v < 1):
+            raise ConfigError(f"dataset.val_fraction={v!r}: must be a number in [0, 1) (0: no validation)")
 
     @classmethod
     def from_mapping(cls, d: Mapping[str, Any]) -> DatasetConfig:
@@ -48,7 +59,7 @@ class DatasetConfig:
             raise ConfigError(f"dataset config must be a mapping, got {type(d).__name__}")
         if not isinstance(d.get("name"), str):
             raise ConfigError(f"dataset.name={d.get('name')!r}: must be a scene name")
-        common = {f.name for f in fields(cls)} - {"scene", "present"}
+        common = {f.name for f in fields(cls)} - {"scene", "present", "checked"}
         d = copy.deepcopy(dict(d))
         return cls(
             **{k: v for k, v in d.items() if k in common},

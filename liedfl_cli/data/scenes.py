@@ -14,6 +14,7 @@ data (nor the hash). A user's file also hashes its content. Every scene also tak
 
 from __future__ import annotations
 
+import copy
 import time
 import warnings
 from collections.abc import Callable
@@ -21,6 +22,7 @@ from pathlib import Path
 
 from ..errors import DatasetError, DataWarning
 from . import transforms
+from .dataset_config import DatasetConfig
 from .files import SOURCE_SCENES, check_source_config, file_digest, from_file, hashed_config, import_recording
 from .hdf5 import Dataset, load_dataset, save_dataset
 from .mocap import REAL_DATA_SCENES, cmu_cartwheel
@@ -57,8 +59,12 @@ FILE_SCENE = "file"
 """`dataset=file dataset.path=<file.h5>`: a dataset file in liedfl's format (data/files.py)."""
 
 
-def _checked(cfg) -> dict:
-    """The dataset config as a plain dict, its common fields checked and its scene registered."""
+def check_dataset(cfg) -> dict:
+    """The dataset config as a plain dict, its common fields checked and its scene registered
+    (ConfigError naming the key). A `DatasetConfig` checked at the door (`from_section`) is not
+    checked again: its checked form is returned (a copy)."""
+    if isinstance(cfg, DatasetConfig) and cfg.checked is not None:
+        return copy.deepcopy(cfg.checked)
     c = to_dict(cfg)
     if c.get("name") in SOURCE_SCENES:  # the user's own file (data/files.py): its own keys
         c = check_source_config(c)
@@ -67,6 +73,15 @@ def _checked(cfg) -> dict:
     transforms.noise_spec(c.get("noise"))
     transforms.smoothing_spec(c.get("smoothing"))
     return c
+
+
+def dataset_section(d, checked_as=None) -> DatasetConfig:
+    """A configured `dataset` section (a plain mapping) as a `DatasetConfig`, checked once (one-line
+    ConfigError naming the key): the door of the data layer. checked_as: the mapping to check in its
+    place (`liedfl rollout`'s relaxed split); the section keeps its configured keys (`as_dict`)."""
+    out = DatasetConfig.from_mapping(d)
+    out.checked = check_dataset(out if checked_as is None else DatasetConfig.from_mapping(checked_as))
+    return out
 
 
 def _hash(c: dict) -> str:
@@ -99,15 +114,19 @@ def dataset_steps(cfg, dataset, key: str) -> int:
     return int(dataset.n_steps) if value is None else int(value)
 
 
+def _path(c: dict, data_dir) -> Path:
+    """The cache file of a checked config with its digest."""
+    return Path(data_dir) / f"{c['name']}-{_hash(c)}.h5"
+
+
 def dataset_path(cfg, data_dir="outputs/data") -> Path:
     """`<data_dir>/<name>-<config_hash>.h5`."""
-    c = _with_digest(_checked(cfg))
-    return Path(data_dir) / f"{c['name']}-{_hash(c)}.h5"
+    return _path(_with_digest(check_dataset(cfg)), data_dir)
 
 
 def generate(cfg, progress: Callable[[float], None] | None = None) -> Dataset:
     """Generate the dataset described by `cfg` (no caching)."""
-    return _generate(_with_digest(_checked(cfg)), progress)
+    return _generate(_with_digest(check_dataset(cfg)), progress)
 
 
 def get_dataset(cfg, data_dir="outputs/data", console=None) -> tuple[Dataset, Path]:
@@ -116,8 +135,8 @@ def get_dataset(cfg, data_dir="outputs/data", console=None) -> tuple[Dataset, Pa
     console: optional rich Console for the progress display (default: a stderr console).
     `dataset=file` / `dataset=import`: the user's file read (data/files.py) and cached like a scene.
     """
-    c = _with_digest(_checked(cfg))
-    path = dataset_path(c, data_dir)
+    c = _with_digest(check_dataset(cfg))  # checked once (not again when `cfg` was checked at the door)
+    path = _path(c, data_dir)
     if path.exists():
         ds = load_dataset(path)
         stored = ds.params.get("config_hash")
@@ -165,6 +184,8 @@ __all__ = [
     "SCENES",
     "FILE_SCENE",
     "dataset_steps",
+    "check_dataset",
+    "dataset_section",
     "GENERATOR_VERSION",
     "REQUIRED_KEYS",
     "generator_config",
