@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, fields
-from typing import Any, cast
+from typing import Any
 
 import torch
 from torch import nn
@@ -28,7 +28,7 @@ from ...errors import ConfigError
 from ...lie import Pose, ProductGroup, so3
 from ...lie.tolerances import projects_poses
 from ...mechanics import kinetic
-from ...mechanics.forces import RayleighForce, build_forces, force_jacobian_xi
+from ...mechanics.forces import RayleighForce, build_forces
 from ...mechanics.parameterizations import Inertia, PositiveVector
 from ...mechanics.potentials import (
     STANDARD_GRAVITY,
@@ -39,7 +39,7 @@ from ...mechanics.potentials import (
 )
 from ...mechanics.scene_physics import body_parameters, true_potential
 from ...solvers import compile as compile_cache
-from ...solvers.newton import NewtonProblem, jacobian
+from ...solvers.newton import NewtonProblem
 from ...solvers.options import SolverOptions
 from ...solvers.rollout import Rollout, rollout_implicit
 from ..base import (
@@ -60,8 +60,9 @@ from ..del_loss import del_regularity_loss
 from .engines import columns as fused_columns
 from .engines import core as fused
 from .engines import scalar as fused_scalar
+from .residual import FORMS, residual_form
 
-RESIDUAL_MODES = ("fast", "generic")
+RESIDUAL_MODES = tuple(FORMS)  # the residual objects' names (residual.py)
 KINETIC_KINDS = ("auto", "per_body", "articulated")
 KNOWN_PARTS = ("inertia", "potential", "damping")
 
@@ -159,7 +160,8 @@ class LieDFLNN(ImplicitModel):
     ):
         super().__init__(path)
         known = check_options(residual, known, physics)
-        self.G, self.h, self.residual_mode = G, float(h), residual
+        self.G, self.h = G, float(h)
+        self.residual_form = residual_form(residual)  # closed form or autodiff, fixed here
         self.known = known
         gen = torch.Generator().manual_seed(seed)
         # Start with log|det H| at the regularity threshold so neither loss term dominates.
@@ -310,6 +312,15 @@ class LieDFLNN(ImplicitModel):
         empty = Jd.new_zeros(0)
         return Jd, empty, Jd.new_zeros(0, 3)
 
+    @property
+    def residual_mode(self) -> str:
+        """`model.residual`: "fast" (closed form) or "generic" (autodiff), the residual object's mode."""
+        return self.residual_form.mode
+
+    @residual_mode.setter
+    def residual_mode(self, mode: str) -> None:
+        self.residual_form = residual_form(mode)
+
     def _fused(self) -> bool:
         """Whether the fused paths (`engines/core.py`) serve this model: its `path`, with the fast residual."""
         return self.residual_mode == "fast" and self.path == "fused"
@@ -416,49 +427,19 @@ class LieDFLNN(ImplicitModel):
 
     # ------------------------------------------------------------------ residual
     def residual_const(self, g_prev: Pose, g: Pose) -> torch.Tensor:
-        """Terms of the residual at g fixed by (g_prev, g): D2 L_d(g_prev, g) + F^+ (+ potential)."""
-        if self.residual_mode == "generic":
-            eta = g.R.new_zeros(*g.R.shape[:-3], self.G.dim)
-            d2 = grad(lambda e: self.lagrangian(g_prev, self.G.perturb(g, e)).sum())(eta)
-            return d2 + self.half_force(g_prev, g)
-        Jd, m, rho = self._params()
-        d2 = kinetic.kinetic_d2(self.G, self.G.increment(g_prev, g), Jd, m, rho, self.h)
-        return d2 + self.half_force(g_prev, g) + self.potential_covector(g)
+        """Terms of the residual at g fixed by (g_prev, g): D2 L_d(g_prev, g) + F^+ (+ potential),
+        by the model's residual object (`residual.py`: closed form or autodiff, fixed at construction)."""
+        return self.residual_form.const(self, g_prev, g)
 
     def residual_var(self, g: Pose, g_next: Pose) -> torch.Tensor:
         """Terms depending on g_next: D1 L_d(g, g_next) + F^- (the potential is in `residual_const`
-        for the fast path, inside D1 L_d for the generic path)."""
-        if self.residual_mode == "generic":
-            eta = g.R.new_zeros(*g.R.shape[:-3], self.G.dim)
-            d1 = grad(lambda e: self.lagrangian(self.G.perturb(g, e), g_next).sum())(eta)
-            return d1 + self.half_force(g, g_next)
-        Jd, m, rho = self._params()
-        d1 = kinetic.kinetic_d1(self.G, self.G.increment(g, g_next), Jd, m, rho, self.h)
-        return d1 + self.half_force(g, g_next)
+        for the closed form, inside D1 L_d for autodiff)."""
+        return self.residual_form.var(self, g, g_next)
 
     def jacobian_var(self, g: Pose, inc: Pose) -> torch.Tensor:
-        """d residual_var(g, g inc exp(delta)) / d delta at 0, shape (..., dim, dim).
-
-        Fast path: the kinetic part is the mixed Hessian (closed form, block diagonal over
-        bodies) and each force contributes (h/2) dF/d xi~ . d xi~/d delta. Generic path: autodiff.
-        """
-        G = self.G
-        if self.residual_mode == "generic":
-            zero = inc.R.new_zeros(*inc.R.shape[:-3], G.dim)
-            f = lambda d: self.residual_var(g, G.compose(g, G.retract(inc, d)))
-            return jacobian(f, zero)
-        Jd, m, rho = self._params()
-        blocks = kinetic.mixed_hessian_blocks(G, inc, Jd, m, rho, self.h)
-        J = inc.R.new_zeros(*inc.R.shape[:-3], G.dim, G.dim)
-        for s, b in zip(G.body_slices(), blocks):
-            J[..., s, s] = b
-        if len(self.forces):
-            xi = kinetic.velocity_estimate(G, inc, self.h)
-            dxi = kinetic.velocity_estimate_jacobian(G, inc, self.h)
-            # a Tensor, not the int 0 that sum() gives for no forces (there is at least one)
-            dF = cast(torch.Tensor, sum(force_jacobian_xi(f, g, xi) for f in self.forces))
-            J = J + 0.5 * self.h * (dF @ dxi)
-        return J
+        """d residual_var(g, g inc exp(delta)) / d delta at 0, shape (..., dim, dim): the kinetic mixed
+        Hessian plus each force's (h/2) dF/d xi~ . d xi~/d delta (closed form), or autodiff."""
+        return self.residual_form.jacobian_var(self, g, inc)
 
     def value_and_grad(self, samples, opts: LossOptions, params: list[nn.Parameter]):
         """`Model.value_and_grad`: the SO(3)-only fused gradient (`engines/gradient.py`) where it applies."""
@@ -563,12 +544,7 @@ class LieDFLNN(ImplicitModel):
     def regularity_slogdet(self, g: Pose, g_next: Pose) -> tuple[torch.Tensor, torch.Tensor]:
         """(log|det H_b|, sign det(-H_b)) of each body's diagonal block H_b of the mixed Hessian,
         both (..., B); sign det(-H_b) = +1 is the normal orientation (`base.oriented_logdet`)."""
-        if self.residual_mode == "generic":
-            H = self.mixed_hessian_autodiff(g, g_next)
-            blocks = [H[..., s, s] for s in self.G.body_slices()]
-        else:
-            Jd, m, rho = self._params()
-            blocks = kinetic.mixed_hessian_blocks(self.G, self.G.increment(g, g_next), Jd, m, rho, self.h)
+        blocks = self.residual_form.hessian_blocks(self, g, g_next)
         sl = [torch.linalg.slogdet(b) for b in blocks]
         sign = [s.sign if b.shape[-1] % 2 == 0 else -s.sign for s, b in zip(sl, blocks)]  # det(-H) = (-1)^n det H
         return torch.stack([s.logabsdet for s in sl], -1), torch.stack(sign, -1)
