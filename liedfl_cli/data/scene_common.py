@@ -163,8 +163,9 @@ def check_config(c: dict, scenes: Mapping | None = None) -> dict:
     return c
 
 
-def section(c: dict, key: str, allowed: tuple[str, ...]) -> dict:
-    """The mapping `dataset.<key>` with exactly the keys `allowed` (ConfigError naming the key otherwise)."""
+def section(c: dict, key: str, allowed: tuple[str, ...], numbers: tuple[str, ...] = ()) -> dict:
+    """The mapping `dataset.<key>` with exactly the keys `allowed` (ConfigError naming the key otherwise);
+    the keys in `numbers` must be finite real numbers (returned as floats)."""
     if not isinstance(c.get(key), Mapping):
         raise ConfigError(f"dataset.{key} is required for scene {c['name']!r} (keys {list(allowed)})")
     d = dict(c[key])
@@ -173,7 +174,16 @@ def section(c: dict, key: str, allowed: tuple[str, ...]) -> dict:
         raise ConfigError(
             f"dataset.{key} for scene {c['name']!r}: missing {missing}, unknown {unknown} (expected {list(allowed)})"
         )
+    for name in numbers:
+        d[name] = finite_number(d[name], f"{key}.{name}")
     return d
+
+
+def finite_number(x, name: str) -> float:
+    """`dataset.<name>` as a float: a finite real number (not a boolean or a string), ConfigError otherwise."""
+    if isinstance(x, bool) or not isinstance(x, (int, float)) or not np.isfinite(x):
+        raise ConfigError(f"dataset.{name} must be a finite number, got {x!r}")
+    return float(x)
 
 
 def vector(x, n: int, name: str) -> list[float]:

@@ -104,7 +104,9 @@ def two_body(cfg, progress: Callable[[float], None] | None = None) -> Dataset:
     """SE(3) x SO(3): free body 1 and pivoted body 2 in gravity, coupled by an interaction potential."""
     c = check_config(to_dict(cfg))
     physics = two_body_physics(c)
-    ini = section(c, "initial", ("rot_std", "offset", "p_std", "omega_std", "v_std"))
+    ini = section(
+        c, "initial", ("rot_std", "offset", "p_std", "omega_std", "v_std"), ("rot_std", "p_std", "omega_std", "v_std")
+    )
     offset = np.asarray(vector(ini["offset"], 3, "initial.offset"))
     system = two_body_system(physics)
     rng, split_seed = rngs(c["seed"])
@@ -173,7 +175,7 @@ def pd_control(cfg, progress: Callable[[float], None] | None = None) -> Dataset:
         "feedforward": bool(ct["feedforward"]),
     }
     physics = dict(ph, control=control, bodies=["so3"])
-    ini = section(c, "initial", ("R0", "omega0", "perturb"))
+    ini = section(c, "initial", ("R0", "omega0", "perturb"), ("perturb",))
     rng, split_seed = rngs(c["seed"])
     T = int(c["n_trajectories"])
     eps = float(ini["perturb"])

@@ -64,7 +64,7 @@ def heavy_so3(cfg, progress: Callable[[float], None] | None = None) -> Dataset:
     """Exp 1: heavy rigid body on SO(3) with damping; R0 = I, w0 = omega_scale * U(ball(omega_radius))."""
     c = check_config(to_dict(cfg))
     ph = rigid_physics(c, 3)
-    ini = section(c, "initial", ("omega_scale", "omega_radius"))
+    ini = section(c, "initial", ("omega_scale", "omega_radius"), ("omega_scale", "omega_radius"))
     rng, split_seed = rngs(c["seed"])
     T = int(c["n_trajectories"])
     w0 = float(ini["omega_scale"]) * uniform_ball(rng, T, float(ini["omega_radius"]))
@@ -78,7 +78,7 @@ def free_rigid_body(cfg, progress: Callable[[float], None] | None = None) -> Dat
     """Exp 2: rigid body on SO(3) (g = 0 by default) with damping; Haar R0, w0 ~ N(0, omega_std^2 I)."""
     c = check_config(to_dict(cfg))
     ph = rigid_physics(c, 3)
-    ini = section(c, "initial", ("omega_std",))
+    ini = section(c, "initial", ("omega_std",), ("omega_std",))
     rng, split_seed = rngs(c["seed"])
     T = int(c["n_trajectories"])
     R0 = haar_rotations(rng, T)
@@ -92,7 +92,7 @@ def heavy_se3(cfg, progress: Callable[[float], None] | None = None) -> Dataset:
     """Exp 3: rigid body on SE(3) in gravity with damping on (w, v); Haar R0, Gaussian p0, w0, v0."""
     c = check_config(to_dict(cfg))
     ph = rigid_physics(c, 6)
-    ini = section(c, "initial", ("p_std", "omega_std", "v_std"))
+    ini = section(c, "initial", ("p_std", "omega_std", "v_std"), ("p_std", "omega_std", "v_std"))
     rng, split_seed = rngs(c["seed"])
     T = int(c["n_trajectories"])
     R0 = haar_rotations(rng, T)
