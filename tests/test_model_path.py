@@ -88,3 +88,26 @@ def test_fused_and_reference_models_give_the_same_loss_and_rollout(name):
     assert float((a.pose.R - b.pose.R).abs().max()) <= tol
     if a.pose.p.numel():  # SE(3) bodies
         assert float((a.pose.p - b.pose.p).abs().max()) <= tol * max(1.0, float(a.pose.p.abs().max()))
+
+
+def test_one_place_chooses_the_rollout_engine(monkeypatch):
+    """`engines/choose.py`: floats for a few trajectories of a linear single SO(3) body, columns for many,
+    rows for everything else, for the reference path and for a rollout the plan compiles."""
+    from test_fused_columns import model_named
+    from test_fused_columns import start as so3_start
+
+    from liedfl_cli.models.liedflnn.engines.choose import choose_rollout_engine
+    from liedfl_cli.solvers import compile as compile_cache
+
+    body = model_named("free_rayleigh")
+    few, many = so3_start(1)[0], so3_start(64)[0]
+    assert choose_rollout_engine(body, few, 20).name == "scalar"
+    assert choose_rollout_engine(body, many, 20).name == "columns"
+    assert choose_rollout_engine(body.with_path("reference"), many, 20).name == "rows"
+    se3 = make("se3_mlp_rayleigh")
+    assert choose_rollout_engine(se3, _start(se3.G, 4, 0.1)[0], 20).name == "rows"
+    monkeypatch.setattr(compile_cache, "compiler_available", lambda: True)
+    body.set_plan(ExecutionPlan(compile="true"))
+    assert choose_rollout_engine(body, many, 20).name == "rows"  # the compiled step lives in rows
+    body.set_plan(ExecutionPlan(compile="auto"))
+    assert choose_rollout_engine(body, many, 20).name == "columns"  # a small rollout: auto does not compile

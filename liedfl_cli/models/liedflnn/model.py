@@ -57,9 +57,8 @@ from ..base import (
 )
 from ..components import component_tagger, force_parameters
 from ..del_loss import del_regularity_loss
-from .engines import columns as fused_columns
 from .engines import core as fused
-from .engines import scalar as fused_scalar
+from .engines.choose import choose_rollout_engine
 from .residual import FORMS, residual_form
 
 RESIDUAL_MODES = tuple(FORMS)  # the residual objects' names (residual.py)
@@ -451,14 +450,11 @@ class LieDFLNN(ImplicitModel):
 
     # ------------------------------------------------------------------ implicit step (rollout)
     def rollout(self, g0: Pose, g1: Pose, steps: int, opts: SolverOptions | None = None, progress=None) -> Rollout:
-        """`ImplicitModel.rollout`; a single SO(3) body with at most constant Rayleigh damping rolls
-        out in column layout on the fused path (`fused_columns`: the same steps, several times faster
-        at large batches); one or two trajectories of such a model in Python floats (`fused_scalar`)."""
-        if fused_scalar.applies(self, g0):
-            return fused_scalar.rollout(self, g0, g1, steps, opts or SolverOptions(), progress)
-        if fused_columns.applies(self, g0):
-            return fused_columns.rollout(self, g0, g1, steps, opts or SolverOptions(), progress)
-        return self.rollout_rows(g0, g1, steps, opts or SolverOptions(), progress)
+        """`ImplicitModel.rollout` by the engine `engines/choose.py` picks: a single SO(3) body with at
+        most constant Rayleigh damping rolls out in Python floats (few trajectories) or column layout (many:
+        the same steps, several times faster at large batches) on the fused path; everything else in rows."""
+        engine = choose_rollout_engine(self, g0, steps)  # scalar | columns | rows (engines/choose.py)
+        return engine.rollout(self, g0, g1, steps, opts or SolverOptions(), progress)
 
     def rollout_rows(self, g0: Pose, g1: Pose, steps: int, opts: SolverOptions, progress=None) -> Rollout:
         """The rollout in row layout (`solvers.rollout.rollout_implicit`); its fused Newton step is

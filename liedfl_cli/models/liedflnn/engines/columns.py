@@ -244,11 +244,9 @@ def solve(step: ColumnStep, W: torch.Tensor, r: torch.Tensor, rn: torch.Tensor, 
 @torch.no_grad()
 def rollout(model, g0: Pose, g1: Pose, steps: int, opts: SolverOptions, progress=None) -> Rollout:
     """`rollout_implicit(model, ...)` in column layout (`applies(model, g0)` must hold); a rollout
-    that `runtime.compile` compiles takes the row layout's compiled step instead."""
+    the plan compiles takes the rows engine instead (`engines/choose.py`)."""
     t0 = time.perf_counter()
     T = g0.R.shape[0]
-    if model.plan.wants_compile("rollout", T * max(steps - 1, 0)):
-        return model.rollout_rows(g0, g1, steps, opts, progress)
     maps = rollout_maps(model)
     cols = ColumnMaps(model, maps)
     n_poses = max(steps, 1) + 1  # g0, g1 and g2..g_steps
