@@ -31,6 +31,9 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from ..errors import ConfigError
+from ..models.base import POTENTIAL_PARTS
+from ..models.liedflnn.model import KINETIC_KINDS, RESIDUAL_MODES
+from ..solvers.runtime import DEVICE_CHOICES, DTYPES
 from . import resolvers  # noqa: F401  (registers the config resolvers)
 from .fields import required_keys
 from .typed import SECTIONS as TYPED_SECTIONS
@@ -42,17 +45,17 @@ CONF_DIR = Path(__file__).resolve().parents[1] / "conf"  # the configs ship insi
 SECTIONS: dict[str, Any] = {k: v for k, v in TYPED_SECTIONS.items() if k != "paths"}
 """The sections whose keys and types are checked against their dataclass (config/typed.py)."""
 CHOICES = {
-    # The options whose allowed values are still listed here, not on their dataclass field: the
-    # model's (they move with the model families), the runtime's (`solvers.runtime.RuntimeOptions`
-    # checks them again; they become the execution plan) and the optimiser's (`OptimizerConfig`,
-    # being restructured with the trainer). Every other option's values: its field in config/typed.py.
+    # The options whose allowed values are not on a field of config/typed.py: each reads the one list
+    # its owner declares (LieDFLNN's options in models/liedflnn/, the runtime's in solvers/runtime.py);
+    # the optimiser's names are the trainer's registry (commands/optimizers.py, a layer above this one:
+    # tests/test_trainer_callbacks.py checks that every registered name passes this check).
     ("train", "optimizer", "name"): ("soap", "adam"),
     ("train", "optimizer", "schedule"): ("constant", "cosine"),
-    ("model", "potential"): ("auto", "mlp", "none", "uniform_gravity"),  # or a list of mlp, uniform_gravity
-    ("model", "residual"): ("fast", "generic"),
-    ("model", "kinetic"): ("auto", "per_body", "articulated"),
-    ("runtime", "device"): ("cpu", "cuda", "auto"),
-    ("runtime", "dtype"): ("float64", "float32"),
+    ("model", "potential"): ("auto", "none", *POTENTIAL_PARTS),  # or a list of the parts
+    ("model", "residual"): RESIDUAL_MODES,
+    ("model", "kinetic"): KINETIC_KINDS,
+    ("runtime", "device"): DEVICE_CHOICES,
+    ("runtime", "dtype"): tuple(DTYPES),
 }
 _TRAIN_KEYS = ("task_name", "seed", "epoch_scale", "train", "rollout", "eval", "ui", "paths")
 TOP_LEVEL: dict[str, tuple[str, ...]] = {
