@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from ..config import fields
 from ..config.typed import TrainConfig
 from ..errors import ConfigError
 from ..evaluation.metrics import geodesic_error, position_error
@@ -43,7 +44,7 @@ MIN_TRAIN_STEPS = 2
 MAX_VAL_TRAJECTORIES = 64
 MAX_ONE_STEP_PAIRS = 4096
 AUTO_VAL_PASSES = 20
-SELECT = ("val_one_step", "val_rollout", "last")
+SELECT = fields.allowed(TrainConfig, "select")  # declared once, on the field
 SELECT_COLUMN = {"val_one_step": "val_one_step_error", "val_rollout": "val_rollout_error"}
 VAL_COLUMNS = (
     "val_one_step_error",

@@ -25,6 +25,7 @@ from ..evaluation.outputs import SceneEvalOptions
 from ..files.checkpoint import CHECKPOINTS  # the checkpoint files' own list
 from ..loggers import NAMES as LOGGERS  # the loggers' own list (loggers/__init__.py)
 from ..models.base import LossOptions
+from ..models.liedflnn.losses import LOSSES
 from ..solvers.options import SolverOptions
 from ..solvers.runtime import RuntimeOptions
 from .fields import Check, Checked, check, option
@@ -76,7 +77,7 @@ class TrainConfig(Checked):
     # which weights roll out: the best validation one-step error / rollout error, or the last (docs/validation.md)
     select: str = option("val_one_step", choices_of=Literal["val_one_step", "val_rollout", "last"])
     early_stopping: EarlyStoppingConfig = field(default_factory=EarlyStoppingConfig)
-    loss: str = option("del", choices_of=Literal["del", "newton", "rollout"])  # models/liedflnn/losses.py
+    loss: str = option("del", choices_of=LOSSES)  # the training losses (models/liedflnn/losses.py)
     start: str = option("auto", choices_of=Literal["auto", "identify", "none"])  # a model's own start (articulated)
     rollout_loss: RolloutLossConfig = field(default_factory=RolloutLossConfig)
 
