@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import os
 import signal
 import subprocess
@@ -32,9 +33,36 @@ def _cfg(tmp: Path, run: str, extra=(), name="train"):
 
 
 def _losses(run: Path) -> list[list[str]]:
+    """The training columns of train_metrics.csv, as written (compared exactly: the same weights give
+    the same losses). Timings differ; the validation columns are compared by `_val_columns`."""
     with open(run / "train_metrics.csv") as f:
         rows = list(csv.DictReader(f))
-    return [[r[k] for k in r if k not in ("seconds", "val_seconds")] for r in rows]  # timings differ
+    return [[r[k] for k in r if k not in ("seconds", "val_seconds") and not k.startswith("val_")] for r in rows]
+
+
+def _val_columns(run: Path) -> list[dict[str, float]]:
+    """The validation columns as numbers. Validation passes over identical weights can differ in their
+    last digits between two runs in one process (the articulated model's, seen in about 1 of 3 repeats:
+    one-step error 0.000454389837268908 against ...094; the training losses and weights equal bit for
+    bit; the cause, likely reductions whose vectorised split follows the data's memory alignment, is not
+    isolated), so they are compared to 1e-9 of their magnitude, not as text."""
+    with open(run / "train_metrics.csv") as f:
+        rows = list(csv.DictReader(f))
+    return [
+        {k: float(v) if v else float("nan") for k, v in r.items() if k.startswith("val_") and k != "val_seconds"}
+        for r in rows
+    ]
+
+
+def _same_validation(a: Path, b: Path) -> bool:
+    va, vb = _val_columns(a), _val_columns(b)
+    if len(va) != len(vb) or any(x.keys() != y.keys() for x, y in zip(va, vb)):
+        return False
+    return all(
+        (math.isnan(x[k]) and math.isnan(y[k])) or abs(x[k] - y[k]) <= 1e-9 * max(abs(x[k]), abs(y[k]))
+        for x, y in zip(va, vb)
+        for k in x
+    )
 
 
 def _stop_at(monkeypatch, epoch: int) -> None:
@@ -93,6 +121,7 @@ def test_interrupted_then_resumed_equals_uninterrupted(tmp_path, monkeypatch, ov
     monkeypatch.undo()
     run_resume(_cfg(tmp_path, "", [f"resume={cut}", "ui.progress=false"], name="resume"))
     assert _losses(cut) == _losses(Path(full["run_dir"]))
+    assert _same_validation(cut, Path(full["run_dir"]))
     a = load_checkpoint(Path(full["run_dir"]) / "checkpoints" / "last.pt")
     b = load_checkpoint(cut / "checkpoints" / "last.pt")
     assert a["state_dict"].keys() == b["state_dict"].keys()
@@ -100,12 +129,17 @@ def test_interrupted_then_resumed_equals_uninterrupted(tmp_path, monkeypatch, ov
     assert (cut / "eval.csv").is_file()
     # the validation passes and the selection (best-so-far state, best.pt) are those of the full run
     assert "val_one_step_error" in _rows(cut)[0] and all(r["val_one_step_error"] for r in _rows(cut))
-    assert a["selection"] == b["selection"] and a["selection"]["best_epoch"] is not None
+    sa, sb = a["selection"], b["selection"]  # the best pass's metric to 1e-9 (see `_val_columns`)
+    assert {k: v for k, v in sa.items() if k != "best"} == {k: v for k, v in sb.items() if k != "best"}
+    assert abs(sa["best"] - sb["best"]) <= 1e-9 * abs(sa["best"]) and sa["best_epoch"] is not None
     best_a = load_checkpoint(Path(full["run_dir"]) / "checkpoints" / "best.pt")
     best_b = load_checkpoint(cut / "checkpoints" / "best.pt")
     assert best_a["epoch"] == best_b["epoch"] == a["selection"]["best_epoch"]
     assert all(torch.equal(best_a["state_dict"][k], best_b["state_dict"][k]) for k in best_a["state_dict"])
-    assert json.loads((cut / "summary.json").read_text())["checkpoint"] == full["checkpoint"]
+    ca, cb = json.loads((cut / "summary.json").read_text())["checkpoint"], full["checkpoint"]
+    assert {k: v for k, v in ca.items() if k != "value"} == {k: v for k, v in cb.items() if k != "value"}
+    assert (ca.get("value") is None) == (cb.get("value") is None)  # the selected pass's metric to 1e-9
+    assert ca.get("value") is None or abs(ca["value"] - cb["value"]) <= 1e-9 * abs(cb["value"])
 
 
 def test_resume_keeps_the_best_so_far_when_later_passes_are_worse(tmp_path, monkeypatch):
