@@ -17,18 +17,17 @@ tests/test_paper_plan.py.) The `slow` test runs every job for real at `budget=sm
 
 from __future__ import annotations
 
-import importlib.util
 import itertools
 import json
 import math
 import re
 import shutil
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
 import yaml
+from test_paper_plan import _plan_module  # scripts/paper_plan.py as the module `paper_plan`
 
 import liedfl_cli.cli
 from helpers import SMOKE, compose_config, train_run
@@ -46,18 +45,6 @@ EXPERIMENTS = sorted(p.stem for p in (CONF_DIR / "experiment").glob("*.yaml"))
 BUDGET = "budget=smoke"
 ARTICULATED_CLASS = "ArticulatedLieDFLNN"
 """`model.kinetic=articulated` turns LieDFLNN's config into this class (`factory.build_model`)."""
-
-
-def _plan_module():
-    """scripts/paper_plan.py as a module (the name `paper_plan`, shared with tests/test_paper_plan.py)."""
-    if "paper_plan" in sys.modules:
-        return sys.modules["paper_plan"]
-    spec = importlib.util.spec_from_file_location("paper_plan", ROOT / "scripts" / "paper_plan.py")
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["paper_plan"] = mod  # (its dataclass looks its module up there)
-    spec.loader.exec_module(mod)
-    return mod
 
 
 @dataclass(frozen=True)

@@ -9,11 +9,11 @@ import pytest
 import torch
 from test_fused import _start, make, rel, trajectories
 
-from liedfl_cli.models.base import LossOptions, check_path
+from liedfl_cli.models.base import LossOptions
 from liedfl_cli.models.liedflnn.engines import core as fused
 from liedfl_cli.solvers import rollout as rollout_loop
 from liedfl_cli.solvers import runtime
-from liedfl_cli.solvers.execution import ExecutionPlan
+from liedfl_cli.solvers.execution import ExecutionPlan, check_path
 from liedfl_cli.solvers.options import SolverOptions
 
 

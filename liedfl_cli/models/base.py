@@ -35,7 +35,7 @@ from torch import nn
 from ..errors import ConfigError
 from ..lie import Pose, ProductGroup
 from ..lie.tree import Tree
-from ..solvers.execution import PATHS, ExecutionPlan, ModelPath
+from ..solvers.execution import ExecutionPlan, ModelPath
 from ..solvers.newton import NewtonProblem, NewtonResult
 from ..solvers.options import SolverOptions
 from ..solvers.rollout import Rollout, rollout_explicit, rollout_implicit
@@ -337,7 +337,7 @@ class Model(nn.Module, abc.ABC):
     def __init__(self, path: ModelPath | None = None, plan: ExecutionPlan | None = None):
         super().__init__()
         plan = plan if plan is not None else ExecutionPlan()
-        self.plan = plan.on_path(check_path(path)) if path is not None else plan
+        self.plan = plan.on_path(path) if path is not None else plan
 
     @property
     def path(self) -> ModelPath:
@@ -362,7 +362,7 @@ class Model(nn.Module, abc.ABC):
         twin._parameters = dict(self._parameters)
         twin._buffers = dict(self._buffers)
         twin._modules = dict(self._modules)
-        twin.plan = self.plan.on_path(check_path(path))
+        twin.plan = self.plan.on_path(path)
         return twin
 
     @classmethod
@@ -507,13 +507,6 @@ def tensor_placement(module: Any) -> dict[str, Any]:
             if t.is_floating_point():
                 return {"device": t.device, "dtype": t.dtype}
     return {}
-
-
-def check_path(path: Any) -> ModelPath:
-    """`path` if it is one of PATHS, else ValueError naming the choices."""
-    if path not in PATHS:
-        raise ValueError(f"model path must be one of {PATHS}, got {path!r}")
-    return path
 
 
 def config_options(cls: type, options: Mapping[str, Any], allowed: tuple[str, ...]) -> dict[str, Any]:

@@ -33,9 +33,9 @@ training run of optimiser steps."""
 
 
 def check_path(path: object) -> ModelPath:
-    """`path` if it is "fused" or "reference"; else a one-line ConfigError."""
+    """`path` if it is "fused" or "reference"; else a one-line ConfigError (a ValueError)."""
     if path not in PATHS:
-        raise ConfigError(f"model path {path!r}: choose one of {', '.join(PATHS)}")
+        raise ConfigError(f"model path must be one of {PATHS}, got {path!r}")
     return path  # type: ignore[return-value]
 
 
