@@ -52,6 +52,17 @@ JOBS = {
         "baseline=glnn_rk4",
         "dataset.train_steps=100",
     ],
+    # Exp 1's headline (Euler angles 25x worse at the fastest start): 7 / 19 minutes of one core a run
+    "exp1 LieDFLNN omega 1.0": [
+        "experiment=exp1_euler_vs_lie",
+        "baseline=none",
+        "dataset.initial.omega_scale=1.0",
+    ],
+    "exp1 Euler DFLNN omega 1.0": [
+        "experiment=exp1_euler_vs_lie",
+        "baseline=euler_dflnn",
+        "dataset.initial.omega_scale=1.0",
+    ],
 }
 """The jobs whose full budget takes at most a few minutes of one core ("The whole paper in one run")."""
 
