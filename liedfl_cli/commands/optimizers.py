@@ -1,7 +1,7 @@
-"""The optimisers and learning-rate schedules of `liedfl train`, each a builder in a registry whose
-names are the config's values: `train.optimizer.name` picks from `OPTIMIZERS`, `train.optimizer.schedule`
-from `SCHEDULES` (an added builder is one function and one entry; `schema.py` lists the names a
-config may give).
+"""The optimisers and learning-rate schedules of `liedfl train`, each a builder `build_<name>`
+for a name the config field declares (`OptimizerConfig.name` / `.schedule` in config/typed.py, the one
+list): `train.optimizer.name` picks from `OPTIMIZERS`, `train.optimizer.schedule` from `SCHEDULES` (an
+added optimiser is its name on the field and one function here).
 
 On the fused paths (`runtime.fused`) the optimisers run without per-tensor Python:
 `fused_optim.FusedSOAP` (the library's kernels, bit for bit) and Adam's foreach update.
@@ -14,6 +14,7 @@ from collections.abc import Callable
 import torch
 from omegaconf import DictConfig
 
+from ..config.fields import allowed
 from ..config.typed import OptimizerConfig, section
 from ..errors import ConfigError
 from ..solvers import runtime
@@ -54,15 +55,11 @@ def build_cosine(opt: torch.optim.Optimizer, epochs: int) -> torch.optim.lr_sche
 OptimizerBuilder = Callable[[list, OptimizerConfig, bool], torch.optim.Optimizer]
 ScheduleBuilder = Callable[[torch.optim.Optimizer, int], "torch.optim.lr_scheduler.LRScheduler | None"]
 
-OPTIMIZERS: dict[str, OptimizerBuilder] = {"soap": build_soap, "adam": build_adam}
-"""`train.optimizer.name` -> its builder(params, config, fused)."""
-SCHEDULES: dict[str, ScheduleBuilder] = {"constant": build_constant, "cosine": build_cosine}
+OPTIMIZERS: dict[str, OptimizerBuilder] = {n: globals()[f"build_{n}"] for n in allowed(OptimizerConfig, "name")}
+"""`train.optimizer.name` -> its builder(params, config, fused): `build_<name>` for each name the config
+field declares (config/typed.py; a declared name without a builder fails at import)."""
+SCHEDULES: dict[str, ScheduleBuilder] = {n: globals()[f"build_{n}"] for n in allowed(OptimizerConfig, "schedule")}
 """`train.optimizer.schedule` -> its builder(optimizer, epochs) (None: no schedule)."""
-
-
-def _choices(names) -> str:
-    quoted = [repr(n) for n in names]
-    return " or ".join([", ".join(quoted[:-1]), quoted[-1]] if len(quoted) > 1 else quoted)
 
 
 def make_optimizer(params, cfg_opt: OptimizerConfig | DictConfig) -> torch.optim.Optimizer:
@@ -72,7 +69,7 @@ def make_optimizer(params, cfg_opt: OptimizerConfig | DictConfig) -> torch.optim
     )
     build = OPTIMIZERS.get(cfg.name)
     if build is None:
-        raise ConfigError(f"train.optimizer.name must be {_choices(OPTIMIZERS)}, got {cfg.name!r}")
+        raise ConfigError(f"train.optimizer.name={cfg.name!r}: choose one of {', '.join(OPTIMIZERS)}")
     return build(params, cfg, runtime.current().fused)
 
 
@@ -81,5 +78,5 @@ def make_schedule(opt: torch.optim.Optimizer, name: str, epochs: int):
     unknown name -> one-line ConfigError."""
     build = SCHEDULES.get(name)
     if build is None:
-        raise ConfigError(f"train.optimizer.schedule must be {_choices(SCHEDULES)}, got {name!r}")
+        raise ConfigError(f"train.optimizer.schedule={name!r}: choose one of {', '.join(SCHEDULES)}")
     return build(opt, epochs)

@@ -36,11 +36,18 @@ class Check:
     auto: bool = False  # "auto" is accepted (an integer option)
     what: str | None = None  # the wording of the requirement, where the default one does not fit
     required: tuple[str, ...] = ()  # commands whose config must hold the key
+    each_of: tuple[Any, ...] | None = None  # a list of distinct values, each one of these (or a scalar of choices)
+    item: str = "value"  # what one value of such a list is called in the error ("part")
 
     def problem(self, v: Any) -> str | None:
         """The requirement `v` breaks, in words ("must be ...", "choose one of ..."), or None."""
         if v is None and self.nullable:
             return None
+        if self.each_of is not None and isinstance(v, (list, tuple)):
+            bad = [x for x in v if x not in self.each_of]
+            if bad:
+                return f"unknown {self.item} {bad[0]!r}; choose from {', '.join(str(c) for c in self.each_of)}"
+            return f"a {self.item} is given twice" if len(set(map(str, v))) != len(v) else None
         if self.auto and v == "auto":
             return None
         if self.choices is not None:
@@ -102,13 +109,30 @@ def option(default: Any = dataclasses.MISSING, *, default_factory: Any = datacla
 
 def field_checks(schema: Any) -> dict[str, Check]:
     """Field name -> its `Check`: from the field's metadata, else from the class's `checks` (fields
-    declared by a dataclass of another layer, e.g. `SolverOptions`)."""
+    declared by a dataclass of another layer, e.g. `SolverOptions`). A layer below the config system
+    (a model's `Options`, models/base.py) declares its values in plain metadata: `{"choices": (...)}`
+    and / or `{"each_of": (...), "item": "part"}` (a list of distinct values)."""
     out = dict(getattr(schema, "checks", {}) or {})
     for f in dataclasses.fields(schema):
         c = f.metadata.get("check")
+        if c is None and ("choices" in f.metadata or "each_of" in f.metadata):
+            c = Check(
+                choices=tuple(f.metadata["choices"]) if "choices" in f.metadata else None,
+                each_of=tuple(f.metadata["each_of"]) if "each_of" in f.metadata else None,
+                item=str(f.metadata.get("item", "value")),
+            )
         if c is not None:
             out[f.name] = c
     return out
+
+
+def check_values(values: Any, schema: Any, section: str) -> None:
+    """`check_fields` on a plain mapping of a section's values (the keys it holds)."""
+    for name, c in field_checks(schema).items():
+        if isinstance(values, dict) and name in values:
+            problem = c.problem(values[name])
+            if problem is not None:
+                raise ConfigError(f"{section}.{name}={shown(values[name])}: {problem}")
 
 
 def allowed(schema: Any, name: str) -> tuple[Any, ...]:

@@ -31,11 +31,9 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from ..errors import ConfigError
-from ..models.base import POTENTIAL_PARTS
-from ..models.liedflnn.model import KINETIC_KINDS, RESIDUAL_MODES
 from ..solvers.runtime import DEVICE_CHOICES, DTYPES
 from . import resolvers  # noqa: F401  (registers the config resolvers)
-from .fields import required_keys
+from .fields import check_values, required_keys
 from .typed import SECTIONS as TYPED_SECTIONS
 from .typed import PathsConfig, TopKeys, section, wrong_type_line
 
@@ -46,14 +44,7 @@ SECTIONS: dict[str, Any] = {k: v for k, v in TYPED_SECTIONS.items() if k != "pat
 """The sections whose keys and types are checked against their dataclass (config/typed.py)."""
 CHOICES = {
     # The options whose allowed values are not on a field of config/typed.py: each reads the one list
-    # its owner declares (LieDFLNN's options in models/liedflnn/, the runtime's in solvers/runtime.py);
-    # the optimiser's names are the trainer's registry (commands/optimizers.py, a layer above this one:
-    # tests/test_trainer_callbacks.py checks that every registered name passes this check).
-    ("train", "optimizer", "name"): ("soap", "adam"),
-    ("train", "optimizer", "schedule"): ("constant", "cosine"),
-    ("model", "potential"): ("auto", "none", *POTENTIAL_PARTS),  # or a list of the parts
-    ("model", "residual"): RESIDUAL_MODES,
-    ("model", "kinetic"): KINETIC_KINDS,
+    # its owner declares (the runtime's in solvers/runtime.py; a model's on its `Options` fields).
     ("runtime", "device"): DEVICE_CHOICES,
     ("runtime", "dtype"): tuple(DTYPES),
 }
@@ -97,7 +88,6 @@ _OTHER_REQUIRED: dict[tuple[str, str], tuple[str, ...]] = {
     # it on the field: `option(required=...)`): listed after that section's own ("": before every
     # section); the config groups a command reads come after `paths`
     ("train", ""): ("seed",),
-    ("train", "train"): tuple(f"train.optimizer.{k}" for k in ("name", "lr", "weight_decay")),  # OptimizerConfig
     ("train", "paths"): ("dataset", "model", "force", "model.name"),
     ("data", "paths"): ("dataset",),
 }
@@ -364,6 +354,7 @@ def _check_model(cfg) -> None:
         _check_keys(model, ["_target_", "name", *(f.name for f in dataclasses.fields(cls.Options))], "model")
         options = {k: v for k, v in (_plain(model, "model") or {}).items() if k not in ("_target_", "name")}
         _check_types(cfg, "model", cls.Options, values=options)
+        check_values(options, cls.Options, "model")  # the values its fields declare (models/<family>/model.py)
     else:
         # A model whose config lives in this package is checked against that file here; one added on
         # Hydra's search path (hydra.searchpath) is checked by its own from_config (`config_options`).
@@ -371,15 +362,6 @@ def _check_model(cfg) -> None:
         if reference is not None:
             _check_keys(model, list(reference), "model", f" for model '{name}'")
     _check_model_size(cfg)
-    known = _value(cfg, "model.known") or []
-    if known:
-        from ..models.liedflnn.model import KNOWN_PARTS
-
-        bad = [k for k in known if k not in KNOWN_PARTS]
-        if bad:
-            raise ConfigError(
-                f"model.known={list(known)}: unknown part {bad[0]!r}; choose from {', '.join(KNOWN_PARTS)}"
-            )
 
 
 def _check_model_size(cfg) -> None:
@@ -426,26 +408,12 @@ def _check_scalars(cfg, command: str) -> None:
 
 
 def _check_values(cfg, command: str) -> None:
-    """The values no checked dataclass declares yet: the trainer's optimiser, early stopping and
-    rollout-loss groups (`OptimizerConfig`, `EarlyStoppingConfig`, `RolloutLossConfig`, being
-    restructured with the trainer), the optional TensorBoard extra and a usable `paths.data_dir`
-    (`dataset.val_fraction`: `DatasetConfig`)."""
-    if command == "train" and "train" in cfg:
-        _float(cfg, "train.optimizer.lr", positive=True)
-        _float(cfg, "train.optimizer.weight_decay", nonnegative=True)
-        if _value(cfg, "train.rollout_loss") is not None:
-            _int(cfg, "train.rollout_loss.horizon", 1)
-            _int(cfg, "train.rollout_loss.epochs", 1)
-            if _value(cfg, "train.rollout_loss.lr") is not None:
-                _float(cfg, "train.rollout_loss.lr", positive=True)
-        if _has(cfg, "train.early_stopping.patience"):
-            _int(cfg, "train.early_stopping.patience", 1, nullable=True)
-        if _has(cfg, "train.early_stopping.min_delta"):
-            _float(cfg, "train.early_stopping.min_delta", nonnegative=True)
-        if _value(cfg, "logger.name") == "tensorboard":  # the optional extra: refused before the run starts
-            from ..loggers import require_tensorboard
+    """What no field can say: the optional TensorBoard extra is installed, `paths.data_dir` is usable."""
+    # the optional extra: refused before the run starts
+    if command == "train" and "train" in cfg and _value(cfg, "logger.name") == "tensorboard":
+        from ..loggers import require_tensorboard
 
-            require_tensorboard()
+        require_tensorboard()
     if "paths" in cfg and command in ("train", "data", "rollout", "eval"):
         _check_data_dir(cfg, must_write=command in ("train", "data"))
 
@@ -518,20 +486,11 @@ def validate(cfg: DictConfig, command: str | None = None) -> None:
     _check_force(cfg)
     _check_top_keys(cfg)
     for path, allowed in CHOICES.items():
-        if path[0] == "model":
-            continue
         node = _value(cfg, ".".join(path))
         if node is not None and node not in allowed:
             raise ConfigError(f"{'.'.join(path)}={node!r}: choose one of {', '.join(allowed)}")
     _check_values(cfg, str(command))
     if "model" in cfg:
         _check_model(cfg)
-        for path, allowed in CHOICES.items():
-            if path[0] == "model":
-                node = _value(cfg, ".".join(path))
-                if isinstance(node, (list, ListConfig)) and path == ("model", "potential"):  # structured + learned
-                    node = next((x for x in node if x not in ("mlp", "uniform_gravity")), None)
-                if node is not None and node not in allowed:
-                    raise ConfigError(f"{'.'.join(path)}={node!r}: choose one of {', '.join(allowed)}")
     if command != "export":
         _check_dataset_values(cfg, str(command))

@@ -30,31 +30,38 @@ from ..solvers.options import SolverOptions
 from ..solvers.runtime import RuntimeOptions
 from .fields import Check, Checked, check, option
 
-
-@dataclass
-class OptimizerConfig:
-    name: str = "soap"  # soap | adam
-    lr: float = 3e-3
-    weight_decay: float = 0.0
-    schedule: str = "constant"  # constant | cosine
-    precondition_frequency: int = 10  # SOAP: steps between eigenbasis updates
-    max_precondition_dim: int = 10000  # SOAP: larger dimensions are not preconditioned
-
-
-@dataclass
-class EarlyStoppingConfig:
-    patience: int | None = None  # validation passes without improvement before training stops; null = off
-    min_delta: float = 0.0  # an improvement must exceed this
-
-
-@dataclass
-class RolloutLossConfig:  # train.loss=rollout: the fine-tuning stage (liedfl_cli/commands/finetune.py)
-    horizon: int = 5  # k: steps rolled out per window of k + 2 true poses
-    epochs: int = 100  # fine-tuning epochs after train.epochs of the DEL loss
-    lr: Any = None  # null: train.optimizer.lr
-
-
 TRAIN = ("train",)
+
+
+@dataclass
+class OptimizerConfig(Checked):
+    section: ClassVar[str] = "train.optimizer"
+
+    # the names are declared here only: commands/optimizers.py finds each one's builder (`build_<name>`)
+    name: str = option("soap", choices_of=Literal["soap", "adam"], required=TRAIN)
+    lr: float = option(3e-3, number="positive", required=TRAIN)
+    weight_decay: float = option(0.0, number="nonnegative", required=TRAIN)
+    schedule: str = option("constant", choices_of=Literal["constant", "cosine"])
+    precondition_frequency: int = option(10, integer=1)  # SOAP: steps between eigenbasis updates
+    max_precondition_dim: int = option(10000, integer=1)  # SOAP: larger dimensions are not preconditioned
+
+
+@dataclass
+class EarlyStoppingConfig(Checked):
+    section: ClassVar[str] = "train.early_stopping"
+
+    # validation passes without improvement before training stops; null = off
+    patience: int | None = option(None, integer=1, nullable=True)
+    min_delta: float = option(0.0, number="nonnegative")  # an improvement must exceed this
+
+
+@dataclass
+class RolloutLossConfig(Checked):  # train.loss=rollout: the fine-tuning stage (liedfl_cli/commands/finetune.py)
+    section: ClassVar[str] = "train.rollout_loss"
+
+    horizon: int = option(5, integer=1)  # k: steps rolled out per window of k + 2 true poses
+    epochs: int = option(100, integer=1)  # fine-tuning epochs after train.epochs of the DEL loss
+    lr: Any = option(None, number="positive", nullable=True)  # null: train.optimizer.lr
 
 
 @dataclass

@@ -13,10 +13,10 @@ from ..lie import ProductGroup
 from ..mechanics.forces import RayleighForce
 from ..mechanics.scene_physics import body_parameters, true_control, true_potential
 from .base import ImplicitModel
-from .liedflnn.model import LieDFLNN
+from .liedflnn.model import DEFAULT_RESIDUAL, LieDFLNN
 
 
-def physics_model(G: ProductGroup, h: float, physics: dict, residual: str = "fast") -> LieDFLNN:
+def physics_model(G: ProductGroup, h: float, physics: dict, residual: str = DEFAULT_RESIDUAL) -> LieDFLNN:
     """LieDFLNN carrying the true parameters of `physics` (every part frozen).
 
     Bodies share J/m/rho when a single value is given. Parameters set: J (B, 3, 3), masses (m,)
@@ -44,7 +44,7 @@ def physics_model(G: ProductGroup, h: float, physics: dict, residual: str = "fas
     return model
 
 
-def true_model(dataset, residual: str = "fast") -> ImplicitModel | None:
+def true_model(dataset, residual: str = DEFAULT_RESIDUAL) -> ImplicitModel | None:
     """The true-parameter scheme of a synthetic dataset (`physics_model` of its params["physics"]
     on the dataset's group and h; for articulated physics declared with the data's kinematic tree,
     `articulated_true_model`), or None for real recordings.

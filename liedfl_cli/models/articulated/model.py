@@ -47,7 +47,7 @@ from .. import mlp_derivatives
 from ..base import Batch, ImplicitModel, LossOptions, TrajectoryBatch, TripletBatch, TripletSet, oriented_logdet
 from ..components import component_tagger, force_parameters
 from ..del_loss import del_regularity_loss
-from ..liedflnn.model import check_options
+from ..liedflnn.model import DEFAULT_RESIDUAL, check_options
 from .engines import fused as fused_articulated
 from .engines.fused import FusedArticulatedState
 
@@ -318,7 +318,7 @@ class ArticulatedLieDFLNN(ImplicitModel):
         h: float,
         potential=(),
         forces=("rayleigh",),
-        residual: str = "fast",
+        residual: str = DEFAULT_RESIDUAL,
         mlp_width: int = 64,
         mlp_depth: int = 3,
         epsilon: float = 10.0,
@@ -1035,7 +1035,9 @@ def resolve_joints(ctx, tree: Tree, joints) -> tuple[Tree, str, str | None]:
     return out, note, format_inference(result, None)
 
 
-def articulated_true_model(tree: Tree, h: float, physics: dict, residual: str = "fast") -> ArticulatedLieDFLNN:
+def articulated_true_model(
+    tree: Tree, h: float, physics: dict, residual: str = DEFAULT_RESIDUAL
+) -> ArticulatedLieDFLNN:
     """The articulated scheme with the declared truth (every part known and frozen)."""
     truth = articulated_parameters(physics, tree.n_bodies)
     damped = bool(torch.count_nonzero(joint_damping_matrix(tree, truth)))

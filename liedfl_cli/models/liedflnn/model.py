@@ -62,6 +62,7 @@ from .engines.choose import choose_rollout_engine
 from .residual import FORMS, residual_form
 
 RESIDUAL_MODES = tuple(FORMS)  # the residual objects' names (residual.py)
+DEFAULT_RESIDUAL = "fast"  # the closed form; "generic" (autodiff) is the reference it is tested against
 KINETIC_KINDS = ("auto", "per_body", "articulated")
 KNOWN_PARTS = ("inertia", "potential", "damping")
 
@@ -100,14 +101,21 @@ class LieDFLNNOptions:
     """LieDFLNN's config options (conf/model/liedflnn.yaml; also ArticulatedLieDFLNN's): the schema
     `config/schema.py` checks the `model` section's keys and types against (`Model.Options`)."""
 
-    potential: Any = "auto"  # auto | none | mlp | uniform_gravity | a list of mlp, uniform_gravity
-    residual: str = "fast"  # fast (closed-form kinetic derivatives) | generic (autodiff of L_d)
-    kinetic: str = "auto"  # auto (articulated where the data declare a tree) | per_body (the paper's) | articulated
+    # auto | none | mlp | uniform_gravity | a list of mlp, uniform_gravity
+    potential: Any = field(
+        default="auto",
+        metadata={"choices": ("auto", "none", *POTENTIAL_PARTS), "each_of": POTENTIAL_PARTS, "item": "part"},
+    )
+    # fast (closed-form kinetic derivatives) | generic (autodiff of L_d): the residual objects (residual.py)
+    residual: str = field(default=DEFAULT_RESIDUAL, metadata={"choices": RESIDUAL_MODES})
+    # auto (articulated where the data declare a tree) | per_body (the paper's) | articulated
+    kinetic: str = field(default="auto", metadata={"choices": KINETIC_KINDS})
     joints: Any = "auto"  # articulated: auto (declared, else inferred) | declared | ball | {kinds, axes}
     mlp_width: int = 64
     mlp_depth: int = 3
     init_jitter: float = 0.1
-    known: list[str] = field(default_factory=list)  # parts set to the scene's true values and frozen
+    # parts set to the scene's true values and frozen
+    known: list[str] = field(default_factory=list, metadata={"each_of": KNOWN_PARTS, "item": "part"})
     gravity: Any = "auto"  # field strength of uniform_gravity: auto (the data's g, else 9.81) | a number
     learn_gravity_direction: bool = False
     substeps: int = 1  # DEL sub-steps per sample step (models/liedflnn/substeps.py): error / substeps^2
@@ -144,7 +152,7 @@ class LieDFLNN(ImplicitModel):
         h: float,
         potential="none",
         forces=("rayleigh",),
-        residual: str = "fast",
+        residual: str = DEFAULT_RESIDUAL,
         mlp_width: int = 64,
         mlp_depth: int = 3,
         epsilon: float = 10.0,
