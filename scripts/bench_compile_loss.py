@@ -2,7 +2,7 @@
 
     python scripts/bench_compile_loss.py [--experiment exp4_mocap] [--steps 20] [--data-dir DIR]
 
-Builds the experiment's model and one training batch (fused engine), compiles `fused_loss`
+Builds the experiment's model and one training batch (fused engine), compiles `increments_loss` (engines/training.py)
 (`torch.compile(dynamic=True)`, as `runtime.compile=true` does), and prints the compile time and the
 CPU time of one forward + backward step, eager and compiled (best of 3 x `--steps`). Figures:
 docs/benchmarks.md, "Compilation".
@@ -27,7 +27,7 @@ from liedfl_cli.config.factory import build_model  # noqa: E402
 from liedfl_cli.data.scenes import get_dataset  # noqa: E402
 from liedfl_cli.models.base import LossOptions  # noqa: E402
 from liedfl_cli.models.liedflnn.engines import core as fused  # noqa: E402
-from liedfl_cli.models.liedflnn.model import fused_loss  # noqa: E402
+from liedfl_cli.models.liedflnn.engines.training import increments_loss as fused_loss  # noqa: E402
 from liedfl_cli.solvers import runtime  # noqa: E402
 
 

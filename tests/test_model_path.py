@@ -111,3 +111,36 @@ def test_one_place_chooses_the_rollout_engine(monkeypatch):
     assert choose_rollout_engine(body, many, 20).name == "rows"  # the compiled step lives in rows
     body.set_plan(ExecutionPlan(compile="auto"))
     assert choose_rollout_engine(body, many, 20).name == "columns"  # a small rollout: auto does not compile
+
+
+def test_one_place_chooses_the_training_engine(monkeypatch):
+    """`engines/choose.py`: increments on the fused path with the closed-form residual, triplets for the
+    reference path or the autodiff residual; a batch is computed by the engine that built it (a triplet
+    batch on a fused model by the reference), with the same loss; the train compile policy lives there."""
+    from liedfl_cli.models.base import TripletSet
+    from liedfl_cli.models.liedflnn.engines import choose, training
+
+    fus = make("free_so3_rayleigh")
+    generic = make("free_so3_rayleigh")
+    generic.residual_mode = "generic"
+    assert choose.choose_training_engine(fus).name == "increments"
+    assert choose.choose_training_engine(fus.with_path("reference")).name == "triplets"
+    assert choose.choose_training_engine(generic).name == "triplets"
+    data = trajectories(fus.G)
+    idx = torch.arange(12)
+    inc = fus.training_set(data, 10).batch(idx, torch.Generator().manual_seed(1), 10)
+    tri = TripletSet(data, 10).batch(idx, torch.Generator().manual_seed(1), 10)
+    assert choose.choose_training_engine(fus, inc).name == "increments"
+    assert choose.choose_training_engine(fus, tri).name == "triplets"
+    a, b = fus.loss(inc, LossOptions())[0], fus.loss(tri, LossOptions())[0]
+    assert rel(a.detach(), b.detach()) <= 1e-12
+    with pytest.raises(TypeError, match="trains on triplets"):
+        choose.choose_training_engine(fus, object())
+    from liedfl_cli.solvers import compile as compile_cache
+
+    seen: list[str] = []
+    monkeypatch.setattr(compile_cache, "compiled", lambda fn, key: seen.append(key) or fn)
+    monkeypatch.setattr(type(fus.plan), "wants_compile", lambda self, what, work=0: what == "train")
+    assert rel(fus.loss(inc, LossOptions())[0].detach(), a.detach()) <= 1e-12
+    assert seen == ["train_loss"]  # the increments engine asked for the compiled loss
+    assert training.increments_loss.__module__.endswith("engines.training")

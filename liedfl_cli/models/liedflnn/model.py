@@ -38,7 +38,6 @@ from ...mechanics.potentials import (
     UniformGravityPotential,
 )
 from ...mechanics.scene_physics import body_parameters, true_potential
-from ...solvers import compile as compile_cache
 from ...solvers.newton import NewtonProblem
 from ...solvers.options import SolverOptions
 from ...solvers.rollout import Rollout, rollout_implicit
@@ -58,7 +57,7 @@ from ..base import (
 from ..components import component_tagger, force_parameters
 from ..del_loss import del_regularity_loss
 from .engines import core as fused
-from .engines.choose import choose_rollout_engine
+from .engines.choose import choose_rollout_engine, choose_training_engine
 from .residual import FORMS, residual_form
 
 RESIDUAL_MODES = tuple(FORMS)  # the residual objects' names (residual.py)
@@ -333,14 +332,14 @@ class LieDFLNN(ImplicitModel):
         return self.residual_mode == "fast" and self.path == "fused"
 
     def training_set(self, data: Pose, steps: int):
-        """Triplets as precomputed increments (`fused.IncrementSet`) on the fused path."""
-        if self._fused():
-            return fused.IncrementSet(self, data, steps)
-        return super().training_set(data, steps)
+        """The training samples of the engine `engines/choose.py` picks (precomputed increments on the
+        fused path, pose triplets otherwise)."""
+        return choose_training_engine(self).samples(self, data, steps)
 
-    def loss(self, batch: Batch | fused.IncrementBatch, opts: LossOptions):
-        """w_DEL mean ||r||^2 + w_reg mean penalty(log|det H|) -> (loss, {"del_loss", "reg_loss"});
-        `opts.loss` newton / rollout: `models.liedflnn.losses`."""
+    def loss(self, batch: Batch, opts: LossOptions):
+        """w_DEL mean ||r||^2 + w_reg mean penalty(log|det H|) -> (loss, {"del_loss", "reg_loss"}), by the
+        engine that serves the batch (`engines/choose.py`); `opts.loss` newton / rollout:
+        `models.liedflnn.losses`."""
         if opts.loss != "del":
             from . import losses
 
@@ -348,13 +347,11 @@ class LieDFLNN(ImplicitModel):
                 return losses.newton_loss(self, batch, opts)
             assert isinstance(batch, TrajectoryBatch), "train.loss=rollout trains on windows (losses.WindowSet)"
             return losses.rollout_window_loss(self, batch, opts, opts.solver)
-        if isinstance(batch, fused.IncrementBatch):
-            if self.plan.wants_compile("train"):  # the whole loss, forward and backward, compiled
-                ref = next(self.parameters())
-                fused.warm_caches(ref.dtype, ref.device, float(self.h))
-                return compile_cache.compiled(fused_loss, "train_loss")(self, batch, opts)
-            return fused_loss(self, batch, opts)
-        assert isinstance(batch, TripletBatch), "LieDFLNN trains on triplets (window = 'triplet')"
+        return choose_training_engine(self, batch).loss(self, batch, opts)
+
+    def triplet_loss(self, batch: TripletBatch, opts: LossOptions):
+        """The DEL loss of a batch of pose triplets by the model's residual object: the meaning every
+        training engine must equal (`engines/choose.py`)."""
         logdet = None
         if batch.reg is not None and opts.w_reg > 0:
             logdet = oriented_logdet(*self.regularity_slogdet(*batch.reg), opts.epsilon)
@@ -450,11 +447,9 @@ class LieDFLNN(ImplicitModel):
 
     def value_and_grad(self, samples, opts: LossOptions, params: list[nn.Parameter]):
         """`Model.value_and_grad`: the SO(3)-only fused gradient (`engines/gradient.py`) where it applies."""
-        if type(self) is not LieDFLNN:  # a subclass (the articulated model) has other parameters
+        if type(self) is not LieDFLNN:  # a subclass may have other parameters
             return None
-        from .engines.gradient import RotationalGradient
-
-        return RotationalGradient.make(self, samples, opts, params)
+        return choose_training_engine(self).value_and_grad(self, samples, opts, params)
 
     # ------------------------------------------------------------------ implicit step (rollout)
     def rollout(self, g0: Pose, g1: Pose, steps: int, opts: SolverOptions | None = None, progress=None) -> Rollout:
@@ -552,12 +547,3 @@ class LieDFLNN(ImplicitModel):
         sl = [torch.linalg.slogdet(b) for b in blocks]
         sign = [s.sign if b.shape[-1] % 2 == 0 else -s.sign for s, b in zip(sl, blocks)]  # det(-H) = (-1)^n det H
         return torch.stack([s.logabsdet for s in sl], -1), torch.stack(sign, -1)
-
-
-def fused_loss(model: LieDFLNN, batch: fused.IncrementBatch, opts: LossOptions):
-    """`LieDFLNN.loss` of an `IncrementBatch`: the fused residual and regularity (what
-    `runtime.compile` compiles for training); SO(3)-only models whose trainable parts are J_d and
-    D take the hand-written gradient of `fused.rotational_loss`."""
-    if fused.rotational_only(model, batch) and not torch.compiler.is_compiling():
-        return fused.rotational_loss(model, batch, opts)
-    return del_regularity_loss(*fused.residual_and_logdet(model, batch, opts), opts)

@@ -350,3 +350,14 @@ class _RotationalLoss(torch.autograd.Function):
         g_reg = g_loss * w_reg + (g_reg if g_reg is not None else 0.0)
         dJd, dD = rotational_backward((*ctx.saved_tensors, fixed), g_del, g_reg)
         return dJd, dD, None, None, None, None, None, None
+
+
+def increments_loss(model, batch: IncrementBatch, opts) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """`LieDFLNN.loss` of an `IncrementBatch`: the fused residual and regularity (what `runtime.compile`
+    compiles for training); SO(3)-only models whose trainable parts are J_d and D take the hand-written
+    gradient of `rotational_loss`. Equal to the model's own `triplet_loss` to rounding (tests/test_fused.py)."""
+    from ...del_loss import del_regularity_loss
+
+    if rotational_only(model, batch) and not torch.compiler.is_compiling():
+        return rotational_loss(model, batch, opts)
+    return del_regularity_loss(*residual_and_logdet(model, batch, opts), opts)
