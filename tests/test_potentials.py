@@ -206,7 +206,7 @@ def test_a_misspelled_potential_in_a_list_is_rejected(tmp_path):
     GlobalHydra.instance().clear()
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose(config_name="train", overrides=[f"paths.data_dir={tmp_path}", "model.potential=[uniform,mlp]"])
-    with pytest.raises(ConfigError, match="model.potential='uniform'"):
+    with pytest.raises(ConfigError, match=r"model.potential=\['uniform', 'mlp'\]: unknown part 'uniform'"):
         validate(cfg)
 
 

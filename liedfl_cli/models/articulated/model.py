@@ -42,7 +42,7 @@ from ...mechanics import kinetic
 from ...mechanics.forces import RayleighForce, build_forces, force_jacobian_xi
 from ...mechanics.parameterizations import Inertia, PositiveVector
 from ...mechanics.potentials import STANDARD_GRAVITY, GravityPotential, MLPPotential, UniformGravityPotential
-from ...solvers.newton import NewtonProblem, jacobian
+from ...solvers.newton import NewtonProblem
 from .. import mlp_derivatives
 from ..base import Batch, ImplicitModel, LossOptions, TrajectoryBatch, TripletBatch, TripletSet, oriented_logdet
 from ..components import component_tagger, force_parameters
@@ -50,6 +50,7 @@ from ..del_loss import del_regularity_loss
 from ..liedflnn.model import DEFAULT_RESIDUAL, check_options
 from .engines import fused as fused_articulated
 from .engines.fused import FusedArticulatedState
+from .residual import residual_form
 
 
 def geometric_start(tree: Tree) -> tuple[torch.Tensor, torch.Tensor]:
@@ -332,7 +333,8 @@ class ArticulatedLieDFLNN(ImplicitModel):
     ):
         super().__init__()
         known = check_options(residual, known, physics)
-        self.tree, self.G, self.h, self.residual_mode = tree, tree.group, float(h), residual
+        self.tree, self.G, self.h = tree, tree.group, float(h)
+        self.residual_form = residual_form(residual)  # closed form or autodiff, fixed here (residual.py)
         self.known = known
         self.epsilon = float(epsilon)
         B = tree.n_bodies
@@ -456,7 +458,7 @@ class ArticulatedLieDFLNN(ImplicitModel):
     def initial_fit(self, samples: Any, method: str = "auto") -> str | None:
         """`Model.initial_fit`: the prediction-weighted least-squares start (`models.articulated.fit`),
         on the fast path's triplets only; the scale from dataset.total_mass when given."""
-        if self.residual_mode != "fast" or not isinstance(samples, ArticulatedTriplets) or self.known:
+        if not self.residual_form.closed_form or not isinstance(samples, ArticulatedTriplets) or self.known:
             return None
         from .fit import least_squares_start
 
@@ -599,35 +601,19 @@ class ArticulatedLieDFLNN(ImplicitModel):
         return out
 
     # ------------------------------------------------------------------ residual
-    def _generic_d(self, which: int, a: Pose, b: Pose) -> torch.Tensor:
-        """Autodiff of L_d(a, b) under the left perturbation of argument `which` (1 or 2)."""
-        x = b if which == 2 else a
-        eta = x.R.new_zeros(*x.R.shape[:-3], self.G.dim)
-        if which == 2:
-            return grad(lambda e: self.lagrangian(a, self.G.perturb(b, e)).sum())(eta)
-        return grad(lambda e: self.lagrangian(self.G.perturb(a, e), b).sum())(eta)
+    @property
+    def residual_mode(self) -> str:
+        """`model.residual`: "fast" (closed form) or "generic" (autodiff), the residual object's mode."""
+        return self.residual_form.mode
 
     def residual_const(self, g_prev: Pose, g: Pose) -> torch.Tensor:
-        """D2 L_d(g_prev, g) + F^+ (+ the potential, fast path): the part fixed by (g_prev, g)."""
-        if self.residual_mode == "generic":
-            return self._generic_d(2, g_prev, g) + self.half_force(g_prev, g, at=g)
-        Gw = art.world_group(self.tree)
-        world, A = art.fk_and_jacobian(self.tree, g)
-        inc_w = Gw.increment(forward_kinematics(self.tree, g_prev), world)
-        Jd, m, rho = self._params()
-        d2 = kinetic.kinetic_d2(Gw, inc_w, Jd, m, rho, self.h)
-        return art.to_coordinates(A, d2) + self.potential_covector(g, world, A) + self.half_force(g_prev, g, at=g)
+        """D2 L_d(g_prev, g) + F^+ (+ the potential): the part fixed by (g_prev, g), by the model's
+        residual object (`residual.py`)."""
+        return self.residual_form.const(self, g_prev, g)
 
     def residual_var(self, g: Pose, g_next: Pose) -> torch.Tensor:
         """D1 L_d(g, g_next) + F^- (the part depending on g_next)."""
-        if self.residual_mode == "generic":
-            return self._generic_d(1, g, g_next) + self.half_force(g, g_next, at=g)
-        Gw = art.world_group(self.tree)
-        world, A = art.fk_and_jacobian(self.tree, g)
-        inc_w = Gw.increment(world, forward_kinematics(self.tree, g_next))
-        Jd, m, rho = self._params()
-        d1 = kinetic.kinetic_d1(Gw, inc_w, Jd, m, rho, self.h)
-        return art.to_coordinates(A, d1) + self.half_force(g, g_next, at=g)
+        return self.residual_form.var(self, g, g_next)
 
     def residual(self, g_prev: Pose, g: Pose, g_next: Pose) -> torch.Tensor:
         """Forced DEL residual at g in the tree's coordinates, (..., dim); on a reduced tree (hinge,
@@ -683,19 +669,8 @@ class ArticulatedLieDFLNN(ImplicitModel):
 
     def jacobian_var(self, g: Pose, inc: Pose) -> torch.Tensor:
         """d residual_var(g, g inc exp(delta)) / d delta at 0, (..., dim, dim): A_k^T blockdiag(H_b) A_{k+1}
-        plus the forces (fast), or autodiff (generic)."""
-        G = self.G
-        if self.residual_mode == "generic":
-            zero = inc.R.new_zeros(*inc.R.shape[:-3], G.dim)
-            J = jacobian(lambda d: self.residual_var(g, G.compose(g, G.retract(inc, d))), zero)
-            return self.reduce_jacobian(g, inc, J) if self.reduced else J
-        Gw = art.world_group(self.tree)
-        world, A = art.fk_and_jacobian(self.tree, g)
-        w_next, A_next = art.fk_and_jacobian(self.tree, G.compose(g, inc))
-        Jd, m, rho = self._params()
-        J = art.newton_jacobian(A, Gw.increment(world, w_next), A_next, Jd, m, rho, self.h)
-        Jf = self._force_jacobian(g, inc)
-        J = J if Jf is None else J + Jf
+        plus the forces (closed form), or autodiff; on a reduced tree in its joints' DoF."""
+        J = self.residual_form.jacobian_var(self, g, inc)
         return self.reduce_jacobian(g, inc, J) if self.reduced else J
 
     def reduce_jacobian(
@@ -724,7 +699,7 @@ class ArticulatedLieDFLNN(ImplicitModel):
 
     # ------------------------------------------------------------------ training
     def training_set(self, data: Pose, steps: int):
-        if self.residual_mode == "fast":
+        if self.residual_form.closed_form:
             return ArticulatedTriplets(self, data, steps)
         return super().training_set(data, steps)
 
@@ -853,63 +828,23 @@ class ArticulatedLieDFLNN(ImplicitModel):
             return state.engine.problem(state)
         if self.reduced:
             return self._reduced_problem(state)
-        G, Gw, tree = self.G, art.world_group(self.tree), self.tree
-        g, world, A = state.g, state.world, state.A
+        g, form = state.g, self.residual_form
         with torch.enable_grad():
-            if self.residual_mode == "generic":
-                const = self.residual_const(state.g_prev, g).detach()
-            else:
-                Jd, m, rho = self._params()
-                inc_w = Gw.increment(forward_kinematics(tree, state.g_prev), world)
-                const = (
-                    art.to_coordinates(A, kinetic.kinetic_d2(Gw, inc_w, Jd, m, rho, self.h))
-                    + self.potential_covector(g, world, A)
-                    + self.half_force(state.g_prev, g, at=g)
-                ).detach()
+            const = form.const(self, state.g_prev, g, fk=(state.world, state.A)).detach()
+        var, jac = form.step_terms(self, g, state.world, state.A)
 
-        if self.residual_mode == "generic":
+        def f(x: Pose) -> torch.Tensor:
+            return const + var(x)
 
-            def f(x: Pose) -> torch.Tensor:
-                with torch.enable_grad():
-                    return const + self.residual_var(g, G.compose(g, x))
-
-            def jac(x: Pose) -> torch.Tensor:
-                with torch.enable_grad():
-                    return self.jacobian_var(g, x)
-
-            return NewtonProblem(f, jac, state.inc, G.retract)
-
-        with torch.no_grad():
-            Jd, m, rho = (t.detach() for t in self._params())
-        # fixed for this step's Newton iterations: g's joint coordinates and joint-velocity map
-        q, C = art.joint_coordinates(tree, g), art.joint_velocity_map(tree, g)
-
-        def f_fast(x: Pose) -> torch.Tensor:
-            g_next = G.compose(g, x)
-            d1 = kinetic.kinetic_d1(Gw, Gw.increment(world, forward_kinematics(tree, g_next)), Jd, m, rho, self.h)
-            r = const + art.to_coordinates(A, d1)
-            if not len(self.forces):
-                return r
-            tau = self.joint_torque(g, g_next, q=q).detach()
-            return r + 0.5 * self.h * (tau if C is None else (C.transpose(-1, -2) @ tau[..., None])[..., 0])
-
-        def jac_fast(x: Pose) -> torch.Tensor:
-            w_next, A_next = art.fk_and_jacobian(tree, G.compose(g, x))
-            J = art.newton_jacobian(A, Gw.increment(world, w_next), A_next, Jd, m, rho, self.h)
-            Jf = self._force_jacobian(g, x, fixed=(q, C))
-            return J if Jf is None else J + Jf.detach()
-
-        return NewtonProblem(f_fast, jac_fast, state.inc, G.retract)
+        return NewtonProblem(f, jac, state.inc, self.G.retract)
 
     def _reduced_problem(self, state: ArticulatedState) -> NewtonProblem:
         """The DEL equations of a tree with hinge, universal or weld joints on its n DoF: residual
         T(g_k)^T r + (h/2)(tau_{k-1} + tau_k) (n,), Jacobian T_k^T H T_{k+1} (+ damping), the unknown
         the coordinate increment moved along the joints (`lie.joints.retract`), so every joint stays
         on its manifold. The warm start is the last increment's DoF applied at g_k."""
-        G, Gw, tree, h = self.G, art.world_group(self.tree), self.tree, self.h
-        g, world, A = state.g, state.world, state.A
-        generic = self.residual_mode == "generic"
-        C = art.joint_velocity_map(tree, g) if len(self.forces) else None  # only other forces need it
+        G, tree, h = self.G, self.tree, self.h
+        g = state.g
         Tk = jt.coordinate_basis(tree, g)
         Tk_t = Tk.transpose(-1, -2)
         q_prev, q = jt.to_joint_coordinates(tree, state.g_prev), jt.to_joint_coordinates(tree, g)
@@ -921,34 +856,18 @@ class ArticulatedLieDFLNN(ImplicitModel):
                 const = const + 0.5 * h * damper(reduced_velocity(tree, q_prev, q, h))
             const = const.detach()
         with torch.no_grad():
-            Jd, m, rho = (t.detach() for t in self._params())
             d = None if damper is None else damper.coefficients().detach()
-        qC = (art.joint_coordinates(tree, g), C)
+        var_full, jac_full = self.residual_form.step_terms(self, g, state.world, state.A)
 
         def f(x: Pose) -> torch.Tensor:
-            g_next = G.compose(g, x)
-            if generic:
-                with torch.enable_grad():
-                    r = self.residual_var(g, g_next).detach()
-            else:
-                d1 = kinetic.kinetic_d1(Gw, Gw.increment(world, forward_kinematics(tree, g_next)), Jd, m, rho, h)
-                r = art.to_coordinates(A, d1)
-                if len(self.forces):
-                    tau = self.joint_torque(g, g_next, q=qC[0]).detach()
-                    r = r + 0.5 * h * (tau if C is None else (C.transpose(-1, -2) @ tau[..., None])[..., 0])
-            r = const + (Tk_t @ r[..., None])[..., 0]
+            r = const + (Tk_t @ var_full(x).detach()[..., None])[..., 0]
             if d is not None:
+                g_next = G.compose(g, x)
                 r = r - 0.5 * h * d * reduced_velocity(tree, q, jt.to_joint_coordinates(tree, g_next), h)
             return r
 
         def jac(x: Pose) -> torch.Tensor:
-            if generic:
-                with torch.enable_grad():
-                    return self.jacobian_var(g, x).detach()
-            w_next, A_next = art.fk_and_jacobian(tree, G.compose(g, x))
-            J = art.newton_jacobian(A, Gw.increment(world, w_next), A_next, Jd, m, rho, h)
-            Jf = self._force_jacobian(g, x, fixed=qC)
-            return self.reduce_jacobian(g, x, J if Jf is None else J + Jf.detach(), damping=d, Tk=Tk, q=q)
+            return self.reduce_jacobian(g, x, jac_full(x).detach(), damping=d, Tk=Tk, q=q)
 
         # warm start: the last increment's DoF (least squares) applied at g_k, exactly on the joints
         d0 = jt.reduce(Tk, G.log(state.inc))

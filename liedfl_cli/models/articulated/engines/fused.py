@@ -59,8 +59,8 @@ SUPPORTED_JOINTS = ("free", "ball", "universal", "hinge", "weld")
 
 def applies(model) -> str | None:
     """None when the fused engine serves `model` (an `ArticulatedLieDFLNN`), else why not (one line)."""
-    if model.residual_mode != "fast":
-        return "residual=generic"
+    if not model.residual_form.closed_form:  # the engine is the closed form batched
+        return f"residual={model.residual_mode}"
     if len(model.forces) and not (model.reduced or model.tree.rotations == "parent"):
         return "joint-space forces on an unreduced tree with world rotations"
     bad = [k for k in model.tree.joint_kinds if k not in SUPPORTED_JOINTS]
