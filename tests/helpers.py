@@ -27,6 +27,27 @@ def compose_config(name: str = "train", overrides=(), conf_dir: Path = CONF_DIR)
         return compose(config_name=name, overrides=list(overrides))
 
 
+def model_file(name: str, conf_dir: Path = CONF_DIR):
+    """conf/model/<name>.yaml with the files its defaults list names merged under it (as Hydra does)."""
+    from omegaconf import OmegaConf
+
+    raw = OmegaConf.load(conf_dir / "model" / f"{name}.yaml")
+    defaults = list(raw.pop("defaults", []))
+    out = OmegaConf.create({})
+    for d in defaults:
+        out = OmegaConf.merge(out, raw if d == "_self_" else model_file(str(d), conf_dir))
+    return out if "_self_" in defaults else OmegaConf.merge(out, raw)
+
+
+def single_body_models(conf_dir: Path = CONF_DIR) -> list[str]:
+    """The model configs other than LieDFLNN's that any dataset can train (not those needing a tree):
+    the baselines the generic tests train on a free body."""
+    from liedfl_cli.config.factory import model_class
+
+    names = sorted(p.stem for p in (conf_dir / "model").glob("*.yaml") if p.stem != "liedflnn")
+    return [n for n in names if not model_class(model_file(n, conf_dir)._target_).needs_tree]
+
+
 def train_run(root: Path, *overrides: str, name: str = "run") -> Path:
     """`run_train` of the train config with `overrides`, output in root/name, data in root/data (in
     this process): the run folder. For module fixtures that need one finished run."""

@@ -15,7 +15,7 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from helpers import SMOKE, compose_config
+from helpers import SMOKE, compose_config, single_body_models
 from liedfl_cli.commands.train import fit, run_train
 from liedfl_cli.config.factory import build_model
 from liedfl_cli.data.scenes import generate
@@ -30,8 +30,9 @@ from liedfl_cli.solvers.options import SolverOptions
 from liedfl_cli.solvers.rollout import Rollout
 
 CONF = str(Path(__file__).resolve().parents[1] / "liedfl_cli" / "conf")
-# every model config except LieDFLNN's own: a new model file + config is covered without editing this list
-NAMES = sorted(p.stem for p in (Path(CONF) / "model").glob("*.yaml") if p.stem != "liedflnn")
+# every model config except LieDFLNN's own and those needing a kinematic tree (the articulated one:
+# tests/test_articulated_config.py): a new model file + config is covered without editing this list
+NAMES = single_body_models()
 J_TRUE = torch.diag(torch.tensor([1.521, 1.362, 1.211], dtype=torch.float64))
 D_TRUE = 0.05 * torch.eye(3, dtype=torch.float64)
 F64 = torch.float64

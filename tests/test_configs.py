@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 from omegaconf import OmegaConf
 
-from helpers import compose_config
+from helpers import compose_config, model_file
 from liedfl_cli.cli import COMMANDS, CONF_DIR
 from liedfl_cli.config.schema import validate
 from liedfl_cli.errors import ConfigError
@@ -186,7 +186,7 @@ def test_every_model_owns_an_options_dataclass_matching_its_config_files():
     from liedfl_cli.config.factory import model_class
 
     for name in _options("model"):
-        raw = OmegaConf.load(CONF_DIR / "model" / f"{name}.yaml")
+        raw = model_file(name)  # with the files its defaults list names (articulated.yaml: liedflnn.yaml's)
         cls = model_class(raw._target_)
         assert cls.Options is not None and dataclasses.is_dataclass(cls.Options), name
         assert cls.Options.__module__ == cls.__module__, f"{name}: options not owned by the model's file"

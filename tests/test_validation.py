@@ -13,8 +13,7 @@ import pytest
 import torch
 
 import liedfl_cli.commands.train as train_mod
-from helpers import SMOKE, compose_config
-from liedfl_cli.cli import CONF_DIR
+from helpers import SMOKE, compose_config, single_body_models
 from liedfl_cli.commands.train import run_train
 from liedfl_cli.commands.validation import VAL_COLUMNS, Selection, make_val_split, select_option, val_interval
 from liedfl_cli.config.schema import validate
@@ -258,7 +257,7 @@ def test_rollout_eval_and_api_use_and_report_the_selected_checkpoint(tmp_path, c
     assert rows[0]["checkpoint"] == "last.pt"
 
 
-@pytest.mark.parametrize("model", sorted(p.stem for p in (CONF_DIR / "model").glob("*.yaml") if p.stem != "liedflnn"))
+@pytest.mark.parametrize("model", single_body_models())
 def test_every_baseline_validates(tmp_path, model):
     s = run_train(_cfg(tmp_path, "run", [f"model={model}", "rollout.enabled=false", "train.epochs=1"]))
     row = _rows(Path(s["run_dir"]))[0]

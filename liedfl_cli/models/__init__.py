@@ -9,7 +9,7 @@ equal it (docs/architecture.md, "Model families and their engines").
 | euclidean_dflnn                | EuclideanDFLNN (euclidean_dflnn/model.py)     | implicit | triplets     |
 | glnn_rk4 / _lie_heun / _midpoint | GLNN (glnn/model.py) | explicit | trajectories (midpoint: triplets) |
 | neural_ode                     | NeuralODE (neural_ode/model.py)               | explicit | trajectories |
-| liedflnn, kinetic=articulated  | ArticulatedLieDFLNN (articulated/model.py)    | implicit | triplets     |
+| articulated (or liedflnn, kinetic=articulated) | ArticulatedLieDFLNN (articulated/model.py) | implicit | triplets |
 | liedflnn, substeps or order    | SubstepModel (liedflnn/substeps.py)           | implicit | triplets     |
 
 Groups: LieDFLNN any product group (the articulated model a kinematic tree); Euler-angle DFLNN and GLNN

@@ -324,6 +324,8 @@ class Model(nn.Module, abc.ABC):
     """What the model's `auto` options chose and why (printed by `liedfl train`, kept in the run)."""
     tree: Tree | None = None
     """The kinematic tree the model runs forward kinematics with (None: the model has none)."""
+    needs_tree: bool = False
+    """Whether the model can only be built on data that declare a kinematic tree (the articulated one)."""
     Options: type | None = None
     """A dataclass of the model's config options (keys and types checked against it before a run
     starts, `config/schema.py`); None: its `from_config` checks them (`config_options`)."""

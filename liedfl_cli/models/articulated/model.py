@@ -47,7 +47,7 @@ from .. import mlp_derivatives
 from ..base import Batch, ImplicitModel, LossOptions, TrajectoryBatch, TripletBatch, TripletSet, oriented_logdet
 from ..components import component_tagger, force_parameters
 from ..del_loss import del_regularity_loss
-from ..liedflnn.model import DEFAULT_RESIDUAL, check_options
+from ..liedflnn.model import DEFAULT_RESIDUAL, LieDFLNNOptions, check_options
 from .engines import fused as fused_articulated
 from .engines.fused import FusedArticulatedState
 from .residual import residual_form
@@ -294,6 +294,12 @@ class ArticulatedState:
     A: torch.Tensor
 
 
+@dataclass
+class ArticulatedOptions(LieDFLNNOptions):
+    """The articulated model's config options (conf/model/articulated.yaml): LieDFLNN's fields, declared
+    there once (`kinetic` is articulated; per_body is refused by `from_config`)."""
+
+
 class ArticulatedLieDFLNN(ImplicitModel):
     """Learned forced discrete mechanics of a kinematic tree (an `ImplicitModel` on the tree's
     coordinates; see the module docstring).
@@ -307,6 +313,8 @@ class ArticulatedLieDFLNN(ImplicitModel):
     """
 
     window = "triplet"
+    needs_tree = True
+    Options = ArticulatedOptions
     notes: list[str]
     tree: Tree
     joint_report: str | None = None  # the joint inference's table, when the joints were inferred
@@ -410,12 +418,18 @@ class ArticulatedLieDFLNN(ImplicitModel):
     # ------------------------------------------------------------------ config
     @classmethod
     def from_config(cls, ctx, **options: Any) -> ImplicitModel:
-        """From the options of `conf/model/liedflnn.yaml` with `kinetic: articulated` (the factory picks
-        this class for them); the tree comes from the data (`ctx.tree`). `model.substeps` / `model.order`
+        """From its own config (`conf/model/articulated.yaml`: LieDFLNN's options, `ArticulatedOptions`) or
+        from LieDFLNN's with `kinetic: articulated` (the factory picks this class for them, `variant_for`);
+        the tree comes from the data (`ctx.tree`). `model.substeps` / `model.order`
         other than 1 / 2 wrap it in `models.liedflnn.substeps.SubstepModel`."""
         from ..liedflnn.model import LieDFLNN
         from ..liedflnn.substeps import with_substeps
 
+        if options.get("kinetic", "articulated") not in ("articulated", "auto"):
+            raise ConfigError(
+                f"model=articulated with model.kinetic={options['kinetic']}: the articulated model is the "
+                "articulated kinetic term (for the paper's per-body one: model=liedflnn model.kinetic=per_body)"
+            )
         _, parts, why, opt = LieDFLNN.resolve_options(ctx, options)
         substeps, order = opt.pop("substeps", 1), opt.pop("order", 2)
         return with_substeps(build_articulated(ctx, parts, opt, why), substeps, order)
@@ -893,7 +907,7 @@ def build_articulated(ctx, parts: tuple[str, ...], opt: dict, why: str) -> Artic
     tree = getattr(ctx, "tree", None)
     if tree is None:
         raise ConfigError(
-            "model.kinetic=articulated needs a kinematic tree in the data (attributes 'parents', "
+            "model.kinetic=articulated (model=articulated) needs a kinematic tree in the data (attributes 'parents', "
             "'rotations' and dataset 'joint_offsets'; docs/data_format.md); this dataset has none"
         )
     if tree.group != ctx.group:
