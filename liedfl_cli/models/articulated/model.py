@@ -907,7 +907,7 @@ def build_articulated(ctx, parts: tuple[str, ...], opt: dict, why: str) -> Artic
     tree = getattr(ctx, "tree", None)
     if tree is None:
         raise ConfigError(
-            "model.kinetic=articulated (model=articulated) needs a kinematic tree in the data (attributes 'parents', "
+            "model.kinetic=articulated needs a kinematic tree in the data (attributes 'parents', "
             "'rotations' and dataset 'joint_offsets'; docs/data_format.md); this dataset has none"
         )
     if tree.group != ctx.group:
