@@ -12,6 +12,13 @@ in `known` ("inertia": J_d and, for SE(3) bodies, m and rho_COM; "potential": th
 gravity + interaction potential; "damping": the Rayleigh D) are set to the scene's true values
 from `physics` (a dataset's `params["physics"]`) and frozen (requires_grad False: not trained,
 not counted as trainable parameters). `components()` lists every active part.
+
+This file is the model's one meaning; what must agree with it when its physics changes (each tested to
+rounding against it): `residual.py` (the residual's closed form and its autodiff reference), and the
+engines chosen in `engines/choose.py` — training: `engines/training.py` (increments, the batched loss),
+`engines/gradient.py` (the no-autograd gradient); rollouts: `engines/rollout.py` (the fused Newton step),
+`engines/columns.py`, `engines/scalar.py`; their closed forms in `engines/maps.py`. The articulated model
+(`models/articulated/`) has its own meaning and residual objects.
 """
 
 from __future__ import annotations
