@@ -42,6 +42,7 @@ from torch import nn
 from ...errors import ConfigError
 from ...lie import Pose
 from ...lie import joints as jt
+from ...lie.batched import retract_increment
 from ...solvers.newton import NewtonProblem
 from ...solvers.options import SolverOptions
 from ...solvers.rollout import Rollout, rollout_implicit
@@ -94,7 +95,7 @@ def move(m: Any, z: Pose, d: torch.Tensor) -> Pose:
     """The pose z moved by d (..., n_dof) along the model's DoF: z exp(d), or along the joints."""
     G = m.G
     if not _reduced(m):
-        return G.retract(z, d)
+        return retract_increment(G, z, d)  # closed form without a graph (internal-pose solves), else G.retract
     # straight through the joint coordinates: z z^-1 (...) would compound rounding off the group
     return jt.from_joint_coordinates(m.tree, jt.advance(m.tree, jt.to_joint_coordinates(m.tree, z), d))
 
@@ -364,11 +365,13 @@ class SubstepModel(ImplicitModel):
             logdet = oriented_logdet(logabsdet, orientation, opts.epsilon)
         return del_regularity_loss(r, logdet, opts)
 
-    def initial_fit(self, samples: Any, method: str = "auto") -> str | None:
-        """The second-order start: the wrapped model's own start (the articulated least-squares fit),
-        then L-BFGS on its DEL loss with one step per sample over every training triplet (the fast
-        path: seconds). Its parameters are this model's, so the epochs then only remove the O(h^2)
-        bias of the one-step scheme."""
+    def initial_fit(self, samples: Any, method: str = "auto", rollout_fit: bool = True) -> str | None:
+        """The start: the wrapped model's own start (the articulated least-squares fit), then L-BFGS on
+        its DEL loss with one step per sample over every training triplet (the fast path: seconds), then
+        Levenberg-Marquardt on this model's own residual (`levenberg_marquardt`; L-BFGS where the model
+        has too many parameters for it) and, where that ran, the model rolls out on the fused SO(3) maps
+        (`_LinearEngine.applies`) and `rollout_fit`, on its rollouts over short windows of the training poses
+        (`rollout_refinement`)."""
         source = getattr(samples, "inner_source", None)
         if source is None:
             return None
@@ -380,6 +383,10 @@ class SubstepModel(ImplicitModel):
             fit = second_order_fit(self, samples, SUBSTEP_START_ITERATIONS)
             fit = None if fit is None else fit.replace("one-step", "sub-step")
         notes.append(fit)
+        # a few physical parameters, rolled out on the fused SO(3) maps: a rollout per parameter and iteration
+        # on the reference functions (SE(3) bodies, trees) would take minutes
+        if rollout_fit and fit is not None and fit.startswith("Levenberg") and _LinearEngine.applies(self.inner):
+            notes.append(rollout_refinement(self, *source))
         return "; ".join(n for n in notes if n)
 
     @torch.no_grad()
@@ -418,11 +425,12 @@ class SubstepModel(ImplicitModel):
         elif _LinearEngine.applies(self.inner):
             from .engines import columns as fused_columns
 
+            start = [g0, *z, g1]  # the start cycle: the predictor's first history
             compiled = self.plan.wants_compile("rollout", g0.R.shape[0] * sub_steps)
             if fused_columns.applies(self.inner, a) and not compiled:
-                ro = _columns_cycle(_LinearEngine(self), a, g1, sub_steps, opts, sub_progress)
+                ro = _columns_cycle(_LinearEngine(self), start, sub_steps, opts, sub_progress)
             else:
-                ro = rollout_implicit(_FusedCycle(_LinearEngine(self)), a, g1, sub_steps, opts, sub_progress)
+                ro = _rows_cycle(_LinearEngine(self), start, sub_steps, opts, sub_progress)
         else:
             ro = rollout_implicit(_Cycle(self), a, g1, sub_steps, opts, sub_progress)
         T = g0.R.shape[0]
@@ -513,19 +521,13 @@ def _kinetic_scale(model: Any) -> torch.Tensor | None:
     return None if inertia is None else inertia.Jd().diagonal(dim1=-2, dim2=-1).mean()
 
 
-def levenberg_marquardt(model: SubstepModel, samples: Any, iterations: int = LM_ITERATIONS) -> str | None:
-    """Levenberg-Marquardt on the composite residual of every training triplet divided by the kinetic
-    scale (mean diagonal of J_d: the residual is homogeneous in the parameters, so this removes the
-    scale, which the LM damping then holds), with a forward-difference Jacobian in the raw parameters.
-    None where the model has more than LM_MAX_PARAMETERS trainable numbers (then L-BFGS)."""
+def _trainable(model: Any) -> tuple[list[torch.Tensor], int]:
     params = [p for p in model.parameters() if p.requires_grad]
-    n_par = sum(p.numel() for p in params)
-    if not params or n_par > LM_MAX_PARAMETERS or _kinetic_scale(model) is None:
-        return None
-    gen = torch.Generator().manual_seed(0)
-    n = min(samples.n, LM_MAX_TRIPLETS)  # a fixed random subset: a few parameters need few triplets
-    idx = torch.randperm(samples.n, generator=gen)[:n] if n < samples.n else torch.arange(n, device=params[0].device)
-    batch = samples.batch(idx, gen, 0)
+    return params, sum(p.numel() for p in params)
+
+
+def _flat_parameters(params: list[torch.Tensor]):
+    """(get, put): the parameters as one vector, and written back from one."""
 
     def get() -> torch.Tensor:
         return torch.cat([p.detach().reshape(-1) for p in params])
@@ -537,6 +539,52 @@ def levenberg_marquardt(model: SubstepModel, samples: Any, iterations: int = LM_
                 p.copy_(theta[i : i + p.numel()].view_as(p))
                 i += p.numel()
 
+    return get, put
+
+
+def _lm(theta: torch.Tensor, res, iterations: int, stop: float = 1e-10) -> tuple[torch.Tensor, float, float]:
+    """Levenberg-Marquardt (Marquardt's diagonal scaling) on the residual vector res(theta), with a
+    forward-difference Jacobian of relative step 1e-7: (theta, first cost, last cost), cost = |res|^2.
+    Only steps that lower the cost are taken (a non-finite residual counts as no decrease), so the cost
+    never rises; it stops after `iterations`, when no step within 10 damping increases lowers it, or when
+    a step gains less than `stop` relative."""
+    r = res(theta)
+    first = cost = float(r @ r)
+    lam = 1e-3
+    for _ in range(iterations):
+        eps = 1e-7 * torch.clamp(theta.abs(), min=1.0)
+        J = torch.stack([(res(theta + eps[j] * _unit(theta, j)) - r) / eps[j] for j in range(theta.numel())], -1)
+        A, g = J.T @ J, J.T @ r
+        improved = done = False
+        for _ in range(10):
+            step = torch.linalg.solve(A + lam * torch.diag(A.diagonal().clamp(min=1e-30)), -g)
+            r_new = res(theta + step)
+            c_new = float(r_new @ r_new)
+            if math.isfinite(c_new) and c_new < cost:
+                theta, r, improved = theta + step, r_new, True
+                done = cost - c_new <= stop * cost
+                cost, lam = c_new, max(lam / 3.0, 1e-12)
+                break
+            lam *= 4.0
+        if not improved or done:
+            break
+    return theta, first, cost
+
+
+def levenberg_marquardt(model: SubstepModel, samples: Any, iterations: int = LM_ITERATIONS) -> str | None:
+    """Levenberg-Marquardt on the composite residual of every training triplet divided by the kinetic
+    scale (mean diagonal of J_d: the residual is homogeneous in the parameters, so this removes the
+    scale, which the LM damping then holds), with a forward-difference Jacobian in the raw parameters.
+    None where the model has more than LM_MAX_PARAMETERS trainable numbers (then L-BFGS)."""
+    params, n_par = _trainable(model)
+    if not params or n_par > LM_MAX_PARAMETERS or _kinetic_scale(model) is None:
+        return None
+    gen = torch.Generator().manual_seed(0)
+    n = min(samples.n, LM_MAX_TRIPLETS)  # a fixed random subset: a few parameters need few triplets
+    idx = torch.randperm(samples.n, generator=gen)[:n] if n < samples.n else torch.arange(n, device=params[0].device)
+    batch = samples.batch(idx, gen, 0)
+    get, put = _flat_parameters(params)
+
     def res(theta: torch.Tensor) -> torch.Tensor:
         put(theta)
         with torch.no_grad():
@@ -544,29 +592,107 @@ def levenberg_marquardt(model: SubstepModel, samples: Any, iterations: int = LM_
         assert scale is not None  # checked above
         return (model.sample_residual(batch) / scale).reshape(-1)
 
-    theta = get()
-    r = res(theta)
-    first = cost = float(r @ r)
-    lam = 1e-3
-    for _ in range(iterations):
-        eps = 1e-7 * torch.clamp(theta.abs(), min=1.0)
-        J = torch.stack([(res(theta + eps[j] * _unit(theta, j)) - r) / eps[j] for j in range(n_par)], -1)
-        A, g = J.T @ J, J.T @ r
-        improved = False
-        for _ in range(10):
-            step = torch.linalg.solve(A + lam * torch.diag(A.diagonal().clamp(min=1e-30)), -g)
-            r_new = res(theta + step)
-            c_new = float(r_new @ r_new)
-            if math.isfinite(c_new) and c_new < cost:
-                theta, r, improved = theta + step, r_new, True
-                done = cost - c_new <= 1e-10 * cost
-                cost, lam = c_new, max(lam / 3.0, 1e-12)
-                break
-            lam *= 4.0
-        if not improved or done:
-            break
+    theta, first, cost = _lm(get(), res, iterations)
     put(theta)
     return f"Levenberg-Marquardt on the sub-step residual of {n} triplets: {first:.3e} -> {cost:.3e}"
+
+
+ROLLOUT_FIT_LENGTH = 10  # samples predicted per window of the rollout refinement
+ROLLOUT_FIT_WINDOWS = 128  # at most this many windows, spread evenly over the training trajectories
+ROLLOUT_FIT_PASSES = 3  # reweighted least-squares passes (each a Levenberg-Marquardt run)
+ROLLOUT_FIT_ITERATIONS = 5  # Levenberg-Marquardt iterations per pass
+ROLLOUT_FIT_SOLVER = SolverOptions(tol=1e-10, max_iter=20)  # solutions to rounding: a smooth residual in theta
+
+
+def rollout_windows(data: Pose, steps: int, length: int = ROLLOUT_FIT_LENGTH, most: int | None = None):
+    """Windows of length + 1 samples from the first `steps` steps of trajectories (T, N+1, ...): start
+    samples k = 0, s, 2 s, ... (the stride s the smallest that keeps at most `most` windows in all,
+    default ROLLOUT_FIT_WINDOWS), stacked as (W, length + 1, ...); None where no trajectory has
+    length + 1 samples."""
+    most = ROLLOUT_FIT_WINDOWS if most is None else most
+    steps = min(int(steps), data.R.shape[1] - 1)
+    if steps < length or length < 2:
+        return None
+    T, per = data.R.shape[0], steps - length + 1  # start samples per trajectory
+    stride = max(1, math.ceil(T * per / most))
+    starts = range(0, per, stride)
+    R = torch.cat([data.R[:, k : k + length + 1] for k in starts])
+    p = torch.cat([data.p[:, k : k + length + 1] for k in starts])
+    return Pose(R, p)
+
+
+class WindowErrors:
+    """The model's rollouts over `windows` (W, length + 1, ...) from each window's first two samples:
+    `errors()` the differences of the predicted poses' entries (rotation and position) from the data
+    at samples 2..length, (W, n) (+inf in a window whose Newton solve failed), and
+    `log_mean_square()` the objective of `rollout_refinement`, mean_w log(mean_n errors^2), (a float)."""
+
+    def __init__(self, model: Any, windows: Pose):
+        self.model, self.windows = model, windows
+        self.length = windows.R.shape[1] - 1
+        self.g0, self.g1 = windows.index((slice(None), 0)), windows.index((slice(None), 1))
+
+    @torch.no_grad()
+    def errors(self) -> torch.Tensor:
+        ro = self.model.rollout(self.g0, self.g1, self.length, ROLLOUT_FIT_SOLVER)
+        w = self.windows
+        d = torch.cat(((ro.pose.R - w.R)[:, 2:].flatten(1), (ro.pose.p - w.p)[:, 2:].flatten(1)), 1)
+        failed = ~ro.converged.all(1)
+        return torch.where(failed[:, None], math.inf, d) if bool(failed.any()) else d
+
+    def log_mean_square(self) -> float:
+        return float(torch.log(self.errors().square().mean(1)).mean())
+
+
+def rollout_refinement(
+    model: Any, data: Pose, steps: int, passes: int | None = None, length: int = ROLLOUT_FIT_LENGTH
+) -> str | None:
+    """Fits the parameters to the model's own rollouts over short windows of the training poses (from
+    each window's first two samples, `length` steps): minimises the mean over windows of the log of
+    the window's mean square pose error. Fitting the DEL residual on exact samples lets the parameters
+    absorb the scheme's truncation error (a residual of zero is not a rollout of zero error); this fits
+    what a rollout is judged by. The log makes every window count alike: a plain sum of squares is
+    ruled by the few windows whose motion is most sensitive (a rotor near its unstable axis), where
+    the error says least about the parameters.
+
+    Majorise-minimise: log c <= log c0 + (c - c0) / c0, so each pass (`passes`, default
+    ROLLOUT_FIT_PASSES) minimises sum_w c_w / c0_w, the squared errors divided by their window's mean
+    square c0_w at the pass's start, by Levenberg-Marquardt (forward differences: one rollout per
+    parameter; steps only where the weighted cost falls), and the objective never rises. Models with at
+    most LM_MAX_PARAMETERS trainable numbers; None where it does not apply (or no window fits in `steps`)."""
+    params, n_par = _trainable(model)
+    windows = rollout_windows(data, steps, length)
+    if not params or n_par > LM_MAX_PARAMETERS or windows is None:
+        return None
+    get, put = _flat_parameters(params)
+    we = WindowErrors(model, windows)
+    weight = torch.ones(windows.R.shape[0], 1, dtype=windows.R.dtype, device=windows.R.device)
+
+    def res(theta: torch.Tensor) -> torch.Tensor:
+        put(theta)
+        return (weight * we.errors()).reshape(-1)
+
+    theta = get()
+    first = last = we.log_mean_square()
+    if not math.isfinite(first):
+        return None
+    for _ in range(ROLLOUT_FIT_PASSES if passes is None else passes):
+        put(theta)
+        rms = we.errors().square().mean(1, keepdim=True).sqrt()
+        weight = 1.0 / rms.clamp(min=torch.finfo(rms.dtype).tiny)
+        theta, _, _ = _lm(theta, res, ROLLOUT_FIT_ITERATIONS, stop=1e-6)
+        put(theta)
+        now = we.log_mean_square()
+        done = last - now < 1e-3  # the geometric mean of the windows' errors gains < 0.1 %
+        last = now
+        if done:
+            break
+    put(theta)
+    n = windows.R.shape[0]
+    return (
+        f"Levenberg-Marquardt on the rollouts of {n} windows of {length} steps: geometric mean of their RMS "
+        f"pose error {math.exp(0.5 * first):.3e} -> {math.exp(0.5 * last):.3e}"
+    )
 
 
 def _unit(like: torch.Tensor, j: int) -> torch.Tensor:
@@ -624,6 +750,83 @@ class _Cycle:
         return (g, g_next, j + 1, None), g_next
 
 
+PREDICTOR_DEGREE = 3
+"""Degree of the polynomial that predicts a sub-step's increment from its last cycles (`_Predictor`)."""
+EXTRAPOLATION = ((1.0,), (2.0, -1.0), (3.0, -3.0, 1.0), (4.0, -6.0, 4.0, -1.0))
+"""Weights of the last d + 1 values (newest first) that extrapolate a polynomial of degree d one step on."""
+
+
+def cycle_period(fractions: Sequence[float]) -> int:
+    """The smallest p with fractions[i] == fractions[i + p] for all i (3 for the triple jumps, 1 uniform)."""
+    n = len(fractions)
+    return next(p for p in range(1, n + 1) if n % p == 0 and all(fractions[i] == fractions[i % p] for i in range(n)))
+
+
+class _SineRotations:
+    """Rotations of angle below pi/2 by their sine vector v = vee((W - W^T) / 2) = sin(t) n, in one layout:
+    rows (W (..., 3, 3), v (..., 3)) or columns (W (9, T) row-major entries, v (3, T)). The inverse is
+    closed and exactly orthogonal in exact arithmetic, W = c I + hat(v) + v v^T / (1 + c), c = sqrt(1 - |v|^2)
+    (= cos t; 1 / (1 + c) = (1 - c) / |v|^2 without the division by |v|^2)."""
+
+    def __init__(self, columns: bool, like: torch.Tensor):
+        self.columns = columns
+        S = like.new_zeros(9, 3)  # W.flatten() @ S = v
+        for k, (a, b) in enumerate(((7, 5), (2, 6), (3, 1))):  # v = (W21 - W12, W02 - W20, W10 - W01) / 2
+            S[a, k], S[b, k] = 0.5, -0.5
+        H = (2.0 * S).T.contiguous()  # v @ H = hat(v).flatten() (hat(v) is skew: its skew part is itself)
+        self.S, self.H = (S.T.contiguous(), H.T.contiguous()) if columns else (S, H)
+
+    def sine(self, W: torch.Tensor) -> torch.Tensor:
+        return self.S @ W if self.columns else W.flatten(-2) @ self.S
+
+    def rotation(self, v: torch.Tensor) -> torch.Tensor:
+        if self.columns:
+            c = (v * v).sum(0).neg_().add_(1.0).sqrt_()
+            W = (v[:, None] * (v / (1.0 + c))[None]).view(9, -1)
+            W.addmm_(self.H, v)
+            W[0::4] += c
+            return W
+        c = (v * v).sum(-1, keepdim=True).neg_().add_(1.0).sqrt_()
+        W = (v[..., :, None] * (v / (1.0 + c))[..., None, :]).flatten(-2)
+        W += v @ self.H
+        W[..., 0::4] += c
+        return W.unflatten(-1, (3, 3))
+
+
+class _Predictor:
+    """Warm starts of the cycle's Newton solves. The increment W_j(t) of the sub-step of phase j (its place
+    in the periodic fractions) is a smooth function of the time t of its cycle, and so is its sine vector
+    v_j(t) (`_SineRotations`), so the sine vectors of the same phase in the last d + 1 cycles, extrapolated
+    as a polynomial of degree d, predict the increment to O(h^(d+1)) c_j h (the previous warm start, the last
+    increment scaled to the sub-step: O(h) c_j h, two Newton iterations at the default tolerance, three at
+    1e-12). The prediction is a rotation to rounding (closed form from v), so the Newton solve is that of a
+    start on the group and converges to the same solution. `rot`: the layout's `_SineRotations`."""
+
+    def __init__(self, period: int, rot: _SineRotations, degree: int | None = None):
+        self.period, self.rot = period, rot
+        self.degree = PREDICTOR_DEGREE if degree is None else degree  # < 0: no prediction (the fallback guess)
+        self.hist: list[list[torch.Tensor]] = [[] for _ in range(period)]
+
+    def record(self, j: int, W: torch.Tensor) -> None:
+        """The solved (cleaned) increment W of sub-step j (its sine vector is kept)."""
+        h = self.hist[j % self.period]
+        h.append(self.rot.sine(W))
+        if len(h) > max(self.degree, 0) + 1:
+            del h[0]
+
+    def guess(self, j: int) -> torch.Tensor | None:
+        """The predicted increment of sub-step j, or None before any cycle of that phase."""
+        h = self.hist[j % self.period]
+        if not h or self.degree < 0:
+            return None
+        d = min(len(h) - 1, self.degree)
+        w = EXTRAPOLATION[d]
+        v = torch.mul(h[-1], w[0])
+        for i in range(1, d + 1):
+            v.add_(h[-1 - i], alpha=w[i])
+        return self.rot.rotation(v)
+
+
 class _LinearEngine:
     """The sub-step residual and DEL map of an SO(3)-only LieDFLNN with constant Rayleigh damping at most,
     on the fused rollout's linear maps (`fused_rollout.RolloutMaps.linear`, built once per rollout and
@@ -633,9 +836,13 @@ class _LinearEngine:
     def __init__(self, outer: SubstepModel, fractions: tuple[float, ...] | None = None):
         from .engines.rollout import rollout_maps
 
-        self.models = [outer._twin(c * outer.h, "fused") for c in (fractions or outer.fractions)]
+        fractions = fractions or outer.fractions
+        self.models = [outer._twin(c * outer.h, "fused") for c in fractions]
         self.maps = [rollout_maps(m) for m in self.models]
         self.n = len(self.models)
+        self.period = cycle_period(fractions)
+        # the potential's weight at a pose between sub-steps a and b: (h_a + h_b) / 2 over the -h_a of A_{h_a}
+        self.weight = [[0.5 * (float(ma.h) + float(mb.h)) / float(ma.h) for mb in self.models] for ma in self.models]
 
     @staticmethod
     def applies(model: Any) -> bool:
@@ -650,19 +857,21 @@ class _LinearEngine:
 
     def const(self, ia: int, ib: int, z_prev: Pose, z: Pose) -> torch.Tensor:
         """A_{h_a}(z_prev, z) with the potential at z weighted (h_a + h_b) / 2, (N, dim)."""
-        from .engines.maps import potential_covector as cov
+        return self.const_of(ia, ib, z_prev.R.transpose(-1, -2) @ z.R, z)
 
-        ma, mb = self.models[ia], self.models[ib]
-        W = (z_prev.R.transpose(-1, -2) @ z.R).flatten(-3)
-        out = W @ self.maps[ia].linear[2]  # type: ignore[index]
+    def const_of(self, ia: int, ib: int, W_prev: torch.Tensor, z: Pose) -> torch.Tensor:
+        """`const` from the increment W_prev = z_prev^-1 z (N, B, 3, 3)."""
+        ma = self.models[ia]
+        out = W_prev.flatten(-3) @ self.maps[ia].linear[2]  # type: ignore[index]
         if ma.potential is not None:
             from ...mechanics.potentials import GravityPotential, UniformGravityPotential
+            from .engines.maps import potential_covector as cov
 
             if isinstance(ma.potential, (UniformGravityPotential, GravityPotential)):  # closed form
                 c = -float(ma.h) * ma.potential.left_gradient(z).detach()
             else:
                 c = cov(ma, z).detach()
-            out = out + (0.5 * (float(ma.h) + float(mb.h)) / float(ma.h)) * c
+            out = out + self.weight[ia][ib] * c
         return out
 
     def residual(self, ia: int, ib: int, z_prev: Pose, z: Pose, z_next: Pose) -> torch.Tensor:
@@ -670,81 +879,111 @@ class _LinearEngine:
         return self.const(ia, ib, z_prev, z) + W @ self.maps[ib].linear[0]  # type: ignore[index]
 
 
-class _FusedCycle:
-    """`_Cycle` on the linear maps (`_LinearEngine`): each sub-step a fused Newton step (`FusedStep`)."""
+def _cycle_guess(engine: _LinearEngine, ia: int, ib: int, W_prev: torch.Tensor) -> torch.Tensor:
+    """The fallback warm start (no cycle of this phase yet): the last increment W_prev (..., 3, 3) scaled
+    to the sub-step through its first-order log (vee of the skew part: cheap, a guess only)."""
+    ratio = float(engine.models[ib].h) / float(engine.models[ia].h)
+    if ratio == 1.0:
+        return W_prev
+    from ...lie import so3
 
-    path = "fused"
+    return so3.exp(ratio * so3.vee(W_prev))
 
-    def __init__(self, engine: _LinearEngine):
-        self.e = engine
 
-    def implicit_start(self, g0: Pose, g1: Pose) -> Any:
-        return (g0, g1, 0, None)
+@torch.no_grad()
+def _rows_cycle(
+    engine: _LinearEngine, start: Sequence[Pose], steps: int, opts: SolverOptions, progress=None
+) -> Rollout:
+    """The fourth-order cycle's rollout on the linear maps in row layout, from the poses of the start
+    cycle `start` (q_0, its internal poses, q_1; leading shape (T,)): per sub-step the fixed part of the
+    sub-step before the pose (the potential weighted (h_a + h_b) / 2), the fused Newton step of the sub-step
+    after it (`FusedStep`) warm-started by `_Predictor`, the Newton-Schulz-cleaned increment. Poses
+    (T, steps + 1, B, 3, 3) from (start[-2], start[-1]) on, as `rollout_implicit` gives them."""
+    import time
 
-    def implicit_problem(self, state: Any) -> NewtonProblem:
-        from .engines.rollout import FusedStep
+    from ...solvers import newton
+    from .engines.rollout import FusedStep, RolloutState, rollout_advance
 
-        g_prev, g, j, _ = state
-        e = self.e
-        ia, ib = (j - 1) % e.n, j % e.n
-        mb = e.models[ib]
-        W = g_prev.R.transpose(-1, -2) @ g.R
-        ratio = float(mb.h) / float(e.models[ia].h)
-        if ratio != 1.0:  # warm start: the last increment scaled to this sub-step (first-order log: cheap)
-            from ...lie import so3
+    t0 = time.perf_counter()
+    n = engine.n
+    predictor = _Predictor(engine.period, _SineRotations(False, start[0].R))
+    for i in range(len(start) - 1):
+        W_prev = start[i].R.transpose(-1, -2) @ start[i + 1].R
+        predictor.record(i, W_prev)
+    g_prev, g = start[-2], start[-1]
+    Rs, ps = [g_prev.R, g.R], [g_prev.p, g.p]
+    conv, its, res = [], [], []
+    for k in range(1, steps):
+        ia, ib = (k - 2) % n, (k - 1) % n
+        mb, maps = engine.models[ib], engine.maps[ib]
+        W0 = predictor.guess(ib)
+        if W0 is None:
+            W0 = _cycle_guess(engine, ia, ib, W_prev)
+        step = FusedStep.from_parts(mb, maps, g, engine.const_of(ia, ib, W_prev, g))
+        sol = newton.solve(step.problem(Pose(W0, g.p.new_zeros(*g.p.shape))), opts)
+        state, g_next = rollout_advance(mb, RolloutState(g_prev, g, sol.x, maps), sol.x)
+        W_prev = state.inc.R
+        predictor.record(ib, W_prev)
+        g_prev, g = g, g_next
+        Rs.append(g.R)
+        ps.append(g.p)
+        conv.append(sol.converged)
+        its.append(sol.iterations)
+        res.append(sol.residual_norm)
+        if progress is not None:
+            progress(k)
+    T = g.R.shape[0]
 
-            W = so3.exp(ratio * so3.vee(W))
-        step = FusedStep.from_parts(mb, e.maps[ib], g, e.const(ia, ib, g_prev, g))
-        self._last = (g_prev, g, j)
-        return step.problem(Pose(W, g.p.new_zeros(*g.p.shape)))
+    def stacked(xs, dtype):
+        return torch.stack(xs, 1) if xs else torch.zeros(T, 0, dtype=dtype, device=g.R.device)
 
-    def implicit_advance(self, state: Any, x: Any) -> tuple[Any, Pose]:
-        from .engines.rollout import RolloutState, rollout_advance
-
-        g_prev, g, j = self._last
-        ib = j % self.e.n
-        _, g_next = rollout_advance(self.e.models[ib], RolloutState(g_prev, g, x, self.e.maps[ib]), x)
-        return (g, g_next, j + 1, None), g_next
+    return Rollout(
+        Pose(torch.stack(Rs, 1), torch.stack(ps, 1)),
+        stacked(conv, torch.bool),
+        stacked(its, torch.long),
+        stacked(res, g.R.dtype),
+        time.perf_counter() - t0,
+    )
 
 
 @torch.no_grad()
 def _columns_cycle(
-    engine: _LinearEngine, g0: Pose, g1: Pose, steps: int, opts: SolverOptions, progress=None
+    engine: _LinearEngine, start: Sequence[Pose], steps: int, opts: SolverOptions, progress=None
 ) -> Rollout:
-    """`_FusedCycle`'s rollout in the column layout of `fused_columns` (32 trajectories and more: the
-    same steps, fewer kernel calls per trajectory): per sub-step the fixed part of the step before it,
-    the potential weighted (h_a + h_b) / 2, the Newton solve of the step after it."""
+    """`_rows_cycle` in the column layout of `fused_columns` (32 trajectories and more: the same steps,
+    fewer kernel calls per trajectory)."""
     import time
 
-    from ...lie import so3
     from .engines import columns as fc
 
     t0 = time.perf_counter()
+    g0, g1 = start[-2], start[-1]
     T, n = g0.R.shape[0], engine.n
     cols = [fc.ColumnMaps(m, mp) for m, mp in zip(engine.models, engine.maps)]
     n_poses = max(steps, 1) + 1
     out = g0.R.new_empty(n_poses, 9, T)
     out[0], out[1] = fc.to_columns(g0.R).view(9, T), fc.to_columns(g1.R).view(9, T)
-    W_prev = fc.to_columns(engine.models[0].G.increment(g0, g1).R).view(9, T)
+    predictor = _Predictor(engine.period, _SineRotations(True, g0.R))
+    for i in range(len(start) - 1):
+        W_prev = fc.to_columns(start[i].R.transpose(-1, -2) @ start[i + 1].R).view(9, T)
+        predictor.record(i, W_prev)
     conv, its, res = [], [], []
     for k in range(1, steps):
         ia, ib = (k - 2) % n, (k - 1) % n
-        ma, mb = engine.models[ia], engine.models[ib]
+        ma = engine.models[ia]
         g = out[k]
         const = cols[ia].c @ W_prev
         cov = fc.potential_columns(ma, engine.maps[ia], g)
         if cov is not None:
-            const = const + (0.5 * (float(ma.h) + float(mb.h)) / float(ma.h)) * cov
-        ratio = float(mb.h) / float(ma.h)
-        W0 = W_prev
-        if ratio != 1.0:  # warm start: the last increment scaled to this sub-step (first-order log)
-            W3 = W_prev.view(3, 3, T)
-            w = 0.5 * torch.stack((W3[2, 1] - W3[1, 2], W3[0, 2] - W3[2, 0], W3[1, 0] - W3[0, 1]), -1)  # (T, 3)
-            W0 = so3.exp(ratio * w).permute(1, 2, 0).reshape(9, T).contiguous()
+            const = const + engine.weight[ia][ib] * cov
+        W0 = predictor.guess(ib)
+        if W0 is None:  # the guess in rows: a fallback, at most once per phase
+            W0 = fc.to_columns(_cycle_guess(engine, ia, ib, W_prev.T.reshape(T, 1, 3, 3))).view(9, T)
         step = fc.ColumnStep(cols[ib], const, g)
         r = step.f(W0)
         W, r, converged, iterations = fc.solve(step, W0, r, fc.norm(r), opts, opts.max_iter)
         W_prev = fc.newton_schulz(W)
+        predictor.record(ib, W_prev)
         out[k + 1].view(3, 3, T).copy_(fc.matmul(out[k].view(3, 3, T), W_prev.view(3, 3, T)))
         conv.append(converged)
         its.append(iterations)
