@@ -71,11 +71,13 @@ class TrainConfig(Checked):
     epochs: int = option(1000, integer=0, required=TRAIN)  # 0: the model's start only (train.start)
     batch_size: int = option(1024, integer=1, required=TRAIN)
     optimizer: OptimizerConfig = field(default_factory=OptimizerConfig)
-    w_del: float = option(0.5, number="nonnegative", required=TRAIN)
-    w_reg: float = option(0.5, number="nonnegative", required=TRAIN)
-    reg_points: int = option(10, integer=0, required=TRAIN)
-    reg_form: str = option("relu", choices_of=Literal["relu", "gaussian"], required=TRAIN)  # log-space penalties
-    epsilon: float = option(10.0, number="finite", required=TRAIN)
+    w_del: float = option(LossOptions.w_del, number="nonnegative", required=TRAIN)
+    w_reg: float = option(LossOptions.w_reg, number="nonnegative", required=TRAIN)
+    reg_points: int = option(LossOptions.reg_points, integer=0, required=TRAIN)
+    reg_form: str = option(
+        LossOptions.reg_form, choices_of=Literal["relu", "gaussian"], required=TRAIN
+    )  # log-space penalties
+    epsilon: float = option(LossOptions.epsilon, number="finite", required=TRAIN)
     # auto | positive int (None: auto)
     checkpoint_every: Any = option("auto", integer=1, auto=True, nullable=True, what="auto or a positive integer")
     full_batch: bool = False  # one optimiser step per epoch over every sample
@@ -84,7 +86,7 @@ class TrainConfig(Checked):
     # which weights roll out: the best validation one-step error / rollout error, or the last (docs/validation.md)
     select: str = option("val_one_step", choices_of=Literal["val_one_step", "val_rollout", "last"])
     early_stopping: EarlyStoppingConfig = field(default_factory=EarlyStoppingConfig)
-    loss: str = option("del", choices_of=LOSSES)  # the training losses (models/liedflnn/losses.py)
+    loss: str = option(LossOptions.loss, choices_of=LOSSES)  # the training losses (models/liedflnn/losses.py)
     start: str = option("auto", choices_of=Literal["auto", "identify", "none"])  # a model's own start (articulated)
     rollout_loss: RolloutLossConfig = field(default_factory=RolloutLossConfig)
 
@@ -153,11 +155,12 @@ class SolverConfig(SolverOptions, Checked):
 
 @dataclass
 class RuntimeConfig:  # execution settings; checked and normalised by solvers/runtime.py `runtime_options`
-    threads: Any = "auto"  # auto | positive int
-    fused: Any = True  # true | false (Any: "yes" is refused by RuntimeOptions, not read as true)
-    compile: Any = "auto"  # auto | true | false
-    device: str = "cpu"  # cpu | cuda | auto (availability checked when the job starts: runtime.configure)
-    dtype: str = "float64"  # float64 | float32
+    # the defaults are `RuntimeOptions`' own (solvers/runtime.py declares them and their values once)
+    threads: Any = RuntimeOptions.threads  # auto | positive int
+    fused: Any = RuntimeOptions.fused  # true | false (Any: "yes" is refused by RuntimeOptions, not read as true)
+    compile: Any = RuntimeOptions.compile  # auto | true | false
+    device: str = RuntimeOptions.device  # cpu | cuda | auto (availability checked when the job starts)
+    dtype: str = RuntimeOptions.dtype  # float64 | float32
 
 
 @dataclass
