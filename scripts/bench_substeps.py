@@ -238,32 +238,23 @@ def main() -> None:
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
     torch.set_num_threads(1)
-    if args.speed_only:
-        rec = {
-            "command": "OMP_NUM_THREADS=1 python scripts/bench_substeps.py --speed-only"
-            + (f" --json {args.json}" if args.json else ""),
-            "cpu": cpu_model(),
-            "load_before": os.getloadavg()[0],
-            "threads": 1,
-            "speed_against_error": speed_against_error(),
-            "load_after": os.getloadavg()[0],
-        }
-        if args.json:
-            args.json.write_text(json.dumps(rec, indent=1))
-        return
-    if args.warm_start:
-        rec = {
-            "command": "OMP_NUM_THREADS=1 python scripts/bench_substeps.py --warm-start"
-            + (f" --json {args.json}" if args.json else ""),
-            "cpu": cpu_model(),
-            "load_before": os.getloadavg()[0],
-            "threads": 1,
-            "rows": warm_start_effect(),
-            "load_after": os.getloadavg()[0],
-        }
-        if args.json:
-            args.json.write_text(json.dumps(rec, indent=1))
-        return
+    for flag, key, measure in (
+        ("speed_only", "speed_against_error", speed_against_error),
+        ("warm_start", "rows", warm_start_effect),
+    ):
+        if getattr(args, flag):  # a part alone: its own record
+            rec = {
+                "command": f"OMP_NUM_THREADS=1 python scripts/bench_substeps.py --{flag.replace('_', '-')}"
+                + (f" --json {args.json}" if args.json else ""),
+                "cpu": cpu_model(),
+                "load_before": os.getloadavg()[0],
+                "threads": 1,
+            }
+            rec[key] = measure()
+            rec["load_after"] = os.getloadavg()[0]
+            if args.json:
+                args.json.write_text(json.dumps(rec, indent=1))
+            return
     command = "OMP_NUM_THREADS=1 python scripts/bench_substeps.py"
     command += (f" --seed {args.seed}" if args.seed != 1 else "") + (" --no-speed" if args.no_speed else "")
     record: dict = {

@@ -118,7 +118,7 @@ def test_one_place_chooses_the_training_engine(monkeypatch):
     reference path or the autodiff residual; a batch is computed by the engine that built it (a triplet
     batch on a fused model by the reference), with the same loss; the train compile policy lives there."""
     from liedfl_cli.models.base import TripletSet
-    from liedfl_cli.models.liedflnn.engines import choose, training
+    from liedfl_cli.models.liedflnn.engines import choose
 
     fus = make("free_so3_rayleigh")
     generic = make("free_so3_rayleigh")
@@ -143,4 +143,3 @@ def test_one_place_chooses_the_training_engine(monkeypatch):
     monkeypatch.setattr(type(fus.plan), "wants_compile", lambda self, what, work=0: what == "train")
     assert rel(fus.loss(inc, LossOptions())[0].detach(), a.detach()) <= 1e-12
     assert seen == ["train_loss"]  # the increments engine asked for the compiled loss
-    assert training.increments_loss.__module__.endswith("engines.training")

@@ -456,6 +456,19 @@ def test_predictor_extrapolates_polynomials_exactly():
     assert sb.cycle_period(sb.step_fractions(2, 4)) == 3 and sb.cycle_period(sb.step_fractions(4, 2)) == 1
 
 
+def test_predictor_leaves_a_turn_too_large_to_the_fallback_guess():
+    """Sine vectors growing fast: the extrapolation would pass |v| = sin(angle) = 1, where no rotation has
+    that sine vector (c = sqrt(1 - |v|^2) would be NaN); beyond 45 degrees the predictor gives no guess."""
+    rot = sb._SineRotations(False, torch.zeros(1, dtype=F64))
+    pred = sb._Predictor(1, rot)
+    for a in (0.1, 0.3, 0.5, 0.65):  # angles of one sub-step, rad: cubic extrapolation ~0.71 rad in sine
+        pred.record(0, so3.exp(torch.tensor([[0.0, 0.0, a]], dtype=F64)))
+    small = pred.guess(0)
+    assert small is not None and torch.isfinite(small).all()
+    pred.record(0, so3.exp(torch.tensor([[0.0, 0.0, 1.2]], dtype=F64)))
+    assert pred.guess(0) is None  # extrapolated sine 1.25 or so: no rotation
+
+
 # ---------------------------------------------------------------------------- the rollout refinement
 def test_levenberg_marquardt_loop_fits_and_never_raises_the_cost():
     t = torch.linspace(0.0, 2.0, 40, dtype=F64)

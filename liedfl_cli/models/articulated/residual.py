@@ -72,7 +72,8 @@ class ClosedForm:
         tree, G, Gw, h = model.tree, model.G, art.world_group(model.tree), model.h
         with torch.no_grad():
             Jd, m, rho = (t.detach() for t in model._params())
-        q, C = art.joint_coordinates(tree, g), art.joint_velocity_map(tree, g)
+        # joint coordinates and velocity map of g: only the joint-space forces read them
+        q, C = (art.joint_coordinates(tree, g), art.joint_velocity_map(tree, g)) if len(model.forces) else (g, None)
 
         def var(x: Pose) -> torch.Tensor:
             g_next = G.compose(g, x)

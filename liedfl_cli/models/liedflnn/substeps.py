@@ -815,7 +815,8 @@ class _Predictor:
             del h[0]
 
     def guess(self, j: int) -> torch.Tensor | None:
-        """The predicted increment of sub-step j, or None before any cycle of that phase."""
+        """The predicted increment of sub-step j, or None before any cycle of that phase or where the
+        prediction turns by more than 45 degrees (the caller's fallback guess then)."""
         h = self.hist[j % self.period]
         if not h or self.degree < 0:
             return None
@@ -824,6 +825,10 @@ class _Predictor:
         v = torch.mul(h[-1], w[0])
         for i in range(1, d + 1):
             v.add_(h[-1 - i], alpha=w[i])
+        # |v| = sin(angle) must stay below 1 for a rotation to exist; a sub-step turning more than 45 degrees
+        # is outside where a polynomial in the cycles predicts anything: the fallback guess instead
+        if bool(((v * v).sum(0 if self.rot.columns else -1) > 0.5).any()):
+            return None
         return self.rot.rotation(v)
 
 
