@@ -26,13 +26,15 @@ few repeats, so a speed-up is a ratio taken under the same load. Keys:
                                 Euler and Euclidean DFLNN, Neural ODE) at its experiment's settings (Exp 2 at
                                 its longest training length, 100 steps), fused (`runtime.fused`) and reference
                                 paths alternately; paper_epochs x s_per_epoch projects a full-budget job
-  articulated_rollout_us_per_step_traj  {model: {batch: {fused, reference, reference_over_fused}}} for the
+  articulated_rollout_us_per_step_traj  {model: {batch: {fused, reference, fused_chord, ...}}} for the
                                 5-body MuJoCo tree's true-parameter scheme (free root, ball joints, per-DoF
                                 damping, h 0.05) and the untrained 23-body Exp 4 articulated model (MLP
                                 potential, nn + rayleigh_nonlinear forces, h 1/120), batches 1/1000, the
                                 fused articulated engine and the reference problem alternately; with
                                 mujoco_rk4_dt1e-3_us_per_substep_tree5 (MuJoCo's RK4 on that tree's true
-                                model, one trajectory at a time; --articulated-only runs these alone)
+                                model, one trajectory at a time; --articulated-only runs these alone);
+                                fused_chord: the fused engine with solver=chord (tol 1e-8, one Jacobian
+                                per step), fused_over_fused_chord its speed-up
   articulated_training_tree5    {s_per_epoch_fused, s_per_epoch_reference, samples_per_epoch, start_s}: the
                                 default articulated command on a 5-body branched MuJoCo tree (112
                                 trajectories x 100 steps): seconds per epoch without the start, and the
@@ -89,6 +91,7 @@ from liedfl_cli.models.liedflnn.model import LieDFLNN  # noqa: E402
 from liedfl_cli.models.true_scheme import physics_model  # noqa: E402
 from liedfl_cli.solvers import compile as compile_cache  # noqa: E402
 from liedfl_cli.solvers import runtime  # noqa: E402
+from liedfl_cli.solvers.options import SolverOptions  # noqa: E402
 
 PHYS = {"J": [1.521, 1.362, 1.211], "m": 0.5, "rho": [0.0, 0.5, 1.0]}
 BATCHES = (1, 10, 1000, 10000)
@@ -225,20 +228,21 @@ def learned_so3_model():
 def rollout_us(model, G, h, n: int, budget: float, repeats: int, **settings) -> float:
     """Microseconds per step per trajectory (best of `repeats`) of a rollout of about `budget` s;
     the CPU time of the same rollouts goes to `CPU_US`. `fused=`: the model's path (fixed per model:
-    `with_path`); `compile=`: the twin's plan."""
+    `with_path`); `compile=`: the twin's plan; `solver=`: the rollouts' `SolverOptions` (default the CLI's)."""
     g0, g1 = start(G, n, h)
+    opts = settings.pop("solver", None)
     model = model.with_path("fused" if settings.pop("fused", model.path == "fused") else "reference")
     if "compile" in settings:  # this twin's plan (the model's own stays as it is)
         model.set_plan(dataclasses.replace(model.plan, compile=settings.pop("compile")))
     assert not settings, f"unknown settings {settings}"
     t = time.perf_counter()
-    model.rollout(g0, g1, 4)
+    model.rollout(g0, g1, 4, opts)
     per_step = (time.perf_counter() - t) / 3
     steps = int(min(500, max(6, budget / max(per_step, 1e-6))))
     best = best_cpu = float("inf")
     for _ in range(repeats):
         t, c = time.perf_counter(), time.process_time()
-        model.rollout(g0, g1, steps)
+        model.rollout(g0, g1, steps, opts)
         best = min(best, (time.perf_counter() - t) / (steps - 1))
         best_cpu = min(best_cpu, (time.process_time() - c) / (steps - 1))
     CPU_US.append(best_cpu / n * 1e6)
@@ -359,13 +363,16 @@ def articulated_rollouts(data_dir: str, quick: bool, log) -> dict:
         figures[name] = {}
         for n in (1, 1000):
             row = {}
-            for path in ("fused", "reference"):
-                row[path] = rollout_us(model, G, h, n, budget, repeats, fused=path == "fused")
+            for path in ("fused", "reference", "fused_chord"):
+                opts = SolverOptions(tol=1e-8, max_iter=20, method="chord") if path == "fused_chord" else None
+                row[path] = rollout_us(model, G, h, n, budget, repeats, fused=path != "reference", solver=opts)
             row["reference_over_fused"] = row["reference"] / row["fused"]
+            row["fused_over_fused_chord"] = row["fused"] / row["fused_chord"]
             figures[name][str(n)] = row
             log(
                 f"articulated rollout {name} batch {n}: {row['fused']:.1f} us/step/traj fused, "
-                f"{row['reference']:.1f} reference ({row['reference_over_fused']:.2f}x)"
+                f"{row['reference']:.1f} reference ({row['reference_over_fused']:.2f}x), "
+                f"{row['fused_chord']:.1f} fused with solver=chord ({row['fused_over_fused_chord']:.2f}x)"
             )
     ds5 = chain_dataset(parents="branched5", n_trajectories=8, steps=3, h=0.05, gravity=9.81, test_fraction=0.0)
     rk4 = mujoco_rk4_us_per_substep(ds5, repeats=2 if quick else 3)

@@ -121,6 +121,7 @@ def test_misspelled_key_is_rejected(override, key, tmp_path):
         ("train.reg_form=cubic", "train.reg_form"),
         ("model.residual=bogus", "model.residual"),
         ("model.potential=quadratic", "model.potential"),
+        ("solver.method=broyden", "solver.method"),
     ],
 )
 def test_wrong_value_is_rejected(override, key, tmp_path):

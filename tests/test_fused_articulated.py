@@ -19,6 +19,7 @@ from liedfl_cli.lie.tree import Tree
 from liedfl_cli.mechanics.forces import NNForce, RayleighNonlinearForce
 from liedfl_cli.models.articulated.engines import fused as fa
 from liedfl_cli.models.articulated.model import ArticulatedLieDFLNN, ArticulatedState
+from liedfl_cli.solvers import newton
 from liedfl_cli.solvers.options import SolverOptions
 
 F64 = torch.float64
@@ -134,6 +135,73 @@ def test_rollouts_equal_the_reference_to_rounding(case):
     assert float((a.iterations == b.iterations).double().mean()) >= 0.95
     # the motion is not trivial: the rollout moves away from its start
     assert float((a.pose.R[:, -1] - a.pose.R[:, 1]).abs().max()) > 1e-2
+
+
+@pytest.mark.parametrize("case", ["ball-world unreduced", "hinge-parent damped, mlp, forces"])
+def test_chord_rollouts_equal_the_reference_and_newtons_solution(case):
+    """`solver.method=chord` (one Jacobian per step): the fused engine and the reference loop take the
+    same chord steps, and at a tight tolerance both land on Newton's solution."""
+    m, traj = _model(case)
+    g0, g1 = traj.index((slice(None), 0)), traj.index((slice(None), 1))
+    chord = SolverOptions(tol=1e-11, method="chord", max_iter=30)
+    a = m.with_path("fused").rollout(g0, g1, 20, chord)
+    b = m.with_path("reference").rollout(g0, g1, 20, chord)
+    assert bool(a.converged.all()) and bool(b.converged.all())
+    assert _close(a.pose.R, b.pose.R, 1e-8) and _close(a.pose.p, b.pose.p, 1e-8)
+    assert float((a.iterations == b.iterations).double().mean()) >= 0.95
+    n = m.with_path("fused").rollout(g0, g1, 20, SolverOptions(tol=1e-11))
+    # both solve the same equations to ~1e-11 per step: the rollouts agree far below the motion's size
+    assert _close(a.pose.R, n.pose.R, 1e-8) and _close(a.pose.p, n.pose.p, 1e-8)
+    assert float((a.pose.R[:, -1] - a.pose.R[:, 1]).abs().max()) > 1e-2
+    # linear convergence: chord needs at least Newton's iterations, here strictly more on some step
+    assert bool((a.iterations >= n.iterations).all()) and bool((a.iterations > n.iterations).any())
+
+
+def _guess_errors(case: str, h: float, steps: int) -> tuple[float, float]:
+    """Max distance of the warm start (2 d_k - d_{k-1}) and of the last increment alone to the solved
+    increment over steps 2..steps of a reference rollout at step h: (extrapolated, last increment)."""
+    tree_name, potential, forces = CASES[case]
+    torch.manual_seed(0)
+    m = ArticulatedLieDFLNN(
+        _tree(tree_name), h, potential=potential, forces=forces, init_jitter=0.3, seed=5, mlp_width=8, mlp_depth=2
+    ).with_path("reference")
+    m.requires_grad_(False)
+    traj = smooth_motion(m.tree, 3, 1, h, seed=2)
+    G = m.tree.group
+    state = m.implicit_start(traj.index((slice(None), 0)), traj.index((slice(None), 1)))
+    errs = [0.0, 0.0]
+    with torch.no_grad():
+        for k in range(steps):
+            problem = m.implicit_problem(state)
+            sol = newton.solve(problem, SolverOptions(tol=1e-13, max_iter=30))
+            assert bool(sol.converged.all())
+            if k >= 1:
+                assert state.dof_prev is not None
+                for i, guess in enumerate((problem.x0, state.inc)):
+                    errs[i] = max(errs[i], float(G.log(G.increment(guess, sol.x)).abs().max()))
+            state, _ = m.implicit_advance(state, sol.x)
+    return errs[0], errs[1]
+
+
+@pytest.mark.parametrize("case", ["ball-world unreduced", "hinge-world damped, nn"])
+def test_the_warm_start_extrapolates_to_third_order(case):
+    """The Newton start 2 d_k - d_{k-1} (`ArticulatedLieDFLNN.warm_start`) is off by O(h^3) over a fixed
+    time, the last increment by O(h^2): halving h divides their errors by about 8 and 4."""
+    ext, last = _guess_errors(case, 0.02, 10)
+    ext2, last2 = _guess_errors(case, 0.01, 20)
+    assert ext < last and ext2 < 0.3 * last2
+    assert 6.0 < ext / ext2 < 10.0, ext / ext2
+    assert 3.0 < last / last2 < 5.0, last / last2
+
+
+def test_a_failed_step_does_not_seed_the_next_guess():
+    d = torch.tensor([[0.1, 0.2], [0.3, 0.4]], dtype=F64)
+    prev = torch.tensor([[0.0, 0.1], [float("nan"), 0.0]], dtype=F64)
+    from liedfl_cli.mechanics.articulated import extrapolate
+
+    pred = extrapolate(d, prev)
+    torch.testing.assert_close(pred[0], torch.tensor([0.2, 0.3], dtype=F64))
+    torch.testing.assert_close(pred[1], d[1])
 
 
 def test_rows_that_converge_early_leave_the_batch_without_changing_the_others(monkeypatch):

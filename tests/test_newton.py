@@ -166,3 +166,89 @@ def test_step_tolerance_is_relative_to_the_unknown():
     )
     se3 = Pose(rot.R, torch.tensor([[[1e3, 0.0, 0.0]]] * 4, dtype=torch.float64))
     torch.testing.assert_close(newton.step_tolerance(se3, 1e-14), torch.full((4,), 1e3 * floor, dtype=torch.float64))
+
+
+# ----------------------------------------------------------------------------- chord steps
+def _counted(f):
+    """NewtonProblem.euclidean(f, .) whose Jacobian calls (calls[0]) and restrictions (calls[1]) are
+    counted."""
+    calls = [0, 0]
+
+    def problem(x0, rows=None):
+        fr = f if rows is None else (lambda x: f_rows(x, rows))
+        p = NewtonProblem.euclidean(fr, x0)
+        jac = p.jac
+
+        def counting(x):
+            calls[0] += 1
+            return jac(x)
+
+        p.jac = counting
+
+        def restrict(r):
+            calls[1] += 1
+            return problem(p.x0[r], r if rows is None else rows[r])
+
+        p.restrict = restrict
+        return p
+
+    def f_rows(x, rows):
+        return f(x, rows)
+
+    return problem, calls
+
+
+def test_chord_finds_newtons_root_with_one_jacobian_per_solve():
+    c = torch.tensor([[0.5, 1.0], [2.0, -3.0], [1e-3, 0.8]], dtype=torch.float64)
+    f = cubic(c)
+    newton_sol = _solve_euclidean(f, torch.zeros_like(c), SolverOptions(tol=1e-13, max_iter=50))
+    calls = [0]
+    p = NewtonProblem.euclidean(f, torch.zeros_like(c))
+    jac = p.jac
+    p.jac = lambda x: calls.__setitem__(0, calls[0] + 1) or jac(x)
+    opts = SolverOptions(tol=1e-13, max_iter=200, method="chord")
+    sol = solve(p, opts)
+    assert sol.converged.all() and calls[0] == 1
+    torch.testing.assert_close(sol.xi, newton_sol.xi, rtol=0, atol=1e-12)
+    assert (sol.iterations >= newton_sol.iterations).all() and (sol.iterations > newton_sol.iterations).any()
+    # the reference loop takes the same chord steps: same iterates, flags and counts
+    ref = solve(NewtonProblem.euclidean(f, torch.zeros_like(c)), opts, reference=True)
+    torch.testing.assert_close(ref.xi, sol.xi, rtol=0, atol=1e-14)
+    assert torch.equal(ref.iterations, sol.iterations) and torch.equal(ref.converged, sol.converged)
+
+
+def test_chord_rows_iterated_apart_keep_their_own_jacobian():
+    """At 64+ rows the slow rows continue in a restricted problem with their rows of the chord
+    Jacobian (not a new one at their current iterate): the result equals the reference loop's."""
+    T = 80
+    c = torch.full((T, 1), 0.3, dtype=torch.float64)
+    c[60:] = torch.linspace(1.0, 2.0, 20, dtype=torch.float64)[:, None]  # far roots: many chord steps
+
+    def f(x, rows=None):
+        cc = c if rows is None else c[rows]
+        return x + 0.05 * x**3 - cc
+
+    problem, calls = _counted(f)
+    opts = SolverOptions(tol=1e-12, max_iter=200, method="chord")
+    sol = solve(problem(torch.zeros(T, 1, dtype=torch.float64)), opts)
+    assert sol.converged.all() and calls[0] == 1  # restricted rows reused their factor
+    assert int(sol.iterations[60:].min()) > int(sol.iterations[:60].max())
+    assert calls[1] >= 1  # the slow rows were iterated in a restricted problem
+    ref = solve(NewtonProblem.euclidean(f, torch.zeros(T, 1, dtype=torch.float64)), opts, reference=True)
+    torch.testing.assert_close(sol.xi, ref.xi, rtol=0, atol=1e-13)
+    assert torch.equal(sol.iterations, ref.iterations)
+
+
+def test_a_singular_chord_jacobian_is_flagged_not_propagated():
+    """x^2 - c from x = 0: the chord Jacobian is singular, the least-squares step is zero, the row never
+    converges and stays finite; the other row converges."""
+    c = torch.tensor([[1.0], [2.0]], dtype=torch.float64)
+    x0 = torch.tensor([[0.0], [1.0]], dtype=torch.float64)
+    f = lambda x: x**2 - c
+    opts = SolverOptions(tol=1e-10, max_iter=60, method="chord")
+    sol = _solve_euclidean(f, x0, opts)
+    assert not sol.converged[0] and sol.converged[1]
+    assert torch.isfinite(sol.xi).all()
+    torch.testing.assert_close(sol.xi[1], torch.tensor([2.0**0.5], dtype=torch.float64), rtol=0, atol=1e-9)
+    ref = solve(NewtonProblem.euclidean(f, x0), opts, reference=True)
+    assert torch.equal(ref.converged, sol.converged)

@@ -88,3 +88,12 @@ def fk_and_jacobian(tree: Tree, g: Pose) -> tuple[Pose, torch.Tensor]:
     """(FK(g) as SE(3)^B poses, A(g) (..., B, 6, dim))."""
     world = forward_kinematics(tree, g)
     return world, fk_jacobian(tree, g, world)
+
+
+def extrapolate(d: torch.Tensor, d_prev: torch.Tensor) -> torch.Tensor:
+    """The warm start of an implicit step from the coordinates of the last two increments, (N, n):
+    2 d - d_prev (exact for a constant second difference, so the guess is off by O(h^3) rather than
+    the last increment's O(h^2)); d on rows where that is not finite (a failed step never seeds the
+    next guess)."""
+    pred = 2.0 * d - d_prev
+    return torch.where(torch.isfinite(pred).all(-1, keepdim=True), pred, d)

@@ -165,13 +165,49 @@ COMPACT_MIN_ROWS = 64  # below this many rows a batch is not split further
 COMPACT_FRACTION = 0.25  # rows still iterating, as a fraction, below which only they are iterated
 
 
-def _newton_rows(problem: NewtonProblem, x, r, rn, opts: SolverOptions, max_iter: int):
+@dataclass
+class Chord:
+    """The chord Jacobian of a step (`SolverOptions.method="chord"`): J (T, n, n) at the step's first
+    iterate and its LU factors, reused by every iteration of the step (rows as in the problem)."""
+
+    J: torch.Tensor
+    LU: torch.Tensor
+    pivots: torch.Tensor
+    singular: torch.Tensor  # (T,) bool
+
+    @classmethod
+    def at(cls, J: torch.Tensor) -> Chord:
+        LU, pivots, info = torch.linalg.lu_factor_ex(J)
+        return cls(J, LU, pivots, info > 0)
+
+    def step(self, r: torch.Tensor) -> torch.Tensor:
+        """The chord step -J^-1 r (T, n); not finite on singular rows."""
+        return -torch.linalg.lu_solve(self.LU, self.pivots, r[..., None])[..., 0]
+
+    def rows(self, rows: torch.Tensor) -> Chord:
+        return Chord(self.J[rows], self.LU[rows], self.pivots[rows], self.singular[rows])
+
+
+def _newton_rows(problem: NewtonProblem, x, r, rn, opts: SolverOptions, max_iter: int, chord: Chord | None = None):
     """The loop of `solve` from (x, r = f(x), rn = |r|) for `max_iter` iterations ->
-    (x, r, converged, iterations), in the problem's layout."""
+    (x, r, converged, iterations), in the problem's layout. `chord`: the rows' chord Jacobian
+    (method "chord"; computed at x when not given)."""
     f, jac, retract, L = problem.f, problem.jac, problem.retract, problem.layout
     iterate = problem.iterate
-    if iterate is None:
+    if iterate is None and opts.method == "chord" and L.size(r):
         assert jac is not None
+        if chord is None:
+            chord = Chord.at(jac(x))
+        fixed = chord
+
+        def iterate(x, r):
+            delta = fixed.step(r)
+            cand = retract(x, delta)
+            return delta, fixed.singular, cand, f(cand)
+
+    elif iterate is None:
+        assert jac is not None
+        chord = None
 
         def iterate(x, r):
             sol, info = torch.linalg.solve_ex(jac(x), r[..., None])
@@ -211,7 +247,8 @@ def _newton_rows(problem: NewtonProblem, x, r, rn, opts: SolverOptions, max_iter
                     problem.hand_over, L, x, r, rn, converged, iters, opts, max_iter - it
                 )
                 break
-            x, r, rn, singular, full_step = _careful_iteration(problem, x, r, rn, active, opts)
+            J = None if chord is None else chord.J
+            x, r, rn, singular, full_step = _careful_iteration(problem, x, r, rn, active, opts, J)
             iters = iters + active.long()
             converged = converged | (active & ~singular & (full_step <= step_tol) & torch.isfinite(rn))
             n_converged = int(converged.sum())
@@ -234,7 +271,7 @@ def _newton_rows(problem: NewtonProblem, x, r, rn, opts: SolverOptions, max_iter
             break
         left = max_iter - it - 1
         if left and problem.restrict is not None and T >= COMPACT_MIN_ROWS and T - n_converged <= COMPACT_FRACTION * T:
-            compacted = functools.partial(_solve_restricted, problem.restrict)
+            compacted = functools.partial(_solve_restricted, problem.restrict, chord)
             x, r, converged, iters = _solve_apart(compacted, L, x, r, rn, converged, iters, opts, left)
             break
     if common:
@@ -242,8 +279,18 @@ def _newton_rows(problem: NewtonProblem, x, r, rn, opts: SolverOptions, max_iter
     return x, r, converged, iters
 
 
-def _solve_restricted(restrict: Callable[[torch.Tensor], NewtonProblem], rows: torch.Tensor, *args):
-    return _newton_rows(restrict(rows), *args)
+def _solve_restricted(
+    restrict: Callable[[torch.Tensor], NewtonProblem],
+    chord: Chord | None,
+    rows: torch.Tensor,
+    x,
+    r,
+    rn,
+    opts: SolverOptions,
+    max_iter: int,
+):
+    """The rows' own problem from their iterate on; a chord step's rows keep their rows of its factor."""
+    return _newton_rows(restrict(rows), x, r, rn, opts, max_iter, None if chord is None else chord.rows(rows))
 
 
 def _solve_apart(solve_rows, L: Layout, x, r, rn, converged, iters, opts: SolverOptions, max_iter: int):
@@ -267,14 +314,16 @@ def _put(x, rows: torch.Tensor, values):
     return x.index_copy(0, rows, values)
 
 
-def _careful_iteration(problem: NewtonProblem, x, r, rn, active, opts: SolverOptions):
+def _careful_iteration(problem: NewtonProblem, x, r, rn, active, opts: SolverOptions, J: torch.Tensor | None = None):
     """One iteration of the reference loop (least squares for singular rows, backtracking per
-    row): (x, r, rn, singular, full_step) with inactive rows unchanged."""
+    row): (x, r, rn, singular, full_step) with inactive rows unchanged. J: the step's chord
+    Jacobian (method "chord"), else the Jacobian at x."""
     f, jac, retract = problem.f, problem.jac, problem.retract
     assert jac is not None and problem.layout is ROWS, "careful iterations need a Jacobian, in rows"
     max_halvings = opts.max_halvings
     T = r.shape[0]
-    J = jac(x)
+    if J is None:
+        J = jac(x)
     sol, info = torch.linalg.solve_ex(J, r[..., None])
     singular = info > 0
     delta = -sol[..., 0]
@@ -321,12 +370,16 @@ def _reference_loop(problem: NewtonProblem, opts: SolverOptions) -> NewtonResult
     rn = torch.linalg.vector_norm(r, dim=-1)
     converged = torch.zeros(T, dtype=torch.bool, device=r.device)
     iters = torch.zeros(T, dtype=torch.long, device=r.device)
+    J = None
+    if opts.method == "chord" and T:
+        assert problem.jac is not None
+        J = problem.jac(x)
     for _ in range(max_iter):
         active = ~converged
         if not active.any():
             break
         step_tol = step_tolerance(x, tol)
-        x, r, rn, singular, full_step = _careful_iteration(problem, x, r, rn, active, opts)
+        x, r, rn, singular, full_step = _careful_iteration(problem, x, r, rn, active, opts, J)
         iters = iters + active.long()
         converged = converged | (active & ~singular & (full_step <= step_tol) & torch.isfinite(rn))
     return NewtonResult(x, converged, iters, r.abs().amax(-1))

@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 
 @dataclass(frozen=True)
@@ -18,8 +18,17 @@ class SolverOptions:
     1e-5, and 1e-12) flags and iteration counts are those of the plain test `step <= tol`.
     max_iter: Newton iterations per step. max_halvings: backtracking halvings of a step that
     does not reduce ||residual||_2 before the full step is taken anyway.
+    method: "newton" (the Jacobian at every iterate) or "chord" (simplified Newton: the Jacobian at
+    the step's first iterate, factored once and reused by every iteration of that step, so an
+    iteration costs one residual and one triangular solve). Chord converges linearly: the error
+    left by the last step is about its size times the contraction, not its square, so pair it with
+    a smaller tol (on the 5-body tree chord at 1e-8 leaves the error of newton at 1e-5,
+    docs/benchmarks.md). It serves problems solved by the generic loop (the articulated model, and
+    every model's reference path); a single body's fused step is one fused Newton step and stays
+    Newton (its Jacobian costs next to nothing).
     """
 
     tol: float = 1e-5
     max_iter: int = 10
     max_halvings: int = 6
+    method: str = field(default="newton", metadata={"choices": ("newton", "chord")})

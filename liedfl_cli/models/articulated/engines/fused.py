@@ -356,14 +356,18 @@ class Frame:
 
 @dataclass
 class FusedArticulatedState:
-    """Rollout state: g_{k-1} and the frame of g_k, the last increment g_{k-1}^{-1} g_k (the warm start),
-    the residual's constant part at g_k (N, n), and the engine."""
+    """Rollout state: g_{k-1} and the frame of g_k, the last increment g_{k-1}^{-1} g_k, the residual's
+    constant part at g_k (N, n), the engine, and the warm start's points: the last increment's
+    coordinates `dof` (N, n) and the previous one's `dof_prev` (None on the first step;
+    `ArticulatedLieDFLNN.increment_coordinates`)."""
 
     g_prev: Pose
     frame: Frame
     inc: Pose
     const: torch.Tensor
     engine: ArticulatedEngine
+    dof: torch.Tensor
+    dof_prev: torch.Tensor | None = None
 
     @property
     def g(self) -> Pose:
@@ -371,7 +375,13 @@ class FusedArticulatedState:
 
     def index(self, rows: torch.Tensor) -> FusedArticulatedState:
         return FusedArticulatedState(
-            self.g_prev.index(rows), self.frame.index(rows), self.inc.index(rows), self.const[rows], self.engine
+            self.g_prev.index(rows),
+            self.frame.index(rows),
+            self.inc.index(rows),
+            self.const[rows],
+            self.engine,
+            self.dof[rows],
+            None if self.dof_prev is None else self.dof_prev[rows],
         )
 
 
@@ -452,24 +462,30 @@ class ArticulatedEngine:
 
     def start(self, g0: Pose, g1: Pose) -> FusedArticulatedState:
         maps = self.maps
-        cur = Frame.at(maps, g1)
-        const = self._const(Frame.at(maps, g0), cur)
-        return FusedArticulatedState(g0, cur, maps.tree.group.increment(g0, g1), const, self)
+        cur, prev = Frame.at(maps, g1), Frame.at(maps, g0)
+        const = self._const(prev, cur)
+        inc = maps.tree.group.increment(g0, g1)
+        return FusedArticulatedState(g0, cur, inc, const, self, self._coordinates(inc, prev.q, cur.q))
+
+    def _coordinates(self, inc: Pose, q: Pose, q_next: Pose) -> torch.Tensor:
+        """The step's coordinates (`ArticulatedLieDFLNN.increment_coordinates`) from the increment and
+        the moving coordinates at both ends: log(inc) (unreduced), or the joints' DoF."""
+        maps, tree = self.maps, self.maps.tree
+        G = tree.group
+        if not maps.reduced:
+            return G.log(inc)
+        return jt.reduce_joint_velocity(tree, q, q_next, G.log(G.increment(q, q_next)))
 
     def _warm_start(self, s: FusedArticulatedState) -> Pose:
-        """The reference's warm start: the last increment (unreduced), or its DoF by least squares
-        applied along the joints at g_k (`ArticulatedLieDFLNN._reduced_problem`)."""
+        """The reference's warm start (`ArticulatedLieDFLNN.warm_start`): the last two increments'
+        coordinates extrapolated, 2 d_k - d_{k-1}, applied at g_k (along the joints on a reduced
+        tree); on the first step the last increment alone."""
         maps, tree = self.maps, self.maps.tree
-        if not maps.reduced:
-            return s.inc
         G = tree.group
-        xi = G.log(s.inc)
-        C = art.joint_velocity_map(tree, s.g) if tree.n_dof == G.dim else None
-        if C is not None:  # every joint a ball on a world-attitude tree: T = C^-1, so T d = xi is d = C xi
-            d0 = (C @ xi[..., None])[..., 0]
-        else:
-            d0 = jt.reduce(jt.coordinate_basis(tree, s.g), xi)
-        return G.increment(s.g, from_moving(maps, jt.advance(tree, s.frame.q, d0)))
+        d = s.dof if s.dof_prev is None else art.extrapolate(s.dof, s.dof_prev)
+        if not maps.reduced:
+            return s.inc if s.dof_prev is None else G.retract(s.inc, d - s.dof)
+        return G.increment(s.g, from_moving(maps, jt.advance(tree, s.frame.q, d)))
 
     def problem(self, s: FusedArticulatedState, x0: Pose | None = None) -> NewtonProblem:
         maps, cur = self.maps, s.frame
@@ -532,4 +548,7 @@ class ArticulatedEngine:
         if projects_poses(W.dtype):
             g_next = Pose(so3.orthonormalize(g_next.R), g_next.p)
         nxt = Frame.at(maps, g_next)
-        return FusedArticulatedState(s.g, nxt, inc, self._const(s.frame, nxt), self), g_next
+        state = FusedArticulatedState(
+            s.g, nxt, inc, self._const(s.frame, nxt), self, self._coordinates(inc, s.frame.q, nxt.q), s.dof
+        )
+        return state, g_next
