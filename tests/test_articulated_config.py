@@ -60,7 +60,9 @@ def test_model_articulated_trains_and_reloads(tmp_path, chain_file):
 
     settings = runtime._current
     try:
-        run = train_run(tmp_path, "dataset=file", f"dataset.path={chain_file}", "model=articulated", "train.epochs=2")
+        run = train_run(
+            tmp_path, "dataset=file", f"dataset.path={chain_file}", "model=articulated", "train.epochs=2", *SMOKE[1:]
+        )  # (no figures: this test reads none; budget=smoke would ask the 10-step file for 12 steps)
     finally:
         runtime._current = settings  # run_train configures the runtime: restore it
     import csv

@@ -352,7 +352,10 @@ def test_float32_rollouts_stay_on_so3(free_body_dataset, fused, monkeypatch):
 
     model = true_model(free_body_dataset).to(dtype=torch.float32)
     g = free_body_dataset.pose().to(dtype=torch.float32)
-    g0, g1 = g.index((slice(None), 0)), g.index((slice(None), 1))
+    # the reference path (Python steps, its time grows with the batch) on 2 of the 6 trajectories: increment
+    # only, 83 float32 epsilons after 200 steps (90 over all 6); projected, 3.1 (3.1)
+    n = 6 if fused else 2
+    g0, g1 = g.index((slice(0, n), 0)), g.index((slice(0, n), 1))
     steps = 200
 
     def drift() -> float:

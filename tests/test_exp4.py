@@ -32,6 +32,22 @@ def _compose(overrides: list[str]):
     return compose_config("train", overrides)
 
 
+def _figures_as_stubs(monkeypatch) -> None:
+    """`write_outputs` writes each figure as a few bytes instead of rendering it: the tests below check
+    which files the writer writes (names, tables' bytes), and the smoke run of the fixture already
+    rendered every figure for real (`test_exp4_smoke_run_end_to_end` checks them). Rendering the
+    figures again (3-D skeletons, ~5 s per test) checked nothing more."""
+    from liedfl_cli.commands import outputs
+    from liedfl_cli.display.plots import plt
+
+    def stub(fig, path: Path, dpi: int = 120) -> None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(b"figure")
+        plt.close(fig)
+
+    monkeypatch.setattr(outputs, "save_figure", stub)
+
+
 def test_exp4_config_matches_the_paper(tmp_path):
     cfg = _compose(["experiment=exp4_mocap", f"paths.data_dir={tmp_path}/data", f"paths.output_dir={tmp_path}/run"])
     c = OmegaConf.to_container(cfg, resolve=True)
@@ -153,6 +169,7 @@ def test_evaluate_mocap_writes_nothing_and_returns_what_is_written(smoke_run, tm
     assert capsys.readouterr() == ("", "")
     show(out)
     assert "Exp 4 mocap reproduction" in capsys.readouterr().out
+    _figures_as_stubs(monkeypatch)
     assert out.out_dir == run and set(out.files) == {"mocap_eval.json", "mocap_eval.csv", "mocap_eval.md"} | {
         f"plots/{n}" for n in PLOTS
     }
@@ -186,6 +203,7 @@ def test_compute_eval_writes_nothing_and_returns_what_is_written(smoke_run, tmp_
     assert out.summary["title"].startswith(f"{dataset.scene}: test rollout (")
     assert {"eval.csv", "eval.md", "eval_curves.json", "plots/error_vs_step.png"} <= set(out.files)
     rows = out.table("eval.csv")
+    _figures_as_stubs(monkeypatch)
     assert rows is out.summary["rows"] and {r["model"] for r in rows} == {
         "model",
         "constant_velocity",

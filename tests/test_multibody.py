@@ -207,7 +207,19 @@ def test_fast_residual_equals_generic_on_two_body(kind):
     torch.testing.assert_close(fast, generic, rtol=0, atol=1e-10)
 
 
+_EXACT: dict[str, Pose] = {}
+
+
 def exact(ph: dict, h: float, final_time: float, T: int = 2, seed: int = 4) -> Pose:
+    """The two-body system sampled at h up to final_time (DOP853, tolerance 1e-13): computed once per
+    argument set in a test process (the order tests below share their trajectories; nothing changes them)."""
+    key = repr((ph, h, final_time, T, seed))
+    if key not in _EXACT:
+        _EXACT[key] = _exact(ph, h, final_time, T, seed)
+    return _EXACT[key]
+
+
+def _exact(ph: dict, h: float, final_time: float, T: int, seed: int) -> Pose:
     system = two_body_system(ph)
     R0, p0, xi0 = initial(system, T, seed)
     t = h * np.arange(round(final_time / h) + 1)
@@ -231,10 +243,11 @@ def test_residual_is_third_order_on_two_body():
 
 
 def test_rollout_is_second_order_on_two_body():
+    """Over 0.4 s (the trajectories of the residual test above): measured order 1.97 (1.98 over 0.8 s)."""
     ph = physics("spring", D=0.1)
     hs, errs = (0.04, 0.02, 0.01), []
     for h in hs:
-        traj = exact(ph, h, 0.8)
+        traj = exact(ph, h, 0.4)
         ro = physics_model(G, h, ph).rollout(
             traj.index((slice(None), 0)),
             traj.index((slice(None), 1)),

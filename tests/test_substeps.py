@@ -148,9 +148,10 @@ def test_fused_and_reference_order_four_rollouts_agree():
     ref = sb.SubstepModel(LieDFLNN(G_SO3, 0.05, path="reference", **kw), 2, 4)
     assert sb._LinearEngine.applies(fused.inner) and not sb._LinearEngine.applies(ref.inner)
     g = top_truth(0.05, 0.1)
+    # 12 steps: past the 4 cycles the warm start's extrapolation needs; the paths differ by ~1e-14 there
     a, b = (
-        fused.rollout(g.index((slice(None), 0)), g.index((slice(None), 1)), 30, TIGHT),
-        ref.rollout(g.index((slice(None), 0)), g.index((slice(None), 1)), 30, TIGHT),
+        fused.rollout(g.index((slice(None), 0)), g.index((slice(None), 1)), 12, TIGHT),
+        ref.rollout(g.index((slice(None), 0)), g.index((slice(None), 1)), 12, TIGHT),
     )
     assert a.n_failed == 0 and b.n_failed == 0
     assert torch.allclose(a.pose.R, b.pose.R, atol=1e-10)
@@ -203,10 +204,11 @@ def test_internal_poses_solve_the_substep_equations(s, order):
     assert all(float(G_SO3.orthogonality_error(x).max()) < 1e-12 for x in z)
 
 
-@pytest.mark.parametrize("seed", [1, 2])
-def test_tree_internal_poses_stay_on_the_joints(seed):
+def test_tree_internal_poses_stay_on_the_joints():
+    """Damping drawn with seed 2 (seed 1 ran the same code with 3 Newton Jacobians, this one needs 5:
+    more moves along the joints to stay on them)."""
     tree = mixed_tree("world")
-    torch.manual_seed(seed)  # learned_like draws its damping from the global generator
+    torch.manual_seed(2)  # learned_like draws its damping from the global generator
     model = sb.SubstepModel(learned_like(tree, 0.05), 1, 4)
     q = smooth_motion(tree, 2, 1, 0.05, seed=5)
     z, ok = model.internal_poses(q.index((slice(None), 0)), q.index((slice(None), 1)))
@@ -354,6 +356,29 @@ def heavy_so3_data(tmp_path_factory) -> Path:
     return tmp_path_factory.mktemp("substeps_data")
 
 
+@pytest.fixture
+def short_start(monkeypatch) -> list[str]:
+    """The train commands below run the sub-step start (L-BFGS on the one-step loss, then
+    Levenberg-Marquardt on the sub-step residual) with a tenth of its iterations: they test the
+    command's path through it (the start, the rollout, the files), not how well it fits (which they
+    never asserted; the fitting loops have tests of their own in this file). Returns the stages that
+    ran, in order, for the tests to check."""
+    ran: list[str] = []
+    lbfgs, lm = sb.second_order_fit, sb.levenberg_marquardt
+
+    def second_order_fit(model, samples, iterations=sb.START_ITERATIONS):
+        ran.append("L-BFGS")
+        return lbfgs(model, samples, max(1, iterations // 10))
+
+    def levenberg_marquardt(model, samples, iterations=sb.LM_ITERATIONS):
+        ran.append("LM")
+        return lm(model, samples, max(1, iterations // 10))
+
+    monkeypatch.setattr(sb, "second_order_fit", second_order_fit)
+    monkeypatch.setattr(sb, "levenberg_marquardt", levenberg_marquardt)
+    return ran
+
+
 def _smoke_train_cfg(data: Path, out: Path, *overrides: str):
     from helpers import SMOKE, compose_config
 
@@ -361,7 +386,7 @@ def _smoke_train_cfg(data: Path, out: Path, *overrides: str):
 
 
 @pytest.mark.parametrize(("s", "order"), [(2, 2), (1, 4)])
-def test_train_command_with_substeps_end_to_end(tmp_path, heavy_so3_data, s, order):
+def test_train_command_with_substeps_end_to_end(tmp_path, heavy_so3_data, short_start, s, order):
     """`liedfl train model.substeps/model.order` at a smoke budget: the start, a rollout of the sub-stepped
     model, the true scheme on the same step, every file written."""
     from liedfl_cli.commands.train import run_train
@@ -378,9 +403,10 @@ def test_train_command_with_substeps_end_to_end(tmp_path, heavy_so3_data, s, ord
     components = json.loads((out / "components.json").read_text())
     assert components["model"] == "SubstepModel"
     assert f"step: {s} sub-step(s) of order {order}" in components["components"][-1]
+    assert short_start == ["L-BFGS", "LM"]  # the start ran both of its stages
 
 
-def test_train_epochs_zero_keeps_the_start(tmp_path, heavy_so3_data):
+def test_train_epochs_zero_keeps_the_start(tmp_path, heavy_so3_data, short_start):
     """train.epochs=0: the model's start only (here the sub-step fit), checkpointed and evaluated.
 
     Two second-order sub-steps: the same start (the one-step L-BFGS, then Levenberg-Marquardt on the
@@ -396,6 +422,7 @@ def test_train_epochs_zero_keeps_the_start(tmp_path, heavy_so3_data):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["final_loss"] is None and summary["timings"]["epochs"] == 0
     assert (out / "checkpoints" / "last.pt").is_file() and (out / "eval.csv").is_file()
+    assert short_start == ["L-BFGS", "LM"]  # the start ran (and was all the training)
 
 
 # ---------------------------------------------------------------------------- the cycle's warm start
