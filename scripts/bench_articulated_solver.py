@@ -31,22 +31,27 @@ from machine_info import cpu_model
 from liedfl_cli.solvers.options import SolverOptions
 from liedfl_cli.solvers.rollout import rollout_implicit
 
-SETTINGS = {  # name -> SolverOptions
-    "newton 1e-5 (default)": SolverOptions(tol=1e-5),
-    "chord 1e-5": SolverOptions(tol=1e-5, method="chord", max_iter=20),
-    "chord 1e-6": SolverOptions(tol=1e-6, method="chord", max_iter=20),
-    "chord 1e-8 (solver=chord)": SolverOptions(tol=1e-8, method="chord", max_iter=20),
-}
+NEWTON = "newton 1e-5 (default)"
 
 
-def measure(model, G, h, n: int, steps: int, repeats: int) -> dict:
+def settings(newton_only: bool) -> dict:
+    """name -> SolverOptions (`--newton-only`: the default alone, which also runs on code before chord steps)."""
+    out = {NEWTON: SolverOptions(tol=1e-5)}
+    if not newton_only:
+        out["chord 1e-5"] = SolverOptions(tol=1e-5, method="chord", max_iter=20)
+        out["chord 1e-6"] = SolverOptions(tol=1e-6, method="chord", max_iter=20)
+        out["chord 1e-8 (solver=chord)"] = SolverOptions(tol=1e-8, method="chord", max_iter=20)
+    return out
+
+
+def measure(model, G, h, n: int, steps: int, repeats: int, setups: dict) -> dict:
     g0, g1 = start(G, n, h)
     m = model.with_path("fused")
     tight = rollout_implicit(m, g0, g1, steps, SolverOptions(tol=1e-13, max_iter=30))
     best: dict[str, float] = {}
     rows: dict[str, dict] = {}
     for _ in range(repeats):
-        for name, opts in SETTINGS.items():
+        for name, opts in setups.items():
             t = time.perf_counter()
             ro = rollout_implicit(m, g0, g1, steps, opts)
             us = (time.perf_counter() - t) / (steps - 1) / n * 1e6
@@ -58,7 +63,7 @@ def measure(model, G, h, n: int, steps: int, repeats: int) -> dict:
                 "failed_steps": ro.n_failed,
                 "solver_error_after_steps": float(err),
             }
-    base = rows["newton 1e-5 (default)"]["us_per_step_traj"]
+    base = rows[NEWTON]["us_per_step_traj"]
     for row in rows.values():
         row["speedup_vs_newton"] = base / row["us_per_step_traj"]
     return rows
@@ -69,17 +74,19 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=40)
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--json", help="also write the figures here")
+    ap.add_argument("--newton-only", action="store_true", help="the default solver alone (an A/B against older code)")
     ap.add_argument("--data-dir", default=str(ROOT / "outputs" / "data"))
     args = ap.parse_args()
     runtime.configure(runtime.RuntimeOptions(threads=1, compile="false"))
     load_start = os.getloadavg()[0]
     out: dict = {"cpu": cpu_model(), "steps": args.steps, "load_1min_start": load_start, "models": {}}
+    setups = settings(args.newton_only)
     with torch.no_grad():
         for name, (model, G, h) in articulated_models(args.data_dir).items():
             batches = (1, 1000) if name == "tree5_true" else (200,)
             for n in batches:
                 steps = args.steps if n == 1000 else max(6, args.steps // 4)
-                rows = measure(model, G, h, n, steps, args.repeats)
+                rows = measure(model, G, h, n, steps, args.repeats, setups)
                 out["models"][f"{name} batch {n}"] = rows
                 for setting, row in rows.items():
                     print(

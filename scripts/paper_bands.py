@@ -190,7 +190,9 @@ def main() -> None:
             ]
             job["band_rel_rot_error_mean"] = band(errs)
             a.out.parent.mkdir(parents=True, exist_ok=True)
-            a.out.write_text(json.dumps(rec, indent=1, default=str) + "\n")
+            tmp = a.out.with_suffix(".tmp")  # write then rename: a killed run never leaves half a record
+            tmp.write_text(json.dumps(rec, indent=1, default=str) + "\n")
+            tmp.replace(a.out)
             print(
                 f"{key} seed {seed}: exit {proc.returncode}, {r['wall_seconds']} s, "
                 f"band {job['band_rel_rot_error_mean']}",
