@@ -63,8 +63,12 @@ JOBS = {
         "baseline=euler_dflnn",
         "dataset.initial.omega_scale=1.0",
     ],
+    # Exp 4 at the full 10,000 epochs: about an hour of one core a run (per body), 1.5 (articulated)
+    "exp4 per body": ["experiment=exp4_mocap", "model.kinetic=per_body"],
+    "exp4 articulated": ["experiment=exp4_mocap", "model.kinetic=articulated"],
 }
-"""The jobs whose full budget takes at most a few minutes of one core ("The whole paper in one run")."""
+"""The banded jobs: those whose full budget takes minutes of one core ("The whole paper in one run"), then
+Exp 1's headline and Exp 4 (run with --only; an hour or more a run)."""
 
 
 def _plan():
