@@ -160,6 +160,11 @@ def test_rollout_input_errors(run):
         api.rollout("not a run", g0, g0, 3)
     with pytest.raises(InputError, match="solver"):
         api.rollout(run, g0, g0, 3, solver=5)
+    with pytest.raises(InputError, match=r"solver\.method='broyden': choose one of newton, chord"):
+        api.rollout(run, g0, g0, 3, solver={"method": "broyden"})
+    chord = api.rollout(run, g0, api.make_pose(run.group, R[1], p[1]), 4, solver={"method": "chord", "tol": 1e-10})
+    newton = api.rollout(run, g0, api.make_pose(run.group, R[1], p[1]), 4, solver={"tol": 1e-10})
+    assert np.abs(chord.R - newton.R).max() < 1e-8 and chord.converged.all()
 
 
 def test_parameters(run):

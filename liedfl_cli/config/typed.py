@@ -294,6 +294,8 @@ def section(schema: type, values: Any, where: str) -> Any:
         where_key = f" (key {where}.{key})" if key else ""
         ours = wrong_type_line(e, f"{where}.{key}" if key else "")
         raise ConfigError(ours or f"config section '{where}': {_first_line(e)}{where_key}") from None
+    except ValueError as e:  # a schema's own __post_init__ check (e.g. SolverOptions.method), one line
+        raise ConfigError(_first_line(e)) from None
 
 
 def _resolvable(node: DictConfig) -> dict[str, Any]:

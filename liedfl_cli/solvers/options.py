@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+METHODS = ("newton", "chord")
+
 
 @dataclass(frozen=True)
 class SolverOptions:
@@ -22,13 +24,21 @@ class SolverOptions:
     the step's first iterate, factored once and reused by every iteration of that step, so an
     iteration costs one residual and one triangular solve). Chord converges linearly: the error
     left by the last step is about its size times the contraction, not its square, so pair it with
-    a smaller tol (on the 5-body tree chord at 1e-8 leaves the error of newton at 1e-5,
-    docs/benchmarks.md). It serves problems solved by the generic loop (the articulated model, and
-    every model's reference path); a single body's fused step is one fused Newton step and stays
-    Newton (its Jacobian costs next to nothing).
+    a smaller tol (on the 5-body tree chord at 1e-8 leaves a solver error of ~2e-9, newton at 1e-5
+    ~4e-10, both five orders below the scheme's own error; docs/benchmarks.md "Chord steps"). It
+    serves problems solved by the generic loop (the articulated model, and every model's reference
+    path); a single body's fused step is one fused Newton step and stays Newton (its Jacobian costs
+    next to nothing). A value other than these two is refused here, whoever builds the options.
     """
 
     tol: float = 1e-5
     max_iter: int = 10
     max_halvings: int = 6
-    method: str = field(default="newton", metadata={"choices": ("newton", "chord")})
+    method: str = field(default="newton", metadata={"choices": METHODS})
+
+    def __post_init__(self) -> None:  # every constructor (config, api, code) refuses a method it would not run
+        checks = getattr(super(), "__post_init__", None)  # the config layer's subclass checks its fields first
+        if checks is not None:
+            checks()
+        if self.method not in METHODS:
+            raise ValueError(f"solver.method={self.method!r}: choose one of {', '.join(METHODS)}")
