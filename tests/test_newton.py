@@ -175,7 +175,7 @@ def _counted(f):
     calls = [0, 0]
 
     def problem(x0, rows=None):
-        fr = f if rows is None else (lambda x: f_rows(x, rows))
+        fr = f if rows is None else (lambda x: f(x, rows))
         p = NewtonProblem.euclidean(fr, x0)
         jac = p.jac
 
@@ -191,9 +191,6 @@ def _counted(f):
 
         p.restrict = restrict
         return p
-
-    def f_rows(x, rows):
-        return f(x, rows)
 
     return problem, calls
 
