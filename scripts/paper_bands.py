@@ -68,7 +68,9 @@ JOBS = {
     "exp4 articulated": ["experiment=exp4_mocap", "model.kinetic=articulated"],
 }
 """The banded jobs: those whose full budget takes minutes of one core ("The whole paper in one run"), then
-Exp 1's headline and Exp 4 (run with --only; an hour or more a run)."""
+Exp 1's headline and Exp 4 (an hour or more a run: LONG)."""
+LONG = ("exp4 per body", "exp4 articulated")
+"""Run only when named by --only (a plain run leaves out their 6-9 CPU hours)."""
 
 
 def _plan():
@@ -146,7 +148,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "bench" / f"bands_{datetime.now():%Y-%m-%d}.json")
-    ap.add_argument("--only", nargs="*", default=None, help="job keys of JOBS (default: all)")
+    ap.add_argument("--only", nargs="*", default=None, help="job keys of JOBS (default: all but LONG)")
     ap.add_argument("--table", action="store_true", help="print the record's bands as markdown, run nothing")
     a = ap.parse_args()
     if a.table:
@@ -158,7 +160,7 @@ def main() -> None:
     rec["command"] = "OMP_NUM_THREADS=1 python scripts/paper_bands.py " + " ".join(sys.argv[1:])
     work = ROOT / "outputs" / "paper_bands"
     for key, overrides in JOBS.items():
-        if a.only and key not in a.only:
+        if (a.only and key not in a.only) or (not a.only and key in LONG):
             continue
         job = rec["jobs"].setdefault(key, {"overrides": overrides, "runs": {}})
         for seed in a.seeds:

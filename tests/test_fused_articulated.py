@@ -16,6 +16,7 @@ from test_articulated_joints import _unit, mixed_tree, smooth_motion
 
 from liedfl_cli.lie import Pose, so3
 from liedfl_cli.lie.tree import Tree
+from liedfl_cli.mechanics.articulated import extrapolate
 from liedfl_cli.mechanics.forces import NNForce, RayleighNonlinearForce
 from liedfl_cli.models.articulated.engines import fused as fa
 from liedfl_cli.models.articulated.model import ArticulatedLieDFLNN, ArticulatedState
@@ -197,8 +198,6 @@ def test_the_warm_start_extrapolates_to_third_order(case):
 def test_a_failed_step_does_not_seed_the_next_guess():
     d = torch.tensor([[0.1, 0.2], [0.3, 0.4]], dtype=F64)
     prev = torch.tensor([[0.0, 0.1], [float("nan"), 0.0]], dtype=F64)
-    from liedfl_cli.mechanics.articulated import extrapolate
-
     pred = extrapolate(d, prev)
     torch.testing.assert_close(pred[0], torch.tensor([0.2, 0.3], dtype=F64))
     torch.testing.assert_close(pred[1], d[1])

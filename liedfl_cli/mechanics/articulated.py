@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import torch
 
-from ..lie import Pose, ProductGroup
+from ..lie import Pose, ProductGroup, joints
 from ..lie.tree import Tree, fk_jacobian, forward_kinematics, relative_rotations
 from . import kinetic
 
@@ -88,6 +88,19 @@ def fk_and_jacobian(tree: Tree, g: Pose) -> tuple[Pose, torch.Tensor]:
     """(FK(g) as SE(3)^B poses, A(g) (..., B, 6, dim))."""
     world = forward_kinematics(tree, g)
     return world, fk_jacobian(tree, g, world)
+
+
+def step_coordinates(tree: Tree, reduced: bool, inc: Pose, q: Pose | None, q_next: Pose | None) -> torch.Tensor:
+    """The coordinates of a rollout step, (N, n): the warm start's points (`extrapolate`). log(inc) of the
+    coordinate increment on an unreduced tree; on a reduced one the joints' DoF d with advance(q, d) = q_next
+    from the joint coordinates q, q_next at both ends: exact for every joint but a universal one (the log
+    through the constant motion basis, `lie.joints.reduce_joint_velocity`; least squares in the mean basis
+    with a universal joint)."""
+    G = tree.group
+    if not reduced:
+        return G.log(inc)
+    assert q is not None and q_next is not None
+    return joints.reduce_joint_velocity(tree, q, q_next, G.log(G.increment(q, q_next)))
 
 
 def extrapolate(d: torch.Tensor, d_prev: torch.Tensor) -> torch.Tensor:

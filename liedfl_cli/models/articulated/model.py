@@ -841,15 +841,12 @@ class ArticulatedLieDFLNN(ImplicitModel):
         return ArticulatedState(g0, g1, inc, world, A, self.increment_coordinates(g0, g1, inc))
 
     def increment_coordinates(self, g: Pose, g_next: Pose, inc: Pose) -> torch.Tensor:
-        """The coordinates of the step g -> g_next = g inc, (N, n): the warm start's points. log(inc) in
-        the coordinates' group; on a reduced tree the joints' DoF d with advance(q, d) = q_next, exact
-        for every joint but a universal one (the joint coordinates' log through the constant motion
-        basis, `lie.joints.reduce_joint_velocity`; least squares in the mean basis with a universal
-        joint), so the extrapolated start is off by O(h^3) (tested)."""
-        if not self.reduced:
-            return self.G.log(inc)
-        q, q_next = jt.to_joint_coordinates(self.tree, g), jt.to_joint_coordinates(self.tree, g_next)
-        return jt.reduce_joint_velocity(self.tree, q, q_next, self.G.log(self.G.increment(q, q_next)))
+        """The coordinates of the step g -> g_next = g inc, (N, n) (`mechanics.articulated.step_coordinates`):
+        the warm start's points, exact so that the extrapolated start is off by O(h^3) (tested)."""
+        q = q_next = None
+        if self.reduced:
+            q, q_next = jt.to_joint_coordinates(self.tree, g), jt.to_joint_coordinates(self.tree, g_next)
+        return art.step_coordinates(self.tree, self.reduced, inc, q, q_next)
 
     def warm_start(self, state: ArticulatedState) -> Pose:
         """The Newton start of the step from g_k: the last two increments' coordinates extrapolated

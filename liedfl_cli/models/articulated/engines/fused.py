@@ -468,13 +468,9 @@ class ArticulatedEngine:
         return FusedArticulatedState(g0, cur, inc, const, self, self._coordinates(inc, prev.q, cur.q))
 
     def _coordinates(self, inc: Pose, q: Pose, q_next: Pose) -> torch.Tensor:
-        """The step's coordinates (`ArticulatedLieDFLNN.increment_coordinates`) from the increment and
-        the moving coordinates at both ends: log(inc) (unreduced), or the joints' DoF."""
-        maps, tree = self.maps, self.maps.tree
-        G = tree.group
-        if not maps.reduced:
-            return G.log(inc)
-        return jt.reduce_joint_velocity(tree, q, q_next, G.log(G.increment(q, q_next)))
+        """The step's coordinates (`mechanics.articulated.step_coordinates`) from the increment and the
+        frames' moving coordinates, the joint coordinates on a reduced tree (no conversion per step)."""
+        return art.step_coordinates(self.maps.tree, self.maps.reduced, inc, q, q_next)
 
     def _warm_start(self, s: FusedArticulatedState) -> Pose:
         """The reference's warm start (`ArticulatedLieDFLNN.warm_start`): the last two increments'
