@@ -345,9 +345,10 @@ def test_float32_run_trains_rolls_out_and_evaluates(smoke_cfg, tmp_path, restore
 
 @pytest.mark.parametrize("fused", [True, False], ids=["fused", "reference"])
 def test_float32_rollouts_stay_on_so3(free_body_dataset, fused, monkeypatch):
-    """Only the increment re-orthonormalised, float32 poses drift off SO(3) step by step (~1e-5 in 200
-    steps, ~2.5e-4 in 2000: scripts/float32_cost.py); with every pose projected (runtime.dtype=float32
-    today) they stay at rounding level (~4e-7, a few float32 epsilons)."""
+    """Only the increment re-orthonormalised, float32 poses drift off SO(3) step by step (~4e-6 in 200
+    steps with the extrapolated warm start's one Newton iteration a step, ~1e-5 with the last increment's
+    two; ~2.5e-4 in 2000: scripts/float32_cost.py); with every pose projected (runtime.dtype=float32
+    today) they stay at rounding level (~3e-7, a few float32 epsilons)."""
     from liedfl_cli.models.true_scheme import true_model
 
     model = true_model(free_body_dataset).to(dtype=torch.float32)
@@ -367,7 +368,7 @@ def test_float32_rollouts_stay_on_so3(free_body_dataset, fused, monkeypatch):
     monkeypatch.setitem(tolerances.PROJECT_POSES, torch.float32, False)
     increment_only = drift()
     eps = torch.finfo(torch.float32).eps
-    assert projected <= 10 * eps and increment_only >= 40 * eps
+    assert projected <= 10 * eps and increment_only >= 20 * eps
 
 
 def test_float64_rollouts_are_not_projected():

@@ -11,6 +11,7 @@ Shapes: xi (..., G.dim); poses `Pose(R (..., n_bodies, 3, 3), p (..., n_se3, 3))
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import torch
@@ -124,3 +125,45 @@ def retract_increment(G: ProductGroup, x: Pose, delta: torch.Tensor) -> Pose:
     E.view(*E.shape[:-2], 9).add_((sinc[..., None] * w) @ _constants(w.dtype, w.device)["hat"])
     E.diagonal(dim1=-2, dim2=-1).add_(torch.cos(t)[..., None])
     return Pose(R @ E, x.p)
+
+
+def extrapolate_increments(G: ProductGroup, incs: Sequence[Pose]) -> Pose:
+    """The warm start of an implicit step from the last increments W_j = g_j^{-1} g_{j+1}, oldest first,
+    poses (..., B, 3, 3), (..., m, 3): the next increment W_{k+1} predicted by a polynomial through them.
+
+    One increment: W_k (off the next by O(h^2)). Two: W_k W_{k-1}^{-1} W_k, the group's form of
+    2 xi_k - xi_{k-1} (symmetric, so its log is that up to third-order brackets: off by O(h^3)). Three:
+    D D'^{-1} D W_k with D = W_k W_{k-1}^{-1}, D' = W_{k-1} W_{k-2}^{-1}: the ratio D of successive
+    increments carried on by the same symmetric rule (D is the identity up to O(h^2), so the brackets
+    between D's are O(h^4)), the group's form of 3 xi_k - 3 xi_{k-1} + xi_{k-2}: off by O(h^4).
+    W_k on rows where the prediction moves W_k by more than `TRUST` times W_k's own distance from the
+    identity (Frobenius norms of the rotations and, apart, of the SE(3) translations): a history that does
+    not look smooth (a spin reversed every step by stiff damping, a body at a turning point) and a
+    prediction that is not finite (a failed step never seeds a guess) start from W_k, as without history."""
+    last = incs[-1]
+    if len(incs) == 1:
+        return last
+    if len(incs) == 2:
+        guess = compose(G, compose(G, last, G.inverse(incs[0])), last)
+    else:
+        D = compose(G, last, G.inverse(incs[-2]))
+        D_prev = compose(G, incs[-2], G.inverse(incs[-3]))
+        guess = compose(G, compose(G, compose(G, D, G.inverse(D_prev)), D), last)
+    eye = _constants(last.R.dtype, last.R.device)["eye"]
+    t2 = TRUST * TRUST
+    ok = (guess.R - last.R).square().sum((-3, -2, -1)) <= t2 * (last.R - eye).square().sum((-3, -2, -1))
+    if G.n_se3:  # NaN compares false: a non-finite guess is refused here too
+        ok = ok & ((guess.p - last.p).square().sum((-2, -1)) <= t2 * last.p.square().sum((-2, -1)))
+    if bool(ok.all()):  # the usual case: no selects
+        return guess
+    R = torch.where(ok[..., None, None, None], guess.R, last.R)
+    p = torch.where(ok[..., None, None], guess.p, last.p)
+    return Pose(R, p)
+
+
+TRUST = 0.5
+"""`extrapolate_increments` keeps its prediction where it moves the last increment W_k by at most this
+fraction of W_k's distance from the identity: on a smooth motion the move is O(h) of it (the second
+difference against the first), on a spin reversed every step it is about three times it."""
+HISTORY = 3
+"""How many increments a rollout keeps for `extrapolate_increments` (the last and the two before it)."""

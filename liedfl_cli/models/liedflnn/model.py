@@ -33,6 +33,7 @@ from torch.func import grad, jacfwd, jacrev, vmap
 
 from ...errors import ConfigError
 from ...lie import Pose, ProductGroup, so3
+from ...lie.batched import HISTORY, extrapolate_increments
 from ...lie.tolerances import projects_poses
 from ...mechanics import kinetic
 from ...mechanics.forces import RayleighForce, build_forces
@@ -475,21 +476,24 @@ class LieDFLNN(ImplicitModel):
         )
 
     def implicit_start(self, g0: Pose, g1: Pose, compile: bool = False):
-        """State (g_{k-1}, g_k, warm start = the last increment g_{k-1}^{-1} g_k); on the fused path
-        a `fused.RolloutState` that also carries the parameters derived once for the rollout (and,
-        with `compile`, the compiled Newton step)."""
+        """State (g_{k-1}, g_k, the last increment g_{k-1}^{-1} g_k, the increments before it: a tuple,
+        oldest first, at most `HISTORY` - 1 of them, the warm start's history); on the fused path a
+        `fused.RolloutState` that also carries the parameters derived once for the rollout (and, with
+        `compile`, the compiled Newton step)."""
         if self._fused():
             return fused.rollout_start(self, g0, g1, compile)
-        return g0, g1, self.G.increment(g0, g1)
+        return g0, g1, self.G.increment(g0, g1), ()
 
     def implicit_problem(self, state) -> NewtonProblem:
         """Solve the DEL residual for the increment W_k = g_k^{-1} g_{k+1}, updated by W exp(delta)
-        (so it stays on the group), warm-started from W_{k-1}; the part of the residual fixed by
-        (g_{k-1}, g_k) is computed once."""
+        (so it stays on the group), warm-started from the last increments extrapolated
+        (`lie.batched.extrapolate_increments`: off by O(h^4) from the third step on); the part of the
+        residual fixed by (g_{k-1}, g_k) is computed once."""
         if isinstance(state, fused.RolloutState):
             return fused.rollout_problem(self, state)
-        g_prev, g, inc = state
+        g_prev, g, inc, before = state
         G = self.G
+        x0 = extrapolate_increments(G, (*before, inc))
         with torch.enable_grad():  # potential gradients and autodiff Jacobians need autograd
             const = self.residual_const(g_prev, g).detach()
 
@@ -501,21 +505,21 @@ class LieDFLNN(ImplicitModel):
             with torch.enable_grad():
                 return self.jacobian_var(g, x)
 
-        return NewtonProblem(f, jac, inc, G.retract)
+        return NewtonProblem(f, jac, x0, G.retract)
 
     def implicit_advance(self, state, x: Pose):
         # Newton-Schulz step on the increment: its retractions would otherwise accumulate
         # rounding drift off SO(3) across the warm-started steps (O(k eps) instead of O(sqrt(k) eps)).
         if isinstance(state, fused.RolloutState):
             return fused.rollout_advance(self, state, x)
-        _, g, _ = state
+        _, g, last, before = state
         W = x.R.detach()
         W = 0.5 * W @ (3.0 * torch.eye(3, dtype=W.dtype, device=W.device) - W.transpose(-1, -2) @ W)
         inc = Pose(W, x.p.detach())
         g_next = self.G.compose(g, inc)
         if projects_poses(W.dtype):  # below float64 the composed poses drift off SO(3) too
             g_next = Pose(so3.orthonormalize(g_next.R), g_next.p)
-        return (g, g_next, inc), g_next
+        return (g, g_next, inc, (*before, last)[1 - HISTORY :]), g_next
 
     def residual(self, g_prev: Pose, g: Pose, g_next: Pose) -> torch.Tensor:
         """Forced DEL residual at g, shape (..., dim); zero on exact solutions of the learned scheme."""

@@ -728,7 +728,7 @@ class _Cycle:
         if ratio != 1.0:  # warm start: the last increment scaled to this sub-step
             G = mb.G
             inc = G.exp(ratio * G.log(G.increment(g_prev, g)))
-            base = (g_prev, g, inc) if isinstance(base, tuple) else replace(base, inc=inc)
+            base = (g_prev, g, inc, ()) if isinstance(base, tuple) else replace(base, inc=inc)
         prob = mb.implicit_problem(base)
         state_out = (g_prev, g, j, base)
         self._last = state_out

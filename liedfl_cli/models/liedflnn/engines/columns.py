@@ -27,6 +27,7 @@ import time
 import torch
 
 from ....lie import Pose
+from ....lie.batched import HISTORY, TRUST
 from ....lie.tolerances import projects_poses
 from ....mechanics.forces import RayleighForce
 from ....mechanics.potentials import MLPPotential
@@ -194,6 +195,26 @@ def newton_schulz(W: torch.Tensor) -> torch.Tensor:
     return matmul(W3, M).mul_(0.5).view(9, -1)
 
 
+def extrapolate_columns(incs: list[torch.Tensor]) -> torch.Tensor:
+    """`lie.batched.extrapolate_increments` for increments as columns (9, T), oldest first: W, W W_1^T W or
+    D D'^T D W (D = W W_1^T, D' = W_1 W_2^T), and W in the columns where that moves W by more than
+    `TRUST` times |W - I| (or is not finite)."""
+    W = incs[-1]
+    if len(incs) == 1:
+        return W
+    W3, W1 = W.view(3, 3, -1), incs[-2].view(3, 3, -1)
+    if len(incs) == 2:
+        guess = matmul(matmul(W3, W1.transpose(0, 1)), W3).view(9, -1)
+    else:
+        D = matmul(W3, W1.transpose(0, 1))
+        D_prev = matmul(W1, incs[-3].view(3, 3, -1).transpose(0, 1))
+        guess = matmul(matmul(matmul(D, D_prev.transpose(0, 1)), D), W3).view(9, -1)
+    off = W.clone()
+    off[0::4] -= 1.0  # W - I
+    ok = (guess - W).square().sum(0) <= (TRUST * TRUST) * off.square().sum(0)  # NaN: False
+    return guess if bool(ok.all()) else torch.where(ok, guess, W)
+
+
 def potential_columns(model, maps: RolloutMaps, g: torch.Tensor) -> torch.Tensor | None:
     """-h dV(g exp(eta))/d eta at 0 as columns (3, T), g (9, T); None without a potential.
     An MLP potential without a graph is evaluated in columns (`mlp_derivatives`); any other
@@ -254,14 +275,17 @@ def rollout(model, g0: Pose, g1: Pose, steps: int, opts: SolverOptions, progress
     out[0], out[1] = to_columns(g0.R).view(9, T), to_columns(g1.R).view(9, T)
     g = out[1]
     W_prev = to_columns(model.G.increment(g0, g1).R).view(9, T)
+    history = [W_prev]  # the last increments, oldest first (warm start)
     conv, its, res = [], [], []
     for k in range(1, steps):
         cov = potential_columns(model, maps, g)
         const = cols.c @ W_prev if cov is None else torch.addmm(cov, cols.c, W_prev)
         step = ColumnStep(cols, const, g)
-        r = step.f(W_prev)
-        W, r, converged, iterations = solve(step, W_prev, r, norm(r), opts, opts.max_iter)
+        W0 = extrapolate_columns(history)
+        r = step.f(W0)
+        W, r, converged, iterations = solve(step, W0, r, norm(r), opts, opts.max_iter)
         W_prev = newton_schulz(W)
+        history = [*history, W_prev][-HISTORY:]
         g = out[k + 1]
         g.view(3, 3, T).copy_(matmul(out[k].view(3, 3, T), W_prev.view(3, 3, T)))
         conv.append(converged)

@@ -12,7 +12,7 @@ import torch
 from torch import nn
 
 from ....lie import Pose, ProductGroup, so3
-from ....lie.batched import compose, retract_increment
+from ....lie.batched import HISTORY, compose, extrapolate_increments, retract_increment
 from ....lie.tolerances import projects_poses
 from ....mechanics import kinetic
 from ....mechanics.forces import PDControl, RayleighForce, RayleighNonlinearForce, force_jacobian_xi
@@ -51,14 +51,20 @@ class RolloutMaps:
 
 @dataclass
 class RolloutState:
-    """State of a fused rollout: poses g_{k-1}, g_k, the increment W_{k-1} (warm start) and the
-    maps built once per rollout."""
+    """State of a fused rollout: poses g_{k-1}, g_k, the increment W_{k-1} = g_{k-1}^{-1} g_k, the maps
+    built once per rollout, and the increments before W_{k-1} (oldest first, at most `HISTORY` - 1): the
+    warm start is all of them extrapolated (`lie.batched.extrapolate_increments`)."""
 
     g_prev: Pose
     g: Pose
     inc: Pose
     maps: RolloutMaps
     compile: bool = False
+    before: tuple[Pose, ...] = ()
+
+    def guess(self, G: ProductGroup) -> Pose:
+        """The Newton start of the step from this state (see the class)."""
+        return extrapolate_increments(G, (*self.before, self.inc))
 
 
 def _d2_map(Jd: torch.Tensor, h: float) -> torch.Tensor:
@@ -370,7 +376,7 @@ def step_iterate(G: ProductGroup, h: float, x: Pose, r: torch.Tensor, const, B, 
 
 def rollout_problem(model, state: RolloutState) -> NewtonProblem:
     compiled = compile_cache.compiled(step_iterate, "rollout_step") if state.compile else None
-    return FusedStep(model, state, compiled).problem(state.inc)
+    return FusedStep(model, state, compiled).problem(state.guess(model.G))
 
 
 def rollout_advance(model, state: RolloutState, x: Pose) -> tuple[RolloutState, Pose]:
@@ -384,4 +390,5 @@ def rollout_advance(model, state: RolloutState, x: Pose) -> tuple[RolloutState, 
     g_next = compose(model.G, state.g, inc)
     if projects_poses(W.dtype):  # below float64 the composed poses drift off SO(3) too
         g_next = Pose(so3.orthonormalize(g_next.R), g_next.p)
-    return RolloutState(state.g, g_next, inc, state.maps, state.compile), g_next
+    before = (*state.before, state.inc)[1 - HISTORY :]
+    return RolloutState(state.g, g_next, inc, state.maps, state.compile, before), g_next

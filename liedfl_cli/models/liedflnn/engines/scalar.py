@@ -28,6 +28,7 @@ import torch
 from torch import nn
 
 from ....lie import Pose
+from ....lie.batched import HISTORY, TRUST
 from ....mechanics.potentials import MLPPotential
 from ....solvers import newton
 from ....solvers.options import SolverOptions
@@ -102,6 +103,33 @@ def _mul3(A: list[float], B: list[float]) -> list[float]:
 def _mul3_tn(A: list[float], B: list[float]) -> list[float]:
     """A^T B of 3x3 matrices as row-major lists of 9."""
     return [A[i] * B[j] + A[3 + i] * B[3 + j] + A[6 + i] * B[6 + j] for i in range(3) for j in range(3)]
+
+
+def _mul3_nt(A: list[float], B: list[float]) -> list[float]:
+    """A B^T of 3x3 matrices as row-major lists of 9."""
+    return [
+        A[3 * i] * B[3 * j] + A[3 * i + 1] * B[3 * j + 1] + A[3 * i + 2] * B[3 * j + 2]
+        for i in range(3)
+        for j in range(3)
+    ]
+
+
+def _extrapolate(incs: list[list[float]]) -> list[float]:
+    """`lie.batched.extrapolate_increments` in floats, increments oldest first: W, W W_1^T W or
+    D D'^T D W (D = W W_1^T, D' = W_1 W_2^T); W where that moves W by more than `TRUST` times |W - I|
+    (or is not finite)."""
+    W = incs[-1]
+    if len(incs) == 1:
+        return W
+    if len(incs) == 2:
+        guess = _mul3(_mul3_nt(W, incs[-2]), W)
+    else:
+        D = _mul3_nt(W, incs[-2])
+        D_prev = _mul3_nt(incs[-2], incs[-3])
+        guess = _mul3(_mul3(_mul3_nt(D, D_prev), D), W)
+    moved = sum((a - b) * (a - b) for a, b in zip(guess, W))
+    off = sum((v - 1.0) * (v - 1.0) if i % 4 == 0 else v * v for i, v in enumerate(W))
+    return guess if moved <= TRUST * TRUST * off else W  # NaN compares false
 
 
 def _apply(M: list[list[float]], x: list[float]) -> list[float]:
@@ -234,6 +262,7 @@ def rollout(model, g0: Pose, g1: Pose, steps: int, opts: SolverOptions, progress
     n = max(steps - 1, 0)
     n_poses = max(steps, 1) + 1
     W0 = model.G.increment(g0, g1).R.reshape(T, 9).tolist()
+    history = [[W] for W in W0]  # per trajectory the last increments, oldest first (warm start)
     poses = [[R0, R1] for R0, R1 in zip(g0.R.reshape(T, 9).tolist(), g1.R.reshape(T, 9).tolist())]
     conv = [[True] * n for _ in range(T)]
     its = [[0] * n for _ in range(T)]
@@ -255,8 +284,9 @@ def rollout(model, g0: Pose, g1: Pose, steps: int, opts: SolverOptions, progress
                 Ws, rs, cs, n_it = step.hand_over(rows, _col(like, W), _col(like, r), like.new_tensor([rn]), opts, left)
                 return Ws[:, 0].tolist(), rs[:, 0].tolist(), bool(cs[0]), done + int(n_it[0])
 
-            W, r, ok, n_it = _solve(fmaps, const, W_prev, opts, step_tol, hand_over)
+            W, r, ok, n_it = _solve(fmaps, const, _extrapolate(history[t]), opts, step_tol, hand_over)
             W0[t] = W_next = _newton_schulz(W)
+            history[t] = [*history[t], W_next][-HISTORY:]
             poses[t].append(_mul3(g, W_next))
             conv[t][k - 1], its[t][k - 1], res[t][k - 1] = ok, n_it, max(abs(x) for x in r)
         if progress is not None:
