@@ -131,28 +131,38 @@ def extrapolate_increments(G: ProductGroup, incs: Sequence[Pose]) -> Pose:
     """The warm start of an implicit step from the last increments W_j = g_j^{-1} g_{j+1}, oldest first,
     poses (..., B, 3, 3), (..., m, 3): the next increment W_{k+1} predicted by a polynomial through them.
 
-    One increment: W_k (off the next by O(h^2)). Two: W_k W_{k-1}^{-1} W_k, the group's form of
-    2 xi_k - xi_{k-1} (symmetric, so its log is that up to third-order brackets: off by O(h^3)). Three:
-    D D'^{-1} D W_k with D = W_k W_{k-1}^{-1}, D' = W_{k-1} W_{k-2}^{-1}: the ratio D of successive
-    increments carried on by the same symmetric rule (D is the identity up to O(h^2), so the brackets
-    between D's are O(h^4)), the group's form of 3 xi_k - 3 xi_{k-1} + xi_{k-2}: off by O(h^4).
-    W_k on rows where the prediction moves W_k by more than `TRUST` times W_k's own distance from the
-    identity (Frobenius norms of the rotations and, apart, of the SE(3) translations): a history that does
-    not look smooth (a spin reversed every step by stiff damping, a body at a turning point) and a
-    prediction that is not finite (a failed step never seeds a guess) start from W_k, as without history."""
+    One increment: W_k (off the next by O(h^2)). Two: E W_k with E = D = W_k W_{k-1}^{-1}, i.e.
+    W_k W_{k-1}^{-1} W_k, the group's form of 2 xi_k - xi_{k-1} (symmetric, so its log is that up to
+    third-order brackets: off by O(h^3)). Three: E = D D'^{-1} D with D' = W_{k-1} W_{k-2}^{-1}: the
+    ratio D of successive increments carried on by the same symmetric rule (D is the identity up to
+    O(h^2), so the brackets between D's are O(h^4)), the group's form of 3 xi_k - 3 xi_{k-1} + xi_{k-2}:
+    off by O(h^4). The guess is E W_k, so it moves W_k by |E - I| (Frobenius, W_k orthogonal).
+
+    W_k on rows where that move exceeds `TRUST` times W_k's own distance from the identity (rotations:
+    sum over bodies of 3 - tr, which is |M - I|^2 / 2 for a rotation M; SE(3) translations apart, by
+    their squared norms): a history that does not look smooth (a spin reversed every step by stiff
+    damping, a body at a turning point) and a prediction that is not finite (a failed step never
+    seeds a guess) start from W_k, as without history."""
     last = incs[-1]
     if len(incs) == 1:
         return last
-    if len(incs) == 2:
-        guess = compose(G, compose(G, last, G.inverse(incs[0])), last)
+    if not G.n_se3:  # rotations only: the products directly (inverse = transpose), as the rollouts use it
+        W, W1 = last.R, incs[-2].R
+        E = W @ W1.mT
+        if len(incs) == 3:
+            E = E @ (W1 @ incs[-3].R.mT).mT @ E
+        guess = Pose(E @ W, last.p)
     else:
-        D = compose(G, last, G.inverse(incs[-2]))
-        D_prev = compose(G, incs[-2], G.inverse(incs[-3]))
-        guess = compose(G, compose(G, compose(G, D, G.inverse(D_prev)), D), last)
-    eye = _constants(last.R.dtype, last.R.device)["eye"]
+        E_pose = compose(G, last, G.inverse(incs[-2]))
+        if len(incs) == 3:
+            D_prev = compose(G, incs[-2], G.inverse(incs[-3]))
+            E_pose = compose(G, compose(G, E_pose, G.inverse(D_prev)), E_pose)
+        E = E_pose.R
+        guess = compose(G, E_pose, last)
     t2 = TRUST * TRUST
-    ok = (guess.R - last.R).square().sum((-3, -2, -1)) <= t2 * (last.R - eye).square().sum((-3, -2, -1))
-    if G.n_se3:  # NaN compares false: a non-finite guess is refused here too
+    trace = lambda M: M.diagonal(dim1=-2, dim2=-1).sum((-2, -1))
+    ok = 3.0 * G.n_bodies - trace(E) <= t2 * (3.0 * G.n_bodies - trace(last.R))  # NaN compares false
+    if G.n_se3:
         ok = ok & ((guess.p - last.p).square().sum((-2, -1)) <= t2 * last.p.square().sum((-2, -1)))
     if bool(ok.all()):  # the usual case: no selects
         return guess

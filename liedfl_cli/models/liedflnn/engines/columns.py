@@ -196,22 +196,19 @@ def newton_schulz(W: torch.Tensor) -> torch.Tensor:
 
 
 def extrapolate_columns(incs: list[torch.Tensor]) -> torch.Tensor:
-    """`lie.batched.extrapolate_increments` for increments as columns (9, T), oldest first: W, W W_1^T W or
-    D D'^T D W (D = W W_1^T, D' = W_1 W_2^T), and W in the columns where that moves W by more than
-    `TRUST` times |W - I| (or is not finite)."""
+    """`lie.batched.extrapolate_increments` for increments as columns (9, T), oldest first: W, or E W with
+    E = D (two increments) or D D'^T D (three; D = W W_1^T, D' = W_1 W_2^T); W in the columns where E is
+    further from the identity than `TRUST` times W (3 - tr) or is not finite."""
     W = incs[-1]
     if len(incs) == 1:
         return W
     W3, W1 = W.view(3, 3, -1), incs[-2].view(3, 3, -1)
-    if len(incs) == 2:
-        guess = matmul(matmul(W3, W1.transpose(0, 1)), W3).view(9, -1)
-    else:
-        D = matmul(W3, W1.transpose(0, 1))
-        D_prev = matmul(W1, incs[-3].view(3, 3, -1).transpose(0, 1))
-        guess = matmul(matmul(matmul(D, D_prev.transpose(0, 1)), D), W3).view(9, -1)
-    off = W.clone()
-    off[0::4] -= 1.0  # W - I
-    ok = (guess - W).square().sum(0) <= (TRUST * TRUST) * off.square().sum(0)  # NaN: False
+    E = matmul(W3, W1.transpose(0, 1))
+    if len(incs) == 3:
+        E = matmul(matmul(E, matmul(W1, incs[-3].view(3, 3, -1).transpose(0, 1)).transpose(0, 1)), E)
+    guess = matmul(E, W3).view(9, -1)
+    Ef = E.view(9, -1)
+    ok = (3.0 - (Ef[0] + Ef[4] + Ef[8])) <= (TRUST * TRUST) * (3.0 - (W[0] + W[4] + W[8]))  # NaN: False
     return guess if bool(ok.all()) else torch.where(ok, guess, W)
 
 

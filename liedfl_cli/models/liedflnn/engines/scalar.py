@@ -23,6 +23,7 @@ from __future__ import annotations
 import math
 import sys
 import time
+from operator import mul
 
 import torch
 from torch import nn
@@ -96,45 +97,55 @@ def _mat(A: torch.Tensor) -> list[list[float]]:
 
 
 def _mul3(A: list[float], B: list[float]) -> list[float]:
-    """A B of 3x3 matrices as row-major lists of 9."""
-    return [A[3 * i] * B[j] + A[3 * i + 1] * B[3 + j] + A[3 * i + 2] * B[6 + j] for i in range(3) for j in range(3)]
+    """A B of 3x3 matrices as row-major lists of 9 (unrolled: each entry summed left to right)."""
+    a0, a1, a2, a3, a4, a5, a6, a7, a8 = A
+    b0, b1, b2, b3, b4, b5, b6, b7, b8 = B
+    return [
+        a0 * b0 + a1 * b3 + a2 * b6, a0 * b1 + a1 * b4 + a2 * b7, a0 * b2 + a1 * b5 + a2 * b8,
+        a3 * b0 + a4 * b3 + a5 * b6, a3 * b1 + a4 * b4 + a5 * b7, a3 * b2 + a4 * b5 + a5 * b8,
+        a6 * b0 + a7 * b3 + a8 * b6, a6 * b1 + a7 * b4 + a8 * b7, a6 * b2 + a7 * b5 + a8 * b8,
+    ]  # fmt: skip
 
 
 def _mul3_tn(A: list[float], B: list[float]) -> list[float]:
-    """A^T B of 3x3 matrices as row-major lists of 9."""
-    return [A[i] * B[j] + A[3 + i] * B[3 + j] + A[6 + i] * B[6 + j] for i in range(3) for j in range(3)]
+    """A^T B of 3x3 matrices as row-major lists of 9 (unrolled)."""
+    a0, a1, a2, a3, a4, a5, a6, a7, a8 = A
+    b0, b1, b2, b3, b4, b5, b6, b7, b8 = B
+    return [
+        a0 * b0 + a3 * b3 + a6 * b6, a0 * b1 + a3 * b4 + a6 * b7, a0 * b2 + a3 * b5 + a6 * b8,
+        a1 * b0 + a4 * b3 + a7 * b6, a1 * b1 + a4 * b4 + a7 * b7, a1 * b2 + a4 * b5 + a7 * b8,
+        a2 * b0 + a5 * b3 + a8 * b6, a2 * b1 + a5 * b4 + a8 * b7, a2 * b2 + a5 * b5 + a8 * b8,
+    ]  # fmt: skip
 
 
 def _mul3_nt(A: list[float], B: list[float]) -> list[float]:
-    """A B^T of 3x3 matrices as row-major lists of 9."""
+    """A B^T of 3x3 matrices as row-major lists of 9 (unrolled)."""
+    a0, a1, a2, a3, a4, a5, a6, a7, a8 = A
+    b0, b1, b2, b3, b4, b5, b6, b7, b8 = B
     return [
-        A[3 * i] * B[3 * j] + A[3 * i + 1] * B[3 * j + 1] + A[3 * i + 2] * B[3 * j + 2]
-        for i in range(3)
-        for j in range(3)
-    ]
+        a0 * b0 + a1 * b1 + a2 * b2, a0 * b3 + a1 * b4 + a2 * b5, a0 * b6 + a1 * b7 + a2 * b8,
+        a3 * b0 + a4 * b1 + a5 * b2, a3 * b3 + a4 * b4 + a5 * b5, a3 * b6 + a4 * b7 + a5 * b8,
+        a6 * b0 + a7 * b1 + a8 * b2, a6 * b3 + a7 * b4 + a8 * b5, a6 * b6 + a7 * b7 + a8 * b8,
+    ]  # fmt: skip
 
 
 def _extrapolate(incs: list[list[float]]) -> list[float]:
-    """`lie.batched.extrapolate_increments` in floats, increments oldest first: W, W W_1^T W or
-    D D'^T D W (D = W W_1^T, D' = W_1 W_2^T); W where that moves W by more than `TRUST` times |W - I|
-    (or is not finite)."""
+    """`lie.batched.extrapolate_increments` in floats, increments oldest first: W, or E W with E = D
+    (two increments) or D D'^T D (three; D = W W_1^T, D' = W_1 W_2^T); W where E is further from the
+    identity than `TRUST` times W (3 - tr, as |M - I|^2 / 2 of a rotation) or is not finite."""
     W = incs[-1]
     if len(incs) == 1:
         return W
-    if len(incs) == 2:
-        guess = _mul3(_mul3_nt(W, incs[-2]), W)
-    else:
-        D = _mul3_nt(W, incs[-2])
-        D_prev = _mul3_nt(incs[-2], incs[-3])
-        guess = _mul3(_mul3(_mul3_nt(D, D_prev), D), W)
-    moved = sum((a - b) * (a - b) for a, b in zip(guess, W))
-    off = sum((v - 1.0) * (v - 1.0) if i % 4 == 0 else v * v for i, v in enumerate(W))
-    return guess if moved <= TRUST * TRUST * off else W  # NaN compares false
+    E = _mul3_nt(W, incs[-2])
+    if len(incs) == 3:
+        E = _mul3(_mul3_nt(E, _mul3_nt(incs[-2], incs[-3])), E)
+    ok = 3.0 - (E[0] + E[4] + E[8]) <= TRUST * TRUST * (3.0 - (W[0] + W[4] + W[8]))  # NaN compares false
+    return _mul3(E, W) if ok else W
 
 
 def _apply(M: list[list[float]], x: list[float]) -> list[float]:
     """M x for M (k, n) as nested lists, x of n."""
-    return [sum(m * v for m, v in zip(row, x)) for row in M]
+    return [sum(map(mul, row, x)) for row in M]  # map: the same sum, in the same order, without a generator
 
 
 def _retract(W: list[float], d: list[float]) -> list[float]:
@@ -182,7 +193,7 @@ class _Potential:
     def covector(self, g: list[float]) -> list[float]:
         a, slopes = g, []
         for Wt, _, b, act in self.hidden:
-            z = [sum(w * x for w, x in zip(row, a)) + bi for row, bi in zip(Wt, b)]
+            z = [sum(map(mul, row, a)) + bi for row, bi in zip(Wt, b)]
             if act == "gelu":
                 cdf = [0.5 * math.erf(v * _INV_SQRT2) + 0.5 for v in z]
                 a = [v * p for v, p in zip(z, cdf)]
@@ -193,7 +204,7 @@ class _Potential:
         gr = self.out
         for (_, WT, _, _), s in zip(reversed(self.hidden), reversed(slopes)):
             gs = [si * gi for si, gi in zip(s, gr)]
-            gr = [sum(w * x for w, x in zip(row, gs)) for row in WT]
+            gr = [sum(map(mul, row, gs)) for row in WT]
         dx = gr  # (9,): d(scale V)/dR entries, row major
         # sum over rows k of dR_k x R_k
         c = [0.0, 0.0, 0.0]
