@@ -71,14 +71,34 @@ def test_selected_pass_and_test_figures():
                {"epoch": 3, "val_one_step_error": 1.0}]  # fmt: skip
     assert cs.selected_pass(history, 1)["epoch"] == 1 and cs.selected_pass(history, None)["epoch"] == 3
     assert cs.selected_pass([], 1) is None
+    model = {"model": "model", "one_step_rot_error_mean": 1.0, "geodesic_error_mean": 2.0, "rollout_trajectories": 2,
+             "rollout_steps": 12, "newton_failures": 0, "one_step_vs_cv": 0.25, "rollout_vs_cv": 0.5}  # fmt: skip
     rows = [
-        {"model": "model", "one_step_rot_error_mean": 1.0, "geodesic_error_mean": 2.0, "rollout_trajectories": 2},
+        model,
         {"model": "constant_velocity", "one_step_rot_error_mean": 4.0, "geodesic_error_mean": 4.0},
         {"model": "constant_acceleration", "one_step_rot_error_mean": 2.0, "geodesic_error_mean": 8.0},
     ]
     t = cs.test_figures(rows)
-    assert t is not None and (t["one_step_vs_cv"], t["one_step_vs_ca"], t["rollout_vs_ca"]) == (0.25, 0.5, 0.25)
+    assert t is not None
+    assert (t["one_step_vs_cv"], t["rollout_vs_cv"], t["one_step_vs_ca"], t["rollout_vs_ca"]) == (0.25, 0.5, 0.5, 0.25)
     assert cs.test_figures(None) is None
+
+
+def test_test_figures_compare_only_the_same_samples():
+    """A rollout cut at a Newton failure: constant velocity's ratio is the row's (over the valid samples),
+    constant acceleration's is left out (its row covers every step); a rollout of 2 steps: constant
+    acceleration predicts no sample of its own (its sample 2 is the data's), so no rollout ratio to it."""
+    model = {"model": "model", "one_step_rot_error_mean": 1.0, "geodesic_error_mean": 2.0, "rollout_steps": 12,
+             "newton_failures": 3, "one_step_vs_cv": 0.25, "rollout_vs_cv": 0.7}  # fmt: skip
+    ca = {"model": "constant_acceleration", "one_step_rot_error_mean": 2.0, "geodesic_error_mean": 1e-17}
+    cut = cs.test_figures([model, ca])
+    assert (
+        cut is not None and cut["rollout_vs_cv"] == 0.7 and "rollout_vs_ca" not in cut and "one_step_vs_ca" not in cut
+    )
+    short = cs.test_figures([{**model, "newton_failures": 0, "rollout_steps": 2}, ca])
+    assert short is not None and "rollout_vs_ca" not in short and short["one_step_vs_ca"] == 0.5
+    nan = cs.test_figures([{**model, "rollout_vs_cv": float("nan")}, ca])
+    assert nan is not None and "rollout_vs_cv" not in nan
 
 
 def test_a_single_body_run_ends_with_the_summary(tmp_path, run_main):

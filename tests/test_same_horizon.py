@@ -131,3 +131,33 @@ def test_whole_paper_table_prints_no_mixed_horizon_ratio(tmp_path):
     assert "| 1.7 |" in lines["exp1"] and "(valid to step 12 of 470)" in lines["exp1"]
     assert "| 0.02 |" in lines["exp2"] and "valid" not in lines["exp2"]
     assert set(plan.EVAL_KEYS) >= {"cv_geodesic_error_same_horizon", "valid_horizon_min", "rollout_vs_best"}
+
+
+def test_a_two_step_rollout_has_no_constant_acceleration_rollout_to_compare_with(tmp_path):
+    """Constant acceleration starts from three true poses: over 2 steps its rollout is the data and
+    predicts nothing, so its rollout row has no error and no horizon, and the model's best-reference ratio
+    is constant velocity's (it was 1e10 against constant acceleration's rounding-level "error"); its
+    one-step guesses still count."""
+    steps = 2
+    ds = _data()
+    idx = ds.split["test"]
+    T = len(idx)
+    rng = np.random.default_rng(4)
+    R = ds.R[idx][:, : steps + 1].copy()
+    R[:, 2:] = R[:, 2:] @ so3.exp(torch.from_numpy(0.01 * rng.standard_normal((T, 1, 1, 3)))).numpy()
+    ent = RolloutEntry(
+        R=R,
+        p=np.zeros((T, steps + 1, 0, 3)),
+        converged=np.ones((T, steps - 1), bool),
+        iterations=np.full((T, steps - 1), 2),
+        residual_norm=np.zeros((T, steps - 1)),
+        attrs={"seconds": 1.0, "seconds_per_step": 0.1, "n_failed": 0, "first_failure": -1, "n_trajectories": T},
+    )
+    write_rollout(tmp_path / "rollout.h5", steps=steps, h=ds.h, scene=ds.scene, traj_index=idx, rollouts={"model": ent})
+    rows = {r["model"]: r for r in run_eval_from_objects(CFG, ds, tmp_path)}
+    model, cv, ca = rows["model"], rows["constant_velocity"], rows["constant_acceleration"]
+    assert np.isnan(ca["geodesic_error_mean"]) and ca["valid_horizon_min"] is None
+    assert ca["one_step_rot_error_mean"] is not None and np.isfinite(ca["one_step_rot_error_mean"])
+    assert model["best_reference"] == "constant_velocity"
+    assert abs(model["rollout_vs_best"] - model["geodesic_error_mean"] / cv["geodesic_error_mean"]) < 1e-12
+    assert 0.01 < model["rollout_vs_best"] < 100

@@ -207,7 +207,13 @@ def _reference_rows(
     }
     out = {}
     for key, (rollout, one) in made.items():
-        row, curve = _errors(key, names, rollout, truth, n)
+        # constant acceleration starts from three true poses: over 2 steps or fewer it predicts no sample
+        none = torch.zeros(truth.R.shape[0], n + 1, dtype=torch.bool) if _no_ca_rollout(key, n) else None
+        row, curve = _errors(key, names, rollout, truth, n, none)
+        if none is not None:  # no horizon either: nothing was predicted, nothing failed
+            row.update(
+                dict.fromkeys(("valid_horizon_min", "valid_horizon_mean", "failed_trajectories", "excluded_samples"))
+            )
         row.update({k: None for k in ONE_STEP_COLUMNS if k != "one_step_pos_error_mean" or truth.p.shape[-2]})
         if one is not None:
             row.update(one_step_metrics(one, target))
@@ -217,6 +223,12 @@ def _reference_rows(
         row.update({"error_steps": n, "rollout_steps": steps, "rollout_trajectories": int(truth.R.shape[0])})
         out[key] = (row, curve, rollout, one)
     return out
+
+
+def _no_ca_rollout(key: str, n: int) -> bool:
+    """Whether `key` is constant acceleration over n <= 2 error steps: its rollout's samples 0-2 are the
+    data's, so it predicts nothing there and is no rollout reference (its one-step guesses still are)."""
+    return key == CONSTANT_ACCELERATION and n < 3
 
 
 def _reference_ratios(r: dict, entry, refs: dict, truth: Pose, target: Pose, n: int, cv_row: dict) -> None:
@@ -236,10 +248,11 @@ def _reference_ratios(r: dict, entry, refs: dict, truth: Pose, target: Pose, n: 
     rot1: dict[str, float] = {}
     pos1: dict[str, float] = {}
     for key, (_, _, rollout, one) in refs.items():
-        sc = error_metrics(rollout.index(span), truth.index(span), valid)["scalars"]
-        rot[key] = sc["geodesic_error_mean"]
-        if "position_error_mean" in sc:
-            pos[key] = sc["position_error_mean"]
+        if not _no_ca_rollout(key, n):
+            sc = error_metrics(rollout.index(span), truth.index(span), valid)["scalars"]
+            rot[key] = sc["geodesic_error_mean"]
+            if "position_error_mean" in sc:
+                pos[key] = sc["position_error_mean"]
         if one is not None:
             o = one_step_metrics(one, target, one_conv)
             rot1[key] = o["one_step_rot_error_mean"]

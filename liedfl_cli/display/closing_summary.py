@@ -196,21 +196,33 @@ def selected_pass(
 
 def test_figures(rows: Sequence[Mapping[str, Any]] | None) -> dict | None:
     """The test rollout's figures of the model (eval rows of `summary.json`: `model` "model", the
-    references `model` constant_velocity / constant_acceleration)."""
+    references `model` constant_velocity / constant_acceleration), each ratio over the same samples on
+    both sides: constant velocity's from the row's own columns (`one_step_vs_cv`, `rollout_vs_cv`: over
+    the model's valid samples); constant acceleration's from the two rows' errors, only where those cover
+    the same samples (no Newton failure) and, for the rollout, where the reference predicts a sample at
+    all (it starts from three true poses: a rollout of 2 steps or fewer has no sample of its own)."""
     if not rows:
         return None
     model = next((r for r in rows if r.get("model") == "model"), None)
     if model is None:
         return None
-    by = {r.get("model"): r for r in rows}
-    out: dict[str, Any] = {"trajectories": model.get("rollout_trajectories"), "steps": model.get("rollout_steps")}
+    ca = next((r for r in rows if r.get("model") == "constant_acceleration"), {})
+    steps = model.get("rollout_steps")
+    out: dict[str, Any] = {"trajectories": model.get("rollout_trajectories"), "steps": steps}
+    same_samples = not model.get("newton_failures")
     for what, key in (("one_step", "one_step_rot_error_mean"), ("rollout", "geodesic_error_mean")):
-        mine = model.get(key)
-        for ref, name in (("cv", "constant_velocity"), ("ca", "constant_acceleration")):
-            theirs = (by.get(name) or {}).get(key)
-            if isinstance(mine, (int, float)) and isinstance(theirs, (int, float)) and theirs > 0:
-                out[f"{what}_vs_{ref}"] = mine / theirs
+        cv = model.get(f"{what}_vs_cv")
+        if isinstance(cv, (int, float)) and math.isfinite(cv):
+            out[f"{what}_vs_cv"] = cv
+        mine, theirs = model.get(key), ca.get(key)
+        predicts = what == "one_step" or not isinstance(steps, int) or steps >= 3
+        if same_samples and predicts and _positive(mine) and _positive(theirs):
+            out[f"{what}_vs_ca"] = mine / theirs
     return out
+
+
+def _positive(x: Any) -> bool:
+    return isinstance(x, (int, float)) and math.isfinite(x) and x > 0
 
 
 def print_closing_summary(physics: Mapping[str, Any] | None, summary: Mapping[str, Any],
