@@ -93,6 +93,14 @@ from liedfl_cli.solvers import compile as compile_cache  # noqa: E402
 from liedfl_cli.solvers import runtime  # noqa: E402
 from liedfl_cli.solvers.options import SolverOptions  # noqa: E402
 
+
+def chord_options(**overrides) -> SolverOptions:
+    """`solver=chord`'s settings as its config file writes them (conf/solver/chord.yaml), with `overrides`."""
+    import yaml
+
+    return SolverOptions(**{**yaml.safe_load((Path(CONF_DIR) / "solver" / "chord.yaml").read_text()), **overrides})
+
+
 PHYS = {"J": [1.521, 1.362, 1.211], "m": 0.5, "rho": [0.0, 0.5, 1.0]}
 BATCHES = (1, 10, 1000, 10000)
 CPU_US: list[float] = []  # CPU time of each `rollout_us` call, in call order
@@ -364,7 +372,7 @@ def articulated_rollouts(data_dir: str, quick: bool, log) -> dict:
         for n in (1, 1000):
             row = {}
             for path in ("fused", "reference", "fused_chord"):
-                opts = SolverOptions(tol=1e-8, max_iter=20, method="chord") if path == "fused_chord" else None
+                opts = chord_options() if path == "fused_chord" else None
                 row[path] = rollout_us(model, G, h, n, budget, repeats, fused=path != "reference", solver=opts)
             row["reference_over_fused"] = row["reference"] / row["fused"]
             row["fused_over_fused_chord"] = row["fused"] / row["fused_chord"]

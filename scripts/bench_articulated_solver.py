@@ -25,7 +25,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench import ROOT, articulated_models, runtime, start
+from bench import ROOT, articulated_models, chord_options, runtime, start
 from machine_info import cpu_model
 
 from liedfl_cli.solvers.options import SolverOptions
@@ -38,9 +38,9 @@ def settings(newton_only: bool) -> dict:
     """name -> SolverOptions (`--newton-only`: the default alone, which also runs on code before chord steps)."""
     out = {NEWTON: SolverOptions(tol=1e-5)}
     if not newton_only:
-        out["chord 1e-5"] = SolverOptions(tol=1e-5, method="chord", max_iter=20)
-        out["chord 1e-6"] = SolverOptions(tol=1e-6, method="chord", max_iter=20)
-        out["chord 1e-8 (solver=chord)"] = SolverOptions(tol=1e-8, method="chord", max_iter=20)
+        out["chord 1e-5"] = chord_options(tol=1e-5)
+        out["chord 1e-6"] = chord_options(tol=1e-6)
+        out[f"chord {chord_options().tol:.0e} (solver=chord)".replace("e-0", "e-")] = chord_options()
     return out
 
 
