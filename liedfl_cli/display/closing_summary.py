@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeGuard
 
 MAX_BODIES = 12  # bodies listed (a bigger tree: the rest in recovery.json); keeps a tree's summary ~25 lines
 FILES = ("checkpoints/best.pt", "checkpoints/last.pt", "recovery.json", "summary.json", "eval.md", "rollout.h5",
@@ -221,7 +221,7 @@ def test_figures(rows: Sequence[Mapping[str, Any]] | None) -> dict | None:
     return out
 
 
-def _positive(x: Any) -> bool:
+def _positive(x: Any) -> TypeGuard[float]:
     return isinstance(x, (int, float)) and math.isfinite(x) and x > 0
 
 
