@@ -178,3 +178,26 @@ def modules_in_fresh_interpreter(code: str, roots: tuple[str, ...]) -> list[str]
         check=True,
     )
     return ast.literal_eval(out.stdout.strip().splitlines()[-1])
+
+
+def write_model_rollout(path: Path, ds, idx, R, p, converged=None) -> None:
+    """Write poses R (T, S+1, B, 3, 3), p (T, S+1, m, 3) as the rollout.h5 of a "model" on trajectories
+    `idx` of `ds` (2 Newton iterations a step; `converged` (T, S-1) bool, all True by default), for the
+    evaluation tests."""
+    import numpy as np
+
+    from liedfl_cli.files.rollout_file import RolloutEntry, write_rollout
+
+    T, S = R.shape[0], R.shape[1] - 1
+    conv = np.ones((T, S - 1), bool) if converged is None else converged
+    fails = np.flatnonzero((~conv).any(0))
+    ent = RolloutEntry(
+        R=R,
+        p=p,
+        converged=conv,
+        iterations=np.full((T, S - 1), 2),
+        residual_norm=np.zeros((T, S - 1)),
+        attrs={"seconds": 1.0, "seconds_per_step": 0.1, "n_failed": int((~conv).sum()),
+               "first_failure": int(fails[0]) + 2 if len(fails) else -1, "n_trajectories": T},
+    )  # fmt: skip
+    write_rollout(path, steps=S, h=ds.h, scene=ds.scene, traj_index=idx, rollouts={"model": ent})

@@ -8,10 +8,10 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from helpers import write_model_rollout
 from liedfl_cli.commands.evaluate import run_eval_from_objects
 from liedfl_cli.config.typed import EvalConfig, RunConfig
 from liedfl_cli.data.hdf5 import Dataset
-from liedfl_cli.files.rollout_file import RolloutEntry, write_rollout
 from liedfl_cli.lie import Pose, ProductGroup, so3
 from liedfl_cli.solvers.one_step import (
     constant_acceleration_one_step,
@@ -122,16 +122,7 @@ def test_every_evaluation_has_both_references_and_ca_wins_on_accelerating_data(t
     G = ProductGroup(n_se3=1, n_so3=1)
     truth = _pose(R[idx], p[idx])
     cv = constant_velocity_rollout(G, truth.index((slice(None), 0)), truth.index((slice(None), 1)), N)
-    T = len(idx)
-    ent = RolloutEntry(
-        R=cv.R.numpy(),
-        p=cv.p.numpy(),
-        converged=np.ones((T, N - 1), bool),
-        iterations=np.full((T, N - 1), 2),
-        residual_norm=np.zeros((T, N - 1)),
-        attrs={"seconds": 1.0, "seconds_per_step": 0.1, "n_failed": 0, "first_failure": -1, "n_trajectories": T},
-    )
-    write_rollout(tmp_path / "rollout.h5", steps=N, h=ds.h, scene=ds.scene, traj_index=idx, rollouts={"model": ent})
+    write_model_rollout(tmp_path / "rollout.h5", ds, idx, cv.R.numpy(), cv.p.numpy())
     rows = {r["model"]: r for r in run_eval_from_objects(CFG, ds, tmp_path)}
     assert {"constant_velocity", "constant_acceleration", "constant_velocity_euclidean"} <= set(rows)
     ca = rows["constant_acceleration"]
@@ -153,16 +144,7 @@ def test_uniform_motion_makes_euclidean_velocity_the_best_position_guess(tmp_pat
     idx = ds.split["test"]
     ent_R, ent_p = R[idx], p[idx].copy()
     ent_p[:, 2:] += 1e-3  # a model off by a constant 1e-3 in every predicted position
-    T = len(idx)
-    ent = RolloutEntry(
-        R=ent_R.copy(),
-        p=ent_p,
-        converged=np.ones((T, N - 1), bool),
-        iterations=np.full((T, N - 1), 2),
-        residual_norm=np.zeros((T, N - 1)),
-        attrs={"seconds": 1.0, "seconds_per_step": 0.1, "n_failed": 0, "first_failure": -1, "n_trajectories": T},
-    )
-    write_rollout(tmp_path / "rollout.h5", steps=N, h=ds.h, scene=ds.scene, traj_index=idx, rollouts={"model": ent})
+    write_model_rollout(tmp_path / "rollout.h5", ds, idx, ent_R.copy(), ent_p)
     rows = {r["model"]: r for r in run_eval_from_objects(CFG, ds, tmp_path)}
     assert rows["constant_velocity_euclidean"]["position_error_mean"] < 1e-10
     assert rows["constant_velocity"]["position_error_mean"] > 1e-2

@@ -368,7 +368,7 @@ def test_float32_rollouts_stay_on_so3(free_body_dataset, fused, monkeypatch):
     monkeypatch.setitem(tolerances.PROJECT_POSES, torch.float32, False)
     increment_only = drift()
     eps = torch.finfo(torch.float32).eps
-    assert projected <= 10 * eps and increment_only >= 20 * eps
+    assert projected <= 10 * eps and increment_only >= 15 * eps  # measured 29-34 eps (one Intel CPU): 2x margin
 
 
 def test_float64_rollouts_are_not_projected():

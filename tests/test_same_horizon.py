@@ -8,10 +8,10 @@ import csv
 import numpy as np
 import torch
 
+from helpers import write_model_rollout
 from liedfl_cli.commands.evaluate import run_eval_from_objects
 from liedfl_cli.config.typed import EvalConfig, RunConfig
 from liedfl_cli.data.hdf5 import Dataset
-from liedfl_cli.files.rollout_file import RolloutEntry, write_rollout
 from liedfl_cli.lie import so3
 
 CFG = RunConfig("eval", eval=EvalConfig(plots=False))
@@ -53,15 +53,7 @@ def test_ratio_to_constant_velocity_covers_the_models_valid_horizon(tmp_path):
     R[0, FAIL + 2 :] = np.eye(3)  # trajectory 0: the failed solve and everything after it is garbage
     conv = np.ones((T, N - 1), bool)
     conv[0, FAIL] = False
-    ent = RolloutEntry(
-        R=R,
-        p=np.zeros((T, N + 1, 0, 3)),
-        converged=conv,
-        iterations=np.full((T, N - 1), 2),
-        residual_norm=np.zeros((T, N - 1)),
-        attrs={"seconds": 1.0, "seconds_per_step": 0.1, "n_failed": 1, "first_failure": FAIL + 2, "n_trajectories": T},
-    )
-    write_rollout(tmp_path / "rollout.h5", steps=N, h=ds.h, scene=ds.scene, traj_index=idx, rollouts={"model": ent})
+    write_model_rollout(tmp_path / "rollout.h5", ds, idx, R, np.zeros((T, N + 1, 0, 3)), conv)
     rows = {r["model"]: r for r in run_eval_from_objects(CFG, ds, tmp_path)}
     model, cv = rows["model"], rows["constant_velocity"]
     assert model["valid_horizon_min"] == FAIL + 1 and model["failed_trajectories"] == 1
@@ -145,15 +137,7 @@ def test_a_two_step_rollout_has_no_constant_acceleration_rollout_to_compare_with
     rng = np.random.default_rng(4)
     R = ds.R[idx][:, : steps + 1].copy()
     R[:, 2:] = R[:, 2:] @ so3.exp(torch.from_numpy(0.01 * rng.standard_normal((T, 1, 1, 3)))).numpy()
-    ent = RolloutEntry(
-        R=R,
-        p=np.zeros((T, steps + 1, 0, 3)),
-        converged=np.ones((T, steps - 1), bool),
-        iterations=np.full((T, steps - 1), 2),
-        residual_norm=np.zeros((T, steps - 1)),
-        attrs={"seconds": 1.0, "seconds_per_step": 0.1, "n_failed": 0, "first_failure": -1, "n_trajectories": T},
-    )
-    write_rollout(tmp_path / "rollout.h5", steps=steps, h=ds.h, scene=ds.scene, traj_index=idx, rollouts={"model": ent})
+    write_model_rollout(tmp_path / "rollout.h5", ds, idx, R, np.zeros((T, steps + 1, 0, 3)))
     rows = {r["model"]: r for r in run_eval_from_objects(CFG, ds, tmp_path)}
     model, cv, ca = rows["model"], rows["constant_velocity"], rows["constant_acceleration"]
     assert np.isnan(ca["geodesic_error_mean"]) and ca["valid_horizon_min"] is None

@@ -272,8 +272,9 @@ def rollout(model, g0: Pose, g1: Pose, steps: int, opts: SolverOptions, progress
     step_tol = max(opts.tol, newton.ROUNDING_ULPS * sys.float_info.epsilon)  # rotations: entries <= 1
     n = max(steps - 1, 0)
     n_poses = max(steps, 1) + 1
-    W0 = model.G.increment(g0, g1).R.reshape(T, 9).tolist()
-    history = [[W] for W in W0]  # per trajectory the last increments, oldest first (warm start)
+    # per trajectory the last increments, oldest first: the last one fixes the step's constant part, all of
+    # them its warm start
+    history = [[W] for W in model.G.increment(g0, g1).R.reshape(T, 9).tolist()]
     poses = [[R0, R1] for R0, R1 in zip(g0.R.reshape(T, 9).tolist(), g1.R.reshape(T, 9).tolist())]
     conv = [[True] * n for _ in range(T)]
     its = [[0] * n for _ in range(T)]
@@ -281,7 +282,7 @@ def rollout(model, g0: Pose, g1: Pose, steps: int, opts: SolverOptions, progress
 
     for k in range(1, steps):
         for t in range(T):
-            g, W_prev = poses[t][-1], W0[t]
+            g, W_prev = poses[t][-1], history[t][-1]
             cov = potential.covector(g) if potential is not None else [0.0, 0.0, 0.0]
             const = [x + y for x, y in zip(_apply(fmaps.c, W_prev), cov)]
 
@@ -296,7 +297,7 @@ def rollout(model, g0: Pose, g1: Pose, steps: int, opts: SolverOptions, progress
                 return Ws[:, 0].tolist(), rs[:, 0].tolist(), bool(cs[0]), done + int(n_it[0])
 
             W, r, ok, n_it = _solve(fmaps, const, _extrapolate(history[t]), opts, step_tol, hand_over)
-            W0[t] = W_next = _newton_schulz(W)
+            W_next = _newton_schulz(W)
             history[t] = [*history[t], W_next][-HISTORY:]
             poses[t].append(_mul3(g, W_next))
             conv[t][k - 1], its[t][k - 1], res[t][k - 1] = ok, n_it, max(abs(x) for x in r)
