@@ -210,11 +210,21 @@ def forward_kinematics(maps: TreeMaps, g: Pose) -> tuple[torch.Tensor, torch.Ten
     return Rw, maps.ancestors @ u, u
 
 
-def _cross_columns(a: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-    """a x v column by column: a (..., 3, n), v (..., 3) -> (..., 3, n)."""
+def _cross_columns(a: torch.Tensor, v: torch.Tensor, base: torch.Tensor | None = None) -> torch.Tensor:
+    """a x v column by column (+ base): a (..., 3, n), v (..., 3), base (..., 3, n) -> (..., 3, n).
+    Written row by row into one buffer (a multiply and a fused multiply-subtract per row): no
+    temporaries and no stack, 1.4x the stacked form at batch 1,000."""
     a0, a1, a2 = a.unbind(-2)
     v0, v1, v2 = (x[..., None] for x in v.unbind(-1))
-    return torch.stack((a1 * v2 - a2 * v1, a2 * v0 - a0 * v2, a0 * v1 - a1 * v0), -2)
+    out = torch.empty_like(a) if base is None else base.clone()
+    o0, o1, o2 = out.unbind(-2)
+    for o, x, y, z, w in ((o0, a1, v2, a2, v1), (o1, a2, v0, a0, v2), (o2, a0, v1, a1, v0)):
+        if base is None:
+            torch.mul(x, y, out=o)
+        else:
+            o.addcmul_(x, y)
+        o.addcmul_(z, w, value=-1.0)
+    return out
 
 
 def world_jacobian(maps: TreeMaps, Rw: torch.Tensor, u: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -290,22 +300,23 @@ def from_moving(maps: TreeMaps, q: Pose) -> Pose:
     return jt.from_joint_coordinates(maps.tree, q) if maps.joint_mode else q
 
 
-def damping_jacobian(maps: TreeMaps, W: torch.Tensor) -> torch.Tensor:
+def damping_jacobian(maps: TreeMaps, W: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
     """-(h/2) diag(d) d nu_red / d delta (N, n, n) for joints with a constant basis: the rotational blocks
     (tr(W) I - W^T) / (2h) of `kinetic.velocity_estimate_jacobian` (W: the joints' rotation increments),
     each only on its own joint's DoF (E_pad^T . E_pad), scattered instead of the dense dim x dim product
-    (the hot path of a damped tree; the free root is not damped)."""
+    (the hot path of a damped tree; the free root is not damped). With `out` (N, n, n, contiguous) the
+    blocks are added to it in place and it is returned (no n x n zeros, no dense sum)."""
     assert maps.damping is not None
     h, n = maps.h, maps.damping.shape[0]
     tr = W.diagonal(dim1=-2, dim2=-1).sum(-1)[..., None, None]
     eye = torch.eye(3, dtype=W.dtype, device=W.device)
     blocks = torch.einsum("bia,Nbij,bjc->Nbac", maps.Epad, (tr * eye - W.transpose(-1, -2)) / (2 * h), maps.Epad)
     N = W.shape[0]
-    out = W.new_zeros(N, n * n)
-    out[:, maps.damp_index] = (-0.5 * h * maps.damping)[maps.damp_index // n] * blocks.reshape(N, -1)[
-        :, maps.damp_source
-    ]
-    return out.reshape(N, n, n)
+    values = (-0.5 * h * maps.damping)[maps.damp_index // n] * blocks.reshape(N, -1)[:, maps.damp_source]
+    if out is None:
+        out = W.new_zeros(N, n, n)
+    out.view(N, n * n).index_add_(1, maps.damp_index, values)
+    return out
 
 
 # ---------------------------------------------------------------------------- the step
@@ -339,7 +350,7 @@ class Frame:
         if self.Y is None:
             theta, P = self.jacobian(maps)
             arm = torch.einsum("Nbij,bj->Nbi", self.Rw, maps.rho)  # (N, B, 3): Rw rho
-            self.Y = _cross_columns(theta, arm).add_(P)  # P + Theta x (Rw rho)
+            self.Y = _cross_columns(theta, arm, base=P)  # P + Theta x (Rw rho)
         return self.Y
 
     def index(self, rows: torch.Tensor) -> Frame:
@@ -425,20 +436,19 @@ class ArticulatedEngine:
             tau = tau - maps.damping * jt.reduce_joint_velocity(tree, q, q2, nu)
         return 0.5 * maps.h * tau
 
-    def _joint_jacobian(self, q: Pose, q2: Pose) -> torch.Tensor | float:
-        """d `_joint_terms`(q, q2, q) / d delta (N, n, n) with q2 advanced along the joints by delta:
-        S(q)^T dF dnu S(q2) and the damping's rates with the bases held fixed
-        (`articulated.reduced_velocity_jacobian`)."""
+    def _joint_jacobian(self, q: Pose, q2: Pose, J: torch.Tensor) -> torch.Tensor:
+        """J (N, n, n, contiguous) + d `_joint_terms`(q, q2, q) / d delta with q2 advanced along the joints
+        by delta: S(q)^T dF dnu S(q2) and the damping's rates with the bases held fixed
+        (`articulated.reduced_velocity_jacobian`); J itself (updated in place) in the common case."""
         maps, tree = self.maps, self.maps.tree
         if maps.damping is None and not maps.forces:
-            return 0.0
+            return J
         G = tree.group
         if maps.damping is not None and not maps.forces and not maps.universal:  # the common case, sparse
-            return damping_jacobian(maps, q.R.transpose(-1, -2) @ q2.R)
+            return damping_jacobian(maps, q.R.transpose(-1, -2) @ q2.R, out=J)
         inc = G.increment(q, q2)
         dnu = kinetic.velocity_estimate_jacobian(G, inc, maps.h)
         S2 = jt.motion_basis(tree, q2)
-        J = dnu.new_zeros(dnu.shape[0], S2.shape[-1], S2.shape[-1])
         if maps.damping is not None:
             dred = jt.reduce_joint_velocity(tree, q, q2, dnu @ S2, columns=True)
             J = J - 0.5 * maps.h * maps.damping[:, None] * dred
@@ -509,16 +519,18 @@ class ArticulatedEngine:
             Tn = nxt.jacobian(maps)[0]
             N, B, _, n = Tn.shape
             HT = torch.bmm(rotational_world(maps, cur.Rw, nxt.Rw).reshape(N * B, 3, 3), Tn.reshape(N * B, 3, n))
-            right = torch.cat((HT.reshape(N, 3 * B, n), _rows(nxt.com_jacobian(maps)).neg()), 1)
-            return torch.bmm(left()[1], right) + self._joint_jacobian(cur.q, nxt.q)
+            rot, trans = left()[1]  # two products into one buffer: 3.7x the concatenated factors at batch 1,000
+            J = torch.baddbmm(torch.bmm(rot, HT.reshape(N, 3 * B, n)), trans, _rows(nxt.com_jacobian(maps)), alpha=-1)
+            return self._joint_jacobian(cur.q, nxt.q, J)
 
-        def left() -> tuple[torch.Tensor, torch.Tensor]:
-            """At g_k, once per step: [Theta_k; P_k]^T (the residual's) and [Theta_k; (m/h) Y_k]^T (the
-            Jacobian's), each (N, n, 6B)."""
+        def left() -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
+            """At g_k, once per step: [Theta_k; P_k]^T (the residual's, (N, n, 6B)) and the Jacobian's
+            Theta_k^T and (m/h) Y_k^T (each (N, n, 3B), transposed views)."""
             if cached[0] is None:
                 s_ = (maps.mass / maps.h)[:, None, None]
                 theta = cur.jacobian(maps)[0]
-                cached[0] = (stacked(cur.jacobian(maps)), stacked((theta, s_ * cur.com_jacobian(maps))))
+                trans = _rows(s_ * cur.com_jacobian(maps)).transpose(-1, -2)
+                cached[0] = (stacked(cur.jacobian(maps)), (_rows(theta).transpose(-1, -2), trans))
             return cached[0]
 
         def retract(x: Pose, delta: torch.Tensor) -> Pose:
