@@ -737,7 +737,22 @@ class ArticulatedLieDFLNN(ImplicitModel):
     def loss(self, batch: Batch | ArticulatedBatch, opts: LossOptions):
         """`train.loss`: del (w_DEL mean ||r||^2), newton (w_DEL mean ||H^-1 r||^2) or rollout (the
         fine-tuning windows, `models.liedflnn.losses.rollout_window_loss`), each + w_reg mean penalty(log|det H_b|)
-        -> (loss, parts)."""
+        -> (loss, parts). The paper's DEL loss of a precomputed batch is compiled, forward and backward, when
+        the plan asks for it (`runtime.compile`; `auto` from 1e5 optimiser steps: 1.4x per Exp 4 epoch after
+        about a minute and a half of compiling, docs/benchmarks.md)."""
+        if (
+            isinstance(batch, ArticulatedBatch)
+            and opts.loss == "del"
+            and torch.is_grad_enabled()
+            and self.plan.wants_compile("train")
+        ):
+            from ...solvers import compile as compile_cache
+
+            return compile_cache.compiled(_articulated_loss, "articulated_train_loss")(self, batch, opts)
+        return self._loss(batch, opts)
+
+    def _loss(self, batch: Batch | ArticulatedBatch, opts: LossOptions):
+        """`loss` uncompiled."""
         from ..liedflnn import losses
 
         if opts.loss == "rollout":
@@ -1005,3 +1020,9 @@ def articulated_true_model(
     )
     model.requires_grad_(False)
     return model
+
+
+def _articulated_loss(model: ArticulatedLieDFLNN, batch: ArticulatedBatch, opts: LossOptions):
+    """`ArticulatedLieDFLNN._loss` as a module-level function: what `runtime.compile` compiles (one
+    compiled function for every model, told apart by dynamo's guards)."""
+    return model._loss(batch, opts)
