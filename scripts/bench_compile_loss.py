@@ -98,6 +98,7 @@ def main() -> None:
             "eager_ms_per_step": eager * 1e3,
             "compiled_ms_per_step": comp * 1e3,
             "speedup": eager / comp,
+            "inductor_cache_dir": os.environ.get("TORCHINDUCTOR_CACHE_DIR", "default (warm when compiled before)"),
             "load_1min_start": load_start,
             "load_1min_end": os.getloadavg()[0],
         }
