@@ -738,8 +738,8 @@ class ArticulatedLieDFLNN(ImplicitModel):
         """`train.loss`: del (w_DEL mean ||r||^2), newton (w_DEL mean ||H^-1 r||^2) or rollout (the
         fine-tuning windows, `models.liedflnn.losses.rollout_window_loss`), each + w_reg mean penalty(log|det H_b|)
         -> (loss, parts). The paper's DEL loss of a precomputed batch is compiled, forward and backward, when
-        the plan asks for it (`runtime.compile`; `auto` from 1e5 optimiser steps: 1.4x per Exp 4 epoch after
-        about a minute and a half of compiling, docs/benchmarks.md)."""
+        the plan asks for it (`runtime.compile`; `auto` from 1e5 optimiser steps: 1.75x per Exp 4 step, about
+        1.3x per epoch, after about a minute of compiling; docs/benchmarks.md, "Compilation")."""
         if (
             isinstance(batch, ArticulatedBatch)
             and opts.loss == "del"

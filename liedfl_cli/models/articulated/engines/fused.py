@@ -213,7 +213,7 @@ def forward_kinematics(maps: TreeMaps, g: Pose) -> tuple[torch.Tensor, torch.Ten
 def _cross_columns(a: torch.Tensor, v: torch.Tensor, base: torch.Tensor | None = None) -> torch.Tensor:
     """a x v column by column (+ base): a (..., 3, n), v (..., 3), base (..., 3, n) -> (..., 3, n).
     Written row by row into one buffer (a multiply and a fused multiply-subtract per row): no
-    temporaries and no stack, 1.4x the stacked form at batch 1,000."""
+    temporaries and no stack, 1.3x the stacked form at batch 1,000 (docs/benchmarks.md)."""
     a0, a1, a2 = a.unbind(-2)
     v0, v1, v2 = (x[..., None] for x in v.unbind(-1))
     out = torch.empty_like(a) if base is None else base.clone()
@@ -519,7 +519,7 @@ class ArticulatedEngine:
             Tn = nxt.jacobian(maps)[0]
             N, B, _, n = Tn.shape
             HT = torch.bmm(rotational_world(maps, cur.Rw, nxt.Rw).reshape(N * B, 3, 3), Tn.reshape(N * B, 3, n))
-            rot, trans = left()[1]  # two products into one buffer: 3.7x the concatenated factors at batch 1,000
+            rot, trans = left()[1]  # two products into one buffer: 1.4x the concatenated factors at batch 1,000
             J = torch.baddbmm(torch.bmm(rot, HT.reshape(N, 3 * B, n)), trans, _rows(nxt.com_jacobian(maps)), alpha=-1)
             return self._joint_jacobian(cur.q, nxt.q, J)
 
