@@ -473,13 +473,14 @@ def test_a_failing_compilation_falls_back_to_eager(monkeypatch, capsys):
 
 @pytest.mark.slow
 @pytest.mark.skipif(not compile_cache.compiler_available(), reason="no C++ compiler: the fallback is tested above")
-def test_compiled_newton_step_rolls_out_the_same():
+def test_compiled_newton_step_rolls_out_the_same(capsys):
     model = physics_model(SE3, 0.05, {**PHYS, "g": 9.81, "D": [0.1, 0.1, 0.1, 0.0, 0.0, 0.0]})
     g0, g1 = _start(SE3, 5, 0.05)
     model.set_plan(ExecutionPlan(compile="false"))
     a = model.rollout(g0, g1, 20)
     model.set_plan(ExecutionPlan(compile="true"))
     b = model.rollout(g0, g1, 20)
+    assert "compilation failed" not in capsys.readouterr().err  # it compiled (a fallback would run eagerly)
     assert torch.equal(a.iterations, b.iterations) and torch.equal(a.converged, b.converged)
     assert float((a.pose.R - b.pose.R).abs().max()) <= SolverOptions().tol
 
