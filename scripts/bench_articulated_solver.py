@@ -15,7 +15,6 @@ one process, alternately; the machine's CPU and load are written beside. What it
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -28,6 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench import ROOT, articulated_models, chord_options, runtime, start
 from machine_info import cpu_model
 
+from liedfl_cli.files.io_utils import write_json
 from liedfl_cli.solvers.options import SolverOptions
 from liedfl_cli.solvers.rollout import rollout_implicit
 
@@ -97,10 +97,7 @@ def main() -> None:
     out["load_1min_end"] = os.getloadavg()[0]
     print(f"CPU {out['cpu']}, load {load_start:.2f} -> {out['load_1min_end']:.2f}")
     if args.json:
-        path = Path(args.json)
-        tmp = path.with_suffix(".tmp")
-        tmp.write_text(json.dumps(out, indent=2) + "\n")
-        tmp.replace(path)
+        write_json(args.json, out)  # write then rename: a killed run never leaves half a record
 
 
 if __name__ == "__main__":

@@ -13,7 +13,6 @@ and compiled (best of 3 x `--steps`). Figures: docs/benchmarks.md, "Compilation"
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -30,6 +29,7 @@ from machine_info import cpu_model  # noqa: E402
 
 from liedfl_cli.config.factory import build_model  # noqa: E402
 from liedfl_cli.data.scenes import get_dataset  # noqa: E402
+from liedfl_cli.files.io_utils import write_json  # noqa: E402
 from liedfl_cli.models.articulated.model import ArticulatedLieDFLNN  # noqa: E402
 from liedfl_cli.models.base import LossOptions  # noqa: E402
 from liedfl_cli.models.liedflnn.engines import core as fused  # noqa: E402
@@ -62,7 +62,8 @@ def main() -> None:
     ds, _ = get_dataset(cfg.dataset, args.data_dir)
     model = build_model(cfg, ds)
     tset = model.training_set(ds.pose(ds.train_idx), int(cfg.dataset.train_steps))
-    batch = tset.batch(torch.arange(min(int(cfg.train.batch_size), tset.n)), torch.Generator().manual_seed(0), 10)
+    batch_size = min(int(cfg.train.batch_size), tset.n)
+    batch = tset.batch(torch.arange(batch_size), torch.Generator().manual_seed(0), 10)
     opts = LossOptions()
     load_start = os.getloadavg()[0]
     if isinstance(model, ArticulatedLieDFLNN):  # the model's own routing (`runtime.compile=true`)
@@ -93,7 +94,7 @@ def main() -> None:
             "job": name,
             "cpu": cpu_model(),
             "threads": 1,
-            "batch": int(batch.inc_prev.R.shape[0]) if hasattr(batch, "inc_prev") else None,
+            "batch": batch_size,
             "compile_s": compile_s,
             "eager_ms_per_step": eager * 1e3,
             "compiled_ms_per_step": comp * 1e3,
@@ -102,10 +103,7 @@ def main() -> None:
             "load_1min_start": load_start,
             "load_1min_end": os.getloadavg()[0],
         }
-        path = Path(args.json)
-        tmp = path.with_suffix(".tmp")
-        tmp.write_text(json.dumps(out, indent=2) + "\n")
-        tmp.replace(path)
+        write_json(args.json, out)  # write then rename: a killed run never leaves half a record
 
 
 if __name__ == "__main__":

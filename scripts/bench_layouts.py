@@ -22,7 +22,6 @@ first row of its group. Groups:
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -33,6 +32,8 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from machine_info import cpu_model
+
+from liedfl_cli.files.io_utils import write_json
 
 N, B, n = 1000, 5, 18
 
@@ -185,10 +186,7 @@ def main() -> None:
             print(f"{name}: {rows:.1f} s")
     print(f"CPU {out['cpu']}, one thread, load {load_start:.2f} -> {out['load_1min_end']:.2f}")
     if args.json:
-        path = Path(args.json)
-        tmp = path.with_suffix(".tmp")
-        tmp.write_text(json.dumps(out, indent=2) + "\n")
-        tmp.replace(path)
+        write_json(args.json, out)  # write then rename: a killed run never leaves half a record
 
 
 if __name__ == "__main__":

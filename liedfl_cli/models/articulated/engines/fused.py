@@ -17,10 +17,11 @@ g_k^{-1} g_{k+1}), so the Newton iterates agree to rounding. What changes is how
   frame is [[R_k H_rot(W) R_n^T + s hat(a) hat(b), -s hat(a)], [s hat(b), -s I]] (a = R_k rho,
   b = R_n rho, s = m / h; `kinetic.se3_mixed_hessian`, H_rot linear in W), so
       J = sum_b Theta_k^T R_k H_rot R_n^T Theta_n - s Y_k^T Y_n,   Y = P - (R rho) x Theta
-  (Y: the centre of mass's world velocity per column): one batched product over 6B rows.
+  (Y: the centre of mass's world velocity per column): two batched products over 3B rows each,
+  accumulated into one buffer.
 - Joint damping and joint-space forces through the reference's own joint maps (`lie.joints`,
   `kinetic.velocity_estimate(_jacobian)`), with T_k^T C_k^T = S(q_k)^T: no C and no T in the step; the
-  damping Jacobian of joints with a constant basis block by block (`damping_jacobian`).
+  damping Jacobian of joints with a constant basis block by block (`add_damping_jacobian`).
 - Group operations, joint coordinates, the joints' retraction, the kinetic covectors and the warm start
   are the package's own (`ProductGroup`, `lie.joints`, `mechanics.kinetic`, `mechanics.articulated`).
 - The Newton loop is `solvers.newton.solve`'s (with `restrict`, so at large batch the last
@@ -84,7 +85,7 @@ class TreeMaps:
     Jd (B, 3, 3), mass (B,), rho (B, 3): the kinetic parameters; rot_map (B, 9, 9): W.flatten() @
     rot_map = the body's rotational mixed-Hessian block. gamma (3,), first_moment (B, 3), gmass (B,):
     the world gravity's field and moments, or None. damping (n,) or None; forces: the joint-space forces.
-    Epad, damp_index, damp_source: the damping Jacobian's blocks (`damping_jacobian`)."""
+    Epad, damp_index, damp_source: the damping Jacobian's blocks (`add_damping_jacobian`)."""
 
     tree: Tree
     h: float
@@ -300,12 +301,12 @@ def from_moving(maps: TreeMaps, q: Pose) -> Pose:
     return jt.from_joint_coordinates(maps.tree, q) if maps.joint_mode else q
 
 
-def damping_jacobian(maps: TreeMaps, W: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
-    """-(h/2) diag(d) d nu_red / d delta (N, n, n) for joints with a constant basis: the rotational blocks
-    (tr(W) I - W^T) / (2h) of `kinetic.velocity_estimate_jacobian` (W: the joints' rotation increments),
-    each only on its own joint's DoF (E_pad^T . E_pad), scattered instead of the dense dim x dim product
-    (the hot path of a damped tree; the free root is not damped). With `out` (N, n, n, contiguous) the
-    blocks are added to it in place and it is returned (no n x n zeros, no dense sum)."""
+def add_damping_jacobian(maps: TreeMaps, W: torch.Tensor, J: torch.Tensor) -> torch.Tensor:
+    """J (N, n, n, contiguous) += -(h/2) diag(d) d nu_red / d delta, in place, for joints with a constant
+    basis: the rotational blocks (tr(W) I - W^T) / (2h) of `kinetic.velocity_estimate_jacobian` (W: the
+    joints' rotation increments), each only on its own joint's DoF (E_pad^T . E_pad), added at their
+    entries instead of a dense dim x dim product and sum (the hot path of a damped tree; the free root is
+    not damped). Returns J."""
     assert maps.damping is not None
     h, n = maps.h, maps.damping.shape[0]
     tr = W.diagonal(dim1=-2, dim2=-1).sum(-1)[..., None, None]
@@ -313,10 +314,8 @@ def damping_jacobian(maps: TreeMaps, W: torch.Tensor, out: torch.Tensor | None =
     blocks = torch.einsum("bia,Nbij,bjc->Nbac", maps.Epad, (tr * eye - W.transpose(-1, -2)) / (2 * h), maps.Epad)
     N = W.shape[0]
     values = (-0.5 * h * maps.damping)[maps.damp_index // n] * blocks.reshape(N, -1)[:, maps.damp_source]
-    if out is None:
-        out = W.new_zeros(N, n, n)
-    out.view(N, n * n).index_add_(1, maps.damp_index, values)
-    return out
+    J.view(N, n * n).index_add_(1, maps.damp_index, values)
+    return J
 
 
 # ---------------------------------------------------------------------------- the step
@@ -445,7 +444,7 @@ class ArticulatedEngine:
             return J
         G = tree.group
         if maps.damping is not None and not maps.forces and not maps.universal:  # the common case, sparse
-            return damping_jacobian(maps, q.R.transpose(-1, -2) @ q2.R, out=J)
+            return add_damping_jacobian(maps, q.R.transpose(-1, -2) @ q2.R, J)
         inc = G.increment(q, q2)
         dnu = kinetic.velocity_estimate_jacobian(G, inc, maps.h)
         S2 = jt.motion_basis(tree, q2)
