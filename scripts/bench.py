@@ -26,11 +26,13 @@ few repeats, so a speed-up is a ratio taken under the same load. Keys:
                                 Euler and Euclidean DFLNN, Neural ODE) at its experiment's settings (Exp 2 at
                                 its longest training length, 100 steps), fused (`runtime.fused`) and reference
                                 paths alternately; paper_epochs x s_per_epoch projects a full-budget job
-  articulated_rollout_us_per_step_traj  {model: {batch: {fused, reference, fused_chord, ...}}} for the
+  articulated_rollout_us_per_step_traj  {model: {batch: {native, fused, reference, fused_chord, ...}}} for the
                                 5-body MuJoCo tree's true-parameter scheme (free root, ball joints, per-DoF
                                 damping, h 0.05) and the untrained 23-body Exp 4 articulated model (MLP
                                 potential, nn + rayleigh_nonlinear forces, h 1/120), batches 1/1000, the
-                                fused articulated engine and the reference problem alternately; with
+                                native step (`engines.native`, the default where it serves: the 5-body
+                                tree), the fused articulated engine in torch (runtime.compile=false) and the
+                                reference problem alternately; native_over_mujoco_rk4_substep; with
                                 mujoco_rk4_dt1e-3_us_per_substep_tree5 (MuJoCo's RK4 on that tree's true
                                 model, one trajectory at a time; --articulated-only runs these alone);
                                 fused_chord: the fused engine with solver=chord (tol 1e-8, one Jacobian
@@ -364,21 +366,32 @@ def articulated_rollouts(data_dir: str, quick: bool, log) -> dict:
     (`models.articulated.engines.fused`) and the reference problem, alternately in this process (issue 34
     items 1 and 3), and MuJoCo's RK4 per substep of the 5-body tree's true model in the same run."""
     from liedfl_cli.data.mujoco_chain import chain_dataset
+    from liedfl_cli.models.articulated.engines import native
 
     budget, repeats = (0.3, 1) if quick else (1.0, 2)
     figures: dict = {}
     for name, (model, G, h) in articulated_models(data_dir).items():
         figures[name] = {}
+        serves = native.applies(model) is None and native.available()
         for n in (1, 1000):
             row = {}
-            for path in ("fused", "reference", "fused_chord"):
+            # native: the default (runtime.compile auto) where the native step serves the model; fused and
+            # fused_chord: the torch engine (runtime.compile=false); reference: the reference problem
+            for path in ("native", "fused", "reference", "fused_chord"):
+                if path == "native" and not serves:
+                    continue
                 opts = chord_options() if path == "fused_chord" else None
-                row[path] = rollout_us(model, G, h, n, budget, repeats, fused=path != "reference", solver=opts)
+                eager = {} if path in ("native", "reference") else {"compile": "false"}
+                row[path] = rollout_us(model, G, h, n, budget, repeats, fused=path != "reference", solver=opts, **eager)
             row["reference_over_fused"] = row["reference"] / row["fused"]
             row["fused_over_fused_chord"] = row["fused"] / row["fused_chord"]
+            if "native" in row:
+                row["fused_over_native"] = row["fused"] / row["native"]
             figures[name][str(n)] = row
             log(
-                f"articulated rollout {name} batch {n}: {row['fused']:.1f} us/step/traj fused, "
+                f"articulated rollout {name} batch {n}: "
+                + (f"{row['native']:.1f} us/step/traj native, " if "native" in row else "")
+                + f"{row['fused']:.1f} fused, "
                 f"{row['reference']:.1f} reference ({row['reference_over_fused']:.2f}x), "
                 f"{row['fused_chord']:.1f} fused with solver=chord ({row['fused_over_fused_chord']:.2f}x)"
             )
@@ -387,6 +400,9 @@ def articulated_rollouts(data_dir: str, quick: bool, log) -> dict:
     figures["mujoco_rk4_dt1e-3_us_per_substep_tree5"] = rk4
     if rk4 is not None:
         log(f"MuJoCo RK4 (dt 1e-3) on the 5-body tree's true model: {rk4:.1f} us per substep")
+        for row in figures["tree5_true"].values():
+            if "native" in row:
+                row["native_over_mujoco_rk4_substep"] = row["native"] / rk4
     return figures
 
 

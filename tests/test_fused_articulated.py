@@ -21,10 +21,18 @@ from liedfl_cli.mechanics.forces import NNForce, RayleighNonlinearForce
 from liedfl_cli.models.articulated.engines import fused as fa
 from liedfl_cli.models.articulated.model import ArticulatedLieDFLNN, ArticulatedState
 from liedfl_cli.solvers import newton
+from liedfl_cli.solvers.execution import ExecutionPlan
 from liedfl_cli.solvers.options import SolverOptions
 
 F64 = torch.float64
 H = 0.02
+
+
+@pytest.fixture(autouse=True)
+def _torch_engine_only(monkeypatch):
+    """These tests are of the fused engine in torch: rollouts never go to the native step (tested
+    against this engine in tests/test_native_articulated.py)."""
+    monkeypatch.setattr(ExecutionPlan, "wants_native", lambda self: False)
 
 
 def _tree(name: str) -> Tree:

@@ -470,6 +470,11 @@ class ImplicitModel(Model):
     def implicit_advance(self, state: Any, x: Any) -> tuple[Any, Pose]:
         """(next state, predicted pose g_{k+1}) from the solution x of `implicit_problem`."""
 
+    def native_rollout(self, g0: Pose, g1: Pose, steps: int, opts: SolverOptions, progress=None) -> Rollout | None:
+        """The whole rollout in native code where the model has it and it serves these inputs, else None
+        (the default: `rollout_implicit`'s loop of `implicit_problem` / `implicit_advance` serves)."""
+        return None
+
     def rollout(self, g0: Pose, g1: Pose, steps: int, opts: SolverOptions | None = None, progress=None) -> Rollout:
         return rollout_implicit(self, g0, g1, steps, opts or SolverOptions(), progress)
 

@@ -10,7 +10,9 @@ without one (scripts, tests) gets the defaults: the fused paths, `compile: auto`
     path      fused | reference   the model's fast engines where they apply, or the reference paths
                                   (autograd residuals, the generic Newton loop), for comparison
     compile   auto | true | false torch.compile (CPU inductor) of the fused hot paths; auto compiles
-                                  only work large enough to repay the compilation (docs/benchmarks.md)
+                                  only work large enough to repay the compilation (docs/benchmarks.md);
+                                  true and auto also run the articulated rollout's native step where
+                                  it applies (`models.articulated.engines.native`, built once in ~2 s)
 """
 
 from __future__ import annotations
@@ -67,6 +69,12 @@ class ExecutionPlan:
     def for_training(self, steps: float) -> ExecutionPlan:
         """This plan for a training run of `steps` optimiser steps."""
         return replace(self, train_steps=float(steps))
+
+    def wants_native(self) -> bool:
+        """Whether a fused rollout may run compiled native code (`models.articulated.engines.native`,
+        built once per machine in seconds, so at any size): not under `compile: false`, which keeps every
+        path in eager torch."""
+        return self.path == "fused" and self.compile != "false"
 
     def wants_compile(self, kind: CompileWork, work: float | None = None) -> bool:
         """Whether to compile the hot path `kind` for `work` (a rollout's trajectories x steps; for

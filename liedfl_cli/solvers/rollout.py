@@ -67,7 +67,13 @@ def rollout_implicit(
 ) -> Rollout:
     """Roll an `ImplicitModel` forward: for k = 1..steps-1 solve the model's Newton problem
     for g_{k+1} given its state (built from g_{k-1}, g_k). `progress`: optional callable(k);
-    `start(g0, g1)`: the first state (default `model.implicit_start`)."""
+    `start(g0, g1)`: the first state (default `model.implicit_start`). Where the model's
+    `native_rollout(g0, g1, steps, opts, progress)` returns a `Rollout` (not None) that is the rollout
+    (the articulated model's native step), unless `start` is given."""
+    if start is None:  # a model whose whole rollout runs in native code (`ImplicitModel.native_rollout`)
+        ro = model.native_rollout(g0, g1, steps, opts, progress)
+        if ro is not None:
+            return ro
     t0 = time.perf_counter()
     state = (start or model.implicit_start)(g0, g1)
     reference = model.path != "fused"  # fixed when the model was built

@@ -24,6 +24,7 @@ A_k^T blockdiag(H_b) A_{k+1}, regular when the blocks are and A has full rank.
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -43,14 +44,19 @@ from ...mechanics.forces import RayleighForce, build_forces, force_jacobian_xi
 from ...mechanics.parameterizations import Inertia, PositiveVector
 from ...mechanics.potentials import STANDARD_GRAVITY, GravityPotential, MLPPotential, UniformGravityPotential
 from ...solvers.newton import NewtonProblem
+from ...solvers.rollout import Rollout
 from .. import mlp_derivatives
 from ..base import Batch, ImplicitModel, LossOptions, TrajectoryBatch, TripletBatch, TripletSet, oriented_logdet
 from ..components import component_tagger, force_parameters
 from ..del_loss import del_regularity_loss
 from ..liedflnn.model import DEFAULT_RESIDUAL, LieDFLNNOptions, check_options
 from .engines import fused as fused_articulated
+from .engines import native as native_articulated
 from .engines.fused import FusedArticulatedState
 from .residual import residual_form
+
+NATIVE_CHUNK_ROW_STEPS = 100_000
+"""Trajectory-steps per call of the native rollout (~1 s on the 5-body tree): how often it reports progress."""
 
 
 def geometric_start(tree: Tree) -> tuple[torch.Tensor, torch.Tensor]:
@@ -854,6 +860,38 @@ class ArticulatedLieDFLNN(ImplicitModel):
         world, A = art.fk_and_jacobian(self.tree, g1)
         inc = self.G.increment(g0, g1)
         return ArticulatedState(g0, g1, inc, world, A, self.increment_coordinates(g0, g1, inc))
+
+    def native_rollout(self, g0: Pose, g1: Pose, steps: int, opts, progress=None) -> Rollout | None:
+        """The rollout by the native step (`models.articulated.engines.native`: the fused engine's step in
+        C++, the same poses to rounding) where the plan allows it (`ExecutionPlan.wants_native`), Newton is
+        the method, and it serves this model and these poses; else None (the caller rolls out in torch)."""
+        if steps < 2 or opts.method != "newton" or not self.plan.wants_native():
+            return None
+        if not native_articulated.usable(self, g1):
+            return None
+        t0 = time.perf_counter()
+        engine = native_articulated.NativeRollout(self, g1.R)
+        state = engine.start(self, g0, g1)
+        N, chunks, k = g0.R.shape[0], [], 1
+        per_call = max(1, NATIVE_CHUNK_ROW_STEPS // max(N, 1))  # a progress report every ~1 s of work
+        while k < steps:
+            count = min(per_call, steps - k)
+            chunks.append(engine.run(state, count, opts.tol, opts.max_iter, opts.max_halvings))
+            if progress is not None:
+                for j in range(k, k + count):
+                    progress(j)
+            k += count
+        cat = {key: torch.cat([c[key] for c in chunks], 1) for key in chunks[0]}
+        dt, dev = g0.R.dtype, g0.R.device
+        R = torch.cat((g0.R[:, None], g1.R[:, None], cat["R"].to(dt)), 1)
+        p = torch.cat((g0.p[:, None], g1.p[:, None], cat["p"].to(dt)), 1)
+        return Rollout(
+            Pose(R.to(dev), p.to(dev)),
+            cat["converged"].bool().to(dev),
+            cat["iterations"].to(dev),
+            cat["residual_norm"].to(dt).to(dev),
+            time.perf_counter() - t0,
+        )
 
     def increment_coordinates(self, g: Pose, g_next: Pose, inc: Pose) -> torch.Tensor:
         """The coordinates of the step g -> g_next = g inc, (N, n) (`mechanics.articulated.step_coordinates`):

@@ -713,6 +713,9 @@ class _Cycle:
 
     path = "fused"  # the batched Newton loop (the problems are the reference path's)
 
+    def native_rollout(self, *args, **kwargs) -> None:  # (`ImplicitModel`'s hook) the loop serves
+        return None
+
     def __init__(self, outer: SubstepModel):
         self.models = outer._models("reference")
         self.n = len(self.models)
