@@ -280,3 +280,50 @@ def test_the_library_is_built_once_per_source_and_reused(tmp_path):
     assert again == first and again.stat().st_mtime_ns == stamp
     assert [p.name for p in Path(folder).iterdir()] == [first.name]
     assert os.access(first, os.R_OK)
+
+
+@needs_compiler
+def test_the_engine_kept_on_the_model_follows_its_parameters():
+    """The native constants are kept on the model between rollouts (a short rollout does not read the
+    parameters again), and an in-place change of a parameter (an optimiser step, a load) rebuilds them:
+    the rollout after the change equals the torch engine's with the new damping. The model stays
+    deep-copyable with its engine attached."""
+    import copy
+
+    m, traj = _model("hinge-world damped")
+    g0, g1 = _pair(traj)
+    opts = SolverOptions(tol=1e-10)
+    fused = m.with_path("fused")
+    first = fused.rollout(g0, g1, 15, opts)
+    engine = native.for_model(fused, g1.R)
+    assert native.for_model(fused, g1.R) is engine  # kept
+    with torch.no_grad():
+        m.dof_damper.lam.mul_(3.0)
+    assert native.for_model(fused, g1.R) is not engine  # rebuilt
+    after = fused.rollout(g0, g1, 15, opts)
+    b = _eager(m).rollout(g0, g1, 15, opts)
+    assert _close(after.pose.R, b.pose.R, 1e-9) and _close(after.pose.p, b.pose.p, 1e-9)
+    assert float((after.pose.R - first.pose.R).abs().max()) > 1e-6  # the change is seen
+    twin = copy.deepcopy(fused)
+    again = twin.rollout(g0, g1, 15, opts)
+    assert _close(again.pose.R, after.pose.R, 1e-12)
+
+
+@needs_compiler
+def test_threads_split_the_rows_without_changing_a_bit():
+    """`runtime.threads` 2: the rows are split over two threads; every row's result is the one thread's,
+    bit for bit (rows are independent)."""
+    m, traj = _model("pinned-world damped")
+    g0, g1 = _pair(traj)
+    g0 = Pose(g0.R.repeat(8, 1, 1, 1), g0.p.repeat(8, 1, 1))  # 48 rows: 24 per thread
+    g1 = Pose(g1.R.repeat(8, 1, 1, 1), g1.p.repeat(8, 1, 1))
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = _native(m, g0, g1, 12, SolverOptions())
+        torch.set_num_threads(2)
+        two = _native(m, g0, g1, 12, SolverOptions())
+    finally:
+        torch.set_num_threads(before)
+    assert torch.equal(one.pose.R, two.pose.R) and torch.equal(one.pose.p, two.pose.p)
+    assert torch.equal(one.iterations, two.iterations) and torch.equal(one.residual_norm, two.residual_norm)

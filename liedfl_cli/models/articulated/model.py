@@ -870,8 +870,8 @@ class ArticulatedLieDFLNN(ImplicitModel):
         if not native_articulated.usable(self, g1):
             return None
         t0 = time.perf_counter()
-        engine = native_articulated.NativeRollout(self, g1.R)
-        state = engine.start(self, g0, g1)
+        engine = native_articulated.for_model(self, g1.R)
+        state = engine.start(g0, g1)
         N, chunks, k = g0.R.shape[0], [], 1
         per_call = max(1, NATIVE_CHUNK_ROW_STEPS // max(N, 1))  # a progress report every ~1 s of work
         while k < steps:

@@ -23,6 +23,7 @@ from __future__ import annotations
 import ctypes
 import functools
 import hashlib
+import itertools
 import os
 import platform
 import shutil
@@ -39,7 +40,7 @@ from ....solvers import compile as compile_cache
 from . import fused
 
 SOURCE = Path(__file__).with_name("native_step.cpp")
-FLAGS = ("-O3", "-march=native", "-shared", "-fPIC", "-std=c++17")
+FLAGS = ("-O3", "-march=native", "-shared", "-fPIC", "-std=c++17", "-pthread")
 KINDS = {"free": 0, "ball": 1, "hinge": 2, "weld": 3}
 
 
@@ -142,7 +143,6 @@ class NativeRollout:
         self.dtype, self.device = dt, dev
         i64 = torch.int64
         G = tree.group
-        self.lib = library()
         self.B, self.n, self.dim, self.m = tree.n_bodies, tree.n_dof, G.dim, G.n_se3
         self.world = int(tree.rotations == "world")
         self.parents = torch.tensor(tree.parents, dtype=i64)
@@ -176,8 +176,9 @@ class NativeRollout:
             "iterations": torch.empty(N, count, dtype=torch.int64, device=dev),
             "residual_norm": torch.empty(N, count, dtype=dt, device=dev),
         }
-        assert self.lib is not None
-        rc = self.lib.liedfl_articulated_rollout(
+        lib = library()  # (not kept on the engine: a model that holds it stays deep-copyable)
+        assert lib is not None
+        rc = lib.liedfl_articulated_rollout(
             ctypes.c_int64(N), ctypes.c_int64(count), ctypes.c_int64(B), ctypes.c_int64(self.n),
             ctypes.c_int64(self.dim), ctypes.c_int64(m), ctypes.c_int64(self.world),
             _ptr(self.parents), _ptr(self.kind), _ptr(self.col), _ptr(self.row), _ptr(self.axis), _ptr(self.offsets),
@@ -188,26 +189,44 @@ class NativeRollout:
             _ptr(state["Rp"]), _ptr(state["pp"]), _ptr(state["Rc"]), _ptr(state["pc"]), _ptr(state["dof"]),
             _ptr(state["dof_prev"]), _ptr(state["has_prev"]),
             _ptr(out["R"]), _ptr(out["p"]), _ptr(out["converged"]), _ptr(out["iterations"]), _ptr(out["residual_norm"]),
+            ctypes.c_int64(torch.get_num_threads()),
         )  # fmt: skip
         if rc != 0:
             raise RuntimeError(f"native articulated rollout returned {rc}")
         return out
 
-    def start(self, model, g0: Pose, g1: Pose) -> dict:
-        """The state of the first step: (g0, g1) and the first increment's DoF
-        (`ArticulatedLieDFLNN.increment_coordinates`); no previous one yet."""
-        dt = self.dtype
-        inc = model.tree.group.increment(g0, g1)
-        dof = model.increment_coordinates(g0, g1, inc).to(dt).contiguous()
+    def start(self, g0: Pose, g1: Pose) -> dict:
+        """The state of the first step: (g0, g1); the first increment's DoF are computed natively on the
+        first call (`has_prev` 2: `mechanics.articulated.step_coordinates`, as `ArticulatedLieDFLNN.
+        increment_coordinates`), and there is no previous increment yet."""
+        N, n = g0.R.shape[0], self.n
         return {
-            "Rp": g0.R.to(dt).contiguous().clone(),
-            "pp": g0.p.to(dt).contiguous().clone(),
-            "Rc": g1.R.to(dt).contiguous().clone(),
-            "pc": g1.p.to(dt).contiguous().clone(),
-            "dof": dof.clone(),
-            "dof_prev": torch.zeros_like(dof),
-            "has_prev": torch.zeros(dof.shape[0], dtype=torch.uint8, device=self.device),
+            "Rp": g0.R.contiguous().clone(),
+            "pp": g0.p.contiguous().clone(),
+            "Rc": g1.R.contiguous().clone(),
+            "pc": g1.p.contiguous().clone(),
+            "dof": torch.zeros(N, n, dtype=self.dtype, device=self.device),
+            "dof_prev": torch.zeros(N, n, dtype=self.dtype, device=self.device),
+            "has_prev": torch.full((N,), 2, dtype=torch.uint8, device=self.device),
         }
+
+
+def for_model(model, like: torch.Tensor) -> NativeRollout:
+    """`model`'s NativeRollout, kept on the model while its parameters, buffers and step are unchanged
+    (tensor versions: an optimiser step or a load bumps them), so a short rollout does not pay for reading
+    the parameters again (~1 ms)."""
+    key = (
+        float(model.h),
+        like.dtype,
+        like.device,
+        tuple((id(t), t._version) for t in itertools.chain(model.parameters(), model.buffers())),
+    )
+    cached = model.__dict__.get("_native_rollout")
+    if cached is not None and cached[0] == key:
+        return cached[1]
+    engine = NativeRollout(model, like)
+    model.__dict__["_native_rollout"] = (key, engine)
+    return engine
 
 
 def available() -> bool:

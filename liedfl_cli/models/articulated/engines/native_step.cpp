@@ -11,6 +11,7 @@
 #include <cstdint>
 #include <cstring>
 #include <limits>
+#include <thread>
 #include <vector>
 
 namespace {
@@ -537,8 +538,10 @@ extern "C" {
 
 // Roll `count` steps of N trajectories on from their state, in place: (Rp, pp) g_{k-1} and (Rc, pc) g_k
 // in tree coordinates (N, B, 3, 3) / (N, m, 3), dof (N, n) the last increment's DoF, dof_prev (N, n) the
-// one before where has_prev (N). Writes the new poses (N, count, B, 3, 3) / (N, count, m, 3), and per
+// one before where has_prev (N) is 1; has_prev 2: a new rollout, dof computed here from the two poses
+// (mechanics.articulated.step_coordinates). Writes the new poses (N, count, B, 3, 3) / (N, count, m, 3), and per
 // step converged (N, count), Newton iterations (N, count) and the residual's max norm (N, count).
+// `threads` > 1 splits the rows over that many threads (each row's result does not depend on it).
 // Returns 0.
 int liedfl_articulated_rollout(
     int64_t N, int64_t count, int64_t B, int64_t n, int64_t dim, int64_t m, int64_t world, const int64_t *parents,
@@ -547,7 +550,7 @@ int liedfl_articulated_rollout(
     const double *gamma, const double *first_moment, const double *gmass, int64_t damped, const double *damping,
     const double *S0pinv, double h, double tol, int64_t max_iter, int64_t max_halvings, double *Rp, double *pp,
     double *Rc, double *pc, double *dof, double *dof_prev, uint8_t *has_prev, double *outR, double *outp,
-    uint8_t *converged, int64_t *iterations, double *residual_norm) {
+    uint8_t *converged, int64_t *iterations, double *residual_norm, int64_t threads) {
     TreeSpec t{(int)B, (int)n, (int)dim, (int)m, (int)world, (int)max_iter, (int)max_halvings, h, tol,
                parents, kind, col, row, axis, offsets, Jd, mass, rho, rot_map, (int)gravity, (int)damped,
                gamma, first_moment, gmass, damping, S0pinv, {}};
@@ -560,125 +563,141 @@ int liedfl_articulated_rollout(
             for (int k = 0; k < ndof[a]; ++k) t.cols[b].push_back((int)col[a] + k);
         std::sort(t.cols[b].begin(), t.cols[b].end());
     }
-    Frame prev, cur, nxt, cand;
-    prev.init(t), cur.init(t), nxt.init(t), cand.init(t);
-    Work w;
-    w.init(t);
-    std::vector<double> cst(n), d(n), gR(9 * B);
     const double eps = std::numeric_limits<double>::epsilon();
     const double big = std::numeric_limits<double>::max();
-    for (int64_t i = 0; i < N; ++i) {
-        double *rp = Rp + i * 9 * B, *rc_ = Rc + i * 9 * B, *ppi = pp + i * 3 * m, *pci = pc + i * 3 * m;
-        double *dofi = dof + i * n, *dpi = dof_prev + i * n;
-        load_pose(t, rp, ppi, prev);
-        load_pose(t, rc_, pci, cur);
-        for (int64_t k = 0; k < count; ++k) {
-            residual_const(t, prev, cur, w, cst.data());
-            // warm start: the last two increments' DoF extrapolated (2 d_k - d_{k-1}, where finite)
-            bool fin = true;
-            for (int j = 0; j < n; ++j) {
-                d[j] = has_prev[i] ? 2.0 * dofi[j] - dpi[j] : dofi[j];
-                fin = fin && std::isfinite(d[j]);
+    // rows i0..i1-1, each with its own work space (rows are independent: any split gives the same bits)
+    auto rows = [&](int64_t i0, int64_t i1) {
+        Frame prev, cur, nxt, cand;
+        prev.init(t), cur.init(t), nxt.init(t), cand.init(t);
+        Work w;
+        w.init(t);
+        std::vector<double> cst(n), d(n), gR(9 * B);
+        for (int64_t i = i0; i < i1; ++i) {
+            double *rp = Rp + i * 9 * B, *rc_ = Rc + i * 9 * B, *ppi = pp + i * 3 * m, *pci = pc + i * 3 * m;
+            double *dofi = dof + i * n, *dpi = dof_prev + i * n;
+            load_pose(t, rp, ppi, prev);
+            load_pose(t, rc_, pci, cur);
+            if (has_prev[i] == 2) {  // a new rollout: the first increment's DoF from its two poses
+                step_coordinates(t, prev, cur, w, dofi);
+                has_prev[i] = 0;
             }
-            if (!fin)
-                for (int j = 0; j < n; ++j) d[j] = dofi[j];
-            advance(t, cur, d.data(), nxt);
-            residual(t, cur, nxt, cst.data(), w, w.r.data());
-            double rn = norm2(w.r);
-            bool conv = false;
-            int it = 0;
-            for (; it < t.max_iter && !conv; ++it) {
-                double scale = 0.0;
+            for (int64_t k = 0; k < count; ++k) {
+                residual_const(t, prev, cur, w, cst.data());
+                // warm start: the last two increments' DoF extrapolated (2 d_k - d_{k-1}, where finite)
+                bool fin = true;
+                for (int j = 0; j < n; ++j) {
+                    d[j] = has_prev[i] ? 2.0 * dofi[j] - dpi[j] : dofi[j];
+                    fin = fin && std::isfinite(d[j]);
+                }
+                if (!fin)
+                    for (int j = 0; j < n; ++j) d[j] = dofi[j];
+                advance(t, cur, d.data(), nxt);
+                residual(t, cur, nxt, cst.data(), w, w.r.data());
+                double rn = norm2(w.r);
+                bool conv = false;
+                int it = 0;
+                for (; it < t.max_iter && !conv; ++it) {
+                    double scale = 0.0;
+                    if (m) {
+                        double dp[3] = {nxt.p[0] - cur.p[0], nxt.p[1] - cur.p[1], nxt.p[2] - cur.p[2]}, z[3];
+                        mtv(&cur.R[0], dp, z);
+                        for (int q = 0; q < 3; ++q) scale = std::fmax(scale, std::fabs(z[q]));
+                    }
+                    double step_tol = std::fmax(tol, 16.0 * eps * std::fmax(scale, 1.0));
+                    jacobian(t, cur, nxt, w);
+                    bool singular = !lu_factor(w.J.data(), (int)n, w.piv.data());
+                    for (int j = 0; j < n; ++j) w.delta[j] = -w.r[j];
+                    if (!singular) lu_solve(w.J.data(), (int)n, w.piv.data(), w.delta.data());
+                    double full = 0.0;
+                    bool finite = !singular;
+                    for (int j = 0; j < n && finite; ++j) finite = std::isfinite(w.delta[j]);
+                    if (!finite) {  // a singular Jacobian: no step on this iteration (the step fails)
+                        singular = true;
+                        std::fill(w.delta.begin(), w.delta.end(), 0.0);
+                    }
+                    for (int j = 0; j < n; ++j) full = std::fmax(full, std::fabs(w.delta[j]));
+                    // backtracking on ||f||_2 (solvers.newton._careful_iteration); without a decrease the
+                    // full step is taken where its residual is finite
+                    double alpha = 1.0;
+                    bool accepted = false;
+                    for (int hh = 0; hh <= t.max_halvings; ++hh) {
+                        for (int j = 0; j < n; ++j) d[j] = alpha * w.delta[j];
+                        advance(t, nxt, d.data(), cand);
+                        residual(t, cur, cand, cst.data(), w, w.rc.data());
+                        double rcn = norm2(w.rc);
+                        if (std::isfinite(rcn) && rcn <= std::fmin(rn * (1 - 1e-4 * alpha) + 1e-300, big)) {
+                            accepted = true;
+                            std::swap(nxt, cand);
+                            std::swap(w.r, w.rc);
+                            rn = rcn;
+                            break;
+                        }
+                        alpha *= 0.5;
+                    }
+                    if (!accepted) {
+                        advance(t, nxt, w.delta.data(), cand);
+                        residual(t, cur, cand, cst.data(), w, w.rc.data());
+                        double rcn = norm2(w.rc);
+                        if (std::isfinite(rcn)) {
+                            std::swap(nxt, cand);
+                            std::swap(w.r, w.rc);
+                            rn = rcn;
+                        }
+                    }
+                    conv = !singular && full <= step_tol && std::isfinite(rn);
+                }
+                double rmax = 0.0;
+                bool rnan = false;
+                for (int j = 0; j < n; ++j) {
+                    rmax = std::fmax(rmax, std::fabs(w.r[j]));
+                    rnan = rnan || std::isnan(w.r[j]);
+                }
+                converged[i * count + k] = conv ? 1 : 0;
+                iterations[i * count + k] = it;
+                residual_norm[i * count + k] = rnan ? std::numeric_limits<double>::quiet_NaN() : rmax;
+                // g_{k+1} = g_k inc with the increment's rotations re-orthonormalised by one Newton-Schulz
+                // step (the model's implicit_advance), in the tree's coordinates
+                const double *Rk = tree_R(t, cur), *Rn = tree_R(t, nxt);
+                for (int b = 0; b < B; ++b) {
+                    double W[9], WtW[9], M[9], Wn[9];
+                    mtm(&Rk[9 * b], &Rn[9 * b], W);
+                    mtm(W, W, WtW);
+                    for (int q = 0; q < 9; ++q) M[q] = -WtW[q];
+                    M[0] += 3.0, M[4] += 3.0, M[8] += 3.0;
+                    mm(W, M, Wn);
+                    for (int q = 0; q < 9; ++q) Wn[q] *= 0.5;
+                    mm(&Rk[9 * b], Wn, &gR[9 * b]);
+                }
+                double gp[3] = {0, 0, 0};
                 if (m) {
-                    double dp[3] = {nxt.p[0] - cur.p[0], nxt.p[1] - cur.p[1], nxt.p[2] - cur.p[2]}, z[3];
+                    double dp[3] = {nxt.p[0] - cur.p[0], nxt.p[1] - cur.p[1], nxt.p[2] - cur.p[2]}, z[3], Rz[3];
                     mtv(&cur.R[0], dp, z);
-                    for (int q = 0; q < 3; ++q) scale = std::fmax(scale, std::fabs(z[q]));
+                    mv(&cur.R[0], z, Rz);
+                    for (int q = 0; q < 3; ++q) gp[q] = cur.p[q] + Rz[q];
                 }
-                double step_tol = std::fmax(tol, 16.0 * eps * std::fmax(scale, 1.0));
-                jacobian(t, cur, nxt, w);
-                bool singular = !lu_factor(w.J.data(), (int)n, w.piv.data());
-                for (int j = 0; j < n; ++j) w.delta[j] = -w.r[j];
-                if (!singular) lu_solve(w.J.data(), (int)n, w.piv.data(), w.delta.data());
-                double full = 0.0;
-                bool finite = !singular;
-                for (int j = 0; j < n && finite; ++j) finite = std::isfinite(w.delta[j]);
-                if (!finite) {  // a singular Jacobian: no step on this iteration (the step fails)
-                    singular = true;
-                    std::fill(w.delta.begin(), w.delta.end(), 0.0);
-                }
-                for (int j = 0; j < n; ++j) full = std::fmax(full, std::fabs(w.delta[j]));
-                // backtracking on ||f||_2 (solvers.newton._careful_iteration); without a decrease the
-                // full step is taken where its residual is finite
-                double alpha = 1.0;
-                bool accepted = false;
-                for (int hh = 0; hh <= t.max_halvings; ++hh) {
-                    for (int j = 0; j < n; ++j) d[j] = alpha * w.delta[j];
-                    advance(t, nxt, d.data(), cand);
-                    residual(t, cur, cand, cst.data(), w, w.rc.data());
-                    double rcn = norm2(w.rc);
-                    if (std::isfinite(rcn) && rcn <= std::fmin(rn * (1 - 1e-4 * alpha) + 1e-300, big)) {
-                        accepted = true;
-                        std::swap(nxt, cand);
-                        std::swap(w.r, w.rc);
-                        rn = rcn;
-                        break;
-                    }
-                    alpha *= 0.5;
-                }
-                if (!accepted) {
-                    advance(t, nxt, w.delta.data(), cand);
-                    residual(t, cur, cand, cst.data(), w, w.rc.data());
-                    double rcn = norm2(w.rc);
-                    if (std::isfinite(rcn)) {
-                        std::swap(nxt, cand);
-                        std::swap(w.r, w.rc);
-                        rn = rcn;
-                    }
-                }
-                conv = !singular && full <= step_tol && std::isfinite(rn);
+                std::memcpy(outR + (i * count + k) * 9 * B, gR.data(), 9 * B * sizeof(double));
+                if (m) std::memcpy(outp + (i * count + k) * 3, gp, 3 * sizeof(double));
+                load_pose(t, gR.data(), gp, nxt);
+                std::memcpy(dpi, dofi, n * sizeof(double));
+                step_coordinates(t, cur, nxt, w, dofi);
+                has_prev[i] = 1;
+                std::swap(prev, cur);
+                std::swap(cur, nxt);
             }
-            double rmax = 0.0;
-            bool rnan = false;
-            for (int j = 0; j < n; ++j) {
-                rmax = std::fmax(rmax, std::fabs(w.r[j]));
-                rnan = rnan || std::isnan(w.r[j]);
-            }
-            converged[i * count + k] = conv ? 1 : 0;
-            iterations[i * count + k] = it;
-            residual_norm[i * count + k] = rnan ? std::numeric_limits<double>::quiet_NaN() : rmax;
-            // g_{k+1} = g_k inc with the increment's rotations re-orthonormalised by one Newton-Schulz
-            // step (the model's implicit_advance), in the tree's coordinates
-            const double *Rk = tree_R(t, cur), *Rn = tree_R(t, nxt);
-            for (int b = 0; b < B; ++b) {
-                double W[9], WtW[9], M[9], Wn[9];
-                mtm(&Rk[9 * b], &Rn[9 * b], W);
-                mtm(W, W, WtW);
-                for (int q = 0; q < 9; ++q) M[q] = -WtW[q];
-                M[0] += 3.0, M[4] += 3.0, M[8] += 3.0;
-                mm(W, M, Wn);
-                for (int q = 0; q < 9; ++q) Wn[q] *= 0.5;
-                mm(&Rk[9 * b], Wn, &gR[9 * b]);
-            }
-            double gp[3] = {0, 0, 0};
-            if (m) {
-                double dp[3] = {nxt.p[0] - cur.p[0], nxt.p[1] - cur.p[1], nxt.p[2] - cur.p[2]}, z[3], Rz[3];
-                mtv(&cur.R[0], dp, z);
-                mv(&cur.R[0], z, Rz);
-                for (int q = 0; q < 3; ++q) gp[q] = cur.p[q] + Rz[q];
-            }
-            std::memcpy(outR + (i * count + k) * 9 * B, gR.data(), 9 * B * sizeof(double));
-            if (m) std::memcpy(outp + (i * count + k) * 3, gp, 3 * sizeof(double));
-            load_pose(t, gR.data(), gp, nxt);
-            std::memcpy(dpi, dofi, n * sizeof(double));
-            step_coordinates(t, cur, nxt, w, dofi);
-            has_prev[i] = 1;
-            std::swap(prev, cur);
-            std::swap(cur, nxt);
+            std::memcpy(rp, tree_R(t, prev), 9 * B * sizeof(double));
+            std::memcpy(rc_, tree_R(t, cur), 9 * B * sizeof(double));
+            if (m) std::memcpy(ppi, prev.p, 3 * sizeof(double)), std::memcpy(pci, cur.p, 3 * sizeof(double));
         }
-        std::memcpy(rp, tree_R(t, prev), 9 * B * sizeof(double));
-        std::memcpy(rc_, tree_R(t, cur), 9 * B * sizeof(double));
-        if (m) std::memcpy(ppi, prev.p, 3 * sizeof(double)), std::memcpy(pci, cur.p, 3 * sizeof(double));
+    };
+    int64_t T = std::max<int64_t>(1, std::min<int64_t>(threads, N / 16));  // >= 16 rows per thread
+    if (T == 1) {
+        rows(0, N);
+        return 0;
     }
+    std::vector<std::thread> pool;
+    for (int64_t k = 1; k < T; ++k) pool.emplace_back(rows, N * k / T, N * (k + 1) / T);
+    rows(0, N / T);
+    for (std::thread &th : pool) th.join();
     return 0;
 }
 }
