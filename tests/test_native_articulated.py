@@ -327,3 +327,20 @@ def test_threads_split_the_rows_without_changing_a_bit():
         torch.set_num_threads(before)
     assert torch.equal(one.pose.R, two.pose.R) and torch.equal(one.pose.p, two.pose.p)
     assert torch.equal(one.iterations, two.iterations) and torch.equal(one.residual_norm, two.residual_norm)
+
+
+@needs_compiler
+def test_a_non_finite_start_fails_its_row_alone():
+    """A trajectory whose second pose is NaN: its steps are flagged (never converged, NaN residual), and
+    the other rows are the torch engine's, untouched by it."""
+    m, traj = _model("ball-world damped")
+    g0, g1 = _pair(traj)
+    R1 = g1.R.clone()
+    R1[2] = float("nan")
+    bad = Pose(R1, g1.p)
+    ro = _native(m, g0, bad, 6, SolverOptions())
+    assert not bool(ro.converged[2].any()) and bool(torch.isnan(ro.residual_norm[2]).all())
+    keep = torch.tensor([0, 1, 3, 4, 5])
+    b = _eager(m).rollout(g0.index(keep), g1.index(keep), 6, SolverOptions())
+    assert bool(ro.converged[keep].all())
+    assert _close(ro.pose.R[keep], b.pose.R, 1e-9) and _close(ro.pose.p[keep], b.pose.p, 1e-9)

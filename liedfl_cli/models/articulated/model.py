@@ -56,7 +56,8 @@ from .engines.fused import FusedArticulatedState
 from .residual import residual_form
 
 NATIVE_CHUNK_ROW_STEPS = 100_000
-"""Trajectory-steps per call of the native rollout (~1 s on the 5-body tree): how often it reports progress."""
+"""Trajectory-steps per call of the native rollout (~1 s on the 5-body tree): how often it reports progress
+and how soon a signal (Ctrl-C, SIGTERM) is handled, between calls."""
 
 
 def geometric_start(tree: Tree) -> tuple[torch.Tensor, torch.Tensor]:
