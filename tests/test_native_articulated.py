@@ -344,3 +344,20 @@ def test_a_non_finite_start_fails_its_row_alone():
     b = _eager(m).rollout(g0.index(keep), g1.index(keep), 6, SolverOptions())
     assert bool(ro.converged[keep].all())
     assert _close(ro.pose.R[keep], b.pose.R, 1e-9) and _close(ro.pose.p[keep], b.pose.p, 1e-9)
+
+
+@needs_compiler
+def test_a_compiler_that_refuses_march_native_builds_the_portable_step(tmp_path, monkeypatch):
+    """A compiler without -march=native (some clang): the portable flags build the library, and it is the
+    one file in the cache."""
+    cxx = native._compiler()
+    script = tmp_path / "picky"
+    script.write_text(
+        "#!/bin/sh\n"
+        'for a in "$@"; do [ "$a" = "-march=native" ] && { echo "error: unsupported" >&2; exit 1; }; done\n'
+        f'exec {cxx} "$@"\n'
+    )
+    script.chmod(0o755)
+    path = native.build(str(script), tmp_path / "cache")
+    assert path is not None and path.exists()
+    assert len([p for p in (tmp_path / "cache").rglob("*") if p.is_file()]) == 1

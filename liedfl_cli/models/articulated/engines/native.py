@@ -41,6 +41,7 @@ from . import fused
 
 SOURCE = Path(__file__).with_name("native_step.cpp")
 FLAGS = ("-O3", "-march=native", "-shared", "-fPIC", "-std=c++17", "-pthread")
+PORTABLE_FLAGS = tuple(f for f in FLAGS if f != "-march=native")
 KINDS = {"free": 0, "ball": 1, "hinge": 2, "weld": 3}
 
 
@@ -84,33 +85,36 @@ def cache_dir() -> Path:
 
 def build(cxx: str, folder: Path) -> Path | None:
     """The compiled step for compiler `cxx` in `folder` (built there unless already cached), or None with
-    one printed line when the build fails. Built under a temporary name and renamed: a failed or
+    one printed line when the build fails. Tuned for this CPU (`FLAGS`), else portable (`PORTABLE_FLAGS`,
+    for a compiler that refuses -march=native). Built under a temporary name and renamed: a failed or
     interrupted build never leaves a library behind."""
     source = SOURCE.read_bytes()
     try:
         version = subprocess.run([cxx, "--version"], capture_output=True, text=True, timeout=60).stdout
     except (OSError, subprocess.SubprocessError):
         version = ""
-    key = hashlib.sha256(b"\0".join([source, version.encode(), " ".join(FLAGS).encode(), _cpu_signature().encode()]))
-    target = folder / f"liedfl_articulated_{key.hexdigest()[:16]}.so"
-    if target.exists():
-        return target
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryDirectory(dir=folder) as tmp:
-            built = Path(tmp) / target.name
-            proc = subprocess.run(
-                [cxx, *FLAGS, str(SOURCE), "-o", str(built)], capture_output=True, text=True, timeout=600
-            )
-            if proc.returncode != 0 or not built.exists():
+    last = "?"
+    for flags in (FLAGS, PORTABLE_FLAGS):
+        key = hashlib.sha256(
+            b"\0".join([source, version.encode(), " ".join(flags).encode(), _cpu_signature().encode()])
+        )
+        target = folder / f"liedfl_articulated_{key.hexdigest()[:16]}.so"
+        if target.exists():
+            return target
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            with tempfile.TemporaryDirectory(dir=folder) as tmp:
+                built = Path(tmp) / target.name
+                cmd = [cxx, *flags, str(SOURCE), "-o", str(built)]
+                proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+                if proc.returncode == 0 and built.exists():
+                    os.replace(built, target)
+                    return target
                 last = (proc.stderr.strip().splitlines() or [f"exit {proc.returncode}"])[-1]
-                compile_cache.say_once(f"runtime.compile: building the native articulated step failed ({last})")
-                return None
-            os.replace(built, target)
-    except (OSError, subprocess.SubprocessError) as e:
-        compile_cache.say_once(f"runtime.compile: building the native articulated step failed ({e})")
-        return None
-    return target
+        except (OSError, subprocess.SubprocessError) as e:
+            last = str(e)
+    compile_cache.say_once(f"runtime.compile: building the native articulated step failed ({last})")
+    return None
 
 
 @functools.lru_cache(maxsize=1)
