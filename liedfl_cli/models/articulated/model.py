@@ -882,16 +882,11 @@ class ArticulatedLieDFLNN(ImplicitModel):
                 for j in range(k, k + count):
                     progress(j)
             k += count
-        cat = {key: torch.cat([c[key] for c in chunks], 1) for key in chunks[0]}
-        dt, dev = g0.R.dtype, g0.R.device
-        R = torch.cat((g0.R[:, None], g1.R[:, None], cat["R"].to(dt)), 1)
-        p = torch.cat((g0.p[:, None], g1.p[:, None], cat["p"].to(dt)), 1)
+        cat = {key: torch.cat([c[key] for c in chunks], 1) for key in chunks[0]}  # (on g1's dtype and device)
+        R = torch.cat((g0.R[:, None], g1.R[:, None], cat["R"]), 1)
+        p = torch.cat((g0.p[:, None], g1.p[:, None], cat["p"]), 1)
         return Rollout(
-            Pose(R.to(dev), p.to(dev)),
-            cat["converged"].bool().to(dev),
-            cat["iterations"].to(dev),
-            cat["residual_norm"].to(dt).to(dev),
-            time.perf_counter() - t0,
+            Pose(R, p), cat["converged"].bool(), cat["iterations"], cat["residual_norm"], time.perf_counter() - t0
         )
 
     def increment_coordinates(self, g: Pose, g_next: Pose, inc: Pose) -> torch.Tensor:
