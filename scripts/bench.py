@@ -35,7 +35,7 @@ few repeats, so a speed-up is a ratio taken under the same load. Keys:
                                 reference problem alternately; native_over_mujoco_rk4_substep; with
                                 mujoco_rk4_dt1e-3_us_per_substep_tree5 (MuJoCo's RK4 on that tree's true
                                 model, one trajectory at a time; --articulated-only runs these alone);
-                                fused_chord: the fused engine with solver=chord (tol 1e-8, one Jacobian
+                                fused_chord / native_chord: with solver=chord (tol 1e-8, one Jacobian
                                 per step), fused_over_fused_chord its speed-up
   articulated_training_tree5    {s_per_epoch_fused, s_per_epoch_reference, samples_per_epoch, start_s}: the
                                 default articulated command on a 5-body branched MuJoCo tree (112
@@ -377,11 +377,11 @@ def articulated_rollouts(data_dir: str, quick: bool, log) -> dict:
             row = {}
             # native: the default (runtime.compile auto) where the native step serves the model; fused and
             # fused_chord: the torch engine (runtime.compile=false); reference: the reference problem
-            for path in ("native", "fused", "reference", "fused_chord"):
-                if path == "native" and not serves:
+            for path in ("native", "native_chord", "fused", "reference", "fused_chord"):
+                if path.startswith("native") and not serves:
                     continue
-                opts = chord_options() if path == "fused_chord" else None
-                eager = {} if path in ("native", "reference") else {"compile": "false"}
+                opts = chord_options() if path.endswith("chord") else None
+                eager = {} if path in ("native", "native_chord", "reference") else {"compile": "false"}
                 row[path] = rollout_us(model, G, h, n, budget, repeats, fused=path != "reference", solver=opts, **eager)
             row["reference_over_fused"] = row["reference"] / row["fused"]
             row["fused_over_fused_chord"] = row["fused"] / row["fused_chord"]

@@ -864,9 +864,9 @@ class ArticulatedLieDFLNN(ImplicitModel):
 
     def native_rollout(self, g0: Pose, g1: Pose, steps: int, opts, progress=None) -> Rollout | None:
         """The rollout by the native step (`models.articulated.engines.native`: the fused engine's step in
-        C++, the same poses to rounding) where the plan allows it (`ExecutionPlan.wants_native`), Newton is
-        the method, and it serves this model and these poses; else None (the caller rolls out in torch)."""
-        if steps < 2 or opts.method != "newton" or not self.plan.wants_native():
+        C++, the same poses to rounding) where the plan allows it (`ExecutionPlan.wants_native`), with Newton
+        or chord steps, where it serves this model and these poses; else None (the caller rolls out in torch)."""
+        if steps < 2 or opts.method not in ("newton", "chord") or not self.plan.wants_native():
             return None
         if not native_articulated.usable(self, g1):
             return None
@@ -877,7 +877,7 @@ class ArticulatedLieDFLNN(ImplicitModel):
         per_call = max(1, NATIVE_CHUNK_ROW_STEPS // max(N, 1))  # a progress report every ~1 s of work
         while k < steps:
             count = min(per_call, steps - k)
-            chunks.append(engine.run(state, count, opts.tol, opts.max_iter, opts.max_halvings))
+            chunks.append(engine.run(state, count, opts))
             if progress is not None:
                 for j in range(k, k + count):
                     progress(j)

@@ -9,7 +9,8 @@ Built on first use with the C++ compiler torch.compile uses (`$CXX`, g++, c++ or
 source, compiler and CPU, into `$LIEDFL_NATIVE_CACHE` (default `~/.cache/liedfl/native`; written to a
 temporary name, then renamed), and loaded with ctypes. The model uses it (`ArticulatedLieDFLNN.
 native_rollout`) on the fused path when `runtime.compile` is not false, no gradient is recorded, the
-data are float64 on the CPU and the model is one it serves (`applies`); otherwise the fused engine. No
+data are float64 on the CPU, the method is Newton or chord and the model is one it serves (`applies`);
+otherwise the fused engine. No
 compiler, or a build that fails: the fused engine, with one printed line.
 
 Differences from the batched loop, none of them in the results of a converging step: rows never wait
@@ -37,11 +38,16 @@ from ....lie import Pose
 from ....lie.joints import _maps as joint_maps
 from ....lie.joints import joint_slices
 from ....solvers import compile as compile_cache
+from ....solvers.options import SolverOptions
 from . import fused
 
 SOURCE = Path(__file__).with_name("native_step.cpp")
 FLAGS = ("-O3", "-march=native", "-shared", "-fPIC", "-std=c++17", "-pthread")
 PORTABLE_FLAGS = tuple(f for f in FLAGS if f != "-march=native")
+_I, _D, _P = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
+ARGTYPES = [_I] * 7 + [_P] * 10 + [_I] + [_P] * 3 + [_I] + [_P] * 2 + [_D, _D] + [_I] * 3 + [_P] * 12 + [_I]
+"""The C signature of `liedfl_articulated_rollout` (native_step.cpp): 7 sizes, the tree's and the model's
+arrays, gravity, damping, h and tol, max_iter / max_halvings / chord, the state and outputs, threads."""
 KINDS = {"free": 0, "ball": 1, "hinge": 2, "weld": 3}
 
 
@@ -129,7 +135,9 @@ def library() -> ctypes.CDLL | None:
     if path is None:
         return None
     lib = ctypes.CDLL(str(path))
-    lib.liedfl_articulated_rollout.restype = ctypes.c_int
+    fn = lib.liedfl_articulated_rollout
+    fn.restype = ctypes.c_int
+    fn.argtypes = ARGTYPES  # a call with other arguments raises instead of reaching the C++
     return lib
 
 
@@ -169,8 +177,9 @@ class NativeRollout:
         self.S0pinv = joint_maps(tree, dt, dev)["S0_pinv"].contiguous()
         self.h = float(model.h)
 
-    def run(self, state: dict, count: int, tol: float, max_iter: int, max_halvings: int) -> dict:
-        """`count` steps from `state` (updated in place; `start`) -> this chunk's poses and diagnostics."""
+    def run(self, state: dict, count: int, opts: SolverOptions) -> dict:
+        """`count` steps from `state` (updated in place; `start`) -> this chunk's poses and diagnostics, with
+        `opts`' tolerance, iterations, halvings and method (newton, or chord: one Jacobian per step)."""
         N, B, m = state["Rc"].shape[0], self.B, self.m
         dt, dev = self.dtype, self.device
         out = {
@@ -188,8 +197,8 @@ class NativeRollout:
             _ptr(self.parents), _ptr(self.kind), _ptr(self.col), _ptr(self.row), _ptr(self.axis), _ptr(self.offsets),
             _ptr(self.Jd), _ptr(self.mass), _ptr(self.rho), _ptr(self.rot_map), ctypes.c_int64(self.gravity),
             _ptr(self.gamma), _ptr(self.first_moment), _ptr(self.gmass), ctypes.c_int64(self.damped),
-            _ptr(self.damping), _ptr(self.S0pinv), ctypes.c_double(self.h), ctypes.c_double(tol),
-            ctypes.c_int64(max_iter), ctypes.c_int64(max_halvings),
+            _ptr(self.damping), _ptr(self.S0pinv), ctypes.c_double(self.h), ctypes.c_double(opts.tol),
+            ctypes.c_int64(opts.max_iter), ctypes.c_int64(opts.max_halvings), ctypes.c_int64(opts.method == "chord"),
             _ptr(state["Rp"]), _ptr(state["pp"]), _ptr(state["Rc"]), _ptr(state["pc"]), _ptr(state["dof"]),
             _ptr(state["dof_prev"]), _ptr(state["has_prev"]),
             _ptr(out["R"]), _ptr(out["p"]), _ptr(out["converged"]), _ptr(out["iterations"]), _ptr(out["residual_norm"]),

@@ -19,7 +19,7 @@ namespace {
 constexpr double TAYLOR2 = 1e-2;  // (lie.tolerances float64 "taylor" = 0.1)^2: series below it
 
 struct TreeSpec {
-    int B, n, dim, m, world, max_iter, max_halvings;
+    int B, n, dim, m, world, max_iter, max_halvings, chord;
     double h, tol;
     const int64_t *parents, *kind, *col, *row;  // kind: 0 free, 1 ball, 2 hinge, 3 weld
     const double *axis, *offsets, *Jd, *mass, *rho, *rot_map;
@@ -541,17 +541,18 @@ extern "C" {
 // one before where has_prev (N) is 1; has_prev 2: a new rollout, dof computed here from the two poses
 // (mechanics.articulated.step_coordinates). Writes the new poses (N, count, B, 3, 3) / (N, count, m, 3), and per
 // step converged (N, count), Newton iterations (N, count) and the residual's max norm (N, count).
-// `threads` > 1 splits the rows over that many threads (each row's result does not depend on it).
+// chord: the Jacobian of a step's first iterate and its LU factors serve all its iterations
+// (SolverOptions.method "chord"). `threads` > 1 splits the rows over that many threads (each row's result does not depend on it).
 // Returns 0.
 int liedfl_articulated_rollout(
     int64_t N, int64_t count, int64_t B, int64_t n, int64_t dim, int64_t m, int64_t world, const int64_t *parents,
     const int64_t *kind, const int64_t *col, const int64_t *row, const double *axis, const double *offsets,
     const double *Jd, const double *mass, const double *rho, const double *rot_map, int64_t gravity,
     const double *gamma, const double *first_moment, const double *gmass, int64_t damped, const double *damping,
-    const double *S0pinv, double h, double tol, int64_t max_iter, int64_t max_halvings, double *Rp, double *pp,
+    const double *S0pinv, double h, double tol, int64_t max_iter, int64_t max_halvings, int64_t chord, double *Rp, double *pp,
     double *Rc, double *pc, double *dof, double *dof_prev, uint8_t *has_prev, double *outR, double *outp,
     uint8_t *converged, int64_t *iterations, double *residual_norm, int64_t threads) {
-    TreeSpec t{(int)B, (int)n, (int)dim, (int)m, (int)world, (int)max_iter, (int)max_halvings, h, tol,
+    TreeSpec t{(int)B, (int)n, (int)dim, (int)m, (int)world, (int)max_iter, (int)max_halvings, (int)chord, h, tol,
                parents, kind, col, row, axis, offsets, Jd, mass, rho, rot_map, (int)gravity, (int)damped,
                gamma, first_moment, gmass, damping, S0pinv, {}};
     // the columns each body's Jacobian reaches: its own joint's and its ancestors'
@@ -594,7 +595,7 @@ int liedfl_articulated_rollout(
                 advance(t, cur, d.data(), nxt);
                 residual(t, cur, nxt, cst.data(), w, w.r.data());
                 double rn = norm2(w.r);
-                bool conv = false;
+                bool conv = false, factor_singular = false;
                 int it = 0;
                 for (; it < t.max_iter && !conv; ++it) {
                     double scale = 0.0;
@@ -604,8 +605,12 @@ int liedfl_articulated_rollout(
                         for (int q = 0; q < 3; ++q) scale = std::fmax(scale, std::fabs(z[q]));
                     }
                     double step_tol = std::fmax(tol, 16.0 * eps * std::fmax(scale, 1.0));
-                    jacobian(t, cur, nxt, w);
-                    bool singular = !lu_factor(w.J.data(), (int)n, w.piv.data());
+                    // Newton: the Jacobian at every iterate; chord: at the step's first, its LU factors reused
+                    if (!t.chord || it == 0) {
+                        jacobian(t, cur, nxt, w);
+                        factor_singular = !lu_factor(w.J.data(), (int)n, w.piv.data());
+                    }
+                    bool singular = factor_singular;
                     for (int j = 0; j < n; ++j) w.delta[j] = -w.r[j];
                     if (!singular) lu_solve(w.J.data(), (int)n, w.piv.data(), w.delta.data());
                     double full = 0.0;
