@@ -215,3 +215,9 @@ def test_a_one_step_file_in_rollout_names_the_file(trained, steps, tmp_path, cap
     _, err = capfd.readouterr()
     assert not tb and code == 2, tb or err
     assert err.strip().splitlines()[-1] == f"error: {path}: {ONE_STEP}", err
+
+
+def test_a_checkpoint_config_without_its_rollout_section_is_one_line(trained, capfd):
+    """The slow fuzz's find (one payload byte of the checkpoint changed so that its stored config has no
+    rollout section): `liedfl rollout` refuses it in one line naming the run, no traceback."""
+    assert _command_property(trained, "rollout", ("payload", [("set", 38, ":")]), capfd) == 2

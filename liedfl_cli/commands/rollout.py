@@ -234,6 +234,11 @@ def run_rollout(cfg: DictConfig) -> dict:
     model, dataset, run_dir, used = loaded.model, loaded.dataset, loaded.run_dir, loaded.checkpoint
     console.print(describe_checkpoint(used), highlight=False)
     other = other_dataset(command, model, run_dir)
+    if loaded.config.rollout is None:  # a stored config without the section (an edited or damaged checkpoint)
+        raise ConfigError(
+            f"{run_dir}: the checkpoint's stored config has no rollout section (was it edited?); "
+            "restore the checkpoint or train the run again"
+        )
     run = with_command_settings(loaded.config, command)  # the run's typed config, this command's settings
     assert run.rollout is not None and command.rollout is not None
     source, all_asked = None, False
