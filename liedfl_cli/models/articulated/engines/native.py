@@ -45,8 +45,8 @@ SOURCE = Path(__file__).with_name("native_step.cpp")
 FLAGS = ("-O3", "-march=native", "-shared", "-fPIC", "-std=c++17", "-pthread")
 PORTABLE_FLAGS = tuple(f for f in FLAGS if f != "-march=native")
 _I, _D, _P = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
-ARGTYPES = [_I] * 7 + [_P] * 10 + [_I] + [_P] * 3 + [_I] + [_P] * 2 + [_D, _D] + [_I] * 3 + [_P] * 12 + [_I]
-"""The C signature of `liedfl_articulated_rollout` (native_step.cpp): 7 sizes, the tree's and the model's
+ARGTYPES = [_I] * 9 + [_P] * 10 + [_I] + [_P] * 3 + [_I] + [_P] * 2 + [_D, _D] + [_I] * 3 + [_P] * 12 + [_I]
+"""The C signature of `liedfl_articulated_rollout` (native_step.cpp): 6 sizes, 3 flags, the tree's and the model's
 arrays, gravity, damping, h and tol, max_iter / max_halvings / chord, the state and outputs, threads."""
 KINDS = {"free": 0, "ball": 1, "hinge": 2, "weld": 3}
 
@@ -56,8 +56,6 @@ def applies(model) -> str | None:
     why = fused.applies(model)
     if why is not None:
         return why
-    if not model.reduced:
-        return "an unreduced tree"
     if len(model.forces):
         return "joint-space forces"
     if model.potential_coord is not None:
@@ -157,6 +155,7 @@ class NativeRollout:
         G = tree.group
         self.B, self.n, self.dim, self.m = tree.n_bodies, tree.n_dof, G.dim, G.n_se3
         self.world = int(tree.rotations == "world")
+        self.joint_mode, self.reduced = int(maps.joint_mode), int(maps.reduced)
         self.parents = torch.tensor(tree.parents, dtype=i64)
         self.kind = torch.tensor([KINDS[k] for k in tree.joint_kinds], dtype=i64)
         self.col = torch.tensor([s.start for s in joint_slices(tree)], dtype=i64)
@@ -194,6 +193,7 @@ class NativeRollout:
         rc = lib.liedfl_articulated_rollout(
             ctypes.c_int64(N), ctypes.c_int64(count), ctypes.c_int64(B), ctypes.c_int64(self.n),
             ctypes.c_int64(self.dim), ctypes.c_int64(m), ctypes.c_int64(self.world),
+            ctypes.c_int64(self.joint_mode), ctypes.c_int64(self.reduced),
             _ptr(self.parents), _ptr(self.kind), _ptr(self.col), _ptr(self.row), _ptr(self.axis), _ptr(self.offsets),
             _ptr(self.Jd), _ptr(self.mass), _ptr(self.rho), _ptr(self.rot_map), ctypes.c_int64(self.gravity),
             _ptr(self.gamma), _ptr(self.first_moment), _ptr(self.gmass), ctypes.c_int64(self.damped),

@@ -19,7 +19,7 @@ namespace {
 constexpr double TAYLOR2 = 1e-2;  // (lie.tolerances float64 "taylor" = 0.1)^2: series below it
 
 struct TreeSpec {
-    int B, n, dim, m, world, max_iter, max_halvings, chord;
+    int B, n, dim, m, world, joint_mode, reduced, max_iter, max_halvings, chord;
     double h, tol;
     const int64_t *parents, *kind, *col, *row;  // kind: 0 free, 1 ball, 2 hinge, 3 weld
     const double *axis, *offsets, *Jd, *mass, *rho, *rot_map;
@@ -159,7 +159,9 @@ struct Frame {
     }
 };
 
-// rw_known: the world attitudes are the pose's own (a world-rotation tree's g), not recomputed
+// rw_known: the world attitudes are the pose's own (a world-rotation tree's g), not recomputed. F.R holds the
+// coordinates the unknown moves: parent-relative attitudes (joint_mode) or the world attitudes themselves
+// (an unreduced world-rotation tree, every joint a ball)
 void forward_kinematics(const TreeSpec &t, Frame &F, bool rw_known = false) {
     for (int b = 0; b < t.B; ++b) {
         int a = (int)t.parents[b];
@@ -168,7 +170,8 @@ void forward_kinematics(const TreeSpec &t, Frame &F, bool rw_known = false) {
             for (int i = 0; i < 3; ++i) F.u[i] = t.m ? F.p[i] : t.offsets[i];
             for (int i = 0; i < 3; ++i) F.pw[i] = F.u[i];
         } else {
-            if (!rw_known) mm(&F.Rw[9 * a], &F.R[9 * b], &F.Rw[9 * b]);
+            if (!rw_known && t.joint_mode) mm(&F.Rw[9 * a], &F.R[9 * b], &F.Rw[9 * b]);
+            if (!rw_known && !t.joint_mode) std::memcpy(&F.Rw[9 * b], &F.R[9 * b], 9 * sizeof(double));
             mv(&F.Rw[9 * a], &t.offsets[3 * b], &F.u[3 * b]);
             for (int i = 0; i < 3; ++i) F.pw[3 * b + i] = F.pw[3 * a + i] + F.u[3 * b + i];
         }
@@ -176,8 +179,8 @@ void forward_kinematics(const TreeSpec &t, Frame &F, bool rw_known = false) {
     F.jac = F.com = false;
 }
 
-// Theta_b = Theta_parent + Rw_b E_b (the joint's axes in the world), P_b = P_parent + Theta_parent x u_b
-// (the free root: its translation columns Rw_0)
+// Theta_b = Theta_parent + Rw_b E_b (the joint's axes in the world; Rw_b E_b alone where the unknown moves
+// world attitudes), P_b = P_parent + Theta_parent x u_b (the free root: its translation columns Rw_0)
 void world_jacobian(const TreeSpec &t, Frame &F) {
     if (F.jac) return;
     const int n = t.n;
@@ -186,7 +189,7 @@ void world_jacobian(const TreeSpec &t, Frame &F) {
         double *Th = &F.Th[3 * n * b], *P = &F.P[3 * n * b];
         const double *Rw = &F.Rw[9 * b];
         for (int j : t.cols[b]) {
-            for (int i = 0; i < 3; ++i) Th[i * n + j] = a < 0 ? 0.0 : F.Th[3 * n * a + i * n + j];
+            for (int i = 0; i < 3; ++i) Th[i * n + j] = (a < 0 || !t.joint_mode) ? 0.0 : F.Th[3 * n * a + i * n + j];
             if (a < 0) {
                 for (int i = 0; i < 3; ++i) P[i * n + j] = 0.0;
             } else {
@@ -486,9 +489,28 @@ void advance(const TreeSpec &t, const Frame &q, const double *d, Frame &out) {
     forward_kinematics(t, out);
 }
 
+// cur (prev^-1 cur) in the moving coordinates (the tree's own on an unreduced tree): the last increment
+// applied at cur, as `ProductGroup.compose(g_k, inc)`
+void compose_last(const TreeSpec &t, const Frame &prev, const Frame &cur, Frame &out) {
+    for (int b = 0; b < t.B; ++b) {
+        double W[9];
+        mtm(&prev.R[9 * b], &cur.R[9 * b], W);
+        mm(&cur.R[9 * b], W, &out.R[9 * b]);
+    }
+    if (t.m) {
+        double dp[3] = {cur.p[0] - prev.p[0], cur.p[1] - prev.p[1], cur.p[2] - prev.p[2]}, z[3], Rz[3];
+        mtv(&prev.R[0], dp, z);
+        mv(&cur.R[0], z, Rz);
+        for (int i = 0; i < 3; ++i) out.p[i] = cur.p[i] + Rz[i];
+    }
+}
+
 // tree coordinates <-> joint coordinates
 void load_pose(const TreeSpec &t, const double *R, const double *p, Frame &F) {
-    if (t.world) {
+    if (t.world && !t.joint_mode) {
+        std::memcpy(F.Rw.data(), R, 9 * t.B * sizeof(double));
+        std::memcpy(F.R.data(), R, 9 * t.B * sizeof(double));
+    } else if (t.world) {
         std::memcpy(F.Rw.data(), R, 9 * t.B * sizeof(double));
         for (int b = 0; b < t.B; ++b) {
             int a = (int)t.parents[b];
@@ -545,14 +567,15 @@ extern "C" {
 // (SolverOptions.method "chord"). `threads` > 1 splits the rows over that many threads (each row's result does not depend on it).
 // Returns 0.
 int liedfl_articulated_rollout(
-    int64_t N, int64_t count, int64_t B, int64_t n, int64_t dim, int64_t m, int64_t world, const int64_t *parents,
+    int64_t N, int64_t count, int64_t B, int64_t n, int64_t dim, int64_t m, int64_t world, int64_t joint_mode,
+    int64_t reduced, const int64_t *parents,
     const int64_t *kind, const int64_t *col, const int64_t *row, const double *axis, const double *offsets,
     const double *Jd, const double *mass, const double *rho, const double *rot_map, int64_t gravity,
     const double *gamma, const double *first_moment, const double *gmass, int64_t damped, const double *damping,
     const double *S0pinv, double h, double tol, int64_t max_iter, int64_t max_halvings, int64_t chord, double *Rp, double *pp,
     double *Rc, double *pc, double *dof, double *dof_prev, uint8_t *has_prev, double *outR, double *outp,
     uint8_t *converged, int64_t *iterations, double *residual_norm, int64_t threads) {
-    TreeSpec t{(int)B, (int)n, (int)dim, (int)m, (int)world, (int)max_iter, (int)max_halvings, (int)chord, h, tol,
+    TreeSpec t{(int)B, (int)n, (int)dim, (int)m, (int)world, (int)joint_mode, (int)reduced, (int)max_iter, (int)max_halvings, (int)chord, h, tol,
                parents, kind, col, row, axis, offsets, Jd, mass, rho, rot_map, (int)gravity, (int)damped,
                gamma, first_moment, gmass, damping, S0pinv, {}};
     // the columns each body's Jacobian reaches: its own joint's and its ancestors'
@@ -592,7 +615,13 @@ int liedfl_articulated_rollout(
                 }
                 if (!fin)
                     for (int j = 0; j < n; ++j) d[j] = dofi[j];
-                advance(t, cur, d.data(), nxt);
+                if (t.reduced) {
+                    advance(t, cur, d.data(), nxt);
+                } else {  // an unreduced tree: the last increment applied again, then moved by d - d_k
+                    compose_last(t, prev, cur, cand);
+                    for (int j = 0; j < n; ++j) d[j] = has_prev[i] ? d[j] - dofi[j] : 0.0;
+                    advance(t, cand, d.data(), nxt);
+                }
                 residual(t, cur, nxt, cst.data(), w, w.r.data());
                 double rn = norm2(w.r);
                 bool conv = false, factor_singular = false;
