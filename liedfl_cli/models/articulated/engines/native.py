@@ -9,9 +9,9 @@ Built on first use with the C++ compiler torch.compile uses (`$CXX`, g++, c++ or
 source, compiler and CPU, into `$LIEDFL_NATIVE_CACHE` (default `~/.cache/liedfl/native`; written to a
 temporary name, then renamed), and loaded with ctypes. The model uses it (`ArticulatedLieDFLNN.
 native_rollout`) on the fused path when `runtime.compile` is not false, no gradient is recorded, the
-data are float64 on the CPU, the method is Newton or chord and the model is one it serves (`applies`);
-otherwise the fused engine. No
-compiler, or a build that fails: the fused engine, with one printed line.
+data are float64 on the CPU, the method is Newton or chord and the model is one it serves (`applies`:
+free, ball, hinge and weld joints, gravity, joint damping; reduced or not); otherwise the fused engine.
+No compiler, or a build that fails: the fused engine, with one printed line.
 
 Differences from the batched loop, none of them in the results of a converging step: rows never wait
 for each other; a singular Jacobian (an exactly zero pivot) ends the row's iteration as a failure
