@@ -305,7 +305,8 @@ def test_the_library_is_built_once_per_source_and_reused(tmp_path):
 @needs_compiler
 def test_the_engine_kept_on_the_model_follows_its_parameters():
     """The native constants are kept on the model between rollouts (a short rollout does not read the
-    parameters again), and an in-place change of a parameter (an optimiser step, a load) rebuilds them:
+    parameters again), and an in-place change of a parameter (an optimiser step, a load, an edit through
+    `.data`) rebuilds them:
     the rollout after the change equals the torch engine's with the new damping. The model stays
     deep-copyable with its engine attached."""
     import copy
@@ -324,9 +325,16 @@ def test_the_engine_kept_on_the_model_follows_its_parameters():
     b = _eager(m).rollout(g0, g1, 15, opts)
     assert _close(after.pose.R, b.pose.R, 1e-9) and _close(after.pose.p, b.pose.p, 1e-9)
     assert float((after.pose.R - first.pose.R).abs().max()) > 1e-6  # the change is seen
+    engine = native.for_model(fused, g1.R)
+    with torch.no_grad():
+        m.dof_damper.lam.data.mul_(0.5)  # through .data: no version counter sees it
+    assert native.for_model(fused, g1.R) is not engine
+    edited = fused.rollout(g0, g1, 15, opts)
+    c = _eager(m).rollout(g0, g1, 15, opts)
+    assert _close(edited.pose.R, c.pose.R, 1e-9) and _close(edited.pose.p, c.pose.p, 1e-9)
     twin = copy.deepcopy(fused)
     again = twin.rollout(g0, g1, 15, opts)
-    assert _close(again.pose.R, after.pose.R, 1e-12)
+    assert _close(again.pose.R, edited.pose.R, 1e-12)
 
 
 @needs_compiler

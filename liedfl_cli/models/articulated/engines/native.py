@@ -225,20 +225,22 @@ class NativeRollout:
 
 
 def for_model(model, like: torch.Tensor) -> NativeRollout:
-    """`model`'s NativeRollout, kept on the model while its parameters, buffers and step are unchanged
-    (tensor versions: an optimiser step or a load bumps them), so a short rollout does not pay for reading
-    the parameters again (~1 ms)."""
-    key = (
-        float(model.h),
-        like.dtype,
-        like.device,
-        tuple((id(t), t._version) for t in itertools.chain(model.parameters(), model.buffers())),
-    )
+    """`model`'s NativeRollout, kept on the model while its step, parameters and buffers are unchanged, so a
+    short rollout does not pay for reading the parameters again (~1 ms). Unchanged means equal values, not
+    only the same tensors: an in-place edit through `.data` (which no version counter sees) rebuilds it too.
+    The models served have a few small parameters, so the comparison costs microseconds."""
+    owned = list(itertools.chain(model.parameters(), model.buffers()))
+    tensors = [t.detach() for t in owned]
+    key = (float(model.h), like.dtype, like.device, tuple(id(t) for t in owned))
     cached = model.__dict__.get("_native_rollout")
-    if cached is not None and cached[0] == key:
+    if (
+        cached is not None
+        and cached[0] == key
+        and all(a.shape == b.shape and torch.equal(a, b) for a, b in zip(cached[2], tensors, strict=True))
+    ):
         return cached[1]
     engine = NativeRollout(model, like)
-    model.__dict__["_native_rollout"] = (key, engine)
+    model.__dict__["_native_rollout"] = (key, engine, [t.clone() for t in tensors])
     return engine
 
 
