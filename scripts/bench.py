@@ -36,7 +36,8 @@ few repeats, so a speed-up is a ratio taken under the same load. Keys:
                                 mujoco_rk4_dt1e-3_us_per_substep_tree5 (MuJoCo's RK4 on that tree's true
                                 model, one trajectory at a time; --articulated-only runs these alone);
                                 fused_chord / native_chord: with solver=chord (tol 1e-8, one Jacobian
-                                per step), fused_over_fused_chord its speed-up
+                                per step), fused_over_fused_chord its speed-up; native_2_threads: the
+                                native step with two torch threads (its rows split over them)
   articulated_training_tree5    {s_per_epoch_fused, s_per_epoch_reference, samples_per_epoch, start_s}: the
                                 default articulated command on a 5-body branched MuJoCo tree (112
                                 trajectories x 100 steps): seconds per epoch without the start, and the
@@ -387,6 +388,12 @@ def articulated_rollouts(data_dir: str, quick: bool, log) -> dict:
             row["fused_over_fused_chord"] = row["fused"] / row["fused_chord"]
             if "native" in row:
                 row["fused_over_native"] = row["fused"] / row["native"]
+                before = torch.get_num_threads()
+                try:  # the native step splits its rows over runtime.threads
+                    torch.set_num_threads(2)
+                    row["native_2_threads"] = rollout_us(model, G, h, n, budget, repeats)
+                finally:
+                    torch.set_num_threads(before)
             figures[name][str(n)] = row
             log(
                 f"articulated rollout {name} batch {n}: "

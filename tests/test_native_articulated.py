@@ -33,7 +33,7 @@ F64 = torch.float64
 H = 0.02
 EAGER = ExecutionPlan(compile="false")  # the fused engine in torch: native code only under compile != false
 
-needs_compiler = pytest.mark.skipif(native._compiler() is None, reason="no C++ compiler (g++/c++/clang++)")
+needs_compiler = pytest.mark.skipif(compile_cache.cxx() is None, reason="no C++ compiler (g++/c++/clang++)")
 
 # (tree of test_fused_articulated, potential parts, forces): the models the native step serves
 CASES = {
@@ -260,7 +260,7 @@ def test_the_rollout_routes_to_the_native_step_only_where_it_serves(monkeypatch)
 
 def test_without_a_compiler_the_fused_engine_serves(monkeypatch, capsys):
     """No C++ compiler: no native rollout, one printed line, the same rollout from the torch engine."""
-    monkeypatch.setattr(native, "_compiler", lambda: None)
+    monkeypatch.setattr(compile_cache, "cxx", lambda: None)
     monkeypatch.setattr(compile_cache, "_said", set())
     native.library.cache_clear()
     try:
@@ -291,7 +291,7 @@ def test_a_failing_build_leaves_nothing_behind(tmp_path, monkeypatch, capsys):
 @needs_compiler
 def test_the_library_is_built_once_per_source_and_reused(tmp_path):
     folder = tmp_path / "cache"
-    cxx = native._compiler()
+    cxx = compile_cache.cxx()
     assert cxx is not None
     first = native.build(cxx, folder)
     assert first is not None and first.exists()
@@ -378,7 +378,7 @@ def test_a_non_finite_start_fails_its_row_alone():
 def test_a_compiler_that_refuses_march_native_builds_the_portable_step(tmp_path, monkeypatch):
     """A compiler without -march=native (some clang): the portable flags build the library, and it is the
     one file in the cache."""
-    cxx = native._compiler()
+    cxx = compile_cache.cxx()
     script = tmp_path / "picky"
     script.write_text(
         "#!/bin/sh\n"
@@ -389,3 +389,30 @@ def test_a_compiler_that_refuses_march_native_builds_the_portable_step(tmp_path,
     path = native.build(str(script), tmp_path / "cache")
     assert path is not None and path.exists()
     assert len([p for p in (tmp_path / "cache").rglob("*") if p.is_file()]) == 1
+
+
+@needs_compiler
+@pytest.mark.parametrize("joint, unit, heavy", [("hinge", "mm", True), ("ball", "mm", False), ("hinge", "m", True)])
+def test_mujoco_trees_in_millimetres_with_heavy_roots(joint, unit, heavy):
+    """What the generator of the tests above does not vary: MuJoCo-simulated trees in millimetres (positions
+    in the hundreds, the rounding floor of the step test scaled with them), a 25 kg root over links of about
+    0.5 kg,
+    hinge joints with declared axes; the true model's native rollout equals the torch engine's, and every
+    step converges."""
+    from liedfl_cli.data.mujoco_chain import chain_dataset
+    from liedfl_cli.models.true_scheme import true_model
+
+    ds = chain_dataset(
+        parents="branched5", joint=joint, unit=unit, heavy_root=heavy, root_mass=25.0 if heavy else 4.0,
+        gravity=9.81, n_trajectories=3, steps=3, h=0.05, test_fraction=0.0, seed=3,
+    )  # fmt: skip
+    m = true_model(ds)
+    assert m is not None and native.applies(m) is None
+    m.requires_grad_(False)
+    R, p = torch.as_tensor(ds.R), torch.as_tensor(ds.p)
+    g0, g1 = Pose(R[:, 0], p[:, 0]), Pose(R[:, 1], p[:, 1])
+    a, b = _native(m, g0, g1, 60, SolverOptions()), _eager(m).rollout(g0, g1, 60, SolverOptions())
+    assert bool(a.converged.all()) and torch.equal(a.converged, b.converged)
+    assert _close(a.pose.R, b.pose.R, 1e-8) and _close(a.pose.p, b.pose.p, 1e-8)
+    if unit == "mm":
+        assert float(a.pose.p.abs().max()) > 50.0  # the positions are in millimetres

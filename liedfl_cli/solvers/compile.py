@@ -13,13 +13,19 @@ from typing import Any
 import torch
 
 
+def cxx() -> str | None:
+    """The C++ compiler here: `$CXX` when it is on PATH, else the first of g++, c++, clang++; None without
+    one (torch.compile's CPU backend and the native articulated step build with it)."""
+    env = os.environ.get("CXX")
+    if env and shutil.which(env):
+        return env
+    return next((c for c in ("g++", "c++", "clang++") if shutil.which(c)), None)
+
+
 @functools.lru_cache(maxsize=1)
 def compiler_available() -> bool:
     """True when torch.compile's CPU backend can build code here (a C++ compiler on PATH)."""
-    cxx = os.environ.get("CXX")
-    if cxx and shutil.which(cxx):
-        return True
-    return any(shutil.which(c) for c in ("g++", "c++", "clang++"))
+    return cxx() is not None
 
 
 _said: set[str] = set()

@@ -26,7 +26,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import torch
@@ -888,6 +888,12 @@ class ArticulatedLieDFLNN(ImplicitModel):
         return Rollout(
             Pose(R, p), cat["converged"].bool(), cat["iterations"], cat["residual_norm"], time.perf_counter() - t0
         )
+
+    def scaled_start(self, state, inc: Pose, ratio: float):
+        """`state` (from `implicit_start(g_prev, g)`) warm-starting a step `ratio` times as long as the last
+        (`LieDFLNN.scaled_start`): the last increment `inc`, and, since a reduced tree starts from the last
+        increment's DoF, those DoF scaled by `ratio` with no earlier ones to extrapolate from."""
+        return replace(state, inc=inc, dof=ratio * state.dof, dof_prev=None)
 
     def increment_coordinates(self, g: Pose, g_next: Pose, inc: Pose) -> torch.Tensor:
         """The coordinates of the step g -> g_next = g inc, (N, n) (`mechanics.articulated.step_coordinates`):

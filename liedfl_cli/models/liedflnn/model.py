@@ -24,7 +24,7 @@ engines chosen in `engines/choose.py` — training: `engines/training.py` (incre
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
 import torch
@@ -506,6 +506,15 @@ class LieDFLNN(ImplicitModel):
                 return self.jacobian_var(g, x)
 
         return NewtonProblem(f, jac, x0, G.retract)
+
+    def scaled_start(self, state, inc: Pose, ratio: float):
+        """`state` (from `implicit_start(g_prev, g)`) warm-starting a step `ratio` times as long as the last:
+        its last increment replaced by `inc`, that increment scaled (the sub-step cycles of
+        `models.liedflnn.substeps`); no history of earlier increments."""
+        if isinstance(state, fused.RolloutState):
+            return replace(state, inc=inc)
+        g_prev, g, _, _ = state
+        return g_prev, g, inc, ()
 
     def implicit_advance(self, state, x: Pose):
         # Newton-Schulz step on the increment: its retractions would otherwise accumulate

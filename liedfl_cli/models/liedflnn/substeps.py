@@ -33,7 +33,6 @@ from __future__ import annotations
 import contextlib
 import math
 from collections.abc import Sequence
-from dataclasses import fields, replace
 from typing import Any
 
 import torch
@@ -731,12 +730,7 @@ class _Cycle:
         if ratio != 1.0:  # warm start: the last increment scaled to this sub-step
             G = mb.G
             inc = G.exp(ratio * G.log(G.increment(g_prev, g)))
-            if isinstance(base, tuple):
-                base = (g_prev, g, inc, ())
-            elif "dof" in {f.name for f in fields(base)}:  # the articulated model starts from the joints' DoF
-                base = replace(base, inc=inc, dof=ratio * base.dof, dof_prev=None)
-            else:
-                base = replace(base, inc=inc)
+            base = mb.scaled_start(base, inc, ratio)
         prob = mb.implicit_problem(base)
         state_out = (g_prev, g, j, base)
         self._last = state_out

@@ -27,7 +27,6 @@ import hashlib
 import itertools
 import os
 import platform
-import shutil
 import subprocess
 import tempfile
 from pathlib import Path
@@ -64,13 +63,6 @@ def applies(model) -> str | None:
     if bad:
         return f"{bad[0]} joints"
     return None
-
-
-def _compiler() -> str | None:
-    cxx = os.environ.get("CXX")
-    if cxx and shutil.which(cxx):
-        return cxx
-    return next((c for c in ("g++", "c++", "clang++") if shutil.which(c)), None)
 
 
 def _cpu_signature() -> str:
@@ -125,7 +117,7 @@ def build(cxx: str, folder: Path) -> Path | None:
 def library() -> ctypes.CDLL | None:
     """The compiled step, built on first use (module docstring), or None without a compiler or when
     the build fails (said once on stderr): the fused engine then serves."""
-    cxx = _compiler()
+    cxx = compile_cache.cxx()
     if cxx is None:
         compile_cache.say_once("runtime.compile: no C++ compiler found (g++/c++/clang++), running the fused paths")
         return None

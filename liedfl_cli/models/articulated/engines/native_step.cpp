@@ -303,32 +303,47 @@ struct Work {
     }
 };
 
+// body b's kinetic covector (mechanics.kinetic.kinetic_d2 if `second`, else kinetic_d1) over its world
+// increment fa -> fb, (w, v) in its frame at fa: c (6)
+void kinetic_covector(const TreeSpec &t, const Frame &fa, const Frame &fb, int b, bool second, double *c) {
+    double W[9], z[3], A[9], Bm[9], Wr[3], X[3], u[3], cu[3];
+    world_increment(fa, fb, b, W, z);
+    const double *Jd = &t.Jd[9 * b], *rho = &t.rho[3 * b];
+    const double h = t.h, s = t.mass[b] / h;
+    if (second) {  // vee(Jd W - W^T Jd) / h
+        mm(Jd, W, A);
+        mtm(W, Jd, Bm);
+    } else {  // vee(Jd W^T - W Jd) / h
+        mmt(Jd, W, A);
+        mm(W, Jd, Bm);
+    }
+    for (int k = 0; k < 9; ++k) A[k] -= Bm[k];
+    vee(A, c);
+    for (int i = 0; i < 3; ++i) c[i] /= h;
+    mv(W, rho, Wr);
+    for (int i = 0; i < 3; ++i) X[i] = z[i] + Wr[i] - rho[i];  // X = z + (W - I) rho
+    if (second) {  // w += s rho x W^T X, v = s W^T X
+        mtv(W, X, u);
+        cross(rho, u, cu);
+        for (int i = 0; i < 3; ++i) c[i] += s * cu[i], c[3 + i] = s * u[i];
+    } else {  // w += s X x (z + W rho), v = -s X
+        for (int i = 0; i < 3; ++i) u[i] = z[i] + Wr[i];
+        cross(X, u, cu);
+        for (int i = 0; i < 3; ++i) c[i] += s * cu[i], c[3 + i] = -s * X[i];
+    }
+}
+
 // D2 L_d(prev, cur) + gravity at cur + (h/2) damping of (prev, cur), on the DoF: (n)
 void residual_const(const TreeSpec &t, const Frame &prev, Frame &cur, Work &w, double *out) {
     world_jacobian(t, cur);
-    const double h = t.h;
     for (int b = 0; b < t.B; ++b) {
-        double W[9], z[3], A[9], Bm[9], X[3], WtX[3], rhoX[3];
-        world_increment(prev, cur, b, W, z);
-        const double *Jd = &t.Jd[9 * b], *rho = &t.rho[3 * b];
-        mm(Jd, W, A);
-        mtm(W, Jd, Bm);
-        for (int k = 0; k < 9; ++k) A[k] -= Bm[k];
         double *c = &w.c[6 * b];
-        vee(A, c);
-        for (int i = 0; i < 3; ++i) c[i] /= h;
-        double Wr[3];
-        mv(W, rho, Wr);
-        for (int i = 0; i < 3; ++i) X[i] = z[i] + Wr[i] - rho[i];
-        mtv(W, X, WtX);
-        double s = t.mass[b] / h;
-        cross(rho, WtX, rhoX);
-        for (int i = 0; i < 3; ++i) c[i] += s * rhoX[i], c[3 + i] = s * WtX[i];
-        if (t.gravity) {
+        kinetic_covector(t, prev, cur, b, true, c);
+        if (t.gravity) {  // - h dV of the uniform field at cur
             double up[3], fu[3];
             mtv(&cur.Rw[9 * b], t.gamma, up);
             cross(&t.first_moment[3 * b], up, fu);
-            for (int i = 0; i < 3; ++i) c[i] -= h * fu[i], c[3 + i] -= h * t.gmass[b] * up[i];
+            for (int i = 0; i < 3; ++i) c[i] -= t.h * fu[i], c[3 + i] -= t.h * t.gmass[b] * up[i];
         }
     }
     for (int j = 0; j < t.n; ++j) out[j] = 0.0;
@@ -338,24 +353,7 @@ void residual_const(const TreeSpec &t, const Frame &prev, Frame &cur, Work &w, d
 
 // f(next) = const + D1 L_d(cur, next) on the DoF + (h/2) damping of (cur, next): (n)
 void residual(const TreeSpec &t, const Frame &cur, const Frame &nxt, const double *cst, Work &w, double *r) {
-    const double h = t.h;
-    for (int b = 0; b < t.B; ++b) {
-        double W[9], z[3], A[9], Bm[9], X[3], a[3], Xa[3];
-        world_increment(cur, nxt, b, W, z);
-        const double *Jd = &t.Jd[9 * b], *rho = &t.rho[3 * b];
-        mmt(Jd, W, A);
-        mm(W, Jd, Bm);
-        for (int k = 0; k < 9; ++k) A[k] -= Bm[k];
-        double *c = &w.c[6 * b];
-        vee(A, c);
-        for (int i = 0; i < 3; ++i) c[i] /= h;
-        double Wr[3];
-        mv(W, rho, Wr);
-        for (int i = 0; i < 3; ++i) X[i] = z[i] + Wr[i] - rho[i], a[i] = z[i] + Wr[i];
-        double s = t.mass[b] / h;
-        cross(X, a, Xa);
-        for (int i = 0; i < 3; ++i) c[i] += s * Xa[i], c[3 + i] = -s * X[i];
-    }
+    for (int b = 0; b < t.B; ++b) kinetic_covector(t, cur, nxt, b, false, &w.c[6 * b]);
     for (int j = 0; j < t.n; ++j) r[j] = cst[j];
     pair_add(t, cur, w.c.data(), r);
     damping_add(t, cur, nxt, r, w.nu);
