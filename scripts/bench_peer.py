@@ -8,9 +8,11 @@ u_dim=1, time_step=h)` (networks of width 10, a fixed 5 Newton iterations per st
 search or convergence check), rolled out by its `predict` from random rotations, unit angular
 velocity scale and zero control. liedfl is timed on (a) the free rigid body with true parameters
 and (b) an SO(3) LieDFLNN with an MLP potential of width 10 x 2 and Rayleigh damping (the peer's
-network size), Newton to tolerance 1e-5 with line search, on the fused paths (a single SO(3) body
-rolls out in column layout, `models.liedflnn.engines.columns`), on the fused step in the row layout (`_rows`)
-and on the reference paths (`_reference`). Figures: microseconds per step per trajectory (best of 3), peer and liedfl
+network size), Newton to tolerance 1e-5 with line search: as a rollout runs by default (the engine
+`models.liedflnn.engines.choose` picks, named in `<model>_engine`: the native step where it serves), on the
+torch engines alone (`_torch`: `runtime.compile=false`, so Python floats for a few trajectories, the column
+layout for many), on the fused step in the row layout (`_rows`) and on the reference paths (`_reference`).
+Figures: microseconds per step per trajectory (best of 3), peer and liedfl
 alternately, and their ratios (peer_over_X > 1: liedfl is faster).
 """
 
@@ -29,9 +31,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from liedfl_cli.lie import SO3, Pose, so3  # noqa: E402
+from liedfl_cli.models.liedflnn.engines.choose import choose_rollout_engine  # noqa: E402
 from liedfl_cli.models.liedflnn.model import LieDFLNN  # noqa: E402
 from liedfl_cli.models.true_scheme import physics_model  # noqa: E402
 from liedfl_cli.solvers import runtime  # noqa: E402
+from liedfl_cli.solvers.execution import ExecutionPlan  # noqa: E402
 from liedfl_cli.solvers.options import SolverOptions  # noqa: E402
 from liedfl_cli.solvers.rollout import rollout_implicit  # noqa: E402
 
@@ -80,8 +84,12 @@ def main() -> None:
         t_peer = best_of(lambda x0=x0, steps=steps: peer.predict(steps, x0)) / steps / n * 1e6
         row = {"batch": n, "steps": steps, "peer_us_per_step_traj": t_peer}
         for name, model in ours.items():
-            for label, path in (("", "fused"), ("_rows", "rows"), ("_reference", "reference")):
+            with torch.no_grad():
+                row[f"{name}_engine"] = choose_rollout_engine(model, g0, steps + 1).name
+            for label, path in (("", "fused"), ("_torch", "torch"), ("_rows", "rows"), ("_reference", "reference")):
                 on_path = model.with_path("reference" if path == "reference" else "fused")
+                if path == "torch":
+                    on_path.plan = ExecutionPlan(path="fused", compile="false")
                 if path == "rows":  # the fused step in the row layout (before the column rollout)
                     run = lambda m=on_path, g0=g0, g1=g1, s=steps: rollout_implicit(m, g0, g1, s + 1, SolverOptions())
                 else:

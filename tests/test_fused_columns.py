@@ -36,6 +36,7 @@ def _columns_at_every_batch_size(monkeypatch):
     few trajectories take `fused_scalar`)."""
     monkeypatch.setattr(fused_columns, "MIN_ROWS", 1)
     monkeypatch.setattr(fused_scalar, "MAX_ROWS", 0)
+    monkeypatch.setattr(ExecutionPlan, "wants_native", lambda self: False)  # the torch engine (native: its own tests)
 
 
 def model_named(name: str) -> LieDFLNN:

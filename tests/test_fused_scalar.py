@@ -21,6 +21,12 @@ from liedfl_cli.solvers.rollout import rollout_implicit
 FLOAT_MODELS = ["mlp_rayleigh", "mlp_no_force", "free_rayleigh"]  # (gravity_and_mlp: not an MLP alone)
 
 
+@pytest.fixture(autouse=True)
+def _torch_engines(monkeypatch):
+    """The float path, not the native step that would otherwise take these rollouts (tests/test_native_so3.py)."""
+    monkeypatch.setattr(ExecutionPlan, "wants_native", lambda self: False)
+
+
 def rows_floats_reference(model, g0, g1, steps, opts=None):
     """(row-layout fused rollout, rollout in floats, reference-path rollout)."""
     opts = opts or SolverOptions()

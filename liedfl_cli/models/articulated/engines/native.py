@@ -23,12 +23,6 @@ from __future__ import annotations
 
 import ctypes
 import functools
-import hashlib
-import itertools
-import os
-import platform
-import subprocess
-import tempfile
 from pathlib import Path
 
 import torch
@@ -36,13 +30,11 @@ import torch
 from ....lie import Pose
 from ....lie.joints import _maps as joint_maps
 from ....lie.joints import joint_slices
-from ....solvers import compile as compile_cache
+from ....solvers import native_build
 from ....solvers.options import SolverOptions
 from . import fused
 
 SOURCE = Path(__file__).with_name("native_step.cpp")
-FLAGS = ("-O3", "-march=native", "-shared", "-fPIC", "-std=c++17", "-pthread")
-PORTABLE_FLAGS = tuple(f for f in FLAGS if f != "-march=native")
 _I, _D, _P = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
 ARGTYPES = [_I] * 9 + [_P] * 10 + [_I] + [_P] * 3 + [_I] + [_P] * 2 + [_D, _D] + [_I] * 3 + [_P] * 12 + [_I]
 """The C signature of `liedfl_articulated_rollout` (native_step.cpp): 6 sizes, 3 flags, the tree's and the model's
@@ -65,70 +57,21 @@ def applies(model) -> str | None:
     return None
 
 
-def _cpu_signature() -> str:
-    """The CPU model and features (-march=native code is built per CPU)."""
-    try:
-        text = Path("/proc/cpuinfo").read_text()
-        lines = [ln for ln in text.splitlines() if ln.startswith(("model name", "flags"))][:2]
-        return "\n".join(lines)
-    except OSError:
-        return platform.processor() or platform.machine()
-
-
 def cache_dir() -> Path:
-    return Path(os.environ.get("LIEDFL_NATIVE_CACHE") or Path.home() / ".cache" / "liedfl" / "native")
+    return native_build.cache_dir()
 
 
 def build(cxx: str, folder: Path) -> Path | None:
     """The compiled step for compiler `cxx` in `folder` (built there unless already cached), or None with
-    one printed line when the build fails. Tuned for this CPU (`FLAGS`), else portable (`PORTABLE_FLAGS`,
-    for a compiler that refuses -march=native). Built under a temporary name and renamed: a failed or
-    interrupted build never leaves a library behind."""
-    source = SOURCE.read_bytes()
-    try:
-        version = subprocess.run([cxx, "--version"], capture_output=True, text=True, timeout=60).stdout
-    except (OSError, subprocess.SubprocessError):
-        version = ""
-    last = "?"
-    for flags in (FLAGS, PORTABLE_FLAGS):
-        key = hashlib.sha256(
-            b"\0".join([source, version.encode(), " ".join(flags).encode(), _cpu_signature().encode()])
-        )
-        target = folder / f"liedfl_articulated_{key.hexdigest()[:16]}.so"
-        if target.exists():
-            return target
-        try:
-            folder.mkdir(parents=True, exist_ok=True)
-            with tempfile.TemporaryDirectory(dir=folder) as tmp:
-                built = Path(tmp) / target.name
-                cmd = [cxx, *flags, str(SOURCE), "-o", str(built)]
-                proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
-                if proc.returncode == 0 and built.exists():
-                    os.replace(built, target)
-                    return target
-                last = (proc.stderr.strip().splitlines() or [f"exit {proc.returncode}"])[-1]
-        except (OSError, subprocess.SubprocessError) as e:
-            last = str(e)
-    compile_cache.say_once(f"runtime.compile: building the native articulated step failed ({last})")
-    return None
+    one printed line when the build fails (`solvers.native_build.build`)."""
+    return native_build.build(SOURCE, cxx, folder, "the native articulated step")
 
 
 @functools.lru_cache(maxsize=1)
 def library() -> ctypes.CDLL | None:
     """The compiled step, built on first use (module docstring), or None without a compiler or when
     the build fails (said once on stderr): the fused engine then serves."""
-    cxx = compile_cache.cxx()
-    if cxx is None:
-        compile_cache.say_once("runtime.compile: no C++ compiler found (g++/c++/clang++), running the fused paths")
-        return None
-    path = build(cxx, cache_dir())
-    if path is None:
-        return None
-    lib = ctypes.CDLL(str(path))
-    fn = lib.liedfl_articulated_rollout
-    fn.restype = ctypes.c_int
-    fn.argtypes = ARGTYPES  # a call with other arguments raises instead of reaching the C++
-    return lib
+    return native_build.load(SOURCE, "liedfl_articulated_rollout", ARGTYPES, "the native articulated step")
 
 
 def _ptr(t: torch.Tensor) -> ctypes.c_void_p:
@@ -217,23 +160,10 @@ class NativeRollout:
 
 
 def for_model(model, like: torch.Tensor) -> NativeRollout:
-    """`model`'s NativeRollout, kept on the model while its step, parameters and buffers are unchanged, so a
-    short rollout does not pay for reading the parameters again (~1 ms). Unchanged means equal values, not
-    only the same tensors: an in-place edit through `.data` (which no version counter sees) rebuilds it too.
-    The models served have a few small parameters, so the comparison costs microseconds."""
-    owned = list(itertools.chain(model.parameters(), model.buffers()))
-    tensors = [t.detach() for t in owned]
-    key = (float(model.h), like.dtype, like.device, tuple(id(t) for t in owned))
-    cached = model.__dict__.get("_native_rollout")
-    if (
-        cached is not None
-        and cached[0] == key
-        and all(a.shape == b.shape and torch.equal(a, b) for a, b in zip(cached[2], tensors, strict=True))
-    ):
-        return cached[1]
-    engine = NativeRollout(model, like)
-    model.__dict__["_native_rollout"] = (key, engine, [t.clone() for t in tensors])
-    return engine
+    """`model`'s NativeRollout, kept on the model while its step, parameters and buffers are unchanged
+    (`solvers.native_build.kept_on_model`): a short rollout does not pay for reading the parameters again
+    (~1 ms)."""
+    return native_build.kept_on_model(model, like, "_native_rollout", NativeRollout)
 
 
 def available() -> bool:

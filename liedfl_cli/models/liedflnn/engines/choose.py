@@ -15,13 +15,15 @@ serves it, so a triplet batch given to a fused model is still computed (by the r
 
 Rollouts (`choose_rollout_engine`), once per rollout from the start poses:
 
+    native   a single SO(3) body with a linear Newton residual in C++ (`engines/native.py`), at any batch,
+             where the plan allows native code and a compiler builds it
     scalar   one to six trajectories of a single SO(3) body with a linear Newton residual, Python floats
     columns  more trajectories of such a body, in column layout ((3, 3, T) rotations)
     rows     everything else: the one Newton loop over rows (`LieDFLNN.rollout_rows`: the fused step,
              compiled when the plan asks, or the reference problem on the reference path)
 
-A rollout the plan compiles (`plan.wants_compile("rollout", trajectories x steps)`) takes rows: the
-compiled step lives there. Every engine takes the reference problem's Newton steps to rounding
+Otherwise a rollout the plan compiles (`plan.wants_compile("rollout", trajectories x steps)`) takes rows:
+the compiled step lives there. Every engine takes the reference problem's Newton steps to rounding
 (tests/test_fused_scalar.py, tests/test_fused_columns.py, tests/test_model_path.py).
 """
 
@@ -33,7 +35,7 @@ from typing import Any
 
 from ....lie import Pose
 from ...base import ImplicitModel, LossOptions, TripletBatch
-from . import columns, scalar, training
+from . import columns, native, scalar, training
 
 
 @dataclass(frozen=True)
@@ -47,16 +49,19 @@ class RolloutEngine:
 
 
 ROWS = RolloutEngine("rows", lambda model, g0: True, lambda model, *args: model.rollout_rows(*args))
+NATIVE = RolloutEngine("native", native.applies, native.rollout)
 ENGINES = (
     RolloutEngine("scalar", scalar.applies, scalar.rollout),
     RolloutEngine("columns", columns.applies, columns.rollout),
     ROWS,
 )
-"""In order of preference: the first that applies serves the rollout."""
+"""The torch engines in order of preference: the first that applies serves a rollout that NATIVE does not."""
 
 
 def choose_rollout_engine(model, g0: Pose, steps: int) -> RolloutEngine:
     """The engine of `model`'s rollout of `steps` steps from g0 (module docstring)."""
+    if native.applies(model, g0):  # native code at any size: faster than the compiled rows
+        return NATIVE
     if model.plan.wants_compile("rollout", g0.R.shape[0] * max(steps - 1, 0)):
         return ROWS
     return next(e for e in ENGINES if e.applies(model, g0))

@@ -1,0 +1,237 @@
+"""Fused hot paths of LieDFLNN, part 6 (see `models.liedflnn.engines.core`): the rollout of a single SO(3) body
+with a linear Newton residual (no force, or constant Rayleigh damping) in native code.
+
+The step of `engines.scalar` (and of `engines.columns`, its batched form) written in C++ (`native_so3.cpp`),
+one trajectory at a time, each with the reference Newton loop of `solvers.newton` (backtracking on ||r||_2,
+convergence on the full step's max norm, a failed step kept and flagged): no Python and no tensor operation
+per step, so at batch 1 a step is its arithmetic (~1 µs with a 10 x 2 MLP potential) where the Python
+floats of `engines.scalar` pay ~60 µs and the row layout ~1 ms. Built on first use (`solvers.native_build`,
+the articulated step's machinery) and kept per machine.
+
+Serves (`applies`) the fused path of a LieDFLNN of one SO(3) body, no force or only constant Rayleigh
+damping, a potential that is none, an MLP of Linear layers with exact GELU or tanh activations, gravity
+(declared or learned, `GravityPotential` / `UniformGravityPotential`) or a sum of those with at most one
+MLP (with an MLP, batches up to the size where the column layout's batched products overtake it,
+`MLP_ROWS`); float64 poses on the CPU (a rollout records no gradient on any engine), a plan that allows native code
+(`ExecutionPlan.wants_native`: not under `runtime.compile=false`), and a C++ compiler that builds it.
+Otherwise the torch engines (`engines/choose.py`).
+
+One difference from the other engines, in no converging step: an exactly singular 3x3 Jacobian takes no
+step (the step is flagged as failed) where the reference takes a least-squares step.
+
+    applies(model, g0)                       whether a rollout takes this path
+    rollout(model, g0, g1, steps, opts)      `solvers.rollout.rollout_implicit` for those models
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import math
+import time
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from ....lie import Pose
+from ....lie.batched import HISTORY
+from ....mechanics.potentials import GravityPotential, MLPPotential, SumPotential, UniformGravityPotential
+from ....solvers import native_build, newton
+from ....solvers.options import SolverOptions
+from ....solvers.rollout import Rollout
+from ... import mlp_derivatives
+from . import columns as fused_columns
+from .rollout import rollout_maps
+
+SOURCE = Path(__file__).with_name("native_so3.cpp")
+_I, _D, _P = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
+ARGTYPES = [_I, _I, _P, _P, _P, _I, _P, _P, _P, _P, _P, _P, _I, _P, _P, _D, _I, _I, _P, _P, _P, _P, _P, _P, _P, _I]
+"""The C signature of `liedfl_so3_rollout` (native_so3.cpp): N and count, the linear maps, the MLP potential's
+layers, the gravity terms, the step tolerance, max_iter and max_halvings, the state and outputs, threads."""
+ACTIVATIONS = {"gelu": 0, "tanh": 1}
+MLP_ROWS = 2000
+MLP_WEIGHTS = 200
+"""With an MLP potential the native step computes the network for one trajectory at a time, where the column
+layout (`engines.columns`) multiplies whole batches at once: past some batch size the columns are faster. The
+native step serves up to MLP_ROWS x sqrt(MLP_WEIGHTS / weights) x threads^2 trajectories (measured, idle, one
+thread, native / columns in µs per trajectory-step: a 10 x 2 MLP of 200 weights 0.63 / 0.86 at batch 1,000 and
+0.66 / 0.61 at 2,000; 32 x 3 (2,368 weights) 1.93 / 6.16 at 100, 1.92 / 1.42 at 1,000; 64 x 3 (8,832) 3.82 /
+7.00 at 100, 3.80 / 2.27 at 1,000; two threads, 10 x 2: 0.35 / 0.35 at 8,000; docs/benchmarks.md). Without an
+MLP it serves every batch (0.22-0.27 against 0.30-0.59 up to 16,000 on one thread)."""
+CHUNK_ROW_STEPS = 400_000
+"""Trajectory-steps per call into the native code (~0.5 s): progress is reported and signals are handled
+between calls."""
+
+
+def _activation(act) -> str | None:
+    if isinstance(act, nn.GELU) and act.approximate == "none":
+        return "gelu"
+    if isinstance(act, nn.Tanh):
+        return "tanh"
+    return None
+
+
+def _potential_terms(potential) -> tuple[list | None, list] | None:
+    """(the MLP's layers or None, the gravity terms) of a potential the native step computes, else None."""
+    terms = list(potential.terms) if isinstance(potential, SumPotential) else [] if potential is None else [potential]
+    layers, gravity = None, []
+    for term in terms:
+        if isinstance(term, MLPPotential) and layers is None:
+            layers = mlp_derivatives.layers(term.net)
+            if layers is None or any(_activation(act) is None for _, act in layers[:-1]):
+                return None
+        elif isinstance(term, (GravityPotential, UniformGravityPotential)):
+            gravity.append(term)
+        else:
+            return None
+    return layers, gravity
+
+
+def applies(model, g0: Pose) -> bool:
+    """Whether `model`'s rollout from g0 takes this path (module docstring); builds the native step on the
+    first call that needs it."""
+    return (
+        fused_columns.single_linear_so3(model, g0)
+        and g0.R.dtype.is_floating_point
+        and torch.finfo(g0.R.dtype).bits == 64
+        and g0.R.device.type == "cpu"
+        and model.plan.wants_native()
+        and _serves_batch(model, g0.R.shape[0])
+        and library() is not None
+    )
+
+
+def _serves_batch(model, rows: int) -> bool:
+    """Whether the potential is one the native step computes and `rows` trajectories are few enough for it
+    (`MLP_ROWS`)."""
+    terms = _potential_terms(model.potential)
+    if terms is None:
+        return False
+    if terms[0] is None:
+        return True
+    weights = sum(lin.weight.numel() for lin, _ in terms[0])
+    limit = MLP_ROWS * math.sqrt(MLP_WEIGHTS / weights) * torch.get_num_threads() ** 2
+    return rows <= limit
+
+
+@functools.lru_cache(maxsize=1)
+def library() -> ctypes.CDLL | None:
+    """The compiled step, built on first use, or None without a compiler or when the build fails (said once
+    on stderr): the torch engines then serve."""
+    return native_build.load(SOURCE, "liedfl_so3_rollout", ARGTYPES, "the native SO(3) step")
+
+
+def _ptr(t: torch.Tensor) -> ctypes.c_void_p:
+    return ctypes.c_void_p(t.data_ptr())
+
+
+class NativeSO3:
+    """The constants of one model's native rollout (its parameters read once, detached) and the call."""
+
+    def __init__(self, model, like: torch.Tensor):
+        dt, i64 = like.dtype, torch.int64
+        maps = rollout_maps(model)
+        assert maps.linear is not None  # `applies`: a linear residual
+        # rows applied to W.flatten(): residual (3, 9), Jacobian (9, 9), constant part (3, 9)
+        self.F, self.JT, self.C = (m.detach().to(dt).T.contiguous() for m in maps.linear)
+        terms = _potential_terms(model.potential)
+        assert terms is not None
+        layers, gravity = terms
+        h = float(model.h)
+        hidden = layers[:-1] if layers else []
+        self.layers = len(hidden)
+        widths = [9] + [lin.out_features for lin, _ in hidden]
+        self.width = torch.tensor(widths, dtype=i64)
+        flat = lambda ts: torch.cat([t.detach().to(dt).reshape(-1) for t in ts]) if ts else torch.zeros(1, dtype=dt)
+        self.weights = flat([lin.weight for lin, _ in hidden])
+        self.weights_t = flat([lin.weight.T for lin, _ in hidden])
+        self.biases = flat(
+            [lin.bias if lin.bias is not None else torch.zeros(lin.out_features, dtype=dt) for lin, _ in hidden]
+        )
+        self.act = torch.tensor([ACTIVATIONS[_activation(act) or ""] for _, act in hidden] or [0], dtype=i64)
+        self.out = (-h * layers[-1][0].weight.detach().to(dt)[0]).contiguous() if layers else torch.zeros(1, dtype=dt)
+        # gravity: -h dV = a x (R^T f) per term (the potentials' `left_gradient`)
+        pairs = []
+        for term in gravity:
+            if isinstance(term, GravityPotential):
+                a = term.gravity * term.masses[0] * term.rhos[0]
+                f = torch.tensor([0.0, 0.0, 1.0], dtype=dt)
+            else:
+                a, f = term.first_moments()[0], term.field()
+            pairs.append((-h * a.detach().to(dt), f.detach().to(dt)))
+        self.n_grav = len(pairs)
+        self.grav_a = torch.stack([a for a, _ in pairs]) if pairs else torch.zeros(1, 3, dtype=dt)
+        self.grav_f = torch.stack([f for _, f in pairs]) if pairs else torch.zeros(1, 3, dtype=dt)
+
+    def run(self, state: dict, count: int, opts: SolverOptions) -> dict:
+        """`count` steps from `state` (updated in place; `start`) -> this chunk's rotations (N, count, 3, 3)
+        and per-step diagnostics, with `opts`' tolerance, iterations and halvings."""
+        N = state["R"].shape[0]
+        dt, like = self.F.dtype, self.F
+        out = {
+            "R": like.new_empty(N, count, 3, 3),
+            "converged": like.new_empty(N, count, dtype=torch.uint8),
+            "iterations": like.new_empty(N, count, dtype=torch.int64),
+            "residual_norm": like.new_empty(N, count),
+        }
+        lib = library()  # (not kept on the engine: a model that holds it stays deep-copyable)
+        assert lib is not None
+        step_tol = max(opts.tol, newton.ROUNDING_ULPS * torch.finfo(dt).eps)  # rotations: entries <= 1
+        rc = lib.liedfl_so3_rollout(
+            N, count, _ptr(self.F), _ptr(self.JT), _ptr(self.C), self.layers, _ptr(self.width),
+            _ptr(self.weights), _ptr(self.weights_t), _ptr(self.biases), _ptr(self.act), _ptr(self.out), self.n_grav,
+            _ptr(self.grav_a), _ptr(self.grav_f), step_tol, opts.max_iter, opts.max_halvings,
+            _ptr(state["R"]), _ptr(state["hist"]), _ptr(state["hist_len"]),
+            _ptr(out["R"]), _ptr(out["converged"]), _ptr(out["iterations"]), _ptr(out["residual_norm"]),
+            torch.get_num_threads(),
+        )  # fmt: skip
+        if rc != 0:
+            raise RuntimeError(f"native SO(3) rollout returned {rc}")
+        return out
+
+
+def for_model(model, like: torch.Tensor) -> NativeSO3:
+    """`model`'s NativeSO3, kept on the model while its step, parameters and buffers are unchanged
+    (`solvers.native_build.kept_on_model`)."""
+    return native_build.kept_on_model(model, like, "_native_so3", NativeSO3)
+
+
+@torch.no_grad()
+def rollout(model, g0: Pose, g1: Pose, steps: int, opts: SolverOptions, progress=None) -> Rollout:
+    """`rollout_implicit(model, ...)` in native code (`applies(model, g0)` must hold)."""
+    t0 = time.perf_counter()
+    N = g0.R.shape[0]
+    like = g0.R
+    engine = for_model(model, like)
+    hist = like.new_zeros(N, HISTORY, 9)
+    hist[:, 0] = model.G.increment(g0, g1).R.reshape(N, 9)
+    hist_len = like.new_ones(N, dtype=torch.int64)
+    state = {"R": g1.R.reshape(N, 9).contiguous().clone(), "hist": hist, "hist_len": hist_len}
+    chunks, k = [], 1
+    per_call = max(1, CHUNK_ROW_STEPS // max(N, 1))
+    while k < steps:
+        count = min(per_call, steps - k)
+        chunks.append(engine.run(state, count, opts))
+        if progress is not None:
+            for j in range(k, k + count):
+                progress(j)
+        k += count
+    if chunks:
+        cat = {key: torch.cat([c[key] for c in chunks], 1) for key in chunks[0]}
+    else:
+        empty = like.new_zeros(N, 0)
+        cat = {
+            "R": like.new_zeros(N, 0, 3, 3),
+            "converged": empty.bool(),
+            "iterations": empty.long(),
+            "residual_norm": empty,
+        }
+    R = torch.cat((g0.R[:, None], g1.R[:, None], cat["R"][:, :, None]), 1)  # (N, steps + 1, 1, 3, 3)
+    return Rollout(
+        Pose(R, g0.p.new_zeros(N, R.shape[1], 0, 3)),
+        cat["converged"].bool(),
+        cat["iterations"],
+        cat["residual_norm"],
+        time.perf_counter() - t0,
+    )

@@ -1,0 +1,243 @@
+"""`models.liedflnn.engines.native`: a single SO(3) body's rollout in C++ takes the same Newton steps as the row
+layout and the reference path (flags, iteration counts, poses to the Newton tolerance; to rounding at a tight
+tolerance), on every potential it serves (MLP with GELU or tanh, declared and learned gravity, their sum, none)
+and in the branches of its Newton loop (backtracking, steps that do not converge, an exactly singular
+Jacobian, a non-finite start), and is taken only where it serves and pays."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from test_fused_columns import PHYS, H, assert_same_steps, model_named, start
+
+from liedfl_cli.lie import SE3, SO3, Pose
+from liedfl_cli.models.liedflnn.engines import choose
+from liedfl_cli.models.liedflnn.engines import native as fused_native
+from liedfl_cli.models.liedflnn.model import LieDFLNN
+from liedfl_cli.models.true_scheme import physics_model
+from liedfl_cli.solvers import compile as compile_cache
+from liedfl_cli.solvers.execution import ExecutionPlan
+from liedfl_cli.solvers.options import SolverOptions
+from liedfl_cli.solvers.rollout import rollout_implicit
+
+needs_compiler = pytest.mark.skipif(compile_cache.cxx() is None, reason="no C++ compiler on this machine")
+pytestmark = needs_compiler
+SERVED = ["mlp_rayleigh", "mlp_no_force", "free_rayleigh", "gravity_and_mlp", "true_scheme", "tanh_mlp", "gravity"]
+
+
+@pytest.fixture(autouse=True)
+def _cache(tmp_path_factory, monkeypatch):
+    """Every test builds into (or reads) one cache folder of this session, not the user's; one thread."""
+    monkeypatch.setenv("LIEDFL_NATIVE_CACHE", str(tmp_path_factory.getbasetemp() / "native_cache"))
+    torch.set_num_threads(1)
+
+
+def served(name: str) -> LieDFLNN:
+    if name == "tanh_mlp":
+        model = LieDFLNN(SO3, H, init_jitter=0.3, seed=2, potential="mlp", forces=["rayleigh"], mlp_width=6)
+        model.potential.net[1] = torch.nn.Tanh()
+        return model.requires_grad_(False)
+    if name == "gravity":  # learned uniform gravity alone, with a moment that matters
+        model = LieDFLNN(SO3, H, init_jitter=0.3, seed=3, potential="uniform_gravity", forces=["rayleigh"])
+        with torch.no_grad():
+            model.potential.moment.copy_(torch.tensor([[0.2, -0.4, 0.7]], dtype=torch.float64))
+        return model.requires_grad_(False)
+    return model_named(name)
+
+
+def three_ways(model, g0, g1, steps, opts=None):
+    """(native rollout, row-layout fused rollout, reference-path rollout)."""
+    opts = opts or SolverOptions()
+    with torch.no_grad():
+        assert fused_native.applies(model, g0)
+        assert choose.choose_rollout_engine(model, g0, steps) is choose.NATIVE
+        nat = model.rollout(g0, g1, steps, opts)
+        rows = rollout_implicit(model, g0, g1, steps, opts)
+        ref = model.with_path("reference").rollout(g0, g1, steps, opts)
+    return nat, rows, ref
+
+
+@pytest.mark.parametrize("name", SERVED)
+@pytest.mark.parametrize("n", [1, 5, 40])
+def test_the_native_rollout_takes_the_same_steps_as_the_row_layout_and_the_reference(name, n):
+    model = served(name)
+    g0, g1 = start(n, seed=n)
+    nat, rows, ref = three_ways(model, g0, g1, 25)
+    assert_same_steps(rows, nat)
+    assert_same_steps(ref, nat)
+    assert torch.equal(nat.pose.R[:, 0], g0.R) and torch.equal(nat.pose.R[:, 1], g1.R)
+    assert float(nat.residual_norm.max()) < 1e-8
+    torch.testing.assert_close(nat.residual_norm, rows.residual_norm, rtol=0, atol=1e-10)
+
+
+@pytest.mark.parametrize("name", ["mlp_rayleigh", "gravity_and_mlp", "true_scheme"])
+def test_at_a_tight_tolerance_the_poses_agree_to_rounding(name):
+    """Newton to 1e-12: the native poses are the row layout's to rounding after 60 steps (what the looser
+    tolerance of the test above cannot tell from a slightly wrong covector or warm start)."""
+    model = served(name)
+    g0, g1 = start(6, seed=4)
+    nat, rows, _ = three_ways(model, g0, g1, 60, SolverOptions(tol=1e-12))
+    assert torch.equal(nat.converged, rows.converged)
+    assert float((nat.pose.R - rows.pose.R).abs().max()) < 1e-11
+
+
+def test_steps_without_decrease_backtrack_as_the_row_layout():
+    """Huge rotations per step: full steps without decrease, halved as the row layout's careful iterations
+    halve them: the same flags, counts and poses."""
+    model = physics_model(SO3, H, {**PHYS, "g": 0.0})
+    g0, g1 = start(40, scale=8.0, seed=1)
+    nat, rows, _ = three_ways(model, g0, g1, 12)
+    assert rows.n_failed == 0
+    assert int(rows.iterations.max()) >= 4  # the case still exercises the careful iterations
+    assert_same_steps(rows, nat)
+
+
+@pytest.mark.parametrize("opts", [SolverOptions(tol=1e-30, max_iter=1), SolverOptions(tol=1e-13, max_iter=3)])
+def test_non_converged_steps_are_flagged_alike(opts):
+    model = model_named("mlp_rayleigh")
+    g0, g1 = start(3, scale=4.0)
+    nat, rows, ref = three_ways(model, g0, g1, 15, opts)
+    assert torch.equal(rows.converged, nat.converged) and torch.equal(ref.converged, nat.converged)
+    assert torch.equal(rows.iterations, nat.iterations)
+    if opts.max_iter == 1:
+        assert nat.n_failed == 3 * 14
+
+
+@pytest.mark.parametrize("steps", [0, 1, 2])
+def test_short_rollouts_have_the_row_layouts_shapes(steps):
+    model = model_named("free_rayleigh")
+    g0, g1 = start(2)
+    nat, rows, _ = three_ways(model, g0, g1, steps)
+    assert_same_steps(rows, nat)
+    assert nat.residual_norm.shape == rows.residual_norm.shape
+    assert nat.iterations.dtype == rows.iterations.dtype and nat.converged.dtype == torch.bool
+
+
+def test_long_rollout_stays_on_so3():
+    model = model_named("mlp_rayleigh")
+    g0, g1 = start(1, seed=5)
+    with torch.no_grad():
+        nat = model.rollout(g0, g1, 1000)
+        rows = rollout_implicit(model, g0, g1, 1000, SolverOptions())
+    R = nat.pose.R
+    assert float((R.transpose(-1, -2) @ R - torch.eye(3, dtype=R.dtype)).abs().max()) < 1e-12
+    assert torch.equal(rows.converged, nat.converged)
+    assert float((rows.pose.R - nat.pose.R).abs().max()) < 1e-9  # rounding, grown over 1,000 steps
+
+
+def test_progress_is_called_once_per_step_across_chunks(monkeypatch):
+    monkeypatch.setattr(fused_native, "CHUNK_ROW_STEPS", 6)  # 2 steps per call for 3 trajectories
+    seen: list[int] = []
+    g0, g1 = start(3)
+    model = model_named("mlp_rayleigh")
+    with torch.no_grad():
+        chunked = model.rollout(g0, g1, 8, progress=seen.append)
+        monkeypatch.setattr(fused_native, "CHUNK_ROW_STEPS", 10**6)
+        whole = model.rollout(g0, g1, 8)
+    assert seen == [1, 2, 3, 4, 5, 6, 7]
+    assert torch.equal(chunked.pose.R, whole.pose.R) and torch.equal(chunked.iterations, whole.iterations)
+
+
+def test_two_threads_give_the_same_bits():
+    model = model_named("mlp_rayleigh")
+    g0, g1 = start(64, seed=7)
+    with torch.no_grad():
+        one = model.rollout(g0, g1, 20)
+        torch.set_num_threads(2)
+        two = model.rollout(g0, g1, 20)
+    assert torch.equal(one.pose.R, two.pose.R) and torch.equal(one.iterations, two.iterations)
+
+
+def test_a_non_finite_start_fails_its_row_alone():
+    model = model_named("mlp_rayleigh")
+    g0, g1 = start(3, seed=2)
+    bad = g1.R.clone()
+    bad[1, 0, 0, 0] = float("nan")
+    g1b = Pose(bad, g1.p)
+    with torch.no_grad():
+        nat = model.rollout(g0, g1b, 6)
+        good = model.rollout(Pose(g0.R[[0, 2]], g0.p[[0, 2]]), Pose(g1.R[[0, 2]], g1.p[[0, 2]]), 6)
+    assert not bool(nat.converged[1].any())
+    assert torch.equal(nat.pose.R[[0, 2]], good.pose.R)
+
+
+def test_an_exactly_singular_jacobian_takes_no_step_and_fails():
+    """The documented difference from the reference (which takes a least-squares step): a zero Jacobian ends
+    every iteration without a step, and every step is flagged, with its iterations used up."""
+    model = model_named("mlp_rayleigh")
+    g0, g1 = start(2)
+    engine = fused_native.NativeSO3(model, g0.R)
+    engine.JT.zero_()
+    hist = torch.zeros(2, 3, 9, dtype=torch.float64)
+    hist[:, 0] = SO3.increment(g0, g1).R.reshape(2, 9)
+    state = {"R": g1.R.reshape(2, 9).clone(), "hist": hist, "hist_len": torch.ones(2, dtype=torch.int64)}
+    out = engine.run(state, 3, SolverOptions(max_iter=4))
+    assert not bool(out["converged"].any())
+    assert bool((out["iterations"] == 4).all())
+    assert bool(torch.isfinite(out["R"]).all())
+
+
+def test_the_constants_follow_the_parameters():
+    """The native constants are kept on the model between rollouts and rebuilt after an in-place change (an
+    edit through `.data` too): the rollout after the change is the row layout's with the new potential."""
+    model = model_named("mlp_rayleigh")
+    g0, g1 = start(2, seed=3)
+    with torch.no_grad():
+        model.rollout(g0, g1, 5)
+        first = model.__dict__["_native_so3"][1]
+        model.rollout(g0, g1, 5)
+        assert model.__dict__["_native_so3"][1] is first
+        model.potential.net[0].weight.data.mul_(1.5)
+        nat = model.rollout(g0, g1, 12)
+        rows = rollout_implicit(model, g0, g1, 12, SolverOptions())
+    assert model.__dict__["_native_so3"][1] is not first
+    assert_same_steps(rows, nat)
+
+
+def test_which_rollouts_take_the_native_step():
+    g1_, _ = start(1)
+    mlp = model_named("mlp_rayleigh")  # 200 weights
+    with torch.no_grad():
+        assert fused_native.applies(mlp, g1_) and fused_native.applies(mlp, start(1000)[0])
+        assert not fused_native.applies(mlp, start(3000)[0])  # MLP_ROWS on one thread: the columns
+        assert fused_native.applies(model_named("free_rayleigh"), start(20000)[0])  # no MLP: any batch
+        big = LieDFLNN(SO3, H, potential="mlp", forces=["rayleigh"], mlp_width=64, mlp_depth=3).requires_grad_(False)
+        assert fused_native.applies(big, start(100)[0]) and not fused_native.applies(big, start(400)[0])
+        silu = LieDFLNN(SO3, H, potential="mlp", forces=["rayleigh"], mlp_width=4)
+        silu.potential.net[1] = torch.nn.SiLU()
+        assert not fused_native.applies(silu, g1_)
+        assert not fused_native.applies(mlp.with_path("reference"), g1_)
+        assert not fused_native.applies(mlp, Pose(g1_.R.float(), g1_.p.float()))
+        eager = model_named("mlp_rayleigh")
+        eager.set_plan(ExecutionPlan(compile="false"))
+        assert not fused_native.applies(eager, g1_)  # runtime.compile=false: eager torch everywhere
+        control = LieDFLNN(SO3, H, potential="mlp", forces={"control": {"width": 4}}, mlp_width=4)
+        assert not fused_native.applies(control, g1_)
+        se3 = LieDFLNN(SE3, H, potential="none", forces=["rayleigh"])
+        assert not fused_native.applies(se3, Pose(g1_.R, torch.zeros(1, 1, 3, dtype=torch.float64)))
+    assert fused_native.applies(mlp, g1_)  # with grad mode on too: no rollout engine records a graph
+
+
+def test_a_compiled_plan_still_takes_the_native_step(monkeypatch):
+    """Native code is faster than the compiled row layout at every size: `compile: true` takes it too."""
+    monkeypatch.setattr(ExecutionPlan, "wants_compile", lambda self, kind, work=None: True)
+    g0, _ = start(1)
+    with torch.no_grad():
+        assert choose.choose_rollout_engine(model_named("free_rayleigh"), g0, 4) is choose.NATIVE
+
+
+def test_without_a_compiler_the_torch_engines_serve(monkeypatch, capsys):
+    monkeypatch.setattr(compile_cache, "cxx", lambda: None)
+    monkeypatch.setattr(compile_cache, "_said", set())
+    fused_native.library.cache_clear()
+    try:
+        model = model_named("mlp_rayleigh")
+        g0, g1 = start(2)
+        with torch.no_grad():
+            assert not fused_native.applies(model, g0)
+            assert choose.choose_rollout_engine(model, g0, 4).name == "scalar"
+            ro = model.rollout(g0, g1, 4)
+        assert "no C++ compiler" in capsys.readouterr().err
+        assert bool(ro.converged.all())
+    finally:
+        fused_native.library.cache_clear()
