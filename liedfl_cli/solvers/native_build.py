@@ -74,10 +74,11 @@ def build(source: Path, cxx: str, folder: Path, what: str) -> Path | None:
     return None
 
 
-def load(source: Path, symbol: str, argtypes: list, what: str) -> ctypes.CDLL | None:
-    """`source` built (`build`) and loaded, its function `symbol` declared with `argtypes` (a call with other
-    arguments raises instead of reaching the C++) and an int result; None without a compiler or when the
-    build fails (said once on stderr). Callers keep the result (an lru_cache)."""
+def load(source: Path, argtypes: dict[str, list], what: str) -> ctypes.CDLL | None:
+    """`source` built (`build`) and loaded, each of its functions in `argtypes` (name -> ctypes argument types)
+    declared with its types (a call with other arguments raises instead of reaching the C++) and an int
+    result; None without a compiler or when the build fails (said once on stderr). Callers keep the result
+    (an lru_cache)."""
     cxx = compile_cache.cxx()
     if cxx is None:
         compile_cache.say_once("runtime.compile: no C++ compiler found (g++/c++/clang++), running the fused paths")
@@ -86,9 +87,10 @@ def load(source: Path, symbol: str, argtypes: list, what: str) -> ctypes.CDLL | 
     if path is None:
         return None
     lib = ctypes.CDLL(str(path))
-    fn = getattr(lib, symbol)
-    fn.restype = ctypes.c_int
-    fn.argtypes = argtypes
+    for symbol, types in argtypes.items():
+        fn = getattr(lib, symbol)
+        fn.restype = ctypes.c_int
+        fn.argtypes = types
     return lib
 
 

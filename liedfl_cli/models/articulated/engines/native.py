@@ -71,7 +71,7 @@ def build(cxx: str, folder: Path) -> Path | None:
 def library() -> ctypes.CDLL | None:
     """The compiled step, built on first use (module docstring), or None without a compiler or when
     the build fails (said once on stderr): the fused engine then serves."""
-    return native_build.load(SOURCE, "liedfl_articulated_rollout", ARGTYPES, "the native articulated step")
+    return native_build.load(SOURCE, {"liedfl_articulated_rollout": ARGTYPES}, "the native articulated step")
 
 
 def _ptr(t: torch.Tensor) -> ctypes.c_void_p:

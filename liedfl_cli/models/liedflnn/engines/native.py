@@ -36,6 +36,7 @@ from torch import nn
 
 from ....lie import Pose
 from ....lie.batched import HISTORY
+from ....mechanics.forces import RayleighForce
 from ....mechanics.potentials import GravityPotential, MLPPotential, SumPotential, UniformGravityPotential
 from ....solvers import native_build, newton
 from ....solvers.options import SolverOptions
@@ -44,11 +45,17 @@ from ... import mlp_derivatives
 from . import columns as fused_columns
 from .rollout import rollout_maps
 
-SOURCE = Path(__file__).with_name("native_so3.cpp")
+SOURCE = Path(__file__).with_name("native_body.cpp")
 _I, _D, _P = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
-ARGTYPES = [_I, _I, _P, _P, _P, _I, _P, _P, _P, _P, _P, _P, _I, _P, _P, _D, _I, _I, _P, _P, _P, _P, _P, _P, _P, _I]
-"""The C signature of `liedfl_so3_rollout` (native_so3.cpp): N and count, the linear maps, the MLP potential's
-layers, the gravity terms, the step tolerance, max_iter and max_halvings, the state and outputs, threads."""
+_POTENTIAL = [_I, _P, _P, _P, _P, _P, _P, _I, _P, _P, _P]  # `_NativePotential.args`
+_DIAGNOSTICS = [_P, _P, _P, _I]  # converged, iterations, residual norm, threads
+ARGTYPES = {  # ... the pose(s), hist, hist_len, the output pose(s), _DIAGNOSTICS
+    "liedfl_so3_rollout": [_I, _I, _P, _P, _P, *_POTENTIAL, _D, _I, _I, _P, _P, _P, _P, *_DIAGNOSTICS],
+    "liedfl_se3_rollout": [_I, _I, _P, _P, _P, _P, _D, _I, _P, _D, *_POTENTIAL, _D, _I, _I]
+    + [_P, _P, _P, _P, _P, _P, *_DIAGNOSTICS],
+}
+"""The C signatures (native_body.cpp): N and count, the body's maps, the potential, the tolerance, max_iter and
+max_halvings, the state and outputs, threads."""
 ACTIVATIONS = {"gelu": 0, "tanh": 1}
 MLP_ROWS = 2000
 MLP_WEIGHTS = 200
@@ -92,7 +99,7 @@ def applies(model, g0: Pose) -> bool:
     """Whether `model`'s rollout from g0 takes this path (module docstring); builds the native step on the
     first call that needs it."""
     return (
-        fused_columns.single_linear_so3(model, g0)
+        (fused_columns.single_linear_so3(model, g0) or _single_se3(model, g0))
         and g0.R.dtype.is_floating_point
         and torch.finfo(g0.R.dtype).bits == 64
         and g0.R.device.type == "cpu"
@@ -102,13 +109,26 @@ def applies(model, g0: Pose) -> bool:
     )
 
 
+def _single_se3(model, g0: Pose) -> bool:
+    """A LieDFLNN on the fused path of one SE(3) body with no force or only constant Rayleigh damping, poses
+    (T, 1, 3, 3) / (T, 1, 3)."""
+    G = model.G
+    return (
+        model._fused()
+        and G.n_bodies == 1
+        and G.n_se3 == 1
+        and g0.R.dim() == 4
+        and all(isinstance(f, RayleighForce) for f in model.forces)
+    )
+
+
 def _serves_batch(model, rows: int) -> bool:
     """Whether the potential is one the native step computes and `rows` trajectories are few enough for it
     (`MLP_ROWS`)."""
     terms = _potential_terms(model.potential)
     if terms is None:
         return False
-    if terms[0] is None:
+    if terms[0] is None or model.G.n_se3:  # (an SE(3) body's torch engine is the row layout: slower at any batch)
         return True
     weights = sum(lin.weight.numel() for lin, _ in terms[0])
     limit = MLP_ROWS * math.sqrt(MLP_WEIGHTS / weights) * torch.get_num_threads() ** 2
@@ -119,82 +139,145 @@ def _serves_batch(model, rows: int) -> bool:
 def library() -> ctypes.CDLL | None:
     """The compiled step, built on first use, or None without a compiler or when the build fails (said once
     on stderr): the torch engines then serve."""
-    return native_build.load(SOURCE, "liedfl_so3_rollout", ARGTYPES, "the native SO(3) step")
+    return native_build.load(SOURCE, ARGTYPES, "the native single-body step")
 
 
 def _ptr(t: torch.Tensor) -> ctypes.c_void_p:
     return ctypes.c_void_p(t.data_ptr())
 
 
+class _NativePotential:
+    """The potential's constants for the native step: the MLP's hidden layers (weights, the same transposed,
+    biases, activations; input widths[0] = the pose's 9 or 12 entries) and output weights times -h, and the
+    gravity terms -h dV = (a x (R^T f), m R^T f) (the potentials' `left_gradient`; m on SE(3) only)."""
+
+    def __init__(self, model, dt: torch.dtype):
+        terms = _potential_terms(model.potential)
+        assert terms is not None  # `applies`
+        layers, gravity = terms
+        h, i64 = float(model.h), torch.int64
+        zero = torch.zeros(1, dtype=dt)
+        hidden = layers[:-1] if layers else []
+        self.layers = len(hidden)
+        self.width = torch.tensor([9 + 3 * model.G.n_se3] + [lin.out_features for lin, _ in hidden], dtype=i64)
+        flat = lambda ts: torch.cat([t.detach().to(dt).reshape(-1) for t in ts]) if ts else zero
+        self.weights = flat([lin.weight for lin, _ in hidden])
+        self.weights_t = flat([lin.weight.T for lin, _ in hidden])
+        self.biases = flat([zero.new_zeros(lin.out_features) if lin.bias is None else lin.bias for lin, _ in hidden])
+        self.act = torch.tensor([ACTIVATIONS[_activation(act) or ""] for _, act in hidden] or [0], dtype=i64)
+        self.out = (-h * layers[-1][0].weight.detach().to(dt)[0]).contiguous() if layers else zero
+        a_, f_, m_ = [], [], []
+        for term in gravity:
+            if isinstance(term, GravityPotential):
+                mass = term.gravity * term.masses[0]
+                a, f = mass * term.rhos[0], torch.tensor([0.0, 0.0, 1.0], dtype=dt)
+            else:
+                a, f = term.first_moments()[0], term.field()
+                mass = term.mass()[0] if model.G.n_se3 else zero[0]
+            a_.append(-h * a.detach().to(dt))
+            f_.append(f.detach().to(dt))
+            m_.append(-h * torch.as_tensor(mass).detach().to(dt).reshape(()))
+        self.n_grav = len(a_)
+        self.grav_a = torch.stack(a_) if a_ else zero.new_zeros(1, 3)
+        self.grav_f = torch.stack(f_) if f_ else zero.new_zeros(1, 3)
+        self.grav_m = torch.stack(m_) if m_ else zero
+
+    def args(self) -> list:
+        """Its arguments of the C functions, from `layers` to `grav_m`."""
+        return [
+            self.layers, _ptr(self.width), _ptr(self.weights), _ptr(self.weights_t), _ptr(self.biases),
+            _ptr(self.act), _ptr(self.out), self.n_grav, _ptr(self.grav_a), _ptr(self.grav_f), _ptr(self.grav_m),
+        ]  # fmt: skip
+
+
+def _outputs(like: torch.Tensor, N: int, count: int, se3: bool) -> dict:
+    out = {
+        "R": like.new_empty(N, count, 3, 3),
+        "converged": like.new_empty(N, count, dtype=torch.uint8),
+        "iterations": like.new_empty(N, count, dtype=torch.int64),
+        "residual_norm": like.new_empty(N, count),
+    }
+    if se3:
+        out["p"] = like.new_empty(N, count, 3)
+    return out
+
+
+def _state_and_output_args(state: dict, out: dict) -> list:
+    poses = [_ptr(state["R"])] + ([_ptr(state["p"])] if "p" in out else [])
+    results = [_ptr(out["R"])] + ([_ptr(out["p"])] if "p" in out else [])
+    diagnostics = [_ptr(out["converged"]), _ptr(out["iterations"]), _ptr(out["residual_norm"])]
+    return [*poses, _ptr(state["hist"]), _ptr(state["hist_len"]), *results, *diagnostics, torch.get_num_threads()]
+
+
 class NativeSO3:
-    """The constants of one model's native rollout (its parameters read once, detached) and the call."""
+    """The constants of one SO(3) model's native rollout (its parameters read once, detached) and the call."""
+
+    se3 = False
 
     def __init__(self, model, like: torch.Tensor):
-        dt, i64 = like.dtype, torch.int64
+        dt = like.dtype
         maps = rollout_maps(model)
         assert maps.linear is not None  # `applies`: a linear residual
         # rows applied to W.flatten(): residual (3, 9), Jacobian (9, 9), constant part (3, 9)
         self.F, self.JT, self.C = (m.detach().to(dt).T.contiguous() for m in maps.linear)
-        terms = _potential_terms(model.potential)
-        assert terms is not None
-        layers, gravity = terms
-        h = float(model.h)
-        hidden = layers[:-1] if layers else []
-        self.layers = len(hidden)
-        widths = [9] + [lin.out_features for lin, _ in hidden]
-        self.width = torch.tensor(widths, dtype=i64)
-        flat = lambda ts: torch.cat([t.detach().to(dt).reshape(-1) for t in ts]) if ts else torch.zeros(1, dtype=dt)
-        self.weights = flat([lin.weight for lin, _ in hidden])
-        self.weights_t = flat([lin.weight.T for lin, _ in hidden])
-        self.biases = flat(
-            [lin.bias if lin.bias is not None else torch.zeros(lin.out_features, dtype=dt) for lin, _ in hidden]
-        )
-        self.act = torch.tensor([ACTIVATIONS[_activation(act) or ""] for _, act in hidden] or [0], dtype=i64)
-        self.out = (-h * layers[-1][0].weight.detach().to(dt)[0]).contiguous() if layers else torch.zeros(1, dtype=dt)
-        # gravity: -h dV = a x (R^T f) per term (the potentials' `left_gradient`)
-        pairs = []
-        for term in gravity:
-            if isinstance(term, GravityPotential):
-                a = term.gravity * term.masses[0] * term.rhos[0]
-                f = torch.tensor([0.0, 0.0, 1.0], dtype=dt)
-            else:
-                a, f = term.first_moments()[0], term.field()
-            pairs.append((-h * a.detach().to(dt), f.detach().to(dt)))
-        self.n_grav = len(pairs)
-        self.grav_a = torch.stack([a for a, _ in pairs]) if pairs else torch.zeros(1, 3, dtype=dt)
-        self.grav_f = torch.stack([f for _, f in pairs]) if pairs else torch.zeros(1, 3, dtype=dt)
+        self.potential = _NativePotential(model, dt)
 
     def run(self, state: dict, count: int, opts: SolverOptions) -> dict:
-        """`count` steps from `state` (updated in place; `start`) -> this chunk's rotations (N, count, 3, 3)
+        """`count` steps from `state` (updated in place; `rollout`) -> this chunk's rotations (N, count, 3, 3)
         and per-step diagnostics, with `opts`' tolerance, iterations and halvings."""
-        N = state["R"].shape[0]
-        dt, like = self.F.dtype, self.F
-        out = {
-            "R": like.new_empty(N, count, 3, 3),
-            "converged": like.new_empty(N, count, dtype=torch.uint8),
-            "iterations": like.new_empty(N, count, dtype=torch.int64),
-            "residual_norm": like.new_empty(N, count),
-        }
+        out = _outputs(self.F, state["R"].shape[0], count, se3=False)
         lib = library()  # (not kept on the engine: a model that holds it stays deep-copyable)
         assert lib is not None
-        step_tol = max(opts.tol, newton.ROUNDING_ULPS * torch.finfo(dt).eps)  # rotations: entries <= 1
+        step_tol = max(opts.tol, newton.ROUNDING_ULPS * torch.finfo(self.F.dtype).eps)  # rotations: entries <= 1
         rc = lib.liedfl_so3_rollout(
-            N, count, _ptr(self.F), _ptr(self.JT), _ptr(self.C), self.layers, _ptr(self.width),
-            _ptr(self.weights), _ptr(self.weights_t), _ptr(self.biases), _ptr(self.act), _ptr(self.out), self.n_grav,
-            _ptr(self.grav_a), _ptr(self.grav_f), step_tol, opts.max_iter, opts.max_halvings,
-            _ptr(state["R"]), _ptr(state["hist"]), _ptr(state["hist_len"]),
-            _ptr(out["R"]), _ptr(out["converged"]), _ptr(out["iterations"]), _ptr(out["residual_norm"]),
-            torch.get_num_threads(),
+            state["R"].shape[0], count, _ptr(self.F), _ptr(self.JT), _ptr(self.C), *self.potential.args(),
+            step_tol, opts.max_iter, opts.max_halvings, *_state_and_output_args(state, out),
         )  # fmt: skip
         if rc != 0:
             raise RuntimeError(f"native SO(3) rollout returned {rc}")
         return out
 
 
-def for_model(model, like: torch.Tensor) -> NativeSO3:
-    """`model`'s NativeSO3, kept on the model while its step, parameters and buffers are unchanged
+class NativeSE3:
+    """The constants of one SE(3) model's native rollout (its parameters read once, detached) and the call."""
+
+    se3 = True
+
+    def __init__(self, model, like: torch.Tensor):
+        dt = like.dtype
+        maps = rollout_maps(model)
+        assert maps.se3_block is not None
+        # rows applied to W.flatten(): kinetic d1 and d2 rotational parts (3, 9), the kinetic block (36, 9)
+        self.d1, self.d2 = (m[0].detach().to(dt).T.contiguous() for m in (maps.d1, maps.d2))
+        self.hess = maps.se3_block[0].detach().to(dt).T.contiguous()
+        P = maps.P
+        self.rho = P.rho[0].detach().to(dt).contiguous()
+        self.mass, self.h = float(P.mass[0]), float(model.h)
+        self.damped = P.D is not None
+        self.D = P.D.detach().to(dt).contiguous() if P.D is not None else self.rho.new_zeros(6, 6)
+        self.potential = _NativePotential(model, dt)
+
+    def run(self, state: dict, count: int, opts: SolverOptions) -> dict:
+        """As `NativeSO3.run`, with the positions (N, count, 3) too; the step tolerance is scaled by each
+        iterate's translation in the C++ (`solvers.newton.step_tolerance`)."""
+        out = _outputs(self.rho, state["R"].shape[0], count, se3=True)
+        lib = library()
+        assert lib is not None
+        rc = lib.liedfl_se3_rollout(
+            state["R"].shape[0], count, _ptr(self.d1), _ptr(self.d2), _ptr(self.hess), _ptr(self.rho), self.mass,
+            int(self.damped), _ptr(self.D), self.h, *self.potential.args(), opts.tol, opts.max_iter,
+            opts.max_halvings, *_state_and_output_args(state, out),
+        )  # fmt: skip
+        if rc != 0:
+            raise RuntimeError(f"native SE(3) rollout returned {rc}")
+        return out
+
+
+def for_model(model, like: torch.Tensor) -> NativeSO3 | NativeSE3:
+    """`model`'s native engine, kept on the model while its step, parameters and buffers are unchanged
     (`solvers.native_build.kept_on_model`)."""
-    return native_build.kept_on_model(model, like, "_native_so3", NativeSO3)
+    make = NativeSE3 if model.G.n_se3 else NativeSO3
+    return native_build.kept_on_model(model, like, "_native_body", make)
 
 
 @torch.no_grad()
@@ -204,10 +287,15 @@ def rollout(model, g0: Pose, g1: Pose, steps: int, opts: SolverOptions, progress
     N = g0.R.shape[0]
     like = g0.R
     engine = for_model(model, like)
-    hist = like.new_zeros(N, HISTORY, 9)
-    hist[:, 0] = model.G.increment(g0, g1).R.reshape(N, 9)
+    width = 12 if engine.se3 else 9  # an increment's entries: W, then z on SE(3)
+    inc = model.G.increment(g0, g1)
+    hist = like.new_zeros(N, HISTORY, width)
+    hist[:, 0, :9] = inc.R.reshape(N, 9)
     hist_len = like.new_ones(N, dtype=torch.int64)
     state = {"R": g1.R.reshape(N, 9).contiguous().clone(), "hist": hist, "hist_len": hist_len}
+    if engine.se3:
+        hist[:, 0, 9:] = inc.p.reshape(N, 3)
+        state["p"] = g1.p.reshape(N, 3).contiguous().clone()
     chunks, k = [], 1
     per_call = max(1, CHUNK_ROW_STEPS // max(N, 1))
     while k < steps:
@@ -217,21 +305,13 @@ def rollout(model, g0: Pose, g1: Pose, steps: int, opts: SolverOptions, progress
             for j in range(k, k + count):
                 progress(j)
         k += count
+    cat = _outputs(like, N, 0, engine.se3)
     if chunks:
         cat = {key: torch.cat([c[key] for c in chunks], 1) for key in chunks[0]}
-    else:
-        empty = like.new_zeros(N, 0)
-        cat = {
-            "R": like.new_zeros(N, 0, 3, 3),
-            "converged": empty.bool(),
-            "iterations": empty.long(),
-            "residual_norm": empty,
-        }
     R = torch.cat((g0.R[:, None], g1.R[:, None], cat["R"][:, :, None]), 1)  # (N, steps + 1, 1, 3, 3)
+    p = g0.p.new_zeros(N, R.shape[1], 0, 3)
+    if engine.se3:
+        p = torch.cat((g0.p[:, None], g1.p[:, None], cat["p"][:, :, None]), 1)  # (N, steps + 1, 1, 3)
     return Rollout(
-        Pose(R, g0.p.new_zeros(N, R.shape[1], 0, 3)),
-        cat["converged"].bool(),
-        cat["iterations"],
-        cat["residual_norm"],
-        time.perf_counter() - t0,
+        Pose(R, p), cat["converged"].bool(), cat["iterations"], cat["residual_norm"], time.perf_counter() - t0
     )

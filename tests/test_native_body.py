@@ -1,16 +1,16 @@
-"""`models.liedflnn.engines.native`: a single SO(3) body's rollout in C++ takes the same Newton steps as the row
-layout and the reference path (flags, iteration counts, poses to the Newton tolerance; to rounding at a tight
-tolerance), on every potential it serves (MLP with GELU or tanh, declared and learned gravity, their sum, none)
-and in the branches of its Newton loop (backtracking, steps that do not converge, an exactly singular
-Jacobian, a non-finite start), and is taken only where it serves and pays."""
+"""`models.liedflnn.engines.native`: a single rigid body's rollout in C++ (SO(3) and SE(3)) takes the same Newton
+steps as the row layout and the reference path (flags, iteration counts, poses to the Newton tolerance; to
+rounding at a tight tolerance), on every potential it serves (MLP with GELU or tanh, declared and learned
+gravity, their sum, none) and in the branches of its Newton loop (backtracking, steps that do not converge, an
+exactly singular Jacobian, a non-finite start), and is taken only where it serves and pays."""
 
 from __future__ import annotations
 
 import pytest
 import torch
-from test_fused_columns import PHYS, H, assert_same_steps, model_named, start
+from test_fused_columns import PHYS, TOL, H, assert_same_steps, model_named, start
 
-from liedfl_cli.lie import SE3, SO3, Pose
+from liedfl_cli.lie import SE3, SO3, Pose, ProductGroup, so3
 from liedfl_cli.models.liedflnn.engines import choose
 from liedfl_cli.models.liedflnn.engines import native as fused_native
 from liedfl_cli.models.liedflnn.model import LieDFLNN
@@ -23,6 +23,14 @@ from liedfl_cli.solvers.rollout import rollout_implicit
 needs_compiler = pytest.mark.skipif(compile_cache.cxx() is None, reason="no C++ compiler on this machine")
 pytestmark = needs_compiler
 SERVED = ["mlp_rayleigh", "mlp_no_force", "free_rayleigh", "gravity_and_mlp", "true_scheme", "tanh_mlp", "gravity"]
+SE3_PHYS = {"J": [1.521, 1.362, 1.211], "m": 0.5, "rho": [0.0, 0.5, 1.0], "g": 9.81, "D": [0.05] * 6}
+SE3_MODELS = {
+    "se3_free": dict(potential="none", forces=["rayleigh"]),
+    "se3_mlp": dict(potential="mlp", forces=["rayleigh"], mlp_width=10, mlp_depth=2),
+    "se3_gravity_and_mlp": dict(potential=["uniform_gravity", "mlp"], forces=["rayleigh"], mlp_width=8),
+    "se3_mlp_no_force": dict(potential="mlp", forces=[], mlp_width=8, mlp_depth=3),
+}
+SE3_SERVED = [*SE3_MODELS, "se3_true_scheme", "se3_tanh_mlp"]
 
 
 @pytest.fixture(autouse=True)
@@ -32,7 +40,30 @@ def _cache(tmp_path_factory, monkeypatch):
     torch.set_num_threads(1)
 
 
+def gap(a: torch.Tensor, b: torch.Tensor) -> float:
+    """max |a - b| (0 for empty tensors: the positions of SO(3) poses)."""
+    return float((a - b).abs().max()) if a.numel() else 0.0
+
+
+def se3_start(n: int, scale: float = 1.0, seed: int = 0) -> tuple[Pose, Pose]:
+    """n SE(3) starts: random attitudes and positions of order one, a twist of order `scale` per unit time."""
+    gen = torch.Generator().manual_seed(seed)
+    g0 = Pose(
+        so3.exp(torch.randn(n, 1, 3, generator=gen, dtype=torch.float64)),
+        torch.randn(n, 1, 3, generator=gen, dtype=torch.float64),
+    )
+    return g0, SE3.retract(g0, H * scale * torch.randn(n, 6, generator=gen, dtype=torch.float64))
+
+
 def served(name: str) -> LieDFLNN:
+    if name == "se3_true_scheme":
+        return physics_model(SE3, H, SE3_PHYS)
+    if name == "se3_tanh_mlp":
+        model = LieDFLNN(SE3, H, init_jitter=0.3, seed=2, potential="mlp", forces=["rayleigh"], mlp_width=6)
+        model.potential.net[1] = torch.nn.Tanh()
+        return model.requires_grad_(False)
+    if name in SE3_MODELS:
+        return LieDFLNN(SE3, H, init_jitter=0.3, seed=1, **SE3_MODELS[name]).requires_grad_(False)
     if name == "tanh_mlp":
         model = LieDFLNN(SO3, H, init_jitter=0.3, seed=2, potential="mlp", forces=["rayleigh"], mlp_width=6)
         model.potential.net[1] = torch.nn.Tanh()
@@ -43,6 +74,10 @@ def served(name: str) -> LieDFLNN:
             model.potential.moment.copy_(torch.tensor([[0.2, -0.4, 0.7]], dtype=torch.float64))
         return model.requires_grad_(False)
     return model_named(name)
+
+
+def starts(name: str, n: int, scale: float = 1.0, seed: int = 0) -> tuple[Pose, Pose]:
+    return se3_start(n, scale, seed) if name.startswith("se3") else start(n, scale=scale, seed=seed)
 
 
 def three_ways(model, g0, g1, steps, opts=None):
@@ -57,45 +92,57 @@ def three_ways(model, g0, g1, steps, opts=None):
     return nat, rows, ref
 
 
-@pytest.mark.parametrize("name", SERVED)
+@pytest.mark.parametrize("name", SERVED + SE3_SERVED)
 @pytest.mark.parametrize("n", [1, 5, 40])
 def test_the_native_rollout_takes_the_same_steps_as_the_row_layout_and_the_reference(name, n):
     model = served(name)
-    g0, g1 = start(n, seed=n)
+    g0, g1 = starts(name, n, seed=n)
     nat, rows, ref = three_ways(model, g0, g1, 25)
     assert_same_steps(rows, nat)
     assert_same_steps(ref, nat)
     assert torch.equal(nat.pose.R[:, 0], g0.R) and torch.equal(nat.pose.R[:, 1], g1.R)
+    assert torch.equal(nat.pose.p[:, :2], torch.stack((g0.p, g1.p), 1))
+    assert gap(nat.pose.p, rows.pose.p) <= TOL and gap(nat.pose.p, ref.pose.p) <= TOL
     assert float(nat.residual_norm.max()) < 1e-8
     torch.testing.assert_close(nat.residual_norm, rows.residual_norm, rtol=0, atol=1e-10)
 
 
-@pytest.mark.parametrize("name", ["mlp_rayleigh", "gravity_and_mlp", "true_scheme"])
+@pytest.mark.parametrize(
+    "name", ["mlp_rayleigh", "gravity_and_mlp", "true_scheme", "se3_mlp", "se3_gravity_and_mlp", "se3_true_scheme"]
+)
 def test_at_a_tight_tolerance_the_poses_agree_to_rounding(name):
     """Newton to 1e-12: the native poses are the row layout's to rounding after 60 steps (what the looser
-    tolerance of the test above cannot tell from a slightly wrong covector or warm start)."""
+    tolerance of the test above cannot tell from a slightly wrong covector, damping or warm start)."""
     model = served(name)
-    g0, g1 = start(6, seed=4)
+    g0, g1 = starts(name, 6, seed=4)
     nat, rows, _ = three_ways(model, g0, g1, 60, SolverOptions(tol=1e-12))
     assert torch.equal(nat.converged, rows.converged)
     assert float((nat.pose.R - rows.pose.R).abs().max()) < 1e-11
+    assert gap(nat.pose.p, rows.pose.p) < 1e-11
 
 
-def test_steps_without_decrease_backtrack_as_the_row_layout():
+@pytest.mark.parametrize("group", ["so3", "se3"])
+def test_steps_without_decrease_backtrack_as_the_row_layout(group):
     """Huge rotations per step: full steps without decrease, halved as the row layout's careful iterations
     halve them: the same flags, counts and poses."""
-    model = physics_model(SO3, H, {**PHYS, "g": 0.0})
-    g0, g1 = start(40, scale=8.0, seed=1)
+    if group == "so3":
+        model = physics_model(SO3, H, {**PHYS, "g": 0.0})
+        g0, g1 = start(40, scale=8.0, seed=1)
+    else:
+        model = physics_model(SE3, H, {**SE3_PHYS, "g": 0.0})
+        g0, g1 = se3_start(40, scale=8.0, seed=1)
     nat, rows, _ = three_ways(model, g0, g1, 12)
     assert rows.n_failed == 0
     assert int(rows.iterations.max()) >= 4  # the case still exercises the careful iterations
     assert_same_steps(rows, nat)
+    assert gap(nat.pose.p, rows.pose.p) <= TOL
 
 
+@pytest.mark.parametrize("name", ["mlp_rayleigh", "se3_mlp"])
 @pytest.mark.parametrize("opts", [SolverOptions(tol=1e-30, max_iter=1), SolverOptions(tol=1e-13, max_iter=3)])
-def test_non_converged_steps_are_flagged_alike(opts):
-    model = model_named("mlp_rayleigh")
-    g0, g1 = start(3, scale=4.0)
+def test_non_converged_steps_are_flagged_alike(name, opts):
+    model = served(name)
+    g0, g1 = starts(name, 3, scale=4.0)
     nat, rows, ref = three_ways(model, g0, g1, 15, opts)
     assert torch.equal(rows.converged, nat.converged) and torch.equal(ref.converged, nat.converged)
     assert torch.equal(rows.iterations, nat.iterations)
@@ -103,19 +150,21 @@ def test_non_converged_steps_are_flagged_alike(opts):
         assert nat.n_failed == 3 * 14
 
 
+@pytest.mark.parametrize("name", ["free_rayleigh", "se3_free"])
 @pytest.mark.parametrize("steps", [0, 1, 2])
-def test_short_rollouts_have_the_row_layouts_shapes(steps):
-    model = model_named("free_rayleigh")
-    g0, g1 = start(2)
+def test_short_rollouts_have_the_row_layouts_shapes(name, steps):
+    model = served(name)
+    g0, g1 = starts(name, 2)
     nat, rows, _ = three_ways(model, g0, g1, steps)
     assert_same_steps(rows, nat)
     assert nat.residual_norm.shape == rows.residual_norm.shape
     assert nat.iterations.dtype == rows.iterations.dtype and nat.converged.dtype == torch.bool
 
 
-def test_long_rollout_stays_on_so3():
-    model = model_named("mlp_rayleigh")
-    g0, g1 = start(1, seed=5)
+@pytest.mark.parametrize("name", ["mlp_rayleigh", "se3_gravity_and_mlp"])
+def test_long_rollout_stays_on_the_group(name):
+    model = served(name)
+    g0, g1 = starts(name, 1, seed=5)
     with torch.no_grad():
         nat = model.rollout(g0, g1, 1000)
         rows = rollout_implicit(model, g0, g1, 1000, SolverOptions())
@@ -123,6 +172,7 @@ def test_long_rollout_stays_on_so3():
     assert float((R.transpose(-1, -2) @ R - torch.eye(3, dtype=R.dtype)).abs().max()) < 1e-12
     assert torch.equal(rows.converged, nat.converged)
     assert float((rows.pose.R - nat.pose.R).abs().max()) < 1e-9  # rounding, grown over 1,000 steps
+    assert gap(rows.pose.p, nat.pose.p) < 1e-9 * max(1.0, gap(rows.pose.p, 0 * rows.pose.p))
 
 
 def test_progress_is_called_once_per_step_across_chunks(monkeypatch):
@@ -138,19 +188,22 @@ def test_progress_is_called_once_per_step_across_chunks(monkeypatch):
     assert torch.equal(chunked.pose.R, whole.pose.R) and torch.equal(chunked.iterations, whole.iterations)
 
 
-def test_two_threads_give_the_same_bits():
-    model = model_named("mlp_rayleigh")
-    g0, g1 = start(64, seed=7)
+@pytest.mark.parametrize("name", ["mlp_rayleigh", "se3_mlp"])
+def test_two_threads_give_the_same_bits(name):
+    model = served(name)
+    g0, g1 = starts(name, 64, seed=7)
     with torch.no_grad():
         one = model.rollout(g0, g1, 20)
         torch.set_num_threads(2)
         two = model.rollout(g0, g1, 20)
     assert torch.equal(one.pose.R, two.pose.R) and torch.equal(one.iterations, two.iterations)
+    assert torch.equal(one.pose.p, two.pose.p)
 
 
-def test_a_non_finite_start_fails_its_row_alone():
-    model = model_named("mlp_rayleigh")
-    g0, g1 = start(3, seed=2)
+@pytest.mark.parametrize("name", ["mlp_rayleigh", "se3_mlp"])
+def test_a_non_finite_start_fails_its_row_alone(name):
+    model = served(name)
+    g0, g1 = starts(name, 3, seed=2)
     bad = g1.R.clone()
     bad[1, 0, 0, 0] = float("nan")
     g1b = Pose(bad, g1.p)
@@ -184,13 +237,13 @@ def test_the_constants_follow_the_parameters():
     g0, g1 = start(2, seed=3)
     with torch.no_grad():
         model.rollout(g0, g1, 5)
-        first = model.__dict__["_native_so3"][1]
+        first = model.__dict__["_native_body"][1]
         model.rollout(g0, g1, 5)
-        assert model.__dict__["_native_so3"][1] is first
+        assert model.__dict__["_native_body"][1] is first
         model.potential.net[0].weight.data.mul_(1.5)
         nat = model.rollout(g0, g1, 12)
         rows = rollout_implicit(model, g0, g1, 12, SolverOptions())
-    assert model.__dict__["_native_so3"][1] is not first
+    assert model.__dict__["_native_body"][1] is not first
     assert_same_steps(rows, nat)
 
 
@@ -213,8 +266,12 @@ def test_which_rollouts_take_the_native_step():
         assert not fused_native.applies(eager, g1_)  # runtime.compile=false: eager torch everywhere
         control = LieDFLNN(SO3, H, potential="mlp", forces={"control": {"width": 4}}, mlp_width=4)
         assert not fused_native.applies(control, g1_)
-        se3 = LieDFLNN(SE3, H, potential="none", forces=["rayleigh"])
-        assert not fused_native.applies(se3, Pose(g1_.R, torch.zeros(1, 1, 3, dtype=torch.float64)))
+        se3 = LieDFLNN(SE3, H, potential="mlp", forces=["rayleigh"], mlp_width=64, mlp_depth=3)
+        assert fused_native.applies(se3, se3_start(20000)[0])  # SE(3): the torch engine is slower at any batch
+        se3_control = LieDFLNN(SE3, H, potential="none", forces={"control": {"width": 4}})
+        assert not fused_native.applies(se3_control, se3_start(1)[0])
+        pair = LieDFLNN(ProductGroup(1, 1), H, potential="none", forces=["rayleigh"])
+        assert not fused_native.applies(pair, Pose(se3_start(1)[0].R.expand(1, 2, 3, 3), se3_start(1)[0].p))
     assert fused_native.applies(mlp, g1_)  # with grad mode on too: no rollout engine records a graph
 
 
@@ -241,3 +298,26 @@ def test_without_a_compiler_the_torch_engines_serve(monkeypatch, capsys):
         assert bool(ro.converged.all())
     finally:
         fused_native.library.cache_clear()
+
+
+def test_the_benchmark_script_writes_its_record(tmp_path, monkeypatch):
+    """scripts/bench_native_so3.py on a tiny budget: one row per potential, the ratio its two timings give, and
+    whether the native step takes the batch as `applies` says."""
+    import importlib.util
+    import json
+    import sys
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "bench_native_so3.py"
+    spec = importlib.util.spec_from_file_location("bench_native_body", path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    out = tmp_path / "record.json"
+    monkeypatch.setattr(sys, "argv", ["bench_native_so3.py", "--json", str(out), "--threads", "1", "--batches", "3"])
+    module.main()
+    rows = json.loads(out.read_text())["rows"]
+    assert [r["potential"] for r in rows] == list(module.MLPS)
+    for r in rows:
+        assert r["native_applies"] and r["torch_engine"] in ("scalar", "rows")  # three trajectories
+        assert r["torch_over_native"] == pytest.approx(r["torch_us_per_step_traj"] / r["native_us_per_step_traj"])
