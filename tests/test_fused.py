@@ -421,9 +421,16 @@ def test_configure_runtime_from_the_train_config(tmp_path):
         torch.set_num_threads(before)
 
 
+@pytest.fixture
+def torch_rollouts(monkeypatch):
+    """The torch engines of a rollout, not the native step (which `compile: auto | true` would take: these
+    tests are about torch.compile; tests/test_native_body.py has the native step's)."""
+    monkeypatch.setattr(ExecutionPlan, "wants_native", lambda self: False)
+
+
 @pytest.mark.compile_auto
 @pytest.mark.parametrize("setting", ["false", "auto"])
-def test_compile_false_and_auto_roll_out_the_same(setting):
+def test_compile_false_and_auto_roll_out_the_same(setting, torch_rollouts):
     model = physics_model(SO3, 0.1, {**PHYS, "g": 0.0, "D": [0.05] * 3})
     g0, g1 = _start(SO3, 4, 0.1)
     model.set_plan(ExecutionPlan(compile="false"))
@@ -434,7 +441,7 @@ def test_compile_false_and_auto_roll_out_the_same(setting):
     torch.testing.assert_close(a.pose.R, b.pose.R, rtol=0, atol=0)
 
 
-def test_compile_without_a_compiler_falls_back_saying_so_once(monkeypatch, capsys):
+def test_compile_without_a_compiler_falls_back_saying_so_once(monkeypatch, capsys, torch_rollouts):
     monkeypatch.setattr(compile_cache, "compiler_available", lambda: False)
     monkeypatch.setattr(compile_cache, "_said", set())
     model = physics_model(SO3, 0.1, {**PHYS, "g": 0.0, "D": [0.05] * 3})
@@ -449,7 +456,7 @@ def test_compile_without_a_compiler_falls_back_saying_so_once(monkeypatch, capsy
     torch.testing.assert_close(a.pose.R, b.pose.R, rtol=0, atol=0)
 
 
-def test_a_failing_compilation_falls_back_to_eager(monkeypatch, capsys):
+def test_a_failing_compilation_falls_back_to_eager(monkeypatch, capsys, torch_rollouts):
     def broken(fn, **kwargs):
         def run(*args, **kw):
             raise RuntimeError("no toolchain")

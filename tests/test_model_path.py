@@ -91,8 +91,10 @@ def test_fused_and_reference_models_give_the_same_loss_and_rollout(name):
 
 
 def test_one_place_chooses_the_rollout_engine(monkeypatch):
-    """`engines/choose.py`: floats for a few trajectories of a linear single SO(3) body, columns for many,
-    rows for everything else, for the reference path and for a rollout the plan compiles."""
+    """`engines/choose.py`: the native step for a single SO(3) or SE(3) body where a compiler builds it and
+    the plan allows native code; under `compile: false` floats for a few trajectories of a linear single
+    SO(3) body, columns for many, rows for everything else, for the reference path and for a rollout the
+    plan compiles."""
     from test_fused_columns import model_named
     from test_fused_columns import start as so3_start
 
@@ -101,11 +103,19 @@ def test_one_place_chooses_the_rollout_engine(monkeypatch):
 
     body = model_named("free_rayleigh")
     few, many = so3_start(1)[0], so3_start(64)[0]
+    se3 = make("se3_mlp_rayleigh")
+    se3_few = _start(se3.G, 4, 0.1)[0]
+    native = "native" if compile_cache.cxx() is not None else None
+    assert choose_rollout_engine(body, few, 20).name == (native or "scalar")
+    assert choose_rollout_engine(body, many, 20).name == (native or "columns")
+    assert choose_rollout_engine(se3, se3_few, 20).name == (native or "rows")
+    assert choose_rollout_engine(body.with_path("reference"), many, 20).name == "rows"
+    for model in (body, se3):
+        model.set_plan(ExecutionPlan(compile="false"))  # eager torch everywhere
     assert choose_rollout_engine(body, few, 20).name == "scalar"
     assert choose_rollout_engine(body, many, 20).name == "columns"
-    assert choose_rollout_engine(body.with_path("reference"), many, 20).name == "rows"
-    se3 = make("se3_mlp_rayleigh")
-    assert choose_rollout_engine(se3, _start(se3.G, 4, 0.1)[0], 20).name == "rows"
+    assert choose_rollout_engine(se3, se3_few, 20).name == "rows"
+    monkeypatch.setattr(ExecutionPlan, "wants_native", lambda self: False)
     monkeypatch.setattr(compile_cache, "compiler_available", lambda: True)
     body.set_plan(ExecutionPlan(compile="true"))
     assert choose_rollout_engine(body, many, 20).name == "rows"  # the compiled step lives in rows

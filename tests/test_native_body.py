@@ -301,23 +301,23 @@ def test_without_a_compiler_the_torch_engines_serve(monkeypatch, capsys):
 
 
 def test_the_benchmark_script_writes_its_record(tmp_path, monkeypatch):
-    """scripts/bench_native_so3.py on a tiny budget: one row per potential, the ratio its two timings give, and
-    whether the native step takes the batch as `applies` says."""
+    """scripts/bench_native_body.py on a tiny budget: one row per group and potential, the ratio its two timings
+    give, and whether the native step takes the batch as `applies` says."""
     import importlib.util
     import json
     import sys
     from pathlib import Path
 
-    path = Path(__file__).resolve().parents[1] / "scripts" / "bench_native_so3.py"
+    path = Path(__file__).resolve().parents[1] / "scripts" / "bench_native_body.py"
     spec = importlib.util.spec_from_file_location("bench_native_body", path)
     assert spec is not None and spec.loader is not None
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     out = tmp_path / "record.json"
-    monkeypatch.setattr(sys, "argv", ["bench_native_so3.py", "--json", str(out), "--threads", "1", "--batches", "3"])
+    monkeypatch.setattr(sys, "argv", ["bench_native_body.py", "--json", str(out), "--threads", "1", "--batches", "3"])
     module.main()
     rows = json.loads(out.read_text())["rows"]
-    assert [r["potential"] for r in rows] == list(module.MLPS)
+    assert [(r["group"], r["potential"]) for r in rows] == [(g, p) for g in ("SO3", "SE3") for p in module.MLPS]
     for r in rows:
         assert r["native_applies"] and r["torch_engine"] in ("scalar", "rows")  # three trajectories
         assert r["torch_over_native"] == pytest.approx(r["torch_us_per_step_traj"] / r["native_us_per_step_traj"])
