@@ -21,19 +21,22 @@ Fewer kernels
 Numbers: equal to the reference path to rounding (tests/test_fused.py checks <= 1e-12 relative).
 
 Files (this module only re-exports them: the rest of the code imports `models.liedflnn.engines.core` alone)
-    fused_maps.py      small closed forms (exp coefficients, group exp/retract, 3x3 solves), the
+    maps.py            small closed forms (exp coefficients, group exp/retract, 3x3 solves), the
                        constants cached per dtype/device, the derived parameters (`Derived`,
                        `derive`; J_d and SPSD matrices with hand-written gradients), the kinetic
                        residual and mixed-Hessian maps, the potential's covector
-    fused_training.py  `IncrementSet` / `IncrementBatch`, the training residual, the regularity
-                       slogdet, the SO(3)-only loss with its hand-written gradient
-    fused_rollout.py   `RolloutMaps` / `RolloutState`, the Newton step `FusedStep` (residual,
+    training.py        `IncrementSet` / `IncrementBatch`, the training residual, the regularity
+                       slogdet, the SO(3)-only loss with its hand-written gradient (`gradient.py`)
+    rollout.py         `RolloutMaps` / `RolloutState`, the Newton step `FusedStep` (residual,
                        Jacobian, iteration), the rollout's problem and advance
-    fused_columns.py   the whole rollout of a single SO(3) body with at most constant Rayleigh
+    columns.py         the whole rollout of a single SO(3) body with at most constant Rayleigh
                        damping in column layout ((3, 3, T) rotations: 3x3 products as broadcast
-                       multiply-adds over rows of length T), `LieDFLNN.rollout` takes it
-    fused_scalar.py    the same rollout for one to six trajectories in Python floats (a batch-1
-                       step is torch's per-call cost, not arithmetic), `LieDFLNN.rollout` takes it
+                       multiply-adds over rows of length T)
+    scalar.py          the same rollout for one to six trajectories in Python floats (a batch-1
+                       step is torch's per-call cost, not arithmetic)
+    native.py          the rollout of a single SO(3) or SE(3) body (at most constant Rayleigh damping;
+                       an MLP and/or gravity potential) in C++ (`native_body.cpp`), built on first use
+    choose.py          which of them serves a training run or a rollout (`LieDFLNN.rollout` asks it)
 """
 
 from __future__ import annotations

@@ -1,23 +1,24 @@
-"""Fused hot paths of LieDFLNN, part 6 (see `models.liedflnn.engines.core`): the rollout of a single SO(3) body
-with a linear Newton residual (no force, or constant Rayleigh damping) in native code.
+"""Fused hot paths of LieDFLNN, part 6 (see `models.liedflnn.engines.core`): the rollout of a single SO(3) or SE(3)
+body (no force, or constant Rayleigh damping) in native code.
 
-The step of `engines.scalar` (and of `engines.columns`, its batched form) written in C++ (`native_so3.cpp`),
-one trajectory at a time, each with the reference Newton loop of `solvers.newton` (backtracking on ||r||_2,
-convergence on the full step's max norm, a failed step kept and flagged): no Python and no tensor operation
-per step, so at batch 1 a step is its arithmetic (~1 µs with a 10 x 2 MLP potential) where the Python
-floats of `engines.scalar` pay ~60 µs and the row layout ~1 ms. Built on first use (`solvers.native_build`,
-the articulated step's machinery) and kept per machine.
+The step of `engines.scalar` / `engines.columns` (SO(3)) and of the row layout's `FusedStep` (SE(3)) written in
+C++ (`native_body.cpp`), one trajectory at a time, each with the reference Newton loop of `solvers.newton`
+(backtracking on ||r||_2, convergence on the full step's max norm, a failed step kept and flagged): no Python
+and no tensor operation per step, so a step costs its arithmetic (~1.4 µs at batch 1 with a 10 x 2 MLP
+potential on SO(3), ~2.7 µs on SE(3)) where the Python floats of `engines.scalar` pay ~60 µs and the row
+layout 0.4-1.8 ms. Built on first use (`solvers.native_build`, the articulated step's machinery) and kept
+per machine.
 
-Serves (`applies`) the fused path of a LieDFLNN of one SO(3) body, no force or only constant Rayleigh
-damping, a potential that is none, an MLP of Linear layers with exact GELU or tanh activations, gravity
-(declared or learned, `GravityPotential` / `UniformGravityPotential`) or a sum of those with at most one
-MLP (with an MLP, batches up to the size where the column layout's batched products overtake it,
-`MLP_ROWS`); float64 poses on the CPU (a rollout records no gradient on any engine), a plan that allows native code
-(`ExecutionPlan.wants_native`: not under `runtime.compile=false`), and a C++ compiler that builds it.
-Otherwise the torch engines (`engines/choose.py`).
+Serves (`applies`) the fused path of a LieDFLNN of one SO(3) or SE(3) body, no force or only constant
+Rayleigh damping, a potential that is none, an MLP of Linear layers with exact GELU or tanh activations,
+gravity (declared or learned, `GravityPotential` / `UniformGravityPotential`) or a sum of those with at most
+one MLP (an SO(3) body with an MLP: batches up to the size where the column layout's batched products
+overtake it, `MLP_ROWS`); float64 poses on the CPU (a rollout records no gradient on any engine), a plan
+that allows native code (`ExecutionPlan.wants_native`: not under `runtime.compile=false`), and a C++
+compiler that builds it. Otherwise the torch engines (`engines/choose.py`).
 
-One difference from the other engines, in no converging step: an exactly singular 3x3 Jacobian takes no
-step (the step is flagged as failed) where the reference takes a least-squares step.
+One difference from the other engines, in no converging step: an exactly singular Jacobian takes no step
+(the step is flagged as failed) where the reference takes a least-squares step.
 
     applies(model, g0)                       whether a rollout takes this path
     rollout(model, g0, g1, steps, opts)      `solvers.rollout.rollout_implicit` for those models
@@ -60,12 +61,14 @@ ACTIVATIONS = {"gelu": 0, "tanh": 1}
 MLP_ROWS = 2000
 MLP_WEIGHTS = 200
 """With an MLP potential the native step computes the network for one trajectory at a time, where the column
-layout (`engines.columns`) multiplies whole batches at once: past some batch size the columns are faster. The
-native step serves up to MLP_ROWS x sqrt(MLP_WEIGHTS / weights) x threads^2 trajectories (measured, idle, one
-thread, native / columns in µs per trajectory-step: a 10 x 2 MLP of 200 weights 0.63 / 0.86 at batch 1,000 and
-0.66 / 0.61 at 2,000; 32 x 3 (2,368 weights) 1.93 / 6.16 at 100, 1.92 / 1.42 at 1,000; 64 x 3 (8,832) 3.82 /
-7.00 at 100, 3.80 / 2.27 at 1,000; two threads, 10 x 2: 0.35 / 0.35 at 8,000; docs/benchmarks.md). Without an
-MLP it serves every batch (0.22-0.27 against 0.30-0.59 up to 16,000 on one thread)."""
+layout of an SO(3) body (`engines.columns`) multiplies whole batches at once: past some batch size the columns
+are faster. The native step serves an SO(3) body up to MLP_ROWS x sqrt(MLP_WEIGHTS / weights) x threads
+trajectories: measured crossovers (idle, µs per trajectory-step, native / columns; docs/benchmarks.md "The
+native single-body step"): one thread, 10 x 2 (200 weights) 0.65 / 0.60 at 2,000, 32 x 3 (2,368) 1.83 / 5.93 at
+100 and 1.84 / 1.37 at 1,000, 64 x 3 (8,832) 3.87 / 6.90 at 100 and 3.85 / 2.38 at 1,000; two threads, 10 x 2
+0.34 / 0.36 at 8,000 and 0.34 / 0.32 at 16,000, 32 x 3 1.34 / 1.46 at 1,000 and 1.35 / 0.97 at 2,000. Without an
+MLP, and on SE(3) (whose torch engine is the row layout), it serves every batch (1.25-750x the torch engine
+from 1 to 16,000 trajectories)."""
 CHUNK_ROW_STEPS = 400_000
 """Trajectory-steps per call into the native code (~0.5 s): progress is reported and signals are handled
 between calls."""
@@ -131,7 +134,7 @@ def _serves_batch(model, rows: int) -> bool:
     if terms[0] is None or model.G.n_se3:  # (an SE(3) body's torch engine is the row layout: slower at any batch)
         return True
     weights = sum(lin.weight.numel() for lin, _ in terms[0])
-    limit = MLP_ROWS * math.sqrt(MLP_WEIGHTS / weights) * torch.get_num_threads() ** 2
+    limit = MLP_ROWS * math.sqrt(MLP_WEIGHTS / weights) * torch.get_num_threads()
     return rows <= limit
 
 
