@@ -1,8 +1,9 @@
-"""`models.liedflnn.engines.native`: a single rigid body's rollout in C++ (SO(3) and SE(3)) takes the same Newton
-steps as the row layout and the reference path (flags, iteration counts, poses to the Newton tolerance; to
-rounding at a tight tolerance), on every potential it serves (MLP with GELU or tanh, declared and learned
-gravity, their sum, none) and in the branches of its Newton loop (backtracking, steps that do not converge, an
-exactly singular Jacobian, a non-finite start), and is taken only where it serves and pays."""
+"""`models.liedflnn.engines.native`: the rollout of a single rigid body (SO(3), SE(3)) or a product of bodies
+(SE(3)^m x SO(3)^n) in C++ takes the same Newton steps as the row layout and the reference path (flags,
+iteration counts, poses to the Newton tolerance; to rounding at a tight tolerance), on every potential it
+serves (MLP with GELU or tanh, declared and learned gravity, their sum, none) and in the branches of its Newton
+loop (backtracking, steps that do not converge, an exactly singular Jacobian, a non-finite start), and is
+taken only where it serves and pays."""
 
 from __future__ import annotations
 
@@ -30,7 +31,13 @@ SE3_MODELS = {
     "se3_gravity_and_mlp": dict(potential=["uniform_gravity", "mlp"], forces=["rayleigh"], mlp_width=8),
     "se3_mlp_no_force": dict(potential="mlp", forces=[], mlp_width=8, mlp_depth=3),
 }
-SE3_SERVED = [*SE3_MODELS, "se3_true_scheme", "se3_tanh_mlp"]
+PRODUCTS = {  # (n_se3, n_so3, options): the two-body scene's group, rotations only, two free bodies, a chain's
+    "se3_so3_mlp_gravity": (1, 1, dict(potential=["mlp", "uniform_gravity"], forces=["rayleigh"], mlp_width=8)),
+    "so3_so3_mlp": (0, 2, dict(potential="mlp", forces=["rayleigh"], mlp_width=8, mlp_depth=2)),
+    "se3_se3_gravity": (2, 0, dict(potential="uniform_gravity", forces=["rayleigh"])),
+    "se3_so3x3_mlp": (1, 3, dict(potential="mlp", forces=[], mlp_width=6)),
+}
+SE3_SERVED = [*SE3_MODELS, "se3_true_scheme", "se3_tanh_mlp", *PRODUCTS]
 
 
 @pytest.fixture(autouse=True)
@@ -45,17 +52,25 @@ def gap(a: torch.Tensor, b: torch.Tensor) -> float:
     return float((a - b).abs().max()) if a.numel() else 0.0
 
 
-def se3_start(n: int, scale: float = 1.0, seed: int = 0) -> tuple[Pose, Pose]:
-    """n SE(3) starts: random attitudes and positions of order one, a twist of order `scale` per unit time."""
+def se3_start(n: int, scale: float = 1.0, seed: int = 0, G: ProductGroup = SE3) -> tuple[Pose, Pose]:
+    """n starts on G (default one SE(3) body): random attitudes and positions of order one, a twist of order
+    `scale` per unit time."""
     gen = torch.Generator().manual_seed(seed)
     g0 = Pose(
-        so3.exp(torch.randn(n, 1, 3, generator=gen, dtype=torch.float64)),
-        torch.randn(n, 1, 3, generator=gen, dtype=torch.float64),
+        so3.exp(torch.randn(n, G.n_bodies, 3, generator=gen, dtype=torch.float64)),
+        torch.randn(n, G.n_se3, 3, generator=gen, dtype=torch.float64),
     )
-    return g0, SE3.retract(g0, H * scale * torch.randn(n, 6, generator=gen, dtype=torch.float64))
+    return g0, G.retract(g0, H * scale * torch.randn(n, G.dim, generator=gen, dtype=torch.float64))
 
 
 def served(name: str) -> LieDFLNN:
+    if name in PRODUCTS:
+        n_se3, n_so3, options = PRODUCTS[name]
+        G = ProductGroup(n_se3, n_so3)
+        model = LieDFLNN(G, H, init_jitter=0.3, seed=4, **options).requires_grad_(False)
+        if model.mass is not None:  # bodies of different masses (gravity's translational part is per body)
+            model.mass.set_value(torch.linspace(0.7, 1.6, G.n_se3, dtype=torch.float64))
+        return model
     if name == "se3_true_scheme":
         return physics_model(SE3, H, SE3_PHYS)
     if name == "se3_tanh_mlp":
@@ -77,6 +92,8 @@ def served(name: str) -> LieDFLNN:
 
 
 def starts(name: str, n: int, scale: float = 1.0, seed: int = 0) -> tuple[Pose, Pose]:
+    if name in PRODUCTS:
+        return se3_start(n, scale, seed, ProductGroup(*PRODUCTS[name][:2]))
     return se3_start(n, scale, seed) if name.startswith("se3") else start(n, scale=scale, seed=seed)
 
 
@@ -108,7 +125,8 @@ def test_the_native_rollout_takes_the_same_steps_as_the_row_layout_and_the_refer
 
 
 @pytest.mark.parametrize(
-    "name", ["mlp_rayleigh", "gravity_and_mlp", "true_scheme", "se3_mlp", "se3_gravity_and_mlp", "se3_true_scheme"]
+    "name",
+    ["mlp_rayleigh", "gravity_and_mlp", "true_scheme", "se3_mlp", "se3_gravity_and_mlp", "se3_true_scheme", *PRODUCTS],
 )
 def test_at_a_tight_tolerance_the_poses_agree_to_rounding(name):
     """Newton to 1e-12: the native poses are the row layout's to rounding after 60 steps (what the looser
@@ -134,6 +152,22 @@ def test_steps_without_decrease_backtrack_as_the_row_layout(group):
     nat, rows, _ = three_ways(model, g0, g1, 12)
     assert rows.n_failed == 0
     assert int(rows.iterations.max()) >= 4  # the case still exercises the careful iterations
+    assert_same_steps(rows, nat)
+    assert gap(nat.pose.p, rows.pose.p) <= TOL
+
+
+@pytest.mark.parametrize("n_se3, n_so3", [(0, 1), (1, 0), (0, 2), (1, 1)])
+def test_stiff_damping_refuses_the_extrapolation_as_the_row_layout_does(n_se3, n_so3):
+    """D = 150 at h 0.1: the spin reverses every step and the extrapolated warm start is refused (its move
+    exceeds TRUST times the last increment's, summed over the bodies): the same iterations and poses as the
+    row layout."""
+    G = ProductGroup(n_se3, n_so3)
+    J = [[1.521, 1.362, 1.211], [0.9, 0.8, 0.6]][: G.n_bodies]
+    physics = {"J": J, "m": [0.5, 1.0][: G.n_bodies], "rho": [[0.0, 0.5, 1.0], [0.0, 0.0, -0.8]][: G.n_bodies]}
+    model = physics_model(G, H, {**physics, "g": 0.0, "D": [150.0] * G.dim})
+    g0, g1 = se3_start(3, 1.0, 2, G)
+    nat, rows, _ = three_ways(model, g0, g1, 20)
+    assert rows.n_failed == 0
     assert_same_steps(rows, nat)
     assert gap(nat.pose.p, rows.pose.p) <= TOL
 
@@ -270,8 +304,11 @@ def test_which_rollouts_take_the_native_step():
         assert fused_native.applies(se3, se3_start(20000)[0])  # SE(3): the torch engine is slower at any batch
         se3_control = LieDFLNN(SE3, H, potential="none", forces={"control": {"width": 4}})
         assert not fused_native.applies(se3_control, se3_start(1)[0])
-        pair = LieDFLNN(ProductGroup(1, 1), H, potential="none", forces=["rayleigh"])
-        assert not fused_native.applies(pair, Pose(se3_start(1)[0].R.expand(1, 2, 3, 3), se3_start(1)[0].p))
+        pair = LieDFLNN(ProductGroup(1, 1), H, potential="mlp", forces=["rayleigh"], mlp_width=64, mlp_depth=3)
+        assert fused_native.applies(pair, se3_start(20000, G=pair.G)[0])  # products: any batch
+        scene = {**SE3_PHYS, "D": [0.05] * 9, "interaction": {"kind": "spring", "mu": 1.0}}
+        two_body = physics_model(ProductGroup(1, 1), H, scene)
+        assert not fused_native.applies(two_body, se3_start(1, G=two_body.G)[0])  # an interaction potential
     assert fused_native.applies(mlp, g1_)  # with grad mode on too: no rollout engine records a graph
 
 

@@ -52,7 +52,7 @@ _POTENTIAL = [_I, _P, _P, _P, _P, _P, _P, _I, _P, _P, _P]  # `_NativePotential.a
 _DIAGNOSTICS = [_P, _P, _P, _I]  # converged, iterations, residual norm, threads
 ARGTYPES = {  # ... the pose(s), hist, hist_len, the output pose(s), _DIAGNOSTICS
     "liedfl_so3_rollout": [_I, _I, _P, _P, _P, *_POTENTIAL, _D, _I, _I, _P, _P, _P, _P, *_DIAGNOSTICS],
-    "liedfl_se3_rollout": [_I, _I, _P, _P, _P, _P, _D, _I, _P, _D, *_POTENTIAL, _D, _I, _I]
+    "liedfl_product_rollout": [_I, _I, _I, _I, _P, _P, _P, _P, _P, _P, _I, _P, _D, *_POTENTIAL, _D, _I, _I]
     + [_P, _P, _P, _P, _P, _P, *_DIAGNOSTICS],
 }
 """The C signatures (native_body.cpp): N and count, the body's maps, the potential, the tolerance, max_iter and
@@ -102,37 +102,31 @@ def applies(model, g0: Pose) -> bool:
     """Whether `model`'s rollout from g0 takes this path (module docstring); builds the native step on the
     first call that needs it."""
     return (
-        (fused_columns.single_linear_so3(model, g0) or _single_se3(model, g0))
+        (fused_columns.single_linear_so3(model, g0) or _product(model, g0))
         and g0.R.dtype.is_floating_point
         and torch.finfo(g0.R.dtype).bits == 64
         and g0.R.device.type == "cpu"
         and model.plan.wants_native()
-        and _serves_batch(model, g0.R.shape[0])
+        and _serves_batch(model, g0)
         and library() is not None
     )
 
 
-def _single_se3(model, g0: Pose) -> bool:
-    """A LieDFLNN on the fused path of one SE(3) body with no force or only constant Rayleigh damping, poses
-    (T, 1, 3, 3) / (T, 1, 3)."""
-    G = model.G
-    return (
-        model._fused()
-        and G.n_bodies == 1
-        and G.n_se3 == 1
-        and g0.R.dim() == 4
-        and all(isinstance(f, RayleighForce) for f in model.forces)
-    )
+def _product(model, g0: Pose) -> bool:
+    """A LieDFLNN on the fused path of any product of bodies (one SE(3) body, SE(3) x SO(3)^n, SO(3)^n, ...)
+    with no force or only constant Rayleigh damping, poses (T, B, 3, 3) / (T, m, 3)."""
+    return model._fused() and g0.R.dim() == 4 and all(isinstance(f, RayleighForce) for f in model.forces)
 
 
-def _serves_batch(model, rows: int) -> bool:
-    """Whether the potential is one the native step computes and `rows` trajectories are few enough for it
+def _serves_batch(model, g0: Pose) -> bool:
+    """Whether the potential is one the native step computes and g0's trajectories are few enough for it
     (`MLP_ROWS`)."""
     terms = _potential_terms(model.potential)
     if terms is None:
         return False
-    if terms[0] is None or model.G.n_se3:  # (an SE(3) body's torch engine is the row layout: slower at any batch)
-        return True
+    if terms[0] is None or not fused_columns.single_linear_so3(model, g0):
+        return True  # (without a column layout the torch engine is the row layout: slower at any batch)
+    rows = g0.R.shape[0]
     weights = sum(lin.weight.numel() for lin, _ in terms[0])
     limit = MLP_ROWS * math.sqrt(MLP_WEIGHTS / weights) * torch.get_num_threads()
     return rows <= limit
@@ -162,28 +156,31 @@ class _NativePotential:
         zero = torch.zeros(1, dtype=dt)
         hidden = layers[:-1] if layers else []
         self.layers = len(hidden)
-        self.width = torch.tensor([9 + 3 * model.G.n_se3] + [lin.out_features for lin, _ in hidden], dtype=i64)
+        inputs = 9 * model.G.n_bodies + 3 * model.G.n_se3  # the MLP reads flatten(g): rotations, then positions
+        self.width = torch.tensor([inputs] + [lin.out_features for lin, _ in hidden], dtype=i64)
         flat = lambda ts: torch.cat([t.detach().to(dt).reshape(-1) for t in ts]) if ts else zero
         self.weights = flat([lin.weight for lin, _ in hidden])
         self.weights_t = flat([lin.weight.T for lin, _ in hidden])
         self.biases = flat([zero.new_zeros(lin.out_features) if lin.bias is None else lin.bias for lin, _ in hidden])
         self.act = torch.tensor([ACTIVATIONS[_activation(act) or ""] for _, act in hidden] or [0], dtype=i64)
         self.out = (-h * layers[-1][0].weight.detach().to(dt)[0]).contiguous() if layers else zero
+        B, m = model.G.n_bodies, model.G.n_se3
         a_, f_, m_ = [], [], []
-        for term in gravity:
+        for term in gravity:  # per body b: a_b (first moment) and, on SE(3), m_b; along f
             if isinstance(term, GravityPotential):
-                mass = term.gravity * term.masses[0]
-                a, f = mass * term.rhos[0], torch.tensor([0.0, 0.0, 1.0], dtype=dt)
+                masses = term.gravity * term.masses
+                a, f = masses[:, None] * term.rhos, torch.tensor([0.0, 0.0, 1.0], dtype=dt)
             else:
-                a, f = term.first_moments()[0], term.field()
-                mass = term.mass()[0] if model.G.n_se3 else zero[0]
-            a_.append(-h * a.detach().to(dt))
+                masses = torch.cat((term.mass(), term.gravity.new_zeros(B - m))) if m else term.gravity.new_zeros(B)
+                a, f = term.first_moments(), term.field()
+            masses = torch.where(torch.arange(B) < m, masses, torch.zeros_like(masses))  # SO(3) bodies: no v part
+            a_.append(-h * a.detach().to(dt).reshape(B, 3))
             f_.append(f.detach().to(dt))
-            m_.append(-h * torch.as_tensor(mass).detach().to(dt).reshape(()))
+            m_.append(-h * masses.detach().to(dt).reshape(B))
         self.n_grav = len(a_)
-        self.grav_a = torch.stack(a_) if a_ else zero.new_zeros(1, 3)
-        self.grav_f = torch.stack(f_) if f_ else zero.new_zeros(1, 3)
-        self.grav_m = torch.stack(m_) if m_ else zero
+        self.grav_a = torch.stack(a_).contiguous() if a_ else zero.new_zeros(1, B, 3)
+        self.grav_f = torch.stack(f_).contiguous() if f_ else zero.new_zeros(1, 3)
+        self.grav_m = torch.stack(m_).contiguous() if m_ else zero.new_zeros(1, B)
 
     def args(self) -> list:
         """Its arguments of the C functions, from `layers` to `grav_m`."""
@@ -193,15 +190,17 @@ class _NativePotential:
         ]  # fmt: skip
 
 
-def _outputs(like: torch.Tensor, N: int, count: int, se3: bool) -> dict:
+def _outputs(like: torch.Tensor, N: int, count: int, B: int, m: int | None) -> dict:
+    """The native step's outputs for `count` steps of N trajectories of B bodies (m SE(3): positions; None: an
+    SO(3) body's step, no positions)."""
     out = {
-        "R": like.new_empty(N, count, 3, 3),
+        "R": like.new_empty(N, count, B, 3, 3),
         "converged": like.new_empty(N, count, dtype=torch.uint8),
         "iterations": like.new_empty(N, count, dtype=torch.int64),
         "residual_norm": like.new_empty(N, count),
     }
-    if se3:
-        out["p"] = like.new_empty(N, count, 3)
+    if m is not None:
+        out["p"] = like.new_empty(N, count, m, 3)
     return out
 
 
@@ -228,7 +227,7 @@ class NativeSO3:
     def run(self, state: dict, count: int, opts: SolverOptions) -> dict:
         """`count` steps from `state` (updated in place; `rollout`) -> this chunk's rotations (N, count, 3, 3)
         and per-step diagnostics, with `opts`' tolerance, iterations and halvings."""
-        out = _outputs(self.F, state["R"].shape[0], count, se3=False)
+        out = _outputs(self.F, state["R"].shape[0], count, 1, None)
         lib = library()  # (not kept on the engine: a model that holds it stays deep-copyable)
         assert lib is not None
         step_tol = max(opts.tol, newton.ROUNDING_ULPS * torch.finfo(self.F.dtype).eps)  # rotations: entries <= 1
@@ -241,45 +240,53 @@ class NativeSO3:
         return out
 
 
-class NativeSE3:
-    """The constants of one SE(3) model's native rollout (its parameters read once, detached) and the call."""
+class NativeProduct:
+    """The constants of the native rollout of a product of bodies SE(3)^m x SO(3)^(B-m) (one SE(3) body
+    included; its parameters read once, detached) and the call."""
 
-    se3 = True
+    se3 = True  # (poses with positions, possibly none)
 
     def __init__(self, model, like: torch.Tensor):
         dt = like.dtype
-        maps = rollout_maps(model)
-        assert maps.se3_block is not None
-        # rows applied to W.flatten(): kinetic d1 and d2 rotational parts (3, 9), the kinetic block (36, 9)
-        self.d1, self.d2 = (m[0].detach().to(dt).T.contiguous() for m in (maps.d1, maps.d2))
-        self.hess = maps.se3_block[0].detach().to(dt).T.contiguous()
+        G, maps = model.G, rollout_maps(model)
+        self.B, self.m = G.n_bodies, G.n_se3
+        # rows applied to W_b.flatten(): the kinetic d1 and d2 rotational parts (B, 3, 9), the rotational Hessian
+        # blocks (B, 9, 9), the SE(3) bodies' kinetic blocks (m, 36, 9)
+        maps_ = (maps.d1, maps.d2, maps.hess)
+        self.d1, self.d2, self.hess = (t.detach().to(dt).transpose(1, 2).contiguous() for t in maps_)
         P = maps.P
-        self.rho = P.rho[0].detach().to(dt).contiguous()
-        self.mass, self.h = float(P.mass[0]), float(model.h)
+        zero = self.d1.new_zeros(1)
+        block = maps.se3_block
+        self.se3_block = block.detach().to(dt).transpose(1, 2).contiguous() if block is not None else zero
+        self.rho = P.rho.detach().to(dt).contiguous() if self.m else zero
+        self.s = (P.mass.detach().to(dt) / float(model.h)).contiguous() if self.m else zero
+        self.h = float(model.h)
         self.damped = P.D is not None
-        self.D = P.D.detach().to(dt).contiguous() if P.D is not None else self.rho.new_zeros(6, 6)
+        self.D = P.D.detach().to(dt).contiguous() if P.D is not None else zero
         self.potential = _NativePotential(model, dt)
 
     def run(self, state: dict, count: int, opts: SolverOptions) -> dict:
-        """As `NativeSO3.run`, with the positions (N, count, 3) too; the step tolerance is scaled by each
-        iterate's translation in the C++ (`solvers.newton.step_tolerance`)."""
-        out = _outputs(self.rho, state["R"].shape[0], count, se3=True)
+        """`count` steps from `state` (updated in place; `rollout`) -> this chunk's rotations (N, count, B, 3, 3),
+        positions (N, count, m, 3) and per-step diagnostics; the step tolerance is scaled by each iterate's
+        translations in the C++ (`solvers.newton.step_tolerance`)."""
+        out = _outputs(self.d1, state["R"].shape[0], count, self.B, self.m)
         lib = library()
         assert lib is not None
-        rc = lib.liedfl_se3_rollout(
-            state["R"].shape[0], count, _ptr(self.d1), _ptr(self.d2), _ptr(self.hess), _ptr(self.rho), self.mass,
-            int(self.damped), _ptr(self.D), self.h, *self.potential.args(), opts.tol, opts.max_iter,
-            opts.max_halvings, *_state_and_output_args(state, out),
+        rc = lib.liedfl_product_rollout(
+            state["R"].shape[0], count, self.B, self.m, _ptr(self.d1), _ptr(self.d2), _ptr(self.hess),
+            _ptr(self.se3_block), _ptr(self.rho), _ptr(self.s), int(self.damped), _ptr(self.D), self.h,
+            *self.potential.args(), opts.tol, opts.max_iter, opts.max_halvings, *_state_and_output_args(state, out),
         )  # fmt: skip
         if rc != 0:
-            raise RuntimeError(f"native SE(3) rollout returned {rc}")
+            raise RuntimeError(f"native product rollout returned {rc}")
         return out
 
 
-def for_model(model, like: torch.Tensor) -> NativeSO3 | NativeSE3:
+def for_model(model, like: torch.Tensor) -> NativeSO3 | NativeProduct:
     """`model`'s native engine, kept on the model while its step, parameters and buffers are unchanged
     (`solvers.native_build.kept_on_model`)."""
-    make = NativeSE3 if model.G.n_se3 else NativeSO3
+    single = model.G.n_bodies == 1 and not model.G.n_se3  # (`applies`: then with a linear residual)
+    make = NativeSO3 if single else NativeProduct
     return native_build.kept_on_model(model, like, "_native_body", make)
 
 
@@ -290,15 +297,15 @@ def rollout(model, g0: Pose, g1: Pose, steps: int, opts: SolverOptions, progress
     N = g0.R.shape[0]
     like = g0.R
     engine = for_model(model, like)
-    width = 12 if engine.se3 else 9  # an increment's entries: W, then z on SE(3)
+    B, m = model.G.n_bodies, model.G.n_se3
     inc = model.G.increment(g0, g1)
-    hist = like.new_zeros(N, HISTORY, width)
-    hist[:, 0, :9] = inc.R.reshape(N, 9)
+    hist = like.new_zeros(N, HISTORY, 9 * B + 3 * m)  # increments: rotations, then the SE(3) translations
+    hist[:, 0, : 9 * B] = inc.R.reshape(N, 9 * B)
+    hist[:, 0, 9 * B :] = inc.p.reshape(N, 3 * m)
     hist_len = like.new_ones(N, dtype=torch.int64)
-    state = {"R": g1.R.reshape(N, 9).contiguous().clone(), "hist": hist, "hist_len": hist_len}
+    state = {"R": g1.R.reshape(N, 9 * B).contiguous().clone(), "hist": hist, "hist_len": hist_len}
     if engine.se3:
-        hist[:, 0, 9:] = inc.p.reshape(N, 3)
-        state["p"] = g1.p.reshape(N, 3).contiguous().clone()
+        state["p"] = g1.p.reshape(N, 3 * m).contiguous().clone()
     chunks, k = [], 1
     per_call = max(1, CHUNK_ROW_STEPS // max(N, 1))
     while k < steps:
@@ -308,13 +315,11 @@ def rollout(model, g0: Pose, g1: Pose, steps: int, opts: SolverOptions, progress
             for j in range(k, k + count):
                 progress(j)
         k += count
-    cat = _outputs(like, N, 0, engine.se3)
+    cat = _outputs(like, N, 0, B, m if engine.se3 else None)
     if chunks:
         cat = {key: torch.cat([c[key] for c in chunks], 1) for key in chunks[0]}
-    R = torch.cat((g0.R[:, None], g1.R[:, None], cat["R"][:, :, None]), 1)  # (N, steps + 1, 1, 3, 3)
-    p = g0.p.new_zeros(N, R.shape[1], 0, 3)
-    if engine.se3:
-        p = torch.cat((g0.p[:, None], g1.p[:, None], cat["p"][:, :, None]), 1)  # (N, steps + 1, 1, 3)
+    R = torch.cat((g0.R[:, None], g1.R[:, None], cat["R"]), 1)  # (N, steps + 1, B, 3, 3)
+    p = torch.cat((g0.p[:, None], g1.p[:, None], cat["p"]), 1) if engine.se3 else g0.p.new_zeros(N, R.shape[1], 0, 3)
     return Rollout(
         Pose(R, p), cat["converged"].bool(), cat["iterations"], cat["residual_norm"], time.perf_counter() - t0
     )

@@ -1,13 +1,14 @@
-// A single rigid body's implicit DEL step in C++, one trajectory at a time (engines/native.py builds and
-// loads it), on SO(3) (`liedfl_so3_rollout`) and on SE(3) (`liedfl_se3_rollout`).
+// A rigid body's or a product of bodies' implicit DEL step in C++, one trajectory at a time (engines/native.py
+// builds and loads it): one SO(3) body (`liedfl_so3_rollout`) and SE(3)^m x SO(3)^(B-m)
+// (`liedfl_product_rollout`, one SE(3) body included).
 //
 // SO(3): the step of `engines/scalar.py`, term by term: the residual const + F W.flatten() and its Jacobian
 // JT W.flatten() from the linear maps of `RolloutMaps.linear` (a body with no force or constant Rayleigh
 // damping has a residual linear in the increment W), the constant part C W_prev + the potential's covector
 // -h dV at g_k, the 3x3 solve from the adjugate, the retraction W exp(hat(delta)) in closed form.
-// SE(3): the fused row step of `engines/rollout.py` (`FusedStep` without per-iteration forces): the kinetic
+// Products: the fused row step of `engines/rollout.py` (`FusedStep` without per-iteration forces): the kinetic
 // d1 / d2 terms (rotational parts from their linear maps), constant Rayleigh damping on the velocity estimate,
-// the kinetic block of the Jacobian linear in W, a 6x6 LU solve, the retraction (W, z) exp(delta).
+// the kinetic blocks of the Jacobian linear in W, an LU solve, the retraction x exp(delta) body by body.
 // Both: the potential's covector from an MLP of the pose's entries (exact GELU or tanh layers) and uniform
 // gravity terms; the warm start from the last three increments (`lie.batched.extrapolate_increments`); one
 // Newton-Schulz step of the increment's rotation and g_{k+1} = g_k inc. The Newton loop is the reference loop
@@ -15,8 +16,8 @@
 // and flagged), with one difference: an exactly singular Jacobian takes no step (the row's iteration fails)
 // instead of a least-squares step.
 //
-// Row-major float64; a rotation is its 9 entries, an SE(3) pose or increment its 9 rotation entries then its
-// 3 translation entries.
+// Row-major float64; a rotation is its 9 entries, a product's pose or increment its bodies' rotation entries
+// then its SE(3) bodies' translations.
 #include <algorithm>
 #include <cfloat>
 #include <cmath>
@@ -42,8 +43,8 @@ struct Spec {
                                            // the output layer's weights times -h
     const int64_t *act;                    // per hidden layer: 0 GELU (exact), 1 tanh
     int n_grav;
-    const double *grav_a, *grav_f, *grav_m;  // (n_grav, 3), (n_grav, 3), (n_grav,): covector += (a x (R^T f),
-                                             // m R^T f) (the translational part on SE(3) only)
+    const double *grav_a, *grav_f, *grav_m;  // (n_grav, B, 3), (n_grav, 3), (n_grav, B): per body b the covector
+                                             // += (a_b x (R_b^T f), m_b R_b^T f) (the second part on SE(3) only)
     double step_tol;
     int max_iter, max_halvings;
 };
@@ -71,16 +72,18 @@ inline void apply(const double *M, int k, const double *x, double *y) {
 }
 
 // -h dV(g exp(eta))/d eta at 0 of the potential (`scalar._Potential.covector`, `mlp_derivatives.left_covector`
-// and the gravity terms' `left_gradient`), c (3) on SO(3) (p null), (6) on SE(3) (the MLP's input then (R, p))
-void covector(const Spec &s, const double *R, const double *p, std::vector<double> &a, std::vector<double> &z,
-              std::vector<double> &slopes, std::vector<double> &gr, double *c) {
-    const int dim = p ? 6 : 3;
+// and the gravity terms' `left_gradient`) for B bodies, the first m of them SE(3): R (9 B), p (3 m); c (dim) in
+// the group's tangent layout (per body w, then v for an SE(3) body); the MLP's input is (R, p)
+void covector(const Spec &s, int B, int m, const double *R, const double *p, std::vector<double> &a,
+              std::vector<double> &z, std::vector<double> &slopes, std::vector<double> &gr, double *c) {
+    const int dim = 6 * m + 3 * (B - m);
+    auto at = [m](int b) { return b < m ? 6 * b : 6 * m + 3 * (b - m); };  // a body's first tangent entry
     for (int q = 0; q < dim; ++q) c[q] = 0.0;
     if (s.layers) {
         // forward: the activations of every hidden layer, keeping each one's slope
         const double *W = s.weights, *b = s.biases;
-        std::memcpy(a.data(), R, 9 * sizeof(double));
-        if (p) std::memcpy(&a[9], p, 3 * sizeof(double));
+        std::memcpy(a.data(), R, 9 * B * sizeof(double));
+        if (m) std::memcpy(&a[9 * B], p, 3 * m * sizeof(double));
         int in = (int)s.width[0], off = 0;
         for (int l = 0; l < s.layers; ++l) {
             int out = (int)s.width[l + 1];
@@ -123,25 +126,34 @@ void covector(const Spec &s, const double *R, const double *p, std::vector<doubl
                 for (int j = 0; j < inl; ++j) gr[j] += row[j] * zi;
             }
         }
-        // sum over rows k of dR_k x R_k; on SE(3) R^T dp
-        for (int k = 0; k < 3; ++k) {
-            const double *d = &gr[3 * k], *r = &R[3 * k];
-            c[0] += d[1] * r[2] - d[2] * r[1];
-            c[1] += d[2] * r[0] - d[0] * r[2];
-            c[2] += d[0] * r[1] - d[1] * r[0];
+        // per body the sum over rows k of dR_k x R_k; an SE(3) body's R^T dp
+        for (int b = 0; b < B; ++b) {
+            double *cb = &c[at(b)];
+            for (int k = 0; k < 3; ++k) {
+                const double *d = &gr[9 * b + 3 * k], *r = &R[9 * b + 3 * k];
+                cb[0] += d[1] * r[2] - d[2] * r[1];
+                cb[1] += d[2] * r[0] - d[0] * r[2];
+                cb[2] += d[0] * r[1] - d[1] * r[0];
+            }
+            if (b < m) {
+                const double *Rb = &R[9 * b], *dp = &gr[9 * B + 3 * b];
+                for (int i = 0; i < 3; ++i) cb[3 + i] = Rb[i] * dp[0] + Rb[3 + i] * dp[1] + Rb[6 + i] * dp[2];
+            }
         }
-        if (p)
-            for (int i = 0; i < 3; ++i) c[3 + i] = R[i] * gr[9] + R[3 + i] * gr[10] + R[6 + i] * gr[11];
     }
     for (int j = 0; j < s.n_grav; ++j) {
-        const double *av = &s.grav_a[3 * j], *f = &s.grav_f[3 * j];
-        double u[3] = {R[0] * f[0] + R[3] * f[1] + R[6] * f[2], R[1] * f[0] + R[4] * f[1] + R[7] * f[2],
-                       R[2] * f[0] + R[5] * f[1] + R[8] * f[2]};  // R^T f
-        c[0] += av[1] * u[2] - av[2] * u[1];
-        c[1] += av[2] * u[0] - av[0] * u[2];
-        c[2] += av[0] * u[1] - av[1] * u[0];
-        if (p)
-            for (int i = 0; i < 3; ++i) c[3 + i] += s.grav_m[j] * u[i];
+        const double *f = &s.grav_f[3 * j];
+        for (int b = 0; b < B; ++b) {
+            const double *Rb = &R[9 * b], *av = &s.grav_a[3 * (j * B + b)];
+            double u[3] = {Rb[0] * f[0] + Rb[3] * f[1] + Rb[6] * f[2], Rb[1] * f[0] + Rb[4] * f[1] + Rb[7] * f[2],
+                           Rb[2] * f[0] + Rb[5] * f[1] + Rb[8] * f[2]};  // R^T f
+            double *cb = &c[at(b)];
+            cb[0] += av[1] * u[2] - av[2] * u[1];
+            cb[1] += av[2] * u[0] - av[0] * u[2];
+            cb[2] += av[0] * u[1] - av[1] * u[0];
+            if (b < m)
+                for (int i = 0; i < 3; ++i) cb[3 + i] += s.grav_m[j * B + b] * u[i];
+        }
     }
 }
 
@@ -181,7 +193,7 @@ void extrapolate(const double *hist, int L, double *out) {
 
 inline double norm3(const double *r) { return std::sqrt(r[0] * r[0] + r[1] * r[1] + r[2] * r[2]); }
 
-// ---------------------------------------------------------------------------- a single SE(3) body
+// ---------------------------------------------------------------------------- a product of bodies
 constexpr double TAYLOR2 = 1e-2;  // (lie.tolerances float64 "taylor" = 0.1)^2: series below it
 
 inline double poly(double x, const double *c, int k) {
@@ -208,13 +220,21 @@ inline double sinc3(double t2) {
     double t = std::sqrt(t2);
     return (t - std::sin(t)) / (t2 * t);
 }
-// `engines/rollout.py`'s fused step of one SE(3) body (no linear maps: the residual is not linear in the
-// increment x = (W, z)): r = const + kinetic_d1(x) + (h/2) (-D xi~(x)), J = the kinetic block (linear in W,
-// `RolloutMaps.se3_block`) + (h/2) (-D) dxi~/d delta, const = kinetic_d2(x_prev) + (h/2) (-D xi~(x_prev)) + the
-// potential's covector at g_k.
-struct Body {
-    const double *d1, *d2, *hess, *rho, *D;  // (3, 9), (3, 9), (36, 9) rows applied to W.flatten(); (3); (6, 6) or null
-    double s, h;                            // m / h, h
+
+// `engines/rollout.py`'s fused step of a product of bodies (`FusedStep` without per-iteration forces): r = const
+// + kinetic_d1(x) + (h/2) (-D xi~(x)), J = the kinetic blocks (linear in each W, `RolloutMaps.hess` /
+// `se3_block`) + (h/2) (-D) dxi~/d delta, const = kinetic_d2(x_prev) + (h/2) (-D xi~(x_prev)) + the potential's
+// covector at g_k. A product of B bodies, the first m of them SE(3) (`lie.ProductGroup`): an increment x is its rotations W_b
+// (9 B) then the SE(3) bodies' translations z_i (3 m); the tangent layout gives body b its entries at `at(b)`:
+// w, then v for an SE(3) body.
+struct Product {
+    int B, m, dim, nx;
+    const double *d1, *d2, *hess, *se3, *rho, *s, *D;  // rows applied to W_b.flatten(): d1, d2 (B, 3, 9), the
+                                                       // rotational Hessian blocks (B, 9, 9), the SE(3) bodies'
+                                                       // kinetic blocks (m, 36, 9); rho (m, 3), mass / h (m);
+                                                       // D (dim, dim) or null
+    double h;
+    int at(int b) const { return b < m ? 6 * b : 6 * m + 3 * (b - m); }
 };
 
 inline void cross3(const double *a, const double *b, double *c) {
@@ -223,160 +243,210 @@ inline void cross3(const double *a, const double *b, double *c) {
     c[2] = a[0] * b[1] - a[1] * b[0];
 }
 
-// kinetic_d1 (second = false) or kinetic_d2 of the increment (W, z): c (6)
-void se3_kinetic(const Body &b, const double *W, const double *z, bool second, double *c) {
-    double Wr[3], X[3], u[3], cu[3];
-    apply(second ? b.d2 : b.d1, 3, W, c);
-    for (int i = 0; i < 3; ++i) Wr[i] = W[3 * i] * b.rho[0] + W[3 * i + 1] * b.rho[1] + W[3 * i + 2] * b.rho[2];
-    for (int i = 0; i < 3; ++i) X[i] = z[i] + Wr[i] - b.rho[i];
-    if (second) {  // w += s rho x W^T X, v = s W^T X
-        for (int i = 0; i < 3; ++i) u[i] = W[i] * X[0] + W[3 + i] * X[1] + W[6 + i] * X[2];
-        cross3(b.rho, u, cu);
-        for (int i = 0; i < 3; ++i) c[i] += b.s * cu[i], c[3 + i] = b.s * u[i];
-    } else {  // w += s X x (z + W rho), v = -s X
-        for (int i = 0; i < 3; ++i) u[i] = z[i] + Wr[i];
-        cross3(X, u, cu);
-        for (int i = 0; i < 3; ++i) c[i] += b.s * cu[i], c[3 + i] = -b.s * X[i];
+// kinetic_d1 (second = false) or kinetic_d2 of the increment x: c (dim) (`engines.rollout.kinetic_d1/d2`)
+void kinetic(const Product &P, const double *x, bool second, double *c) {
+    for (int b = 0; b < P.B; ++b) {
+        const double *W = &x[9 * b];
+        double *cb = &c[P.at(b)];
+        apply((second ? P.d2 : P.d1) + 27 * b, 3, W, cb);
+        if (b >= P.m) continue;
+        const double *z = &x[9 * P.B + 3 * b], *rho = &P.rho[3 * b];
+        const double s = P.s[b];
+        double Wr[3], X[3], u[3], cu[3];
+        for (int i = 0; i < 3; ++i) Wr[i] = W[3 * i] * rho[0] + W[3 * i + 1] * rho[1] + W[3 * i + 2] * rho[2];
+        for (int i = 0; i < 3; ++i) X[i] = z[i] + Wr[i] - rho[i];
+        if (second) {  // w += s rho x W^T X, v = s W^T X
+            for (int i = 0; i < 3; ++i) u[i] = W[i] * X[0] + W[3 + i] * X[1] + W[6 + i] * X[2];
+            cross3(rho, u, cu);
+            for (int i = 0; i < 3; ++i) cb[i] += s * cu[i], cb[3 + i] = s * u[i];
+        } else {  // w += s X x (z + W rho), v = -s X
+            for (int i = 0; i < 3; ++i) u[i] = z[i] + Wr[i];
+            cross3(X, u, cu);
+            for (int i = 0; i < 3; ++i) cb[i] += s * cu[i], cb[3 + i] = -s * X[i];
+        }
     }
 }
 
-// r (6) += (h/2) (-D xi~(W, z)), xi~ = (vee(W) / h, (z - h/2 w~ x z) / h) (`kinetic.velocity_estimate`)
-void se3_damping_add(const Body &b, const double *W, const double *z, double *r) {
-    if (!b.D) return;
-    double xi[6], wz[3];
-    xi[0] = 0.5 * (W[7] - W[5]) / b.h, xi[1] = 0.5 * (W[2] - W[6]) / b.h, xi[2] = 0.5 * (W[3] - W[1]) / b.h;
-    cross3(xi, z, wz);
-    for (int i = 0; i < 3; ++i) xi[3 + i] = (z[i] - 0.5 * b.h * wz[i]) / b.h;
-    for (int i = 0; i < 6; ++i) {
+// r (dim) += (h/2) (-D xi~(x)), per body xi~ = (vee(W) / h, (z - h/2 w~ x z) / h) (`kinetic.velocity_estimate`)
+void damping_add(const Product &P, const double *x, double *r, double *xi) {
+    if (!P.D) return;
+    const double h = P.h;
+    for (int b = 0; b < P.B; ++b) {
+        const double *W = &x[9 * b];
+        double *w = &xi[P.at(b)];
+        w[0] = 0.5 * (W[7] - W[5]) / h, w[1] = 0.5 * (W[2] - W[6]) / h, w[2] = 0.5 * (W[3] - W[1]) / h;
+        if (b < P.m) {
+            const double *z = &x[9 * P.B + 3 * b];
+            double wz[3];
+            cross3(w, z, wz);
+            for (int i = 0; i < 3; ++i) w[3 + i] = (z[i] - 0.5 * h * wz[i]) / h;
+        }
+    }
+    for (int i = 0; i < P.dim; ++i) {
         double acc = 0.0;
-        for (int j = 0; j < 6; ++j) acc += b.D[6 * i + j] * xi[j];
-        r[i] += 0.5 * b.h * -acc;
+        for (int j = 0; j < P.dim; ++j) acc += P.D[P.dim * i + j] * xi[j];
+        r[i] += 0.5 * h * -acc;
     }
 }
 
-// J (6x6) = the kinetic block at W + (h/2) (-D) dxi~/d delta (`rollout.step_jacobian`,
-// `velocity_jacobian_blocks`: [[dw, 0], [hat(z) dw / 2, (I - h/2 hat(w~)) W / h]], dw = (tr W I - W^T) / (2h))
-void se3_jacobian(const Body &b, const double *W, const double *z, double *J) {
-    apply(b.hess, 36, W, J);
-    if (!b.D) return;
-    const double h = b.h, tr = W[0] + W[4] + W[8];
-    double dw[9], A[36] = {0};
-    for (int i = 0; i < 3; ++i)
-        for (int j = 0; j < 3; ++j) dw[3 * i + j] = ((i == j ? tr : 0.0) - W[3 * j + i]) / (2 * h);
-    double w[3] = {0.5 * (W[7] - W[5]) / h, 0.5 * (W[2] - W[6]) / h, 0.5 * (W[3] - W[1]) / h};
-    double Hz[9] = {0, -z[2], z[1], z[2], 0, -z[0], -z[1], z[0], 0};
-    double M[9] = {1, 0.5 * h * w[2], -0.5 * h * w[1], -0.5 * h * w[2], 1, 0.5 * h * w[0],
-                   0.5 * h * w[1], -0.5 * h * w[0], 1};  // I - h/2 hat(w)
-    double dvw[9], dvv[9];
-    mul3(Hz, dw, dvw);
-    mul3(M, W, dvv);
-    for (int i = 0; i < 3; ++i)
-        for (int j = 0; j < 3; ++j) {
-            A[6 * i + j] = dw[3 * i + j];
-            A[6 * (3 + i) + j] = 0.5 * dvw[3 * i + j];
-            A[6 * (3 + i) + 3 + j] = dvv[3 * i + j] / h;
-        }
-    for (int i = 0; i < 6; ++i)
-        for (int j = 0; j < 6; ++j) {
+// J (dim x dim) = blockdiag(the kinetic blocks at x) + (h/2) (-D) blockdiag(dxi~/d delta) (`rollout.step_jacobian`;
+// `velocity_jacobian_blocks`: dw = (tr W I - W^T) / (2h), an SE(3) body's [[dw, 0], [hat(z) dw / 2, (I - h/2
+// hat(w~)) W / h]]); A (dim x dim) scratch
+void jacobian(const Product &P, const double *x, double *J, double *A) {
+    const int n = P.dim;
+    const double h = P.h;
+    std::fill(J, J + n * n, 0.0);
+    for (int b = 0; b < P.B; ++b) {
+        const double *W = &x[9 * b];
+        const int o = P.at(b), k = b < P.m ? 6 : 3;
+        double blk[36];
+        if (b < P.m)
+            apply(P.se3 + 324 * b, 36, W, blk);
+        else
+            apply(P.hess + 81 * b, 9, W, blk);
+        for (int i = 0; i < k; ++i)
+            for (int j = 0; j < k; ++j) J[n * (o + i) + o + j] = blk[k * i + j];
+    }
+    if (!P.D) return;
+    std::fill(A, A + n * n, 0.0);
+    for (int b = 0; b < P.B; ++b) {
+        const double *W = &x[9 * b];
+        const int o = P.at(b);
+        const double tr = W[0] + W[4] + W[8];
+        double dw[9];
+        for (int i = 0; i < 3; ++i)
+            for (int j = 0; j < 3; ++j) dw[3 * i + j] = ((i == j ? tr : 0.0) - W[3 * j + i]) / (2 * h);
+        for (int i = 0; i < 3; ++i)
+            for (int j = 0; j < 3; ++j) A[n * (o + i) + o + j] = dw[3 * i + j];
+        if (b >= P.m) continue;
+        const double *z = &x[9 * P.B + 3 * b];
+        double w[3] = {0.5 * (W[7] - W[5]) / h, 0.5 * (W[2] - W[6]) / h, 0.5 * (W[3] - W[1]) / h};
+        double Hz[9] = {0, -z[2], z[1], z[2], 0, -z[0], -z[1], z[0], 0};
+        double M[9] = {1, 0.5 * h * w[2], -0.5 * h * w[1], -0.5 * h * w[2], 1, 0.5 * h * w[0],
+                       0.5 * h * w[1], -0.5 * h * w[0], 1};  // I - h/2 hat(w)
+        double dvw[9], dvv[9];
+        mul3(Hz, dw, dvw);
+        mul3(M, W, dvv);
+        for (int i = 0; i < 3; ++i)
+            for (int j = 0; j < 3; ++j) {
+                A[n * (o + 3 + i) + o + j] = 0.5 * dvw[3 * i + j];
+                A[n * (o + 3 + i) + o + 3 + j] = dvv[3 * i + j] / h;
+            }
+    }
+    for (int i = 0; i < n; ++i)
+        for (int j = 0; j < n; ++j) {
             double acc = 0.0;
-            for (int k = 0; k < 6; ++k) acc += b.D[6 * i + k] * A[6 * k + j];
-            J[6 * i + j] += 0.5 * h * -acc;
+            for (int q = 0; q < n; ++q) acc += P.D[n * i + q] * A[n * q + j];
+            J[n * i + j] += 0.5 * h * -acc;
         }
 }
 
-// (W, z) exp(delta): W exp(w), z + W V(w) v (`lie.batched.group_retract`)
-void se3_retract(const double *W, const double *z, const double *d, double *Wo, double *zo) {
-    const double *w = d, *v = d + 3;
-    double t2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2];
-    double c0 = sinc(t2), c1 = cosc(t2), c2 = sinc3(t2);
-    double H[9] = {0, -w[2], w[1], w[2], 0, -w[0], -w[1], w[0], 0}, H2[9], E[9], V[9], Vv[3];
-    for (int i = 0; i < 3; ++i)
-        for (int j = 0; j < 3; ++j) H2[3 * i + j] = w[i] * w[j] - (i == j ? t2 : 0.0);  // hat(w)^2
-    for (int k = 0; k < 9; ++k) {
-        double I = (k % 4 == 0) ? 1.0 : 0.0;
-        E[k] = I + c0 * H[k] + c1 * H2[k];
-        V[k] = I + c1 * H[k] + c2 * H2[k];
+// x exp(delta) body by body: W exp(w), and an SE(3) body's z + W V(w) v (`lie.batched.group_retract`)
+void retract(const Product &P, const double *x, const double *d, double *out) {
+    for (int b = 0; b < P.B; ++b) {
+        const double *w = &d[P.at(b)], *W = &x[9 * b];
+        double t2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2];
+        double c0 = sinc(t2), c1 = cosc(t2);
+        double H[9] = {0, -w[2], w[1], w[2], 0, -w[0], -w[1], w[0], 0}, H2[9], E[9];
+        for (int i = 0; i < 3; ++i)
+            for (int j = 0; j < 3; ++j) H2[3 * i + j] = w[i] * w[j] - (i == j ? t2 : 0.0);  // hat(w)^2
+        for (int q = 0; q < 9; ++q) E[q] = (q % 4 == 0 ? 1.0 : 0.0) + c0 * H[q] + c1 * H2[q];
+        mul3(W, E, &out[9 * b]);
+        if (b >= P.m) continue;
+        const double *v = w + 3, *z = &x[9 * P.B + 3 * b];
+        double c2 = sinc3(t2), V[9], Vv[3];
+        for (int q = 0; q < 9; ++q) V[q] = (q % 4 == 0 ? 1.0 : 0.0) + c1 * H[q] + c2 * H2[q];
+        for (int i = 0; i < 3; ++i) Vv[i] = V[3 * i] * v[0] + V[3 * i + 1] * v[1] + V[3 * i + 2] * v[2];
+        double *zo = &out[9 * P.B + 3 * b];
+        for (int i = 0; i < 3; ++i) zo[i] = z[i] + W[3 * i] * Vv[0] + W[3 * i + 1] * Vv[1] + W[3 * i + 2] * Vv[2];
     }
-    for (int i = 0; i < 3; ++i) Vv[i] = V[3 * i] * v[0] + V[3 * i + 1] * v[1] + V[3 * i + 2] * v[2];
-    mul3(W, E, Wo);
-    for (int i = 0; i < 3; ++i) zo[i] = z[i] + W[3 * i] * Vv[0] + W[3 * i + 1] * Vv[1] + W[3 * i + 2] * Vv[2];
 }
 
-// a b and a^-1 of poses (R 9, p 3) as one array of 12
-inline void pose_mul(const double *a, const double *b, double *c) {
-    mul3(a, b, c);
-    for (int i = 0; i < 3; ++i) c[9 + i] = a[9 + i] + a[3 * i] * b[9] + a[3 * i + 1] * b[10] + a[3 * i + 2] * b[11];
+// a b and a^-1 of product poses (rotations, then the SE(3) bodies' translations)
+void pose_mul(const Product &P, const double *a, const double *b, double *c) {
+    for (int q = 0; q < P.B; ++q) mul3(&a[9 * q], &b[9 * q], &c[9 * q]);
+    for (int q = 0; q < P.m; ++q) {
+        const double *R = &a[9 * q], *pa = &a[9 * P.B + 3 * q], *pb = &b[9 * P.B + 3 * q];
+        for (int i = 0; i < 3; ++i) c[9 * P.B + 3 * q + i] = pa[i] + R[3 * i] * pb[0] + R[3 * i + 1] * pb[1] + R[3 * i + 2] * pb[2];
+    }
 }
-inline void pose_inv(const double *a, double *c) {
-    for (int i = 0; i < 3; ++i)
-        for (int j = 0; j < 3; ++j) c[3 * i + j] = a[3 * j + i];
-    for (int i = 0; i < 3; ++i) c[9 + i] = -(a[i] * a[9] + a[3 + i] * a[10] + a[6 + i] * a[11]);
+void pose_inv(const Product &P, const double *a, double *c) {
+    for (int q = 0; q < P.B; ++q)
+        for (int i = 0; i < 3; ++i)
+            for (int j = 0; j < 3; ++j) c[9 * q + 3 * i + j] = a[9 * q + 3 * j + i];
+    for (int q = 0; q < P.m; ++q) {
+        const double *R = &a[9 * q], *p = &a[9 * P.B + 3 * q];
+        for (int i = 0; i < 3; ++i) c[9 * P.B + 3 * q + i] = -(R[i] * p[0] + R[3 + i] * p[1] + R[6 + i] * p[2]);
+    }
 }
 
-// the warm start from the last L increments (R, z) of 12, oldest first (`lie.batched.extrapolate_increments`)
-void se3_extrapolate(const double *hist, int L, double *out) {
-    const double *last = &hist[12 * (L - 1)];
+// the warm start from the last L increments, oldest first (`lie.batched.extrapolate_increments`); t scratch
+// (3 nx)
+void extrapolate(const Product &P, const double *hist, int L, double *out, double *t) {
+    const int nx = P.nx;
+    const double *last = &hist[nx * (L - 1)];
     if (L == 1) {
-        std::memcpy(out, last, 12 * sizeof(double));
+        std::memcpy(out, last, nx * sizeof(double));
         return;
     }
-    double inv[12], E[12], Dp[12], T[12], guess[12];
-    pose_inv(&hist[12 * (L - 2)], inv);
-    pose_mul(last, inv, E);
-    if (L == 3) {
-        pose_inv(&hist[0], inv);
-        pose_mul(&hist[12], inv, Dp);
-        pose_inv(Dp, inv);
-        pose_mul(E, inv, T);
-        pose_mul(T, E, Dp);
-        std::memcpy(E, Dp, sizeof E);
+    double *inv = t, *E = t + nx, *T = t + 2 * nx;
+    pose_inv(P, &hist[nx * (L - 2)], inv);
+    pose_mul(P, last, inv, E);
+    if (L == 3) {  // E D'^-1 E with D' = inc_1 inc_2^-1
+        pose_inv(P, &hist[0], inv);
+        pose_mul(P, &hist[nx], inv, T);  // D'
+        pose_inv(P, T, inv);
+        pose_mul(P, E, inv, T);
+        pose_mul(P, T, E, inv);
+        std::memcpy(E, inv, nx * sizeof(double));
     }
-    pose_mul(E, last, guess);
+    pose_mul(P, E, last, out);
+    double trE = 0.0, trW = 0.0, dp2 = 0.0, p2 = 0.0;
+    for (int b = 0; b < P.B; ++b) trE += E[9 * b] + E[9 * b + 4] + E[9 * b + 8], trW += last[9 * b] + last[9 * b + 4] + last[9 * b + 8];
+    for (int q = 9 * P.B; q < nx; ++q) dp2 += (out[q] - last[q]) * (out[q] - last[q]), p2 += last[q] * last[q];
     const double t2 = TRUST * TRUST;
-    bool ok = 3.0 - (E[0] + E[4] + E[8]) <= t2 * (3.0 - (last[0] + last[4] + last[8]));
-    double dp2 = 0.0, p2 = 0.0;
-    for (int i = 0; i < 3; ++i) dp2 += (guess[9 + i] - last[9 + i]) * (guess[9 + i] - last[9 + i]), p2 += last[9 + i] * last[9 + i];
-    ok = ok && dp2 <= t2 * p2;  // NaN: false
-    std::memcpy(out, ok ? guess : last, 12 * sizeof(double));
+    bool ok = 3.0 * P.B - trE <= t2 * (3.0 * P.B - trW);  // NaN compares false
+    if (P.m) ok = ok && dp2 <= t2 * p2;
+    if (!ok) std::memcpy(out, last, nx * sizeof(double));
 }
 
-// LU with partial pivoting of a 6x6 in place; false on an exactly zero pivot
-bool lu6(double *A, int *piv) {
+// LU with partial pivoting of an n x n in place; false on an exactly zero pivot
+bool lu_factor(double *A, int n, int *piv) {
     bool ok = true;
-    for (int k = 0; k < 6; ++k) {
+    for (int k = 0; k < n; ++k) {
         int p = k;
-        double best = std::fabs(A[6 * k + k]);
-        for (int i = k + 1; i < 6; ++i)
-            if (std::fabs(A[6 * i + k]) > best) best = std::fabs(A[6 * i + k]), p = i;
+        double best = std::fabs(A[n * k + k]);
+        for (int i = k + 1; i < n; ++i)
+            if (std::fabs(A[n * i + k]) > best) best = std::fabs(A[n * i + k]), p = i;
         piv[k] = p;
         if (p != k)
-            for (int j = 0; j < 6; ++j) std::swap(A[6 * k + j], A[6 * p + j]);
-        if (A[6 * k + k] == 0.0) {
+            for (int j = 0; j < n; ++j) std::swap(A[n * k + j], A[n * p + j]);
+        if (A[n * k + k] == 0.0) {
             ok = false;
             continue;
         }
-        for (int i = k + 1; i < 6; ++i) {
-            double l = A[6 * i + k] / A[6 * k + k];
-            A[6 * i + k] = l;
-            for (int j = k + 1; j < 6; ++j) A[6 * i + j] -= l * A[6 * k + j];
+        for (int i = k + 1; i < n; ++i) {
+            double l = A[n * i + k] / A[n * k + k];
+            A[n * i + k] = l;
+            for (int j = k + 1; j < n; ++j) A[n * i + j] -= l * A[n * k + j];
         }
     }
     return ok;
 }
-void lu6_solve(const double *A, const int *piv, double *x) {
-    for (int k = 0; k < 6; ++k)
+void lu_solve(const double *A, int n, const int *piv, double *x) {
+    for (int k = 0; k < n; ++k)
         if (piv[k] != k) std::swap(x[k], x[piv[k]]);
-    for (int i = 1; i < 6; ++i)
-        for (int k = 0; k < i; ++k) x[i] -= A[6 * i + k] * x[k];
-    for (int i = 5; i >= 0; --i) {
-        for (int k = i + 1; k < 6; ++k) x[i] -= A[6 * i + k] * x[k];
-        x[i] /= A[6 * i + i];
+    for (int i = 1; i < n; ++i)
+        for (int k = 0; k < i; ++k) x[i] -= A[n * i + k] * x[k];
+    for (int i = n - 1; i >= 0; --i) {
+        for (int k = i + 1; k < n; ++k) x[i] -= A[n * i + k] * x[k];
+        x[i] /= A[n * i + i];
     }
 }
 
-inline double norm6(const double *r) {
+inline double norm(const double *r, int n) {
     double s = 0.0;
-    for (int q = 0; q < 6; ++q) s += r[q] * r[q];
+    for (int q = 0; q < n; ++q) s += r[q] * r[q];
     return std::sqrt(s);
 }
 
@@ -408,7 +478,7 @@ int liedfl_so3_rollout(int64_t N, int64_t count, const double *F, const double *
             int L = (int)hist_len[i];
             for (int64_t k = 0; k < count; ++k) {
                 double cov[3], cst[3], W[9], r[3], J[9], cand[9], rc[3], delta[3], dd[3];
-                covector(s, g, nullptr, a, z, slopes, gr, cov);
+                covector(s, 1, 0, g, nullptr, a, z, slopes, gr, cov);
                 apply(s.C, 3, &hi[9 * (L - 1)], cst);
                 for (int q = 0; q < 3; ++q) cst[q] += cov[q];
                 extrapolate(hi, L, W);
@@ -501,87 +571,94 @@ int liedfl_so3_rollout(int64_t N, int64_t count, const double *F, const double *
     for (std::thread &th : pool) th.join();
     return 0;
 }
-// Roll `count` steps of N trajectories of one SE(3) body on from their state, in place: R (N, 9), p (N, 3) the
-// pose g_k, hist (N, 3, 12) the last increments (W, z), oldest first, hist_len (N) how many. Writes the poses
-// (N, count, 9) / (N, count, 3) and per step converged, Newton iterations and the residual's max norm
-// (N, count). The body: d1, d2 (3, 9), hess (36, 9), rho (3), mass, D (6, 6) when damped; the potential as for
-// `liedfl_so3_rollout` (the MLP's input (R, p), 12 wide). `threads` as there. Returns 0.
-int liedfl_se3_rollout(int64_t N, int64_t count, const double *d1, const double *d2, const double *hess,
-                       const double *rho, double mass, int64_t damped, const double *D, double h, int64_t layers,
-                       const int64_t *width, const double *weights, const double *weights_t, const double *biases,
-                       const int64_t *act, const double *out_w, int64_t n_grav, const double *grav_a,
-                       const double *grav_f, const double *grav_m, double tol, int64_t max_iter,
-                       int64_t max_halvings, double *R, double *P, double *hist, int64_t *hist_len, double *outR,
-                       double *outp, uint8_t *converged, int64_t *iterations, double *residual_norm,
-                       int64_t threads) {
+// Roll `count` steps of N trajectories of a product of B bodies (the first m SE(3)) on from their state, in
+// place: R (N, B, 9), p (N, m, 3) the pose g_k, hist (N, 3, nx) the last increments (x: rotations, then the
+// SE(3) translations), oldest first, hist_len (N) how many. Writes the poses (N, count, B, 9) / (N, count, m, 3)
+// and per step converged, Newton iterations and the residual's max norm (N, count). The bodies: d1, d2
+// (B, 3, 9), hess (B, 9, 9), se3 (m, 36, 9), rho (m, 3), s = mass / h (m), D (dim, dim) when damped; the
+// potential as for `liedfl_so3_rollout` (the MLP's input (R, p), 9 B + 3 m wide; gravity per body). `threads`
+// as there. Returns 0.
+int liedfl_product_rollout(int64_t N, int64_t count, int64_t B, int64_t m, const double *d1, const double *d2,
+                           const double *hess, const double *se3, const double *rho, const double *s_mass,
+                           int64_t damped, const double *D, double h, int64_t layers, const int64_t *width,
+                           const double *weights, const double *weights_t, const double *biases,
+                           const int64_t *act, const double *out_w, int64_t n_grav, const double *grav_a,
+                           const double *grav_f, const double *grav_m, double tol, int64_t max_iter,
+                           int64_t max_halvings, double *R, double *Pp, double *hist, int64_t *hist_len,
+                           double *outR, double *outp, uint8_t *converged, int64_t *iterations,
+                           double *residual_norm, int64_t threads) {
     Spec s{nullptr,     nullptr, nullptr, (int)layers, width, weights,        weights_t,          biases, out_w, act,
            (int)n_grav, grav_a,  grav_f,  grav_m,      tol,   (int)max_iter, (int)max_halvings};
-    Body b{d1, d2, hess, rho, damped ? D : nullptr, mass / h, h};
-    int wmax = 12, total = 0;
+    const int dim = (int)(6 * m + 3 * (B - m)), nx = (int)(9 * B + 3 * m);
+    Product P{(int)B, (int)m, dim, nx, d1, d2, hess, se3, rho, s_mass, damped ? D : nullptr, h};
+    int wmax = nx, total = 0;
     for (int l = 0; l < layers; ++l) wmax = std::max(wmax, (int)width[l + 1]), total += (int)width[l + 1];
     const double big = std::numeric_limits<double>::max(), eps = std::numeric_limits<double>::epsilon();
     auto rows = [&](int64_t i0, int64_t i1) {
         std::vector<double> a(wmax), z(wmax), slopes(std::max(total, 1)), gr(wmax);
+        std::vector<double> cst(dim), r(dim), rc(dim), delta(dim), dd(dim), xi(dim), J(dim * dim), A(dim * dim);
+        std::vector<double> x(nx), cand(nx), t(3 * nx), gk(nx), gn(nx), inc(nx);
+        std::vector<int> piv(dim);
         for (int64_t i = i0; i < i1; ++i) {
-            double *g = R + 9 * i, *gp = P + 3 * i, *hi = hist + 36 * i;
+            double *g = R + 9 * B * i, *gp = Pp + 3 * m * i, *hi = hist + 3 * nx * i;
             int L = (int)hist_len[i];
             for (int64_t k = 0; k < count; ++k) {
-                double cst[6], x[12], r[6], J[36], cand[12], rc[6], delta[6], dd[6];
-                int piv[6];
-                const double *prev = &hi[12 * (L - 1)];
-                se3_kinetic(b, prev, prev + 9, true, cst);
-                se3_damping_add(b, prev, prev + 9, cst);
-                double cov[6];
-                covector(s, g, gp, a, z, slopes, gr, cov);
-                for (int q = 0; q < 6; ++q) cst[q] += cov[q];
-                se3_extrapolate(hi, L, x);
+                const double *prev = &hi[nx * (L - 1)];
+                kinetic(P, prev, true, cst.data());
+                damping_add(P, prev, cst.data(), xi.data());
+                covector(s, (int)B, (int)m, g, gp, a, z, slopes, gr, rc.data());
+                for (int q = 0; q < dim; ++q) cst[q] += rc[q];
+                extrapolate(P, hi, L, x.data(), t.data());
                 auto residual = [&](const double *y, double *out) {
-                    se3_kinetic(b, y, y + 9, false, out);
-                    for (int q = 0; q < 6; ++q) out[q] += cst[q];
-                    se3_damping_add(b, y, y + 9, out);
+                    kinetic(P, y, false, out);
+                    for (int q = 0; q < dim; ++q) out[q] += cst[q];
+                    damping_add(P, y, out, xi.data());
                 };
-                residual(x, r);
-                double rn = norm6(r);
+                residual(x.data(), r.data());
+                double rn = norm(r.data(), dim);
                 bool conv = false;
                 int it = 0;
                 for (; it < s.max_iter && !conv; ++it) {
-                    double scale = std::max(std::fabs(x[9]), std::max(std::fabs(x[10]), std::fabs(x[11])));
-                    double step_tol = std::fmax(tol, 16.0 * eps * std::fmax(scale, 1.0));  // newton.step_tolerance
-                    se3_jacobian(b, x, x + 9, J);
-                    bool singular = !lu6(J, piv);
-                    for (int q = 0; q < 6; ++q) delta[q] = -r[q];
-                    if (!singular) lu6_solve(J, piv, delta);
+                    double scale = 0.0;  // newton.step_tolerance: the largest translation of the iterate
+                    for (int q = 9 * (int)B; q < nx; ++q) scale = std::fmax(scale, std::fabs(x[q]));
+                    double step_tol = m ? std::fmax(tol, 16.0 * eps * std::fmax(scale, 1.0)) : std::fmax(tol, 16.0 * eps);
+                    jacobian(P, x.data(), J.data(), A.data());
+                    bool singular = !lu_factor(J.data(), dim, piv.data());
+                    for (int q = 0; q < dim; ++q) delta[q] = -r[q];
+                    if (!singular) lu_solve(J.data(), dim, piv.data(), delta.data());
                     bool finite = !singular;
-                    for (int q = 0; q < 6 && finite; ++q) finite = std::isfinite(delta[q]);
+                    for (int q = 0; q < dim && finite; ++q) finite = std::isfinite(delta[q]);
                     if (!finite) {  // no step on this iteration (the step fails)
                         singular = true;
-                        std::fill(delta, delta + 6, 0.0);
+                        std::fill(delta.begin(), delta.end(), 0.0);
                     }
                     double full = 0.0;
-                    for (int q = 0; q < 6; ++q) full = std::fmax(full, std::fabs(delta[q]));
+                    for (int q = 0; q < dim; ++q) full = std::fmax(full, std::fabs(delta[q]));
+                    // backtracking on ||r||_2 (solvers.newton._careful_iteration); without a decrease the full
+                    // step is taken where its residual is finite
                     double alpha = 1.0;
                     bool accepted = false;
                     for (int hh = 0; hh <= s.max_halvings; ++hh) {
-                        for (int q = 0; q < 6; ++q) dd[q] = alpha * delta[q];
-                        se3_retract(x, x + 9, dd, cand, cand + 9);
-                        residual(cand, rc);
-                        double rcn = norm6(rc);
+                        for (int q = 0; q < dim; ++q) dd[q] = alpha * delta[q];
+                        retract(P, x.data(), dd.data(), cand.data());
+                        residual(cand.data(), rc.data());
+                        double rcn = norm(rc.data(), dim);
                         if (std::isfinite(rcn) && rcn <= std::fmin(rn * (1 - 1e-4 * alpha) + 1e-300, big)) {
                             accepted = true;
-                            std::memcpy(x, cand, sizeof x);
-                            std::memcpy(r, rc, sizeof r);
+                            std::swap(x, cand);
+                            std::swap(r, rc);
                             rn = rcn;
                             break;
                         }
                         alpha *= 0.5;
                     }
                     if (!accepted) {
-                        se3_retract(x, x + 9, delta, cand, cand + 9);
-                        residual(cand, rc);
-                        double rcn = norm6(rc);
+                        retract(P, x.data(), delta.data(), cand.data());
+                        residual(cand.data(), rc.data());
+                        double rcn = norm(rc.data(), dim);
                         if (std::isfinite(rcn)) {
-                            std::memcpy(x, cand, sizeof x);
-                            std::memcpy(r, rc, sizeof r);
+                            std::swap(x, cand);
+                            std::swap(r, rc);
                             rn = rcn;
                         }
                     }
@@ -589,29 +666,32 @@ int liedfl_se3_rollout(int64_t N, int64_t count, const double *d1, const double 
                 }
                 double rmax = 0.0;
                 bool rnan = false;
-                for (int q = 0; q < 6; ++q) rmax = std::fmax(rmax, std::fabs(r[q])), rnan = rnan || std::isnan(r[q]);
+                for (int q = 0; q < dim; ++q) rmax = std::fmax(rmax, std::fabs(r[q])), rnan = rnan || std::isnan(r[q]);
                 converged[i * count + k] = conv ? 1 : 0;
                 iterations[i * count + k] = it;
                 residual_norm[i * count + k] = rnan ? std::numeric_limits<double>::quiet_NaN() : rmax;
-                // the increment's rotation re-orthonormalised (one Newton-Schulz step), g_{k+1} = g_k (W, z)
-                double M[9], inc[12], gn[12], gk[12];
-                mul3_tn(x, x, M);
-                for (int q = 0; q < 9; ++q) M[q] = (q % 4 == 0 ? 3.0 : 0.0) - M[q];
-                mul3(x, M, inc);
-                for (int q = 0; q < 9; ++q) inc[q] *= 0.5;
-                std::memcpy(inc + 9, x + 9, 3 * sizeof(double));
-                std::memcpy(gk, g, 9 * sizeof(double));
-                std::memcpy(gk + 9, gp, 3 * sizeof(double));
-                pose_mul(gk, inc, gn);
-                std::memcpy(g, gn, 9 * sizeof(double));
-                std::memcpy(gp, gn + 9, 3 * sizeof(double));
-                std::memcpy(outR + (i * count + k) * 9, gn, 9 * sizeof(double));
-                std::memcpy(outp + (i * count + k) * 3, gn + 9, 3 * sizeof(double));
+                // each rotation of the increment re-orthonormalised (one Newton-Schulz step), g_{k+1} = g_k inc
+                for (int b = 0; b < B; ++b) {
+                    double M[9];
+                    const double *W = &x[9 * b];
+                    mul3_tn(W, W, M);
+                    for (int q = 0; q < 9; ++q) M[q] = (q % 4 == 0 ? 3.0 : 0.0) - M[q];
+                    mul3(W, M, &inc[9 * b]);
+                    for (int q = 0; q < 9; ++q) inc[9 * b + q] *= 0.5;
+                }
+                std::copy(x.begin() + 9 * B, x.end(), inc.begin() + 9 * B);
+                std::memcpy(gk.data(), g, 9 * B * sizeof(double));
+                std::memcpy(gk.data() + 9 * B, gp, 3 * m * sizeof(double));
+                pose_mul(P, gk.data(), inc.data(), gn.data());
+                std::memcpy(g, gn.data(), 9 * B * sizeof(double));
+                std::memcpy(gp, gn.data() + 9 * B, 3 * m * sizeof(double));
+                std::memcpy(outR + (i * count + k) * 9 * B, gn.data(), 9 * B * sizeof(double));
+                std::memcpy(outp + (i * count + k) * 3 * m, gn.data() + 9 * B, 3 * m * sizeof(double));
                 if (L == HISTORY) {
-                    std::memmove(hi, hi + 12, 12 * (HISTORY - 1) * sizeof(double));
+                    std::memmove(hi, hi + nx, nx * (HISTORY - 1) * sizeof(double));
                     --L;
                 }
-                std::memcpy(&hi[12 * L], inc, sizeof inc);
+                std::memcpy(&hi[nx * L], inc.data(), nx * sizeof(double));
                 ++L;
             }
             hist_len[i] = L;
