@@ -1,13 +1,14 @@
-"""Where the native single-body step pays: its rollout against the torch engines' for one SO(3) or SE(3) body.
+"""Where the native rigid-body step pays: its rollout against the torch engines' for one body or two.
 
     python scripts/bench_native_body.py [--json FILE] [--threads 1 2] [--batches 1 10 100 1000 2000 4000 8000 16000]
 
-For each thread count, group (SO(3), SE(3)), MLP potential (none, 10 x 2, 32 x 3, 64 x 3; Rayleigh damping,
-h 0.05) and batch size: microseconds per step per trajectory (best of 3) of `models.liedflnn.engines.native`
-and of the torch engine `engines/choose.py` would take without it (SO(3): Python floats for a few
-trajectories, the row layout up to 31, the column layout from 32; SE(3): the row layout), their ratio
-(`torch_over_native` > 1: the native step is faster) and whether `native.applies` takes the batch (its
-`MLP_ROWS` rule, set from these figures). Timing only; the engines' equality is tests/test_native_body.py's.
+For each thread count, group (SO(3), SE(3), SE(3) x SO(3)), MLP potential (none, 10 x 2, 32 x 3, 64 x 3;
+Rayleigh damping, h 0.05) and batch size: microseconds per step per trajectory (best of 3) of
+`models.liedflnn.engines.native` and of the torch engine `engines/choose.py` would take without it (SO(3):
+Python floats for a few trajectories, the row layout up to 31, the column layout from 32; the others: the row
+layout), their ratio (`torch_over_native` > 1: the native step is faster) and whether `native.applies` takes
+the batch (its `MLP_ROWS` rule, set from these figures). Timing only; the engines' equality is
+tests/test_native_body.py's.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from liedfl_cli.files.io_utils import write_json  # noqa: E402
-from liedfl_cli.lie import SE3, SO3, Pose, so3  # noqa: E402
+from liedfl_cli.lie import SE3, SO3, Pose, ProductGroup, so3  # noqa: E402
 from liedfl_cli.models.liedflnn.engines import choose  # noqa: E402
 from liedfl_cli.models.liedflnn.engines import native as fused_native  # noqa: E402
 from liedfl_cli.models.liedflnn.model import LieDFLNN  # noqa: E402
@@ -32,6 +33,7 @@ from liedfl_cli.solvers.options import SolverOptions  # noqa: E402
 
 H = 0.05
 MLPS = {"none": None, "mlp_10x2": (10, 2), "mlp_32x3": (32, 3), "mlp_64x3": (64, 3)}
+GROUPS = {"SO3": SO3, "SE3": SE3, "SE3xSO3": ProductGroup(1, 1)}  # the last: the two-body scene's group
 
 
 def best_of(fn, repeats: int = 3) -> float:
@@ -53,7 +55,7 @@ def model_for(G, size) -> LieDFLNN:
 
 def starts(G, n: int) -> tuple[Pose, Pose]:
     gen = torch.Generator().manual_seed(n)
-    R0 = so3.exp(torch.randn(n, 1, 3, generator=gen, dtype=torch.float64))
+    R0 = so3.exp(torch.randn(n, G.n_bodies, 3, generator=gen, dtype=torch.float64))
     g0 = Pose(R0, torch.randn(n, G.n_se3, 3, generator=gen, dtype=torch.float64))
     return g0, G.retract(g0, H * torch.randn(n, G.dim, generator=gen, dtype=torch.float64))
 
@@ -68,12 +70,12 @@ def main() -> None:
     opts = SolverOptions()
     for threads in args.threads:
         torch.set_num_threads(threads)
-        for group, G in (("SO3", SO3), ("SE3", SE3)):
+        for group, G in GROUPS.items():
             for name, size in MLPS.items():
                 model = model_for(G, size)
                 for n in args.batches:
                     steps = int(max(6, min(200, 4e5 / n)))
-                    if group == "SE3":  # the row layout: fewer steps at large batches (a few seconds a row)
+                    if group != "SO3":  # the row layout: fewer steps at large batches (a few seconds a row)
                         steps = int(max(6, min(200, 4e4 / n)))
                     g0, g1 = starts(G, n)
                     with torch.no_grad():

@@ -354,7 +354,7 @@ def test_the_benchmark_script_writes_its_record(tmp_path, monkeypatch):
     monkeypatch.setattr(sys, "argv", ["bench_native_body.py", "--json", str(out), "--threads", "1", "--batches", "3"])
     module.main()
     rows = json.loads(out.read_text())["rows"]
-    assert [(r["group"], r["potential"]) for r in rows] == [(g, p) for g in ("SO3", "SE3") for p in module.MLPS]
+    assert [(r["group"], r["potential"]) for r in rows] == [(g, p) for g in module.GROUPS for p in module.MLPS]
     for r in rows:
         assert r["native_applies"] and r["torch_engine"] in ("scalar", "rows")  # three trajectories
         assert r["torch_over_native"] == pytest.approx(r["torch_us_per_step_traj"] / r["native_us_per_step_traj"])

@@ -1,21 +1,22 @@
 """Fused hot paths of LieDFLNN, part 6 (see `models.liedflnn.engines.core`): the rollout of a single SO(3) or SE(3)
-body (no force, or constant Rayleigh damping) in native code.
+body, or of any product of bodies SE(3)^m x SO(3)^n (no force, or constant Rayleigh damping), in native code.
 
-The step of `engines.scalar` / `engines.columns` (SO(3)) and of the row layout's `FusedStep` (SE(3)) written in
-C++ (`native_body.cpp`), one trajectory at a time, each with the reference Newton loop of `solvers.newton`
-(backtracking on ||r||_2, convergence on the full step's max norm, a failed step kept and flagged): no Python
-and no tensor operation per step, so a step costs its arithmetic (~1.4 µs at batch 1 with a 10 x 2 MLP
-potential on SO(3), ~2.7 µs on SE(3)) where the Python floats of `engines.scalar` pay ~60 µs and the row
-layout 0.4-1.8 ms. Built on first use (`solvers.native_build`, the articulated step's machinery) and kept
-per machine.
+The step of `engines.scalar` / `engines.columns` (one SO(3) body) and of the row layout's `FusedStep` (every
+other product) written in C++ (`native_body.cpp`), one trajectory at a time, each with the reference Newton
+loop of `solvers.newton` (backtracking on ||r||_2, convergence on the full step's max norm, a failed step kept
+and flagged): no Python and no tensor operation per step, so a step costs its arithmetic (~1.4 µs at batch 1
+with a 10 x 2 MLP potential on SO(3), ~2.7 µs on SE(3)) where the Python floats of `engines.scalar` pay
+~60 µs and the row layout 0.4-1.8 ms. Built on first use (`solvers.native_build`, the articulated step's
+machinery) and kept per machine.
 
-Serves (`applies`) the fused path of a LieDFLNN of one SO(3) or SE(3) body, no force or only constant
-Rayleigh damping, a potential that is none, an MLP of Linear layers with exact GELU or tanh activations,
-gravity (declared or learned, `GravityPotential` / `UniformGravityPotential`) or a sum of those with at most
-one MLP (an SO(3) body with an MLP: batches up to the size where the column layout's batched products
-overtake it, `MLP_ROWS`); float64 poses on the CPU (a rollout records no gradient on any engine), a plan
-that allows native code (`ExecutionPlan.wants_native`: not under `runtime.compile=false`), and a C++
-compiler that builds it. Otherwise the torch engines (`engines/choose.py`).
+Serves (`applies`) the fused path of a LieDFLNN of one body or a product of bodies with no force or only
+constant Rayleigh damping, a potential that is none, an MLP of Linear layers with exact GELU or tanh
+activations, gravity (declared or learned, `GravityPotential` / `UniformGravityPotential`) or a sum of those
+with at most one MLP (a single SO(3) body with an MLP: batches up to the size where the column layout's
+batched products overtake it, `MLP_ROWS`); float64 poses on the CPU (a rollout records no gradient on any
+engine), a plan that allows native code (`ExecutionPlan.wants_native`: not under `runtime.compile=false`),
+and a C++ compiler that builds it. Otherwise the torch engines (`engines/choose.py`): interaction
+potentials, control and learned forces, float32, GPUs.
 
 One difference from the other engines, in no converging step: an exactly singular Jacobian takes no step
 (the step is flagged as failed) where the reference takes a least-squares step.
