@@ -65,11 +65,11 @@ MLP_WEIGHTS = 200
 layout of an SO(3) body (`engines.columns`) multiplies whole batches at once: past some batch size the columns
 are faster. The native step serves an SO(3) body up to MLP_ROWS x sqrt(MLP_WEIGHTS / weights) x threads
 trajectories: measured crossovers (idle, µs per trajectory-step, native / columns; docs/benchmarks.md "The
-native single-body step"): one thread, 10 x 2 (200 weights) 0.65 / 0.60 at 2,000, 32 x 3 (2,368) 1.83 / 5.93 at
-100 and 1.84 / 1.37 at 1,000, 64 x 3 (8,832) 3.87 / 6.90 at 100 and 3.85 / 2.38 at 1,000; two threads, 10 x 2
-0.34 / 0.36 at 8,000 and 0.34 / 0.32 at 16,000, 32 x 3 1.34 / 1.46 at 1,000 and 1.35 / 0.97 at 2,000. Without an
-MLP, and on SE(3) (whose torch engine is the row layout), it serves every batch (1.25-750x the torch engine
-from 1 to 16,000 trajectories)."""
+native rigid-body step", record docs/bench/native_body_2026-12-07.json): one thread, 10 x 2 (200 weights)
+0.66 / 0.85 at 1,000 and 0.66 / 0.61 at 2,000, 32 x 3 (2,368) 1.89 / 6.02 at 100 and 1.87 / 1.39 at 1,000,
+64 x 3 (8,832) 3.96 / 6.88 at 100 and 3.96 / 2.33 at 1,000; two threads, 10 x 2 0.34 / 0.35 at 8,000, 32 x 3
+0.96 / 1.46 at 1,000 and 0.95 / 0.92 at 2,000. Without an MLP, and for every other group (whose torch engine
+is the row layout), it serves every batch (1.2-780x the torch engine from 1 to 16,000 trajectories)."""
 CHUNK_ROW_STEPS = 400_000
 """Trajectory-steps per call into the native code (~0.5 s): progress is reported and signals are handled
 between calls."""
@@ -137,7 +137,7 @@ def _serves_batch(model, g0: Pose) -> bool:
 def library() -> ctypes.CDLL | None:
     """The compiled step, built on first use, or None without a compiler or when the build fails (said once
     on stderr): the torch engines then serve."""
-    return native_build.load(SOURCE, ARGTYPES, "the native single-body step")
+    return native_build.load(SOURCE, ARGTYPES, "the native rigid-body step")
 
 
 def _ptr(t: torch.Tensor) -> ctypes.c_void_p:
