@@ -681,12 +681,14 @@ int liedfl_product_rollout(int64_t N, int64_t count, int64_t B, int64_t m, const
                 }
                 std::copy(x.begin() + 9 * B, x.end(), inc.begin() + 9 * B);
                 std::memcpy(gk.data(), g, 9 * B * sizeof(double));
-                std::memcpy(gk.data() + 9 * B, gp, 3 * m * sizeof(double));
+                if (m) std::memcpy(gk.data() + 9 * B, gp, 3 * m * sizeof(double));  // (no positions: maybe null)
                 pose_mul(P, gk.data(), inc.data(), gn.data());
                 std::memcpy(g, gn.data(), 9 * B * sizeof(double));
-                std::memcpy(gp, gn.data() + 9 * B, 3 * m * sizeof(double));
                 std::memcpy(outR + (i * count + k) * 9 * B, gn.data(), 9 * B * sizeof(double));
-                std::memcpy(outp + (i * count + k) * 3 * m, gn.data() + 9 * B, 3 * m * sizeof(double));
+                if (m) {
+                    std::memcpy(gp, gn.data() + 9 * B, 3 * m * sizeof(double));
+                    std::memcpy(outp + (i * count + k) * 3 * m, gn.data() + 9 * B, 3 * m * sizeof(double));
+                }
                 if (L == HISTORY) {
                     std::memmove(hi, hi + nx, nx * (HISTORY - 1) * sizeof(double));
                     --L;
