@@ -351,6 +351,8 @@ def test_the_benchmark_script_writes_its_record(tmp_path, monkeypatch):
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     out = tmp_path / "record.json"
+    monkeypatch.setattr(module, "MLPS", {"none": None, "mlp_10x2": (10, 2)})  # two of each: seconds, not tens
+    monkeypatch.setattr(module, "GROUPS", {g: module.GROUPS[g] for g in ("SO3", "SE3xSO3")})
     monkeypatch.setattr(sys, "argv", ["bench_native_body.py", "--json", str(out), "--threads", "1", "--batches", "3"])
     module.main()
     rows = json.loads(out.read_text())["rows"]
