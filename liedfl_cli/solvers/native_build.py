@@ -27,6 +27,8 @@ from . import compile as compile_cache
 
 FLAGS = ("-O3", "-march=native", "-shared", "-fPIC", "-std=c++17", "-pthread")
 PORTABLE_FLAGS = tuple(f for f in FLAGS if f != "-march=native")
+HEADERS = (Path(__file__).with_name("native_math.hpp"),)
+"""What every native source includes (compiled with this folder on the include path, hashed into the keys)."""
 
 
 def cpu_signature() -> str:
@@ -45,9 +47,10 @@ def cache_dir() -> Path:
 
 def build(source: Path, cxx: str, folder: Path, what: str) -> Path | None:
     """The shared library of `source` built by compiler `cxx` in `folder` (unless already cached there),
-    named `<stem>_<key>.so` with key a hash of the source, the compiler's version, the flags and the CPU;
+    named `<stem>_<key>.so` with key a hash of the source and `HEADERS`, the compiler's version, the flags and
+    the CPU;
     None with one printed line naming `what` when the build fails (module docstring)."""
-    text = source.read_bytes()
+    text = b"\0".join([source.read_bytes(), *(h.read_bytes() for h in HEADERS)])
     try:
         version = subprocess.run([cxx, "--version"], capture_output=True, text=True, timeout=60).stdout
     except (OSError, subprocess.SubprocessError):
@@ -62,7 +65,7 @@ def build(source: Path, cxx: str, folder: Path, what: str) -> Path | None:
             folder.mkdir(parents=True, exist_ok=True)
             with tempfile.TemporaryDirectory(dir=folder) as tmp:
                 built = Path(tmp) / target.name
-                cmd = [cxx, *flags, str(source), "-o", str(built)]
+                cmd = [cxx, *flags, "-I", str(HEADERS[0].parent), str(source), "-o", str(built)]
                 proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
                 if proc.returncode == 0 and built.exists():
                     os.replace(built, target)
@@ -113,3 +116,19 @@ def kept_on_model(model, like: torch.Tensor, name: str, make: Callable[[Any, tor
     engine = make(model, like)
     model.__dict__[name] = (key, engine, [t.clone() for t in tensors])
     return engine
+
+
+def run_in_chunks(run: Callable[[int], dict], rows: int, steps: int, row_steps: int, progress=None) -> list[dict]:
+    """A native rollout's steps 1 .. steps-1 as calls `run(count)` of ~`row_steps` trajectory-steps each (for
+    `rows` trajectories), so that progress is reported after each call, step by step, and signals are handled
+    between calls: the calls' outputs, in order (empty without steps)."""
+    chunks, k = [], 1
+    per_call = max(1, row_steps // max(rows, 1))
+    while k < steps:
+        count = min(per_call, steps - k)
+        chunks.append(run(count))
+        if progress is not None:
+            for j in range(k, k + count):
+                progress(j)
+        k += count
+    return chunks

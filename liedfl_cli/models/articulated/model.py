@@ -43,6 +43,7 @@ from ...mechanics import kinetic
 from ...mechanics.forces import RayleighForce, build_forces, force_jacobian_xi
 from ...mechanics.parameterizations import Inertia, PositiveVector
 from ...mechanics.potentials import STANDARD_GRAVITY, GravityPotential, MLPPotential, UniformGravityPotential
+from ...solvers import native_build
 from ...solvers.newton import NewtonProblem
 from ...solvers.rollout import Rollout
 from .. import mlp_derivatives
@@ -873,15 +874,8 @@ class ArticulatedLieDFLNN(ImplicitModel):
         t0 = time.perf_counter()
         engine = native_articulated.for_model(self, g1.R)
         state = engine.start(g0, g1)
-        N, chunks, k = g0.R.shape[0], [], 1
-        per_call = max(1, NATIVE_CHUNK_ROW_STEPS // max(N, 1))  # a progress report every ~1 s of work
-        while k < steps:
-            count = min(per_call, steps - k)
-            chunks.append(engine.run(state, count, opts))
-            if progress is not None:
-                for j in range(k, k + count):
-                    progress(j)
-            k += count
+        run = lambda count: engine.run(state, count, opts)
+        chunks = native_build.run_in_chunks(run, g0.R.shape[0], steps, NATIVE_CHUNK_ROW_STEPS, progress)
         cat = {key: torch.cat([c[key] for c in chunks], 1) for key in chunks[0]}  # (on g1's dtype and device)
         R = torch.cat((g0.R[:, None], g1.R[:, None], cat["R"]), 1)
         p = torch.cat((g0.p[:, None], g1.p[:, None], cat["p"]), 1)

@@ -14,9 +14,11 @@
 #include <thread>
 #include <vector>
 
+#include "native_math.hpp"
+
 namespace {
 
-constexpr double TAYLOR2 = 1e-2;  // (lie.tolerances float64 "taylor" = 0.1)^2: series below it
+using namespace liedfl_native;
 
 struct TreeSpec {
     int B, n, dim, m, world, joint_mode, reduced, max_iter, max_halvings, chord;
@@ -28,29 +30,6 @@ struct TreeSpec {
     std::vector<std::vector<int>> cols;  // per body: the columns its FK Jacobian can reach
 };
 
-inline double poly(double x, const double *c, int k) {
-    double out = c[k - 1];
-    for (int i = k - 2; i >= 0; --i) out = out * x + c[i];
-    return out;
-}
-inline double sinc(double t2) {
-    static const double c[] = {1.0, -1.0 / 6, 1.0 / 120, -1.0 / 5040, 1.0 / 362880};
-    if (t2 < TAYLOR2) return poly(t2, c, 5);
-    double t = std::sqrt(t2);
-    return std::sin(t) / t;
-}
-inline double cosc(double t2) {
-    static const double c[] = {0.5, -1.0 / 24, 1.0 / 720, -1.0 / 40320, 1.0 / 3628800};
-    if (t2 < TAYLOR2) return poly(t2, c, 5);
-    double s = std::sin(0.5 * std::sqrt(t2));
-    return 2.0 * s * s / t2;
-}
-inline double sinc3(double t2) {
-    static const double c[] = {1.0 / 6, -1.0 / 120, 1.0 / 5040, -1.0 / 362880, 1.0 / 39916800};
-    if (t2 < TAYLOR2) return poly(t2, c, 5);
-    double t = std::sqrt(t2);
-    return (t - std::sin(t)) / (t2 * t);
-}
 inline double vinv_coeff(double t2) {
     static const double c[] = {1.0 / 12, 1.0 / 720, 1.0 / 30240, 1.0 / 1209600, 1.0 / 47900160};
     if (t2 < TAYLOR2) return poly(t2, c, 5);
@@ -58,30 +37,12 @@ inline double vinv_coeff(double t2) {
     return (1.0 - half * std::cos(half) / std::sin(half)) / t2;
 }
 
-// 3x3 helpers, row-major
-inline void mm(const double *A, const double *B, double *C) {  // C = A B
-    for (int i = 0; i < 3; ++i)
-        for (int j = 0; j < 3; ++j) C[3 * i + j] = A[3 * i] * B[j] + A[3 * i + 1] * B[3 + j] + A[3 * i + 2] * B[6 + j];
-}
-inline void mtm(const double *A, const double *B, double *C) {  // C = A^T B
-    for (int i = 0; i < 3; ++i)
-        for (int j = 0; j < 3; ++j) C[3 * i + j] = A[i] * B[j] + A[3 + i] * B[3 + j] + A[6 + i] * B[6 + j];
-}
-inline void mmt(const double *A, const double *B, double *C) {  // C = A B^T
-    for (int i = 0; i < 3; ++i)
-        for (int j = 0; j < 3; ++j)
-            C[3 * i + j] = A[3 * i] * B[3 * j] + A[3 * i + 1] * B[3 * j + 1] + A[3 * i + 2] * B[3 * j + 2];
-}
+// 3x3 helpers, row-major (the products: native_math.hpp)
 inline void mv(const double *A, const double *x, double *y) {
     for (int i = 0; i < 3; ++i) y[i] = A[3 * i] * x[0] + A[3 * i + 1] * x[1] + A[3 * i + 2] * x[2];
 }
 inline void mtv(const double *A, const double *x, double *y) {
     for (int i = 0; i < 3; ++i) y[i] = A[i] * x[0] + A[3 + i] * x[1] + A[6 + i] * x[2];
-}
-inline void cross(const double *a, const double *b, double *c) {
-    c[0] = a[1] * b[2] - a[2] * b[1];
-    c[1] = a[2] * b[0] - a[0] * b[2];
-    c[2] = a[0] * b[1] - a[1] * b[0];
 }
 inline void vee(const double *A, double *w) {  // vee of the skew part
     w[0] = 0.5 * (A[7] - A[5]);
@@ -416,45 +377,6 @@ void jacobian(const TreeSpec &t, Frame &cur, Frame &nxt, Work &w) {
     }
 }
 
-// LU with partial pivoting in place; false on an exactly zero pivot (LAPACK's info > 0)
-bool lu_factor(double *A, int n, int *piv) {
-    bool ok = true;
-    for (int k = 0; k < n; ++k) {
-        int p = k;
-        double best = std::fabs(A[k * n + k]);
-        for (int i = k + 1; i < n; ++i) {
-            double v = std::fabs(A[i * n + k]);
-            if (v > best) best = v, p = i;
-        }
-        piv[k] = p;
-        if (p != k)
-            for (int j = 0; j < n; ++j) std::swap(A[k * n + j], A[p * n + j]);
-        double d = A[k * n + k];
-        if (d == 0.0) {
-            ok = false;
-            continue;
-        }
-        double inv = 1.0 / d;
-        for (int i = k + 1; i < n; ++i) {
-            double l = A[i * n + k] * inv;
-            A[i * n + k] = l;
-            if (l != 0.0)
-                for (int j = k + 1; j < n; ++j) A[i * n + j] -= l * A[k * n + j];
-        }
-    }
-    return ok;
-}
-void lu_solve(const double *A, int n, const int *piv, double *x) {
-    for (int k = 0; k < n; ++k)
-        if (piv[k] != k) std::swap(x[k], x[piv[k]]);
-    for (int i = 1; i < n; ++i)
-        for (int k = 0; k < i; ++k) x[i] -= A[i * n + k] * x[k];
-    for (int i = n - 1; i >= 0; --i) {
-        for (int k = i + 1; k < n; ++k) x[i] -= A[i * n + k] * x[k];
-        x[i] /= A[i * n + i];
-    }
-}
-
 // q' = the joints of q advanced by d (lie.joints.advance): ball R exp(d), hinge R exp(d a), the free root
 // (R exp(w), p + R V(w) v); then its forward kinematics
 void advance(const TreeSpec &t, const Frame &q, const double *d, Frame &out) {
@@ -721,15 +643,7 @@ int liedfl_articulated_rollout(
             if (m) std::memcpy(ppi, prev.p, 3 * sizeof(double)), std::memcpy(pci, cur.p, 3 * sizeof(double));
         }
     };
-    int64_t T = std::max<int64_t>(1, std::min<int64_t>(threads, N / 16));  // >= 16 rows per thread
-    if (T == 1) {
-        rows(0, N);
-        return 0;
-    }
-    std::vector<std::thread> pool;
-    for (int64_t k = 1; k < T; ++k) pool.emplace_back(rows, N * k / T, N * (k + 1) / T);
-    rows(0, N / T);
-    for (std::thread &th : pool) th.join();
+    split_rows(N, threads, rows);
     return 0;
 }
 }

@@ -34,7 +34,6 @@ import time
 from pathlib import Path
 
 import torch
-from torch import nn
 
 from ....lie import Pose
 from ....lie.batched import HISTORY
@@ -46,6 +45,7 @@ from ....solvers.rollout import Rollout
 from ... import mlp_derivatives
 from . import columns as fused_columns
 from .rollout import rollout_maps
+from .scalar import activation_name
 
 SOURCE = Path(__file__).with_name("native_body.cpp")
 _I, _D, _P = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
@@ -75,14 +75,6 @@ CHUNK_ROW_STEPS = 400_000
 between calls."""
 
 
-def _activation(act) -> str | None:
-    if isinstance(act, nn.GELU) and act.approximate == "none":
-        return "gelu"
-    if isinstance(act, nn.Tanh):
-        return "tanh"
-    return None
-
-
 def _potential_terms(potential) -> tuple[list | None, list] | None:
     """(the MLP's layers or None, the gravity terms) of a potential the native step computes, else None."""
     terms = list(potential.terms) if isinstance(potential, SumPotential) else [] if potential is None else [potential]
@@ -90,7 +82,7 @@ def _potential_terms(potential) -> tuple[list | None, list] | None:
     for term in terms:
         if isinstance(term, MLPPotential) and layers is None:
             layers = mlp_derivatives.layers(term.net)
-            if layers is None or any(_activation(act) is None for _, act in layers[:-1]):
+            if layers is None or any(activation_name(act) is None for _, act in layers[:-1]):
                 return None
         elif isinstance(term, (GravityPotential, UniformGravityPotential)):
             gravity.append(term)
@@ -163,7 +155,7 @@ class _NativePotential:
         self.weights = flat([lin.weight for lin, _ in hidden])
         self.weights_t = flat([lin.weight.T for lin, _ in hidden])
         self.biases = flat([zero.new_zeros(lin.out_features) if lin.bias is None else lin.bias for lin, _ in hidden])
-        self.act = torch.tensor([ACTIVATIONS[_activation(act) or ""] for _, act in hidden] or [0], dtype=i64)
+        self.act = torch.tensor([ACTIVATIONS[activation_name(act) or ""] for _, act in hidden] or [0], dtype=i64)
         self.out = (-h * layers[-1][0].weight.detach().to(dt)[0]).contiguous() if layers else zero
         B, m = model.G.n_bodies, model.G.n_se3
         a_, f_, m_ = [], [], []
@@ -307,15 +299,8 @@ def rollout(model, g0: Pose, g1: Pose, steps: int, opts: SolverOptions, progress
     state = {"R": g1.R.reshape(N, 9 * B).contiguous().clone(), "hist": hist, "hist_len": hist_len}
     if engine.se3:
         state["p"] = g1.p.reshape(N, 3 * m).contiguous().clone()
-    chunks, k = [], 1
-    per_call = max(1, CHUNK_ROW_STEPS // max(N, 1))
-    while k < steps:
-        count = min(per_call, steps - k)
-        chunks.append(engine.run(state, count, opts))
-        if progress is not None:
-            for j in range(k, k + count):
-                progress(j)
-        k += count
+    run = lambda count: engine.run(state, count, opts)
+    chunks = native_build.run_in_chunks(run, N, steps, CHUNK_ROW_STEPS, progress)
     cat = _outputs(like, N, 0, B, m if engine.se3 else None)
     if chunks:
         cat = {key: torch.cat([c[key] for c in chunks], 1) for key in chunks[0]}

@@ -27,7 +27,11 @@
 #include <thread>
 #include <vector>
 
+#include "native_math.hpp"
+
 namespace {
+
+using namespace liedfl_native;
 
 constexpr double TRUST = 0.5;  // lie.batched.TRUST
 constexpr int HISTORY = 3;     // lie.batched.HISTORY
@@ -49,19 +53,6 @@ struct Spec {
     int max_iter, max_halvings;
 };
 
-inline void mul3(const double *A, const double *B, double *C) {  // C = A B
-    for (int i = 0; i < 3; ++i)
-        for (int j = 0; j < 3; ++j) C[3 * i + j] = A[3 * i] * B[j] + A[3 * i + 1] * B[3 + j] + A[3 * i + 2] * B[6 + j];
-}
-inline void mul3_tn(const double *A, const double *B, double *C) {  // C = A^T B
-    for (int i = 0; i < 3; ++i)
-        for (int j = 0; j < 3; ++j) C[3 * i + j] = A[i] * B[j] + A[3 + i] * B[3 + j] + A[6 + i] * B[6 + j];
-}
-inline void mul3_nt(const double *A, const double *B, double *C) {  // C = A B^T
-    for (int i = 0; i < 3; ++i)
-        for (int j = 0; j < 3; ++j)
-            C[3 * i + j] = A[3 * i] * B[3 * j] + A[3 * i + 1] * B[3 * j + 1] + A[3 * i + 2] * B[3 * j + 2];
-}
 // y (k) = M (k, 9) x (9), each entry summed left to right from 0 (`scalar._apply`)
 inline void apply(const double *M, int k, const double *x, double *y) {
     for (int i = 0; i < k; ++i) {
@@ -166,7 +157,7 @@ inline void retract(const double *W, const double *d, double *out) {
     double E[9] = {c + cosc * x * x,        cosc * x * y - sinc * z, cosc * x * z + sinc * y,
                    cosc * y * x + sinc * z, c + cosc * y * y,        cosc * y * z - sinc * x,
                    cosc * z * x - sinc * y, cosc * z * y + sinc * x, c + cosc * z * z};
-    mul3(W, E, out);
+    mm(W, E, out);
 }
 
 // the warm start from the last L increments, oldest first (`scalar._extrapolate`)
@@ -177,16 +168,16 @@ void extrapolate(const double *hist, int L, double *out) {
         return;
     }
     double E[9], D[9], T[9], E3[9];
-    mul3_nt(W, &hist[9 * (L - 2)], E);
+    mmt(W, &hist[9 * (L - 2)], E);
     if (L == 3) {  // E D'^T E with D' = W_1 W_2^T
-        mul3_nt(&hist[9], &hist[0], D);
-        mul3_nt(E, D, T);
-        mul3(T, E, E3);
+        mmt(&hist[9], &hist[0], D);
+        mmt(E, D, T);
+        mm(T, E, E3);
         std::memcpy(E, E3, sizeof E);
     }
     bool ok = 3.0 - (E[0] + E[4] + E[8]) <= TRUST * TRUST * (3.0 - (W[0] + W[4] + W[8]));  // NaN: false
     if (ok)
-        mul3(E, W, out);
+        mm(E, W, out);
     else
         std::memcpy(out, W, 9 * sizeof(double));
 }
@@ -194,33 +185,6 @@ void extrapolate(const double *hist, int L, double *out) {
 inline double norm3(const double *r) { return std::sqrt(r[0] * r[0] + r[1] * r[1] + r[2] * r[2]); }
 
 // ---------------------------------------------------------------------------- a product of bodies
-constexpr double TAYLOR2 = 1e-2;  // (lie.tolerances float64 "taylor" = 0.1)^2: series below it
-
-inline double poly(double x, const double *c, int k) {
-    double out = c[k - 1];
-    for (int i = k - 2; i >= 0; --i) out = out * x + c[i];
-    return out;
-}
-// sin(t)/t, 2 sin^2(t/2)/t^2, (t - sin t)/t^3 of t^2 (`lie.batched.exp_coefficients`)
-inline double sinc(double t2) {
-    static const double c[] = {1.0, -1.0 / 6, 1.0 / 120, -1.0 / 5040, 1.0 / 362880};
-    if (t2 < TAYLOR2) return poly(t2, c, 5);
-    double t = std::sqrt(t2);
-    return std::sin(t) / t;
-}
-inline double cosc(double t2) {
-    static const double c[] = {0.5, -1.0 / 24, 1.0 / 720, -1.0 / 40320, 1.0 / 3628800};
-    if (t2 < TAYLOR2) return poly(t2, c, 5);
-    double s = std::sin(0.5 * std::sqrt(t2));
-    return 2.0 * s * s / t2;
-}
-inline double sinc3(double t2) {
-    static const double c[] = {1.0 / 6, -1.0 / 120, 1.0 / 5040, -1.0 / 362880, 1.0 / 39916800};
-    if (t2 < TAYLOR2) return poly(t2, c, 5);
-    double t = std::sqrt(t2);
-    return (t - std::sin(t)) / (t2 * t);
-}
-
 // `engines/rollout.py`'s fused step of a product of bodies (`FusedStep` without per-iteration forces): r = const
 // + kinetic_d1(x) + (h/2) (-D xi~(x)), J = the kinetic blocks (linear in each W, `RolloutMaps.hess` /
 // `se3_block`) + (h/2) (-D) dxi~/d delta, const = kinetic_d2(x_prev) + (h/2) (-D xi~(x_prev)) + the potential's
@@ -237,12 +201,6 @@ struct Product {
     int at(int b) const { return b < m ? 6 * b : 6 * m + 3 * (b - m); }
 };
 
-inline void cross3(const double *a, const double *b, double *c) {
-    c[0] = a[1] * b[2] - a[2] * b[1];
-    c[1] = a[2] * b[0] - a[0] * b[2];
-    c[2] = a[0] * b[1] - a[1] * b[0];
-}
-
 // kinetic_d1 (second = false) or kinetic_d2 of the increment x: c (dim) (`engines.rollout.kinetic_d1/d2`)
 void kinetic(const Product &P, const double *x, bool second, double *c) {
     for (int b = 0; b < P.B; ++b) {
@@ -257,11 +215,11 @@ void kinetic(const Product &P, const double *x, bool second, double *c) {
         for (int i = 0; i < 3; ++i) X[i] = z[i] + Wr[i] - rho[i];
         if (second) {  // w += s rho x W^T X, v = s W^T X
             for (int i = 0; i < 3; ++i) u[i] = W[i] * X[0] + W[3 + i] * X[1] + W[6 + i] * X[2];
-            cross3(rho, u, cu);
+            cross(rho, u, cu);
             for (int i = 0; i < 3; ++i) cb[i] += s * cu[i], cb[3 + i] = s * u[i];
         } else {  // w += s X x (z + W rho), v = -s X
             for (int i = 0; i < 3; ++i) u[i] = z[i] + Wr[i];
-            cross3(X, u, cu);
+            cross(X, u, cu);
             for (int i = 0; i < 3; ++i) cb[i] += s * cu[i], cb[3 + i] = -s * X[i];
         }
     }
@@ -278,7 +236,7 @@ void damping_add(const Product &P, const double *x, double *r, double *xi) {
         if (b < P.m) {
             const double *z = &x[9 * P.B + 3 * b];
             double wz[3];
-            cross3(w, z, wz);
+            cross(w, z, wz);
             for (int i = 0; i < 3; ++i) w[3 + i] = (z[i] - 0.5 * h * wz[i]) / h;
         }
     }
@@ -325,8 +283,8 @@ void jacobian(const Product &P, const double *x, double *J, double *A) {
         double M[9] = {1, 0.5 * h * w[2], -0.5 * h * w[1], -0.5 * h * w[2], 1, 0.5 * h * w[0],
                        0.5 * h * w[1], -0.5 * h * w[0], 1};  // I - h/2 hat(w)
         double dvw[9], dvv[9];
-        mul3(Hz, dw, dvw);
-        mul3(M, W, dvv);
+        mm(Hz, dw, dvw);
+        mm(M, W, dvv);
         for (int i = 0; i < 3; ++i)
             for (int j = 0; j < 3; ++j) {
                 A[n * (o + 3 + i) + o + j] = 0.5 * dvw[3 * i + j];
@@ -351,7 +309,7 @@ void retract(const Product &P, const double *x, const double *d, double *out) {
         for (int i = 0; i < 3; ++i)
             for (int j = 0; j < 3; ++j) H2[3 * i + j] = w[i] * w[j] - (i == j ? t2 : 0.0);  // hat(w)^2
         for (int q = 0; q < 9; ++q) E[q] = (q % 4 == 0 ? 1.0 : 0.0) + c0 * H[q] + c1 * H2[q];
-        mul3(W, E, &out[9 * b]);
+        mm(W, E, &out[9 * b]);
         if (b >= P.m) continue;
         const double *v = w + 3, *z = &x[9 * P.B + 3 * b];
         double c2 = sinc3(t2), V[9], Vv[3];
@@ -364,7 +322,7 @@ void retract(const Product &P, const double *x, const double *d, double *out) {
 
 // a b and a^-1 of product poses (rotations, then the SE(3) bodies' translations)
 void pose_mul(const Product &P, const double *a, const double *b, double *c) {
-    for (int q = 0; q < P.B; ++q) mul3(&a[9 * q], &b[9 * q], &c[9 * q]);
+    for (int q = 0; q < P.B; ++q) mm(&a[9 * q], &b[9 * q], &c[9 * q]);
     for (int q = 0; q < P.m; ++q) {
         const double *R = &a[9 * q], *pa = &a[9 * P.B + 3 * q], *pb = &b[9 * P.B + 3 * q];
         for (int i = 0; i < 3; ++i) c[9 * P.B + 3 * q + i] = pa[i] + R[3 * i] * pb[0] + R[3 * i + 1] * pb[1] + R[3 * i + 2] * pb[2];
@@ -408,40 +366,6 @@ void extrapolate(const Product &P, const double *hist, int L, double *out, doubl
     bool ok = 3.0 * P.B - trE <= t2 * (3.0 * P.B - trW);  // NaN compares false
     if (P.m) ok = ok && dp2 <= t2 * p2;
     if (!ok) std::memcpy(out, last, nx * sizeof(double));
-}
-
-// LU with partial pivoting of an n x n in place; false on an exactly zero pivot
-bool lu_factor(double *A, int n, int *piv) {
-    bool ok = true;
-    for (int k = 0; k < n; ++k) {
-        int p = k;
-        double best = std::fabs(A[n * k + k]);
-        for (int i = k + 1; i < n; ++i)
-            if (std::fabs(A[n * i + k]) > best) best = std::fabs(A[n * i + k]), p = i;
-        piv[k] = p;
-        if (p != k)
-            for (int j = 0; j < n; ++j) std::swap(A[n * k + j], A[n * p + j]);
-        if (A[n * k + k] == 0.0) {
-            ok = false;
-            continue;
-        }
-        for (int i = k + 1; i < n; ++i) {
-            double l = A[n * i + k] / A[n * k + k];
-            A[n * i + k] = l;
-            for (int j = k + 1; j < n; ++j) A[n * i + j] -= l * A[n * k + j];
-        }
-    }
-    return ok;
-}
-void lu_solve(const double *A, int n, const int *piv, double *x) {
-    for (int k = 0; k < n; ++k)
-        if (piv[k] != k) std::swap(x[k], x[piv[k]]);
-    for (int i = 1; i < n; ++i)
-        for (int k = 0; k < i; ++k) x[i] -= A[n * i + k] * x[k];
-    for (int i = n - 1; i >= 0; --i) {
-        for (int k = i + 1; k < n; ++k) x[i] -= A[n * i + k] * x[k];
-        x[i] /= A[n * i + i];
-    }
 }
 
 inline double norm(const double *r, int n) {
@@ -543,11 +467,11 @@ int liedfl_so3_rollout(int64_t N, int64_t count, const double *F, const double *
                 residual_norm[i * count + k] = rnan ? std::numeric_limits<double>::quiet_NaN() : rmax;
                 // the increment re-orthonormalised by one Newton-Schulz step, g_{k+1} = g_k W
                 double M[9], Wn[9], gn[9];
-                mul3_tn(W, W, M);
+                mtm(W, W, M);
                 for (int q = 0; q < 9; ++q) M[q] = (q % 4 == 0 ? 3.0 : 0.0) - M[q];
-                mul3(W, M, Wn);
+                mm(W, M, Wn);
                 for (int q = 0; q < 9; ++q) Wn[q] *= 0.5;
-                mul3(g, Wn, gn);
+                mm(g, Wn, gn);
                 std::memcpy(g, gn, sizeof gn);
                 std::memcpy(outR + (i * count + k) * 9, gn, sizeof gn);
                 if (L == HISTORY) {
@@ -560,15 +484,7 @@ int liedfl_so3_rollout(int64_t N, int64_t count, const double *F, const double *
             hist_len[i] = L;
         }
     };
-    int64_t T = std::max<int64_t>(1, std::min<int64_t>(threads, N / 16));  // >= 16 rows per thread
-    if (T == 1) {
-        rows(0, N);
-        return 0;
-    }
-    std::vector<std::thread> pool;
-    for (int64_t k = 1; k < T; ++k) pool.emplace_back(rows, N * k / T, N * (k + 1) / T);
-    rows(0, N / T);
-    for (std::thread &th : pool) th.join();
+    split_rows(N, threads, rows);
     return 0;
 }
 // Roll `count` steps of N trajectories of a product of B bodies (the first m SE(3)) on from their state, in
@@ -674,9 +590,9 @@ int liedfl_product_rollout(int64_t N, int64_t count, int64_t B, int64_t m, const
                 for (int b = 0; b < B; ++b) {
                     double M[9];
                     const double *W = &x[9 * b];
-                    mul3_tn(W, W, M);
+                    mtm(W, W, M);
                     for (int q = 0; q < 9; ++q) M[q] = (q % 4 == 0 ? 3.0 : 0.0) - M[q];
-                    mul3(W, M, &inc[9 * b]);
+                    mm(W, M, &inc[9 * b]);
                     for (int q = 0; q < 9; ++q) inc[9 * b + q] *= 0.5;
                 }
                 std::copy(x.begin() + 9 * B, x.end(), inc.begin() + 9 * B);
@@ -699,15 +615,7 @@ int liedfl_product_rollout(int64_t N, int64_t count, int64_t B, int64_t m, const
             hist_len[i] = L;
         }
     };
-    int64_t T = std::max<int64_t>(1, std::min<int64_t>(threads, N / 16));
-    if (T == 1) {
-        rows(0, N);
-        return 0;
-    }
-    std::vector<std::thread> pool;
-    for (int64_t k = 1; k < T; ++k) pool.emplace_back(rows, N * k / T, N * (k + 1) / T);
-    rows(0, N / T);
-    for (std::thread &th : pool) th.join();
+    split_rows(N, threads, rows);
     return 0;
 }
 }

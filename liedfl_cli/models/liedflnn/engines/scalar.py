@@ -55,7 +55,8 @@ _INV_SQRT2 = 1.0 / math.sqrt(2.0)
 _INV_SQRT2PI = 1.0 / math.sqrt(2.0 * math.pi)
 
 
-def _activation(act) -> str | None:
+def activation_name(act) -> str | None:
+    """ "gelu" (exact) or "tanh" for the activations computed in floats here and natively, else None."""
     if isinstance(act, nn.GELU) and act.approximate == "none":
         return "gelu"
     if isinstance(act, nn.Tanh):
@@ -80,7 +81,7 @@ def applies(model, g0: Pose) -> bool:
     if not isinstance(model.potential, MLPPotential):
         return False
     lys = mlp_derivatives.layers(model.potential.net)
-    if lys is None or any(_activation(act) is None for _, act in lys[:-1]):
+    if lys is None or any(activation_name(act) is None for _, act in lys[:-1]):
         return False
     return T * (sum(lin.weight.numel() for lin, _ in lys) + STEP_COST) <= BUDGET
 
@@ -187,7 +188,7 @@ class _Potential:
         self.hidden = []
         for lin, act in lys[:-1]:
             b = lin.bias.tolist() if lin.bias is not None else [0.0] * lin.out_features
-            self.hidden.append((lin.weight.tolist(), lin.weight.T.tolist(), b, _activation(act)))
+            self.hidden.append((lin.weight.tolist(), lin.weight.T.tolist(), b, activation_name(act)))
         self.out = [scale * w for w in lys[-1][0].weight[0].tolist()]
 
     def covector(self, g: list[float]) -> list[float]:
