@@ -7,7 +7,8 @@ step, where the fused engine pays for ~1,800 tensor operations.
 
 Built on first use with the C++ compiler torch.compile uses (`$CXX`, g++, c++ or clang++), once per
 source, compiler and CPU, into `$LIEDFL_NATIVE_CACHE` (default `~/.cache/liedfl/native`; written to a
-temporary name, then renamed), and loaded with ctypes. The model uses it (`ArticulatedLieDFLNN.
+temporary name, then renamed), and loaded with ctypes (`solvers.native_build`, shared with the rigid bodies'
+native step, `models.liedflnn.engines.native`). The model uses it (`ArticulatedLieDFLNN.
 native_rollout`) on the fused path when `runtime.compile` is not false, no gradient is recorded, the
 data are float64 on the CPU, the method is Newton or chord and the model is one it serves (`applies`:
 free, ball, hinge and weld joints, gravity, joint damping; reduced or not); otherwise the fused engine.
