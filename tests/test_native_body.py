@@ -156,6 +156,19 @@ def test_steps_without_decrease_backtrack_as_the_row_layout(group):
     assert gap(nat.pose.p, rows.pose.p) <= TOL
 
 
+@pytest.mark.parametrize("G, scale, seed", [(SO3, 8.0, 4), (SE3, 7.0, 8)], ids=["so3", "se3"])
+def test_the_line_search_accepts_a_step_where_the_row_layout_does(G, scale, seed):
+    """Starts (found by search) where some full Newton step lowers ||r|| by less than 10 % but more than the
+    sufficient decrease 1e-4 asks: accepted there, as the row layout accepts it; a line search that asked for
+    more (a constant of 1e-1) halves that step and takes another iteration."""
+    phys = {**PHYS, "g": 0.0} if G is SO3 else {**SE3_PHYS, "g": 0.0}
+    model = physics_model(G, H, phys)
+    g0, g1 = se3_start(20, scale, seed, G)
+    nat, rows, _ = three_ways(model, g0, g1, 12)
+    assert rows.n_failed == 0
+    assert_same_steps(rows, nat)
+
+
 @pytest.mark.parametrize("n_se3, n_so3", [(0, 1), (1, 0), (0, 2), (1, 1)])
 def test_stiff_damping_refuses_the_extrapolation_as_the_row_layout_does(n_se3, n_so3):
     """D = 150 at h 0.1: the spin reverses every step and the extrapolated warm start is refused (its move
