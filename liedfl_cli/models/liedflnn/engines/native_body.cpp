@@ -487,6 +487,7 @@ int liedfl_so3_rollout(int64_t N, int64_t count, const double *F, const double *
     split_rows(N, threads, rows);
     return 0;
 }
+
 // Roll `count` steps of N trajectories of a product of B bodies (the first m SE(3)) on from their state, in
 // place: R (N, B, 9), p (N, m, 3) the pose g_k, hist (N, 3, nx) the last increments (x: rotations, then the
 // SE(3) translations), oldest first, hist_len (N) how many. Writes the poses (N, count, B, 9) / (N, count, m, 3)
