@@ -64,6 +64,8 @@ def se3_start(n: int, scale: float = 1.0, seed: int = 0, G: ProductGroup = SE3) 
 
 
 def served(name: str) -> LieDFLNN:
+    """The model `name` (its networks initialised from a fixed seed: the same model in every process)."""
+    torch.manual_seed(0)
     if name in PRODUCTS:
         n_se3, n_so3, options = PRODUCTS[name]
         G = ProductGroup(n_se3, n_so3)
@@ -218,7 +220,9 @@ def test_long_rollout_stays_on_the_group(name):
     R = nat.pose.R
     assert float((R.transpose(-1, -2) @ R - torch.eye(3, dtype=R.dtype)).abs().max()) < 1e-12
     assert torch.equal(rows.converged, nat.converged)
-    assert float((rows.pose.R - nat.pose.R).abs().max()) < 1e-9  # rounding, grown over 1,000 steps
+    # rounding, grown over 1,000 steps (2e-10 here; up to 5e-9 over other draws of the MLP, and another CPU
+    # rounds the torch engine's products otherwise)
+    assert float((rows.pose.R - nat.pose.R).abs().max()) < 1e-8
     assert gap(rows.pose.p, nat.pose.p) < 1e-9 * max(1.0, gap(rows.pose.p, 0 * rows.pose.p))
 
 
