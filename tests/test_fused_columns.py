@@ -40,6 +40,8 @@ def _columns_at_every_batch_size(monkeypatch):
 
 
 def model_named(name: str) -> LieDFLNN:
+    """The model `name`, its networks from a fixed seed (the same model in every process)."""
+    torch.manual_seed(0)
     if name == "true_scheme":
         return physics_model(SO3, H, PHYS)
     return LieDFLNN(SO3, H, init_jitter=0.3, seed=1, **MODELS[name]).requires_grad_(False)

@@ -143,6 +143,9 @@ class LieDFLNN(ImplicitModel):
         forces: names in FORCES, or {name: options}.
         residual: "fast" (closed-form kinetic derivatives) or "generic" (autodiff of L_d).
         epsilon: log-det regularity threshold, also used to pick the initial scale.
+        init_jitter, seed: the relative jitter of the initial inertia and rho_COM, drawn from a generator seeded
+            with `seed`; the networks (potential, forces) draw from torch's global generator, which `liedfl
+            train` seeds with the run's `seed` (seed it yourself for the same networks in a script).
         known / physics: parts set to the scene's true values and frozen.
         gravity: field strength of the uniform_gravity part; learn_gravity_direction: learn its direction too.
         path: "fused" (the fused hot paths of `models.liedflnn.engines.core`, with the fast residual) or "reference";
