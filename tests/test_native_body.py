@@ -377,3 +377,16 @@ def test_the_benchmark_script_writes_its_record(tmp_path, monkeypatch):
     for r in rows:
         assert r["native_applies"] and r["torch_engine"] in ("scalar", "rows")  # three trajectories
         assert r["torch_over_native"] == pytest.approx(r["torch_us_per_step_traj"] / r["native_us_per_step_traj"])
+
+
+@pytest.mark.parametrize("name", ["mlp_rayleigh", "se3_mlp", "se3_so3_mlp_gravity"])
+def test_an_empty_batch_rolls_out_to_empty_poses_on_every_engine(name):
+    """No trajectories: empty poses and diagnostics of the right shapes, natively and in the row layout (whose
+    MLP input, `ProductGroup.flatten`, once failed to reshape an empty batch)."""
+    model = served(name)
+    g0, g1 = starts(name, 0)
+    with torch.no_grad():
+        nat = model.rollout(g0, g1, 5)
+        rows = rollout_implicit(model, g0, g1, 5, SolverOptions())
+    assert nat.pose.R.shape == rows.pose.R.shape == (0, 6, model.G.n_bodies, 3, 3)
+    assert nat.pose.p.shape == rows.pose.p.shape and nat.iterations.shape == rows.iterations.shape == (0, 4)

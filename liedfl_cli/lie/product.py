@@ -162,8 +162,8 @@ class ProductGroup:
 
     def flatten(self, g: Pose) -> torch.Tensor:
         """Pose -> (..., 9 B + 3 m) network input (rotation entries then positions)."""
-        lead = g.R.shape[:-3]
-        return torch.cat((g.R.reshape(*lead, -1), g.p.reshape(*lead, -1)), -1)
+        lead = g.R.shape[:-3]  # (sizes, not -1: an empty batch has no size to infer)
+        return torch.cat((g.R.reshape(*lead, 9 * self.n_bodies), g.p.reshape(*lead, 3 * self.n_se3)), -1)
 
     def orthogonality_error(self, g: Pose) -> torch.Tensor:
         """max over bodies of ||R^T R - I||_F: Pose (R (..., B, 3, 3), p) -> shape (...)."""
