@@ -1,6 +1,7 @@
 """Where the native rigid-body step pays: its rollout against the torch engines' for one body or two.
 
     python scripts/bench_native_body.py [--json FILE] [--threads 1 2] [--batches 1 10 100 1000 2000 4000 8000 16000]
+        [--groups SO3 SE3 SE3xSO3] [--nn-force]
 
 For each thread count, group (SO(3), SE(3), SE(3) x SO(3)), MLP potential (none, 10 x 2, 32 x 3, 64 x 3;
 Rayleigh damping, h 0.05) and batch size: microseconds per step per trajectory (best of 3) of
@@ -8,7 +9,8 @@ Rayleigh damping, h 0.05) and batch size: microseconds per step per trajectory (
 Python floats for a few trajectories, the row layout up to 31, the column layout from 32; the others: the row
 layout), their ratio (`torch_over_native` > 1: the native step is faster) and whether `native.applies` takes
 the batch (its `MLP_ROWS` rule, set from these figures). Timing only; the engines' equality is
-tests/test_native_body.py's.
+tests/test_native_body.py's. `--nn-force` adds a learned force F(g, xi~) (`NNForce`, 32 x 3) to every model
+(its value and Jacobian at every Newton iteration; the torch engine is then the row layout for every group).
 """
 
 from __future__ import annotations
@@ -45,12 +47,11 @@ def best_of(fn, repeats: int = 3) -> float:
     return best
 
 
-def model_for(G, size) -> LieDFLNN:
+def model_for(G, size, nn_force: bool = False) -> LieDFLNN:
+    forces = {"rayleigh": {}, "nn": {"width": 32, "depth": 3}} if nn_force else {"rayleigh": {}}
     if size is None:
-        return LieDFLNN(G, H, potential="none", forces=["rayleigh"]).requires_grad_(False)
-    return LieDFLNN(G, H, potential="mlp", forces=["rayleigh"], mlp_width=size[0], mlp_depth=size[1]).requires_grad_(
-        False
-    )
+        return LieDFLNN(G, H, potential="none", forces=forces).requires_grad_(False)
+    return LieDFLNN(G, H, potential="mlp", forces=forces, mlp_width=size[0], mlp_depth=size[1]).requires_grad_(False)
 
 
 def starts(G, n: int) -> tuple[Pose, Pose]:
@@ -65,17 +66,21 @@ def main() -> None:
     ap.add_argument("--json", default=None)
     ap.add_argument("--threads", type=int, nargs="+", default=[1, 2])
     ap.add_argument("--batches", type=int, nargs="+", default=[1, 10, 100, 1000, 2000, 4000, 8000, 16000])
+    ap.add_argument("--groups", nargs="+", default=list(GROUPS), choices=list(GROUPS))
+    ap.add_argument("--nn-force", action="store_true", help="add a learned force (NNForce 32 x 3) to every model")
     args = ap.parse_args()
-    out: dict = {"load_avg_start": list(os.getloadavg()), "h": H, "rows": []}
+    out: dict = {"load_avg_start": list(os.getloadavg()), "h": H, "nn_force": args.nn_force, "rows": []}
     opts = SolverOptions()
     for threads in args.threads:
         torch.set_num_threads(threads)
-        for group, G in GROUPS.items():
+        for group in args.groups:
+            G = GROUPS[group]
             for name, size in MLPS.items():
-                model = model_for(G, size)
+                torch.manual_seed(0)
+                model = model_for(G, size, args.nn_force)
                 for n in args.batches:
                     steps = int(max(6, min(200, 4e5 / n)))
-                    if group != "SO3":  # the row layout: fewer steps at large batches (a few seconds a row)
+                    if group != "SO3" or args.nn_force:  # the row layout: fewer steps (a few seconds a row)
                         steps = int(max(6, min(200, 4e4 / n)))
                     g0, g1 = starts(G, n)
                     with torch.no_grad():

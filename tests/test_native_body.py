@@ -12,6 +12,7 @@ import torch
 from test_fused_columns import PHYS, TOL, H, assert_same_steps, model_named, start
 
 from liedfl_cli.lie import SE3, SO3, Pose, ProductGroup, so3
+from liedfl_cli.mechanics.forces import NNForce
 from liedfl_cli.models.liedflnn.engines import choose
 from liedfl_cli.models.liedflnn.engines import native as fused_native
 from liedfl_cli.models.liedflnn.model import LieDFLNN
@@ -36,6 +37,10 @@ PRODUCTS = {  # (n_se3, n_so3, options): the two-body scene's group, rotations o
     "so3_so3_mlp": (0, 2, dict(potential="mlp", forces=["rayleigh"], mlp_width=8, mlp_depth=2)),
     "se3_se3_gravity": (2, 0, dict(potential="uniform_gravity", forces=["rayleigh"])),
     "se3_so3x3_mlp": (1, 3, dict(potential="mlp", forces=[], mlp_width=6)),
+    # a learned force F(g, xi~) (`NNForce`): its value and Jacobian in xi~ at every Newton iteration
+    "so3_nn": (0, 1, dict(potential="mlp", forces={"rayleigh": {}, "nn": {"width": 8, "depth": 2}}, mlp_width=6)),
+    "se3_nn": (1, 0, dict(potential="none", forces={"rayleigh": {}, "nn": {"width": 8, "depth": 3}})),
+    "se3_so3_nn": (1, 1, dict(potential="mlp", forces={"rayleigh": {}, "nn": {"width": 6, "depth": 2}}, mlp_width=6)),
 }
 SE3_SERVED = [*SE3_MODELS, "se3_true_scheme", "se3_tanh_mlp", *PRODUCTS]
 
@@ -72,6 +77,11 @@ def served(name: str) -> LieDFLNN:
         model = LieDFLNN(G, H, init_jitter=0.3, seed=4, **options).requires_grad_(False)
         if model.mass is not None:  # bodies of different masses (gravity's translational part is per body)
             model.mass.set_value(torch.linspace(0.7, 1.6, G.n_se3, dtype=torch.float64))
+        for force in model.forces:
+            if isinstance(force, NNForce):  # a force that matters (the default start is near zero)
+                with torch.no_grad():
+                    for p in force.net.parameters():
+                        p.mul_(3.0)
         return model
     if name == "se3_true_scheme":
         return physics_model(SE3, H, SE3_PHYS)
@@ -321,6 +331,14 @@ def test_which_rollouts_take_the_native_step():
         assert fused_native.applies(se3, se3_start(20000)[0])  # SE(3): the torch engine is slower at any batch
         se3_control = LieDFLNN(SE3, H, potential="none", forces={"control": {"width": 4}})
         assert not fused_native.applies(se3_control, se3_start(1)[0])
+        nn = LieDFLNN(SE3, H, potential="none", forces={"rayleigh": {}, "nn": {"width": 32, "depth": 3}})
+        assert fused_native.applies(nn, se3_start(1)[0]) and fused_native.applies(nn, se3_start(200)[0])
+        assert not fused_native.applies(nn, se3_start(400)[0])  # FORCE_ROWS: the row layout's batches win
+        nn.forces[1].net[1] = torch.nn.SiLU()  # an activation the native step does not compute
+        assert not fused_native.applies(nn, se3_start(1)[0])
+        two = LieDFLNN(SO3, H, potential="none", forces={"nn": {"width": 4}})
+        two.forces.append(NNForce(SO3, width=4, depth=2))
+        assert not fused_native.applies(two, g1_)  # (one learned force at most)
         pair = LieDFLNN(ProductGroup(1, 1), H, potential="mlp", forces=["rayleigh"], mlp_width=64, mlp_depth=3)
         assert fused_native.applies(pair, se3_start(20000, G=pair.G)[0])  # products: any batch
         scene = {**SE3_PHYS, "D": [0.05] * 9, "interaction": {"kind": "spring", "mu": 1.0}}

@@ -15,9 +15,9 @@ serves it, so a triplet batch given to a fused model is still computed (by the r
 
 Rollouts (`choose_rollout_engine`), once per rollout from the start poses:
 
-    native   one body or a product of bodies with at most constant Rayleigh damping and an MLP or
-             gravity potential, in C++ (`engines/native.py`), where the plan allows native code and a
-             compiler builds it
+    native   one body or a product of bodies with constant Rayleigh damping, at most one learned force
+             and an MLP or gravity potential, in C++ (`engines/native.py`), where the plan allows native
+             code and a compiler builds it
     scalar   one to six trajectories of a single SO(3) body with a linear Newton residual, Python floats
     columns  more trajectories of such a body, in column layout ((3, 3, T) rotations)
     rows     everything else: the one Newton loop over rows (`LieDFLNN.rollout_rows`: the fused step,

@@ -34,8 +34,8 @@ Files (this module only re-exports them: the rest of the code imports `models.li
                        multiply-adds over rows of length T)
     scalar.py          the same rollout for one to six trajectories in Python floats (a batch-1
                        step is torch's per-call cost, not arithmetic)
-    native.py          the rollout of one body or a product of bodies (at most constant Rayleigh damping;
-                       an MLP and/or gravity potential) in C++ (`native_body.cpp`), built on first use
+    native.py          the rollout of one body or a product of bodies (constant Rayleigh damping, a learned
+                       force; an MLP and/or gravity potential) in C++ (`native_body.cpp`), built on first use
     choose.py          which of them serves a training run or a rollout (`LieDFLNN.rollout` asks it)
 """
 

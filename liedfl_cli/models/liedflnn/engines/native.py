@@ -1,5 +1,5 @@
 """Fused hot paths of LieDFLNN, part 6 (see `models.liedflnn.engines.core`): the rollout of a single SO(3) or SE(3)
-body, or of any product of bodies SE(3)^m x SO(3)^n (no force, or constant Rayleigh damping), in native code.
+body, or of any product of bodies SE(3)^m x SO(3)^n (constant Rayleigh damping, a learned force), in native code.
 
 The step of `engines.scalar` / `engines.columns` (one SO(3) body) and of the row layout's `FusedStep` (every
 other product) written in C++ (`native_body.cpp`), one trajectory at a time, each with the reference Newton
@@ -9,14 +9,15 @@ with a 10 x 2 MLP potential on SO(3), ~2.7 µs on SE(3)) where the Python floats
 ~60 µs and the row layout 0.4-1.8 ms. Built on first use (`solvers.native_build`, the articulated step's
 machinery) and kept per machine.
 
-Serves (`applies`) the fused path of a LieDFLNN of one body or a product of bodies with no force or only
-constant Rayleigh damping, a potential that is none, an MLP of Linear layers with exact GELU or tanh
+Serves (`applies`) the fused path of a LieDFLNN of one body or a product of bodies with constant Rayleigh
+damping and at most one learned force (`NNForce`, GELU or tanh layers; batches up to `FORCE_ROWS`), a
+potential that is none, an MLP of Linear layers with exact GELU or tanh
 activations, gravity (declared or learned, `GravityPotential` / `UniformGravityPotential`) or a sum of those
 with at most one MLP (a single SO(3) body with an MLP: batches up to the size where the column layout's
 batched products overtake it, `MLP_ROWS`); float64 poses on the CPU (a rollout records no gradient on any
 engine), a plan that allows native code (`ExecutionPlan.wants_native`: not under `runtime.compile=false`),
 and a C++ compiler that builds it. Otherwise the torch engines (`engines/choose.py`): interaction
-potentials, control and learned forces, float32, GPUs.
+potentials, control forces and configuration-dependent damping, float32, GPUs.
 
 One difference from the other engines, in no converging step: an exactly singular Jacobian takes no step
 (the step is flagged as failed) where the reference takes a least-squares step.
@@ -32,12 +33,13 @@ import functools
 import math
 import time
 from pathlib import Path
+from typing import Literal
 
 import torch
 
 from ....lie import Pose
 from ....lie.batched import HISTORY
-from ....mechanics.forces import RayleighForce
+from ....mechanics.forces import NNForce, RayleighForce
 from ....mechanics.potentials import GravityPotential, MLPPotential, SumPotential, UniformGravityPotential
 from ....solvers import native_build, newton
 from ....solvers.options import SolverOptions
@@ -53,8 +55,9 @@ _POTENTIAL = [_I, _P, _P, _P, _P, _P, _P, _I, _P, _P, _P]  # `_NativePotential.a
 _DIAGNOSTICS = [_P, _P, _P, _I]  # converged, iterations, residual norm, threads
 ARGTYPES = {  # ... the pose(s), hist, hist_len, the output pose(s), _DIAGNOSTICS
     "liedfl_so3_rollout": [_I, _I, _P, _P, _P, *_POTENTIAL, _D, _I, _I, _P, _P, _P, _P, *_DIAGNOSTICS],
-    "liedfl_product_rollout": [_I, _I, _I, _I, _P, _P, _P, _P, _P, _P, _I, _P, _D, *_POTENTIAL, _D, _I, _I]
-    + [_P, _P, _P, _P, _P, _P, *_DIAGNOSTICS],
+    "liedfl_product_rollout": [_I, _I, _I, _I, _P, _P, _P, _P, _P, _P, _I, _P, _D, *_POTENTIAL]
+    + [_I, _P, _P, _P, _P, _P, _P, _P, _D]  # the learned force's network (`_NativeForce.args`)
+    + [_D, _I, _I, _P, _P, _P, _P, _P, _P, _P, _P, *_DIAGNOSTICS],
 }
 """The C signatures (native_body.cpp): N and count, the body's maps, the potential, the tolerance, max_iter and
 max_halvings, the state and outputs, threads."""
@@ -70,6 +73,14 @@ native rigid-body step", record docs/bench/native_body_2026-12-07.json): one thr
 64 x 3 (8,832) 3.96 / 6.88 at 100 and 3.96 / 2.33 at 1,000; two threads, 10 x 2 0.34 / 0.35 at 8,000, 32 x 3
 0.96 / 1.46 at 1,000 and 0.95 / 0.92 at 2,000. Without an MLP, and for every other group (whose torch engine
 is the row layout), it serves every batch (1.2-780x the torch engine from 1 to 16,000 trajectories)."""
+FORCE_ROWS = 300
+FORCE_WEIGHTS = 2500
+"""With a learned force (`NNForce`) every Newton iteration evaluates the network and its Jacobian in xi~ (forward
+mode, dim columns) one trajectory at a time, where the row layout multiplies whole batches: the native step
+serves up to FORCE_ROWS x sqrt(FORCE_WEIGHTS / weights) x threads trajectories (measured, idle, one thread, a
+32 x 3 force, µs per trajectory-step native / rows: SO(3) 11.3 / 19.0 at 100 and 11.2 / 10.6 at 300, SE(3)
+21.3 / 40.6 and 21.1 / 21.4, SE(3) x SO(3) 22.9 / 50.4 and 22.6 / 29.6; at batch 1 93-110x; record
+docs/bench/native_body_nn_2026-12-07.json)."""
 CHUNK_ROW_STEPS = 400_000
 """Trajectory-steps per call into the native code (~0.5 s): progress is reported and signals are handled
 between calls."""
@@ -107,16 +118,35 @@ def applies(model, g0: Pose) -> bool:
 
 def _product(model, g0: Pose) -> bool:
     """A LieDFLNN on the fused path of any product of bodies (one SE(3) body, SE(3) x SO(3)^n, SO(3)^n, ...)
-    with no force or only constant Rayleigh damping, poses (T, B, 3, 3) / (T, m, 3)."""
-    return model._fused() and g0.R.dim() == 4 and all(isinstance(f, RayleighForce) for f in model.forces)
+    with constant Rayleigh damping and at most one learned force (`NNForce` with GELU or tanh layers), poses
+    (T, B, 3, 3) / (T, m, 3)."""
+    return model._fused() and g0.R.dim() == 4 and _force_layers(model) is not False
+
+
+def _force_layers(model) -> list | None | Literal[False]:
+    """The layers of the model's one `NNForce` (None without one; False where a force is neither that nor
+    constant Rayleigh damping, or there are two)."""
+    nets = [f for f in model.forces if isinstance(f, NNForce)]
+    if len(nets) > 1 or any(not isinstance(f, (RayleighForce, NNForce)) for f in model.forces):
+        return False
+    if not nets:
+        return None
+    layers = mlp_derivatives.layers(nets[0].net)
+    if layers is None or len(layers) < 2 or any(activation_name(act) is None for _, act in layers[:-1]):
+        return False
+    return layers
 
 
 def _serves_batch(model, g0: Pose) -> bool:
     """Whether the potential is one the native step computes and g0's trajectories are few enough for it
-    (`MLP_ROWS`)."""
+    (`MLP_ROWS`, `FORCE_ROWS`)."""
     terms = _potential_terms(model.potential)
     if terms is None:
         return False
+    force = _force_layers(model)
+    if isinstance(force, list):  # a learned force: its Jacobian per trajectory against the row layout's batches
+        weights = sum(lin.weight.numel() for lin, _ in force)
+        return g0.R.shape[0] <= FORCE_ROWS * math.sqrt(FORCE_WEIGHTS / weights) * torch.get_num_threads()
     if terms[0] is None or not fused_columns.single_linear_so3(model, g0):
         return True  # (without a column layout the torch engine is the row layout: slower at any batch)
     rows = g0.R.shape[0]
@@ -233,6 +263,40 @@ class NativeSO3:
         return out
 
 
+class _NativeForce:
+    """The learned force's network for the native step (`Net` in native_body.cpp): hidden layers as
+    `_NativePotential`'s (input flatten(g) then xi~), the output layer's weights (dim, width) and bias, the
+    force's scale; no layers (0) without one."""
+
+    def __init__(self, model, dt: torch.dtype):
+        layers = _force_layers(model)
+        zero = torch.zeros(1, dtype=dt)
+        self.layers, self.scale = 0, 0.0
+        self.width = torch.zeros(1, dtype=torch.int64)
+        self.weights = self.weights_t = self.biases = self.out_w = self.out_b = zero
+        self.act = self.width
+        if not isinstance(layers, list):  # (no learned force: `applies` refused a False)
+            return
+        force = next(f for f in model.forces if isinstance(f, NNForce))
+        hidden, (last, _) = layers[:-1], layers[-1]
+        self.layers, self.scale = len(hidden), float(force.scale)
+        widths = [hidden[0][0].in_features] + [lin.out_features for lin, _ in hidden]
+        self.width = torch.tensor(widths, dtype=torch.int64)
+        flat = lambda ts: torch.cat([t.detach().to(dt).reshape(-1) for t in ts])
+        self.weights = flat([lin.weight for lin, _ in hidden])
+        self.weights_t = flat([lin.weight.T for lin, _ in hidden])
+        self.biases = flat([zero.new_zeros(lin.out_features) if lin.bias is None else lin.bias for lin, _ in hidden])
+        self.act = torch.tensor([ACTIVATIONS[activation_name(act) or ""] for _, act in hidden], dtype=torch.int64)
+        self.out_w = last.weight.detach().to(dt).contiguous()
+        self.out_b = zero.new_zeros(last.out_features) if last.bias is None else last.bias.detach().to(dt).contiguous()
+
+    def args(self) -> list:
+        return [
+            self.layers, _ptr(self.width), _ptr(self.weights), _ptr(self.weights_t), _ptr(self.biases),
+            _ptr(self.act), _ptr(self.out_w), _ptr(self.out_b), self.scale,
+        ]  # fmt: skip
+
+
 class NativeProduct:
     """The constants of the native rollout of a product of bodies SE(3)^m x SO(3)^(B-m) (one SE(3) body
     included; its parameters read once, detached) and the call."""
@@ -257,6 +321,7 @@ class NativeProduct:
         self.damped = P.D is not None
         self.D = P.D.detach().to(dt).contiguous() if P.D is not None else zero
         self.potential = _NativePotential(model, dt)
+        self.force = _NativeForce(model, dt)
 
     def run(self, state: dict, count: int, opts: SolverOptions) -> dict:
         """`count` steps from `state` (updated in place; `rollout`) -> this chunk's rotations (N, count, B, 3, 3),
@@ -268,7 +333,8 @@ class NativeProduct:
         rc = lib.liedfl_product_rollout(
             state["R"].shape[0], count, self.B, self.m, _ptr(self.d1), _ptr(self.d2), _ptr(self.hess),
             _ptr(self.se3_block), _ptr(self.rho), _ptr(self.s), int(self.damped), _ptr(self.D), self.h,
-            *self.potential.args(), opts.tol, opts.max_iter, opts.max_halvings, *_state_and_output_args(state, out),
+            *self.potential.args(), *self.force.args(), opts.tol, opts.max_iter, opts.max_halvings,
+            _ptr(state["R_prev"]), _ptr(state["p_prev"]), *_state_and_output_args(state, out),
         )  # fmt: skip
         if rc != 0:
             raise RuntimeError(f"native product rollout returned {rc}")
@@ -278,7 +344,8 @@ class NativeProduct:
 def for_model(model, like: torch.Tensor) -> NativeSO3 | NativeProduct:
     """`model`'s native engine, kept on the model while its step, parameters and buffers are unchanged
     (`solvers.native_build.kept_on_model`)."""
-    single = model.G.n_bodies == 1 and not model.G.n_se3  # (`applies`: then with a linear residual)
+    # one SO(3) body with a linear residual (no learned force): the linear step; else the product's
+    single = model.G.n_bodies == 1 and not model.G.n_se3 and _force_layers(model) is None
     make = NativeSO3 if single else NativeProduct
     return native_build.kept_on_model(model, like, "_native_body", make)
 
@@ -297,8 +364,10 @@ def rollout(model, g0: Pose, g1: Pose, steps: int, opts: SolverOptions, progress
     hist[:, 0, 9 * B :] = inc.p.reshape(N, 3 * m)
     hist_len = like.new_ones(N, dtype=torch.int64)
     state = {"R": g1.R.reshape(N, 9 * B).contiguous().clone(), "hist": hist, "hist_len": hist_len}
-    if engine.se3:
+    if engine.se3:  # (a product: positions, and g_{k-1} for a learned force)
         state["p"] = g1.p.reshape(N, 3 * m).contiguous().clone()
+        state["R_prev"] = g0.R.reshape(N, 9 * B).contiguous().clone()
+        state["p_prev"] = g0.p.reshape(N, 3 * m).contiguous().clone()
     run = lambda count: engine.run(state, count, opts)
     chunks = native_build.run_in_chunks(run, N, steps, CHUNK_ROW_STEPS, progress)
     cat = _outputs(like, N, 0, B, m if engine.se3 else None)

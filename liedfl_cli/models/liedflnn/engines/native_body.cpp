@@ -6,7 +6,8 @@
 // JT W.flatten() from the linear maps of `RolloutMaps.linear` (a body with no force or constant Rayleigh
 // damping has a residual linear in the increment W), the constant part C W_prev + the potential's covector
 // -h dV at g_k, the 3x3 solve from the adjugate, the retraction W exp(hat(delta)) in closed form.
-// Products: the fused row step of `engines/rollout.py` (`FusedStep` without per-iteration forces): the kinetic
+// Products: the fused row step of `engines/rollout.py` (`FusedStep`, a learned force's value and Jacobian at every
+// iteration as its `ForcesAt`): the kinetic
 // d1 / d2 terms (rotational parts from their linear maps), constant Rayleigh damping on the velocity estimate,
 // the kinetic blocks of the Jacobian linear in W, an LU solve, the retraction x exp(delta) body by body.
 // Both: the potential's covector from an MLP of the pose's entries (exact GELU or tanh layers) and uniform
@@ -185,6 +186,110 @@ void extrapolate(const double *hist, int L, double *out) {
 inline double norm3(const double *r) { return std::sqrt(r[0] * r[0] + r[1] * r[1] + r[2] * r[2]); }
 
 // ---------------------------------------------------------------------------- a product of bodies
+// A learned force F(g, xi~) = scale (W_out a + b_out) of an MLP of (flatten(g), xi~) (`mechanics.forces.NNForce`):
+// hidden layers of exact GELU or tanh, weights as for the potential (`Spec`); nq = 9 B + 3 m inputs from g, then
+// the dim inputs of xi~, dim outputs.
+struct Net {
+    int layers, nq, dim;
+    const int64_t *width, *act;  // width (layers + 1): nq + dim, then each hidden layer's width
+    const double *weights, *weights_t, *biases, *out_w, *out_b;  // out_w (dim, width[layers]), out_b (dim)
+    double scale;
+};
+
+// Net's work space and its first layer's part fixed by g (`fix`), for values at (g, xi) and dF/dxi~ there
+struct NetEval {
+    const Net *net = nullptr;
+    std::vector<double> zq, a, z, slopes, J, J2;
+    void init(const Net *n) {
+        net = n;
+        if (!n) return;
+        int wmax = 1, total = 0;
+        for (int l = 0; l < n->layers; ++l) wmax = std::max(wmax, (int)n->width[l + 1]), total += (int)n->width[l + 1];
+        zq.assign(wmax, 0.0), a.assign(std::max(wmax, n->nq + n->dim), 0.0), z.assign(wmax, 0.0);
+        slopes.assign(std::max(total, 1), 0.0), J.assign(wmax * n->dim, 0.0), J2.assign(wmax * n->dim, 0.0);
+    }
+    // zq = the first layer's weights on g's inputs times flatten(g) (R: 9 B, p: 3 m)
+    void fix(const double *R, const double *p, int B, int m) {
+        const Net &n = *net;
+        const int w1 = (int)n.width[1], in = n.nq + n.dim;
+        std::memcpy(a.data(), R, 9 * B * sizeof(double));
+        if (m) std::memcpy(&a[9 * B], p, 3 * m * sizeof(double));
+        std::fill(zq.begin(), zq.begin() + w1, 0.0);
+        for (int j = 0; j < n.nq; ++j) {
+            const double aj = a[j], *row = &n.weights_t[j * w1];
+            for (int i = 0; i < w1; ++i) zq[i] += row[i] * aj;
+        }
+        (void)in;
+    }
+    // F (dim) at (the fixed g, xi); with dF (dim x dim, row-major) its Jacobian in xi by forward mode
+    void eval(const double *xi, double *F, double *dF) {
+        const Net &n = *net;
+        const int d = n.dim, in0 = n.nq + d;
+        const double *W = n.weights, *Wt = n.weights_t, *b = n.biases;
+        int in = in0, off = 0;
+        for (int l = 0; l < n.layers; ++l) {
+            const int out = (int)n.width[l + 1];
+            if (l == 0) {
+                for (int i = 0; i < out; ++i) z[i] = zq[i];
+                for (int j = 0; j < d; ++j) {
+                    const double xj = xi[j], *row = &Wt[(n.nq + j) * out];
+                    for (int i = 0; i < out; ++i) z[i] += row[i] * xj;
+                }
+                if (dF)  // J (out x d) = the first layer's xi columns
+                    for (int i = 0; i < out; ++i)
+                        for (int j = 0; j < d; ++j) J[i * d + j] = W[i * in + n.nq + j];
+            } else {
+                std::fill(z.begin(), z.begin() + out, 0.0);
+                for (int j = 0; j < in; ++j) {
+                    const double aj = a[j], *row = &Wt[j * out];
+                    for (int i = 0; i < out; ++i) z[i] += row[i] * aj;
+                }
+                if (dF) {  // J <- W_l J
+                    std::fill(J2.begin(), J2.begin() + out * d, 0.0);
+                    for (int i = 0; i < out; ++i)
+                        for (int k = 0; k < in; ++k) {
+                            const double wik = W[i * in + k], *src = &J[k * d];
+                            double *dst = &J2[i * d];
+                            for (int j = 0; j < d; ++j) dst[j] += wik * src[j];
+                        }
+                    std::swap(J, J2);
+                }
+            }
+            for (int i = 0; i < out; ++i) z[i] += b[i];
+            double *sl = &slopes[off];
+            for (int i = 0; i < out; ++i) {
+                double v = z[i];
+                if (n.act[l] == 0) {
+                    double cdf = 0.5 * std::erf(v * INV_SQRT2) + 0.5;
+                    a[i] = v * cdf;
+                    sl[i] = cdf + v * std::exp(-0.5 * v * v) * INV_SQRT2PI;
+                } else {
+                    double t = std::tanh(v);
+                    a[i] = t;
+                    sl[i] = 1.0 - t * t;
+                }
+            }
+            if (dF)
+                for (int i = 0; i < out; ++i)
+                    for (int j = 0; j < d; ++j) J[i * d + j] *= sl[i];
+            W += out * in, Wt += out * in, b += out, off += out, in = out;
+        }
+        for (int i = 0; i < d; ++i) {
+            double acc = 0.0;
+            const double *row = &n.out_w[i * in];
+            for (int k = 0; k < in; ++k) acc += row[k] * a[k];
+            F[i] = n.scale * (acc + n.out_b[i]);
+        }
+        if (dF)
+            for (int i = 0; i < d; ++i)
+                for (int j = 0; j < d; ++j) {
+                    double acc = 0.0;
+                    for (int k = 0; k < in; ++k) acc += n.out_w[i * in + k] * J[k * d + j];
+                    dF[i * d + j] = n.scale * acc;
+                }
+    }
+};
+
 // `engines/rollout.py`'s fused step of a product of bodies (`FusedStep` without per-iteration forces): r = const
 // + kinetic_d1(x) + (h/2) (-D xi~(x)), J = the kinetic blocks (linear in each W, `RolloutMaps.hess` /
 // `se3_block`) + (h/2) (-D) dxi~/d delta, const = kinetic_d2(x_prev) + (h/2) (-D xi~(x_prev)) + the potential's
@@ -225,9 +330,8 @@ void kinetic(const Product &P, const double *x, bool second, double *c) {
     }
 }
 
-// r (dim) += (h/2) (-D xi~(x)), per body xi~ = (vee(W) / h, (z - h/2 w~ x z) / h) (`kinetic.velocity_estimate`)
-void damping_add(const Product &P, const double *x, double *r, double *xi) {
-    if (!P.D) return;
+// xi~ (dim) of the increment x, per body (vee(W) / h, (z - h/2 w~ x z) / h) (`kinetic.velocity_estimate`)
+void velocity(const Product &P, const double *x, double *xi) {
     const double h = P.h;
     for (int b = 0; b < P.B; ++b) {
         const double *W = &x[9 * b];
@@ -240,17 +344,29 @@ void damping_add(const Product &P, const double *x, double *r, double *xi) {
             for (int i = 0; i < 3; ++i) w[3 + i] = (z[i] - 0.5 * h * wz[i]) / h;
         }
     }
-    for (int i = 0; i < P.dim; ++i) {
-        double acc = 0.0;
-        for (int j = 0; j < P.dim; ++j) acc += P.D[P.dim * i + j] * xi[j];
-        r[i] += 0.5 * h * -acc;
+}
+
+// r (dim) += (h/2) (-D xi~(x) + F_nn(g, xi~(x))) with `nn`'s g fixed (`NetEval::fix`; none: null); xi, F scratch
+void forces_add(const Product &P, NetEval *nn, const double *x, double *r, double *xi, double *F) {
+    if (!P.D && !nn) return;
+    velocity(P, x, xi);
+    if (P.D)
+        for (int i = 0; i < P.dim; ++i) {
+            double acc = 0.0;
+            for (int j = 0; j < P.dim; ++j) acc += P.D[P.dim * i + j] * xi[j];
+            r[i] += 0.5 * P.h * -acc;
+        }
+    if (nn) {
+        nn->eval(xi, F, nullptr);
+        for (int i = 0; i < P.dim; ++i) r[i] += 0.5 * P.h * F[i];
     }
 }
 
 // J (dim x dim) = blockdiag(the kinetic blocks at x) + (h/2) (-D) blockdiag(dxi~/d delta) (`rollout.step_jacobian`;
 // `velocity_jacobian_blocks`: dw = (tr W I - W^T) / (2h), an SE(3) body's [[dw, 0], [hat(z) dw / 2, (I - h/2
-// hat(w~)) W / h]]); A (dim x dim) scratch
-void jacobian(const Product &P, const double *x, double *J, double *A) {
+// hat(w~)) W / h]]), plus (h/2) dF_nn/dxi~ blockdiag(dxi~/d delta) with `nn`'s g fixed; A, dF (dim x dim), xi, F
+// scratch
+void jacobian(const Product &P, NetEval *nn, const double *x, double *J, double *A, double *dF, double *xi, double *F) {
     const int n = P.dim;
     const double h = P.h;
     std::fill(J, J + n * n, 0.0);
@@ -265,7 +381,7 @@ void jacobian(const Product &P, const double *x, double *J, double *A) {
         for (int i = 0; i < k; ++i)
             for (int j = 0; j < k; ++j) J[n * (o + i) + o + j] = blk[k * i + j];
     }
-    if (!P.D) return;
+    if (!P.D && !nn) return;
     std::fill(A, A + n * n, 0.0);
     for (int b = 0; b < P.B; ++b) {
         const double *W = &x[9 * b];
@@ -291,11 +407,18 @@ void jacobian(const Product &P, const double *x, double *J, double *A) {
                 A[n * (o + 3 + i) + o + 3 + j] = dvv[3 * i + j] / h;
             }
     }
+    // dF (the forces' Jacobian in xi~): -D, plus the network's
+    for (int q = 0; q < n * n; ++q) dF[q] = P.D ? -P.D[q] : 0.0;
+    if (nn) {
+        velocity(P, x, xi);
+        nn->eval(xi, F, A + n * n);  // (A's second half: scratch for the network's Jacobian)
+        for (int q = 0; q < n * n; ++q) dF[q] += A[n * n + q];
+    }
     for (int i = 0; i < n; ++i)
         for (int j = 0; j < n; ++j) {
             double acc = 0.0;
-            for (int q = 0; q < n; ++q) acc += P.D[n * i + q] * A[n * q + j];
-            J[n * i + j] += 0.5 * h * -acc;
+            for (int q = 0; q < n; ++q) acc += dF[n * i + q] * A[n * q + j];
+            J[n * i + j] += 0.5 * h * acc;
         }
 }
 
@@ -490,46 +613,58 @@ int liedfl_so3_rollout(int64_t N, int64_t count, const double *F, const double *
 
 // Roll `count` steps of N trajectories of a product of B bodies (the first m SE(3)) on from their state, in
 // place: R (N, B, 9), p (N, m, 3) the pose g_k, hist (N, 3, nx) the last increments (x: rotations, then the
-// SE(3) translations), oldest first, hist_len (N) how many. Writes the poses (N, count, B, 9) / (N, count, m, 3)
+// SE(3) translations), oldest first, hist_len (N) how many, and Rprev, Pprev the pose g_{k-1} (read by a learned
+// force). Writes the poses (N, count, B, 9) / (N, count, m, 3)
 // and per step converged, Newton iterations and the residual's max norm (N, count). The bodies: d1, d2
 // (B, 3, 9), hess (B, 9, 9), se3 (m, 36, 9), rho (m, 3), s = mass / h (m), D (dim, dim) when damped; the
-// potential as for `liedfl_so3_rollout` (the MLP's input (R, p), 9 B + 3 m wide; gravity per body). `threads`
-// as there. Returns 0.
+// potential as for `liedfl_so3_rollout` (the MLP's input (R, p), 9 B + 3 m wide; gravity per body); a learned
+// force `Net` when f_layers > 0. `threads` as there. Returns 0.
 int liedfl_product_rollout(int64_t N, int64_t count, int64_t B, int64_t m, const double *d1, const double *d2,
                            const double *hess, const double *se3, const double *rho, const double *s_mass,
                            int64_t damped, const double *D, double h, int64_t layers, const int64_t *width,
                            const double *weights, const double *weights_t, const double *biases,
                            const int64_t *act, const double *out_w, int64_t n_grav, const double *grav_a,
-                           const double *grav_f, const double *grav_m, double tol, int64_t max_iter,
-                           int64_t max_halvings, double *R, double *Pp, double *hist, int64_t *hist_len,
+                           const double *grav_f, const double *grav_m, int64_t f_layers, const int64_t *f_width,
+                           const double *f_weights, const double *f_weights_t, const double *f_biases,
+                           const int64_t *f_act, const double *f_out_w, const double *f_out_b, double f_scale,
+                           double tol, int64_t max_iter, int64_t max_halvings, double *Rprev, double *Pprev,
+                           double *R, double *Pp, double *hist, int64_t *hist_len,
                            double *outR, double *outp, uint8_t *converged, int64_t *iterations,
                            double *residual_norm, int64_t threads) {
     Spec s{nullptr,     nullptr, nullptr, (int)layers, width, weights,        weights_t,          biases, out_w, act,
            (int)n_grav, grav_a,  grav_f,  grav_m,      tol,   (int)max_iter, (int)max_halvings};
     const int dim = (int)(6 * m + 3 * (B - m)), nx = (int)(9 * B + 3 * m);
     Product P{(int)B, (int)m, dim, nx, d1, d2, hess, se3, rho, s_mass, damped ? D : nullptr, h};
+    Net net{(int)f_layers, nx, dim, f_width, f_act, f_weights, f_weights_t, f_biases, f_out_w, f_out_b, f_scale};
+    const Net *force = f_layers > 0 ? &net : nullptr;  // a learned force (`NNForce`), or none
     int wmax = nx, total = 0;
     for (int l = 0; l < layers; ++l) wmax = std::max(wmax, (int)width[l + 1]), total += (int)width[l + 1];
     const double big = std::numeric_limits<double>::max(), eps = std::numeric_limits<double>::epsilon();
     auto rows = [&](int64_t i0, int64_t i1) {
         std::vector<double> a(wmax), z(wmax), slopes(std::max(total, 1)), gr(wmax);
-        std::vector<double> cst(dim), r(dim), rc(dim), delta(dim), dd(dim), xi(dim), J(dim * dim), A(dim * dim);
-        std::vector<double> x(nx), cand(nx), t(3 * nx), gk(nx), gn(nx), inc(nx);
+        std::vector<double> cst(dim), r(dim), rc(dim), delta(dim), dd(dim), xi(dim), Fs(dim), J(dim * dim);
+        std::vector<double> A(2 * dim * dim), dF(dim * dim), x(nx), cand(nx), t(3 * nx), gk(nx), gn(nx), inc(nx);
         std::vector<int> piv(dim);
+        NetEval eval;
+        eval.init(force);
+        NetEval *nn = force ? &eval : nullptr;
         for (int64_t i = i0; i < i1; ++i) {
             double *g = R + 9 * B * i, *gp = Pp + 3 * m * i, *hi = hist + 3 * nx * i;
+            double *g0 = Rprev + 9 * B * i, *gp0 = Pprev + 3 * m * i;
             int L = (int)hist_len[i];
             for (int64_t k = 0; k < count; ++k) {
                 const double *prev = &hi[nx * (L - 1)];
                 kinetic(P, prev, true, cst.data());
-                damping_add(P, prev, cst.data(), xi.data());
+                if (nn) nn->fix(g0, gp0, (int)B, (int)m);  // the forces of the interval before g_k, at g_{k-1}
+                forces_add(P, nn, prev, cst.data(), xi.data(), Fs.data());
+                if (nn) nn->fix(g, gp, (int)B, (int)m);  // ... and of the interval after it, at g_k
                 covector(s, (int)B, (int)m, g, gp, a, z, slopes, gr, rc.data());
                 for (int q = 0; q < dim; ++q) cst[q] += rc[q];
                 extrapolate(P, hi, L, x.data(), t.data());
                 auto residual = [&](const double *y, double *out) {
                     kinetic(P, y, false, out);
                     for (int q = 0; q < dim; ++q) out[q] += cst[q];
-                    damping_add(P, y, out, xi.data());
+                    forces_add(P, nn, y, out, xi.data(), Fs.data());
                 };
                 residual(x.data(), r.data());
                 double rn = norm(r.data(), dim);
@@ -539,7 +674,7 @@ int liedfl_product_rollout(int64_t N, int64_t count, int64_t B, int64_t m, const
                     double scale = 0.0;  // newton.step_tolerance: the largest translation of the iterate
                     for (int q = 9 * (int)B; q < nx; ++q) scale = std::fmax(scale, std::fabs(x[q]));
                     double step_tol = m ? std::fmax(tol, 16.0 * eps * std::fmax(scale, 1.0)) : std::fmax(tol, 16.0 * eps);
-                    jacobian(P, x.data(), J.data(), A.data());
+                    jacobian(P, nn, x.data(), J.data(), A.data(), dF.data(), xi.data(), Fs.data());
                     bool singular = !lu_factor(J.data(), dim, piv.data());
                     for (int q = 0; q < dim; ++q) delta[q] = -r[q];
                     if (!singular) lu_solve(J.data(), dim, piv.data(), delta.data());
@@ -599,6 +734,8 @@ int liedfl_product_rollout(int64_t N, int64_t count, int64_t B, int64_t m, const
                 std::copy(x.begin() + 9 * B, x.end(), inc.begin() + 9 * B);
                 std::memcpy(gk.data(), g, 9 * B * sizeof(double));
                 if (m) std::memcpy(gk.data() + 9 * B, gp, 3 * m * sizeof(double));  // (no positions: maybe null)
+                std::memcpy(g0, g, 9 * B * sizeof(double));  // g_k becomes the next step's g_{k-1}
+                if (m) std::memcpy(gp0, gp, 3 * m * sizeof(double));
                 pose_mul(P, gk.data(), inc.data(), gn.data());
                 std::memcpy(g, gn.data(), 9 * B * sizeof(double));
                 std::memcpy(outR + (i * count + k) * 9 * B, gn.data(), 9 * B * sizeof(double));
