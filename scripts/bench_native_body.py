@@ -18,13 +18,15 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-import time
 from pathlib import Path
 
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "scripts"))
+
+from bench_peer import best_of  # noqa: E402
 
 from liedfl_cli.files.io_utils import write_json  # noqa: E402
 from liedfl_cli.lie import SE3, SO3, Pose, ProductGroup, so3  # noqa: E402
@@ -36,15 +38,6 @@ from liedfl_cli.solvers.options import SolverOptions  # noqa: E402
 H = 0.05
 MLPS = {"none": None, "mlp_10x2": (10, 2), "mlp_32x3": (32, 3), "mlp_64x3": (64, 3)}
 GROUPS = {"SO3": SO3, "SE3": SE3, "SE3xSO3": ProductGroup(1, 1)}  # the last: the two-body scene's group
-
-
-def best_of(fn, repeats: int = 3) -> float:
-    best = float("inf")
-    for _ in range(repeats):
-        t = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t)
-    return best
 
 
 def model_for(G, size, nn_force: bool = False) -> LieDFLNN:

@@ -408,3 +408,34 @@ def test_an_empty_batch_rolls_out_to_empty_poses_on_every_engine(name):
         rows = rollout_implicit(model, g0, g1, 5, SolverOptions())
     assert nat.pose.R.shape == rows.pose.R.shape == (0, 6, model.G.n_bodies, 3, 3)
     assert nat.pose.p.shape == rows.pose.p.shape and nat.iterations.shape == rows.iterations.shape == (0, 4)
+
+
+@pytest.mark.parametrize("unit", ["m", "mm"])
+def test_units_and_mass_ratios_the_generator_does_not_vary(unit):
+    """Two free bodies of 25 kg and 0.5 kg beside a pivoted one, in metres or millimetres (positions and lengths
+    x 1000, inertia x 1e6, g 9,810 mm/s^2, rotational damping x 1e6): the true scheme's native rollout takes the
+    row layout's steps, its positions within the Newton tolerance scaled by their magnitude (the step test's
+    rounding floor is)."""
+    k = 1000.0 if unit == "mm" else 1.0
+    G = ProductGroup(2, 1)
+    J = [[2.1, 1.7, 0.9], [0.02, 0.015, 0.01], [0.9, 0.8, 0.6]]  # principal moments per body
+    physics = {
+        "J": [torch.diag(torch.tensor(row, dtype=torch.float64) * k * k).tolist() for row in J],  # (3 bodies, 3 x 3)
+        "m": [25.0, 0.5, 1.0],
+        "rho": [[0.0, 0.0, 0.1 * k], [0.02 * k, 0.0, 0.0], [0.0, 0.0, -0.8 * k]],
+        "g": 9.81 * k,
+        "D": [0.05 * k * k] * 3 + [0.05] * 3 + [0.05 * k * k] * 3 + [0.05] * 3 + [0.05 * k * k] * 3,
+    }
+    model = physics_model(G, H, physics)
+    gen = torch.Generator().manual_seed(3)
+    R0 = so3.exp(torch.randn(4, 3, 3, generator=gen, dtype=torch.float64))
+    g0 = Pose(R0, k * torch.randn(4, 2, 3, generator=gen, dtype=torch.float64))
+    xi = H * torch.randn(4, G.dim, generator=gen, dtype=torch.float64)
+    xi[:, 3:6] *= k
+    xi[:, 9:12] *= k
+    g1 = G.retract(g0, xi)
+    nat, rows, _ = three_ways(model, g0, g1, 30)
+    assert rows.n_failed == 0
+    assert_same_steps(rows, nat)
+    assert gap(nat.pose.p, rows.pose.p) <= TOL * max(1.0, gap(rows.pose.p, 0 * rows.pose.p))
+    assert gap(nat.pose.p[:, -1], nat.pose.p[:, 1]) > 0.01 * k  # the bodies moved

@@ -237,7 +237,7 @@ def _state_and_output_args(state: dict, out: dict) -> list:
 class NativeSO3:
     """The constants of one SO(3) model's native rollout (its parameters read once, detached) and the call."""
 
-    se3 = False
+    product = False  # (the linear SO(3) step: no positions, no g_{k-1})
 
     def __init__(self, model, like: torch.Tensor):
         dt = like.dtype
@@ -301,7 +301,7 @@ class NativeProduct:
     """The constants of the native rollout of a product of bodies SE(3)^m x SO(3)^(B-m) (one SE(3) body
     included; its parameters read once, detached) and the call."""
 
-    se3 = True  # (poses with positions, possibly none)
+    product = True  # (the product step: positions (possibly none) and g_{k-1})
 
     def __init__(self, model, like: torch.Tensor):
         dt = like.dtype
@@ -364,17 +364,21 @@ def rollout(model, g0: Pose, g1: Pose, steps: int, opts: SolverOptions, progress
     hist[:, 0, 9 * B :] = inc.p.reshape(N, 3 * m)
     hist_len = like.new_ones(N, dtype=torch.int64)
     state = {"R": g1.R.reshape(N, 9 * B).contiguous().clone(), "hist": hist, "hist_len": hist_len}
-    if engine.se3:  # (a product: positions, and g_{k-1} for a learned force)
+    if engine.product:  # positions, and g_{k-1} for a learned force
         state["p"] = g1.p.reshape(N, 3 * m).contiguous().clone()
         state["R_prev"] = g0.R.reshape(N, 9 * B).contiguous().clone()
         state["p_prev"] = g0.p.reshape(N, 3 * m).contiguous().clone()
     run = lambda count: engine.run(state, count, opts)
     chunks = native_build.run_in_chunks(run, N, steps, CHUNK_ROW_STEPS, progress)
-    cat = _outputs(like, N, 0, B, m if engine.se3 else None)
+    cat = _outputs(like, N, 0, B, m if engine.product else None)
     if chunks:
         cat = {key: torch.cat([c[key] for c in chunks], 1) for key in chunks[0]}
     R = torch.cat((g0.R[:, None], g1.R[:, None], cat["R"]), 1)  # (N, steps + 1, B, 3, 3)
-    p = torch.cat((g0.p[:, None], g1.p[:, None], cat["p"]), 1) if engine.se3 else g0.p.new_zeros(N, R.shape[1], 0, 3)
+    p = (
+        torch.cat((g0.p[:, None], g1.p[:, None], cat["p"]), 1)
+        if engine.product
+        else g0.p.new_zeros(N, R.shape[1], 0, 3)
+    )
     return Rollout(
         Pose(R, p), cat["converged"].bool(), cat["iterations"], cat["residual_norm"], time.perf_counter() - t0
     )

@@ -63,6 +63,31 @@ inline void apply(const double *M, int k, const double *x, double *y) {
     }
 }
 
+// a (out) = act(z) for the hidden layer `l`'s activation (0 GELU, exact; 1 tanh), sl (out) its slope act'(z)
+inline void activate(int64_t act, const double *z, int out, double *a, double *sl) {
+    for (int i = 0; i < out; ++i) {
+        double v = z[i];
+        if (act == 0) {
+            double cdf = 0.5 * std::erf(v * INV_SQRT2) + 0.5;
+            a[i] = v * cdf;
+            sl[i] = cdf + v * std::exp(-0.5 * v * v) * INV_SQRT2PI;
+        } else {
+            double t = std::tanh(v);
+            a[i] = t;
+            sl[i] = 1.0 - t * t;
+        }
+    }
+}
+
+// z (out) += Wt^T a, Wt (in, out) a layer's transposed weights: each z_i summed over j in order, for all i at once
+// (the inner loop runs over i, contiguous and independent, so it vectorises with the same sums)
+inline void accumulate(const double *Wt, const double *a, int in, int out, double *z) {
+    for (int j = 0; j < in; ++j) {
+        const double aj = a[j], *row = &Wt[j * out];
+        for (int i = 0; i < out; ++i) z[i] += row[i] * aj;
+    }
+}
+
 // -h dV(g exp(eta))/d eta at 0 of the potential (`scalar._Potential.covector`, `mlp_derivatives.left_covector`
 // and the gravity terms' `left_gradient`) for B bodies, the first m of them SE(3): R (9 B), p (3 m); c (dim) in
 // the group's tangent layout (per body w, then v for an SE(3) body); the MLP's input is (R, p)
@@ -79,28 +104,10 @@ void covector(const Spec &s, int B, int m, const double *R, const double *p, std
         int in = (int)s.width[0], off = 0;
         for (int l = 0; l < s.layers; ++l) {
             int out = (int)s.width[l + 1];
-            // z_i = sum_j W_ij a_j summed over j in order, for all i at once (the transposed weights: the
-            // inner loop runs over i, contiguous and independent, so it vectorises with the same sums)
-            const double *Wt = s.weights_t + (W - s.weights);
             std::fill(z.begin(), z.begin() + out, 0.0);
-            for (int j = 0; j < in; ++j) {
-                const double aj = a[j], *row = &Wt[j * out];
-                for (int i = 0; i < out; ++i) z[i] += row[i] * aj;
-            }
+            accumulate(s.weights_t + (W - s.weights), a.data(), in, out, z.data());
             for (int i = 0; i < out; ++i) z[i] += b[i];
-            double *sl = &slopes[off];
-            for (int i = 0; i < out; ++i) {
-                double v = z[i];
-                if (s.act[l] == 0) {
-                    double cdf = 0.5 * std::erf(v * INV_SQRT2) + 0.5;
-                    a[i] = v * cdf;
-                    sl[i] = cdf + v * std::exp(-0.5 * v * v) * INV_SQRT2PI;
-                } else {
-                    double t = std::tanh(v);
-                    a[i] = t;
-                    sl[i] = 1.0 - t * t;
-                }
-            }
+            activate(s.act[l], z.data(), out, a.data(), &slopes[off]);
             W += out * in, b += out, off += out, in = out;
         }
         // backward: d(-h V)/d(R entries) through the layers in reverse
@@ -211,15 +218,11 @@ struct NetEval {
     // zq = the first layer's weights on g's inputs times flatten(g) (R: 9 B, p: 3 m)
     void fix(const double *R, const double *p, int B, int m) {
         const Net &n = *net;
-        const int w1 = (int)n.width[1], in = n.nq + n.dim;
+        const int w1 = (int)n.width[1];
         std::memcpy(a.data(), R, 9 * B * sizeof(double));
         if (m) std::memcpy(&a[9 * B], p, 3 * m * sizeof(double));
         std::fill(zq.begin(), zq.begin() + w1, 0.0);
-        for (int j = 0; j < n.nq; ++j) {
-            const double aj = a[j], *row = &n.weights_t[j * w1];
-            for (int i = 0; i < w1; ++i) zq[i] += row[i] * aj;
-        }
-        (void)in;
+        accumulate(n.weights_t, a.data(), n.nq, w1, zq.data());
     }
     // F (dim) at (the fixed g, xi); with dF (dim x dim, row-major) its Jacobian in xi by forward mode
     void eval(const double *xi, double *F, double *dF) {
@@ -231,19 +234,13 @@ struct NetEval {
             const int out = (int)n.width[l + 1];
             if (l == 0) {
                 for (int i = 0; i < out; ++i) z[i] = zq[i];
-                for (int j = 0; j < d; ++j) {
-                    const double xj = xi[j], *row = &Wt[(n.nq + j) * out];
-                    for (int i = 0; i < out; ++i) z[i] += row[i] * xj;
-                }
+                accumulate(Wt + n.nq * out, xi, d, out, z.data());
                 if (dF)  // J (out x d) = the first layer's xi columns
                     for (int i = 0; i < out; ++i)
                         for (int j = 0; j < d; ++j) J[i * d + j] = W[i * in + n.nq + j];
             } else {
                 std::fill(z.begin(), z.begin() + out, 0.0);
-                for (int j = 0; j < in; ++j) {
-                    const double aj = a[j], *row = &Wt[j * out];
-                    for (int i = 0; i < out; ++i) z[i] += row[i] * aj;
-                }
+                accumulate(Wt, a.data(), in, out, z.data());
                 if (dF) {  // J <- W_l J
                     std::fill(J2.begin(), J2.begin() + out * d, 0.0);
                     for (int i = 0; i < out; ++i)
@@ -257,18 +254,7 @@ struct NetEval {
             }
             for (int i = 0; i < out; ++i) z[i] += b[i];
             double *sl = &slopes[off];
-            for (int i = 0; i < out; ++i) {
-                double v = z[i];
-                if (n.act[l] == 0) {
-                    double cdf = 0.5 * std::erf(v * INV_SQRT2) + 0.5;
-                    a[i] = v * cdf;
-                    sl[i] = cdf + v * std::exp(-0.5 * v * v) * INV_SQRT2PI;
-                } else {
-                    double t = std::tanh(v);
-                    a[i] = t;
-                    sl[i] = 1.0 - t * t;
-                }
-            }
+            activate(n.act[l], z.data(), out, a.data(), sl);
             if (dF)
                 for (int i = 0; i < out; ++i)
                     for (int j = 0; j < d; ++j) J[i * d + j] *= sl[i];
